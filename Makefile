@@ -1,0 +1,46 @@
+# jaxcal — every target sets up .venv/ on its own when needed.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export JAX_PLATFORMS ?= cpu
+export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
+
+.PHONY: setup install test test-all lint format train validate bench-engine paper bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: setup
+
+test: $(STAMP)
+	$(BIN)/python -m pytest tests
+
+test-all: $(STAMP)
+	$(BIN)/python -m pytest tests -m ''
+
+lint: $(STAMP)
+	$(BIN)/ruff check jaxcal tests experiments
+	$(BIN)/ruff format --check jaxcal tests experiments
+
+format: $(STAMP)
+	$(BIN)/ruff format jaxcal tests experiments
+	$(BIN)/ruff check --fix jaxcal tests experiments
+
+# The main job. Until the training issue lands it runs the engine validation report.
+train: $(STAMP)
+	$(BIN)/python -m jaxcal.physics.validate
+
+validate: $(STAMP)
+	$(BIN)/python -m jaxcal.physics.validate
+
+bench-engine: $(STAMP)
+	$(BIN)/python -m jaxcal.bench engine
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache
