@@ -1,1 +1,11 @@
-"""jaxcal.physics."""
+"""The turbofan engine model: ``load_engine(name).evaluate(w, theta) -> (x, info)``."""
+
+from jaxcal.physics.engine import (
+    Engine,
+    EngineInfo,
+    Envelope,
+    evaluate_design,
+    load_engine,
+)
+
+__all__ = ["Engine", "EngineInfo", "Envelope", "evaluate_design", "load_engine"]

@@ -1,0 +1,308 @@
+"""The common calibrator interface shared by every calibration method.
+
+A *calibrator* turns a stream of operating conditions ``w_t`` and measurements ``x_t``
+into calibrated parameters ``theta_t`` and the model output ``xhat_t`` that goes with
+them. Every method in jaxcal — the UKF and sliding-window least squares
+(``jaxcal.baselines``), the end-to-end network ``theta_t = G(w_t, x_t, x_{t-1})``
+(paper eq. e2e) and a trained RL policy ``theta_{t+1} = pi(xhat_t, x_{t+1}, w_{t+1})``
+— is the same two pure functions, in the optax style::
+
+    class Calibrator(NamedTuple):
+        init: (key | None, w0 [Wd], x0 [S]) -> CalState
+        step: (state: CalState, w_t [Wd], x_t [S]) -> (CalState, CalStepOutput)
+
+Contract for implementers:
+
+* ``init(key, w0, x0)`` builds the state before the first sample. ``key`` is a PRNG key
+  or ``None`` (deterministic methods ignore it). ``(w0, x0)`` is the first valid sample
+  of the stream, offered for methods that need a "previous" sample: the E2E network
+  stores ``x_prev = x0``, the RL policy starts ``xhat = x0`` (or ``D``/``F`` of it).
+  The UKF and least squares ignore it except for shapes. Prior parameter values and
+  other settings are closed over by the factory, not passed here.
+* ``step(state, w_t, x_t)`` consumes exactly one sample and returns the new state and
+  ``CalStepOutput(theta [P], xhat [S], aux)``. ``theta`` is the estimate *at time t*
+  (after seeing ``x_t``); ``xhat`` is the model output the method associates with it
+  (UKF: ``F(w_t, theta_t)``; RL: ``D(w_t, xhat_{t-1}, theta_t)``; E2E:
+  ``F(w_t, theta_t)`` if a model is available). ``aux`` is ``None`` or a dict of
+  fixed-shape per-step diagnostics (e.g. ``{"theta_std": [P]}``) with the same keys on
+  every step.
+* ``step`` is pure and deterministic given its state: a stochastic method carries its
+  own PRNG key in its state and splits it inside ``step``. No Python control flow on
+  traced values, static shapes, no jit inside (callers jit at entry points).
+* RL mapping: with ``state.xhat = xhat_{t-1}``, ``step`` computes
+  ``theta_t = pi(xhat_{t-1}, x_t, w_t)`` and ``xhat_t = D(w_t, xhat_{t-1}, theta_t)``,
+  i.e. the paper's ``theta_{t+1} = pi(xhat_t, x_{t+1}, w_{t+1})`` shifted by one index.
+
+:func:`run_calibrator` scans ``step`` over a padded record with a validity mask and
+:func:`run_fleet` vmaps it over units. :func:`measure_declared` adapts a
+full-parameter model ``F(w, theta_full) -> x_full`` to the declared parameters and
+selected sensors that model-based calibrators work on. A ``Calibrator`` is hashable
+(a tuple of functions), so jit the runners with it as a static argument:
+``jax.jit(run_fleet, static_argnums=0)(calibrator, w, x, mask)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from jaxcal.physics.constants import health_index, sensor_index
+from jaxcal.typedefs import Array, Metrics, PRNGKey
+
+CalState = Any  # any pytree; each calibrator defines its own state dataclass
+MeasureFn = Callable[[Array, Array], Array]  # (w [Wd], theta [P]) -> x [S]
+
+
+class SensorNorm(NamedTuple):
+    """Per-sensor normalisation ``x_n = (x - mean) / std`` (training statistics)."""
+
+    mean: Array  # [S]
+    std: Array  # [S], > 0
+
+
+class CalStepOutput(NamedTuple):
+    """What one calibrator step reports."""
+
+    theta: Array  # [P] calibrated parameters at time t
+    xhat: Array  # [S] model output belonging to theta at time t
+    aux: Metrics | None = None  # optional per-step diagnostics, fixed keys and shapes
+
+
+class CalOutput(NamedTuple):
+    """Time-major results of :func:`run_calibrator` (a leading ``[U]`` for fleets)."""
+
+    theta: Array  # [T, P]
+    xhat: Array  # [T, S]
+    aux: Metrics | None = None  # each entry [T, ...]
+
+
+class Calibrator(NamedTuple):
+    """A calibration method as a pair of pure functions (see the module docstring)."""
+
+    init: Callable[[PRNGKey | None, Array, Array], CalState]
+    step: Callable[[CalState, Array, Array], tuple[CalState, CalStepOutput]]
+
+
+def run_calibrator(
+    calibrator: Calibrator,
+    w: Array,
+    x: Array,
+    mask: Array | None = None,
+    *,
+    key: PRNGKey | None = None,
+    unroll: int = 1,
+) -> CalOutput:
+    """Run a calibrator over one padded record with ``lax.scan``.
+
+    Masked rows (``mask == False``) do not advance the state and repeat the previous
+    outputs; the step is not fed padding either: it sees the last valid ``(w, x)``,
+    so a model is never evaluated at padded zeros. Rows before the first valid one
+    output zeros. ``init`` receives the first valid sample. Not jitted: jit the caller,
+    e.g. ``jax.jit(run_calibrator, static_argnums=0)``.
+
+    Args:
+        calibrator: the method.
+        w: operating conditions, ``[T, Wd]``.
+        x: measurements, ``[T, S]``.
+        mask: validity, ``[T]`` bool; ``None`` means all valid.
+        key: PRNG key handed to ``calibrator.init`` (``None`` for deterministic ones).
+        unroll: ``lax.scan`` unroll factor (8 speeds up cheap steps).
+
+    Returns:
+        ``CalOutput`` with ``theta [T, P]``, ``xhat [T, S]`` and ``aux`` entries
+        ``[T, ...]``. Sums of ``aux`` over time must use ``mask`` (held rows repeat).
+    """
+    w, x, mask = _check_record(w, x, mask)
+    first = jnp.argmax(mask)  # index of the first valid row (0 if none is valid)
+    w0, x0 = w[first], x[first]
+    state0 = calibrator.init(key, w0, x0)
+    out_shape = jax.eval_shape(calibrator.step, state0, w0, x0)[1]
+    out0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
+
+    def body(carry, inputs):
+        state, last_out, last_w, last_x = carry
+        w_t, x_t, m_t = inputs
+        w_t = jnp.where(m_t, w_t, last_w)
+        x_t = jnp.where(m_t, x_t, last_x)
+        new_state, new_out = calibrator.step(state, w_t, x_t)
+        keep = lambda new, old: jnp.where(m_t, new, old)  # noqa: E731
+        state = jax.tree.map(keep, new_state, state)
+        out = jax.tree.map(keep, new_out, last_out)
+        return (state, out, w_t, x_t), out
+
+    _, outs = lax.scan(body, (state0, out0, w0, x0), (w, x, mask), unroll=unroll)
+    return CalOutput(theta=outs.theta, xhat=outs.xhat, aux=outs.aux)
+
+
+def run_fleet(
+    calibrator: Calibrator,
+    w: Array,
+    x: Array,
+    mask: Array | None = None,
+    *,
+    keys: PRNGKey | None = None,
+    unroll: int = 1,
+) -> CalOutput:
+    """:func:`run_calibrator` vmapped over units.
+
+    Args:
+        calibrator: the method.
+        w: ``[U, T, Wd]``.
+        x: ``[U, T, S]``.
+        mask: ``[U, T]`` bool or ``None`` (all valid).
+        keys: ``[U]`` PRNG keys, or ``None`` for deterministic calibrators.
+        unroll: ``lax.scan`` unroll factor.
+
+    Returns:
+        ``CalOutput`` with ``theta [U, T, P]``, ``xhat [U, T, S]``, ``aux [U, T, ...]``.
+    """
+    w, x = jnp.asarray(w), jnp.asarray(x)
+    if w.ndim != 3 or x.ndim != 3 or w.shape[:2] != x.shape[:2]:
+        raise ValueError(
+            f"run_fleet: expected w [U, T, Wd] and x [U, T, S] with equal U, T; got "
+            f"w {w.shape}, x {x.shape}"
+        )
+    if mask is None:
+        mask = jnp.ones(w.shape[:2], bool)
+    mask = jnp.asarray(mask)
+    if mask.shape != w.shape[:2]:
+        raise ValueError(
+            f"run_fleet: mask must be [U, T] = {w.shape[:2]}, got {mask.shape}"
+        )
+
+    def one(w_u, x_u, m_u, key_u):
+        return run_calibrator(calibrator, w_u, x_u, m_u, key=key_u, unroll=unroll)
+
+    return jax.vmap(one, in_axes=(0, 0, 0, None if keys is None else 0))(
+        w, x, mask, keys
+    )
+
+
+def measure_declared(
+    measure_full: Callable[[Array, Array], Array],
+    theta_base: Array,
+    declared_idx: Sequence[int] | Sequence[str],
+    sensor_idx: Sequence[int] | Sequence[str] | None = None,
+) -> MeasureFn:
+    """Restrict a full-parameter model to the declared parameters and chosen sensors.
+
+    Model-based calibrators estimate only the ``P`` declared parameters; the others are
+    held at ``theta_base``. Because the declared vector is scattered into the full one,
+    ``jax.jacfwd`` of the result costs ``P`` tangent sweeps, not one per full parameter.
+
+    Args:
+        measure_full: ``F(w [Wd], theta_full [P_full]) -> x_full [S_full]`` (for the
+            engine: ``lambda w, th: engine.evaluate(w, th)[0]``).
+        theta_base: ``[P_full]`` values of all parameters (undeclared ones stay here).
+        declared_idx: positions in ``theta_full`` of the declared parameters, or their
+            names in ``jaxcal.physics.constants.HEALTH_NAMES``.
+        sensor_idx: positions in ``x_full`` of the sensors to return, or their names in
+            ``SENSOR_NAMES``; ``None`` keeps all.
+
+    Returns:
+        ``measure(w [Wd], theta [P]) -> x [S]``.
+    """
+    theta_base = jnp.asarray(theta_base)
+    if theta_base.ndim != 1:
+        raise ValueError(f"theta_base must be [P_full], got shape {theta_base.shape}")
+    declared = _as_index(
+        declared_idx, health_index, "declared_idx", theta_base.shape[0]
+    )
+    sensors = (
+        None
+        if sensor_idx is None
+        else _as_index(sensor_idx, sensor_index, "sensor_idx", None)
+    )
+
+    def measure(w: Array, theta: Array) -> Array:
+        theta_full = theta_base.astype(theta.dtype).at[declared].set(theta)
+        x_full = measure_full(w, theta_full)
+        return x_full if sensors is None else x_full[sensors]
+
+    return measure
+
+
+def _as_index(idx, from_names, field: str, size: int | None) -> np.ndarray:
+    """Names or integers -> a unique 1-D int array, with a clear error otherwise."""
+    idx = list(idx)
+    if not idx:
+        raise ValueError(f"{field} must name at least one entry")
+    if all(isinstance(i, str) for i in idx):
+        idx = from_names(idx)
+    arr = np.asarray(idx)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{field} must be a sequence of ints or of names, got {idx!r}")
+    if len(set(arr.tolist())) != arr.size or arr.min() < 0:
+        raise ValueError(f"{field} must be unique non-negative indices, got {idx!r}")
+    if size is not None and arr.max() >= size:
+        raise ValueError(f"{field} has index {arr.max()} >= number of entries {size}")
+    return arr
+
+
+def _check_record(w, x, mask):
+    """Shape checks for one record: w [T, Wd], x [T, S], mask [T] (default all)."""
+    w, x = jnp.asarray(w), jnp.asarray(x)
+    if w.ndim != 2 or x.ndim != 2 or w.shape[0] != x.shape[0]:
+        raise ValueError(
+            "expected w [T, Wd] and x [T, S] with equal T; "
+            f"got w {w.shape}, x {x.shape}"
+        )
+    if mask is None:
+        mask = jnp.ones(w.shape[:1], bool)
+    mask = jnp.asarray(mask)
+    if mask.shape != w.shape[:1]:
+        raise ValueError(f"mask must be [T] = {w.shape[:1]} bool, got {mask.shape}")
+    return w, x, mask.astype(bool)
+
+
+def check_norm(norm: Any, name: str = "norm") -> SensorNorm:
+    """Validate a normalisation (anything with ``.mean`` and ``.std`` of shape ``[S]``).
+
+    Args:
+        norm: e.g. :class:`SensorNorm` or a data-set statistics object.
+        name: the argument name used in error messages.
+
+    Returns:
+        A :class:`SensorNorm` of arrays. Value checks (``std > 0``, finite) run only
+        when the arrays are concrete, so the function is safe under ``jit``/``vmap``.
+    """
+    if not (hasattr(norm, "mean") and hasattr(norm, "std")):
+        raise ValueError(f"{name} must have .mean and .std arrays of shape [S]")
+    mean, std = jnp.asarray(norm.mean), jnp.asarray(norm.std)
+    if mean.ndim != 1 or mean.shape != std.shape:
+        raise ValueError(
+            f"{name}.mean and {name}.std must both be [S]; "
+            f"got {mean.shape}, {std.shape}"
+        )
+    if not isinstance(std, jax.core.Tracer) and not isinstance(mean, jax.core.Tracer):
+        if not (np.all(np.isfinite(np.asarray(mean))) and np.all(np.asarray(std) > 0)):
+            raise ValueError(f"{name}: mean must be finite and std > 0 everywhere")
+    return SensorNorm(mean=mean, std=std)
+
+
+def check_scale(theta_scale: Array | None, num_params: int, dtype: Any) -> Array:
+    """``theta_scale`` -> a positive ``[P]`` array (ones when ``None``).
+
+    Args:
+        theta_scale: ``[P]`` per-parameter scales or ``None``.
+        num_params: ``P``.
+        dtype: float dtype of the result.
+
+    Returns:
+        ``[P]`` scales. The positivity check runs only on concrete values.
+    """
+    if theta_scale is None:
+        return jnp.ones((num_params,), dtype)
+    scale = jnp.asarray(theta_scale, dtype=dtype)
+    if scale.shape != (num_params,):
+        raise ValueError(
+            f"theta_scale must be [P] = ({num_params},), got {scale.shape}"
+        )
+    if not isinstance(scale, jax.core.Tracer) and not bool(jnp.all(scale > 0)):
+        raise ValueError("theta_scale must be > 0 everywhere")
+    return scale

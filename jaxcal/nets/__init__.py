@@ -1,0 +1,1 @@
+"""jaxcal.nets: shared supervised-network building blocks (MLP, regression trainer)."""

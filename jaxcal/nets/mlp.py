@@ -1,0 +1,306 @@
+"""A plain float32 MLP and a generic jitted regression trainer for the supervised nets.
+
+The paper's simulator network D and its end-to-end baseline G are both MLPs with three
+hidden layers of 100 ReLU units, a linear output and Xavier (Glorot) initialisation,
+trained with Adam on minibatches (Tian et al., appendix "Simulator Network" and "E2E
+Network"). This module owns that shared machinery: :class:`MLP`, the per-feature
+:class:`Normalizer`, :class:`RegressorParams` (network weights + input/target
+statistics, one pytree to checkpoint) and :func:`fit_regressor`.
+
+Training jits one function per epoch that draws a permutation of the training indices
+and advances every minibatch in a ``lax.scan``; the host loop over epochs only evaluates
+the validation loss, logs, updates a progress bar and applies early stopping. Networks
+run in float32 whatever the global precision: inputs are cast and statistics are stored
+as float32.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from tqdm.auto import tqdm
+
+from jaxcal.typedefs import Array, PRNGKey, PyTree
+
+ACTIVATIONS: dict[str, Callable[[Array], Array]] = {
+    "relu": nn.relu,
+    "leaky_relu": nn.leaky_relu,
+    "tanh": jnp.tanh,
+    "elu": nn.elu,
+    "gelu": nn.gelu,
+    "silu": nn.silu,
+}
+EVAL_CHUNK = 8192  # rows per chunk when scoring large sets, to bound activation memory
+
+
+class MLP(nn.Module):
+    """Fully connected network ``[..., I] -> [..., output_dim]`` with a linear output.
+
+    Attributes:
+        hidden_sizes: width of each hidden layer, e.g. ``(100, 100, 100)``.
+        output_dim: size of the linear output layer.
+        activation: hidden activation, a key of :data:`ACTIVATIONS`.
+    """
+
+    hidden_sizes: tuple[int, ...]
+    output_dim: int
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, x: Array) -> Array:
+        """``[..., I]`` inputs (cast to float32) to ``[..., output_dim]`` outputs."""
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"activation must be one of {sorted(ACTIVATIONS)}, "
+                f"got {self.activation!r}"
+            )
+        act = ACTIVATIONS[self.activation]
+        dense = dict(
+            kernel_init=nn.initializers.glorot_uniform(),
+            bias_init=nn.initializers.zeros,
+            dtype=jnp.float32,
+            param_dtype=jnp.float32,
+        )
+        x = x.astype(jnp.float32)
+        for i, size in enumerate(self.hidden_sizes):
+            x = act(nn.Dense(size, name=f"hidden_{i}", **dense)(x))
+        return nn.Dense(self.output_dim, name="output", **dense)(x)
+
+
+@struct.dataclass
+class Normalizer:
+    """Per-feature affine standardisation ``z = (v - mean) / std``."""
+
+    mean: Array  # [D] float32
+    std: Array  # [D] float32, strictly positive
+
+    def normalize(self, v: Array) -> Array:
+        """``[..., D]`` raw values to standardised float32."""
+        return (v.astype(jnp.float32) - self.mean) / self.std
+
+    def denormalize(self, z: Array) -> Array:
+        """``[..., D]`` standardised values back to raw units."""
+        return z * self.std + self.mean
+
+
+def fit_normalizer(values: Array) -> Normalizer:
+    """Mean and std over axis 0 of ``values [N, D]`` (host-side).
+
+    A feature that is (numerically) constant gets std 1, so that it passes through
+    centred instead of being blown up by a tiny divisor (e.g. a θ component that the
+    data set never varies).
+    """
+    v = np.asarray(values, dtype=np.float64)
+    mean = v.mean(axis=0)
+    std = v.std(axis=0)
+    std = np.where(std > 1e-6 * np.maximum(1.0, np.abs(mean)), std, 1.0)
+    return Normalizer(
+        mean=jnp.asarray(mean, jnp.float32), std=jnp.asarray(std, jnp.float32)
+    )
+
+
+@struct.dataclass
+class RegressorParams:
+    """Everything a trained regressor needs besides its (static) architecture."""
+
+    net: PyTree  # flax parameters of the MLP
+    input_norm: Normalizer  # [I]
+    target_norm: Normalizer  # [O]
+
+
+def regressor_apply(model: nn.Module, params: RegressorParams, inputs: Array) -> Array:
+    """Predict targets ``[..., O]`` (target units) from raw inputs ``[..., I]``."""
+    z = model.apply({"params": params.net}, params.input_norm.normalize(inputs))
+    return params.target_norm.denormalize(z)
+
+
+@dataclasses.dataclass(frozen=True)
+class RegressorConfig:
+    """Optimisation settings of :func:`fit_regressor` (the model fixes the layers)."""
+
+    learning_rate: float = 1e-3  # Adam step size
+    batch_size: int = 256  # minibatch size (paper appendix: 256)
+    num_epochs: int = 100  # upper bound on passes over the training set
+    validation_fraction: float = 0.0  # share of samples held out (0: no validation)
+    patience: int | None = None  # stop after this many epochs without val improvement
+    min_delta: float = 0.0  # improvement below this does not reset the patience
+
+    def __post_init__(self):
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+        if self.batch_size < 1 or self.num_epochs < 1:
+            raise ValueError("batch_size and num_epochs must be >= 1")
+        if not 0.0 <= self.validation_fraction < 1.0:
+            raise ValueError(
+                f"validation_fraction must be in [0, 1), got {self.validation_fraction}"
+            )
+        if self.patience is not None and self.patience < 1:
+            raise ValueError(f"patience must be >= 1 or None, got {self.patience}")
+        if self.patience is not None and self.validation_fraction == 0.0:
+            raise ValueError("patience (early stopping) needs validation_fraction > 0")
+
+
+@struct.dataclass
+class _TrainState:
+    net: PyTree
+    opt_state: optax.OptState
+
+
+def _mse(model: nn.Module, net: PyTree, xn: Array, yn: Array) -> Array:
+    """Mean squared error on normalised data, scored in chunks (bounded memory)."""
+    n = xn.shape[0]
+    chunk = min(n, EVAL_CHUNK)
+    num_chunks = -(-n // chunk)
+    pad = num_chunks * chunk - n
+    weight = jnp.pad(jnp.ones(n, jnp.float32), (0, pad)).reshape(num_chunks, chunk)
+    xs = jnp.pad(xn, ((0, pad), (0, 0))).reshape(num_chunks, chunk, -1)
+    ys = jnp.pad(yn, ((0, pad), (0, 0))).reshape(num_chunks, chunk, -1)
+
+    def chunk_sse(args):
+        x, y, w = args
+        err = model.apply({"params": net}, x) - y
+        return jnp.sum(w[:, None] * err**2)
+
+    return jnp.sum(jax.lax.map(chunk_sse, (xs, ys, weight))) / (n * yn.shape[1])
+
+
+def _check_data(inputs, targets) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(inputs, dtype=np.float32)
+    y = np.asarray(targets, dtype=np.float32)
+    if x.ndim != 2 or y.ndim != 2 or x.shape[0] != y.shape[0] or x.shape[0] < 1:
+        raise ValueError(
+            f"inputs must be [N, I] and targets [N, O] with the same N >= 1, "
+            f"got {x.shape} and {y.shape}"
+        )
+    for name, v in (("inputs", x), ("targets", y)):
+        if not np.isfinite(v).all():
+            row = int(np.argwhere(~np.isfinite(v))[0, 0])
+            raise ValueError(f"{name} contain NaN or inf (first at row {row})")
+    return x, y
+
+
+def fit_regressor(
+    key: PRNGKey,
+    model: nn.Module,
+    inputs: Array,
+    targets: Array,
+    cfg: RegressorConfig,
+    *,
+    log_fn: Callable[[int, dict[str, float]], None] | None = None,
+    progress: bool = False,
+) -> tuple[RegressorParams, dict]:
+    """Fit ``model`` to map ``inputs`` to ``targets`` by minibatch Adam on the MSE.
+
+    Inputs and targets are standardised with statistics of the training part; the loss
+    is the MSE of normalised targets. With a validation split the returned parameters
+    are those of the best validation epoch, and ``cfg.patience`` stops training early.
+
+    Args:
+        key: PRNG key (init, validation split and minibatch order).
+        model: a flax module mapping ``[B, I]`` to ``[B, O]`` (e.g. :class:`MLP`).
+        inputs: ``[N, I]`` raw inputs (cast to float32).
+        targets: ``[N, O]`` raw targets.
+        cfg: optimisation settings.
+        log_fn: called as ``log_fn(epoch, {"train_loss": ..., "val_loss": ...})``.
+        progress: show a tqdm bar over epochs.
+
+    Returns:
+        ``(params, history)``; ``history`` holds ``train_loss`` and ``val_loss`` arrays
+        ``[E]`` (``val_loss`` empty without validation), ``best_epoch``,
+        ``epochs_run`` and ``stopped_early``.
+    """
+    x, y = _check_data(inputs, targets)
+    key_split, key_init, key_epochs = jax.random.split(key, 3)
+    n = x.shape[0]
+    num_val = int(round(cfg.validation_fraction * n))
+    if num_val and n - num_val < 1:
+        raise ValueError(f"validation_fraction leaves no training samples (N = {n})")
+    order = (
+        np.asarray(jax.random.permutation(key_split, n)) if num_val else np.arange(n)
+    )
+    train_idx, val_idx = order[: n - num_val], order[n - num_val :]
+    input_norm, target_norm = fit_normalizer(x[train_idx]), fit_normalizer(y[train_idx])
+
+    def standardise(v, norm):  # on the host: eager jnp ops would each compile
+        return jnp.asarray((v - np.asarray(norm.mean)) / np.asarray(norm.std))
+
+    xn, yn = (
+        standardise(x[train_idx], input_norm),
+        standardise(y[train_idx], target_norm),
+    )
+    xv, yv = standardise(x[val_idx], input_norm), standardise(y[val_idx], target_norm)
+
+    optimizer = optax.adam(cfg.learning_rate)
+    net = jax.jit(model.init)(key_init, xn[:1])["params"]
+    state = _TrainState(net=net, opt_state=optimizer.init(net))
+    n_train = xn.shape[0]
+    batch_size = min(cfg.batch_size, n_train)
+    num_batches = n_train // batch_size  # the remainder changes with every permutation
+
+    def loss_fn(net, xb, yb):
+        return jnp.mean((model.apply({"params": net}, xb) - yb) ** 2)
+
+    def sgd_step(state, batch_idx, xn, yn):
+        loss, grads = jax.value_and_grad(loss_fn)(
+            state.net, xn[batch_idx], yn[batch_idx]
+        )
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.net)
+        return _TrainState(optax.apply_updates(state.net, updates), opt_state), loss
+
+    @jax.jit
+    def train_epoch(state, epoch, xn, yn):
+        key = jax.random.fold_in(key_epochs, epoch)
+        perm = jax.random.permutation(key, n_train)[: num_batches * batch_size]
+        batches = perm.reshape(num_batches, batch_size)
+        state, losses = jax.lax.scan(
+            lambda s, b: sgd_step(s, b, xn, yn), state, batches
+        )
+        return state, jnp.mean(losses)
+
+    val_loss_fn = jax.jit(lambda net, xv, yv: _mse(model, net, xv, yv))
+    train_hist, val_hist = [], []
+    best_net, best_val, best_epoch, since_best = state.net, math.inf, 0, 0
+    bar = tqdm(range(cfg.num_epochs), disable=not progress, desc="fit", leave=False)
+    for epoch in bar:
+        state, train_loss = train_epoch(state, epoch, xn, yn)
+        record = {"train_loss": float(train_loss)}
+        if num_val:
+            record["val_loss"] = float(val_loss_fn(state.net, xv, yv))
+        if not all(math.isfinite(v) for v in record.values()):
+            raise FloatingPointError(
+                f"loss became non-finite at epoch {epoch}: {record}"
+            )
+        train_hist.append(record["train_loss"])
+        if num_val:
+            val_hist.append(record["val_loss"])
+            if record["val_loss"] < best_val - cfg.min_delta:
+                best_net, best_val, best_epoch = state.net, record["val_loss"], epoch
+                since_best = 0
+            else:
+                since_best += 1
+        else:
+            best_net, best_epoch = state.net, epoch
+        bar.set_postfix(record)
+        if log_fn is not None:
+            log_fn(epoch, record)
+        if cfg.patience is not None and since_best >= cfg.patience:
+            break
+    history = {
+        "train_loss": np.asarray(train_hist),
+        "val_loss": np.asarray(val_hist),
+        "best_epoch": best_epoch,
+        "epochs_run": len(train_hist),
+        "stopped_early": len(train_hist) < cfg.num_epochs,
+    }
+    params = RegressorParams(
+        net=best_net, input_norm=input_norm, target_norm=target_norm
+    )
+    return params, history

@@ -1,0 +1,115 @@
+"""Damped Newton solve of the off-design balance with implicit-function gradients.
+
+The balance r(z; p) = 0 (9 unknowns) is solved by Newton's method with a dense
+forward-mode Jacobian, LU solve, a step clipped to ||dz||_inf <= ``max_step`` and a
+best-of-three backtracking line search (alpha in {1, 1/2, 1/4}), inside a
+``lax.while_loop`` that stops at ``tol`` or ``max_iter`` (physics_facts.md 3.3, "Newton
+tips for JAX"). Under ``vmap`` the loop runs until every sample has stopped; finished
+samples are frozen by the batching rule of ``while_loop``.
+
+Derivatives never go through the iterations: :func:`solve` is a ``jax.custom_jvp`` whose
+tangent is the implicit-function theorem, dz = -J_z^{-1} (dr/dp) dp at the solution, so
+``jacfwd`` and ``grad`` (by transposition of the linear tangent) both work and cost one
+extra linear solve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """Static Newton settings."""
+
+    max_iter: int = 40  # hard cap on Newton iterations
+    tol: float = 1e-11  # stop when max |r| (normalised residuals) is below this
+    max_step: float = 0.5  # clip ||dz||_inf per iteration (unbounded coordinates)
+
+
+class SolveInfo(NamedTuple):
+    residual_norm: jnp.ndarray  # max |r| at the returned z
+    iterations: jnp.ndarray  # Newton iterations used
+
+
+def _newton(residual_fn, z0, params, cfg: SolverConfig):
+    """Newton with step clipping and accept/reject backtracking on ||r||_2.
+
+    One residual + Jacobian evaluation per iteration: a trial point that does not
+    lower ||r||_2 is rejected and the step from the last accepted point is halved (down
+    to 1/16, then accepted anyway so that the iteration cannot stall).
+    """
+
+    def cond(carry):
+        it, rmax = carry[0], carry[3]
+        return (it < cfg.max_iter) & (rmax > cfg.tol)
+
+    def body(carry):
+        it, z_acc, merit_acc, _, dz, alpha, z_try = carry
+        jac, r = jax.jacfwd(lambda zz: (residual_fn(zz, params),) * 2, has_aux=True)(
+            z_try
+        )
+        merit = jnp.sum(r**2)
+        merit = jnp.where(jnp.isfinite(merit), merit, jnp.inf)
+        accept = (merit < merit_acc) | (alpha < 0.07)
+        step = -jnp.linalg.solve(jac, r)
+        step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
+        step = step * jnp.minimum(1.0, cfg.max_step / (jnp.max(jnp.abs(step)) + 1e-300))
+        z_acc = jnp.where(accept, z_try, z_acc)
+        rmax = jnp.where(accept, jnp.max(jnp.abs(r)), carry[3])
+        merit_acc = jnp.where(accept, merit, merit_acc)
+        dz = jnp.where(accept, step, dz)
+        alpha = jnp.where(accept, 1.0, 0.5 * alpha)
+        return it + 1, z_acc, merit_acc, rmax, dz, alpha, z_acc + alpha * dz
+
+    inf = jnp.array(jnp.inf, z0.dtype)
+    init = (jnp.int32(0), z0, inf, inf, jnp.zeros_like(z0), jnp.ones((), z0.dtype), z0)
+    it, z, _, rmax, *_ = jax.lax.while_loop(cond, body, init)
+    return z, SolveInfo(residual_norm=rmax, iterations=it)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 3))
+def _solve(residual_fn, z0, params, cfg):
+    z, info = _newton(residual_fn, z0, params, cfg)
+    # iteration count and residual norm travel as floats so that they can carry a
+    # (zero) tangent; the norm is the one of the accepted iterate, computed in the loop
+    return z, info.iterations.astype(z.dtype), info.residual_norm
+
+
+@_solve.defjvp
+def _solve_jvp(residual_fn, cfg, primals, tangents):
+    z0, params = primals
+    _, dparams = tangents
+    z, iters, rmax = _solve(residual_fn, jax.lax.stop_gradient(z0), params, cfg)
+    jac = jax.jacfwd(residual_fn)(z, params)
+    _, dr = jax.jvp(lambda p: residual_fn(z, p), (params,), (dparams,))
+    dz = -jnp.linalg.solve(jac, dr)
+    return (z, iters, rmax), (dz, jnp.zeros_like(iters), jnp.zeros_like(rmax))
+
+
+def solve(
+    residual_fn: Callable, z0, params, cfg: SolverConfig = SolverConfig()
+) -> tuple[jnp.ndarray, SolveInfo]:
+    """Solve residual_fn(z, params) = 0 from z0; differentiable w.r.t. ``params``.
+
+    Args:
+        residual_fn: pure function (z [n], params pytree) -> residuals [n].
+        z0: [n] initial guess (no gradient flows through it).
+        params: pytree of arrays the solution depends on (differentiable).
+        cfg: static solver settings.
+
+    Returns:
+        (z [n], SolveInfo) with max |r| at the returned (last accepted) iterate.
+    """
+    z, iters, rmax = _solve(residual_fn, z0, params, cfg)
+    info = SolveInfo(
+        residual_norm=jax.lax.stop_gradient(rmax),
+        iterations=jax.lax.stop_gradient(iters).astype(jnp.int32),
+    )
+    return z, info

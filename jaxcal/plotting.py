@@ -1,0 +1,249 @@
+"""Figures of the data sets and of calibration traces (host-only leaf, matplotlib Agg).
+
+Every function takes numpy-convertible arrays, draws on a fresh ``Figure`` with an Agg
+canvas (no pyplot: no global state, no display needed) and writes a PNG atomically: a
+temporary file in the target directory, then ``os.replace``. Nothing in the core imports
+this module.
+
+* :func:`plot_flight_profiles`: alt / Mach / TRA against time (paper Fig. 2, left).
+* :func:`plot_health_trajectories`: fleet health modifiers against cycle (Fig. 2,
+  right).
+* :func:`plot_stacked_traces`: theta traces of several units stacked one after the
+  other, inferred against truth (the paper's inference figures).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+TRUTH_COLOR = "tab:orange"  # the paper draws ground truth as orange squares
+SERIES_COLORS = ("tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown")
+_PROFILE_PANELS = ((0, "alt [kft]", 1e-3), (1, "Mach [-]", 1.0), (2, "TRA [%]", 1.0))
+
+
+def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> str:
+    """Write ``fig`` as PNG to ``path`` atomically (temp file + rename); return path."""
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=".png")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            fig.savefig(f, format="png", dpi=dpi)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; figures are for sharing
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _batched(x, name: str, ndim: int) -> np.ndarray:
+    """``x`` as a float array with a leading batch axis of ``ndim`` total dims."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == ndim - 1:
+        x = x[None]
+    if x.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim - 1} or {ndim} dims, got {x.shape}")
+    return x
+
+
+def plot_flight_profiles(
+    path,
+    t,
+    w,
+    *,
+    mask=None,
+    labels: Sequence[str] | None = None,
+    title: str | None = None,
+    dpi: int = 120,
+) -> str:
+    """Altitude, Mach and TRA against time, one line per flight.
+
+    Args:
+        path: output PNG.
+        t: [T] or [F, T] time [s].
+        w: [T, 4] or [F, T, 4] conditions (alt [ft], Mach, TRA [%], T2), as
+            CONDITION_NAMES.
+        mask: optional [T] or [F, T] validity (padded samples are not drawn).
+        labels: optional F legend labels.
+        title: optional figure title.
+        dpi: resolution.
+
+    Returns:
+        The written path.
+    """
+    w = _batched(w, "w", 3)
+    num_flights, num_steps = w.shape[:2]
+    t = np.broadcast_to(_batched(t, "t", 2), (num_flights, num_steps))
+    if w.shape[-1] < 3:
+        raise ValueError(f"w needs >= 3 columns (alt, Mach, TRA), got {w.shape}")
+    valid = np.ones(w.shape[:2], bool) if mask is None else _batched(mask, "mask", 2)
+    valid = np.broadcast_to(valid.astype(bool), w.shape[:2])
+    if labels is not None and len(labels) != num_flights:
+        raise ValueError(f"labels needs {num_flights} entries, got {len(labels)}")
+    fig = Figure(figsize=(12, 3.4), layout="constrained")
+    axes = fig.subplots(1, len(_PROFILE_PANELS), sharex=True)
+    for ax, (col, ylabel, scale) in zip(axes, _PROFILE_PANELS, strict=True):
+        for i in range(num_flights):
+            label = None if labels is None else labels[i]
+            ax.plot(
+                t[i][valid[i]] / 60.0,
+                w[i, :, col][valid[i]] * scale,
+                lw=0.8,
+                label=label,
+            )
+        ax.set_xlabel("time [min]")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    if labels is not None:
+        axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return save_figure(fig, path, dpi=dpi)
+
+
+def plot_health_trajectories(
+    path,
+    cycles,
+    theta,
+    names: Sequence[str],
+    *,
+    mask=None,
+    select: Sequence[str] | None = None,
+    onset=None,
+    unit_labels: Sequence[str] | None = None,
+    title: str | None = None,
+    dpi: int = 120,
+) -> str:
+    """Health modifiers of a fleet against flight cycle, one panel per modifier.
+
+    Args:
+        path: output PNG.
+        cycles: [C] or [U, C] cycle numbers.
+        theta: [C, P] or [U, C, P] modifiers, columns named by ``names``.
+        names: P column names.
+        mask: optional [U, C] validity (cycles after end of life are not drawn).
+        select: names to draw; default: the columns that move in at least one unit.
+        onset: optional [U] abnormal-onset cycles t_s, marked on each line.
+        unit_labels: optional U legend labels (default "unit 1", ...).
+        title: optional figure title.
+        dpi: resolution.
+
+    Returns:
+        The written path.
+    """
+    theta = _batched(theta, "theta", 3)
+    num_units, num_cycles, num_params = theta.shape
+    if len(names) != num_params:
+        raise ValueError(f"names needs {num_params} entries, got {len(names)}")
+    cycles = np.broadcast_to(_batched(cycles, "cycles", 2), (num_units, num_cycles))
+    valid = np.ones((num_units, num_cycles), bool) if mask is None else mask
+    valid = np.broadcast_to(_batched(valid, "mask", 2).astype(bool), cycles.shape)
+    if select is None:
+        values = theta[valid]  # [valid cycles, P]
+        moving = [
+            n for j, n in enumerate(names) if values.size and np.ptp(values[:, j])
+        ]
+        select = moving or list(names)
+    unknown = [n for n in select if n not in names]
+    if unknown:
+        raise ValueError(f"select has unknown name(s) {unknown}; names are {names}")
+    labels = unit_labels or [f"unit {u + 1}" for u in range(num_units)]
+    fig = Figure(figsize=(5.5 * len(select), 4.0), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(select)))
+    for ax, name in zip(axes, select, strict=True):
+        j = list(names).index(name)
+        for u in range(num_units):
+            c, y = cycles[u][valid[u]], theta[u, :, j][valid[u]]
+            (line,) = ax.plot(c, y, lw=1.0, marker=".", ms=3, label=labels[u])
+            if onset is not None:
+                k = np.searchsorted(c, np.asarray(onset)[u])
+                if k < c.size:
+                    ax.plot(c[k], y[k], "o", color=line.get_color(), mfc="none", ms=7)
+        ax.set_xlabel("time [flight cycles]")
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=2)
+    if title:
+        fig.suptitle(title)
+    return save_figure(fig, path, dpi=dpi)
+
+
+def plot_stacked_traces(
+    path,
+    series: Mapping[str, np.ndarray],
+    truth=None,
+    unit_boundaries=None,
+    *,
+    names: Sequence[str] | None = None,
+    max_points: int = 20_000,
+    xlabel: str = "sample (units stacked)",
+    title: str | None = None,
+    dpi: int = 120,
+) -> str:
+    """Traces of one or more estimates (and the truth), units stacked in one sequence.
+
+    Args:
+        path: output PNG.
+        series: label -> [N] or [N, P] estimates (e.g. {"CLAC": theta_hat}).
+        truth: optional [N] or [N, P] ground truth, drawn as orange squares.
+        unit_boundaries: optional sample indices where a new unit starts (dotted lines).
+        names: optional P panel names (y labels).
+        max_points: draw at most about this many points per trace (uniform stride).
+        xlabel: x-axis label.
+        title: optional figure title.
+        dpi: resolution.
+
+    Returns:
+        The written path.
+    """
+    if not series and truth is None:
+        raise ValueError("plot_stacked_traces needs at least one series or the truth")
+    if truth is not None and "truth" in series:
+        raise ValueError('series label "truth" is reserved for the truth argument')
+    arrays = {str(k): np.asarray(v, dtype=float) for k, v in series.items()}
+    if truth is not None:
+        arrays["truth"] = np.asarray(truth, dtype=float)
+    arrays = {k: (v[:, None] if v.ndim == 1 else v) for k, v in arrays.items()}
+    shapes = {v.shape for v in arrays.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        got = {k: v.shape for k, v in arrays.items()}
+        raise ValueError(f"series and truth must be [N] or the same [N, P]; got {got}")
+    num_samples, num_params = next(iter(shapes))
+    if names is not None and len(names) != num_params:
+        raise ValueError(f"names needs {num_params} entries, got {len(names)}")
+    stride = max(1, math.ceil(num_samples / max_points))
+    index = np.arange(0, num_samples, stride)
+    fig = Figure(figsize=(12, 2.6 * num_params + 0.6), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(num_params, 1, sharex=True))
+    for j, ax in enumerate(axes):
+        if truth is not None:
+            truth_j = arrays["truth"][index, j]
+            # drawn above the estimates so that the truth stays visible
+            ax.plot(
+                index, truth_j, "s", color=TRUTH_COLOR, ms=2.0, zorder=3, label="truth"
+            )
+        for k, label in enumerate(str(s) for s in series):
+            color = SERIES_COLORS[k % len(SERIES_COLORS)]
+            ax.plot(
+                index, arrays[label][index, j], "o", ms=1.5, color=color, label=label
+            )
+        for b in [] if unit_boundaries is None else np.asarray(unit_boundaries):
+            ax.axvline(b, color="0.5", lw=0.6, ls=":")
+        ax.set_ylabel(names[j] if names is not None else f"theta[{j}]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, markerscale=3, loc="best")
+    axes[-1].set_xlabel(xlabel)
+    if title:
+        fig.suptitle(title)
+    return save_figure(fig, path, dpi=dpi)
