@@ -6,6 +6,14 @@ from jaxcal.physics.engine import (
     Envelope,
     evaluate_design,
     load_engine,
+    make_engine,
 )
 
-__all__ = ["Engine", "EngineInfo", "Envelope", "evaluate_design", "load_engine"]
+__all__ = [
+    "Engine",
+    "EngineInfo",
+    "Envelope",
+    "evaluate_design",
+    "load_engine",
+    "make_engine",
+]

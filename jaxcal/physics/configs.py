@@ -19,9 +19,10 @@ import jax.numpy as jnp
 from jaxcal.physics.design import EngineDesign
 from jaxcal.physics.maps import CompressorShape, TurbineShape
 
-# PCNfR_dmd(TRA): quadratic through (100 %, 100 %) and (60 %, 84.93 %) from FD002, and
-# about 66.5 % at TRA 23.5 (the lowest N-CMAPSS throttle, Nf ~ 1470 rpm on a cool day).
-_PCN = dict(pcn_c0=52.27154848, pcn_c1=64.48420405, pcn_c2=-16.75575253)
+# PCNfR_dmd(TRA): quadratic through (100 %, 100 %) and (60 %, 84.93 %) from FD002, with a
+# curvature that gives about 66.5 % at TRA 23.5 (the lowest N-CMAPSS throttle, Nf ~ 1470
+# rpm); the curvature is refitted with the design constants.
+_PCN = dict(pcn_60=84.93, pcn_100=100.0, pcn_curv=-16.75575253)
 
 
 def _compressor(a, kw, b, kp, cn=0.6, cb=0.4, npk=0.95, bpk=0.45):
@@ -109,12 +110,22 @@ def design_from_flat(base: EngineDesign, flat: dict[str, float]) -> EngineDesign
     return dataclasses.replace(base, **top)
 
 
+def _fitted_file(name: str) -> dict:
+    path = resources.files("jaxcal.physics") / "fitted" / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
 def fitted_values(name: str) -> dict[str, float]:
     """The fitted design constants stored with the package ({} if never fitted)."""
-    path = resources.files("jaxcal.physics") / "fitted" / f"{name}.json"
-    if not path.is_file():
-        return {}
-    return json.loads(path.read_text())["design"]
+    return _fitted_file(name).get("design", {})
+
+
+def stored_guess_table(name: str):
+    """The Newton start table stored with the fit, or None."""
+    from jaxcal.physics.guess import GuessTable  # local: guess imports design only
+
+    z = _fitted_file(name).get("guess_table")
+    return None if z is None else GuessTable(z=jnp.asarray(z, dtype=float))
 
 
 def load_design(name: str, *, fitted: bool = True) -> EngineDesign:

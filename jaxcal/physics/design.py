@@ -69,10 +69,11 @@ class EngineDesign:
     cd_bypass: jnp.ndarray
     ps30_ratio: jnp.ndarray  # Ps30 / P30 (HPC exit static / total)
     vafn_slope: jnp.ndarray  # A18 = A18_d (1 + vafn_slope (M_d - M)); 0 = fixed nozzle
-    # power management: PCNfR_dmd[%] = c0 + c1 u + c2 u^2, u = TRA/100
-    pcn_c0: jnp.ndarray
-    pcn_c1: jnp.ndarray
-    pcn_c2: jnp.ndarray
+    # power management, u = TRA/100: PCNfR_dmd[%] = pcn_100 + (u - 1) (pcn_100 - pcn_60)
+    # / 0.4 + pcn_curv (u - 1)(u - 0.6), i.e. through the two FD002 points + a curvature
+    pcn_60: jnp.ndarray
+    pcn_100: jnp.ndarray
+    pcn_curv: jnp.ndarray
     nrf_100: jnp.ndarray  # corrected fan speed at 100 % [rpm]
     # map shapes
     fan: CompressorShape
@@ -120,9 +121,19 @@ def inlet_recovery(design: EngineDesign, mach):
 
 def corrected_fan_speed_demand(design: EngineDesign, tra):
     """Power management: TRA [%] -> (PCNfR_dmd [%], NRf_dmd [rpm]) (physics_facts 5)."""
+    c0, c1, c2 = schedule_coefficients(design)
     u = tra / 100.0
-    pcn = design.pcn_c0 + design.pcn_c1 * u + design.pcn_c2 * u**2
+    pcn = c0 + c1 * u + c2 * u**2
     return pcn, design.nrf_100 * pcn / 100.0
+
+
+def schedule_coefficients(design: EngineDesign):
+    """(c0, c1, c2) of PCNfR_dmd = c0 + c1 u + c2 u^2 from the schedule fields."""
+    slope = (design.pcn_100 - design.pcn_60) / 0.4
+    c2 = design.pcn_curv
+    c1 = slope - 1.6 * c2
+    c0 = design.pcn_100 - slope + 0.6 * c2
+    return c0, c1, c2
 
 
 def design_point(d: EngineDesign) -> DesignPoint:

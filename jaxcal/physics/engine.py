@@ -25,7 +25,7 @@ from flax import struct
 
 from jaxcal.physics import cycle, solver
 from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.physics.configs import load_design
+from jaxcal.physics.configs import load_design, stored_guess_table
 from jaxcal.physics.constants import (
     CONDITION_NAMES,
     CONDITION_UNITS,
@@ -33,7 +33,13 @@ from jaxcal.physics.constants import (
     SENSOR_NAMES,
     T_STD_R,
 )
-from jaxcal.physics.design import DesignPoint, EngineDesign, design_point
+from jaxcal.physics.design import (
+    DesignPoint,
+    EngineDesign,
+    corrected_fan_speed_demand,
+    design_point,
+)
+from jaxcal.physics.guess import GuessTable, build_guess_table, initial_guess
 from jaxcal.precision import float_dtype
 
 
@@ -98,6 +104,21 @@ def _in_envelope(env: Envelope, w, theta):
     return ok & jnp.all(jnp.isfinite(w)) & jnp.all(jnp.isfinite(theta))
 
 
+# A balance can close on a non-physical branch (e.g. a nozzle flowing into a higher
+# ambient pressure through the continued flow function): such roots are not "converged".
+T4_MAX_R = 4500.0
+
+
+def _physical(st: cycle.Stations):
+    return (
+        (st.p50 > st.p_amb)
+        & (st.p15 > st.p_amb)
+        & (st.t4 < T4_MAX_R)
+        & (st.w_core > 0.0)
+        & (st.wf > 0.0)
+    )
+
+
 def _residual_fn(z, params):
     d, dp, w, theta, effects = params
     return cycle.balance(d, dp, w, theta, effects, z)[0]
@@ -110,6 +131,7 @@ def evaluate_design(
     effects=None,
     z0=None,
     *,
+    guess: GuessTable | None = None,
     envelope: Envelope = Envelope(),
     solver_cfg: solver.SolverConfig | None = None,
     dp: DesignPoint | None = None,
@@ -123,7 +145,9 @@ def evaluate_design(
         w: [..., 4] operating conditions (alt ft, Mach, TRA %, T2 degR).
         theta: [..., 10] health modifiers (broadcast against w's batch shape).
         effects: [..., NUM_EFFECTS] model extensions (default zeros).
-        z0: [..., 9] Newton start (default: the design point, z = 0).
+        z0: [..., 9] Newton start (default: ``guess`` interpolated at (TRA, Mach), or
+            the design point z = 0 without a table).
+        guess: table of solved balances (:mod:`jaxcal.physics.guess`).
         envelope: validity box for ``info.in_envelope``.
         solver_cfg: Newton settings (default depends on the float precision).
         dp: precomputed design point of ``d`` (optional).
@@ -150,13 +174,18 @@ def evaluate_design(
     effects = jnp.asarray(effects, dtype)
     _check_last_dim("effects", effects, cycle.NUM_EFFECTS)
     batch = jnp.broadcast_shapes(batch, effects.shape[:-1])
+    dp = design_point(d) if dp is None else dp
+    if z0 is None and guess is not None:
+        pcn, _ = corrected_fan_speed_demand(d, w[..., 2])
+        z0 = jax.vmap(initial_guess, (None, 0, 0))(
+            guess, pcn.reshape(-1), w[..., 1].reshape(-1)
+        ).reshape(w.shape[:-1] + (cycle.NUM_UNKNOWNS,))
     z0 = jnp.zeros(batch + (cycle.NUM_UNKNOWNS,), dtype) if z0 is None else z0
     z0 = jnp.asarray(z0, dtype)
     flat = [
         jnp.broadcast_to(a, batch + a.shape[-1:]).reshape((-1, a.shape[-1]))
         for a in (w, theta, effects, z0)
     ]
-    dp = design_point(d) if dp is None else dp
 
     def one(w1, th1, ef1, z01):
         z, sinfo = solver.solve(_residual_fn, z01, (d, dp, w1, th1, ef1), solver_cfg)
@@ -164,7 +193,7 @@ def evaluate_design(
         x = _sensor_vector(d, st, w1)
         inside = _in_envelope(envelope, w1, th1)
         closed = sinfo.residual_norm < accept
-        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z))
+        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & _physical(st)
         info = EngineInfo(closed & finite & inside, sinfo.residual_norm,
                           sinfo.iterations, inside, z)  # fmt: skip
         return x, info
@@ -185,6 +214,7 @@ class Engine:
     """A configured engine model (a pytree: its design constants are traced leaves)."""
 
     design: EngineDesign
+    guess: GuessTable
     envelope: Envelope = struct.field(pytree_node=False, default=Envelope())
 
     condition_names = CONDITION_NAMES
@@ -210,7 +240,7 @@ class Engine:
             (x [..., len(sensor_names)], EngineInfo).
         """
         return evaluate_design(
-            self.design, w, theta, effects, z0, envelope=self.envelope
+            self.design, w, theta, effects, z0, guess=self.guess, envelope=self.envelope
         )
 
     def evaluate_checked(self, w, theta, *, effects=None):
@@ -268,6 +298,20 @@ def check_inputs(env: Envelope, w: np.ndarray, theta: np.ndarray) -> None:
         )
 
 
+def make_engine(design: EngineDesign) -> Engine:
+    """An engine for arbitrary design constants (builds its Newton start table)."""
+    table = jax.jit(build_guess_table)(design, design_point(design))
+    return Engine(design=design, guess=table)
+
+
 def load_engine(name: str, *, fitted: bool = True) -> Engine:
-    """The engine configuration ``name`` in {"cmapss", "agtf30"}."""
-    return Engine(design=load_design(name, fitted=fitted))
+    """The engine configuration ``name`` in {"cmapss", "agtf30"}.
+
+    With ``fitted`` (default) the stored fit of the design constants and its Newton start
+    table are used; otherwise the nominal constants (the table is then built here).
+    """
+    design = load_design(name, fitted=fitted)
+    table = stored_guess_table(name) if fitted else None
+    if table is None:
+        return make_engine(design)
+    return Engine(design=design, guess=table)
