@@ -12,7 +12,10 @@ Compressor (n = Nc/Nc_d, beta in about [0, 1], 0 = choke side, 1 = surge side):
     PR  = 1 + (PR_d - 1) n^b (1 + k_p (beta - beta_d))
     eta = eta_d [1 - c_n ((n - n_pk)^2 - (1 - n_pk)^2) - c_b ((beta - b_pk)^2 - (beta_d - b_pk)^2)]
 
-Health modifiers act on the scaled map: Wc (1 + dW) and eta (1 + d_eta) ("multiplicative",
+Far outside the mapped region the pressure rise and the efficiency island are floored by
+softplus functions (physics_facts.md 3.3: "keep it positive with a softplus floor"), so
+that extreme health modifiers at idle still give a physical compressor. Health modifiers
+act on the scaled map: Wc (1 + dW) and eta (1 + d_eta) ("multiplicative",
 the default) or eta + d_eta ("additive"; NASA does not say which N-CMAPSS uses,
 data_facts.md 2.2). The surge line is the speed line end beta = 1.
 """
@@ -73,11 +76,24 @@ def compressor_map(shape: CompressorShape, wc_d, pr_d, eta_d, n, beta):
     """
     db = beta - BETA_DESIGN
     wc = wc_d * n**shape.flow_speed_exp * (1.0 - shape.flow_slope * db)
-    pr = 1.0 + (pr_d - 1.0) * n**shape.pr_speed_exp * (1.0 + shape.pr_slope * db)
+    # far on the choke side the pressure rise goes to zero smoothly instead of turning
+    # the compressor into a turbine; identical (to 1e-9) on the mapped region
+    rise = _soft_positive(1.0 + shape.pr_slope * db, PR_RISE_FLOOR)
+    pr = 1.0 + (pr_d - 1.0) * n**shape.pr_speed_exp * rise
     dn = (n - shape.eff_speed_peak) ** 2 - (1.0 - shape.eff_speed_peak) ** 2
     dbeta = (beta - shape.eff_beta_peak) ** 2 - (BETA_DESIGN - shape.eff_beta_peak) ** 2
-    eta = eta_d * (1.0 - shape.eff_speed_curv * dn - shape.eff_beta_curv * dbeta)
+    island = 1.0 - shape.eff_speed_curv * dn - shape.eff_beta_curv * dbeta
+    eta = eta_d * (EFF_FLOOR + _soft_positive(island - EFF_FLOOR, 0.02))
     return wc, pr, eta
+
+
+PR_RISE_FLOOR = 0.05  # softplus width of the pressure-rise floor
+EFF_FLOOR = 0.3  # efficiency island floor, relative to the design efficiency
+
+
+def _soft_positive(y, width):
+    """softplus with the given width: y for y >> width, > 0 always."""
+    return width * jnp.logaddexp(0.0, y / width)
 
 
 def surge_margin(shape: CompressorShape, wc_d, pr_d, wc, pr, flow_mod):
