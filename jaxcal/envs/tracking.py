@@ -1,0 +1,381 @@
+"""The tracking MDP of model calibration (paper §3.1), gymnax-style.
+
+The agent sets the model parameters theta so that the model output x-hat follows the
+observed trajectory x of one unit:
+
+* state s_t = [x-hat_t, x_{t+1}, w_{t+1}], each block normalised with training
+  statistics;
+* action a_t in [-1, 1]^P, mapped affinely to theta_{t+1} in [theta_low, theta_high];
+* transition x-hat_{t+1} = dynamics(dyn_params, w_{t+1}, x-hat_t, theta_{t+1}), where
+  ``dynamics`` is any pure callable: the learned surrogate D uses x-hat_t, the physics
+  F(w, theta) ignores it;
+* cost c_t = mean_S ((x_{t+1} - x-hat_{t+1}) / sigma)^2, sigma = training std of x.
+
+Episodes are windows of ``episode_length`` steps of one unit (random unit, random
+start such that the window and its last next state fit the unit's valid length),
+x-hat_0 = x_0.
+The data live in :class:`EnvParams` (so a new data set or surrogate is new input, not a
+recompilation); static sizes live in :class:`EnvConfig`. The transition is wrapped in
+``lax.stop_gradient`` unless ``EnvConfig.differentiable`` is set. ``step`` returns the
+true next observation and ``done``; auto-reset is the runner's job.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxcal.typedefs import Array, PRNGKey, PyTree
+
+Dynamics = Callable[[PyTree, Array, Array, Array], Array]
+"""``dynamics(dyn_params, w_next [W], xhat [S], theta [P]) -> xhat_next [S]``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static configuration of the tracking environment.
+
+    Attributes:
+        sensor_dim: S, number of observed outputs x.
+        condition_dim: W, number of operating conditions w.
+        param_dim: P, number of calibrated parameters theta.
+        episode_length: steps per training episode (window length).
+        differentiable: if True, gradients flow through the transition.
+    """
+
+    sensor_dim: int
+    condition_dim: int
+    param_dim: int
+    episode_length: int = 100
+    differentiable: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(
+                    f"EnvConfig.{name} must be a positive int, got {value!r}"
+                )
+
+    @property
+    def observation_size(self) -> int:
+        """Size of s_t = [x-hat_t, x_{t+1}, w_{t+1}]: 2 S + W."""
+        return 2 * self.sensor_dim + self.condition_dim
+
+    @property
+    def min_unit_length(self) -> int:
+        """Shortest unit a training window fits in: episode_length + 2 samples."""
+        return self.episode_length + 2
+
+
+@struct.dataclass
+class EnvParams:
+    """Data to track and everything else a traced step reads.
+
+    Attributes:
+        w: [U, T, W] operating conditions (physical units), padded after ``lengths``.
+        x: [U, T, S] observed outputs (physical units), padded after ``lengths``.
+        lengths: [U] int32 valid rows per unit (rows t < lengths[u] are data).
+        w_mean, w_std: [W] normalisation of w (training statistics).
+        x_mean, x_std: [S] normalisation of x and x-hat; x_std is also the cost's sigma.
+        theta_low, theta_high: [P] action box.
+        dyn_params: pytree passed to ``dynamics`` (surrogate weights, engine constants).
+    """
+
+    w: Array
+    x: Array
+    lengths: Array
+    w_mean: Array
+    w_std: Array
+    x_mean: Array
+    x_std: Array
+    theta_low: Array
+    theta_high: Array
+    dyn_params: PyTree
+
+
+class NormStats(NamedTuple):
+    """Normalisation statistics of a training set (store them with the run)."""
+
+    w_mean: Array
+    w_std: Array
+    x_mean: Array
+    x_std: Array
+
+
+def compute_norm_stats(w: Array, x: Array, lengths: Array) -> NormStats:
+    """Mean and std over the valid rows of all units (host-side, numpy).
+
+    A feature with std below 1e-12 relative to its scale (a constant channel) gets
+    std = 1 so that normalisation never divides by zero.
+
+    Args:
+        w: [U, T, W]; x: [U, T, S]; lengths: [U].
+
+    Returns:
+        :class:`NormStats` of float arrays in the data's dtype.
+    """
+    w, x, lengths = np.asarray(w), np.asarray(x), np.asarray(lengths)
+    valid = np.arange(x.shape[1])[None, :] < lengths[:, None]
+
+    def stats(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rows = data[valid]
+        mean, std = rows.mean(axis=0), rows.std(axis=0)
+        tiny = std <= 1e-12 * np.maximum(np.abs(mean), 1.0)
+        return mean, np.where(tiny, 1.0, std).astype(data.dtype)
+
+    w_mean, w_std = stats(w)
+    x_mean, x_std = stats(x)
+    return NormStats(*(jnp.asarray(a) for a in (w_mean, w_std, x_mean, x_std)))
+
+
+def make_env_params(
+    w: Array,
+    x: Array,
+    lengths: Array,
+    theta_low: Array,
+    theta_high: Array,
+    dyn_params: PyTree,
+    *,
+    stats: NormStats | None = None,
+) -> EnvParams:
+    """Validates the data and assembles :class:`EnvParams` (host-side).
+
+    Args:
+        w: [U, T, W] operating conditions; x: [U, T, S] observations.
+        lengths: [U] valid rows per unit, 2 <= lengths[u] <= T.
+        theta_low, theta_high: [P] action box, theta_low < theta_high.
+        dyn_params: the dynamics' parameters.
+        stats: normalisation statistics; ``None`` computes them from (w, x). Pass the
+            training set's statistics when building test/held-out parameters.
+
+    Returns:
+        :class:`EnvParams`.
+
+    Raises:
+        ValueError: naming the offending field and the expected form.
+    """
+    w_np, x_np = np.asarray(w), np.asarray(x)
+    lengths_np = np.asarray(lengths)
+    low, high = (
+        np.atleast_1d(np.asarray(theta_low)),
+        np.atleast_1d(np.asarray(theta_high)),
+    )
+    if w_np.ndim != 3 or x_np.ndim != 3 or w_np.shape[:2] != x_np.shape[:2]:
+        raise ValueError(
+            "w and x must be [U, T, W] and [U, T, S] with equal U, T; got "
+            f"{w_np.shape} and {x_np.shape}"
+        )
+    num_units, num_steps = x_np.shape[:2]
+    if lengths_np.shape != (num_units,) or not np.issubdtype(
+        lengths_np.dtype, np.integer
+    ):
+        raise ValueError(f"lengths must be an int array of shape ({num_units},)")
+    if lengths_np.min() < 2 or lengths_np.max() > num_steps:
+        raise ValueError(f"lengths must lie in [2, T={num_steps}], got {lengths_np}")
+    valid = np.arange(num_steps)[None, :] < lengths_np[:, None]
+    if not (np.isfinite(w_np[valid]).all() and np.isfinite(x_np[valid]).all()):
+        raise ValueError("w and x must be finite on valid rows (t < lengths[u])")
+    if low.shape != high.shape or low.ndim != 1 or not np.all(low < high):
+        raise ValueError(
+            f"theta_low and theta_high must be [P] arrays with theta_low < theta_high, "
+            f"got {low} and {high}"
+        )
+    if stats is None:
+        stats = compute_norm_stats(w_np, x_np, lengths_np)
+    for name, value, dim in (
+        ("w_std", stats.w_std, w_np.shape[-1]),
+        ("x_std", stats.x_std, x_np.shape[-1]),
+    ):
+        value = np.asarray(value)
+        if value.shape != (dim,) or not np.all(value > 0):
+            raise ValueError(f"stats.{name} must be a positive [{dim}] array")
+    return EnvParams(
+        w=jnp.asarray(w_np),
+        x=jnp.asarray(x_np),
+        lengths=jnp.asarray(lengths_np, jnp.int32),
+        w_mean=jnp.asarray(stats.w_mean),
+        w_std=jnp.asarray(stats.w_std),
+        x_mean=jnp.asarray(stats.x_mean),
+        x_std=jnp.asarray(stats.x_std),
+        theta_low=jnp.asarray(low),
+        theta_high=jnp.asarray(high),
+        dyn_params=dyn_params,
+    )
+
+
+def _check_dims(params: EnvParams, cfg: EnvConfig) -> None:
+    # Shapes are static under tracing, so inside jit this runs once per compilation.
+    for name, want in (
+        ("x", cfg.sensor_dim),
+        ("w", cfg.condition_dim),
+        ("theta_low", cfg.param_dim),
+    ):
+        got = getattr(params, name).shape[-1]
+        if want != got:
+            raise ValueError(
+                f"EnvParams.{name} has last dimension {got}, EnvConfig expects {want}"
+            )
+
+
+def check_env_params(params: EnvParams, cfg: EnvConfig) -> None:
+    """Checks that ``params`` fit ``cfg``: dimensions, and window length when concrete.
+
+    Raises:
+        ValueError: if a dimension differs or no unit is long enough for one window.
+    """
+    _check_dims(params, cfg)
+    if isinstance(params.lengths, jax.core.Tracer):
+        return  # abstract evaluation (jit, eval_shape): only shapes can be checked
+    longest = int(np.max(np.asarray(params.lengths)))
+    if longest < cfg.min_unit_length:
+        raise ValueError(
+            f"no unit is long enough for episode_length={cfg.episode_length}: the "
+            f"longest has {longest} rows, a window needs {cfg.min_unit_length}"
+        )
+
+
+@struct.dataclass
+class EnvState:
+    """State of one tracking episode (no PRNG key, gymnax rule).
+
+    Attributes:
+        unit: [] int32, unit index u.
+        time: [] int32, index t of the current sample in the unit.
+        step: [] int32, steps taken in this episode.
+        xhat: [S] current model output x-hat_t (physical units).
+    """
+
+    unit: Array
+    time: Array
+    step: Array
+    xhat: Array
+
+
+class Env(NamedTuple):
+    """The environment as pure functions (gymnax signature).
+
+    Attributes:
+        reset: ``reset(key, params) -> (obs [O], state)``.
+        step: ``step(key, state, action [P], params) -> (obs, state, cost, done,
+            info)``; ``info`` holds ``theta`` [P], ``terminated`` and ``truncated``.
+        reset_at: ``reset_at(params, unit, time) -> (obs, state)``, a deterministic
+            start at a given sample (evaluation over whole trajectories).
+        observation_size: O = 2 S + W.
+        action_size: P.
+        config: the static :class:`EnvConfig` the env was built with.
+    """
+
+    reset: Callable
+    step: Callable
+    reset_at: Callable
+    observation_size: int
+    action_size: int
+    config: EnvConfig
+
+
+def _row(data: Array, params: EnvParams, unit: Array, time: Array) -> Array:
+    """``data[unit, time]``, the index clamped into the unit's valid rows."""
+    return data[unit, jnp.clip(time, 0, params.lengths[unit] - 1)]
+
+
+def observation(state: EnvState, params: EnvParams) -> Array:
+    """s_t = [norm(x-hat_t), norm(x_{t+1}), norm(w_{t+1})] as float32 ``[2S + W]``."""
+    x_next = _row(params.x, params, state.unit, state.time + 1)
+    w_next = _row(params.w, params, state.unit, state.time + 1)
+    obs = jnp.concatenate(
+        [
+            (state.xhat - params.x_mean) / params.x_std,
+            (x_next - params.x_mean) / params.x_std,
+            (w_next - params.w_mean) / params.w_std,
+        ]
+    )
+    return obs.astype(jnp.float32)
+
+
+def action_to_theta(action: Array, params: EnvParams) -> Array:
+    """Affine map [-1, 1]^P -> [theta_low, theta_high]; actions outside are clipped."""
+    unit_interval = 0.5 * (jnp.clip(action, -1.0, 1.0) + 1.0)
+    return params.theta_low + unit_interval.astype(params.theta_low.dtype) * (
+        params.theta_high - params.theta_low
+    )
+
+
+def tracking_cost(x: Array, xhat: Array, x_std: Array) -> Array:
+    """c = mean_S ((x - x-hat) / sigma)^2 over the last axis (paper §3.1)."""
+    return jnp.mean(jnp.square((x - xhat) / x_std), axis=-1)
+
+
+def make_tracking_env(dynamics: Dynamics, cfg: EnvConfig) -> Env:
+    """Builds the tracking environment around a dynamics callable.
+
+    Args:
+        dynamics: pure ``(dyn_params, w_next [W], xhat [S], theta [P]) -> xhat_next
+            [S]``; ``dyn_params`` is read from :attr:`EnvParams.dyn_params`.
+        cfg: static sizes and episode length.
+
+    Returns:
+        :class:`Env`.
+    """
+    if not callable(dynamics):
+        raise ValueError(f"dynamics must be callable, got {type(dynamics).__name__}")
+
+    def reset_at(params: EnvParams, unit: Array, time: Array) -> tuple[Array, EnvState]:
+        _check_dims(params, cfg)
+        unit = jnp.asarray(unit, jnp.int32)
+        time = jnp.asarray(time, jnp.int32)
+        state = EnvState(
+            unit=unit,
+            time=time,
+            step=jnp.zeros((), jnp.int32),
+            xhat=_row(params.x, params, unit, time),
+        )
+        return observation(state, params), state
+
+    def reset(key: PRNGKey, params: EnvParams) -> tuple[Array, EnvState]:
+        key_unit, key_start = jax.random.split(key)
+        eligible = params.lengths >= cfg.min_unit_length
+        unit = jax.random.choice(
+            key_unit, eligible.shape[0], p=eligible / jnp.sum(eligible)
+        )
+        last_start = jnp.maximum(params.lengths[unit] - cfg.min_unit_length, 0)
+        start = jax.random.randint(key_start, (), 0, last_start + 1)
+        return reset_at(params, unit, start)
+
+    def step(
+        key: PRNGKey, state: EnvState, action: Array, params: EnvParams
+    ) -> tuple[Array, EnvState, Array, Array, dict[str, Array]]:
+        del key  # the transition is deterministic; kept for the gymnax signature
+        _check_dims(params, cfg)
+        theta = action_to_theta(action, params)
+        time = state.time + 1
+        w_next = _row(params.w, params, state.unit, time)
+        xhat = dynamics(params.dyn_params, w_next, state.xhat, theta)
+        if not cfg.differentiable:
+            xhat = jax.lax.stop_gradient(xhat)
+        cost = tracking_cost(
+            _row(params.x, params, state.unit, time), xhat, params.x_std
+        )
+        next_state = EnvState(
+            unit=state.unit,
+            time=time,
+            step=state.step + 1,
+            xhat=xhat.astype(state.xhat.dtype),
+        )
+        done = next_state.step >= cfg.episode_length
+        info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}
+        return (
+            observation(next_state, params),
+            next_state,
+            cost.astype(jnp.float32),
+            done,
+            info,
+        )
+
+    return Env(reset, step, reset_at, cfg.observation_size, cfg.param_dim, cfg)

@@ -1,0 +1,190 @@
+"""Tracking MDP: windows, observation and cost formulas, done flags, tracing, gradients.
+
+The fixture pads units with NaN after their length, so any read of a padded row shows
+up as a non-finite output.
+"""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcal.envs.tracking import (
+    EnvConfig,
+    check_env_params,
+    compute_norm_stats,
+    make_env_params,
+    make_tracking_env,
+)
+
+U, T, S, W, P = 3, 12, 3, 2, 2
+LENGTHS = np.array([12, 9, 5])
+EPISODE = 4  # a window needs EPISODE + 2 = 6 rows: unit 2 (5 rows) is never drawn
+
+
+def dynamics(dyn_params, w_next, xhat, theta):
+    """A surrogate-like map that uses all three inputs."""
+    return 0.5 * xhat + dyn_params["b"] @ theta + jnp.sum(w_next) * dyn_params["c"]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(U, T, W)) * [1.0, 3.0] + [0.5, -2.0]
+    x = rng.normal(size=(U, T, S)) * [2.0, 0.5, 1.0] + 10.0
+    valid = (np.arange(T)[None] < LENGTHS[:, None])[..., None]
+    w, x = np.where(valid, w, np.nan), np.where(valid, x, np.nan)
+    dyn_params = {"b": jnp.asarray(rng.normal(size=(S, P))), "c": jnp.ones(S)}
+    params = make_env_params(
+        w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]), dyn_params
+    )
+    env = make_tracking_env(
+        dynamics,
+        EnvConfig(sensor_dim=S, condition_dim=W, param_dim=P, episode_length=EPISODE),
+    )
+    return env, params, w, x
+
+
+def _norm(value, mean, std):
+    return (value - np.asarray(mean)) / np.asarray(std)
+
+
+def test_reset_draws_windows_inside_valid_length(tiny):
+    env, params, w, x = tiny
+    keys = jax.random.split(jax.random.key(0), 512)
+    obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    unit, start = np.asarray(state.unit), np.asarray(state.time)
+    assert obs.shape == (512, env.observation_size) and obs.dtype == jnp.float32
+    assert set(unit.tolist()) == {0, 1}
+    assert np.all(start >= 0)
+    assert np.all(start + EPISODE + 1 <= LENGTHS[unit] - 1)
+    # Both the first and the last admissible starts of unit 0 occur.
+    assert {0, LENGTHS[0] - EPISODE - 2} <= set(start[unit == 0].tolist())
+    np.testing.assert_allclose(state.xhat, x[unit, start])
+    np.testing.assert_array_equal(state.step, 0)
+    assert np.all(np.isfinite(obs))
+
+
+def test_step_applies_theta_and_computes_cost_and_next_obs(tiny):
+    env, params, w, x = tiny
+    _, state = env.reset_at(params, 1, 2)
+    action = jnp.asarray([-1.0, 1.0])
+    obs, next_state, cost, done, info = env.step(
+        jax.random.key(0), state, action, params
+    )
+    theta = np.array([0.0, 3.0])
+    np.testing.assert_allclose(info["theta"], theta)
+    xhat = 0.5 * x[1, 2] + np.asarray(params.dyn_params["b"]) @ theta + w[1, 3].sum()
+    np.testing.assert_allclose(next_state.xhat, xhat)
+    x_std = np.asarray(params.x_std)
+    assert float(cost) == pytest.approx(np.mean(((x[1, 3] - xhat) / x_std) ** 2), 1e-5)
+    expected_obs = np.concatenate(
+        [
+            _norm(xhat, params.x_mean, x_std),
+            _norm(x[1, 4], params.x_mean, x_std),
+            _norm(w[1, 4], params.w_mean, params.w_std),
+        ]
+    )
+    np.testing.assert_allclose(obs, expected_obs, rtol=1e-5)
+    assert int(next_state.time) == 3 and int(next_state.step) == 1
+    assert not bool(done) and not bool(info["terminated"])
+
+
+def test_action_map_is_affine_and_clips():
+    from jaxcal.envs.tracking import action_to_theta
+
+    class Box:
+        theta_low = jnp.asarray([0.0, -1.0])
+        theta_high = jnp.asarray([1.0, 3.0])
+
+    np.testing.assert_allclose(
+        action_to_theta(jnp.asarray([0.0, 0.5]), Box), [0.5, 2.0]
+    )
+    np.testing.assert_allclose(
+        action_to_theta(jnp.asarray([-3.0, 3.0]), Box), [0.0, 3.0]
+    )
+
+
+def test_episode_is_truncated_after_episode_length(tiny):
+    env, params, _, _ = tiny
+    step = jax.jit(env.step)
+    obs, state = env.reset(jax.random.key(3), params)
+    dones = []
+    for i in range(EPISODE):
+        obs, state, cost, done, info = step(
+            jax.random.key(i), state, jnp.zeros(P), params
+        )
+        dones.append(bool(done))
+        assert bool(info["truncated"]) == bool(done)
+        assert np.isfinite(float(cost)) and np.all(np.isfinite(obs))
+    assert dones == [False] * (EPISODE - 1) + [True]
+
+
+def test_step_compiles_once(tiny):
+    env, params, _, _ = tiny
+    chex.clear_trace_counter()
+    step = jax.jit(chex.assert_max_traces(env.step, n=1))
+    _, state = env.reset_at(params, 0, 0)
+    _, state, *_ = step(jax.random.key(0), state, jnp.zeros(P), params)
+    _, state, *_ = step(jax.random.key(1), state, jnp.ones(P), params)
+    assert int(state.step) == 2
+
+
+def test_step_near_unit_end_never_reads_padding(tiny):
+    env, params, _, _ = tiny
+    obs, state = env.reset_at(params, 2, LENGTHS[2] - 1)
+    assert np.all(np.isfinite(obs))
+    obs, state, cost, *_ = env.step(jax.random.key(0), state, jnp.zeros(P), params)
+    assert np.all(np.isfinite(obs)) and np.isfinite(float(cost))
+
+
+def test_transition_gradient_is_stopped_unless_enabled(tiny):
+    _, params, _, _ = tiny
+
+    def cost_of(env, action):
+        _, state = env.reset_at(params, 0, 1)
+        return env.step(jax.random.key(0), state, action, params)[2]
+
+    cfg = dict(sensor_dim=S, condition_dim=W, param_dim=P, episode_length=EPISODE)
+    stopped = make_tracking_env(dynamics, EnvConfig(**cfg))
+    open_env = make_tracking_env(dynamics, EnvConfig(**cfg, differentiable=True))
+    action = jnp.asarray([0.2, -0.3])
+    np.testing.assert_array_equal(jax.grad(lambda a: cost_of(stopped, a))(action), 0.0)
+    assert float(jnp.abs(jax.grad(lambda a: cost_of(open_env, a))(action)).sum()) > 0
+
+
+def test_norm_stats_use_valid_rows_only(tiny):
+    _, params, w, x = tiny
+    valid = np.arange(T)[None] < LENGTHS[:, None]
+    np.testing.assert_allclose(params.x_mean, x[valid].mean(0))
+    np.testing.assert_allclose(params.w_std, w[valid].std(0))
+    constant = np.ones((1, 4, 1))
+    stats = compute_norm_stats(constant, constant, np.array([4]))
+    np.testing.assert_array_equal(stats.x_std, [1.0])
+
+
+def test_make_env_params_rejects_bad_input(tiny):
+    _, params, w, x = tiny
+    low, high = np.zeros(P), np.ones(P)
+    dyn = params.dyn_params
+    with pytest.raises(ValueError, match="lengths"):
+        make_env_params(w, x, np.array([12, 9, 13]), low, high, dyn)
+    with pytest.raises(ValueError, match="theta_low"):
+        make_env_params(w, x, LENGTHS, high, low, dyn)
+    with pytest.raises(ValueError, match=r"\[U, T, W\]"):
+        make_env_params(w[0], x, LENGTHS, low, high, dyn)
+    bad = x.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        make_env_params(w, bad, LENGTHS, low, high, dyn)
+
+
+def test_check_env_params_rejects_mismatch_and_short_units(tiny):
+    _, params, _, _ = tiny
+    with pytest.raises(ValueError, match="episode_length"):
+        check_env_params(params, EnvConfig(S, W, P, episode_length=11))
+    with pytest.raises(ValueError, match="EnvParams.x"):
+        check_env_params(params, EnvConfig(S + 1, W, P, episode_length=2))
+    with pytest.raises(ValueError, match="episode_length"):
+        EnvConfig(S, W, P, episode_length=0)
