@@ -4,9 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
-export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 
-.PHONY: setup install test test-all lint format train validate bench-engine paper bench clean
+.PHONY: setup install test test-all lint format train validate bench-engine clean
 
 setup: $(STAMP)
 
@@ -32,15 +31,16 @@ format: $(STAMP)
 	$(BIN)/ruff format jaxcal tests experiments
 	$(BIN)/ruff check --fix jaxcal tests experiments
 
-# The main job. Until the training issue lands it runs the engine validation report.
+# The main job. Until the training pipeline lands it runs the engine validation report.
 train: $(STAMP)
 	$(BIN)/python -m jaxcal.physics.validate
 
 validate: $(STAMP)
 	$(BIN)/python -m jaxcal.physics.validate
+	$(BIN)/python -m jaxcal.physics.validate --engine agtf30
 
 bench-engine: $(STAMP)
-	$(BIN)/python -m jaxcal.bench engine
+	$(BIN)/python -m jaxcal.bench engine --out results/engine/bench_engine.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
