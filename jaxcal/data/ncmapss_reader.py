@@ -1,0 +1,304 @@
+"""Reader of N-CMAPSS HDF5 files (ours and NASA's): column order from the ``*_var``
+names, subsets by slicing (layout: :mod:`jaxcal.data.ncmapss_io`)."""
+
+from __future__ import annotations
+
+import os
+
+import h5py
+import numpy as np
+
+from jaxcal.data.ncmapss_layout import (
+    _BLOCK_ROWS,
+    _GROUPS,
+    LAYOUT_NAMES,
+    SPLITS,
+    _check_split,
+    _dtype,
+)
+from jaxcal.data.record import Record
+from jaxcal.physics.constants import (
+    AUX_NAMES,
+    CONDITION_NAMES,
+    HEALTH_NAMES,
+    SENSOR_NAMES,
+)
+
+
+def _open_read(path) -> tuple[str, h5py.File]:
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"N-CMAPSS file not found: {path}")
+    try:
+        return path, h5py.File(path, "r")
+    except OSError as err:
+        raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
+
+
+def _dataset(f: h5py.File, path: str, key: str) -> h5py.Dataset:
+    if key not in f:
+        raise ValueError(
+            f"{path}: missing dataset {key!r}; an N-CMAPSS file holds "
+            f"{[f'{g}_{s}' for s in SPLITS for g in _GROUPS]} and "
+            f"{[f'{g}_var' for g in LAYOUT_NAMES]}"
+        )
+    return f[key]
+
+
+def _var_names(f: h5py.File, path: str, group: str) -> list[str]:
+    """Decoded ``<group>_var`` column names (fixed-width bytes in the real files)."""
+    raw = np.asarray(_dataset(f, path, f"{group}_var")[()]).ravel()
+    return [
+        (v.decode("ascii") if isinstance(v, bytes) else str(v)).strip() for v in raw
+    ]
+
+
+def _split_layout(f: h5py.File, path: str, split: str) -> dict:
+    """Datasets and column names of ``split``, with the layout checked."""
+    _check_split(split)
+    dsets = {g: _dataset(f, path, f"{g}_{split}") for g in _GROUPS}
+    names = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
+    num_rows = dsets["A"].shape[0]
+    for group, dset in dsets.items():
+        k = 1 if group == "Y" else len(names[group])
+        if dset.ndim != 2 or dset.shape != (num_rows, k):
+            raise ValueError(
+                f"{path}: dataset {group}_{split} has shape {dset.shape}, expected "
+                f"({num_rows}, {k}) from A_{split} and {group}_var"
+            )
+    for group, required in (
+        ("W", CONDITION_NAMES),
+        ("T", HEALTH_NAMES),
+        ("A", AUX_NAMES),
+    ):
+        missing = [n for n in required if n not in names[group]]
+        if missing:
+            raise ValueError(
+                f"{path}: {group}_var lacks column(s) {missing}; has {names[group]}"
+            )
+    return {"dsets": dsets, "names": names, "num_rows": num_rows}
+
+
+def _unit_ranges(a_dset, unit_col, wanted, start, stop, block_rows):
+    """Maximal ``[a, b)`` row ranges whose unit is in ``wanted``, and all units seen.
+
+    Only column ``unit_col`` of ``A`` is read, ``block_rows`` rows at a time.
+    """
+    ranges: list[list[int]] = []
+    seen: set[int] = set()
+    for a0 in range(start, stop, block_rows):
+        units = a_dset[a0 : min(stop, a0 + block_rows), unit_col]
+        seen.update(int(u) for u in np.unique(units))
+        edges = np.diff(
+            np.concatenate([[0], np.isin(units, wanted).astype(np.int8), [0]])
+        )
+        run_starts = np.flatnonzero(edges == 1) + a0
+        run_stops = np.flatnonzero(edges == -1) + a0
+        for a, b in zip(run_starts, run_stops, strict=True):
+            if ranges and ranges[-1][1] == a:
+                ranges[-1][1] = int(b)  # a unit that straddles two scan blocks
+            else:
+                ranges.append([int(a), int(b)])
+    return ranges, seen
+
+
+def _read_into(dset, ranges, stride, cols, out, block_rows) -> None:
+    """Fill ``out`` with ``dset[a:b:stride][:, cols]`` over ``ranges``, by blocks."""
+    pos = 0
+    for a, b in ranges:
+        for a0 in range(a, b, block_rows * stride):
+            block = dset[a0 : min(b, a0 + block_rows * stride) : stride]
+            out[pos : pos + block.shape[0]] = block[:, cols]
+            pos += block.shape[0]
+
+
+def load_ncmapss(
+    path,
+    split: str = "dev",
+    units=None,
+    sensors=None,
+    rows: tuple[int, int] | None = None,
+    stride: int = 1,
+    *,
+    block_rows: int = _BLOCK_ROWS,
+) -> Record:
+    """Load (part of) one split of an N-CMAPSS file, ours or NASA's.
+
+    Args:
+        path: the ``.h5`` file.
+        split: ``"dev"`` or ``"test"``.
+        units: unit ids to keep (``None``: all). Rows come back in file order.
+        sensors: sensor names of ``X_s_var`` / ``X_v_var`` to load, in this order
+            (``None``: all of them, in :data:`SENSOR_NAMES` order; file columns whose
+            name jaxcal does not know go to ``Record.extras``).
+        rows: ``(start, stop)`` window of file rows to consider (``None``: all).
+        stride: keep file rows ``start, start + stride, ...`` (aligned to the window
+            start, so a unit selection sees exactly the rows the full load would).
+        block_rows: rows per read block (bounds memory; small values only for tests).
+
+    Returns:
+        A :class:`Record` whose ``sample_rate_hz`` is the file's ``sample_rate_hz`` root
+        attribute (1.0 when absent, as in NASA's files) divided by ``stride``.
+    """
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride}")
+    if int(block_rows) < 1:
+        raise ValueError(f"block_rows must be >= 1, got {block_rows}")
+    stride, block_rows = int(stride), int(block_rows)
+    path, f = _open_read(path)
+    with f:
+        layout = _split_layout(f, path, split)
+        dsets, names, num_rows = layout["dsets"], layout["names"], layout["num_rows"]
+        start, stop = _row_window(rows, num_rows)
+        if units is None:
+            ranges = [[start, stop]]
+        else:
+            wanted = _unit_ids(units)
+            ranges, seen = _unit_ranges(
+                dsets["A"], names["A"].index("unit"), wanted, start, stop, block_rows
+            )
+            missing = sorted(set(wanted.astype(int).tolist()) - seen)
+            if missing:
+                raise ValueError(
+                    f"{path} [{split}] rows {start}:{stop} has no unit(s) {missing}; "
+                    f"units there are {sorted(seen)}"
+                )
+        # Align every range to the global stride grid start, start + stride, ...
+        ranges = [[a + (start - a) % stride, b] for a, b in ranges]
+        ranges = [[a, b] for a, b in ranges if a < b]
+        total = sum(len(range(a, b, stride)) for a, b in ranges)
+
+        def read(group, cols):
+            out = np.empty((total, len(cols)), dtype=_dtype(group))
+            _read_into(dsets[group], ranges, stride, cols, out, block_rows)
+            return out
+
+        x_names, extra_names, plan = _sensor_plan(names, sensors, path)
+        x = np.empty((total, len(x_names)), dtype=np.float64)
+        extras = {}
+        for group in ("X_s", "X_v"):
+            picks = [(j, c) for j, (g, c) in enumerate(plan) if g == group]
+            extra_picks = [(n, c) for n, (g, c) in extra_names if g == group]
+            if not picks and not extra_picks:
+                continue  # this group is not needed: do not touch it on disk
+            cols = [c for _, c in picks] + [c for _, c in extra_picks]
+            block = read(group, cols)
+            x[:, [j for j, _ in picks]] = block[:, : len(picks)]
+            for i, (name, _) in enumerate(extra_picks):
+                extras[name] = block[:, len(picks) + i]
+        aux = read("A", [names["A"].index(n) for n in AUX_NAMES])
+        rate = float(f.attrs.get("sample_rate_hz", 1.0))
+        return Record(
+            w=read("W", [names["W"].index(n) for n in CONDITION_NAMES]),
+            x=x,
+            x_names=x_names,
+            theta=read("T", [names["T"].index(n) for n in HEALTH_NAMES]),
+            unit=aux[:, 0],
+            cycle=aux[:, 1],
+            flight_class=aux[:, 2],
+            hs=aux[:, 3],
+            rul=read("Y", [0])[:, 0],
+            extras=extras,
+            sample_rate_hz=rate / stride,
+            source=f"{path}[{split}]",
+        )
+
+
+def _unit_ids(units) -> np.ndarray:
+    """Requested unit ids as sorted unique floats (A stores units as float64)."""
+    ids = np.asarray(list(np.atleast_1d(units)))
+    if ids.size == 0:
+        raise ValueError("units must name at least one unit id (or be None for all)")
+    if ids.dtype.kind not in "iuf" or np.any(ids != np.round(ids)):
+        raise ValueError(f"units must be integer unit ids, got {units!r}")
+    return np.unique(ids.astype(np.float64))
+
+
+def _row_window(rows, num_rows: int) -> tuple[int, int]:
+    if rows is None:
+        return 0, num_rows
+    start, stop = (int(r) for r in rows)
+    if not 0 <= start <= stop <= num_rows:
+        raise ValueError(
+            f"rows must be (start, stop) with 0 <= start <= stop <= {num_rows}, "
+            f"got {rows}"
+        )
+    return start, stop
+
+
+def _sensor_plan(names: dict, sensors, path: str):
+    """Where requested sensors live: ``(x_names, extra columns, [(group, col)])``."""
+    where = {}
+    for group in ("X_s", "X_v"):
+        for col, name in enumerate(names[group]):
+            where.setdefault(name, (group, col))
+    extra = []
+    if sensors is None:
+        x_names = tuple(n for n in SENSOR_NAMES if n in where)
+        extra = [(n, where[n]) for n in where if n not in SENSOR_NAMES]
+    else:
+        if isinstance(sensors, str):
+            raise ValueError(
+                f"sensors must be a sequence of names, got the string {sensors!r}"
+            )
+        x_names = tuple(sensors)
+        missing = [n for n in x_names if n not in where]
+        if missing:
+            raise ValueError(
+                f"{path}: sensor(s) {missing} not in X_s_var / X_v_var; available: "
+                f"{list(where)}"
+            )
+    return x_names, extra, [where[n] for n in x_names]
+
+
+def ncmapss_info(path, *, block_rows: int = _BLOCK_ROWS) -> dict:
+    """Summary of an N-CMAPSS file without loading its arrays.
+
+    Args:
+        path: the ``.h5`` file.
+        block_rows: rows per block when scanning the unit column.
+
+    Returns:
+        ``{"path", "columns": {group: names}, "attrs": {...}, "sample_rate_hz",
+        "splits": {split: {"rows": N, "units": [...]}}}``; a split appears when its
+        ``A_<split>`` dataset exists.
+    """
+    path, f = _open_read(path)
+    with f:
+        columns = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
+        splits = {}
+        for split in SPLITS:
+            if f"A_{split}" not in f:
+                continue
+            layout = _split_layout(f, path, split)
+            n = layout["num_rows"]
+            _, seen = _unit_ranges(
+                layout["dsets"]["A"],
+                columns["A"].index("unit"),
+                np.empty(0),
+                0,
+                n,
+                block_rows,
+            )
+            splits[split] = {"rows": int(n), "units": sorted(seen)}
+        if not splits:
+            raise ValueError(f"{path}: no split found (expected A_dev and/or A_test)")
+        attrs = {k: _plain(v) for k, v in f.attrs.items()}
+    return {
+        "path": path,
+        "columns": columns,
+        "attrs": attrs,
+        "sample_rate_hz": float(attrs.get("sample_rate_hz", 1.0)),
+        "splits": splits,
+    }
+
+
+def _plain(value):
+    """An HDF5 attribute value as a plain Python value (JSON-friendly)."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
