@@ -298,10 +298,19 @@ def check_inputs(env: Envelope, w: np.ndarray, theta: np.ndarray) -> None:
         )
 
 
-def make_engine(design: EngineDesign) -> Engine:
+# Each configuration's validity box; AGTF30 is a SL-40 kft, Mach 0-0.8 engine
+# (physics_facts.md 5), C-MAPSS covers SL-40 kft+ and Mach 0-0.9 (data_facts.md 1.4).
+ENVELOPES = {
+    "cmapss": Envelope(),
+    "agtf30": Envelope(alt_ft=(-1000.0, 40000.0), mach=(0.0, 0.8)),
+}
+
+
+def make_engine(design: EngineDesign, envelope: Envelope | None = None) -> Engine:
     """An engine for arbitrary design constants (builds its Newton start table)."""
     table = jax.jit(build_guess_table)(design, design_point(design))
-    return Engine(design=design, guess=table)
+    envelope = envelope or ENVELOPES.get(design.name, Envelope())
+    return Engine(design=design, guess=table, envelope=envelope)
 
 
 def load_engine(name: str, *, fitted: bool = True) -> Engine:
@@ -313,5 +322,5 @@ def load_engine(name: str, *, fitted: bool = True) -> Engine:
     design = load_design(name, fitted=fitted)
     table = stored_guess_table(name) if fitted else None
     if table is None:
-        return make_engine(design)
-    return Engine(design=design, guess=table)
+        return make_engine(design, ENVELOPES[name])
+    return Engine(design=design, guess=table, envelope=ENVELOPES[name])

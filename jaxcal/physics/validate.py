@@ -128,9 +128,13 @@ def check_hpt_signature(f) -> dict:
                   model=model, reference=ref.HPT_EFF_SIGNATURE)  # fmt: skip
 
 
-def envelope_grid(quick: bool):
+def envelope_grid(quick: bool, alt_max: float = 42000.0, mach_max: float = 0.85):
+    """engine.md check 5: alt 0-42 kft, Mach 0-0.85 (clipped to the configuration's own
+    envelope), TRA 20-100, T2 ISA -30 to +40 degR; theta = 0 and every component alone at
+    its bound (-0.06 / +0.02, fan and LPC to -0.25)."""
     n = (4, 4, 5, 3) if quick else (8, 7, 9, 4)
-    g = np.array(list(itertools.product(np.linspace(0, 42000, n[0]), np.linspace(0, 0.85, n[1]),
+    g = np.array(list(itertools.product(np.linspace(0, alt_max, n[0]),
+                                        np.linspace(0, mach_max, n[1]),
                                         np.linspace(20, 100, n[2]), np.linspace(-30, 40, n[3]))))  # fmt: skip
     lo = np.array([-0.25] * 4 + [-0.06] * 6)
     thetas = [np.zeros(10)]
@@ -143,7 +147,8 @@ def envelope_grid(quick: bool):
 
 
 def check_envelope(engine: Engine, f, quick: bool) -> list[dict]:
-    w, thetas = envelope_grid(quick)
+    env = engine.envelope
+    w, thetas = envelope_grid(quick, min(42000.0, env.alt_ft[1]), min(0.85, env.mach[1]))
     conv = []
     worst_iters = 0
     for t in thetas:
