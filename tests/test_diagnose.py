@@ -1,0 +1,139 @@
+"""The diagnose CLI: argument errors exit 2; fabricated C-MAPSS / N-CMAPSS files."""
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from jaxcal.data.cmapss_text import SENSOR_MAP
+from jaxcal.data.ncmapss_io import write_ncmapss
+from jaxcal.diagnose import main
+from jaxcal.loop.effects import linearize
+from jaxcal.loop.synthetic import SyntheticConfig, make_synthetic_record
+from jaxcal.physics import load_engine
+from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES
+from jaxcal.physics.reference import FD002_CONDITIONS
+
+
+def test_unknown_key_exits_2_and_lists_valid_keys(capsys):
+    assert main(["data=x.txt", "calibrate=HPC_eff_mod", "colour=red"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown key 'colour'" in err and "calibrate" in err and "max_rows" in err
+
+
+def test_missing_arguments_and_bad_names_exit_2(tmp_path, capsys):
+    assert main(["calibrate=HPC_eff_mod"]) == 2
+    assert "data=" in capsys.readouterr().err
+    assert main([f"data={tmp_path / 'missing.txt'}", "calibrate=HPC_eff_mod"]) == 2
+    assert "file not found" in capsys.readouterr().err
+    path = tmp_path / "x.csv"
+    path.write_text("1\n")
+    assert main([f"data={path}", "calibrate=HPC_eff_mod"]) == 2
+    assert ".txt" in capsys.readouterr().err
+
+
+def _write_cmapss(path, engine, rng, t30_bias):
+    """Two units x 36 cycles over the six FD002 conditions, HPC degrading linearly."""
+    rows = []
+    for unit in (1, 2):
+        cond = np.tile(np.arange(6), 6)
+        rng.shuffle(cond)
+        cycle = np.arange(1, cond.size + 1)
+        w = FD002_CONDITIONS[cond].copy()
+        theta = np.zeros((cond.size, 10))
+        theta[:, 4] = -0.01 * cycle / cycle.size
+        theta[:, 5] = -0.02 * cycle / cycle.size
+        y = linearize(
+            engine, w, theta, np.zeros(6), np.zeros((3, 35)), np.zeros(cond.size)
+        ).y
+        names = list(engine.sensor_names)
+        cols = {s: y[:, names.index(n)] for s, n in SENSOR_MAP.items()}
+        cols[3] = cols[3] + t30_bias
+        for s, col in cols.items():
+            if s not in (
+                5,
+                8,
+                13,
+                16,
+                18,
+                19,
+            ):  # settings and rounded outputs stay clean
+                cols[s] = col * (1.0 + 0.001 * rng.normal(size=col.size))
+        cols.update(
+            {
+                1: w[:, 3],
+                11: np.full(cond.size, 47.5),
+                12: np.full(cond.size, 521.0),
+                17: np.full(cond.size, 392.0),
+            }
+        )
+        for i in range(cond.size):
+            ops = [w[i, 0] / 1000.0, w[i, 1], w[i, 2]]
+            vals = [cols[s][i] for s in range(1, 22)]
+            rows.append(
+                " ".join([str(unit), str(cycle[i])] + [f"{v:.4f}" for v in ops + vals])
+                + "  "
+            )
+    path.write_text("\n".join(rows) + "\n")
+
+
+@pytest.fixture(scope="module")
+def engine():
+    return load_engine("cmapss")
+
+
+def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
+    data = tmp_path / "train_FAKE.txt"
+    _write_cmapss(data, engine, np.random.default_rng(0), t30_bias=25.0)
+    out = tmp_path / "out"
+    code = main(
+        [
+            f"data={data}",
+            "engine=cmapss",
+            "calibrate=HPC_eff_mod,HPC_flow_mod",
+            f"out={out}",
+            "families=sensor_bias,sensor_gain,engine",
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    assert "verdict:" in capsys.readouterr().out
+    for name in (
+        "report.md",
+        "report.json",
+        "residuals.png",
+        "signature.png",
+        "theta.png",
+    ):
+        assert os.path.getsize(out / name) > 0, name
+    rep = json.loads((out / "report.json").read_text())
+    assert (
+        "Nf" in rep["data"]["excluded"] and rep["data"]["noise_source"] == "estimated"
+    )
+    top = rep["ranking"][0]["name"]
+    assert top in ("sensor_bias[T30]", "sensor_gain[T30]")
+    assert rep["verdict"] in ("identified", "confounded")
+    assert rep["identified"][0]["name"] == top
+    b, a = rep["before"], rep["after"]
+    assert a["tracking_rmse"]["T30"] < 0.5 * b["tracking_rmse"]["T30"]
+    assert "## Before / after" in (out / "report.md").read_text()
+
+
+def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engine):
+    cfg = SyntheticConfig(
+        num_units=2,
+        rows_per_cycle=2,
+        cycle_stride=2,
+        sensors=MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES,
+    )
+    syn = make_synthetic_record(jax.random.key(3), engine, "t2_offset", cfg, size=2.0)
+    path = tmp_path / "N-CMAPSS_fake.h5"
+    write_ncmapss(path, syn.record, syn.record)
+    out = tmp_path / "out"
+    assert main([f"data={path}", "calibrate=HPT_eff_mod", f"out={out}"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert set(rep["data"]["sensors"]) <= set(MEASURED_SENSOR_NAMES)
+    assert rep["verdict"] == "identified"
+    assert rep["identified"][0]["name"] == "t2_offset"
+    assert rep["identified"][0]["size"] == pytest.approx(2.0, rel=0.1)
