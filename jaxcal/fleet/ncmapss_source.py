@@ -1,0 +1,202 @@
+"""N-CMAPSS files as a stream of unit chunks for :mod:`jaxcal.fleet.streaming`.
+
+A file may be far larger than memory (the AGTF30 set is 2.4 GB; NASA's DS files hold
+up to ~10 M rows), so nothing here reads a whole split: :func:`unit_lengths` scans only
+the unit column of ``A_<split>`` in blocks, :func:`iter_ncmapss_chunks` reads one chunk
+of units at a time with :func:`~jaxcal.data.ncmapss_io.load_ncmapss` (which reads only
+the rows of the requested units) and pads it with :func:`~jaxcal.data.fleet.to_fleet` to
+the fixed length ``T`` that keeps the compiled program unique, and
+:func:`sensor_norm` takes the normalisation from the file's reference statistics or,
+failing those, from one blocked pass over the sensor columns.
+
+Row selection with ``stride`` keeps file rows ``0, stride, 2 stride, ...`` (the grid of
+``load_ncmapss`` for a unit selection), here and in the lengths.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Sequence
+
+import h5py
+import numpy as np
+
+from jaxcal.baselines.interface import SensorNorm
+from jaxcal.data.fleet import to_fleet
+from jaxcal.data.ncmapss_io import load_ncmapss
+from jaxcal.fleet.streaming import UnitChunk, plan_chunks
+from jaxcal.physics.constants import health_index
+
+_BLOCK_ROWS = 1 << 20  # rows per read block of the unit scan and the statistics pass
+
+
+def _check_stride(stride: int) -> int:
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride}")
+    return int(stride)
+
+
+def unit_lengths(
+    path,
+    split: str = "dev",
+    units: Sequence[int] | None = None,
+    *,
+    stride: int = 1,
+    block_rows: int = _BLOCK_ROWS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ids and their row counts, from the unit column alone.
+
+    Args:
+        path: the ``.h5`` file. split: ``"dev"`` or ``"test"``.
+        units: ids to keep (``None``: all units of the split).
+        stride: count only rows ``0, stride, ...`` of the file.
+        block_rows: rows per read block (bounds memory).
+
+    Returns:
+        ``(unit_ids [U] int64 ascending, lengths [U] int64)``.
+    """
+    stride = _check_stride(stride)
+    block_rows = max(stride, int(block_rows) // stride * stride)  # keep the grid
+    path = os.fspath(path)
+    with h5py.File(path, "r") as f:
+        if f"A_{split}" not in f or "A_var" not in f:
+            raise ValueError(f"{path}: no A_{split} / A_var datasets (split={split!r})")
+        names = [n.decode().strip() for n in f["A_var"][()]]
+        if "unit" not in names:
+            raise ValueError(f"{path}: A_var has no 'unit' column, got {names}")
+        col, dset = names.index("unit"), f[f"A_{split}"]
+        counts: dict[int, int] = {}
+        for a in range(0, dset.shape[0], block_rows):
+            ids = dset[a : a + block_rows][::stride, col]
+            found, num = np.unique(ids.astype(np.int64), return_counts=True)
+            for unit, n in zip(found.tolist(), num.tolist(), strict=True):
+                counts[unit] = counts.get(unit, 0) + n
+    if units is not None:
+        wanted = sorted({int(u) for u in np.atleast_1d(units)})
+        missing = [u for u in wanted if u not in counts]
+        if missing or not wanted:
+            raise ValueError(
+                f"{path} [{split}] has no unit(s) {missing or '(none requested)'}; "
+                f"units there are {sorted(counts)}"
+            )
+        counts = {u: counts[u] for u in wanted}
+    ids = np.array(sorted(counts), np.int64)
+    return ids, np.array([counts[u] for u in ids.tolist()], np.int64)
+
+
+def iter_ncmapss_chunks(
+    path,
+    split: str,
+    unit_ids: np.ndarray,
+    *,
+    max_len: int,
+    chunk_units: int,
+    sensors: Sequence[str],
+    theta_names: Sequence[str] | None = None,
+    stride: int = 1,
+    process_index: int = 0,
+    num_processes: int = 1,
+) -> Iterator[UnitChunk]:
+    """This process's share of every chunk of ``unit_ids``, read from the file.
+
+    Args:
+        path, split: the N-CMAPSS file and split.
+        unit_ids: ``[U]`` ids in the global order (e.g. from :func:`unit_lengths`).
+        max_len: ``T``, the padded length; a longer unit is an error, never truncated.
+        chunk_units: units per global chunk.
+        sensors: sensor names, the ``S`` columns of ``x``.
+        theta_names: declared parameters; their true values (``T_<split>``) are
+            passed on as the per-step extra ``theta_true``. ``None``: no truth.
+        stride: keep file rows ``0, stride, ...``.
+        process_index, num_processes: this process and the process count.
+
+    Yields:
+        :class:`~jaxcal.fleet.streaming.UnitChunk` s with ``w [u, T, 4]``,
+        ``x [u, T, S]``, ``cycle`` and (optionally) ``theta_true [u, T, P]``.
+    """
+    unit_ids = np.asarray(unit_ids, np.int64)
+    truth_idx = None if theta_names is None else health_index(list(theta_names))
+    for parts in plan_chunks(unit_ids.size, chunk_units, num_processes):
+        pos = parts[process_index]
+        index = pos
+        if pos.size == 0:  # collective program: run on a copy, discard the results
+            pos, index = parts[0][:1], np.full(1, -1)
+        record = load_ncmapss(
+            path, split, units=unit_ids[pos], sensors=list(sensors), stride=stride
+        )
+        _, counts = np.unique(record.unit, return_counts=True)
+        if counts.max() > max_len:
+            raise ValueError(
+                f"max_len={max_len} is shorter than a unit of {counts.max()} rows "
+                f"among units {unit_ids[pos].tolist()}; raise max_len (0 = longest)"
+            )
+        fleet = to_fleet(record, max_len=max_len)
+        extras = None
+        if truth_idx is not None:
+            extras = {"theta_true": np.asarray(fleet.theta)[..., truth_idx]}
+        yield UnitChunk(
+            index=index.astype(np.int64),
+            unit_ids=np.asarray(fleet.unit_ids, np.int64),
+            w=np.asarray(fleet.w),
+            x=np.asarray(fleet.x),
+            mask=np.asarray(fleet.mask),
+            cycle=np.asarray(fleet.cycle, np.int64),
+            extras=extras,
+        )
+
+
+def sensor_norm(
+    path,
+    split: str,
+    sensors: Sequence[str],
+    units: Sequence[int] | None = None,
+    *,
+    stride: int = 1,
+    block_rows: int = _BLOCK_ROWS,
+) -> tuple[SensorNorm, str]:
+    """Per-sensor mean / std for the normalised residuals of the UKF and least squares.
+
+    Uses the file's ``reference_x_names`` / ``reference_x_mean`` / ``reference_x_std``
+    root attributes (written by ``jaxcal.generate``: statistics of the noise-free
+    reference fleet) when they cover ``sensors``; otherwise one blocked pass over the
+    selected units' rows of the split.
+
+    Returns:
+        ``(SensorNorm [S], source)`` with ``source`` ``"file attributes"`` or
+        ``"data pass"``.
+    """
+    stride = _check_stride(stride)
+    path = os.fspath(path)
+    with h5py.File(path, "r") as f:
+        attrs = dict(f.attrs)
+        num_rows = f[f"A_{split}"].shape[0] if f"A_{split}" in f else 0
+    if all(k in attrs for k in ("reference_x_names", "reference_x_mean")) and (
+        "reference_x_std" in attrs
+    ):
+        names = attrs["reference_x_names"]
+        names = json.loads(names) if isinstance(names, str | bytes) else list(names)
+        if all(s in names for s in sensors):
+            cols = [names.index(s) for s in sensors]
+            mean = np.asarray(attrs["reference_x_mean"], np.float64)[cols]
+            std = np.asarray(attrs["reference_x_std"], np.float64)[cols]
+            return SensorNorm(mean=mean, std=std), "file attributes"
+    block_rows = max(stride, int(block_rows) // stride * stride)
+    wanted = None if units is None else np.asarray(list(units), np.int64)
+    total, sums, squares = 0, 0.0, 0.0
+    for a in range(0, num_rows, block_rows):
+        rec = load_ncmapss(
+            path, split, sensors=list(sensors), rows=(a, min(a + block_rows, num_rows)),
+            stride=stride,
+        )  # fmt: skip
+        x = rec.x if wanted is None else rec.x[np.isin(rec.unit, wanted)]
+        total += x.shape[0]
+        sums = sums + x.sum(axis=0)
+        squares = squares + np.square(x).sum(axis=0)
+    if total == 0:
+        raise ValueError(f"{path} [{split}]: no rows to compute sensor statistics on")
+    mean = sums / total
+    std = np.sqrt(np.maximum(squares / total - np.square(mean), 0.0))
+    # The floor of jaxcal.data.fleet.fit_norm_stats: constant columns must not blow up.
+    std = np.maximum(std, 1e-6 * np.maximum(1.0, np.abs(mean)))
+    return SensorNorm(mean=mean, std=std), "data pass"
