@@ -31,9 +31,9 @@ format: $(STAMP)
 	$(BIN)/ruff format jaxcal tests experiments
 	$(BIN)/ruff check --fix jaxcal tests experiments
 
-# The main job. Until the training pipeline lands it runs the engine validation report.
+# The main job: generates data/cmapss.h5 if missing, fits D, trains CLAC, scores test units.
 train: $(STAMP)
-	$(BIN)/python -m jaxcal.physics.validate
+	$(BIN)/python -m jaxcal.train dataset=cmapss
 
 validate: $(STAMP)
 	$(BIN)/python -m jaxcal.physics.validate

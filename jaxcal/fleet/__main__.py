@@ -146,20 +146,9 @@ def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
     from jaxcal.baselines.interface import Calibrator, measure_declared
 
     if cfg.method == "policy":
-        try:
-            from jaxcal import deploy
-        except ImportError as err:
-            raise ValueError(f"method=policy needs jaxcal.deploy: {err}") from None
-        loader = getattr(deploy, "load_calibrator", None)
-        if loader is None:
-            raise ValueError(
-                "method=policy needs jaxcal.deploy.load_calibrator(run_dir) -> "
-                "Calibrator, which jaxcal.deploy does not define"
-            )
-        calibrator = loader(cfg.run)
-        if not isinstance(calibrator, Calibrator):
-            raise ValueError(f"{cfg.run}: load_calibrator did not return a Calibrator")
-        return calibrator
+        from jaxcal.deploy import load_calibrator
+
+        return load_calibrator(cfg.run)
     from jaxcal.baselines.least_squares import make_least_squares
     from jaxcal.baselines.ukf import make_ukf
     from jaxcal.physics import load_engine

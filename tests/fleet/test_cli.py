@@ -50,14 +50,11 @@ def test_bad_arguments_exit_2_with_the_reason(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_missing_policy_loader_is_a_clear_error(tmp_path, monkeypatch):
-    import types
-
+def test_policy_without_a_trained_run_is_a_clear_error(tmp_path):
     from jaxcal.fleet.__main__ import build_calibrator
 
-    monkeypatch.setitem(sys.modules, "jaxcal.deploy", types.ModuleType("jaxcal.deploy"))
     cfg = FleetConfig(data="a.h5", out="o.h5", method="policy", run=str(tmp_path))
-    with pytest.raises(ValueError, match="load_calibrator"):
+    with pytest.raises(FileNotFoundError, match="config.json"):
         build_calibrator(cfg, ("T24",), None)
 
 

@@ -1,0 +1,215 @@
+"""Command line: score a trained run on its test units and measure deployment cost.
+
+Usage::
+
+    python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=500]
+
+Runs the run's deterministic policy through every unit of the split, whole
+trajectories (``lax.scan`` over time, vmapped over units; the deployment calibrator of
+:mod:`jaxcal.deploy`), and reports the theta RMSE (pooled and per parameter), the
+tracking RMSE (normalised, and per sensor in sensor units) and the deployment cost per
+sample (paper Table "time"):
+
+* single-stream latency: :meth:`jaxcal.deploy.StreamingCalibrator.step` on one sample
+  (host numpy in and out, one jitted call, blocking), median and minimum over
+  ``repeats`` consecutive samples of the first unit, after a warm-up call;
+* batched throughput: valid samples per second of the vmapped run over all units of
+  the split (median of three timed runs after the compiling one).
+
+Prints the results and writes them to ``runs/<name>/evaluate.json``
+(``evaluate_val.json`` for ``split=val``). The data file named in the run's config must
+be readable.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+USAGE = "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=N]"
+KEYS = ("run", "split", "repeats")
+
+
+def parse_args(argv: list[str]) -> dict:
+    """``{"run", "split", "repeats"}`` from ``key=value`` tokens.
+
+    Raises:
+        ValueError: malformed token, unknown key (lists the valid ones), missing run,
+            bad split or repeats.
+    """
+    args: dict[str, str] = {}
+    for token in argv:
+        key, sep, value = token.partition("=")
+        if not sep or not key:
+            raise ValueError(f"malformed argument {token!r}: expected key=value")
+        if key not in KEYS:
+            raise ValueError(f"unknown key {key!r}; valid keys: {', '.join(KEYS)}")
+        if key in args:
+            raise ValueError(f"key {key!r} given twice")
+        args[key] = value
+    if not args.get("run"):
+        raise ValueError("run=<run folder> is required")
+    split = args.get("split", "test")
+    if split not in ("test", "val"):
+        raise ValueError(f"split must be test or val, got {split!r}")
+    try:
+        repeats = int(args.get("repeats", "500"))
+    except ValueError:
+        raise ValueError(
+            f"repeats must be an integer, got {args['repeats']!r}"
+        ) from None
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    return {"run": args["run"], "split": split, "repeats": repeats}
+
+
+def measure_latency(calibrator, w, x, repeats: int) -> dict:
+    """Single-stream seconds per sample of ``calibrator.step`` (blocking, host I/O).
+
+    Args:
+        calibrator: a :class:`~jaxcal.deploy.StreamingCalibrator`.
+        w, x: ``[T, W]``, ``[T, S]`` samples of one unit, fed in order (cycled).
+        repeats: timed calls.
+
+    Returns:
+        ``{"median_s", "min_s", "repeats"}``.
+    """
+    import numpy as np
+
+    calibrator.reset()
+    calibrator.step(w[0], x[0])  # compiles
+    times = np.empty(repeats)
+    for i in range(repeats):
+        t = (i + 1) % len(w)
+        tic = time.perf_counter()
+        calibrator.step(w[t], x[t])  # returns numpy: the call has finished
+        times[i] = time.perf_counter() - tic
+    return {
+        "median_s": float(np.median(times)),
+        "min_s": float(times.min()),
+        "repeats": repeats,
+    }
+
+
+def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
+    """Scores and deployment cost of a run on one split (see the module docstring)."""
+    import numpy as np
+
+    from jaxcal.deploy import StreamingCalibrator, load_run
+    from jaxcal.training.data import load_calibration_data
+    from jaxcal.training.scoring import score_units
+
+    run = load_run(run_dir)
+    cfg = run.config
+    data = load_calibration_data(
+        cfg.dataset.path,
+        sensors=run.meta.sensors,
+        theta=run.meta.theta_names,
+        val_units=tuple(_data_units(run.run_dir)["val"]),
+        stride=cfg.dataset.stride,
+        theta_margin=cfg.env.theta_margin,
+    )
+    units = getattr(data, split)
+    if units is None:
+        raise ValueError(f"run {run_dir} has no {split} units")
+    calibrator = StreamingCalibrator(run)
+    theta, xhat = calibrator.run(units.w, units.x, units.mask)  # compiles
+    seconds = []
+    for _ in range(3):
+        tic = time.perf_counter()
+        calibrator.run(units.w, units.x, units.mask)
+        seconds.append(time.perf_counter() - tic)
+    batch_s = float(np.median(seconds))
+    scores = score_units(
+        theta,
+        xhat,
+        units.theta,
+        units.x,
+        units.mask,
+        np.asarray(run.params.x_std),
+        run.meta.sensors,
+        run.meta.theta_names,
+    )
+    first = units.lengths[0]
+    latency = measure_latency(
+        calibrator, units.w[0, :first], units.x[0, :first], repeats
+    )
+    return {
+        "run": str(run.run_dir),
+        "split": split,
+        "units": units.unit_ids.tolist(),
+        "checkpoint_step": run.step,
+        **scores,
+        "deployment": {
+            "single_stream_latency_s": latency,
+            "batched_seconds": batch_s,
+            "batched_samples_per_s": units.num_samples / batch_s,
+            "batched_units": int(len(units.unit_ids)),
+        },
+    }
+
+
+def _data_units(run_dir) -> dict:
+    from jaxcal.training.run_dir import DATA_FILE, read_json
+
+    return read_json(f"{run_dir}/{DATA_FILE}")["units"]
+
+
+def format_report(report: dict) -> str:
+    """Human-readable summary of :func:`evaluate_run`."""
+    from jaxcal.training.scoring import describe_units
+
+    dep = report["deployment"]
+    lat = dep["single_stream_latency_s"]
+    return "\n".join(
+        [
+            f"{report['run']} (checkpoint {report['checkpoint_step']}), "
+            f"{report['split']} units {describe_units(report['units'])}, "
+            f"{report['num_samples']:,} samples",
+            f"theta RMSE {report['theta_rmse']:.3e} ("
+            + ", ".join(
+                f"{k} {v:.3e}" for k, v in report["theta_rmse_per_param"].items()
+            )
+            + ")",
+            f"tracking RMSE {report['tracking_rmse_norm']:.4f} (normalised); in "
+            "sensor units: "
+            + ", ".join(
+                f"{k} {v:.4g}" for k, v in report["tracking_rmse_units"].items()
+            ),
+            f"deployment: single-stream {lat['median_s'] * 1e6:.0f} us/sample "
+            f"(median, min {lat['min_s'] * 1e6:.0f} us); batched "
+            f"{dep['batched_samples_per_s']:,.0f} samples/s over "
+            f"{dep['batched_units']} units",
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit code (0 ok, 2 bad arguments)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if any(a in ("-h", "--help", "help") for a in argv):
+        print(__doc__)
+        print(USAGE)
+        return 0
+    try:
+        args = parse_args(argv)
+    except ValueError as err:
+        print(f"error: {err}\n{USAGE}", file=sys.stderr)
+        return 2
+    from jaxcal.training.run_dir import EVALUATION_FILE, write_json
+
+    try:
+        report = evaluate_run(args["run"], args["split"], args["repeats"])
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    name = EVALUATION_FILE
+    if args["split"] != "test":
+        name = name.replace(".json", f"_{args['split']}.json")
+    write_json(f"{report['run']}/{name}", report)
+    print(format_report(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

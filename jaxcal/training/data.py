@@ -1,0 +1,257 @@
+"""The calibration data set of a training run: padded ``[U, T, ...]`` arrays per split.
+
+:func:`load_calibration_data` reads an N-CMAPSS-layout HDF5 file (one of ours or any of
+NASA's DS01-DS08) and returns, for the train / validation / test units, the operating
+conditions w, the chosen sensors x and the declared parameters theta, each unit padded
+to the longest one of its split (the padding repeats the unit's last row, see
+:func:`jaxcal.data.fleet.to_fleet`) with its valid length. Only the needed columns and
+the rows of the needed units are read (``load_ncmapss`` slices by unit).
+
+Splits (the policy never sees theta; labels are kept for reporting only):
+
+* train: dev units minus the validation units; the surrogate D and the policy learn on
+  them;
+* val: held-out dev units (default: the last ``val_fraction`` of the file's dev units),
+  used for progress printing and hyperparameter tuning;
+* test: the file's test units, scored once at the end.
+
+Defaults follow the file: sensors = the ``observed_sensors`` root attribute when the
+file has one (our files), else the 14 measured sensors X_s; theta = the T columns that
+vary over the dev split. The action box is the dev range of theta widened by
+``theta_margin`` of its width on each side.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxcal.data.fleet import to_fleet
+from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+from jaxcal.data.record import Record
+from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
+
+# Half-width of the action box of a declared parameter that is constant in the data.
+CONSTANT_THETA_HALF_WIDTH = 0.01
+# A T column "varies" when its dev range exceeds this (the files store exact zeros).
+VARYING_TOLERANCE = 1e-9
+
+
+class UnitArrays(NamedTuple):
+    """One split, padded (host numpy).
+
+    Attributes:
+        w: ``[U, T, W]`` operating conditions (ft, -, %, degR).
+        x: ``[U, T, S]`` sensors in file units.
+        theta: ``[U, T, P]`` declared parameters (labels, for scoring only).
+        lengths: ``[U]`` int32 valid rows per unit.
+        unit_ids: ``[U]`` int64 unit ids of the file.
+    """
+
+    w: np.ndarray
+    x: np.ndarray
+    theta: np.ndarray
+    lengths: np.ndarray
+    unit_ids: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``[U, T]`` bool, True on valid rows."""
+        return np.arange(self.x.shape[1])[None, :] < self.lengths[:, None]
+
+    @property
+    def num_samples(self) -> int:
+        """Number of valid rows over all units."""
+        return int(self.lengths.sum())
+
+
+class CalibrationData(NamedTuple):
+    """Everything a run needs from the data file.
+
+    Attributes:
+        train, val, test: the splits; ``val`` is ``None`` when no unit is held out.
+        sensors: S sensor names (columns of x).
+        theta_names: P declared parameter names (columns of theta).
+        theta_low, theta_high: ``[P]`` action box.
+        theta_base: ``[10]`` mean of every T column over the dev rows; the physics
+            dynamics hold the undeclared parameters there.
+        engine: engine configuration of the file (``cmapss`` for NASA files).
+        info: provenance (path, sample rate, rows and units per split).
+    """
+
+    train: UnitArrays
+    val: UnitArrays | None
+    test: UnitArrays
+    sensors: tuple[str, ...]
+    theta_names: tuple[str, ...]
+    theta_low: np.ndarray
+    theta_high: np.ndarray
+    theta_base: np.ndarray
+    engine: str
+    info: dict
+
+
+def _json_attr(attrs: dict, key: str):
+    value = attrs.get(key)
+    if isinstance(value, str):
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    return value
+
+
+def default_sensors(info: dict) -> tuple[str, ...]:
+    """The file's ``observed_sensors`` attribute, else the 14 measured sensors X_s."""
+    observed = _json_attr(info["attrs"], "observed_sensors")
+    if isinstance(observed, list) and observed:
+        return tuple(str(s) for s in observed)
+    return tuple(n for n in info["columns"]["X_s"] if n in MEASURED_SENSOR_NAMES)
+
+
+def split_units(
+    info: dict, val_units: tuple[int, ...] | None, val_fraction: float
+) -> tuple[list[int], list[int], list[int]]:
+    """(train, val, test) unit ids: dev minus val, the chosen val, the test split.
+
+    Args:
+        info: :func:`~jaxcal.data.ncmapss_io.ncmapss_info` of the file.
+        val_units: explicit held-out dev units; ``None`` takes the last
+            ``max(1, round(val_fraction * n_dev))`` dev units (none if that would
+            leave no training unit); ``()`` holds out nothing.
+        val_fraction: share of dev units held out when ``val_units`` is ``None``.
+
+    Raises:
+        ValueError: a split is missing, a val unit is not a dev unit, or no training
+            unit is left.
+    """
+    splits = info["splits"]
+    for split in ("dev", "test"):
+        if split not in splits or not splits[split]["units"]:
+            raise ValueError(f"{info['path']}: the {split} split holds no unit")
+    dev = [int(u) for u in splits["dev"]["units"]]
+    test = [int(u) for u in splits["test"]["units"]]
+    if val_units is None:
+        num_val = max(1, int(round(val_fraction * len(dev)))) if val_fraction else 0
+        val = dev[len(dev) - num_val :] if num_val < len(dev) else []
+    else:
+        val = [int(u) for u in val_units]
+        stray = sorted(set(val) - set(dev))
+        if stray:
+            raise ValueError(
+                f"val_units {stray} are not dev units of {info['path']}; dev units: "
+                f"{dev}"
+            )
+    train = [u for u in dev if u not in val]
+    if not train:
+        raise ValueError(f"val_units {val} leave no training unit (dev units: {dev})")
+    return train, val, test
+
+
+def _pad(record: Record, theta_idx: list[int]) -> UnitArrays:
+    fleet = to_fleet(record)
+    return UnitArrays(
+        w=np.asarray(fleet.w),
+        x=np.asarray(fleet.x),
+        theta=np.asarray(fleet.theta)[..., theta_idx],
+        lengths=np.asarray(fleet.lengths, np.int32),
+        unit_ids=np.asarray(fleet.unit_ids, np.int64),
+    )
+
+
+def load_calibration_data(
+    path: str,
+    *,
+    sensors: tuple[str, ...] = (),
+    theta: tuple[str, ...] = (),
+    val_units: tuple[int, ...] | None = None,
+    val_fraction: float = 0.15,
+    stride: int = 1,
+    theta_margin: float = 0.1,
+) -> CalibrationData:
+    """Reads the train / val / test splits of an N-CMAPSS file.
+
+    Args:
+        path: the ``.h5`` file (N-CMAPSS layout).
+        sensors: sensor names (``()``: :func:`default_sensors`).
+        theta: declared parameter names from ``HEALTH_NAMES`` (``()``: the T columns
+            that vary over the dev split).
+        val_units: see :func:`split_units`.
+        val_fraction: see :func:`split_units`.
+        stride: keep every ``stride``-th row (a 1 Hz NASA file with ``stride=10`` is
+            sampled every 10 s).
+        theta_margin: the action box is the dev range widened by this share of its
+            width on each side.
+
+    Returns:
+        :class:`CalibrationData`.
+
+    Raises:
+        ValueError: naming the bad argument (unknown sensor or parameter, no varying
+            parameter, bad split).
+    """
+    if theta_margin < 0:
+        raise ValueError(f"theta_margin must be >= 0, got {theta_margin}")
+    info = ncmapss_info(path)
+    sensors = tuple(sensors) or default_sensors(info)
+    train_ids, val_ids, test_ids = split_units(info, val_units, val_fraction)
+    dev = load_ncmapss(
+        path, "dev", units=train_ids + val_ids, sensors=sensors, stride=stride
+    )
+    test = load_ncmapss(path, "test", units=test_ids, sensors=sensors, stride=stride)
+    low, high = dev.theta.min(axis=0), dev.theta.max(axis=0)
+    if theta:
+        unknown = [n for n in theta if n not in HEALTH_NAMES]
+        if unknown or len(set(theta)) < len(theta):
+            raise ValueError(
+                f"theta must be distinct names from {list(HEALTH_NAMES)}, got "
+                f"{list(theta)}"
+            )
+        theta_names = tuple(theta)
+    else:
+        varying = high - low > VARYING_TOLERANCE
+        theta_names = tuple(n for n, v in zip(HEALTH_NAMES, varying, strict=True) if v)
+        if not theta_names:
+            raise ValueError(
+                f"{path}: no health parameter varies over the dev split; name the "
+                "parameters to calibrate with theta=<name>,<name>"
+            )
+    theta_idx = [HEALTH_NAMES.index(n) for n in theta_names]
+    low, high = low[theta_idx], high[theta_idx]
+    width = high - low
+    margin = np.where(
+        width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
+    )
+    dev_fleet = _pad(dev, theta_idx)
+    is_val = np.isin(dev_fleet.unit_ids, val_ids)
+
+    def take(mask: np.ndarray) -> UnitArrays:
+        # Re-trim the padding to the longest selected unit.
+        longest = int(dev_fleet.lengths[mask].max())
+        return UnitArrays(
+            *(a[mask][:, :longest] for a in dev_fleet[:3]),
+            lengths=dev_fleet.lengths[mask],
+            unit_ids=dev_fleet.unit_ids[mask],
+        )
+
+    engine = _json_attr(info["attrs"], "engine")
+    return CalibrationData(
+        train=take(~is_val),
+        val=take(is_val) if val_ids else None,
+        test=_pad(test, theta_idx),
+        sensors=sensors,
+        theta_names=theta_names,
+        theta_low=low - margin,
+        theta_high=high + margin,
+        theta_base=dev.theta.mean(axis=0),
+        engine=str(engine) if engine else "cmapss",
+        info={
+            "path": str(path),
+            "sample_rate_hz": info["sample_rate_hz"] / stride,
+            "stride": stride,
+            "rows": {"dev": dev.num_rows, "test": test.num_rows},
+            "units": {"train": train_ids, "val": val_ids, "test": test_ids},
+        },
+    )

@@ -1,0 +1,298 @@
+"""The training job: data -> surrogate D -> policy -> test scores, in one run folder.
+
+:func:`run_training` is what ``python -m jaxcal.train`` runs (paper §3 and Algorithm
+1, with the set-up choices of ``design/calibration.md``):
+
+1. the run folder ``<runs_dir>/<name>`` is created, or checked against the stored
+   config for a resume (:func:`jaxcal.training.run_dir.prepare_run_dir`);
+2. the data file is generated if it is missing and a generator preset is named
+   (``python -m jaxcal.generate`` in a subprocess, so the engine's float64 setting
+   does not leak into training), then the train / val / test units are read
+   (:mod:`jaxcal.training.data`);
+3. the surrogate D is fitted on the training units' transitions or restored
+   (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it;
+4. the policy learns on the training units' (w, x) only, no theta label
+   (:mod:`jaxcal.training.policy_stage`); validation units are scored every
+   ``eval_every`` chunks (theta RMSE for progress only; the label-free tracking RMSE
+   also selects the kept policy when ``budget.select=val_tracking``);
+5. the kept policy runs once through every test unit's whole trajectory (the
+   deployment calibrator of :mod:`jaxcal.training.calibrator`, ``lax.scan`` vmapped
+   over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
+   time, updates/s and env steps/s (plus, for transparency, the scores of the last
+   policy and of the last online actor).
+
+The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
+of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
+runner checkpoints, every checkpoint step saves the deployable
+:class:`~jaxcal.training.calibrator.PolicyParams` (actor, dynamics parameters,
+normalisation, action box) under ``policy/``, and the selected one under
+``policy_best/``; :mod:`jaxcal.deploy` loads a run from those and ``config.json`` /
+``data.json`` alone.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxcal.checkpoint import Checkpointer
+from jaxcal.config import TrainConfig
+from jaxcal.envs.tracking import EnvConfig, EnvParams, NormStats, make_env_params
+from jaxcal.precision import enable_x64
+from jaxcal.training.calibrator import PolicyParams, policy_params_from_env
+from jaxcal.training.data import CalibrationData, UnitArrays, load_calibration_data
+from jaxcal.training.policy_stage import train_policy
+from jaxcal.training.problem import RunMeta, make_components
+from jaxcal.training.run_dir import (
+    DATA_FILE,
+    FINAL_FILE,
+    POLICY_BEST_DIR,
+    POLICY_DIR,
+    prepare_run_dir,
+    write_json,
+)
+from jaxcal.training.scoring import describe_units, score_units
+from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
+
+
+def ensure_data_file(cfg: TrainConfig, log: Callable[[str], None] = print) -> Path:
+    """The run's data file, generated first if missing and ``dataset.generate`` is set.
+
+    Raises:
+        ValueError: no path configured (``dataset=ncmapss`` without ``path=``).
+        FileNotFoundError: the file is missing and no generator preset is named.
+        RuntimeError: the generator failed.
+    """
+    if not cfg.dataset.path:
+        raise ValueError(
+            f"dataset={cfg.dataset.name} needs a file: add path=<file.h5> "
+            "(an N-CMAPSS DS01-DS08 file or one written by jaxcal.generate)"
+        )
+    path = Path(cfg.dataset.path)
+    if path.is_file():
+        return path
+    if not cfg.dataset.generate:
+        raise FileNotFoundError(f"data file {path} not found")
+    log(f"{path} is missing: generating data set {cfg.dataset.generate!r}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    command = [
+        sys.executable,
+        "-m",
+        "jaxcal.generate",
+        f"dataset={cfg.dataset.generate}",
+        f"out={path}",
+    ]
+    if subprocess.run(command, check=False).returncode != 0:
+        raise RuntimeError(f"generating {path} failed: {' '.join(command)}")
+    return path
+
+
+def _env_params(
+    units: UnitArrays,
+    data: CalibrationData,
+    dyn_params,
+    dtype,
+    stats: NormStats | None = None,
+) -> EnvParams:
+    return make_env_params(
+        units.w.astype(dtype),
+        units.x.astype(dtype),
+        units.lengths,
+        data.theta_low.astype(dtype),
+        data.theta_high.astype(dtype),
+        dyn_params,
+        stats=stats,
+    )
+
+
+def _throughput(records: list[dict]) -> dict:
+    """updates/s and env steps/s over the run's chunks, compile chunks excluded."""
+    timed = [r for r in records if not r.get("includes_compile")] or records
+    seconds = sum(r["chunk_seconds"] for r in timed)
+    if not timed or seconds <= 0:
+        return {"updates_per_s": None, "env_steps_per_s": None}
+    return {
+        "updates_per_s": sum(r["updates_per_s"] * r["chunk_seconds"] for r in timed)
+        / seconds,
+        "env_steps_per_s": sum(r["env_steps_per_s"] * r["chunk_seconds"] for r in timed)
+        / seconds,
+    }
+
+
+def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dict:
+    """Runs (or resumes) the training job of ``cfg``; returns the ``final.json`` dict.
+
+    Raises:
+        ValueError: bad data selection or a run folder made by another config.
+    """
+    wall_start = time.perf_counter()
+    run_dir = Path(cfg.output.runs_dir) / cfg.run_name
+    resumed = prepare_run_dir(run_dir, cfg)
+    log(f"run {run_dir} ({'resuming' if resumed else 'new'}), seed {cfg.seed}")
+    path = ensure_data_file(cfg, log)
+    if cfg.dynamics == "physics":
+        enable_x64()  # the engine's Newton solve needs float64
+    dtype = np.float64 if cfg.dynamics == "physics" else np.float32
+    data = load_calibration_data(
+        str(path),
+        sensors=cfg.sensors,
+        theta=cfg.theta,
+        val_units=cfg.dataset.val_units,
+        val_fraction=cfg.dataset.val_fraction,
+        stride=cfg.dataset.stride,
+        theta_margin=cfg.env.theta_margin,
+    )
+    meta = RunMeta.from_data(data)
+    log(
+        f"data {path}: theta {list(data.theta_names)} in "
+        f"[{', '.join(f'{v:.4g}' for v in data.theta_low)}] .. "
+        f"[{', '.join(f'{v:.4g}' for v in data.theta_high)}]; {len(data.sensors)} "
+        f"sensors; units train {describe_units(data.info['units']['train'])}, val "
+        f"{describe_units(data.info['units']['val'])}, test "
+        f"{describe_units(data.info['units']['test'])}"
+    )
+    key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
+    surrogate_report = None
+    dyn_params = None
+    if cfg.dynamics == "surrogate":
+        dyn_params, surrogate_report = fit_or_restore_surrogate(
+            key_surrogate,
+            data,
+            cfg.surrogate,
+            run_dir,
+            progress=cfg.output.progress,
+            log=log,
+        )
+    train_params = _env_params(data.train, data, dyn_params, dtype)
+    stats = NormStats(
+        train_params.w_mean, train_params.w_std, train_params.x_mean, train_params.x_std
+    )
+    write_json(
+        run_dir / DATA_FILE,
+        {**meta._asdict(), **data.info, "theta_low": data.theta_low,
+         "theta_high": data.theta_high, "norm": stats._asdict()},
+    )  # fmt: skip
+    env_cfg = EnvConfig(
+        len(data.sensors),
+        meta.condition_dim,
+        len(data.theta_names),
+        episode_length=cfg.env.episode_length,
+    )
+    parts = make_components(cfg.dynamics, meta, env_cfg, cfg.agent, cfg.runner)
+
+    def score(units: UnitArrays, params: PolicyParams) -> dict:
+        out = parts.run_units(
+            params, units.w.astype(dtype), units.x.astype(dtype), units.mask
+        )
+        return score_units(
+            out.theta,
+            out.xhat,
+            units.theta,
+            units.x,
+            units.mask,
+            np.asarray(stats.x_std),
+            data.sensors,
+            data.theta_names,
+        )
+
+    def deployable(agent_state, which: str = cfg.budget.policy) -> PolicyParams:
+        actor = agent_state.actor.params
+        if which == "target":
+            actor = getattr(agent_state, "target_actor_params", actor)
+        return policy_params_from_env(train_params, actor)
+
+    def val_scorer(agent_state) -> dict:
+        scores = score(data.val, deployable(agent_state))
+        return {k: scores[k] for k in ("theta_rmse", "tracking_rmse_norm")}
+
+    select = cfg.budget.select == "val_tracking" and data.val is not None
+    deadline = (
+        None
+        if cfg.budget.time_limit_s is None
+        else wall_start + cfg.budget.time_limit_s
+    )
+    keep = cfg.output.max_to_keep
+    with (
+        Checkpointer(run_dir / POLICY_DIR, max_to_keep=keep) as latest_ckpt,
+        Checkpointer(run_dir / POLICY_BEST_DIR, max_to_keep=1) as best_ckpt,
+    ):
+
+        def save_latest(step: int, runner) -> None:
+            params = deployable(runner.agent_state)
+            latest_ckpt.save(step, jax.device_get(params), wait=True)
+
+        def save_best(step: int, runner) -> None:
+            # A chunk re-run after a resume reproduces the policy already saved.
+            if step not in best_ckpt.all_steps():
+                params = deployable(runner.agent_state)
+                best_ckpt.save(step, jax.device_get(params), wait=True)
+
+        policy = train_policy(
+            key_runner,
+            parts.env,
+            parts.agent,
+            parts.train_chunk,
+            train_params,
+            cfg.runner,
+            run_dir,
+            num_chunks=cfg.budget.num_chunks,
+            eval_every=cfg.budget.eval_every,
+            ckpt_every=cfg.budget.ckpt_every,
+            deadline=deadline,
+            save_buffer=cfg.output.save_buffer,
+            max_to_keep=keep,
+            scorer=val_scorer if data.val is not None else None,
+            on_checkpoint=save_latest,
+            on_best=save_best if select else None,
+            progress=cfg.output.progress,
+            log=log,
+        )
+        last = deployable(policy.runner.agent_state)
+        selected, selected_step = last, policy.chunks_done
+        if select and best_ckpt.latest_step() is not None:
+            selected_step = best_ckpt.latest_step()
+            selected = best_ckpt.restore(selected_step, last)
+    test = score(data.test, selected)
+    records = policy.records
+    val_record = next((r for r in records if r["step"] == selected_step), {})
+    final = {
+        "run": str(run_dir),
+        "agent": cfg.agent_name,
+        "dynamics": cfg.dynamics,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "data": str(path),
+        "theta_names": list(data.theta_names),
+        "test_units": data.info["units"]["test"],
+        "select": cfg.budget.select if select else "last",
+        "policy": cfg.budget.policy
+        if hasattr(policy.runner.agent_state, "target_actor_params")
+        else "online",
+        "selected_chunk": selected_step,
+        "test": test,
+        "test_last": test
+        if selected_step == policy.chunks_done
+        else score(data.test, last),
+        "test_online_last": score(
+            data.test, deployable(policy.runner.agent_state, "online")
+        ),
+        "val_selected": {
+            k[4:]: v for k, v in val_record.items() if k.startswith("val_")
+        },
+        "chunks": policy.chunks_done,
+        "stopped_early": policy.stopped_early,
+        "env_steps": int(policy.runner.env_steps),
+        "num_updates": int(policy.runner.num_updates),
+        "train_seconds": float(sum(r["chunk_seconds"] for r in records)),
+        **_throughput(records),
+        "session_wall_seconds": time.perf_counter() - wall_start,
+        "surrogate": surrogate_report,
+    }
+    write_json(run_dir / FINAL_FILE, final)
+    return final

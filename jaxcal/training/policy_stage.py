@@ -1,0 +1,244 @@
+"""Stage 2 of a training run: the policy, trained in jitted chunks, logged and saved.
+
+The environment steps and agent updates run inside
+:func:`jaxcal.training.runner.make_train_chunk` (one ``jax.jit``, ``lax.scan`` over
+iterations, environments vmapped, replay buffer on device); this module is the host loop
+around it (STYLE §2.4): per chunk it writes one JSONL record (cost, agent diagnostics,
+counters, wall time, updates/s, env steps/s and, every ``eval_every`` chunks, the
+validation scores), updates a tqdm bar, and saves an Orbax checkpoint every
+``ckpt_every`` chunks and after the last one.
+
+Checkpoints hold the whole :class:`~jaxcal.training.runner.RunnerState` (agent, env
+states, observations, PRNG key, counters), with the replay buffer unless
+``output.save_buffer=false``. With the buffer, a resumed run continues bit for bit as if
+it had never stopped; without it, the buffer restarts empty and updates pause until it
+holds ``min_buffer_size`` transitions again. Records logged after the last checkpoint
+are dropped on resume, since those chunks are run again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxcal.agents.buffer import init_buffer
+from jaxcal.agents.common import Agent
+from jaxcal.checkpoint import Checkpointer
+from jaxcal.envs.tracking import Env, EnvParams
+from jaxcal.metrics_log import MetricsWriter
+from jaxcal.training.run_dir import CHECKPOINT_DIR, METRICS_FILE, truncate_metrics
+from jaxcal.training.runner import RunnerConfig, RunnerState, init_runner
+from jaxcal.typedefs import PRNGKey
+
+# Jitted once per process; env, agent and config are static (hashable) arguments.
+_init_runner = jax.jit(init_runner, static_argnums=(1, 2, 4))
+
+# The label-free selection criterion: validation tracking RMSE (normalised).
+BEST_KEY = "val_tracking_rmse_norm"
+
+Scorer = Callable[[Any], dict]
+"""``scorer(agent_state) -> {"theta_rmse": ..., "tracking_rmse_norm": ...}``."""
+
+
+class PolicyResult(NamedTuple):
+    """Outcome of :func:`train_policy`.
+
+    Attributes:
+        runner: the final runner state.
+        records: every metrics record of the run (earlier sessions included).
+        chunks_done: chunks trained in total.
+        stopped_early: True when ``time_limit_s`` ended the session.
+    """
+
+    runner: RunnerState
+    records: list[dict]
+    chunks_done: int
+    stopped_early: bool
+
+
+def _checkpoint_item(runner: RunnerState, save_buffer: bool) -> dict:
+    """The saved pytree: runner fields as a dict (buffer optional), host copies.
+
+    Copies (not views) make the save independent of the next chunk, which donates
+    the device buffers of ``runner``.
+    """
+    item = {
+        name: getattr(runner, name)
+        for name in runner.__dataclass_fields__
+        if save_buffer or name != "buffer"
+    }
+    return jax.tree.map(
+        lambda x: (
+            x
+            if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+            else np.array(x, copy=True)
+        ),
+        item,
+    )
+
+
+def _restore_runner(
+    ckpt: Checkpointer,
+    abstract: RunnerState,
+    cfg: RunnerConfig,
+    env: Env,
+    save_buffer: bool,
+) -> RunnerState:
+    target = {
+        name: getattr(abstract, name)
+        for name in abstract.__dataclass_fields__
+        if save_buffer or name != "buffer"
+    }
+    restored = ckpt.restore(None, target)
+    if not save_buffer:
+        restored["buffer"] = init_buffer(
+            cfg.buffer_size, env.observation_size, env.action_size
+        )
+    return RunnerState(**restored)
+
+
+def _scalars(metrics: dict) -> dict:
+    return {k: np.asarray(v).item() for k, v in metrics.items()}
+
+
+def train_policy(
+    key: PRNGKey,
+    env: Env,
+    agent: Agent,
+    train_chunk: Callable,
+    train_params: EnvParams,
+    runner_cfg: RunnerConfig,
+    run_dir: str | Path,
+    *,
+    num_chunks: int,
+    eval_every: int = 0,
+    ckpt_every: int = 1,
+    deadline: float | None = None,
+    save_buffer: bool = True,
+    max_to_keep: int = 2,
+    scorer: Scorer | None = None,
+    on_checkpoint: Callable[[int, RunnerState], None] | None = None,
+    on_best: Callable[[int, RunnerState], None] | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> PolicyResult:
+    """Trains (or resumes training) the policy for ``num_chunks`` chunks in total.
+
+    Args:
+        key: PRNG key of the runner (agent initialisation, environments, updates).
+        env, agent: the tracking environment and the agent.
+        train_chunk: the jitted chunk,
+            ``jax.jit(make_train_chunk(env, agent, runner_cfg), donate_argnums=0)``.
+        train_params: the training units' :class:`EnvParams`.
+        runner_cfg: loop sizes.
+        run_dir: the run folder (``checkpoints/`` and ``metrics.jsonl`` live there).
+        num_chunks: total chunks of the run (earlier sessions included).
+        eval_every: chunks between ``scorer`` calls (0: never; the last chunk is
+            always scored when a scorer is given).
+        ckpt_every: chunks between checkpoints (the last chunk is always saved).
+        deadline: ``time.perf_counter()`` value after which the session ends (after
+            the chunk that crosses it); ``None``: no limit.
+        save_buffer: include the replay buffer in checkpoints.
+        max_to_keep: checkpoints kept on disk.
+        scorer: validation scores of an agent state, logged as ``val_*``.
+        on_checkpoint: called as ``on_checkpoint(chunk, runner)`` after each save
+            (the pipeline saves the deployable policy there).
+        on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
+            lowest ``val_tracking_rmse_norm`` so far (earlier sessions included).
+        progress: show a tqdm bar.
+        log: where one-line messages go.
+
+    Returns:
+        :class:`PolicyResult`.
+    """
+    run_dir = Path(run_dir)
+    with Checkpointer(run_dir / CHECKPOINT_DIR, max_to_keep=max_to_keep) as ckpt:
+        start = ckpt.latest_step() or 0
+        if start:
+            abstract = jax.eval_shape(
+                lambda k: init_runner(k, env, agent, train_params, runner_cfg), key
+            )
+            runner = _restore_runner(ckpt, abstract, runner_cfg, env, save_buffer)
+            log(f"resumed from checkpoint {start} of {run_dir / CHECKPOINT_DIR}")
+        else:
+            runner = _init_runner(key, env, agent, train_params, runner_cfg)
+        records = truncate_metrics(run_dir / METRICS_FILE, start)
+        if start >= num_chunks:
+            return PolicyResult(runner, records, start, False)
+        stopped_early = False
+        best = min(
+            (r[BEST_KEY] for r in records if BEST_KEY in r), default=float("inf")
+        )
+        last_val = next(
+            (r["val_theta_rmse"] for r in reversed(records) if "val_theta_rmse" in r),
+            None,
+        )
+        bar = tqdm(
+            total=num_chunks,
+            initial=start,
+            desc="policy",
+            unit="chunk",
+            disable=not progress,
+            dynamic_ncols=True,
+        )
+        with MetricsWriter(run_dir / METRICS_FILE) as writer, bar:
+            for chunk in range(start + 1, num_chunks + 1):
+                updates_before = int(runner.num_updates)
+                tic = time.perf_counter()
+                runner, metrics = train_chunk(runner, train_params)
+                record = _scalars(jax.device_get(metrics))
+                seconds = time.perf_counter() - tic
+                record.update(
+                    chunk_seconds=seconds,
+                    includes_compile=chunk == start + 1,
+                    updates_per_s=(record["num_updates"] - updates_before) / seconds,
+                    env_steps_per_s=runner_cfg.num_envs
+                    * runner_cfg.num_steps_per_chunk
+                    / seconds,
+                )
+                last = chunk == num_chunks or (
+                    deadline is not None and time.perf_counter() >= deadline
+                )
+                if scorer is not None and (
+                    last or (eval_every and chunk % eval_every == 0)
+                ):
+                    scores = scorer(runner.agent_state)
+                    record.update({f"val_{k}": v for k, v in scores.items()})
+                writer.write(chunk, record)
+                records.append({"step": chunk, **record})
+                if chunk % ckpt_every == 0 or last:
+                    ckpt.save(chunk, _checkpoint_item(runner, save_buffer))
+                    if on_checkpoint is not None:
+                        on_checkpoint(chunk, runner)
+                if record.get(BEST_KEY, float("inf")) < best:
+                    best = record[BEST_KEY]
+                    if on_best is not None:
+                        on_best(chunk, runner)
+                if "val_theta_rmse" in record:
+                    last_val = record["val_theta_rmse"]
+                bar.update(1)
+                bar.set_postfix(_postfix(record, last_val), refresh=False)
+                if last:
+                    stopped_early = chunk < num_chunks
+                    if stopped_early:
+                        log(f"time limit reached after chunk {chunk} of {num_chunks}")
+                    break
+        ckpt.wait_until_finished()
+    return PolicyResult(runner, records, chunk, stopped_early)
+
+
+def _postfix(record: dict, val_theta_rmse: float | None) -> dict:
+    out = {
+        "steps": f"{int(record['env_steps']):,}",
+        "upd/s": f"{record['updates_per_s']:.0f}",
+        "cost": f"{record['cost']:.2e}",
+    }
+    if val_theta_rmse is not None:
+        out["val_theta_rmse"] = f"{val_theta_rmse:.2e}"
+    return out
