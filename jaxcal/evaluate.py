@@ -26,6 +26,8 @@ from __future__ import annotations
 import sys
 import time
 
+from jaxcal.cli_args import parse_command_line
+
 USAGE = "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=N]"
 KEYS = ("run", "split", "repeats")
 
@@ -186,16 +188,9 @@ def format_report(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 2 bad arguments)."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(__doc__)
-        print(USAGE)
-        return 0
-    try:
-        args = parse_args(argv)
-    except ValueError as err:
-        print(f"error: {err}\n{USAGE}", file=sys.stderr)
-        return 2
+    args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if code is not None:
+        return code
     from jaxcal.training.run_dir import EVALUATION_FILE, write_json
 
     try:

@@ -19,7 +19,7 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import parse_overrides
+from jaxcal.cli_args import parse_command_line, parse_overrides
 from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
 
 USAGE = (
@@ -67,16 +67,10 @@ def parse_args(argv: list[str]) -> tuple[DatasetConfig, str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the process exit code (0 ok, 2 bad arguments)."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(__doc__)
-        print(USAGE)
-        return 0
-    try:
-        cfg, out = parse_args(argv)
-    except ValueError as err:
-        print(f"error: {err}\n{USAGE}", file=sys.stderr)
-        return 2
+    parsed, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if code is not None:
+        return code
+    cfg, out = parsed
 
     # Heavy imports after argument checks: a typo fails fast, without loading JAX.
     from tqdm import tqdm

@@ -25,6 +25,7 @@ from __future__ import annotations
 import sys
 import time
 
+from jaxcal.cli_args import parse_command_line
 from jaxcal.config import TrainConfig, resolve_config
 from jaxcal.training.scoring import describe_units
 
@@ -80,16 +81,9 @@ def format_final(final: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (0 ok, 2 bad arguments, 1 failure)."""
     start = time.perf_counter()
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(__doc__)
-        print(USAGE)
-        return 0
-    try:
-        cfg = parse_args(argv)
-    except ValueError as err:
-        print(f"error: {err}\n{USAGE}", file=sys.stderr)
-        return 2
+    cfg, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if code is not None:
+        return code
 
     from jaxcal.training.pipeline import run_training
     from jaxcal.training.run_dir import FINAL_FILE, write_json

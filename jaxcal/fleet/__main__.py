@@ -34,7 +34,7 @@ import numpy as np
 
 from jaxcal.baselines.least_squares import LeastSquaresConfig
 from jaxcal.baselines.ukf import UKFConfig
-from jaxcal.cli_args import config_to_dict, parse_overrides
+from jaxcal.cli_args import config_to_dict, parse_command_line, parse_overrides
 from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
 
 DEFAULT_THETA_SCALE = 0.01  # of a health modifier (see FleetConfig.theta_scale)
@@ -143,7 +143,7 @@ def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
     """The :class:`~jaxcal.baselines.interface.Calibrator` of ``cfg.method``."""
     import jax.numpy as jnp
 
-    from jaxcal.baselines.interface import Calibrator, measure_declared
+    from jaxcal.baselines.interface import measure_declared
 
     if cfg.method == "policy":
         from jaxcal.deploy import load_calibrator
@@ -244,15 +244,10 @@ def run(cfg: FleetConfig) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if any(a in ("-h", "--help", "help") for a in argv):
-        print(__doc__)
-        return 0
-    try:
-        cfg, cluster = parse_args(argv)
-    except ValueError as err:
-        print(f"error: {err}\n{USAGE}", file=sys.stderr)
-        return 2
+    parsed, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if code is not None:
+        return code
+    cfg, cluster = parsed
     from jaxcal.fleet.distributed import initialize
     from jaxcal.precision import enable_compilation_cache, enable_x64
 
