@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 
-.PHONY: setup install test test-all lint format train validate bench-engine clean
+.PHONY: setup install test test-all lint format train validate bench-engine bench paper clean
 
 setup: $(STAMP)
 
@@ -41,6 +41,26 @@ validate: $(STAMP)
 
 bench-engine: $(STAMP)
 	$(BIN)/python -m jaxcal.bench engine --out results/engine/bench_engine.json
+
+# Every table and figure of the paper -> results/paper/REPORT.md (resumable; reuses
+# data/*.h5 and runs/*). PRESET=quick: the same pipeline on tiny data in a few minutes
+# (-> results/paper-quick); OUT=<dir> writes elsewhere.
+PRESET ?= full
+paper: $(STAMP)
+	$(BIN)/python experiments/paper.py preset=$(PRESET) $(if $(OUT),out=$(OUT))
+
+# CPU throughput against peers (experiments/bench_cpu.py -> results/bench/bench_cpu.json).
+# The peers are optional extras, installed here only: torch's CPU wheel first, pinned,
+# because sbx-rl -> stable-baselines3 -> torch would otherwise pull a multi-GB CUDA
+# build. BENCH_ARGS=--train also re-runs the ~12-minute training job.
+BENCH_STAMP := $(VENV)/.bench-installed
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[bench]'
+	touch $(BENCH_STAMP)
+
+bench: $(BENCH_STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_cpu.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
