@@ -44,10 +44,10 @@ bench-engine: $(STAMP)
 
 # Every table and figure of the paper -> results/paper/REPORT.md (resumable; reuses
 # data/*.h5 and runs/*). PRESET=quick: the same pipeline on tiny data in a few minutes
-# (-> results/paper-quick); OUT=<dir> writes elsewhere.
+# (-> results/paper-quick); OUT=<dir> writes elsewhere; SKIP=LS,SAC leaves methods out.
 PRESET ?= full
 paper: $(STAMP)
-	$(BIN)/python experiments/paper.py preset=$(PRESET) $(if $(OUT),out=$(OUT))
+	$(BIN)/python experiments/paper.py preset=$(PRESET) $(if $(OUT),out=$(OUT)) $(if $(SKIP),skip=$(SKIP))
 
 # CPU throughput against peers (experiments/bench_cpu.py -> results/bench/bench_cpu.json).
 # The peers are optional extras, installed here only: torch's CPU wheel first, pinned,

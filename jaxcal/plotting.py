@@ -189,6 +189,7 @@ def plot_stacked_traces(
     max_points: int = 20_000,
     xlabel: str = "sample (units stacked)",
     title: str | None = None,
+    truth_line: bool = False,
     dpi: int = 120,
 ) -> str:
     """Traces of one or more estimates (and the truth), units stacked in one sequence.
@@ -202,6 +203,8 @@ def plot_stacked_traces(
         max_points: draw at most about this many points per trace (uniform stride).
         xlabel: x-axis label.
         title: optional figure title.
+        truth_line: draw the truth as a solid line beneath the estimates (the
+            paper's tracking figure) instead of squares above them.
         dpi: resolution.
 
     Returns:
@@ -229,10 +232,16 @@ def plot_stacked_traces(
     for j, ax in enumerate(axes):
         if truth is not None:
             truth_j = arrays["truth"][index, j]
-            # drawn above the estimates so that the truth stays visible
-            ax.plot(
-                index, truth_j, "s", color=TRUTH_COLOR, ms=2.0, zorder=3, label="truth"
-            )
+            if truth_line:  # beneath: an estimate on top of the truth stays visible
+                ax.plot(
+                    index, truth_j, "-", color=TRUTH_COLOR, lw=1.2, zorder=1,
+                    label="truth",
+                )  # fmt: skip
+            else:  # drawn above the estimates so that the truth stays visible
+                ax.plot(
+                    index, truth_j, "s", color=TRUTH_COLOR, ms=2.0, zorder=3,
+                    label="truth",
+                )  # fmt: skip
         for k, label in enumerate(str(s) for s in series):
             color = SERIES_COLORS[k % len(SERIES_COLORS)]
             ax.plot(
