@@ -28,7 +28,7 @@ data set's validation unit 6 only, never on test units; measurements in
   of 1e-4: the tracking costs are of order 1e-3, so an entropy bonus weighted 2
   dominates the policy loss until the temperature has decayed, which at a log-step of
   1e-4 per update takes most of the budget; from 0.01 it reaches the target entropy
-  -d within a few thousand updates (the ``paper`` preset run is in the README);
+  -d within a few thousand updates (``preset=paper`` keeps 2 for comparison runs);
 * initial Lyapunov multiplier 1 instead of 0.1 (it saturates at its clip of 1 anyway
   within the first ~10k updates);
 * actor learning rate 3e-4 instead of 1e-4 (1e-3 oscillated more); critic 3e-4 as in

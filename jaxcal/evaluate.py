@@ -191,7 +191,10 @@ def main(argv: list[str] | None = None) -> int:
     args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
     if code is not None:
         return code
+    from jaxcal.precision import enable_compilation_cache
     from jaxcal.training.run_dir import EVALUATION_FILE, write_json
+
+    enable_compilation_cache()
 
     try:
         report = evaluate_run(args["run"], args["split"], args["repeats"])

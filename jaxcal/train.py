@@ -85,8 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
 
+    from jaxcal.precision import enable_compilation_cache
     from jaxcal.training.pipeline import run_training
     from jaxcal.training.run_dir import FINAL_FILE, write_json
+
+    # a missing data file is generated with the engine, whose solve compiles in ~45 s
+    enable_compilation_cache()
 
     try:
         final = run_training(cfg)
