@@ -22,6 +22,8 @@ config is an error. Every field of :class:`jaxcal.config.TrainConfig` can be set
 
 from __future__ import annotations
 
+import json
+import os
 import sys
 import time
 
@@ -74,8 +76,22 @@ def format_final(final: dict) -> str:
             f"{final['train_seconds']:.0f} s"
         )
     if final.get("wall_seconds") is not None:
-        lines.append(f"wall time {final['wall_seconds']:.0f} s")
+        total = final.get("wall_seconds_total", final["wall_seconds"])
+        sessions = final.get("sessions", 1)
+        lines.append(
+            f"wall time {final['wall_seconds']:.0f} s"
+            + (f" ({total:.0f} s over {sessions} sessions)" if sessions > 1 else "")
+        )
     return "\n".join(lines)
+
+
+def _previous_final(path: str) -> dict:
+    """The ``final.json`` an earlier session of this run left, or ``{}``."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,12 +108,20 @@ def main(argv: list[str] | None = None) -> int:
     # a missing data file is generated with the engine, whose solve compiles in ~45 s
     enable_compilation_cache()
 
+    # A resumed run's wall time is spread over its sessions: keep the running total.
+    previous = _previous_final(
+        os.path.join(cfg.output.runs_dir, cfg.run_name, FINAL_FILE)
+    )
     try:
         final = run_training(cfg)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     final["wall_seconds"] = time.perf_counter() - start
+    final["sessions"] = previous.get("sessions", 1 if previous else 0) + 1
+    final["wall_seconds_total"] = final["wall_seconds"] + previous.get(
+        "wall_seconds_total", previous.get("wall_seconds", 0.0)
+    )
     write_json(f"{final['run']}/{FINAL_FILE}", final)
     print(format_final(final))
     return 0

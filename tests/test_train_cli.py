@@ -83,6 +83,11 @@ def test_smoke_run_writes_the_run_folder_and_resumes(smoke_argv, capsys):
     assert "resuming" in out and "surrogate D restored" in out
     again = json.loads((run_dir / "final.json").read_text())
     assert again["test"] == final["test"]
+    # the wall time of a run spread over sessions adds up
+    assert final["sessions"] == 1 and again["sessions"] == 2
+    assert again["wall_seconds_total"] == pytest.approx(
+        final["wall_seconds"] + again["wall_seconds"]
+    )
     # Extending the budget continues from the last checkpoint.
     assert main(argv + ["budget.num_chunks=3"]) == 0
     assert [r["step"] for r in read_metrics(run_dir / "metrics.jsonl")] == [1, 2, 3]

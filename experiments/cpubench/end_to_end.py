@@ -183,9 +183,10 @@ def bench_end_to_end(
                 "num_updates": final.get("num_updates"),
                 "chunks": final.get("chunks"),
                 "stopped_early": final.get("stopped_early"),
+                "sessions": final.get("sessions", 1),
                 "run": {k: final.get(k) for k in ("agent", "dynamics", "preset",
                                                   "seed")}}  # fmt: skip
-        wall = final.get("wall_seconds", final.get("session_wall_seconds"))
+        wall = final.get("wall_seconds_total", final.get("wall_seconds"))
         figures["training_wall_time"] = figure(
             wall, "s", "lower", train_paper, **read,
             note="whole job (data load, surrogate fit, policy, test scoring), read "
