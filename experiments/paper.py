@@ -18,6 +18,7 @@ writes ``<out>/steps/<name>.json`` and is skipped when that file exists:
    on simulated labels;
 4. every method over whole test trajectories: clean, model bias x 1.02, model noise
    N(0, 0.1), 70 dB sensor noise; the scalability runs; single-stream latency;
+   on Dataset #2, each method's error along the direction the sensors barely see;
 5. figures (PNG) and ``<out>/REPORT.md`` (rewritten on every run).
 
 The ``full`` preset reuses ``data/*.h5`` and ``runs/*`` (the files ``python -m
@@ -203,6 +204,9 @@ def make_plan(ctx: Context) -> list[Step]:
                 method, repeats=preset.latency_repeats, seed=ctx.seed
             ),
         )
+    for key in preset.identifiability:
+        add(f"ident-{key}", {"traces": "clean", "seed": ctx.seed},
+            lambda key=key: identifiability(ctx, key))  # fmt: skip
     add("figures", {}, lambda: make_figures(ctx.out, ctx.preset.scalability))
     return steps
 
@@ -256,6 +260,28 @@ def evaluate(ctx: Context, key: str, variant: str, method: str, name: str) -> di
     )
     save_traces(ctx.out / "traces" / f"{name}.npz", run, suite.test_units(data), suite)
     return {"dataset": key, "variant": variant, **run.scores}
+
+
+def identifiability(ctx: Context, key: str) -> dict:
+    """The weakest direction of each test unit of ``key`` and every method's error
+    along it and across it (:mod:`jaxcal.evaluation.identifiability`), from the clean
+    evaluations' traces."""
+    import numpy as np
+
+    from jaxcal.evaluation.identifiability import identifiability_study
+
+    suite, traces, stride = ctx.suite(key), {}, None
+    for method in ALL_METHODS:
+        path = ctx.out / "traces" / f"eval-{key}-{method}-clean.npz"
+        if not path.is_file():
+            continue
+        with np.load(path) as t:
+            traces[method], stride = t["theta"], int(t["stride"])
+    if not traces:
+        raise FileNotFoundError(f"no clean traces of {key} under {ctx.out / 'traces'}")
+    return identifiability_study(
+        suite.engine, suite.problem, suite.test_units(), traces, stride=stride
+    )
 
 
 # ----------------------------------------------------------------------- main

@@ -82,10 +82,14 @@ def make_figures(out: Path, scalability: tuple[str, ...]) -> dict:
             series = {k: v["xhat"] for k, v in traces.items()}
             truth, names = first["x"], [str(n) for n in first["sensors"]]
             bounds, xlabel = None, "sample of the first test unit"
+            if what == "tracking error":  # x-hat - x: at full scale the dots hide it
+                series = {k: v["xhat"] - v["x"] for k, v in traces.items()}
+                truth = np.zeros_like(truth)
+                names = [f"{n} error" for n in names]
         path = out / "figures" / file
         plot_stacked_traces(
             path, series, truth, bounds, names=names, xlabel=xlabel, title=title,
-            truth_line=what == "tracking",
+            truth_line=what != "theta",
         )  # fmt: skip
         figures[file] = str(path)
 
@@ -101,6 +105,12 @@ def make_figures(out: Path, scalability: tuple[str, ...]) -> dict:
         {m: load(f"eval-ds1-{m}-clean") for m in both},
         "Dataset #1: tracking of four sensors (truth: the measurement x)",
         what="tracking",
+    )
+    draw(
+        "tracking_error_ds1.png",
+        {m: load(f"eval-ds1-{m}-clean") for m in both},
+        "Dataset #1: tracking error x-hat - x of four sensors (sensor units)",
+        what="tracking error",
     )
     draw(
         "theta_ds1_bias.png",
