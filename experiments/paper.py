@@ -82,7 +82,10 @@ class Context:
         from jaxcal.train import parse_args
 
         spec = self.preset.datasets[key]
-        argv = [f"dataset={spec.train_dataset}", f"agent={agent}"]
+        # "clac-f": the CLAC policy on the physics F (method CLAC-F)
+        on_f = agent.endswith("-f")
+        argv = [f"dataset={spec.train_dataset}", f"agent={agent.removesuffix('-f')}"]
+        argv += ["dynamics=physics"] if on_f else []
         default = (
             self.data_path(key) == make_train_config(spec.train_dataset).dataset.path
         )
@@ -109,7 +112,7 @@ class Context:
 
     def agents(self, key: str) -> tuple[str, ...]:
         """The policies trained on data set ``key`` (CLAC always; LAC, SAC on ds1)."""
-        extra = ("lac", "sac") if key == "ds1" else ()
+        extra = ("lac", "sac", "clac-f") if key == "ds1" else ()
         return ("clac",) + tuple(
             a for a in extra if (key, a.upper()) not in self.preset.skip
         )
@@ -292,7 +295,7 @@ USAGE = (
 )
 
 
-SKIPPABLE = ("UKF", "LS", "E2E", "E2E-sim", "LAC", "SAC")
+SKIPPABLE = ("UKF", "LS", "E2E", "E2E-sim", "LAC", "SAC", "CLAC-F")
 
 
 def parse_args(argv: list[str]) -> tuple[Preset, Path, int]:

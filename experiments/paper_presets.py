@@ -15,13 +15,16 @@ from jaxcal.baselines.e2e import E2EConfig
 from jaxcal.evaluation.suite import SuiteConfig
 from jaxcal.nets.mlp import RegressorConfig
 
-ALL_METHODS = ("UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC")
+# CLAC-F: the CLAC policy trained and deployed on the physics F instead of the
+# surrogate D (dynamics=physics), which isolates what D's model error costs
+ALL_METHODS = ("UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F")
+POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F")
 # (data set, variant, methods): the paper's tables and our extra columns
 EVALUATIONS = (
     ("ds1", "clean", ALL_METHODS),
-    ("ds1", "bias", ("UKF", "CLAC", "LAC", "SAC")),
-    ("ds1", "noise", ("UKF", "CLAC", "LAC", "SAC")),
-    ("ds1", "snr70", ("UKF", "E2E", "E2E-sim", "CLAC", "LAC", "SAC")),
+    ("ds1", "bias", ("UKF", *POLICIES)),
+    ("ds1", "noise", ("UKF", *POLICIES)),
+    ("ds1", "snr70", ("UKF", "E2E", "E2E-sim", *POLICIES)),
     ("ds2", "clean", ("UKF", "LS", "E2E", "E2E-sim", "CLAC")),
     ("ds2-d1", "clean", ("UKF", "CLAC")),
     ("ds2-d2", "clean", ("UKF", "CLAC")),
@@ -42,6 +45,7 @@ FULL_ESTIMATES = {
     "data-ds1": 150, "data-ds1-snr70": 120, "data-ds2": 900, "data-ds2-d1": 90,
     "data-ds2-d2": 150,
     "train-ds1-clac": 1650, "train-ds1-lac": 2100, "train-ds1-sac": 2300,
+    "train-ds1-clac-f": 2700, "eval-ds1-CLAC-F": 120, "latency-ds1-CLAC-F": 60,
     "train-ds2-clac": 1900, "train-ds2-d": 1500, "ident-ds2": 90,
     "check": 30,
     "fit-ds1-E2E": 180, "fit-ds1-E2E-sim": 240, "fit-ds2-E2E": 240,
@@ -176,9 +180,16 @@ QUICK = Preset(
         "ds2-d1": ("preset=smoke", "dataset.stride=3"),
     },
     scalability=("ds2-d1",),
-    # tracing and compiling F inside least squares takes minutes, and a UKF of
-    # another parameter count another ~30 s: not in a smoke run
-    skip=(("ds1", "LS"), ("ds2", "LS"), ("ds2", "UKF"), ("ds2-d1", "UKF")),
+    # tracing and compiling F inside least squares (or a policy's environment)
+    # takes minutes, and a UKF of another parameter count another ~30 s: not in a
+    # smoke run
+    skip=(
+        ("ds1", "LS"),
+        ("ds2", "LS"),
+        ("ds2", "UKF"),
+        ("ds2-d1", "UKF"),
+        ("ds1", "CLAC-F"),
+    ),  # fmt: skip
     latency_repeats=20,
     estimates=QUICK_ESTIMATES,
     in_out=True,
