@@ -48,6 +48,7 @@ from cpubench.training import QUICK_SIZES, TrainingSizes, bench_training  # noqa
 from cpubench.ukf import bench_ukf  # noqa: E402
 
 from jaxcal.precision import enable_compilation_cache  # noqa: E402
+from jaxcal.training.run_dir import write_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SECTIONS = ("policy", "training", "engine", "ukf", "end_to_end")
@@ -158,14 +159,6 @@ def _finite(tree):
     if isinstance(tree, float) and not math.isfinite(tree):
         return None
     return tree
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Writes ``text`` to a temporary file beside ``path``, then renames it over."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

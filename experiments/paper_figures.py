@@ -12,9 +12,8 @@ case (Fig. "Inf_Comp_bias"); the four turbine modifiers of Dataset #2
 
 from __future__ import annotations
 
+import io
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ TRACK_SENSORS = ("T30", "T48", "Ps30", "Nc")  # preferred four sensors
 def save_traces(path: Path, run, units, suite) -> None:
     """The figure data of one evaluation, downsampled, as ``.npz`` (atomically)."""
     from jaxcal.evaluation.compare import stacked
+    from jaxcal.training.run_dir import write_atomic
 
     theta, starts = stacked(run.theta, units.mask)
     truth, _ = stacked(units.theta, units.mask)
@@ -37,21 +37,19 @@ def save_traces(path: Path, run, units, suite) -> None:
     chosen += [s for s in sensors if s not in chosen][: 4 - len(chosen)]
     cols = [sensors.index(s) for s in chosen]
     window = min(TRACK_WINDOW, int(units.lengths[0]))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "wb") as f:
-        np.savez(
-            f,
-            theta=theta[::stride].astype(np.float32),
-            truth=truth[::stride].astype(np.float32),
-            starts=starts / stride,
-            stride=stride,
-            theta_names=np.array(suite.problem.theta_names),
-            x=units.x[0, :window][:, cols],
-            xhat=run.xhat[0, :window][:, cols],
-            sensors=np.array(chosen),
-        )
-    os.replace(tmp, path)
+    buf = io.BytesIO()
+    np.savez(
+        buf,
+        theta=theta[::stride].astype(np.float32),
+        truth=truth[::stride].astype(np.float32),
+        starts=starts / stride,
+        stride=stride,
+        theta_names=np.array(suite.problem.theta_names),
+        x=units.x[0, :window][:, cols],
+        xhat=run.xhat[0, :window][:, cols],
+        sensors=np.array(chosen),
+    )
+    write_atomic(path, buf.getvalue())
 
 
 def make_figures(out: Path, scalability: tuple[str, ...]) -> dict:

@@ -13,12 +13,12 @@ import dataclasses
 
 from jaxcal.baselines.e2e import E2EConfig
 from jaxcal.evaluation.suite import SuiteConfig
+from jaxcal.evaluation.tables import POLICIES
 from jaxcal.nets.mlp import RegressorConfig
 
 # CLAC-F: the CLAC policy trained and deployed on the physics F instead of the
 # surrogate D (dynamics=physics), which isolates what D's model error costs
 ALL_METHODS = ("UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F")
-POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F")
 # (data set, variant, methods): the paper's tables and our extra columns
 EVALUATIONS = (
     ("ds1", "clean", ALL_METHODS),

@@ -29,7 +29,7 @@ import numpy as np
 
 from jaxcal.baselines.interface import measure_declared
 from jaxcal.evaluation.compare import stacked
-from jaxcal.evaluation.methods import Problem
+from jaxcal.evaluation.methods import Problem, engine_outputs
 from jaxcal.training.data import UnitArrays
 
 
@@ -46,7 +46,7 @@ def normalised_jacobians(
     out = []
     with jax.enable_x64(True):  # the engine's Newton solve needs float64
         measure = measure_declared(
-            lambda ww, th: engine.evaluate(ww, th)[0],
+            lambda ww, th: engine_outputs(engine, ww, th),  # the shared traced F
             problem.theta_base, problem.theta_names, problem.sensors,
         )  # fmt: skip
         std = jnp.asarray(problem.norm.std, jnp.float64)

@@ -252,15 +252,13 @@ def make_model(
     return model
 
 
-def ukf_method(
-    engine, problem: Problem, cfg: UKFConfig = UKFConfig(), name: str = "UKF"
-) -> Method:
-    """The paper's UKF on F: prior at the box centre, parameters scaled by its
-    half-width (``prior_std = 1`` spans the box), q = r = 0.01 by default."""
+def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Method:
+    """A calibrator ``make(model, cfg, norm, theta0=, theta_scale=)`` on the perturbable
+    F, with its prior at the box centre and parameters scaled by the half-width."""
 
     def build(bias, noise_sigma):
         return with_step_key(
-            lambda key: make_ukf(
+            lambda key: make(
                 make_model(engine, problem, bias, noise_sigma, key),
                 cfg,
                 problem.norm,
@@ -271,6 +269,14 @@ def ukf_method(
 
     info = {"model": f"F ({problem.engine})", **dataclasses.asdict(cfg)}
     return make_method(name, build, jnp.float64, info)
+
+
+def ukf_method(
+    engine, problem: Problem, cfg: UKFConfig = UKFConfig(), name: str = "UKF"
+) -> Method:
+    """The paper's UKF on F: prior at the box centre, parameters scaled by its
+    half-width (``prior_std = 1`` spans the box), q = r = 0.01 by default."""
+    return _model_based_method(make_ukf, engine, problem, cfg, name)
 
 
 def least_squares_method(
@@ -280,20 +286,7 @@ def least_squares_method(
     name: str = "LS",
 ) -> Method:
     """Sliding-window Levenberg-Marquardt on F, same prior and scaling as the UKF."""
-
-    def build(bias, noise_sigma):
-        return with_step_key(
-            lambda key: make_least_squares(
-                make_model(engine, problem, bias, noise_sigma, key),
-                cfg,
-                problem.norm,
-                theta0=problem.theta_centre,
-                theta_scale=problem.theta_half_width,
-            )
-        )
-
-    info = {"model": f"F ({problem.engine})", **dataclasses.asdict(cfg)}
-    return make_method(name, build, jnp.float64, info)
+    return _model_based_method(make_least_squares, engine, problem, cfg, name)
 
 
 # ------------------------------------------------------------------ learned

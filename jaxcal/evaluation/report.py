@@ -25,7 +25,7 @@ from jaxcal.evaluation.tables import (
     timing_table,
     tracking_table,
 )
-from jaxcal.training.run_dir import write_json
+from jaxcal.training.run_dir import write_atomic, write_json
 
 
 # Why a baseline can beat our CLAC; printed only where it does (see _reason).
@@ -251,9 +251,5 @@ def write_report(
         "", *_timings(r), "",
     ]  # fmt: skip
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path.with_name("results.json"), steps)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return write_atomic(path, "\n".join(lines) + "\n")

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,7 +23,7 @@ import jax
 from flax import serialization
 
 from jaxcal.cli_args import config_to_dict
-from jaxcal.training.run_dir import read_json, write_json
+from jaxcal.training.run_dir import read_json, write_atomic, write_json
 
 
 class StepStore:
@@ -155,18 +154,7 @@ def ensure_dataset(cfg, path: str | os.PathLike, *, progress: bool = True) -> di
 
 def save_params(path: str | os.PathLike, params) -> Path:
     """Write a pytree of arrays as flax msgpack, atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = serialization.to_bytes(jax.device_get(params))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, serialization.to_bytes(jax.device_get(params)))
 
 
 def load_params(path: str | os.PathLike, target):

@@ -51,8 +51,6 @@ from jaxcal.evaluation.steps import load_params, save_params
 from jaxcal.training.data import UnitArrays, load_calibration_data
 from jaxcal.training.run_dir import DATA_FILE, read_json
 
-POLICY_AGENTS = ("CLAC", "LAC", "SAC", "CLAC-F")
-
 
 @dataclasses.dataclass(frozen=True)
 class SuiteConfig:

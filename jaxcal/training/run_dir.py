@@ -45,20 +45,26 @@ RESUMABLE_FIELDS: dict[str, tuple[str, ...] | None] = {
 }
 
 
-def write_json(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` (made JSON-ready) to ``path`` atomically; returns the path."""
+def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``
+    (a reader never sees half a file); creates the folder; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(to_json_value(data), indent=2) + "\n"
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb" if isinstance(data, bytes) else "w") as f:
+            f.write(data)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; results are for sharing
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """Write ``data`` (made JSON-ready) to ``path`` atomically; returns the path."""
+    return write_atomic(path, json.dumps(to_json_value(data), indent=2) + "\n")
 
 
 def read_json(path: str | os.PathLike) -> Any:
