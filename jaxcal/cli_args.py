@@ -13,13 +13,16 @@ message names the key and the accepted form; the CLIs print it and exit with cod
 ``config_to_dict`` / ``config_from_dict`` give the JSON round trip used for a run's
 ``config.json``. Each dataclass is written with a ``"_type"`` entry (its class name), so
 a field annotated with a union of configs (``SACConfig | LACConfig``) restores to the
-right one. Host-only leaf: nothing in the traced core imports this module.
+right one. ``check_output_path`` checks that an output file or folder can be written,
+so that a CLI refuses a bad ``out=`` before any long work. Host-only leaf: nothing in
+the traced core imports this module.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -266,6 +269,49 @@ def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
         if name in data
     }
     return cls(**kwargs)
+
+
+def check_output_path(path: str, field: str, *, folder: bool = False) -> str:
+    """Check, writing nothing, that ``path`` can be an output file (or folder).
+
+    The nearest existing ancestor of the target's folder must be a writable folder
+    (the missing levels are created later); an existing target must be of the right
+    kind. Used by the CLIs before any heavy import or long work.
+
+    Args:
+        path: the output file (``folder=False``) or folder (``folder=True``).
+        field: the setting that named it, for the message (``out``, ``run``, ...).
+        folder: whether ``path`` is a folder that files are written into.
+
+    Returns:
+        ``path`` unchanged.
+
+    Raises:
+        ValueError: naming ``field`` and ``path`` when the path is empty, a folder
+            where a file is expected (or the reverse), under a file, or in a folder
+            this process may not write.
+    """
+    kind = "folder" if folder else "file"
+    if not path or not path.strip():
+        raise ValueError(f"{field}={path!r}: expected a {kind} path, got an empty one")
+    full = os.path.abspath(path)
+    if folder and os.path.exists(full) and not os.path.isdir(full):
+        raise ValueError(f"{field}={path!r} is a file; expected a folder path")
+    if not folder and os.path.isdir(full):
+        raise ValueError(f"{field}={path!r} is a folder; expected a file path")
+    # The folder that receives new entries: the target folder itself, or the file's.
+    parent = full if folder else os.path.dirname(full)
+    while not os.path.exists(parent) and os.path.dirname(parent) != parent:
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        raise ValueError(
+            f"{field}={path!r}: {parent} is a file, so nothing can be created under it"
+        )
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(
+            f"{field}={path!r}: the folder {parent} is not writable by this user"
+        )
+    return path
 
 
 def parse_command_line(

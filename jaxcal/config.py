@@ -78,10 +78,26 @@ class DataConfig:
     # dev units; (): none. Test units are the file's test split, scored at the end.
     val_units: tuple[int, ...] | None = None
     val_fraction: float = 0.15
+    # rows with NaN / Inf in w, the sensors or theta: "error" refuses the file (the
+    # message names file, columns, first rows, counts); "drop" drops and logs them
+    nonfinite: Literal["error", "drop"] = "error"
+    # file column names the reader maps to jaxcal names, "<file name>:<jaxcal name>"
+    # (e.g. T_24:T24); any other unknown or missing column name is an error
+    rename: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.stride < 1:
             raise ValueError(f"dataset.stride must be >= 1, got {self.stride}")
+        if self.nonfinite not in ("error", "drop"):
+            raise ValueError(
+                f"dataset.nonfinite must be 'error' or 'drop', got {self.nonfinite!r}"
+            )
+        bad = [p for p in self.rename if len(p.split(":")) != 2 or "" in p.split(":")]
+        if bad:
+            raise ValueError(
+                f"dataset.rename must be <file name>:<jaxcal name> pairs (e.g. "
+                f"dataset.rename=T_24:T24,T_30:T30), got {list(bad)}"
+            )
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(
                 f"dataset.val_fraction must be in [0, 1), got {self.val_fraction}"

@@ -12,6 +12,14 @@ at every checkpoint). No data file and no training code path is needed to deploy
         theta_t = cal.step(w_t, x_t)         # [P] numpy, one jitted call
     theta, xhat = cal.run(w, x, mask)        # batch: [U, T, W], [U, T, S], [U, T]
 
+Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
+training range (:func:`jaxcal.training.calibrator.range_check`), is *skipped*: the
+carried state is left exactly as it was, ``step`` returns the last valid theta
+(zeros, the healthy prior, before any valid sample) and the flag is readable
+(``cal.last_valid``, ``cal.last_reason``, :meth:`StreamingCalibrator.step_info`;
+``run(..., return_flags=True)``). The stream then continues as if the sample had
+never arrived. Runs trained before the range was stored check finiteness only.
+
 Semantics (:mod:`jaxcal.training.calibrator`): the calibrator carries the model output
 x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),
 norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (or F with ``dynamics=physics``).
@@ -32,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.agents.networks import make_networks
-from jaxcal.baselines.interface import Calibrator
+from jaxcal.baselines.interface import REASONS, Calibrator, SampleCheck
 from jaxcal.checkpoint import Checkpointer, load_config
 from jaxcal.config import TrainConfig
 from jaxcal.envs.tracking import Dynamics
@@ -40,10 +48,11 @@ from jaxcal.precision import enable_x64
 from jaxcal.surrogate.model import init_surrogate_params
 from jaxcal.training.calibrator import (
     PolicyParams,
-    PolicyState,
+    initial_guard_carry,
     make_fleet_runner,
+    make_guarded_stream_step,
     make_policy_calibrator,
-    make_stream_step,
+    range_check,
 )
 from jaxcal.training.problem import RunMeta, make_agent, make_dynamics
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
@@ -139,13 +148,30 @@ def load_run(
     )
 
 
+def run_check(run: LoadedRun) -> SampleCheck | None:
+    """The run's valid input box (training range + margin; ``None``: finiteness).
+
+    Pass it as ``check=`` to ``run_calibrator`` / ``run_fleet`` / the fleet paths.
+    """
+    return range_check(run.meta)
+
+
 def load_calibrator(run_dir: str | os.PathLike | LoadedRun) -> Calibrator:
     """The run's policy as a ``Calibrator(init, step)`` (pure functions, not jitted).
 
-    Use it like any baseline: ``jax.jit(run_fleet, static_argnums=0)(cal, w, x, m)``.
+    Use it like any baseline: ``jax.jit(run_fleet, static_argnums=0)(cal, w, x, m)``,
+    with ``check=run_check(run)`` to flag samples outside the training range.
     """
     run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
     return make_policy_calibrator(run.actor, run.dynamics, run.params)
+
+
+class StepInfo(NamedTuple):
+    """One streamed sample's result."""
+
+    theta: np.ndarray  # [P] this sample's theta, or the last valid one if skipped
+    valid: bool  # the sample was used
+    reason: str  # "ok" or why it was skipped (jaxcal.baselines.interface.REASONS)
 
 
 class StreamingCalibrator:
@@ -157,6 +183,9 @@ class StreamingCalibrator:
     Attributes:
         sensors: the S sensor names ``x`` must follow, in order.
         theta_names: the P parameter names of ``theta``.
+        check: the valid input box (:func:`run_check`), ``None``: finiteness only.
+        last_valid, last_reason: the flag of the last :meth:`step` (``None`` after
+            :meth:`reset`).
     """
 
     def __init__(self, run: str | os.PathLike | LoadedRun):
@@ -165,19 +194,28 @@ class StreamingCalibrator:
         self.theta_names = self.run_info.meta.theta_names
         self._params = self.run_info.params
         self._dtype = np.dtype(self._params.x_mean.dtype)
-        self._step = make_stream_step(self.run_info.actor, self.run_info.dynamics)
-        self._run = make_fleet_runner(self.run_info.actor, self.run_info.dynamics)
+        self.check = run_check(self.run_info)
+        # placed once: a numpy box would be copied to the device on every step
+        self._check_dev = jax.tree.map(jnp.asarray, self.check)
+        actor, dynamics = self.run_info.actor, self.run_info.dynamics
+        self._step = make_guarded_stream_step(actor, dynamics)
+        self._run = make_fleet_runner(actor, dynamics)
+        self._carry0 = initial_guard_carry(actor, dynamics, self._params)
         self.reset()
 
     def reset(self) -> None:
         """Forget the carried model output (start a new stream)."""
-        num_sensors = len(self.sensors)
-        self._state = PolicyState(
-            xhat=jnp.zeros(num_sensors, self._dtype), started=jnp.zeros((), bool)
-        )
+        self._carry = self._carry0
+        self.last_valid: bool | None = None
+        self.last_reason: str | None = None
 
     def _check(self, name: str, value, size: int, ndim: int) -> np.ndarray:
-        array = np.asarray(value, dtype=self._dtype)
+        try:
+            array = np.asarray(value, dtype=self._dtype)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{name} must be numeric with {ndim} dimension(s) of last size {size}"
+            ) from None
         if array.ndim != ndim or array.shape[-1] != size:
             raise ValueError(
                 f"{name} must have {ndim} dimension(s) with last size {size}, got "
@@ -185,26 +223,47 @@ class StreamingCalibrator:
             )
         return array
 
+    def step_info(self, w, x) -> StepInfo:
+        """Calibrate on one sample and say whether it was used.
+
+        Args:
+            w: ``[W]`` (alt, Mach, TRA, T2). x: ``[S]``.
+
+        Returns:
+            :class:`StepInfo`; a skipped sample leaves the state untouched.
+        """
+        w = self._check("w", w, self.run_info.meta.condition_dim, 1)
+        x = self._check("x", x, len(self.sensors), 1)
+        self._carry, out, reason = self._step(
+            self._params, self._carry, w, x, self._check_dev
+        )
+        self.last_reason = REASONS[int(reason)]
+        self.last_valid = self.last_reason == "ok"
+        return StepInfo(np.asarray(out.theta), self.last_valid, self.last_reason)
+
     def step(self, w, x) -> np.ndarray:
         """Calibrate on one sample: ``w [W]`` (alt, Mach, TRA, T2) and ``x [S]``.
 
         Returns:
-            ``theta [P]`` (numpy) for this sample.
+            ``theta [P]`` (numpy) for this sample; the last valid one when the
+            sample is skipped (see ``last_valid`` / ``last_reason``).
         """
-        w = self._check("w", w, self.run_info.meta.condition_dim, 1)
-        x = self._check("x", x, len(self.sensors), 1)
-        self._state, theta = self._step(self._params, self._state, w, x)
-        return np.asarray(theta)
+        return self.step_info(w, x).theta
 
-    def run(self, w, x, mask=None) -> tuple[np.ndarray, np.ndarray]:
+    def run(self, w, x, mask=None, *, return_flags: bool = False) -> tuple:
         """Calibrate whole trajectories: ``lax.scan`` over time, vmapped over units.
 
         Args:
             w: ``[U, T, W]``; x: ``[U, T, S]``; mask: ``[U, T]`` valid samples
-                (``None``: all valid). Padded samples repeat the last valid outputs.
+                (``None``: all valid). Padded and flagged samples repeat the last
+                valid outputs.
+            return_flags: also return the per-sample flags.
 
         Returns:
-            ``(theta [U, T, P], xhat [U, T, S])`` numpy arrays.
+            ``(theta [U, T, P], xhat [U, T, S])`` numpy arrays, plus
+            ``(valid [U, T] bool, reason [U, T] int32)`` with ``return_flags``
+            (codes into ``jaxcal.baselines.interface.REASONS``; padding is
+            ``masked``).
         """
         w = self._check("w", w, self.run_info.meta.condition_dim, 3)
         x = self._check("x", x, len(self.sensors), 3)
@@ -215,5 +274,8 @@ class StreamingCalibrator:
             raise ValueError(
                 f"w {w.shape}, x {x.shape} and mask {mask.shape} must share [U, T]"
             )
-        out = self._run(self._params, w, x, mask)
-        return np.asarray(out.theta), np.asarray(out.xhat)
+        out = self._run(self._params, w, x, mask, self._check_dev)
+        theta, xhat = np.asarray(out.theta), np.asarray(out.xhat)
+        if return_flags:
+            return theta, xhat, np.asarray(out.valid), np.asarray(out.reason)
+        return theta, xhat

@@ -10,6 +10,8 @@ names the field and the valid choices. An N-CMAPSS file (1 Hz) is read with a ro
 chosen so that about ``max_rows`` rows are loaded (``stride`` overrides it), and only
 its measured sensors X_s unless ``sensors`` names others; a C-MAPSS file has one row per
 flight and is subsampled evenly within units down to ``max_rows`` (0 keeps every row).
+Rows holding NaN or Inf are dropped, and the console, ``report.md`` and ``report.json``
+say how many (per column); ``rename=T_24:T24`` maps N-CMAPSS column names.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import config_to_dict, parse_overrides
+from jaxcal.cli_args import check_output_path, config_to_dict, parse_overrides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,33 +41,55 @@ class DiagnoseConfig:
     families: tuple[str, ...] = ()  # effect families (default all)
     bic_margin: float = 10.0  # delta BIC for "found" and for confounding
     alpha: float = 0.01  # family-wise level of the likelihood-ratio tests
+    # N-CMAPSS column names to map, <file name>:<jaxcal name> (e.g. T_24:T24)
+    rename: tuple[str, ...] = ()
 
 
 def load_record(cfg: DiagnoseConfig):
-    """Read the data file of ``cfg`` (C-MAPSS text or N-CMAPSS HDF5)."""
+    """Read the data file of ``cfg`` (C-MAPSS text or N-CMAPSS HDF5).
+
+    Rows with NaN / Inf values are dropped (``Record.dropped`` counts them per column;
+    the console, report.md and report.json say so), never passed on in silence.
+    """
     from jaxcal.data.cmapss_text import load_cmapss_text
-    from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+    from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
     from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
 
     if not os.path.isfile(cfg.data):
         raise ValueError(f"data={cfg.data!r}: file not found")
     units = list(cfg.units) or None
     if cfg.data.endswith((".h5", ".hdf5")):
+        rename = parse_rename(cfg.rename)
         stride = cfg.stride
         if stride <= 0:
-            rows = ncmapss_info(cfg.data)["splits"].get(cfg.split, {}).get("rows", 0)
+            info = ncmapss_info(cfg.data, rename=rename)
+            rows = info["splits"].get(cfg.split, {}).get("rows", 0)
             stride = max(1, rows // cfg.max_rows) if cfg.max_rows else 1
         # the virtual sensors X_v are not measured on an engine: X_s unless asked
         sensors = list(cfg.sensors) or list(MEASURED_SENSOR_NAMES)
         return load_ncmapss(
-            cfg.data, split=cfg.split, units=units, sensors=sensors, stride=stride
+            cfg.data,
+            split=cfg.split,
+            units=units,
+            sensors=sensors,
+            stride=stride,
+            rename=rename,
+            nonfinite="drop",
         )
     if cfg.data.endswith(".txt"):
-        record = load_cmapss_text(cfg.data)
+        record = load_cmapss_text(cfg.data, nonfinite="drop")
         return record if units is None else record.select_units(units)
     raise ValueError(
         f"data={cfg.data!r}: expected a .h5 (N-CMAPSS) or .txt (C-MAPSS) file"
     )
+
+
+def output_dir(cfg: DiagnoseConfig) -> str:
+    """The report folder: ``out``, or ``results/diagnose/<file stem>/``."""
+    if cfg.out:
+        return cfg.out
+    name = os.path.splitext(os.path.basename(cfg.data))[0]
+    return os.path.join("results", "diagnose", name)
 
 
 def run(cfg: DiagnoseConfig) -> dict:
@@ -73,7 +97,7 @@ def run(cfg: DiagnoseConfig) -> dict:
     from jaxcal.loop.discrepancy import DiscrepancyConfig
     from jaxcal.loop.identify import IdentifyConfig
     from jaxcal.loop.pipeline import LoopConfig, diagnose_record
-    from jaxcal.loop.report import write_report
+    from jaxcal.loop.report import dropped_rows_line, write_report
     from jaxcal.physics import load_engine
     from jaxcal.precision import enable_compilation_cache, enable_x64
 
@@ -81,6 +105,7 @@ def run(cfg: DiagnoseConfig) -> dict:
         raise ValueError("data=<file.h5 | C-MAPSS .txt> is required")
     if not cfg.calibrate:
         raise ValueError("calibrate=<comma-separated health modifiers> is required")
+    out = check_output_path(output_dir(cfg), "out", folder=True)  # before the work
     enable_x64()
     enable_compilation_cache()
     engine = load_engine(cfg.engine)
@@ -100,8 +125,6 @@ def run(cfg: DiagnoseConfig) -> dict:
         sensors=list(cfg.sensors) or None,
         max_rows=cfg.max_rows or None,
     )
-    name = os.path.splitext(os.path.basename(cfg.data))[0]
-    out = cfg.out or os.path.join("results", "diagnose", name)
     config = {
         **config_to_dict(cfg),
         "loop": config_to_dict(loop_cfg),
@@ -109,6 +132,9 @@ def run(cfg: DiagnoseConfig) -> dict:
     }
     rep = write_report(out, res, source=cfg.data, engine=cfg.engine, config=config)
     rep["out"] = out
+    dropped = rep["data"]["dropped"]
+    if dropped["rows"]:  # said here, in report.md and in report.json
+        print(f"jaxcal.diagnose: {cfg.data}: {dropped_rows_line(dropped)}")
     return rep
 
 

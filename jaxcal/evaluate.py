@@ -18,15 +18,17 @@ sample (paper Table "time"):
 
 Prints the results and writes them to ``runs/<name>/evaluate.json``
 (``evaluate_val.json`` for ``split=val``). The data file named in the run's config must
-be readable.
+be readable, and the run folder writable: a folder that cannot take the report is an
+error (exit code 2) before the evaluation starts.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 
-from jaxcal.cli_args import parse_command_line
+from jaxcal.cli_args import check_output_path, parse_command_line
 
 USAGE = "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=N]"
 KEYS = ("run", "split", "repeats")
@@ -98,7 +100,7 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
-    from jaxcal.training.data import load_calibration_data
+    from jaxcal.training.data import load_calibration_data, read_options
     from jaxcal.training.scoring import score_units
 
     run = load_run(run_dir)
@@ -110,12 +112,16 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
         val_units=tuple(_data_units(run.run_dir)["val"]),
         stride=cfg.dataset.stride,
         theta_margin=cfg.env.theta_margin,
+        log=print,  # rows dropped by dataset.nonfinite=drop
+        **read_options(cfg.dataset),
     )
     units = getattr(data, split)
     if units is None:
         raise ValueError(f"run {run_dir} has no {split} units")
     calibrator = StreamingCalibrator(run)
-    theta, xhat = calibrator.run(units.w, units.x, units.mask)  # compiles
+    theta, xhat, _, reason = calibrator.run(
+        units.w, units.x, units.mask, return_flags=True
+    )  # compiles
     seconds = []
     for _ in range(3):
         tic = time.perf_counter()
@@ -131,6 +137,7 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
         np.asarray(run.params.x_std),
         run.meta.sensors,
         run.meta.theta_names,
+        reason=reason,  # flagged samples (NaN, far outside training) are counted
     )
     first = units.lengths[0]
     latency = measure_latency(
@@ -178,11 +185,22 @@ def format_report(report: dict) -> str:
             + ", ".join(
                 f"{k} {v:.4g}" for k, v in report["tracking_rmse_units"].items()
             ),
+            _format_flags(report),
             f"deployment: single-stream {lat['median_s'] * 1e6:.0f} us/sample "
             f"(median, min {lat['min_s'] * 1e6:.0f} us); batched "
             f"{dep['batched_samples_per_s']:,.0f} samples/s over "
             f"{dep['batched_units']} units",
         ]
+    )
+
+
+def _format_flags(report: dict) -> str:
+    """The line counting flagged (skipped, unscored) samples per reason."""
+    flagged = report.get("flagged", {})
+    counts = ", ".join(f"{k} {v:,}" for k, v in flagged.items() if v) or "none"
+    return (
+        f"flagged samples (skipped, not scored): {report.get('num_flagged', 0):,}"
+        f" ({counts})"
     )
 
 
@@ -196,14 +214,16 @@ def main(argv: list[str] | None = None) -> int:
 
     enable_compilation_cache()
 
+    name = EVALUATION_FILE
+    if args["split"] != "test":
+        name = name.replace(".json", f"_{args['split']}.json")
     try:
+        # The report goes into the run folder: refuse one it cannot go to up front.
+        check_output_path(os.path.join(args["run"], name), "run")
         report = evaluate_run(args["run"], args["split"], args["repeats"])
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    name = EVALUATION_FILE
-    if args["split"] != "test":
-        name = name.replace(".json", f"_{args['split']}.json")
     write_json(f"{report['run']}/{name}", report)
     print(format_report(report))
     return 0

@@ -9,8 +9,10 @@ Usage::
 agtf30, tiny); every other ``key=value`` overrides a field of
 :class:`~jaxcal.data.dataset_configs.DatasetConfig` (``dataset.seed=1`` works too).
 ``out`` defaults to ``data/<dataset>.h5``. The file is written atomically, with the
-resolved config as the JSON root attribute ``config``. A bad argument prints the error
-(with the valid keys) and exits with code 2.
+resolved config as the JSON root attribute ``config``; the temporary file of a run that
+was killed mid-way is removed by the next run writing the same ``out``. A bad argument
+(with the valid keys), or an ``out`` that cannot be written (empty, a folder, under a
+file, in a read-only folder), prints the error and exits with code 2 before any work.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import parse_command_line, parse_overrides
+from jaxcal.cli_args import check_output_path, parse_command_line, parse_overrides
 from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
 
 USAGE = (
@@ -40,7 +42,8 @@ def parse_args(argv: list[str]) -> tuple[DatasetConfig, str]:
 
     Raises:
         ValueError: missing or unknown dataset, malformed token, unknown field (the
-            message lists the valid keys) or a badly typed value.
+            message lists the valid keys), a badly typed value or an output path that
+            cannot be written.
     """
     special, fields = {}, []
     for token in argv:
@@ -62,7 +65,8 @@ def parse_args(argv: list[str]) -> tuple[DatasetConfig, str]:
         cfg = parse_overrides(fields, DATASETS[name])
     except ValueError as err:
         raise ValueError(f"{err} (and: dataset, out)") from None
-    return cfg, special.get("out") or os.path.join("data", f"{name}.h5")
+    out = special["out"] if "out" in special else os.path.join("data", f"{name}.h5")
+    return cfg, check_output_path(out, "out")
 
 
 def main(argv: list[str] | None = None) -> int:

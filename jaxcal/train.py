@@ -13,7 +13,10 @@ with progress (steps, updates/s, cost, validation theta RMSE), writes
 ``runs/<name>/`` (resolved ``config.json``, ``metrics.jsonl``, Orbax checkpoints,
 ``final.json``) and prints the test units' theta RMSE and tracking RMSE. Rerunning
 the same command resumes from the last checkpoint; a run folder made with a different
-config is an error. Every field of :class:`jaxcal.config.TrainConfig` can be set with
+config is an error. Every check of the config and the data (path given, file readable,
+theta and sensor names, unit splits, run folder writable) runs before the run folder is
+created: a start that fails (exit code 2) leaves nothing behind, and the corrected
+command runs. Every field of :class:`jaxcal.config.TrainConfig` can be set with
 ``key=value`` (dotted for nested fields: ``agent.actor_lr=1e-4``,
 ``runner.num_envs=32``, ``budget.num_chunks=100``, ``surrogate.fit.num_epochs=20``);
 ``name=`` is ``output.name=``. An unknown key is an error that lists the valid keys
@@ -102,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         return code
 
     from jaxcal.precision import enable_compilation_cache
-    from jaxcal.training.pipeline import run_training
+    from jaxcal.training.pipeline import GenerationError, run_training
     from jaxcal.training.run_dir import FINAL_FILE, write_json
 
     # a missing data file is generated with the engine, whose solve compiles in ~45 s
@@ -117,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except GenerationError as err:  # the generator crashed (it printed why): exit 1
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     final["wall_seconds"] = time.perf_counter() - start
     final["sessions"] = previous.get("sessions", 1 if previous else 0) + 1
     final["wall_seconds_total"] = final["wall_seconds"] + previous.get(

@@ -1,5 +1,6 @@
 """The diagnose CLI: argument errors exit 2; fabricated C-MAPSS / N-CMAPSS files."""
 
+import dataclasses
 import json
 import os
 
@@ -32,6 +33,20 @@ def test_missing_arguments_and_bad_names_exit_2(tmp_path, capsys):
     path.write_text("1\n")
     assert main([f"data={path}", "calibrate=HPC_eff_mod"]) == 2
     assert ".txt" in capsys.readouterr().err
+
+
+def test_unwritable_out_exits_2_before_the_data_is_read(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    data = tmp_path / "not_read_yet.txt"  # missing: the out check comes first
+    for out, message in (
+        (blocker, "is a file; expected a folder path"),
+        (blocker / "sub", "is a file, so nothing can be created under it"),
+    ):
+        argv = [f"data={data}", "calibrate=HPC_eff_mod", f"out={out}"]
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"out={str(out)!r}" in err and message in err
 
 
 def _write_cmapss(path, engine, rng, t30_bias):
@@ -137,3 +152,26 @@ def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engi
     assert rep["verdict"] == "identified"
     assert rep["identified"][0]["name"] == "t2_offset"
     assert rep["identified"][0]["size"] == pytest.approx(2.0, rel=0.1)
+
+
+def test_cli_drops_nan_rows_and_says_so(tmp_path, engine, capsys):
+    cfg = SyntheticConfig(
+        num_units=2,
+        rows_per_cycle=2,
+        cycle_stride=2,
+        sensors=MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES,
+    )
+    syn = make_synthetic_record(jax.random.key(3), engine, "t2_offset", cfg, size=2.0)
+    x = syn.record.x.copy()
+    x[10:17, syn.record.x_names.index("T30")] = np.nan  # a sensor drop-out
+    x[40, syn.record.x_names.index("P50")] = np.inf
+    path = tmp_path / "N-CMAPSS_nan.h5"
+    write_ncmapss(path, dataclasses.replace(syn.record, x=x), syn.record)
+    out = tmp_path / "out"
+    assert main([f"data={path}", "calibrate=HPT_eff_mod", f"out={out}"]) == 0
+    said = "Dropped 8 rows with NaN or Inf values before the fit (rows per column: "
+    assert said + "T30: 7, P50: 1)" in capsys.readouterr().out
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["data"]["dropped"] == {"rows": 8, "columns": {"T30": 7, "P50": 1}}
+    assert rep["data"]["rows"] == len(syn.record) - 8
+    assert said in (out / "report.md").read_text()

@@ -124,3 +124,70 @@ def test_calibrator_reproduces_the_training_environment_rollout(trained):
     mask[:, 0] = False  # the first sample differs by design (no x-hat before it)
     np.testing.assert_allclose(theta[mask], np.asarray(ref.theta)[mask], rtol=1e-5)
     np.testing.assert_allclose(xhat[mask], np.asarray(ref.xhat)[mask], rtol=1e-5)
+
+
+def test_streaming_skips_a_poisoned_sample_and_flags_it(trained):
+    """Issue 12: one NaN / Inf / far-out sample must not poison the stream."""
+    run_dir, _, data = trained
+    units = data.test
+    length = int(units.lengths[0])
+    w, x = units.w[0, :length].copy(), units.x[0, :length].copy()
+    bad = 5
+    cal = StreamingCalibrator(run_dir)
+    assert cal.check is not None  # the run stored its training range
+    clean = [cal.step(w[t], x[t]) for t in range(length) if t != bad]
+    for t_bad, value, reason in [
+        (bad, np.nan, "x_nonfinite"),
+        (bad, np.inf, "x_nonfinite"),
+        (bad, 1e6, "x_out_of_range"),
+    ]:
+        cal.reset()
+        streamed = []
+        for t in range(length):
+            x_t = x[t].copy()
+            if t == t_bad:
+                x_t[0] = value
+                info = cal.step_info(w[t], x_t)
+                assert (info.valid, info.reason) == (False, reason)
+                assert (cal.last_valid, cal.last_reason) == (False, reason)
+                np.testing.assert_array_equal(info.theta, streamed[-1])
+                continue
+            streamed.append(cal.step(w[t], x_t))
+            assert cal.last_valid and cal.last_reason == "ok"
+        np.testing.assert_array_equal(np.stack(streamed), np.stack(clean))
+    # a NaN in w, and before any valid sample: the prior (zeros), state untouched
+    cal.reset()
+    w_nan = w[0].copy()
+    w_nan[2] = np.nan
+    info = cal.step_info(w_nan, x[0])
+    assert info.reason == "w_nonfinite"
+    np.testing.assert_array_equal(info.theta, np.zeros(1))
+    np.testing.assert_array_equal(cal.step(w[0], x[0]), clean[0])
+
+
+def test_batch_run_flags_and_scores_only_valid_samples(trained):
+    run_dir, _, data = trained
+    units = data.test
+    cal = StreamingCalibrator(run_dir)
+    x_bad = units.x.copy()
+    x_bad[0, 3, 1] = np.nan
+    theta, xhat, valid, reason = cal.run(units.w, x_bad, units.mask, return_flags=True)
+    assert np.isfinite(theta).all()
+    assert not valid[0, 3] and reason[0, 3] == 3  # x_nonfinite
+    assert valid[units.mask].sum() == units.mask.sum() - 1
+    np.testing.assert_array_equal(theta[0, 3], theta[0, 2])
+    theta_ok, _ = cal.run(units.w, units.x, units.mask)
+    np.testing.assert_array_equal(theta[1], theta_ok[1])  # other units untouched
+    meta = json.loads((run_dir / "data.json").read_text())
+    assert len(meta["x_low"]) == len(data.sensors) and len(meta["w_high"]) == 4
+
+
+def test_evaluate_report_counts_flagged_samples(trained, capsys):
+    run_dir, final, _ = trained
+    assert final["test"]["num_flagged"] == 0  # the training job's test scoring
+    assert set(final["test"]["flagged"]) >= {"x_nonfinite", "x_out_of_range"}
+    assert main([f"run={run_dir}", "repeats=2"]) == 0
+    assert "flagged samples" in capsys.readouterr().out
+    report = json.loads((run_dir / "evaluate.json").read_text())
+    assert report["num_flagged"] == 0 and "x_nonfinite" in report["flagged"]
+    assert report["num_scored"] == report["num_samples"]

@@ -11,6 +11,7 @@ import pytest
 from jaxcal.data.chunked_engine import jit_evaluate_engine
 from jaxcal.data.ncmapss_io import load_ncmapss
 from jaxcal.generate import main, parse_args
+from jaxcal.training.run_dir import _host_tag
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -53,6 +54,33 @@ def test_unknown_key_lists_the_valid_keys(capsys):
         assert key in err
 
 
+def test_unwritable_out_exits_2_before_any_work(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    bad = {
+        "": "out='': expected a file path",
+        str(tmp_path): "is a folder; expected a file path",
+        str(blocker / "x.h5"): "is a file, so nothing can be created under it",
+    }
+    for out, message in bad.items():
+        assert main(["dataset=tiny", f"out={out}"]) == 2, out
+        err = capsys.readouterr().err
+        assert message in err and "usage:" in err, out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_module_entry_point_exits_2_on_bad_out(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxcal.generate", "dataset=tiny", f"out={tmp_path}"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "is a folder" in proc.stderr and "Traceback" not in proc.stderr
+
+
 def test_module_entry_point_exits_2_on_unknown_key():
     proc = subprocess.run(
         [sys.executable, "-m", "jaxcal.generate", "dataset=tiny", "bogus=1"],
@@ -68,7 +96,14 @@ def test_module_entry_point_exits_2_on_unknown_key():
 def test_cli_writes_a_readable_file(tmp_path, capsys, evaluate):
     del evaluate  # main() uses the same shared jitted engine
     out = tmp_path / "sub" / "tiny.h5"
+    # the temp file of an earlier run killed mid-way (its pid is gone) is removed
+    out.parent.mkdir()
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    stale = out.parent / f".tiny.h5.{_host_tag()}.{proc.pid}.abcdefgh.tmp"
+    stale.write_bytes(b"partial")
     assert main(["dataset=tiny", f"out={out}", "seed=3", "sensor_snr_db=70"]) == 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["tiny.h5"]
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert last.startswith("wrote ") and last.endswith("samples/s")
     dev = load_ncmapss(out, "dev")

@@ -12,6 +12,11 @@ reads about 47 where P30 reads 553 psia, ``s12`` (phi) is not in pps/psi and ``s
 
 C-MAPSS has one snapshot per flight, so ``sample_rate_hz`` is NaN (no within-flight time
 base), and it has no health ground truth (``theta=None``), flight class or ``hs`` (NaN).
+
+A bad line is an error naming the file, the line and (for a bad token) the column; a
+``nan`` / ``inf`` token follows the ``nonfinite`` policy of
+:data:`~jaxcal.data.record.NONFINITE_POLICIES` (default: refuse), except in the unit
+and cycle columns, where it is always an error.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import os
 
 import numpy as np
 
-from jaxcal.data.record import Record
+from jaxcal.data.record import Record, apply_nonfinite_policy, check_nonfinite_policy
 
 NUM_COLUMNS = 26
 # C-MAPSS sensor number -> jaxcal sensor name, only where the units truly correspond.
@@ -46,6 +51,20 @@ SENSOR_MAP: dict[int, str] = {
 # C-MAPSS sensor number -> extras key, for outputs with no matching N-CMAPSS quantity.
 EXTRA_MAP: dict[int, str] = {11: "Ps30_cmapss", 12: "phi_cmapss", 17: "htBleed"}
 FT_PER_KFT = 1000.0
+# The 26 columns of a line, as the NASA readme names them.
+COLUMN_NAMES: tuple[str, ...] = ("unit", "cycle", "op1", "op2", "op3") + tuple(
+    f"s{s}" for s in range(1, 22)
+)
+
+
+def column_label(j: int) -> str:
+    """Column ``j`` (0-based) as named in messages: ``s3 (T30)``, ``op1``."""
+    name = COLUMN_NAMES[j]
+    if j < 5:
+        return name
+    s = j - 4
+    known = {1: "T2", **SENSOR_MAP, **EXTRA_MAP}.get(s)
+    return f"{name} ({known})" if known else name
 
 
 def _parse(path: str) -> tuple[np.ndarray, np.ndarray]:
@@ -63,24 +82,32 @@ def _parse(path: str) -> tuple[np.ndarray, np.ndarray]:
                 )
             try:
                 rows.append([float(v) for v in fields])
-            except ValueError as err:
-                raise ValueError(f"{path}:{number}: non-numeric value ({err})") from err
+            except ValueError:
+                j = next(j for j, v in enumerate(fields) if not _is_number(v))
+                raise ValueError(
+                    f"{path}:{number}: non-numeric value {fields[j]!r} in column "
+                    f"{j + 1} ({column_label(j)})"
+                ) from None
             line_numbers.append(number)
     if not rows:
         raise ValueError(f"{path}: no data lines")
-    table = np.asarray(rows, dtype=np.float64)
-    lines = np.asarray(line_numbers)
-    bad = ~np.isfinite(table).all(axis=1)
-    if bad.any():
-        raise ValueError(f"{path}:{lines[bad][0]}: non-finite value")
-    return table, lines
+    return np.asarray(rows, dtype=np.float64), np.asarray(line_numbers)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _check_ids(path: str, table: np.ndarray, lines: np.ndarray) -> None:
     """Integer unit / cycle, each unit in one block, cycles contiguous within a unit."""
     for col, name in ((0, "unit"), (1, "cycle")):
         values = table[:, col]
-        bad = (values != np.round(values)) | (values < 1)
+        # not (>= 1) is also True for NaN: a row without unit or cycle is no row.
+        bad = (values != np.round(values)) | ~(values >= 1)
         if bad.any():
             raise ValueError(
                 f"{path}:{lines[bad][0]}: {name} must be an integer >= 1, "
@@ -130,7 +157,9 @@ def _read_rul(rul_path: str, num_units: int) -> np.ndarray:
     return np.asarray(values, dtype=np.int64)
 
 
-def load_cmapss_text(path, rul_path=None, *, kind: str = "auto") -> Record:
+def load_cmapss_text(
+    path, rul_path=None, *, kind: str = "auto", nonfinite: str = "error"
+) -> Record:
     """Load one NASA C-MAPSS text file into a :class:`Record`.
 
     Args:
@@ -139,6 +168,11 @@ def load_cmapss_text(path, rul_path=None, *, kind: str = "auto") -> Record:
             line ``u`` for unit ``u``).
         kind: ``"train"`` (run to failure), ``"test"`` (truncated series) or ``"auto"``:
             test when ``rul_path`` is given or the file name starts with ``test``.
+        nonfinite: lines with ``nan`` / ``inf`` values: ``"error"`` refuses them
+            (ValueError naming the file, each column, its first lines and count),
+            ``"drop"`` drops them (``Record.dropped`` counts them per column; the RUL
+            still counts from the unit's last cycle in the file), ``"keep"`` keeps
+            them.
 
     Returns:
         A Record with ``w [N, 4]`` (alt ft, Mach, TRA %, T2 degR), ``x [N, 17]``
@@ -158,9 +192,21 @@ def load_cmapss_text(path, rul_path=None, *, kind: str = "auto") -> Record:
         is_test = kind == "test"
     if rul_path is not None and not is_test:
         raise ValueError("rul_path is only meaningful for a test file (kind='test')")
+    check_nonfinite_policy(nonfinite)
 
     table, lines = _parse(path)
     _check_ids(path, table, lines)
+    keep, dropped = apply_nonfinite_policy(
+        {column_label(j): table[:, j] for j in range(2, NUM_COLUMNS)},
+        nonfinite,
+        source=path,
+        row_of=lambda pos: lines[pos],
+        row_word="line",
+    )
+    if keep is not None and not keep.any():
+        raise ValueError(f"{path}: every line holds a NaN or Inf value: {dropped}")
+    # Ids and RUL come from every line (a dropped last line must not shift the RUL);
+    # the rows are dropped at the end.
     unit = table[:, 0].astype(np.int64)
     cycle = table[:, 1].astype(np.int64)
     units, inverse = np.unique(unit, return_inverse=True)
@@ -180,6 +226,8 @@ def load_cmapss_text(path, rul_path=None, *, kind: str = "auto") -> Record:
             )
         rul = rul_values[unit - 1] + last_cycle - cycle
 
+    if keep is not None:
+        table, unit, cycle, rul = table[keep], unit[keep], cycle[keep], rul[keep]
     sensor = {s: table[:, 4 + s] for s in range(1, 22)}  # s1 is 0-based column 5
     w = np.stack(
         [table[:, 2] * FT_PER_KFT, table[:, 3], table[:, 4], sensor[1]], axis=1
@@ -200,4 +248,6 @@ def load_cmapss_text(path, rul_path=None, *, kind: str = "auto") -> Record:
         extras=extras,
         sample_rate_hz=float("nan"),
         source=f"cmapss:{path}",
+        dropped=dropped,
+        dropped_rows=0 if keep is None else int(keep.size - keep.sum()),
     )

@@ -17,7 +17,7 @@ everything succeeded.
 """
 
 from jaxcal.data.ncmapss_layout import LAYOUT_NAMES, SPLITS
-from jaxcal.data.ncmapss_reader import load_ncmapss, ncmapss_info
+from jaxcal.data.ncmapss_reader import load_ncmapss, ncmapss_info, parse_rename
 from jaxcal.data.ncmapss_writer import NCMAPSSWriter, write_ncmapss
 
 __all__ = [
@@ -26,5 +26,6 @@ __all__ = [
     "NCMAPSSWriter",
     "load_ncmapss",
     "ncmapss_info",
+    "parse_rename",
     "write_ncmapss",
 ]

@@ -1,9 +1,18 @@
 """Reader of N-CMAPSS HDF5 files (ours and NASA's): column order from the ``*_var``
-names, subsets by slicing (layout: :mod:`jaxcal.data.ncmapss_io`)."""
+names, subsets by slicing (layout: :mod:`jaxcal.data.ncmapss_io`).
+
+Column names are checked, never guessed: every ``*_var`` group must hold exactly the
+names of the layout (any order; X_s / X_v may also hold other jaxcal sensor names), so
+a renamed sensor (``T_24`` for ``T24``) is an error that lists what was expected and
+what was found, unless the caller maps it with ``rename={"T_24": "T24"}``. Rows holding
+NaN or Inf in a returned column follow the ``nonfinite`` policy of
+:data:`~jaxcal.data.record.NONFINITE_POLICIES` (default: refuse them).
+"""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 
 import h5py
 import numpy as np
@@ -16,7 +25,11 @@ from jaxcal.data.ncmapss_layout import (
     _check_split,
     _dtype,
 )
-from jaxcal.data.record import Record
+from jaxcal.data.record import (
+    Record,
+    apply_nonfinite_policy,
+    check_nonfinite_policy,
+)
 from jaxcal.physics.constants import (
     AUX_NAMES,
     CONDITION_NAMES,
@@ -53,11 +66,94 @@ def _var_names(f: h5py.File, path: str, group: str) -> list[str]:
     ]
 
 
-def _split_layout(f: h5py.File, path: str, split: str) -> dict:
-    """Datasets and column names of ``split``, with the layout checked."""
+def parse_rename(pairs: Sequence[str]) -> dict[str, str]:
+    """``("T_24:T24", ...)`` (the ``dataset.rename`` form) as ``{"T_24": "T24"}``."""
+    out = {}
+    for pair in pairs:
+        old, sep, new = pair.partition(":")
+        if not sep or not old or not new or ":" in new:
+            raise ValueError(
+                f"rename entries must be <file name>:<jaxcal name>, got {pair!r}"
+            )
+        out[old.strip()] = new.strip()
+    return out
+
+
+def _check_rename(rename, raw: dict, path: str) -> dict[str, str]:
+    """``rename`` as a ``{file name: jaxcal name}`` dict of names the file holds."""
+    if rename is None:
+        return {}
+    if not isinstance(rename, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in rename.items()
+    ):
+        raise ValueError(
+            f"rename must map file column names to jaxcal names (str -> str), got "
+            f"{rename!r}"
+        )
+    found = {n for names in raw.values() for n in names}
+    stray = sorted(k for k in rename if k not in found)
+    if stray:
+        raise ValueError(
+            f"{path}: rename names column(s) {stray} that no *_var array holds; "
+            f"found {dict(raw)}"
+        )
+    return dict(rename)
+
+
+def _layout_problems(group: str, names: list[str]) -> str:
+    """What is wrong with the (renamed) names of ``<group>_var``; "" when nothing."""
+    expected = LAYOUT_NAMES[group]
+    # X_s / X_v may carry any sensor jaxcal knows (e.g. the C-MAPSS extras epr, BPR).
+    allowed = SENSOR_NAMES if group in ("X_s", "X_v") else expected
+    unknown = [n for n in names if n not in allowed]
+    missing = [n for n in expected if n not in names]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if not (unknown or missing or repeated):
+        return ""
+    what = [
+        f"{label} {items}"
+        for label, items in (
+            ("unknown", unknown),
+            ("missing", missing),
+            ("repeated", repeated),
+        )
+        if items
+    ]
+    return (
+        f"{group}_var: {', '.join(what)}; expected (any order) {list(expected)}, "
+        f"found {names}"
+    )
+
+
+def _column_names(f: h5py.File, path: str, rename=None) -> dict[str, list[str]]:
+    """The checked column names of every group, after ``rename``.
+
+    Raises:
+        ValueError: a name is unknown, missing or repeated in its group, or a sensor
+            is in both X_s and X_v; the message lists, per group, what was expected
+            and what was found, and how to map names.
+    """
+    raw = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
+    mapping = _check_rename(rename, raw, path)
+    names = {g: [mapping.get(n, n) for n in raw[g]] for g in LAYOUT_NAMES}
+    problems = [p for g in LAYOUT_NAMES if (p := _layout_problems(g, names[g]))]
+    both = sorted(set(names["X_s"]) & set(names["X_v"]))
+    if both:
+        problems.append(f"sensor(s) {both} in both X_s_var and X_v_var")
+    if problems:
+        raise ValueError(
+            f"{path}: column names do not match the N-CMAPSS layout: "
+            + "; ".join(problems)
+            + ". Map other names with rename={'<file name>': '<jaxcal name>'} "
+            "(train / evaluate: dataset.rename=<file name>:<jaxcal name>,...)"
+        )
+    return names
+
+
+def _split_layout(f: h5py.File, path: str, split: str, names: dict) -> dict:
+    """Datasets of ``split``, with their shapes checked against ``names``."""
     _check_split(split)
     dsets = {g: _dataset(f, path, f"{g}_{split}") for g in _GROUPS}
-    names = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
     num_rows = dsets["A"].shape[0]
     for group, dset in dsets.items():
         k = 1 if group == "Y" else len(names[group])
@@ -65,16 +161,6 @@ def _split_layout(f: h5py.File, path: str, split: str) -> dict:
             raise ValueError(
                 f"{path}: dataset {group}_{split} has shape {dset.shape}, expected "
                 f"({num_rows}, {k}) from A_{split} and {group}_var"
-            )
-    for group, required in (
-        ("W", CONDITION_NAMES),
-        ("T", HEALTH_NAMES),
-        ("A", AUX_NAMES),
-    ):
-        missing = [n for n in required if n not in names[group]]
-        if missing:
-            raise ValueError(
-                f"{path}: {group}_var lacks column(s) {missing}; has {names[group]}"
             )
     return {"dsets": dsets, "names": names, "num_rows": num_rows}
 
@@ -88,7 +174,8 @@ def _unit_ranges(a_dset, unit_col, wanted, start, stop, block_rows):
     seen: set[int] = set()
     for a0 in range(start, stop, block_rows):
         units = a_dset[a0 : min(stop, a0 + block_rows), unit_col]
-        seen.update(int(u) for u in np.unique(units))
+        # A NaN unit id names no unit; the nonfinite policy reports its rows on load.
+        seen.update(int(u) for u in np.unique(units) if np.isfinite(u))
         edges = np.diff(
             np.concatenate([[0], np.isin(units, wanted).astype(np.int8), [0]])
         )
@@ -120,6 +207,8 @@ def load_ncmapss(
     rows: tuple[int, int] | None = None,
     stride: int = 1,
     *,
+    rename: Mapping[str, str] | None = None,
+    nonfinite: str = "error",
     block_rows: int = _BLOCK_ROWS,
 ) -> Record:
     """Load (part of) one split of an N-CMAPSS file, ours or NASA's.
@@ -129,11 +218,18 @@ def load_ncmapss(
         split: ``"dev"`` or ``"test"``.
         units: unit ids to keep (``None``: all). Rows come back in file order.
         sensors: sensor names of ``X_s_var`` / ``X_v_var`` to load, in this order
-            (``None``: all of them, in :data:`SENSOR_NAMES` order; file columns whose
-            name jaxcal does not know go to ``Record.extras``).
+            (``None``: all of them, in :data:`SENSOR_NAMES` order).
         rows: ``(start, stop)`` window of file rows to consider (``None``: all).
         stride: keep file rows ``start, start + stride, ...`` (aligned to the window
             start, so a unit selection sees exactly the rows the full load would).
+        rename: ``{file column name: jaxcal name}`` for files that spell columns
+            otherwise (e.g. ``{"T_24": "T24"}``); every ``*_var`` group must then
+            hold the layout's names (else a ValueError lists expected and found).
+        nonfinite: rows with NaN / Inf in a returned column (w, the loaded sensors,
+            theta, unit, cycle): ``"error"`` refuses them (ValueError naming the file,
+            each column, its first file rows, 0-based in the split, and its count),
+            ``"drop"`` drops them and reports them in ``Record.dropped``,
+            ``"keep"`` returns them for a caller that guards each sample.
         block_rows: rows per read block (bounds memory; small values only for tests).
 
     Returns:
@@ -144,10 +240,11 @@ def load_ncmapss(
         raise ValueError(f"stride must be an integer >= 1, got {stride}")
     if int(block_rows) < 1:
         raise ValueError(f"block_rows must be >= 1, got {block_rows}")
+    check_nonfinite_policy(nonfinite)
     stride, block_rows = int(stride), int(block_rows)
     path, f = _open_read(path)
     with f:
-        layout = _split_layout(f, path, split)
+        layout = _split_layout(f, path, split, _column_names(f, path, rename))
         dsets, names, num_rows = layout["dsets"], layout["names"], layout["num_rows"]
         start, stop = _row_window(rows, num_rows)
         if units is None:
@@ -173,35 +270,71 @@ def load_ncmapss(
             _read_into(dsets[group], ranges, stride, cols, out, block_rows)
             return out
 
-        x_names, extra_names, plan = _sensor_plan(names, sensors, path)
+        x_names, plan = _sensor_plan(names, sensors, path)
         x = np.empty((total, len(x_names)), dtype=np.float64)
-        extras = {}
         for group in ("X_s", "X_v"):
             picks = [(j, c) for j, (g, c) in enumerate(plan) if g == group]
-            extra_picks = [(n, c) for n, (g, c) in extra_names if g == group]
-            if not picks and not extra_picks:
+            if not picks:
                 continue  # this group is not needed: do not touch it on disk
-            cols = [c for _, c in picks] + [c for _, c in extra_picks]
-            block = read(group, cols)
-            x[:, [j for j, _ in picks]] = block[:, : len(picks)]
-            for i, (name, _) in enumerate(extra_picks):
-                extras[name] = block[:, len(picks) + i]
+            x[:, [j for j, _ in picks]] = read(group, [c for _, c in picks])
+        w = read("W", [names["W"].index(n) for n in CONDITION_NAMES])
+        theta = read("T", [names["T"].index(n) for n in HEALTH_NAMES])
         aux = read("A", [names["A"].index(n) for n in AUX_NAMES])
+        rul = read("Y", [0])[:, 0]
         rate = float(f.attrs.get("sample_rate_hz", 1.0))
-        return Record(
-            w=read("W", [names["W"].index(n) for n in CONDITION_NAMES]),
-            x=x,
-            x_names=x_names,
-            theta=read("T", [names["T"].index(n) for n in HEALTH_NAMES]),
-            unit=aux[:, 0],
-            cycle=aux[:, 1],
-            flight_class=aux[:, 2],
-            hs=aux[:, 3],
-            rul=read("Y", [0])[:, 0],
-            extras=extras,
-            sample_rate_hz=rate / stride,
-            source=f"{path}[{split}]",
-        )
+    keep, dropped = _nonfinite_rows(
+        w, x, x_names, theta, aux, nonfinite, f"{path} [{split}]", ranges, stride
+    )
+    num_dropped = 0
+    if keep is not None:
+        # Drop before building the Record: a NaN unit or cycle is no integer id.
+        num_dropped = int(keep.size - keep.sum())
+        w, x, theta, aux, rul = (a[keep] for a in (w, x, theta, aux, rul))
+    return Record(
+        w=w,
+        x=x,
+        x_names=x_names,
+        theta=theta,
+        unit=aux[:, 0],
+        cycle=aux[:, 1],
+        flight_class=aux[:, 2],
+        hs=aux[:, 3],
+        rul=rul,
+        sample_rate_hz=rate / stride,
+        source=f"{path}[{split}]",
+        dropped=dropped,
+        dropped_rows=num_dropped,
+    )
+
+
+def _file_rows(ranges, stride: int):
+    """Positions in the loaded arrays -> 0-based rows of the split's datasets."""
+    starts = np.array([a for a, _ in ranges], np.int64)
+    counts = np.array([len(range(a, b, stride)) for a, b in ranges], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+
+    def row_of(pos: np.ndarray) -> np.ndarray:
+        i = np.searchsorted(offsets, pos, side="right") - 1
+        return starts[i] + (pos - offsets[i]) * stride
+
+    return row_of
+
+
+def _nonfinite_rows(w, x, x_names, theta, aux, policy, source, ranges, stride):
+    """``(keep [N] bool or None, dropped)`` of the loaded columns under ``policy``."""
+    columns = {n: w[:, j] for j, n in enumerate(CONDITION_NAMES)}
+    columns.update({n: x[:, j] for j, n in enumerate(x_names)})
+    columns.update({n: theta[:, j] for j, n in enumerate(HEALTH_NAMES)})
+    ids = {"unit": aux[:, 0], "cycle": aux[:, 1]}
+    where = f"{source} (rows counted from 0 in the split's arrays)"
+    row_of = _file_rows(ranges, stride)
+    if policy == "keep":
+        # A row without a unit or cycle cannot be kept: refuse it even here.
+        apply_nonfinite_policy(ids, "error", source=where, row_of=row_of)
+        return None, {}
+    return apply_nonfinite_policy(
+        {**columns, **ids}, policy, source=where, row_of=row_of
+    )
 
 
 def _unit_ids(units) -> np.ndarray:
@@ -227,15 +360,13 @@ def _row_window(rows, num_rows: int) -> tuple[int, int]:
 
 
 def _sensor_plan(names: dict, sensors, path: str):
-    """Where requested sensors live: ``(x_names, extra columns, [(group, col)])``."""
+    """Where requested sensors live: ``(x_names, [(group, col)])``."""
     where = {}
     for group in ("X_s", "X_v"):
         for col, name in enumerate(names[group]):
-            where.setdefault(name, (group, col))
-    extra = []
+            where[name] = (group, col)  # names are unique (_column_names checks)
     if sensors is None:
         x_names = tuple(n for n in SENSOR_NAMES if n in where)
-        extra = [(n, where[n]) for n in where if n not in SENSOR_NAMES]
     else:
         if isinstance(sensors, str):
             raise ValueError(
@@ -248,14 +379,17 @@ def _sensor_plan(names: dict, sensors, path: str):
                 f"{path}: sensor(s) {missing} not in X_s_var / X_v_var; available: "
                 f"{list(where)}"
             )
-    return x_names, extra, [where[n] for n in x_names]
+    return x_names, [where[n] for n in x_names]
 
 
-def ncmapss_info(path, *, block_rows: int = _BLOCK_ROWS) -> dict:
+def ncmapss_info(
+    path, *, rename: Mapping[str, str] | None = None, block_rows: int = _BLOCK_ROWS
+) -> dict:
     """Summary of an N-CMAPSS file without loading its arrays.
 
     Args:
         path: the ``.h5`` file.
+        rename: ``{file column name: jaxcal name}``, as for :func:`load_ncmapss`.
         block_rows: rows per block when scanning the unit column.
 
     Returns:
@@ -265,12 +399,12 @@ def ncmapss_info(path, *, block_rows: int = _BLOCK_ROWS) -> dict:
     """
     path, f = _open_read(path)
     with f:
-        columns = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
+        columns = _column_names(f, path, rename)
         splits = {}
         for split in SPLITS:
             if f"A_{split}" not in f:
                 continue
-            layout = _split_layout(f, path, split)
+            layout = _split_layout(f, path, split, columns)
             n = layout["num_rows"]
             _, seen = _unit_ranges(
                 layout["dsets"]["A"],

@@ -1,14 +1,16 @@
 """Atomic writers of the N-CMAPSS HDF5 layout (one-shot and appendable).
 
 Writers fill a temporary file in the destination directory and ``os.replace`` it into
-place only when everything succeeded (layout: :mod:`jaxcal.data.ncmapss_io`).
+place only when everything succeeded (layout: :mod:`jaxcal.data.ncmapss_io`). The
+temporary file is made by the project's atomic writer
+(:func:`jaxcal.training.run_dir.make_temp`), so a file left by a writer killed mid-way
+is removed by the next write to the same path.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
-import tempfile
 
 import h5py
 import numpy as np
@@ -28,6 +30,7 @@ from jaxcal.data.ncmapss_layout import (
     _width,
 )
 from jaxcal.data.record import Record
+from jaxcal.training.run_dir import make_temp, release_temp
 
 
 class NCMAPSSWriter:
@@ -77,8 +80,7 @@ class NCMAPSSWriter:
         directory = os.path.dirname(os.path.abspath(self.path))
         if not os.path.isdir(directory):
             raise FileNotFoundError(f"output directory does not exist: {directory}")
-        prefix = f".{os.path.basename(self.path)}."
-        fd, self._tmp = tempfile.mkstemp(dir=directory, prefix=prefix, suffix=".tmp")
+        fd, self._tmp = make_temp(self.path)  # removes temps of killed writers first
         os.close(fd)
         try:
             self._file = h5py.File(self._tmp, "w")
@@ -153,14 +155,15 @@ class NCMAPSSWriter:
         except BaseException:
             self._discard()
             raise
+        release_temp(self._tmp)
         self._file = None
         return False
 
     def _discard(self) -> None:
         if self._file is not None and self._file.id.valid:
             self._file.close()
-        if self._tmp is not None and os.path.exists(self._tmp):
-            os.unlink(self._tmp)
+        if self._tmp is not None:
+            release_temp(self._tmp)
         self._file = None
 
 

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.baselines.interface import count_reasons
 from jaxcal.evaluation.methods import Method, Problem
 from jaxcal.training.data import UnitArrays
 from jaxcal.training.scoring import score_units, theta_rmse
@@ -107,17 +108,19 @@ def evaluate_method(
     run_s = time.perf_counter() - tic
     theta = np.asarray(out.theta, np.float64)
     xhat = np.asarray(out.xhat, np.float64)
+    reason = np.asarray(out.reason)
+    scored = mask & np.asarray(out.valid)  # flagged samples are counted, not scored
     if method.model_free and model_output is not None:
         xhat = np.full(x.shape, np.nan)
-        xhat[mask] = model_output(units.w[mask], theta[mask])
-    finite = np.isfinite(xhat[mask]).all()
+        xhat[scored] = model_output(units.w[scored], theta[scored])
+    finite = np.isfinite(xhat[scored]).all()
     if finite:
         scores = score_units(
             theta, xhat, units.theta, units.x, mask, problem.norm.std,
-            problem.sensors, problem.theta_names,
+            problem.sensors, problem.theta_names, reason=reason,
         )  # fmt: skip
     else:  # no model output (or a diverged one): theta scores only
-        pooled, per_param = theta_rmse(theta, units.theta, mask)
+        pooled, per_param = theta_rmse(theta, units.theta, scored)
         scores = {
             "theta_rmse": pooled,
             "theta_rmse_per_param": dict(
@@ -125,15 +128,18 @@ def evaluate_method(
             ),
             "tracking_rmse_norm": None,
             "num_samples": int(mask.sum()),
+            "num_scored": int(scored.sum()),
+            "flagged": count_reasons(reason, mask),
         }
+        scores["num_flagged"] = sum(scores["flagged"].values())
     per_unit = np.sqrt(
         np.nanmean(
-            np.where(mask[..., None], (theta - units.theta) ** 2, np.nan), axis=(1, 2)
+            np.where(scored[..., None], (theta - units.theta) ** 2, np.nan), axis=(1, 2)
         )
     )
     scores.update(
         method=method.name,
-        theta_finite=bool(np.isfinite(theta[mask]).all()),
+        theta_finite=bool(np.isfinite(theta[scored]).all()),
         theta_rmse_per_unit=dict(
             zip(map(str, units.unit_ids.tolist()), per_unit.tolist(), strict=True)
         ),

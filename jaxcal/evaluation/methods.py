@@ -21,6 +21,11 @@ training std and is drawn afresh for every model evaluation (a stochastic simula
 ``bias = 1, noise_sigma = 0`` leaves the model bit for bit unchanged. Because the
 settings are traced arguments, the clean and perturbed runs share one compiled program.
 The E2E network has no model; it ignores both settings.
+
+Guarded samples: every method runs with a :class:`~jaxcal.baselines.interface.
+SampleCheck` — the engine's envelope for the UKF, least squares and E2E, the training
+range for a policy — so a NaN or out-of-range sample is skipped and flagged
+(``CalOutput.valid`` / ``.reason``), never fed to the model.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from jax import lax
 from jaxcal.baselines.e2e import E2EParams, make_e2e_calibrator
 from jaxcal.baselines.interface import (
     Calibrator,
+    SampleCheck,
     SensorNorm,
     measure_declared,
     run_fleet,
@@ -45,7 +51,7 @@ from jaxcal.baselines.interface import (
 from jaxcal.baselines.least_squares import LeastSquaresConfig, make_least_squares
 from jaxcal.baselines.ukf import UKFConfig, make_ukf
 from jaxcal.envs.tracking import Dynamics, compute_norm_stats
-from jaxcal.training.calibrator import make_policy_calibrator
+from jaxcal.training.calibrator import make_policy_calibrator, range_check
 from jaxcal.training.data import CalibrationData
 from jaxcal.typedefs import Array, PRNGKey
 
@@ -115,6 +121,8 @@ class Method(NamedTuple):
         model_free: True when ``xhat`` is not produced (E2E): it is NaN and the
             caller evaluates F at the inferred theta for tracking scores.
         info: JSON-ready settings for the report.
+        check: the valid input box the runner flags samples against (``None``:
+            finiteness only).
     """
 
     name: str
@@ -123,17 +131,25 @@ class Method(NamedTuple):
     dtype: Any
     model_free: bool
     info: dict
+    check: SampleCheck | None = None
 
 
 def make_method(
-    name: str, build: BuildFn, dtype, info: dict, *, model_free: bool = False
+    name: str,
+    build: BuildFn,
+    dtype,
+    info: dict,
+    *,
+    model_free: bool = False,
+    check: SampleCheck | None = None,
 ) -> Method:
-    """Wrap a calibrator factory with its jitted fleet runner."""
+    """Wrap a calibrator factory with its jitted fleet runner (guarded by
+    ``check``; the returned ``CalOutput`` carries ``valid`` and ``reason``)."""
 
     def run(w, x, mask, keys, bias, noise_sigma):
-        return run_fleet(build(bias, noise_sigma), w, x, mask, keys=keys)
+        return run_fleet(build(bias, noise_sigma), w, x, mask, keys=keys, check=check)
 
-    return Method(name, build, jax.jit(run), np.dtype(dtype), model_free, info)
+    return Method(name, build, jax.jit(run), np.dtype(dtype), model_free, info, check)
 
 
 # ------------------------------------------------------------------ perturbations
@@ -268,7 +284,10 @@ def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Metho
         )
 
     info = {"model": f"F ({problem.engine})", **dataclasses.asdict(cfg)}
-    return make_method(name, build, jnp.float64, info)
+    # the engine's valid inputs; a model without an envelope checks finiteness only
+    envelope = getattr(engine, "envelope", None)
+    check = None if envelope is None else SampleCheck.from_envelope(envelope)
+    return make_method(name, build, jnp.float64, info, check=check)
 
 
 def ukf_method(
@@ -292,14 +311,19 @@ def least_squares_method(
 # ------------------------------------------------------------------ learned
 
 
-def e2e_method(params: E2EParams, name: str, info: dict) -> Method:
-    """A trained E2E network; model-free, so perturbations do not apply."""
+def e2e_method(
+    params: E2EParams, name: str, info: dict, check: SampleCheck | None = None
+) -> Method:
+    """A trained E2E network; model-free, so perturbations do not apply.
+
+    ``check``: its valid input box (the suite passes the engine's envelope).
+    """
 
     def build(bias, noise_sigma):
         del bias, noise_sigma  # G has no model to perturb
         return make_e2e_calibrator(params)
 
-    return make_method(name, build, jnp.float32, info, model_free=True)
+    return make_method(name, build, jnp.float32, info, model_free=True, check=check)
 
 
 def policy_method(run, name: str) -> Method:
@@ -329,4 +353,5 @@ def policy_method(run, name: str) -> Method:
         "preset": run.config.preset,
     }
     dtype = jnp.float64 if run.config.dynamics == "physics" else jnp.float32
-    return make_method(name, build, dtype, info)
+    # flags samples far outside the run's training range
+    return make_method(name, build, dtype, info, check=range_check(run.meta))

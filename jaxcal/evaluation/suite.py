@@ -13,6 +13,9 @@ and the built methods. Its step functions return JSON-ready dicts:
 * :meth:`Suite.latency`: the single-stream deployment cost.
 
 Methods are built on first use, so that a resumed experiment loads only what it runs.
+Every method runs guarded (:mod:`jaxcal.baselines.interface`): samples it flags (NaN,
+outside the engine's envelope or a policy's training range) are skipped, left out of
+its scores and counted per reason in them (``flagged``, ``num_flagged``).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import jax
 import numpy as np
 
 from jaxcal.baselines.e2e import E2EConfig, fit_e2e, init_e2e_params
+from jaxcal.baselines.interface import SampleCheck
 from jaxcal.baselines.least_squares import LeastSquaresConfig
 from jaxcal.baselines.ukf import UKFConfig
 from jaxcal.evaluation.compare import (
@@ -48,6 +52,7 @@ from jaxcal.evaluation.simulate import (
     subset_units,
 )
 from jaxcal.evaluation.steps import load_params, save_params
+from jaxcal.physics.engine import ENVELOPES
 from jaxcal.training.data import UnitArrays, load_calibration_data
 from jaxcal.training.run_dir import DATA_FILE, read_json
 
@@ -193,7 +198,10 @@ class Suite:
                 "weights": str(self._e2e_path(name)),
                 **dataclasses.asdict(self.cfg.e2e),
             }
-            return e2e_method(params, name, info)
+            # the engine's envelope, without loading the engine (G has no model)
+            envelope = ENVELOPES.get(self.problem.engine)
+            check = None if envelope is None else SampleCheck.from_envelope(envelope)
+            return e2e_method(params, name, info, check)
         if name in self.runs:
             from jaxcal.deploy import load_run
 

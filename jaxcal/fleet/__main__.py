@@ -19,6 +19,11 @@ The cluster flags fall back to ``JAXCAL_COORDINATOR`` / ``JAXCAL_NUM_PROCESSES``
 devices.
 Process 0 writes ``out`` (atomically) and prints a JSON summary; a bad argument prints
 the error and exits with code 2. See ``docs/fleet.md``.
+
+Samples with NaN / Inf, or outside the model's valid inputs (the engine's envelope for
+``ukf`` / ``least_squares``, the run's training range for ``policy``), are skipped and
+flagged: the file's ``valid`` / ``reason`` columns, ``flagged`` counts per reason in the
+summary; ``theta_rmse`` is over valid rows only.
 """
 
 from __future__ import annotations
@@ -169,14 +174,31 @@ def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
     )
 
 
+def build_check(cfg: FleetConfig):
+    """The valid input box of ``cfg.method``: the engine's envelope, or the policy
+    run's training range (``None`` for a run that predates it: finiteness only)."""
+    from jaxcal.baselines.interface import SampleCheck
+
+    if cfg.method == "policy":
+        from jaxcal.deploy import load_run, run_check
+
+        return run_check(load_run(cfg.run))
+    from jaxcal.physics.engine import ENVELOPES
+
+    return SampleCheck.from_envelope(ENVELOPES[cfg.engine])
+
+
 def theta_rmse(path: str, block_rows: int = 1 << 20) -> list[float] | None:
-    """Per-parameter RMSE of ``theta`` against ``theta_true`` in a results file."""
+    """Per-parameter RMSE of ``theta`` against ``theta_true`` in a results file,
+    over its valid (not flagged) rows."""
     with h5py.File(path, "r") as f:
         if "theta_true" not in f:
             return None
         total, sq = 0, 0.0
         for a in range(0, f["theta"].shape[0], block_rows):
             err = f["theta"][a : a + block_rows] - f["theta_true"][a : a + block_rows]
+            if "valid" in f:  # flagged rows repeat an older theta: not scored
+                err = err[f["valid"][a : a + block_rows]]
             total += err.shape[0]
             sq = sq + np.square(err).sum(axis=0)
     return np.sqrt(sq / max(total, 1)).tolist()
@@ -203,6 +225,7 @@ def run(cfg: FleetConfig) -> dict:
         cfg.data, cfg.split, sensors, units, stride=cfg.stride
     )
     calibrator = build_calibrator(cfg, sensors, norm)
+    check = build_check(cfg)
     mesh = make_unit_mesh()
     num_processes, process_index = jax.process_count(), jax.process_index()
     chunk_units = cfg.chunk_units or mesh.size
@@ -225,11 +248,14 @@ def run(cfg: FleetConfig) -> dict:
             cfg.out, theta_names=cfg.theta, sensor_names=sensors, attrs=attrs
         ) as writer:
             stats = calibrate_stream(
-                calibrator, chunks, mesh, size=size, writer=writer, unroll=cfg.unroll
-            )
+                calibrator, chunks, mesh, size=size, writer=writer,
+                unroll=cfg.unroll, check=check,
+            )  # fmt: skip
         rmse = theta_rmse(cfg.out)
     else:
-        stats = calibrate_stream(calibrator, chunks, mesh, size=size, unroll=cfg.unroll)
+        stats = calibrate_stream(
+            calibrator, chunks, mesh, size=size, unroll=cfg.unroll, check=check
+        )
         rmse = None
     return {
         **stats,

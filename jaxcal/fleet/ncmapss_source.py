@@ -122,8 +122,15 @@ def iter_ncmapss_chunks(
         index = pos
         if pos.size == 0:  # collective program: run on a copy, discard the results
             pos, index = parts[0][:1], np.full(1, -1)
+        # NaN / Inf samples are kept: the runners skip and flag them one by one
+        # (dropping here would shift rows against unit_lengths).
         record = load_ncmapss(
-            path, split, units=unit_ids[pos], sensors=list(sensors), stride=stride
+            path,
+            split,
+            units=unit_ids[pos],
+            sensors=list(sensors),
+            stride=stride,
+            nonfinite="keep",
         )
         _, counts = np.unique(record.unit, return_counts=True)
         if counts.max() > max_len:
@@ -185,9 +192,10 @@ def sensor_norm(
     wanted = None if units is None else np.asarray(list(units), np.int64)
     total, sums, squares = 0, 0.0, 0.0
     for a in range(0, num_rows, block_rows):
+        # statistics of the finite rows only: one NaN would poison the mean
         rec = load_ncmapss(
             path, split, sensors=list(sensors), rows=(a, min(a + block_rows, num_rows)),
-            stride=stride,
+            stride=stride, nonfinite="drop",
         )  # fmt: skip
         x = rec.x if wanted is None else rec.x[np.isin(rec.unit, wanted)]
         total += x.shape[0]

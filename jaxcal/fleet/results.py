@@ -6,6 +6,10 @@ order, time order within a unit):
 * ``unit [N]`` int64 unit id, ``step [N]`` int64 index of the row within its unit
   (after any input stride), ``cycle [N]`` int64 flight number when the source has it;
 * ``theta [N, P]`` calibrated parameters, ``xhat [N, S]`` model outputs;
+* ``valid [N]`` bool, ``reason [N]`` int32 when the caller passes the calibrator's
+  flags: a row that is not valid was skipped (NaN, out of range; its theta repeats
+  the unit's last valid one); ``reason`` indexes the ``reasons`` root attribute and
+  the ``flagged`` root attribute counts the rows per reason;
 * ``aux_<name> [N, ...]`` every per-step diagnostic of the calibrator (e.g.
   ``aux_theta_std``), and any per-step extra the caller passes (e.g. ``theta_true``);
 * ``unit_id [U]``, ``unit_length [U]``, ``unit_theta_last [U, P]`` one row per unit;
@@ -14,18 +18,22 @@ order, time order within a unit):
 :class:`FleetResultWriter` appends each chunk to resizable datasets of a temporary file
 in the destination directory and ``os.replace`` s it into place only when the ``with``
 block ends without an exception, so a reader never sees a half-written file and a
-failed run leaves any previous file untouched. Memory is one chunk.
+failed run leaves any previous file untouched; the temporary file of a run killed
+mid-way is removed by the next write to the same path
+(:func:`jaxcal.training.run_dir.make_temp`). Memory is one chunk.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 
 import h5py
 import numpy as np
+
+from jaxcal.baselines.interface import REASONS, count_reasons
+from jaxcal.training.run_dir import make_temp, release_temp
 
 _CHUNK_ROWS = 8192  # HDF5 chunk length of the growable datasets
 
@@ -58,6 +66,7 @@ class FleetResultWriter:
         self._attrs = {
             "theta_names": json.dumps(list(theta_names)),
             "sensor_names": json.dumps(list(sensor_names)),
+            "reasons": json.dumps(list(REASONS)),
         }
         for key, value in (attrs or {}).items():
             if isinstance(value, dict | list | tuple):
@@ -68,14 +77,13 @@ class FleetResultWriter:
         self._tmp: str | None = None
         self.num_rows = 0
         self.num_units = 0
+        self.flagged: dict[str, int] = count_reasons(np.zeros(0, np.int32))
 
     def __enter__(self) -> FleetResultWriter:
         directory = os.path.dirname(os.path.abspath(self.path))
         if not os.path.isdir(directory):
             raise FileNotFoundError(f"output directory does not exist: {directory}")
-        fd, self._tmp = tempfile.mkstemp(
-            prefix=f".{os.path.basename(self.path)}.", suffix=".tmp", dir=directory
-        )
+        fd, self._tmp = make_temp(self.path)
         os.close(fd)
         self._file = h5py.File(self._tmp, "w")
         for key, value in self._attrs.items():
@@ -85,13 +93,15 @@ class FleetResultWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             if self._file is not None:
+                if exc_type is None:
+                    self._file.attrs["flagged"] = json.dumps(self.flagged)
                 self._file.close()
             if exc_type is None:
                 os.chmod(self._tmp, 0o644)  # mkstemp makes 0600; results are shared
                 os.replace(self._tmp, self.path)
         finally:
-            if self._tmp is not None and os.path.exists(self._tmp):
-                os.remove(self._tmp)
+            if self._tmp is not None:
+                release_temp(self._tmp)
             self._file, self._tmp = None, None
 
     def _append(self, name: str, values: np.ndarray) -> None:
@@ -123,8 +133,10 @@ class FleetResultWriter:
         aux: Mapping[str, np.ndarray] | None = None,
         cycle: np.ndarray | None = None,
         extras: Mapping[str, np.ndarray] | None = None,
+        valid: np.ndarray | None = None,
+        reason: np.ndarray | None = None,
     ) -> None:
-        """Append the valid rows of ``u`` units.
+        """Append the real (unmasked) rows of ``u`` units.
 
         Args:
             unit_ids: ``[u]`` unit ids. mask: ``[u, T]`` bool validity.
@@ -132,6 +144,8 @@ class FleetResultWriter:
             aux: per-step diagnostics ``[u, T, ...]`` (written as ``aux_<name>``).
             cycle: ``[u, T]`` flight numbers, or ``None``.
             extras: more per-step arrays ``[u, T, ...]`` written under their names.
+            valid, reason: ``[u, T]`` flags of the calibrator (``CalOutput.valid``,
+                ``.reason``), written as columns and counted in ``self.flagged``.
         """
         if self._file is None:
             raise ValueError("FleetResultWriter.append outside its `with` block")
@@ -153,6 +167,12 @@ class FleetResultWriter:
         per_step.update(extras or {})
         if cycle is not None:
             per_step["cycle"] = np.asarray(cycle, np.int64)
+        if valid is not None:
+            per_step["valid"] = np.asarray(valid, bool)
+        if reason is not None:
+            per_step["reason"] = np.asarray(reason, np.int32)
+            for name, count in count_reasons(reason, mask).items():
+                self.flagged[name] += count
         steps = np.broadcast_to(np.arange(num_steps), mask.shape)
         per_step["unit"] = np.broadcast_to(unit_ids[:, None], mask.shape)
         per_step["step"] = steps

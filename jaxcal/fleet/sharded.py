@@ -20,6 +20,10 @@ all-False mask; their outputs are dropped. :func:`shard_units` builds global arr
 when some shards live in other processes. :func:`start_units` / :func:`finish_units`
 chain them for one process's units (tagged with global positions) and are shared by the
 multi-process and streaming paths; :func:`calibrate_sharded` is the one-process call.
+
+Every entry takes an optional :class:`~jaxcal.baselines.interface.SampleCheck`
+(replicated on every device) and returns ``CalOutput.valid`` / ``.reason`` per sample:
+a flagged sample (NaN, out of range) is skipped as in ``run_calibrator``.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 
-from jaxcal.baselines.interface import Calibrator, CalOutput, run_fleet
+from jaxcal.baselines.interface import Calibrator, CalOutput, SampleCheck, run_fleet
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 UNITS_AXIS = "units"
@@ -165,6 +169,7 @@ def run_sharded(
     keys: PRNGKey | None = None,
     *,
     unroll: int = 1,
+    check: SampleCheck | None = None,
 ) -> CalOutput:
     """Jitted :func:`run_fleet` with every unit-axis array sharded over ``mesh``.
 
@@ -176,9 +181,11 @@ def run_sharded(
             ``None``; ``U`` a multiple of the mesh size. Global arrays from
             :func:`shard_units`, or host arrays (then placed by ``jit``).
         unroll: ``lax.scan`` unroll factor.
+        check: the valid input box (``None``: finiteness only), replicated.
 
     Returns:
-        ``CalOutput`` of global arrays (``theta [U, T, P]``, ...), sharded like ``w``.
+        ``CalOutput`` of global arrays (``theta [U, T, P]``, ..., ``valid`` and
+        ``reason [U, T]``), sharded like ``w``.
     """
     if w.shape[0] % mesh.size:
         raise ValueError(
@@ -188,26 +195,27 @@ def run_sharded(
     # Typed keys travel as raw key data: plain uint32 arrays shard like any other.
     impl = None if keys is None else jax.random.key_impl(keys)
     key_data = None if keys is None else jax.random.key_data(keys)
-    return _run_sharded_jit(calibrator, mesh, unroll, impl, w, x, mask, key_data)
+    return _run_sharded_jit(calibrator, mesh, unroll, impl, w, x, mask, key_data, check)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
-def _run_sharded_jit(calibrator, mesh, unroll, impl, w, x, mask, key_data):
+def _run_sharded_jit(calibrator, mesh, unroll, impl, w, x, mask, key_data, check):
     spec = PartitionSpec(UNITS_AXIS)
 
-    def local(w, x, mask, key_data):
+    def local(w, x, mask, key_data, check):
         keys = None
         if key_data is not None:
             keys = jax.random.wrap_key_data(key_data, impl=impl)
-        return run_fleet(calibrator, w, x, mask, keys=keys, unroll=unroll)
+        return run_fleet(calibrator, w, x, mask, keys=keys, unroll=unroll, check=check)
 
     # check_vma=False: the body has no collective, and the scan carry starts from
     # replicated constants (the prior) that become unit-varying after one step, which
     # the varying-axes type check would reject without changing any number.
+    in_specs = (spec, spec, spec, spec, PartitionSpec())  # the check: replicated
     sharded = jax.shard_map(
-        local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False
+        local, mesh=mesh, in_specs=in_specs, out_specs=spec, check_vma=False
     )
-    return sharded(w, x, mask, key_data)
+    return sharded(w, x, mask, key_data, check)
 
 
 class PendingUnits(NamedTuple):
@@ -230,6 +238,7 @@ def start_units(
     keys: PRNGKey | None = None,
     along: PyTree = None,
     unroll: int = 1,
+    check: SampleCheck | None = None,
 ) -> PendingUnits:
     """Pad, place and dispatch this process's units; return without waiting.
 
@@ -249,6 +258,7 @@ def start_units(
         along: optional pytree of ``[u, ...]`` host arrays (ids, flight numbers,
             truth) that travel with the units and come back gathered with the results.
         unroll: ``lax.scan`` unroll factor.
+        check: the valid input box (``None``: finiteness only).
 
     Returns:
         :class:`PendingUnits`; pass it to :func:`finish_units`.
@@ -266,7 +276,7 @@ def start_units(
     placed = shard_units(mesh, (w, x, mask, index, along, key_data))
     w, x, mask, index, along, key_data = placed
     keys = None if impl is None else jax.random.wrap_key_data(key_data, impl=impl)
-    out = run_sharded(calibrator, mesh, w, x, mask, keys, unroll=unroll)
+    out = run_sharded(calibrator, mesh, w, x, mask, keys, unroll=unroll, check=check)
     return PendingUnits(index=index, out=out, along=along)
 
 
@@ -295,6 +305,7 @@ def calibrate_sharded(
     keys: PRNGKey | None = None,
     mesh: Mesh | None = None,
     unroll: int = 1,
+    check: SampleCheck | None = None,
 ) -> CalOutput:
     """Single-process fleet calibration over all local devices; the same result as
     ``jax.jit(run_fleet, static_argnums=0)(calibrator, w, x, mask, keys=keys)``.
@@ -305,10 +316,11 @@ def calibrate_sharded(
         keys: ``[U]`` PRNG keys for stochastic calibrators, else ``None``.
         mesh: default :func:`make_unit_mesh` over this process's devices.
         unroll: ``lax.scan`` unroll factor.
+        check: the valid input box (``None``: finiteness only).
 
     Returns:
         ``CalOutput`` of host numpy arrays, ``theta [U, T, P]``, ``xhat [U, T, S]``,
-        ``aux [U, T, ...]``.
+        ``aux [U, T, ...]``, ``valid`` and ``reason [U, T]``.
     """
     w, x = np.asarray(w), np.asarray(x)
     if w.ndim != 3 or x.ndim != 3 or w.shape[:2] != x.shape[:2]:
@@ -330,6 +342,6 @@ def calibrate_sharded(
     size = padded_size(w.shape[0], mesh.size)
     pending = start_units(
         calibrator, mesh, w, x, mask, np.arange(w.shape[0]),
-        size=size, keys=keys, unroll=unroll,
+        size=size, keys=keys, unroll=unroll, check=check,
     )  # fmt: skip
     return finish_units(pending)[1]

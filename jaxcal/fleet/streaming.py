@@ -16,6 +16,8 @@ a process holds at most two input chunks and one gathered output chunk. Chunks c
 any iterable of :class:`UnitChunk`: :func:`iter_array_chunks` cuts in-memory arrays,
 :func:`jaxcal.fleet.ncmapss_source.iter_ncmapss_chunks` reads an N-CMAPSS file.
 Units are independent, so chunked results equal one-shot results unit for unit.
+A ``check`` (:class:`~jaxcal.baselines.interface.SampleCheck`) flags and skips bad
+samples; their flags go to the file and their counts per reason to the summary.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from jax.sharding import Mesh
 
-from jaxcal.baselines.interface import Calibrator
+from jaxcal.baselines.interface import Calibrator, SampleCheck, count_reasons
 from jaxcal.fleet.results import FleetResultWriter
 from jaxcal.fleet.sharded import (
     finish_units,
@@ -150,7 +152,8 @@ def calibrate_stream(
     size: int,
     writer: FleetResultWriter | None = None,
     unroll: int = 1,
-) -> dict[str, float]:
+    check: SampleCheck | None = None,
+) -> dict:
     """Calibrate a stream of chunks with one compiled program; append to ``writer``.
 
     Every process must call this with chunk iterables of equal length (the run and the
@@ -165,13 +168,16 @@ def calibrate_stream(
         size: padded units per process and chunk (:func:`units_per_chunk`).
         writer: an open :class:`FleetResultWriter`, or ``None`` (results discarded).
         unroll: ``lax.scan`` unroll factor.
+        check: the valid input box (``None``: finiteness only).
 
     Returns:
-        ``{"num_chunks", "num_units", "num_rows", "seconds", "rows_per_s"}`` over all
-        processes (rows = valid time steps calibrated).
+        ``{"num_chunks", "num_units", "num_rows", "num_flagged", "flagged",
+        "seconds", "rows_per_s"}`` over all processes (rows = unpadded time steps;
+        ``flagged``: rows skipped per reason, ``num_flagged`` their total).
     """
     start = time.perf_counter()
     stats = {"num_chunks": 0, "num_units": 0, "num_rows": 0}
+    flagged = count_reasons([])
     iterator = iter(chunks)
     chunk = next(iterator, None)
     if chunk is None:
@@ -190,7 +196,7 @@ def calibrate_stream(
         }
         pending = start_units(
             calibrator, mesh, chunk.w, chunk.x, chunk.mask, chunk.index,
-            size=size, along=along, unroll=unroll,
+            size=size, along=along, unroll=unroll, check=check,
         )  # fmt: skip
         # Dispatch is asynchronous: reading the next chunk overlaps with the devices.
         chunk = next(iterator, None)
@@ -198,14 +204,19 @@ def calibrate_stream(
         stats["num_chunks"] += 1
         stats["num_units"] += positions.size
         stats["num_rows"] += int(rows["mask"].sum())
+        for name, count in count_reasons(out.reason, rows["mask"]).items():
+            flagged[name] += count
         if writer is not None:
             writer.append(
                 rows["unit_ids"], rows["mask"], out.theta, out.xhat, aux=out.aux,
-                cycle=rows["cycle"], extras=rows["extras"],
+                cycle=rows["cycle"], extras=rows["extras"], valid=out.valid,
+                reason=out.reason,
             )  # fmt: skip
     seconds = time.perf_counter() - start
     return {
         **stats,
+        "num_flagged": sum(flagged.values()),
+        "flagged": flagged,
         "seconds": seconds,
         "rows_per_s": stats["num_rows"] / max(seconds, 1e-12),
     }

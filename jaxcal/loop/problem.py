@@ -26,7 +26,7 @@ from scipy.interpolate import BSpline
 from jaxcal.data.record import Record
 from jaxcal.loop.effects import TAU_CYCLES
 from jaxcal.loop.noise import reference_noise_rel
-from jaxcal.physics.constants import SENSOR_NAMES
+from jaxcal.physics.constants import CONDITION_NAMES, SENSOR_NAMES
 
 CONTROLLER_SET = ("Nf", "NRf", "Nf_dmd", "PCNfR_dmd")
 MIN_DISTINCT = 20  # fewer distinct values: a setting or a heavily rounded output
@@ -56,6 +56,9 @@ class LoopData:
         row_index: ``[N]`` row of the original record.
         excluded: sensor -> reason it is not in the residual.
         notes: what data cleaning did (clipped or dropped rows).
+        dropped: column -> rows dropped for a NaN / Inf in that column, by the reader
+            (``Record.dropped``) or here; a row bad in two columns counts in both.
+        dropped_rows: rows dropped for NaN / Inf in total (each row once).
     """
 
     w: np.ndarray
@@ -75,6 +78,8 @@ class LoopData:
     row_index: np.ndarray
     excluded: dict[str, str]
     notes: tuple[str, ...] = ()
+    dropped: dict[str, int] = dataclasses.field(default_factory=dict)
+    dropped_rows: int = 0
 
     @property
     def num_rows(self) -> int:
@@ -239,7 +244,8 @@ def prepare_data(
             ``None``: a reference level now, to be estimated after a first fit.
 
     Returns:
-        :class:`LoopData` (rows with non-finite values dropped).
+        :class:`LoopData`; rows with NaN / Inf in w or a chosen sensor are dropped
+        and counted per column in ``dropped`` (with those the reader dropped).
     """
     if units is not None:
         record = record.select_units(units)
@@ -258,7 +264,16 @@ def prepare_data(
     if not chosen:
         raise ValueError(f"no usable sensor in the record; excluded: {excluded}")
     x_all = x_all[:, keep]
-    finite = np.isfinite(record.w).all(1) & np.isfinite(x_all).all(1)
+    finite_w, finite_x = np.isfinite(record.w), np.isfinite(x_all)
+    finite = finite_w.all(1) & finite_x.all(1)
+    dropped = dict(record.dropped)
+    for name, ok in zip(
+        CONDITION_NAMES + tuple(chosen),
+        np.concatenate([finite_w, finite_x], axis=1).T,
+        strict=True,
+    ):
+        if not ok.all():
+            dropped[name] = dropped.get(name, 0) + int(ok.size - ok.sum())
     order = np.lexsort((np.arange(record.num_rows), record.cycle, record.unit))
     order = order[finite[order]]
     if order.size == 0:
@@ -311,6 +326,8 @@ def prepare_data(
         row_index=order,
         excluded=excluded,
         notes=tuple(notes),
+        dropped=dropped,
+        dropped_rows=record.dropped_rows + int(finite.size - finite.sum()),
     )
 
 

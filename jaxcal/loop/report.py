@@ -114,6 +114,8 @@ def report_dict(
             "noise_source": d.noise_source,
             "knots_per_unit": d.num_knots,
             "notes": list(d.notes),
+            # rows with NaN / Inf, dropped before the fit: in total and per column
+            "dropped": {"rows": d.dropped_rows, "columns": dict(d.dropped)},
         },
         "verdict": res.verdict,
         "identified": res.identified,
@@ -244,6 +246,15 @@ def write_report(
     return rep
 
 
+def dropped_rows_line(dropped: dict) -> str:
+    """``{"rows", "columns"}`` of the report as one sentence (no final stop)."""
+    per_column = ", ".join(f"{k}: {v}" for k, v in dropped["columns"].items())
+    return (
+        f"Dropped {dropped['rows']} rows with NaN or Inf values before the fit "
+        f"(rows per column: {per_column})"
+    )
+
+
 def _fmt(v, digits=4):
     if v is None:
         return "–"
@@ -267,6 +278,9 @@ def render_markdown(rep: dict) -> str:
         f"**Verdict: {rep['verdict']}.**",
         "",
     ]
+    dropped = d.get("dropped") or {}
+    if dropped.get("rows"):
+        lines += [dropped_rows_line(dropped) + ".", ""]
     if d["excluded"]:
         lines += [
             "Not in the residual: "

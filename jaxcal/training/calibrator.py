@@ -16,6 +16,12 @@ norm(w_0)])) and x-hat_0 = x_0.
 Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner
 (:func:`make_fleet_runner`) serves any trained policy of the same architecture
 without retracing.
+
+Guarded samples (:mod:`jaxcal.baselines.interface`): the runners take a
+:class:`~jaxcal.baselines.interface.SampleCheck`; :func:`range_check` builds it from
+the run's training range (``RunMeta.w_low`` ...) widened by
+:data:`TRAINING_RANGE_MARGIN` of its span on each side. A sample outside it is
+flagged and skipped, never clipped into the action box.
 """
 
 from __future__ import annotations
@@ -27,9 +33,23 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxcal.baselines.interface import Calibrator, CalOutput, CalStepOutput, run_fleet
+from jaxcal.baselines.interface import (
+    Calibrator,
+    CalOutput,
+    CalStepOutput,
+    GuardCarry,
+    SampleCheck,
+    guarded_update,
+    run_fleet,
+    sample_reason,
+)
 from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
 from jaxcal.typedefs import Array, PRNGKey, PyTree
+
+# "Far outside the training range": beyond the training min/max by more than this
+# fraction of its span. Test units drift past the training range as they degrade;
+# half a span is far beyond any such drift and far inside a unit or sign error.
+TRAINING_RANGE_MARGIN = 0.5
 
 
 @struct.dataclass
@@ -120,18 +140,44 @@ def make_policy_calibrator(
     return Calibrator(init, step)
 
 
+def range_check(meta, margin: float = TRAINING_RANGE_MARGIN) -> SampleCheck | None:
+    """The valid input box of a run: its training range widened by ``margin``.
+
+    Args:
+        meta: a :class:`~jaxcal.training.problem.RunMeta` (anything with ``w_low``,
+            ``w_high``, ``x_low``, ``x_high`` tuples or ``None``).
+        margin: fraction of the span added on each side.
+
+    Returns:
+        :class:`SampleCheck`, or ``None`` for a run written before the range was
+        stored (``data.json`` without it): those check finiteness only.
+    """
+    bounds = [getattr(meta, name, None) for name in ("w_low", "w_high", "x_low")]
+    if any(b is None for b in bounds):
+        return None
+    return SampleCheck.from_range(*bounds, meta.x_high, margin=margin)
+
+
 def make_fleet_runner(
     actor: nn.Module, dynamics: Dynamics, *, unroll: int = 1
-) -> Callable[[PolicyParams, Array, Array, Array], CalOutput]:
-    """A jitted ``run(params, w [U,T,W], x [U,T,S], mask [U,T]) -> CalOutput``.
+) -> Callable[..., CalOutput]:
+    """A jitted ``run(params, w [U,T,W], x [U,T,S], mask [U,T], check=None)``.
 
     ``lax.scan`` over time, ``vmap`` over units
-    (:func:`~jaxcal.baselines.interface.run_fleet`); compiled once per array shape.
+    (:func:`~jaxcal.baselines.interface.run_fleet`); compiled once per array shape
+    (and once more with a ``check``). Returns a ``CalOutput`` with ``valid`` and
+    ``reason`` per sample.
     """
 
-    def run(params: PolicyParams, w: Array, x: Array, mask: Array) -> CalOutput:
+    def run(
+        params: PolicyParams,
+        w: Array,
+        x: Array,
+        mask: Array,
+        check: SampleCheck | None = None,
+    ) -> CalOutput:
         calibrator = make_policy_calibrator(actor, dynamics, params)
-        return run_fleet(calibrator, w, x, mask, unroll=unroll)
+        return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
 
     return jax.jit(run)
 
@@ -141,7 +187,8 @@ def make_stream_step(
 ) -> Callable[[PolicyParams, PolicyState, Array, Array], tuple[PolicyState, Array]]:
     """A jitted single-sample step ``(params, state, w [W], x [S]) -> (state, theta)``.
 
-    The real-time path: one call per incoming sample.
+    The raw step, unguarded (the CPU bench's reference); deployment uses
+    :func:`make_guarded_stream_step`.
     """
 
     def step(params: PolicyParams, state: PolicyState, w: Array, x: Array):
@@ -149,5 +196,39 @@ def make_stream_step(
             state, w, x
         )
         return new_state, out.theta
+
+    return jax.jit(step)
+
+
+def initial_guard_carry(
+    actor: nn.Module, dynamics: Dynamics, params: PolicyParams
+) -> GuardCarry:
+    """The carry of a guarded stream before its first sample.
+
+    Before any ok sample the outputs are zeros (theta = 0: healthy modifiers, as
+    ``run_calibrator`` outputs on leading padding) and the step, if fed a flagged
+    first sample, sees zeros (its result is discarded).
+    """
+    w = jnp.zeros_like(params.w_mean)
+    x = jnp.zeros_like(params.x_mean)
+    state = PolicyState(xhat=x, started=jnp.zeros((), bool))
+    step = make_policy_calibrator(actor, dynamics, params).step
+    out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
+    out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
+    return GuardCarry(state=state, out=out, w=w, x=x)
+
+
+def make_guarded_stream_step(
+    actor: nn.Module, dynamics: Dynamics
+) -> Callable[..., tuple[GuardCarry, CalStepOutput, Array]]:
+    """A jitted guarded step ``(params, carry, w [W], x [S], check) -> (carry, out,
+    reason [])``: the rule of ``run_calibrator`` for one sample
+    (:func:`~jaxcal.baselines.interface.guarded_update`). ``check`` may be ``None``.
+    """
+
+    def step(params, carry: GuardCarry, w: Array, x: Array, check):
+        calibrator = make_policy_calibrator(actor, dynamics, params)
+        reason = sample_reason(check, w, x)
+        return guarded_update(calibrator.step, carry, w, x, reason)
 
     return jax.jit(step)

@@ -19,17 +19,23 @@ Defaults follow the file: sensors = the ``observed_sensors`` root attribute when
 file has one (our files), else the 14 measured sensors X_s; theta = the T columns that
 vary over the dev split. The action box is the dev range of theta widened by
 ``theta_margin`` of its width on each side.
+
+Bad input is refused, not repaired in silence: column names the layout does not know
+are an error unless ``rename`` maps them, and rows with NaN / Inf are an error naming
+the file, columns, first rows and counts unless ``nonfinite="drop"`` (then the drop is
+logged and recorded in ``info["dropped"]``).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 
 from jaxcal.data.fleet import to_fleet
-from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
 from jaxcal.data.record import Record
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
 
@@ -150,6 +156,27 @@ def split_units(
     return train, val, test
 
 
+def read_options(dataset) -> dict:
+    """The reader options of a ``DataConfig`` (``jaxcal.config``) as keyword args of
+    :func:`load_calibration_data`: ``nonfinite`` and ``rename`` (older run configs
+    without these fields read with the defaults)."""
+    return {
+        "nonfinite": getattr(dataset, "nonfinite", "error"),
+        "rename": parse_rename(getattr(dataset, "rename", ())),
+    }
+
+
+def describe_dropped(dropped: dict) -> str:
+    """One line per split of ``info["dropped"]``: rows dropped and per column."""
+    return "; ".join(
+        f"{split}: {d['rows']} rows with NaN / Inf dropped ("
+        + ", ".join(f"{k} {v}" for k, v in d["columns"].items())
+        + ")"
+        for split, d in dropped.items()
+        if d["rows"]
+    )
+
+
 def _pad(record: Record, theta_idx: list[int]) -> UnitArrays:
     fleet = to_fleet(record)
     return UnitArrays(
@@ -170,6 +197,9 @@ def load_calibration_data(
     val_fraction: float = 0.15,
     stride: int = 1,
     theta_margin: float = 0.1,
+    nonfinite: str = "error",
+    rename: dict[str, str] | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> CalibrationData:
     """Reads the train / val / test splits of an N-CMAPSS file.
 
@@ -184,23 +214,45 @@ def load_calibration_data(
             sampled every 10 s).
         theta_margin: the action box is the dev range widened by this share of its
             width on each side.
+        nonfinite: rows with NaN / Inf in w, the sensors or theta: ``"error"``
+            refuses the file, ``"drop"`` drops them (``info["dropped"]``, logged).
+        rename: ``{file column name: jaxcal name}`` (see ``load_ncmapss``).
+        log: where the dropped-row summary goes (``None``: not printed).
 
     Returns:
         :class:`CalibrationData`.
 
     Raises:
         ValueError: naming the bad argument (unknown sensor or parameter, no varying
-            parameter, bad split).
+            parameter, bad split), an unknown or missing column name, or (with
+            ``nonfinite="error"``) a NaN / Inf value.
     """
     if theta_margin < 0:
         raise ValueError(f"theta_margin must be >= 0, got {theta_margin}")
-    info = ncmapss_info(path)
+    if nonfinite not in ("error", "drop"):
+        raise ValueError(f"nonfinite must be 'error' or 'drop', got {nonfinite!r}")
+    info = ncmapss_info(path, rename=rename)
     sensors = tuple(sensors) or default_sensors(info)
     train_ids, val_ids, test_ids = split_units(info, val_units, val_fraction)
-    dev = load_ncmapss(
-        path, "dev", units=train_ids + val_ids, sensors=sensors, stride=stride
-    )
-    test = load_ncmapss(path, "test", units=test_ids, sensors=sensors, stride=stride)
+    read = dict(sensors=sensors, stride=stride, rename=rename, nonfinite=nonfinite)
+    dev = load_ncmapss(path, "dev", units=train_ids + val_ids, **read)
+    test = load_ncmapss(path, "test", units=test_ids, **read)
+    dropped = {
+        split: {"rows": rec.dropped_rows, "columns": rec.dropped}
+        for split, rec in (("dev", dev), ("test", test))
+    }
+    if log is not None and (dev.dropped_rows or test.dropped_rows):
+        log(f"data {path}: {describe_dropped(dropped)} (dataset.nonfinite=drop)")
+    for split, rec, ids in (
+        ("dev", dev, train_ids + val_ids),
+        ("test", test, test_ids),
+    ):
+        lost = sorted(set(ids) - set(rec.units.tolist())) if rec.dropped_rows else []
+        if lost:
+            raise ValueError(
+                f"{path}: no {split} row of unit(s) {lost} is left after dropping the "
+                "rows with NaN / Inf values; fix the file or leave those units out"
+            )
     low, high = dev.theta.min(axis=0), dev.theta.max(axis=0)
     if theta:
         unknown = [n for n in theta if n not in HEALTH_NAMES]
@@ -253,5 +305,6 @@ def load_calibration_data(
             "stride": stride,
             "rows": {"dev": dev.num_rows, "test": test.num_rows},
             "units": {"train": train_ids, "val": val_ids, "test": test_ids},
+            "dropped": dropped,
         },
     )

@@ -3,12 +3,16 @@
 :func:`run_training` is what ``python -m jaxcal.train`` runs (paper §3 and Algorithm
 1, with the set-up choices of ``design/calibration.md``):
 
-1. the run folder ``<runs_dir>/<name>`` is created, or checked against the stored
-   config for a resume (:func:`jaxcal.training.run_dir.prepare_run_dir`);
+1. the run folder ``<runs_dir>/<name>`` is checked, without writing: it must be
+   writable, and a stored config must match for a resume
+   (:func:`jaxcal.training.run_dir.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
    (``python -m jaxcal.generate`` in a subprocess, so the engine's float64 setting
    does not leak into training), then the train / val / test units are read
-   (:mod:`jaxcal.training.data`);
+   (:mod:`jaxcal.training.data`). Only then, every check of the config and the data
+   passed, is the run folder created with its ``config.json``
+   (:func:`jaxcal.training.run_dir.prepare_run_dir`): a start that fails leaves
+   nothing behind that would block the corrected command;
 3. the surrogate D is fitted on the training units' transitions or restored
    (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it;
 4. the policy learns on the training units' (w, x) only, no theta label
@@ -38,15 +42,26 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import h5py
 import jax
 import numpy as np
 
 from jaxcal.checkpoint import Checkpointer
+from jaxcal.cli_args import check_output_path
 from jaxcal.config import TrainConfig
 from jaxcal.envs.tracking import EnvConfig, EnvParams, NormStats, make_env_params
 from jaxcal.precision import enable_x64
-from jaxcal.training.calibrator import PolicyParams, policy_params_from_env
-from jaxcal.training.data import CalibrationData, UnitArrays, load_calibration_data
+from jaxcal.training.calibrator import (
+    PolicyParams,
+    policy_params_from_env,
+    range_check,
+)
+from jaxcal.training.data import (
+    CalibrationData,
+    UnitArrays,
+    load_calibration_data,
+    read_options,
+)
 from jaxcal.training.policy_stage import train_policy
 from jaxcal.training.problem import RunMeta, make_components
 from jaxcal.training.run_dir import (
@@ -54,6 +69,7 @@ from jaxcal.training.run_dir import (
     FINAL_FILE,
     POLICY_BEST_DIR,
     POLICY_DIR,
+    check_run_dir,
     prepare_run_dir,
     write_json,
 )
@@ -61,13 +77,19 @@ from jaxcal.training.scoring import describe_units, score_units
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
 
 
+class GenerationError(RuntimeError):
+    """The data generator subprocess failed for another reason than bad arguments."""
+
+
 def ensure_data_file(cfg: TrainConfig, log: Callable[[str], None] = print) -> Path:
     """The run's data file, generated first if missing and ``dataset.generate`` is set.
 
     Raises:
-        ValueError: no path configured (``dataset=ncmapss`` without ``path=``).
+        ValueError: no path configured (``dataset=ncmapss`` without ``path=``), an
+            unreadable file, a path the generator could not write or bad generator
+            arguments.
         FileNotFoundError: the file is missing and no generator preset is named.
-        RuntimeError: the generator failed.
+        GenerationError: the generator failed otherwise.
     """
     if not cfg.dataset.path:
         raise ValueError(
@@ -76,9 +98,10 @@ def ensure_data_file(cfg: TrainConfig, log: Callable[[str], None] = print) -> Pa
         )
     path = Path(cfg.dataset.path)
     if path.is_file():
-        return path
+        return _check_readable(path)
     if not cfg.dataset.generate:
         raise FileNotFoundError(f"data file {path} not found")
+    check_output_path(str(path), "dataset.path")  # before minutes of generation
     log(f"{path} is missing: generating data set {cfg.dataset.generate!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
     command = [
@@ -88,8 +111,27 @@ def ensure_data_file(cfg: TrainConfig, log: Callable[[str], None] = print) -> Pa
         f"dataset={cfg.dataset.generate}",
         f"out={path}",
     ]
-    if subprocess.run(command, check=False).returncode != 0:
-        raise RuntimeError(f"generating {path} failed: {' '.join(command)}")
+    code = subprocess.run(command, check=False).returncode
+    if code == 2:  # the generator's code for bad arguments (it printed why)
+        raise ValueError(f"generating {path}: bad arguments: {' '.join(command)}")
+    if code != 0:
+        raise GenerationError(f"generating {path} failed: {' '.join(command)}")
+    return path
+
+
+def _check_readable(path: Path) -> Path:
+    """``path``, or a ``ValueError`` naming it when it cannot be opened or, named
+    ``.h5``/``.hdf5``, is not an HDF5 file (the reader's own error names neither)."""
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as err:
+        raise ValueError(f"dataset.path={str(path)!r}: cannot read ({err})") from None
+    if path.suffix.lower() in (".h5", ".hdf5") and not h5py.is_hdf5(path):
+        raise ValueError(
+            f"dataset.path={str(path)!r}: not an HDF5 file (expected the N-CMAPSS "
+            "layout, as NASA's DS01-DS08 files or one written by jaxcal.generate)"
+        )
     return path
 
 
@@ -128,13 +170,23 @@ def _throughput(records: list[dict]) -> dict:
 def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dict:
     """Runs (or resumes) the training job of ``cfg``; returns the ``final.json`` dict.
 
+    Every check of the config and the data runs before the run folder is created or
+    written, so a failed start leaves nothing behind.
+
     Raises:
-        ValueError: bad data selection or a run folder made by another config.
+        ValueError: bad data selection, an unwritable run folder or one made by
+            another config.
     """
     wall_start = time.perf_counter()
     run_dir = Path(cfg.output.runs_dir) / cfg.run_name
-    resumed = prepare_run_dir(run_dir, cfg)
-    log(f"run {run_dir} ({'resuming' if resumed else 'new'}), seed {cfg.seed}")
+    status = check_run_dir(run_dir, cfg)  # writes nothing
+    state = {
+        "new": "new",
+        "resume": "resuming",
+        "stale": "new; its folder held only the config.json of a failed start, "
+        "which is replaced",
+    }[status]
+    log(f"run {run_dir} ({state}), seed {cfg.seed}")
     path = ensure_data_file(cfg, log)
     if cfg.dynamics == "physics":
         enable_x64()  # the engine's Newton solve needs float64
@@ -147,6 +199,8 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         val_fraction=cfg.dataset.val_fraction,
         stride=cfg.dataset.stride,
         theta_margin=cfg.env.theta_margin,
+        log=log,  # rows dropped by dataset.nonfinite=drop
+        **read_options(cfg.dataset),
     )
     meta = RunMeta.from_data(data)
     log(
@@ -157,6 +211,7 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         f"{describe_units(data.info['units']['val'])}, test "
         f"{describe_units(data.info['units']['test'])}"
     )
+    prepare_run_dir(run_dir, cfg)  # the first write: every check above has passed
     key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
     surrogate_report = None
     dyn_params = None
@@ -188,8 +243,9 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
 
     def score(units: UnitArrays, params: PolicyParams) -> dict:
         out = parts.run_units(
-            params, units.w.astype(dtype), units.x.astype(dtype), units.mask
-        )
+            params, units.w.astype(dtype), units.x.astype(dtype), units.mask,
+            range_check(meta),  # samples far outside the training range: flagged
+        )  # fmt: skip
         return score_units(
             out.theta,
             out.xhat,
@@ -199,6 +255,7 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
             np.asarray(stats.x_std),
             data.sensors,
             data.theta_names,
+            reason=out.reason,
         )
 
     def deployable(agent_state, which: str = cfg.budget.policy) -> PolicyParams:

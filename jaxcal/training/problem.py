@@ -46,6 +46,10 @@ class RunMeta(NamedTuple):
         engine: engine configuration name (for ``dynamics=physics``).
         theta_base: the 10 health modifiers; undeclared ones are held here.
         condition_dim: W.
+        w_low, w_high, x_low, x_high: ``[W]`` / ``[S]`` min and max of the training
+            units' valid samples (the deployed input check, see
+            :func:`jaxcal.training.calibrator.range_check`); ``None`` for runs
+            written before they were stored.
     """
 
     sensors: tuple[str, ...]
@@ -53,6 +57,10 @@ class RunMeta(NamedTuple):
     engine: str
     theta_base: tuple[float, ...]
     condition_dim: int
+    w_low: tuple[float, ...] | None = None
+    w_high: tuple[float, ...] | None = None
+    x_low: tuple[float, ...] | None = None
+    x_high: tuple[float, ...] | None = None
 
     @classmethod
     def from_data(cls, data: CalibrationData) -> RunMeta:
@@ -63,6 +71,7 @@ class RunMeta(NamedTuple):
             engine=data.engine,
             theta_base=tuple(float(v) for v in data.theta_base),
             condition_dim=int(data.train.w.shape[-1]),
+            **_training_range(data.train.w, data.train.x, data.train.mask),
         )
 
     @classmethod
@@ -74,7 +83,25 @@ class RunMeta(NamedTuple):
             engine=str(data["engine"]),
             theta_base=tuple(float(v) for v in data["theta_base"]),
             condition_dim=int(data["condition_dim"]),
+            **{
+                name: tuple(float(v) for v in data[name])
+                for name in ("w_low", "w_high", "x_low", "x_high")
+                if data.get(name) is not None
+            },
         )
+
+
+def _training_range(w, x, mask) -> dict[str, tuple[float, ...]]:
+    """Per-column min / max of the valid rows of ``w [U, T, W]``, ``x [U, T, S]``."""
+    rows = np.asarray(mask, bool)
+    w, x = np.asarray(w, np.float64)[rows], np.asarray(x, np.float64)[rows]
+    as_tuple = lambda a: tuple(float(v) for v in a)  # noqa: E731 (hashable meta)
+    return {
+        "w_low": as_tuple(w.min(axis=0)),
+        "w_high": as_tuple(w.max(axis=0)),
+        "x_low": as_tuple(x.min(axis=0)),
+        "x_high": as_tuple(x.max(axis=0)),
+    }
 
 
 def make_agent(

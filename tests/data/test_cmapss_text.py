@@ -147,3 +147,47 @@ def test_experiment_summarises_fd001_fd002(tmp_path):
         assert cond["means"]["T30"] == pytest.approx(expected_t30, abs=1e-3)
     with pytest.raises(FileNotFoundError, match="nowhere"):
         experiment.summarise(tmp_path / "nowhere")
+
+
+def _with_tokens(path, edits):
+    """Replace field ``col`` (0-based) of line ``number`` (1-based) by ``token``."""
+    lines = path.read_text().splitlines(keepends=True)
+    for number, col, token in edits:
+        fields = lines[number - 1].split()
+        fields[col] = token
+        lines[number - 1] = " ".join(fields) + "  \n"
+    path.write_text("".join(lines))
+    return path
+
+
+def test_non_numeric_token_names_file_line_and_column(tmp_path):
+    path = write_cmapss(tmp_path / "train_FD001.txt", [3, 2])
+    _with_tokens(path, [(4, 7, "12,5")])
+    with pytest.raises(ValueError, match="train_FD001.txt:4: non-numeric value "
+                       "'12,5' in column 8 \\(s3 \\(T30\\)\\)"):  # fmt: skip
+        load_cmapss_text(path)
+    _with_tokens(path, [(4, 7, "1.0"), (2, 1, "nan")])
+    with pytest.raises(ValueError, match=":2: cycle must be an integer >= 1, got nan"):
+        load_cmapss_text(path, nonfinite="drop")
+
+
+def test_nonfinite_values_refused_or_dropped_with_a_report(tmp_path):
+    path = write_cmapss(tmp_path / "train_FD001.txt", [3, 2])
+    clean = load_cmapss_text(path)
+    # T30 (s3, column 8) NaN on lines 2 and 3 (the last line of unit 1), htBleed Inf.
+    _with_tokens(path, [(2, 7, "nan"), (3, 7, "NaN"), (5, 21, "inf")])
+    with pytest.raises(ValueError) as err:
+        load_cmapss_text(path)
+    msg = str(err.value)
+    assert "train_FD001.txt: non-finite values (NaN or Inf) in 3 of 5 lines" in msg
+    assert "column s3 (T30): 2 lines (lines 2, 3)" in msg
+    assert "column s17 (htBleed): 1 line (line 5)" in msg
+    got = load_cmapss_text(path, nonfinite="drop")
+    assert got.dropped == {"s3 (T30)": 2, "s17 (htBleed)": 1}
+    assert got.dropped_rows == 3
+    keep = np.array([True, False, False, True, False])
+    np.testing.assert_array_equal(got.x, clean.x[keep])
+    np.testing.assert_array_equal(got.rul, clean.rul[keep])  # RUL of the full file
+    np.testing.assert_array_equal(got.cycle, [1, 1])
+    kept = load_cmapss_text(path, nonfinite="keep")
+    assert np.isnan(kept.columns(["T30"])).sum() == 2 and len(kept) == 5

@@ -331,3 +331,130 @@ def test_unit_selection_reads_only_unit_column_and_unit_rows(
     assert {n for n, _ in data_reads} == {"W_dev", "X_s_dev", "T_dev", "Y_dev", "A_dev"}
     for _, sl in data_reads:
         assert sl.start in unit_rows and sl.stop - 1 in unit_rows
+
+
+# --------------------------------------------------------------- names and NaN policy
+
+
+def _rename_columns(path, group, mapping):
+    """Respell some ``<group>_var`` names in place, as a user's file might."""
+    with h5py.File(path, "a") as f:
+        names = [v.decode() for v in f[f"{group}_var"][()]]
+        del f[f"{group}_var"]
+        f.create_dataset(
+            f"{group}_var", data=np.array([mapping.get(n, n) for n in names], "S")
+        )
+
+
+def test_renamed_sensor_is_refused_with_expected_and_found(tmp_path, records):
+    dev, test = records
+    path = tmp_path / "renamed.h5"
+    write_ncmapss(path, dev, test)
+    _rename_columns(path, "X_s", {"T24": "T_24", "T30": "T 30"})
+    for read in (lambda: load_ncmapss(path, "dev"), lambda: ncmapss_info(path)):
+        with pytest.raises(ValueError) as err:
+            read()
+        msg = str(err.value)
+        assert "renamed.h5" in msg
+        assert "X_s_var: unknown ['T_24', 'T 30'], missing ['T24', 'T30']" in msg
+        assert f"expected (any order) {list(MEASURED_SENSOR_NAMES)}" in msg
+        assert "found ['T_24', 'T 30', 'T48'" in msg and "rename=" in msg
+    # Before: T_24 and T 30 went silently to Record.extras and T24 / T30 vanished.
+    with pytest.raises(ValueError, match="X_s_var: unknown"):
+        load_ncmapss(path, "dev", sensors=["Nf"])
+
+
+def test_rename_maps_the_file_names(tmp_path, records):
+    dev, test = records
+    path = tmp_path / "renamed.h5"
+    write_ncmapss(path, dev, test)
+    _rename_columns(path, "X_s", {"T24": "T_24"})
+    _rename_columns(path, "T", {"HPT_eff_mod": "HPT_eff"})
+    rename = {"T_24": "T24", "HPT_eff": "HPT_eff_mod"}
+    assert_records_equal(load_ncmapss(path, "dev", rename=rename), dev)
+    assert ncmapss_info(path, rename=rename)["columns"]["X_s"][0] == "T24"
+    with pytest.raises(ValueError, match="rename names column\\(s\\) \\['T_99'\\]"):
+        load_ncmapss(path, "dev", rename={**rename, "T_99": "T24"})
+    with pytest.raises(ValueError, match="X_s_var: .*repeated \\['T30'\\]"):
+        load_ncmapss(path, "dev", rename={**rename, "T30": "T30", "T48": "T30"})
+
+
+@pytest.mark.parametrize(
+    "group, mapping, match",
+    [
+        ("T", {"LPT_flow_mod": "LPT_flow"}, "T_var: unknown \\['LPT_flow'\\]"),
+        ("W", {"alt": "altitude"}, "W_var: unknown \\['altitude'\\], missing"),
+        ("A", {"hs": "health"}, "A_var: unknown \\['health'\\], missing \\['hs'\\]"),
+        ("X_v", {"T40": "T30"}, "in both X_s_var and X_v_var"),
+    ],
+)
+def test_unknown_names_in_any_group_are_refused(
+    tmp_path, records, group, mapping, match
+):
+    dev, test = records
+    path = tmp_path / "data.h5"
+    write_ncmapss(path, dev, test)
+    _rename_columns(path, group, mapping)
+    with pytest.raises(ValueError, match=match):
+        load_ncmapss(path, "dev")
+
+
+def _poisoned(records):
+    """The dev record with NaN in T24 (rows 3, 4, 9), Inf in alt (row 9) and NaN in
+    theta (row 20); unit 2 is rows 7..17."""
+    dev, test = records
+    w, x, theta = dev.w.copy(), dev.x.copy(), dev.theta.copy()
+    x[[3, 4, 9], NCMAPSS_SENSORS.index("T24")] = np.nan
+    w[9, 0] = np.inf
+    theta[20, 6] = np.nan
+    return dataclasses.replace(dev, w=w, x=x, theta=theta), test
+
+
+def test_nonfinite_rows_are_refused_naming_file_column_rows_count(tmp_path, records):
+    dev, test = _poisoned(records)
+    path = tmp_path / "nan.h5"
+    write_ncmapss(path, dev, test)
+    with pytest.raises(ValueError) as err:
+        load_ncmapss(path, "dev")
+    msg = str(err.value)
+    assert "nan.h5 [dev]" in msg and "in 4 of 23 rows" in msg
+    assert "column T24: 3 rows (rows 3, 4, 9)" in msg
+    assert "column alt: 1 row (row 9)" in msg
+    assert "column HPT_eff_mod: 1 row (row 20)" in msg
+    assert "nonfinite='drop'" in msg and "dataset.nonfinite=drop" in msg
+    # Rows are the file's rows, also through a unit selection and a stride.
+    with pytest.raises(ValueError, match="column T24: 1 row \\(row 9\\)"):
+        load_ncmapss(path, "dev", units=[2], stride=3, block_rows=2)
+    assert len(load_ncmapss(path, "test")) == 15  # the clean split still loads
+    # A sensor that is not loaded cannot poison the load.
+    assert len(load_ncmapss(path, "dev", rows=(10, 20), sensors=["Nf"])) == 10
+
+
+def test_nonfinite_drop_reports_rows_per_column(tmp_path, records):
+    dev, test = _poisoned(records)
+    path = tmp_path / "nan.h5"
+    write_ncmapss(path, dev, test)
+    got = load_ncmapss(path, "dev", nonfinite="drop")
+    keep = np.ones(23, bool)
+    keep[[3, 4, 9, 20]] = False
+    assert_records_equal(got, dev.take(keep))
+    assert got.dropped == {"alt": 1, "T24": 3, "HPT_eff_mod": 1}
+    assert got.dropped_rows == 4
+    assert got.take(slice(0, 3)).dropped_rows == 4  # the report travels with the rows
+    kept = load_ncmapss(path, "dev", nonfinite="keep")
+    assert np.isnan(kept.x).sum() == 3 and kept.dropped_rows == 0
+    with pytest.raises(ValueError, match="nonfinite must be one of"):
+        load_ncmapss(path, "dev", nonfinite="ignore")
+
+
+def test_nonfinite_unit_id_is_refused_even_when_kept(tmp_path, records):
+    dev, test = records
+    path = tmp_path / "nan.h5"
+    write_ncmapss(path, dev, test)
+    with h5py.File(path, "a") as f:
+        f["A_dev"][5, AUX_NAMES.index("unit")] = np.nan
+    with pytest.raises(ValueError, match="column unit: 1 row \\(row 5\\)"):
+        load_ncmapss(path, "dev", nonfinite="keep")
+    got = load_ncmapss(path, "dev", nonfinite="drop")
+    assert got.dropped == {"unit": 1} and len(got) == 22
+    assert ncmapss_info(path)["splits"]["dev"]["units"] == [1, 2, 3]

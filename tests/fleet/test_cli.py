@@ -86,6 +86,7 @@ def test_engine_ukf_run_recovers_theta(tmp_path):
     theta[:, HEALTH_NAMES.index("HPT_eff_mod")] = np.repeat(losses, lengths)
     x, info = engine.evaluate(jnp.asarray(w), jnp.asarray(theta))
     assert bool(np.all(info.converged))
+    w[5, 0] = 60000.0  # above the envelope (issue 12): skipped and flagged
     unit = np.repeat([1, 2, 3], lengths)
     rec = Record(
         w=w, x=np.asarray(x), x_names=SENSOR_NAMES, theta=theta, unit=unit,
@@ -107,8 +108,10 @@ def test_engine_ukf_run_recovers_theta(tmp_path):
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     assert summary["num_units"] == 3 and summary["num_devices"] == 2
+    assert summary["num_flagged"] == 1 and summary["flagged"]["w_out_of_range"] == 1
     arrays, attrs = read_results(out)
     assert attrs["norm_source"] == "data pass" and attrs["method"] == "ukf"
     np.testing.assert_array_equal(arrays["unit_length"], lengths)
+    assert not arrays["valid"][5] and arrays["valid"].sum() == n - 1
     # The last estimate of each unit is close to its (constant) true loss.
     np.testing.assert_allclose(arrays["unit_theta_last"][:, 0], losses, atol=1e-3)

@@ -14,6 +14,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxcal.baselines.interface import REASON_CODE, SampleCheck
 from jaxcal.fleet.sharded import (
     calibrate_sharded,
     make_unit_mesh,
@@ -103,6 +104,18 @@ def test_one_device_mesh_matches_run_fleet_and_checks_inputs():
     out = calibrate_sharded(calibrator, w, x, mask, mesh=mesh)
     ref = reference(calibrator, w, x, mask)
     np.testing.assert_allclose(out.theta, ref.theta, rtol=1e-12, atol=1e-14)
+    # a poisoned sample: flagged and skipped exactly as run_fleet does (issue 12)
+    x_bad = x.copy()
+    x_bad[0, 1, 0] = np.inf
+    check = SampleCheck(
+        w_low=np.full(w.shape[-1], -np.inf), w_high=np.full(w.shape[-1], np.inf)
+    )
+    out = calibrate_sharded(calibrator, w, x_bad, mask, mesh=mesh, check=check)
+    ref = reference(calibrator, w, x_bad, mask)
+    np.testing.assert_array_equal(out.reason, ref.reason)
+    assert out.reason[0, 1] == REASON_CODE["x_nonfinite"] and not out.valid[0, 1]
+    np.testing.assert_allclose(out.theta, ref.theta, rtol=1e-12, atol=1e-14)
+    assert np.isfinite(out.theta).all()
     with pytest.raises(ValueError, match="mask must be"):
         calibrate_sharded(calibrator, w, x, mask[:, :3])
     with pytest.raises(ValueError, match="expected w"):

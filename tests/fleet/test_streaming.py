@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fleet_worker import problem, reference, ukf
 
-from jaxcal.baselines.interface import Calibrator
+from jaxcal.baselines.interface import REASON_CODE, Calibrator, SampleCheck
 from jaxcal.data.fleet import to_fleet
 from jaxcal.data.ncmapss_io import load_ncmapss, write_ncmapss
 from jaxcal.data.record import Record
@@ -119,6 +119,41 @@ def test_stream_rejects_oversized_chunks(tmp_path):
         calibrate_stream(ukf(measure), [chunk], make_unit_mesh(), size=2)
     with pytest.raises(ValueError, match="empty"):
         calibrate_stream(ukf(measure), [], make_unit_mesh(), size=2)
+
+
+def test_stream_skips_and_flags_poisoned_samples(tmp_path):
+    """Issue 12: a NaN or out-of-range sample is skipped, flagged in the file (valid,
+    reason columns) and counted in the summary; other samples are untouched."""
+    w, x, mask, _, measure = problem(num_units=3)
+    check = SampleCheck.from_range(
+        w[mask].min(0), w[mask].max(0), x[mask].min(0), x[mask].max(0), margin=0.5
+    )
+    w, x = w.copy(), x.copy()
+    x[1, 2, 0] = np.nan
+    w[2, 3, 0] = 1e6
+    calibrator = ukf(measure)
+    path = tmp_path / "flags.h5"
+    mesh = make_unit_mesh([jax.devices()[0]])
+    with FleetResultWriter(path, **NAMES) as writer:
+        stats = calibrate_stream(
+            calibrator, iter_array_chunks(w, x, mask, 2), mesh,
+            size=units_per_chunk(2, 1, mesh), writer=writer, check=check,
+        )  # fmt: skip
+    assert stats["num_flagged"] == 2
+    assert stats["flagged"]["x_nonfinite"] == 1
+    assert stats["flagged"]["w_out_of_range"] == 1
+    arrays, attrs = read_results(path)
+    assert attrs["flagged"]["x_nonfinite"] == 1 and attrs["reasons"][0] == "ok"
+    assert np.isfinite(arrays["theta"]).all()
+    row = np.flatnonzero((arrays["unit"] == 1) & (arrays["step"] == 2))[0]
+    assert not arrays["valid"][row]
+    assert arrays["reason"][row] == REASON_CODE["x_nonfinite"]
+    np.testing.assert_array_equal(arrays["theta"][row], arrays["theta"][row - 1])
+    assert arrays["valid"].sum() == mask.sum() - 2
+    # unit 0 saw no bad sample: the same as the unguarded reference
+    ref = reference(calibrator, w, x, mask)
+    n0 = int(mask[0].sum())
+    np.testing.assert_allclose(arrays["theta"][:n0], ref.theta[0][mask[0]], rtol=1e-12)
 
 
 def make_record(units, lengths, seed) -> Record:

@@ -1,5 +1,7 @@
 """Block least squares, spline bases, data preparation and noise estimation (numpy)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import stats as sps
@@ -150,3 +152,18 @@ def test_log10_chi2_tail_matches_scipy_and_stays_finite():
         assert log10_chi2_sf(x, df) == pytest.approx(sps.chi2.logsf(x, df) / np.log(10))
     far = log10_chi2_sf(1e6, 3)
     assert np.isfinite(far) and far < -1e5
+
+
+def test_prepare_data_counts_the_rows_it_drops_for_nan():
+    rng = np.random.default_rng(5)
+    rec = _record(rng)
+    x, w = rec.x.copy(), rec.w.copy()
+    x[[2, 5], rec.x_names.index("T30")] = np.nan
+    w[5, 0] = np.inf
+    w[9, 1] = np.nan
+    # as if the reader had dropped 4 rows of T30 already
+    rec = dataclasses.replace(rec, x=x, w=w, dropped={"T30": 4}, dropped_rows=4)
+    data = prepare_data(rec, knots=4, candidate_knots=2)
+    assert data.num_rows == 57 and np.isfinite(data.x).all()
+    assert data.dropped == {"T30": 6, "alt": 1, "Mach": 1}
+    assert data.dropped_rows == 7
