@@ -1,0 +1,226 @@
+"""Each method of :func:`jaxcal.calibrate` built from a :class:`~jaxcal.problem.Problem`.
+
+The model-based methods (UKF, least squares) work on the restricted model
+``F(w, theta_declared) -> x_used`` with outputs normalised by their *noise* std, so
+their measurement-noise setting is simply ``r = 1``; parameters are scaled by the
+half-width of the box and start at the nominal values. The E2E network learns the
+inverse of the model from simulations over the box at the data's own operating
+conditions ("E2E-sim"). A trained policy is loaded from its run folder.
+
+Every method returns the same ``Calibrator(init, step)`` and is run by one jitted
+fleet runner with the problem's sample check (non-finite samples and samples outside
+the model's valid input box are skipped and flagged).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.baselines.interface import (
+    Calibrator,
+    SampleCheck,
+    SensorNorm,
+    run_fleet,
+)
+from jaxcal.data.dataset import Padded
+from jaxcal.problem import Problem
+
+# Residual-based noise estimate: sliding-window LS, variance corrected for the
+# window's degrees of freedom, floored relative to the output's spread.
+_NOISE_FLOOR_REL = 1e-6
+_NOISE_PASSES = 2  # the first pass weighs outputs by 1 % of their spread
+_NOISE_ITERS = 10  # LM iterations per sample (converged, unlike the streaming 3)
+_NOISE_WINDOW = 12  # short: a drifting parameter biases a long window's residual
+
+
+def model_check(problem: Problem) -> SampleCheck | None:
+    """The model's valid input box as a sample check (``None``: finiteness only)."""
+    if problem.model.condition_range is None:
+        return None
+    low, high = problem.model.condition_range
+    return SampleCheck(w_low=jnp.asarray(low), w_high=jnp.asarray(high))
+
+
+def range_check(problem: Problem) -> SampleCheck | None:
+    """Far outside the training range of ``w`` and ``x`` (learned methods)."""
+    if problem.input_range is None:
+        return model_check(problem)
+    box = problem.input_range.widened()
+    return SampleCheck(*(jnp.asarray(b) for b in box))
+
+
+def noise_norm(problem: Problem, dtype) -> SensorNorm:
+    """Outputs in units of their noise std (so ``r = 1`` is the noise)."""
+    return SensorNorm(
+        mean=jnp.asarray(problem.norm.x_mean, dtype),
+        std=jnp.asarray(problem.noise_std, dtype),
+    )
+
+
+def make_runner(check: SampleCheck | None, key=None):
+    """``run(calibrator, padded) -> CalOutput``: the fleet scan, jitted."""
+
+    def run(calibrator: Calibrator, padded: Padded):
+        fleet = jax.jit(run_fleet, static_argnums=0)
+        keys = None
+        if key is not None:
+            keys = jax.random.split(key, padded.w.shape[0])
+        return fleet(
+            calibrator,
+            jnp.asarray(padded.w),
+            jnp.asarray(padded.x),
+            jnp.asarray(padded.mask),
+            keys=keys,
+            check=check,
+        )
+
+    return run
+
+
+def _model_based(method: str, problem: Problem, dtype, options: dict) -> Calibrator:
+    from jaxcal.baselines.least_squares import LeastSquaresConfig, make_least_squares
+    from jaxcal.baselines.ukf import UKFConfig, make_ukf
+
+    if method == "ukf":
+        cfg = UKFConfig(r=1.0, **_take(options, UKFConfig))
+        make = make_ukf
+    else:
+        cfg = LeastSquaresConfig(r=1.0, **_take(options, LeastSquaresConfig))
+        make = make_least_squares
+    return make(
+        problem.measure(),
+        cfg,
+        noise_norm(problem, dtype),
+        theta0=jnp.asarray(problem.theta_prior, dtype),
+        theta_scale=jnp.asarray(problem.theta_half_width, dtype),
+    )
+
+
+def _take(options: dict, cfg_type) -> dict:
+    """Pop the options that are fields of ``cfg_type`` (``r`` is fixed at 1)."""
+    names = {f.name for f in dataclasses.fields(cfg_type)} - {"r"}
+    return {k: options.pop(k) for k in list(options) if k in names}
+
+
+def estimate_noise(problem: Problem, padded: Padded) -> Problem:
+    """The noise std per output from the residual of a sliding-window LS pass.
+
+    The window fits ``P`` parameters to ``window * S`` residuals, so the residual
+    variance is scaled by ``n / (n - P)``; the first ``window`` rows of each unit
+    (a partly filled window) are left out.
+    """
+    from jaxcal.baselines.least_squares import LeastSquaresConfig
+
+    dtype = padded.w.dtype
+    cfg = LeastSquaresConfig(window=_NOISE_WINDOW, num_iters=_NOISE_ITERS)
+    for _ in range(_NOISE_PASSES):  # the second pass weighs outputs by the first
+        options = {"num_iters": cfg.num_iters, "window": cfg.window}
+        cal = _model_based("ls", problem, dtype, options)
+        out = make_runner(model_check(problem))(cal, padded)
+        resid = np.asarray(out.xhat) - padded.x
+        early = np.arange(padded.x.shape[1]) < cfg.window
+        keep = np.asarray(out.valid) & ~early[None]
+        if keep.sum() < 2:
+            keep = np.asarray(out.valid)
+        if keep.sum() < 2:
+            raise ValueError(
+                "cannot estimate the noise: fewer than two valid samples; give noise="
+            )
+        n = cfg.window * len(problem.output_names)
+        dof = n / max(n - len(problem.theta_names), 1)
+        std = np.sqrt(np.mean(resid[keep] ** 2, axis=0) * dof)
+        floor = _NOISE_FLOOR_REL * np.maximum(problem.norm.x_std, 1.0)
+        problem = problem.with_noise(np.maximum(std, floor), "estimating")
+    return problem.with_noise(
+        problem.noise_std, "estimated (sliding-window least-squares residual)"
+    )
+
+
+def _e2e(problem: Problem, padded: Padded, seed: int, options: dict) -> Calibrator:
+    """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
+    from jaxcal.baselines.e2e import E2EConfig, fit_e2e, make_e2e_calibrator
+    from jaxcal.nets.mlp import RegressorConfig
+
+    params = options.pop("e2e", None)
+    measure = problem.measure()
+    if params is None:
+        cfg = options.pop(
+            "e2e_config",
+            E2EConfig(
+                hidden_sizes=(64, 64),
+                fit=RegressorConfig(
+                    learning_rate=1e-3, batch_size=256, num_epochs=60,
+                    validation_fraction=0.1, patience=10,
+                ),
+            ),
+        )  # fmt: skip
+        copies = int(options.pop("e2e_copies", 8))
+        params = fit_e2e_sim(problem, padded, measure, cfg, seed, copies)[0]
+    return make_e2e_calibrator(params, measure)
+
+
+def fit_e2e_sim(problem: Problem, padded: Padded, measure, cfg, seed: int, copies: int):
+    """Train G on ``copies`` simulated fleets: the data's conditions, a constant
+    parameter vector per simulated unit drawn uniformly in the box, and Gaussian
+    output noise of the problem's std."""
+    from jaxcal.baselines.e2e import fit_e2e
+
+    key = jax.random.key(seed)
+    key_theta, key_noise, key_fit = jax.random.split(key, 3)
+    w = np.concatenate([padded.w] * copies)
+    mask = np.concatenate([padded.mask] * copies)
+    num = w.shape[0]
+    low, high = problem.theta_low, problem.theta_high
+    theta_u = np.asarray(
+        jax.random.uniform(key_theta, (num, len(low)), minval=low, maxval=high)
+    ).astype(w.dtype)
+    theta = np.broadcast_to(theta_u[:, None, :], w.shape[:2] + theta_u.shape[-1:])
+    simulate = jax.jit(jax.vmap(jax.vmap(measure)))
+    x = np.asarray(simulate(jnp.asarray(w), jnp.asarray(theta)))
+    x = x + problem.noise_std * np.asarray(jax.random.normal(key_noise, x.shape))
+    ok = mask & np.all(np.isfinite(x), axis=-1)
+    return fit_e2e(key_fit, w, np.nan_to_num(x), np.array(theta), ok, cfg)
+
+
+def _policy(problem: Problem, options: dict) -> Calibrator:
+    """A trained policy from ``run=<folder>``; its names must match the problem."""
+    from jaxcal.deploy import load_calibrator, load_run
+
+    run_dir = options.pop("run", None)
+    if not run_dir:
+        raise ValueError("method='policy' needs run=<trained run folder>")
+    run = load_run(run_dir)
+    if tuple(run.meta.theta_names) != problem.theta_names:
+        raise ValueError(
+            f"run {run_dir} calibrates {list(run.meta.theta_names)}, not "
+            f"{list(problem.theta_names)}: pass theta={list(run.meta.theta_names)}"
+        )
+    if tuple(run.meta.sensors) != problem.output_names:
+        raise ValueError(
+            f"run {run_dir} uses outputs {list(run.meta.sensors)}, the data give "
+            f"{list(problem.output_names)}: pass outputs={list(run.meta.sensors)}"
+        )
+    return load_calibrator(run)
+
+
+def build_calibrator(
+    method: str, problem: Problem, padded: Padded, seed: int, options: dict
+):
+    """``(Calibrator, run)`` of ``method``; unknown options are an error."""
+    dtype = padded.w.dtype
+    if method in ("ukf", "ls"):
+        cal, run = _model_based(method, problem, dtype, options), None
+        run = make_runner(model_check(problem))
+    elif method == "e2e":
+        cal = _e2e(problem, padded, seed, options)
+        run = make_runner(range_check(problem))
+    else:
+        cal = _policy(problem, options)
+        run = make_runner(range_check(problem))
+    if options:
+        raise ValueError(f"unknown option(s) for method={method!r}: {sorted(options)}")
+    return cal, run

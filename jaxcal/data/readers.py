@@ -1,0 +1,231 @@
+"""Every source of calibration data becomes a :class:`~jaxcal.data.dataset.Dataset`.
+
+:func:`read_dataset` takes a path (``.csv``, ``.parquet``, ``.h5``/``.hdf5`` in the
+N-CMAPSS layout, NASA C-MAPSS ``.txt``), a pandas DataFrame, numpy arrays through
+:func:`dataset_from_arrays`, or a Dataset (returned as is).
+
+Tables (CSV, Parquet, DataFrame) name their columns as the model names its
+conditions and outputs; optional columns are ``unit`` (one stream per unit; default:
+one unit), ``time`` (row order within a unit; default: the file's order), ``split``
+(``train``/``val``/``test``) and true-parameter columns named as the model's
+parameters (for scoring only). Every other column is an error that lists what was
+expected and what was found, unless it is renamed (``rename={"T_in": "T_hot_in"}``)
+or ignored (``ignore=("comment",)``). Non-finite values follow ``nonfinite``:
+``"error"`` (default) names the file, each column, its first rows and the count;
+``"drop"`` drops the rows and records ``{column: rows}`` in ``Dataset.dropped``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from jaxcal.data.dataset import Dataset
+from jaxcal.data.record import apply_nonfinite_policy
+from jaxcal.model import Model
+
+SPECIAL_COLUMNS = ("unit", "time", "split")
+
+
+def dataset_from_frame(
+    frame,
+    model: Model,
+    *,
+    source: str = "DataFrame",
+    rename: Mapping[str, str] | None = None,
+    ignore: Sequence[str] = (),
+    nonfinite: str = "error",
+    row_offset: int = 0,
+) -> Dataset:
+    """A DataFrame whose columns are named as ``model``'s variables -> Dataset."""
+    frame = frame.rename(columns=dict(rename or {}))
+    columns = [str(c) for c in frame.columns]
+    known = {
+        *model.condition_names, *model.output_names, *model.parameter_names,
+        *SPECIAL_COLUMNS,
+    }  # fmt: skip
+    unknown = [c for c in columns if c not in known and c not in ignore]
+    missing = [n for n in model.condition_names if n not in columns]
+    outputs = [n for n in model.output_names if n in columns]
+    if unknown or missing or not outputs:
+        raise ValueError(
+            f"{source}: columns do not match model {model.name!r}"
+            + (f"; unknown columns {unknown}" if unknown else "")
+            + (f"; missing conditions {missing}" if missing else "")
+            + ("; no output column" if not outputs else "")
+            + f". Expected conditions {list(model.condition_names)}, outputs (any "
+            f"of) {list(model.output_names)}, optional {list(SPECIAL_COLUMNS)} and "
+            f"true parameters {list(model.parameter_names)}; found {columns}. Map "
+            "other names with rename={...} or skip columns with ignore=(...)"
+        )
+    thetas = [n for n in model.parameter_names if n in columns]
+    numeric = {}
+    for name in [*model.condition_names, *outputs, *thetas]:
+        try:
+            numeric[name] = frame[name].to_numpy(dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(
+                f"{source}: column {name!r} is not numeric ({err})"
+            ) from None
+    keep, dropped = apply_nonfinite_policy(
+        numeric, nonfinite, source=source, row_of=lambda pos: pos + row_offset,
+        row_word="line" if row_offset else "row",
+    )  # fmt: skip
+    n = len(frame)
+    unit = frame["unit"].to_numpy() if "unit" in columns else np.zeros(n, np.int64)
+    time = frame["time"].to_numpy() if "time" in columns else np.arange(n)
+    for name, values in (("unit", unit), ("time", time)):
+        try:
+            finite = np.isfinite(np.asarray(values, np.float64))
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: column {name!r} must be numeric") from None
+        if not finite.all():
+            row = int(np.flatnonzero(~finite)[0]) + row_offset
+            raise ValueError(f"{source}: column {name!r} is empty or NaN at row {row}")
+    data = Dataset(
+        w=np.stack([numeric[n] for n in model.condition_names], axis=1),
+        x=np.stack([numeric[n] for n in outputs], axis=1),
+        condition_names=model.condition_names,
+        output_names=tuple(outputs),
+        unit=unit,
+        time=time,
+        theta=np.stack([numeric[n] for n in thetas], axis=1) if thetas else None,
+        theta_names=tuple(thetas),
+        split=frame["split"].to_numpy().astype(str) if "split" in columns else None,
+        source=source,
+    )
+    if dropped:
+        data = data.take(keep)
+        object.__setattr__(data, "dropped", dropped)
+    return data
+
+
+def dataset_from_arrays(
+    w, x, model: Model, *, outputs: Sequence[str] | None = None, unit=None, time=None,
+    theta=None, split=None,
+) -> Dataset:  # fmt: skip
+    """numpy arrays ``w [N, W]`` (the model's condition order) and ``x [N, S]``
+    (``outputs``, default all of the model's) -> Dataset."""
+    outputs = tuple(outputs) if outputs else model.output_names
+    w = np.asarray(w, np.float64)
+    n = w.shape[0] if w.ndim == 2 else 0
+    return Dataset(
+        w=w,
+        x=x,
+        condition_names=model.condition_names,
+        output_names=outputs,
+        unit=np.zeros(n, np.int64) if unit is None else unit,
+        time=np.arange(n) if time is None else time,
+        theta=theta,
+        theta_names=model.parameter_names if theta is not None else (),
+        split=split,
+    )
+
+
+def dataset_from_record(record, split: str | None = None) -> Dataset:
+    """An N-CMAPSS / C-MAPSS :class:`~jaxcal.data.record.Record` -> Dataset."""
+    from jaxcal.physics.constants import CONDITION_NAMES, HEALTH_NAMES
+
+    n = record.num_rows
+    return Dataset(
+        w=record.w,
+        x=record.x,
+        condition_names=CONDITION_NAMES,
+        output_names=tuple(record.x_names),
+        unit=record.unit,
+        time=record.cycle,
+        theta=record.theta,
+        theta_names=HEALTH_NAMES if record.theta is not None else (),
+        split=None if split is None else np.full(n, split),
+        source=record.source,
+        dropped=getattr(record, "dropped", None),
+    )
+
+
+def _concat(parts: list[Dataset], source: str) -> Dataset:
+    first = parts[0]
+    cat = lambda f: np.concatenate([getattr(p, f) for p in parts])  # noqa: E731
+    has_theta = all(p.theta is not None for p in parts)
+    return Dataset(
+        w=cat("w"),
+        x=cat("x"),
+        condition_names=first.condition_names,
+        output_names=first.output_names,
+        unit=cat("unit"),
+        time=cat("time"),
+        theta=cat("theta") if has_theta else None,
+        theta_names=first.theta_names if has_theta else (),
+        split=cat("split") if all(p.split is not None for p in parts) else None,
+        source=source,
+    )
+
+
+def read_dataset(
+    source,
+    model: Model | None = None,
+    *,
+    rename: Mapping[str, str] | None = None,
+    ignore: Sequence[str] = (),
+    nonfinite: str = "error",
+    **reader_options,
+) -> Dataset:
+    """Any supported source -> :class:`Dataset` (see the module docstring).
+
+    Args:
+        source: a path, a pandas DataFrame or a Dataset.
+        model: the model whose names the columns follow (needed for tables).
+        rename, ignore, nonfinite: see the module docstring.
+        reader_options: passed to the N-CMAPSS reader (``units``, ``sensors``,
+            ``stride``) or the C-MAPSS text reader.
+
+    Raises:
+        ValueError: unknown file type, unreadable file, column mismatch or
+            non-finite values (naming file, column and rows).
+    """
+    if isinstance(source, Dataset):
+        return source
+    if hasattr(source, "columns") and hasattr(source, "to_numpy"):
+        if model is None:
+            raise ValueError("reading a DataFrame needs the model its columns follow")
+        return dataset_from_frame(
+            source, model, rename=rename, ignore=ignore, nonfinite=nonfinite
+        )
+    path = os.fspath(source)
+    if not os.path.isfile(path):
+        raise ValueError(f"data file not found: {path}")
+    ext = os.path.splitext(path)[1].lower()
+    if ext in (".csv", ".parquet", ".pq"):
+        import pandas as pd
+
+        if model is None:
+            raise ValueError(f"{path}: reading a table needs the model it follows")
+        try:
+            frame = pd.read_csv(path) if ext == ".csv" else pd.read_parquet(path)
+        except Exception as err:  # noqa: BLE001 - any parser failure is bad input
+            raise ValueError(f"{path}: not a readable {ext[1:]} file ({err})") from None
+        return dataset_from_frame(
+            frame, model, source=path, rename=rename, ignore=ignore,
+            nonfinite=nonfinite, row_offset=2 if ext == ".csv" else 0,
+        )  # fmt: skip
+    if ext in (".h5", ".hdf5"):
+        from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+
+        splits = [s for s in ("dev", "test") if s in ncmapss_info(path)["splits"]]
+        options = {"nonfinite": nonfinite, "rename": rename, **reader_options}
+        parts = [
+            dataset_from_record(load_ncmapss(path, split, **options), split)
+            for split in splits
+        ]
+        return _concat(parts, path)
+    if ext == ".txt":
+        from jaxcal.data.cmapss_text import load_cmapss_text
+
+        return dataset_from_record(
+            load_cmapss_text(path, nonfinite=nonfinite, **reader_options)
+        )
+    raise ValueError(
+        f"{path}: unknown data file type {ext!r}; expected .csv, .parquet, .h5/.hdf5 "
+        "(N-CMAPSS layout) or .txt (NASA C-MAPSS)"
+    )

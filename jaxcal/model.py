@@ -1,0 +1,454 @@
+"""The one model protocol every layer of jaxcal speaks: :class:`Model`.
+
+A physics model maps operating conditions ``w [W]`` and parameters ``theta [P]`` to
+outputs ``x [S]``. Statically, ``x = F(w, theta)``; with memory, a hidden state
+``z [Z]`` is carried: ``(z', x) = step(z, w, theta)``, ``z_0 = init_state(w_0,
+theta)``. A static model is the stateful one with no state (``Z = 0``), so every
+layer can handle both through :meth:`Model.step`; the static shortcut
+:meth:`Model.evaluate` exists because most calibrators only need ``F``.
+
+A ``Model`` is a frozen container of names, units, bounds and pure functions (the
+dynamax pattern: a model is a params container plus pure functions), hashable by
+identity so it can be closed over or passed as a static argument of ``jax.jit``::
+
+    import jaxcal
+
+    def fn(w, theta):                      # pure JAX: w [2], theta [1] -> x [2]
+        return jnp.stack([w[0] * theta[0], w[1] + theta[0]])
+
+    model = jaxcal.Model.from_function(
+        fn, conditions=("a", "b"), parameters={"p": (1.0, 0.5, 2.0)},
+        outputs=("y1", "y2"))
+    x, info = model.evaluate(w, theta)     # info.valid: finite and in range
+
+Optional hooks: ``condition_range`` (the valid input box of ``w``; samples outside
+are flagged, never silently used), ``input_check`` (a finer validity predicate, e.g.
+the turbofan's temperature-deviation envelope) and ``effects`` (model-specific
+extension inputs the diagnosis may add, with ``effect_fn(w, theta, e) -> x``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.typedefs import Array
+
+
+class Variable(NamedTuple):
+    """A named quantity (condition, output or state) and its unit."""
+
+    name: str
+    unit: str = "-"
+
+
+class Parameter(NamedTuple):
+    """A calibratable parameter: nominal value, bounds and unit.
+
+    ``nominal`` is the healthy / design value (the prior mean and the value an
+    undeclared parameter is held at); ``[low, high]`` is the physically meaningful
+    range (the calibrators' box).
+    """
+
+    name: str
+    nominal: float
+    low: float
+    high: float
+    unit: str = "-"
+
+
+class ModelInfo(NamedTuple):
+    """How one evaluation went.
+
+    Attributes:
+        valid: ``[]`` bool: the output is finite, the inputs are in range and the
+            model's own solver (if any) converged.
+        native: the model's own diagnostics (e.g. the engine's ``EngineInfo``), or
+            ``None``.
+    """
+
+    valid: Array
+    native: Any = None
+
+
+StepFn = Callable[[Array, Array, Array], tuple[Array, Array, Any]]
+"""``step(state [Z], w [W], theta [P]) -> (next_state [Z], x [S], valid [] or info)``."""
+
+
+def _variables(spec, field: str) -> tuple[Variable, ...]:
+    """Names, a name -> unit mapping or Variables -> a tuple of Variables."""
+    if isinstance(spec, str):
+        raise ValueError(
+            f"{field} must be a sequence of names, got the string {spec!r}"
+        )
+    if isinstance(spec, Mapping):
+        items = [Variable(str(k), str(v)) for k, v in spec.items()]
+    else:
+        items = []
+        for item in spec:
+            if isinstance(item, Variable):
+                items.append(item)
+            elif isinstance(item, str):
+                items.append(Variable(item))
+            elif isinstance(item, tuple) and len(item) == 2:
+                items.append(Variable(str(item[0]), str(item[1])))
+            else:
+                raise ValueError(
+                    f"{field}: expected a name, (name, unit) or Variable, got {item!r}"
+                )
+    _check_names([v.name for v in items], field)
+    return tuple(items)
+
+
+def _parameters(spec) -> tuple[Parameter, ...]:
+    """``{name: (nominal, low, high[, unit])}`` or Parameters -> Parameters."""
+    if isinstance(spec, Mapping):
+        items = []
+        for name, value in spec.items():
+            if isinstance(value, Parameter):
+                items.append(value._replace(name=str(name)))
+                continue
+            value = tuple(value)
+            if len(value) not in (3, 4):
+                raise ValueError(
+                    f"parameters[{name!r}] must be (nominal, low, high) or "
+                    f"(nominal, low, high, unit), got {value!r}"
+                )
+            unit = str(value[3]) if len(value) == 4 else "-"
+            items.append(Parameter(str(name), *map(float, value[:3]), unit))
+    else:
+        items = [p if isinstance(p, Parameter) else Parameter(*p) for p in spec]
+    _check_names([p.name for p in items], "parameters")
+    for p in items:
+        if not (np.isfinite([p.nominal, p.low, p.high]).all() and p.low < p.high):
+            raise ValueError(
+                f"parameter {p.name!r}: need finite low < high, got [{p.low}, {p.high}]"
+            )
+        if not p.low <= p.nominal <= p.high:
+            raise ValueError(
+                f"parameter {p.name!r}: nominal {p.nominal} is outside "
+                f"[{p.low}, {p.high}]"
+            )
+    return tuple(items)
+
+
+def _check_names(names: Sequence[str], field: str) -> None:
+    if not names:
+        raise ValueError(f"{field} must name at least one entry")
+    repeated = sorted({n for n in names if list(names).count(n) > 1})
+    if repeated:
+        raise ValueError(f"{field}: repeated names {repeated}")
+
+
+def names_to_index(names: Sequence[str], valid: Sequence[str], field: str) -> list[int]:
+    """Positions of ``names`` in ``valid``; an unknown or repeated name is an error
+    that lists the valid names."""
+    names = [names] if isinstance(names, str) else list(names)
+    unknown = [n for n in names if n not in valid]
+    if unknown:
+        raise ValueError(f"{field}: unknown name(s) {unknown}; valid: {list(valid)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{field}: repeated names in {names}")
+    return [list(valid).index(n) for n in names]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Model:
+    """A physics model: names, units, bounds and pure functions.
+
+    Build one with :meth:`from_function` (static) or :meth:`from_step` (hidden
+    states); ``jaxcal.models.load("cmapss")`` returns the turbofan.
+
+    Attributes:
+        name: a label for reports and run folders.
+        conditions: ``W`` operating conditions ``w`` (names, units).
+        parameters: ``P_all`` parameters ``theta`` (name, nominal, bounds, unit).
+        outputs: ``S_all`` outputs ``x`` (names, units).
+        step_fn: ``step(state [Z], w, theta) -> (state, x, valid)``; ``valid`` is a
+            ``[]`` bool or a :class:`ModelInfo`.
+        init_state_fn: ``init_state(w0, theta) -> state [Z]``.
+        states: ``Z`` hidden-state names (empty for a static model).
+        condition_range: ``(low [W], high [W])`` valid box of ``w`` (±inf allowed).
+        input_check: optional finer validity predicate ``check(w) -> [] bool``.
+        effects: model-specific extension inputs for the diagnosis (their nominal
+            value is "no effect").
+        effect_fn: ``effect_fn(w, theta, e [E]) -> x`` when ``effects`` is set.
+        x64: the model needs float64 (an iterative solver inside).
+        native: the object the model wraps (e.g. the turbofan ``Engine``), or None.
+    """
+
+    name: str
+    conditions: tuple[Variable, ...]
+    parameters: tuple[Parameter, ...]
+    outputs: tuple[Variable, ...]
+    step_fn: StepFn
+    init_state_fn: Callable[[Array, Array], Array]
+    states: tuple[Variable, ...] = ()
+    condition_range: tuple[np.ndarray, np.ndarray] | None = None
+    input_check: Callable[[Array], Array] | None = None
+    effects: tuple[Parameter, ...] = ()
+    effect_fn: Callable[[Array, Array, Array], Array] | None = None
+    x64: bool = False
+    native: Any = None
+
+    # ---------------------------------------------------------------- builders
+
+    @classmethod
+    def from_function(
+        cls,
+        fn: Callable[[Array, Array], Any],
+        *,
+        conditions,
+        parameters,
+        outputs,
+        name: str = "model",
+        condition_range: tuple[Sequence[float], Sequence[float]] | None = None,
+        input_check: Callable[[Array], Array] | None = None,
+        effects=None,
+        effect_fn: Callable[[Array, Array, Array], Array] | None = None,
+        x64: bool = False,
+        native: Any = None,
+    ) -> Model:
+        """A static model from a pure JAX function ``fn(w [W], theta [P]) -> x [S]``.
+
+        ``fn`` may also return ``(x, valid)`` with ``valid`` a ``[]`` bool or a
+        :class:`ModelInfo`. ``conditions`` / ``outputs``: names, ``{name: unit}`` or
+        :class:`Variable` s; ``parameters``: ``{name: (nominal, low, high[, unit])}``.
+        """
+
+        def step(state, w, theta):
+            out = fn(w, theta)
+            x, valid = out if isinstance(out, tuple) else (out, None)
+            return state, x, valid
+
+        def init_state(w0, theta):
+            del w0, theta
+            return jnp.zeros((0,), jnp.result_type(float))
+
+        return cls._build(
+            name, conditions, parameters, outputs, step, init_state, (),
+            condition_range, input_check, effects, effect_fn, x64, native,
+        )  # fmt: skip
+
+    @classmethod
+    def from_step(
+        cls,
+        step: Callable[[Array, Array, Array], Any],
+        *,
+        init_state,
+        states,
+        conditions,
+        parameters,
+        outputs,
+        name: str = "model",
+        condition_range: tuple[Sequence[float], Sequence[float]] | None = None,
+        input_check: Callable[[Array], Array] | None = None,
+        x64: bool = False,
+    ) -> Model:
+        """A stateful model from ``step(state [Z], w, theta) -> (next_state, x)``.
+
+        ``init_state`` is ``init_state(w0, theta) -> state [Z]`` or a fixed ``[Z]``
+        array. (The calibrators' support of hidden states is the next step of the
+        roadmap; :func:`jaxcal.calibrate` says so clearly for a stateful model.)
+        """
+        if callable(init_state):
+            init_fn = init_state
+        else:
+            init = np.asarray(init_state, dtype=np.float64)
+
+            def init_fn(w0, theta):
+                del w0
+                return jnp.asarray(init, dtype=jnp.result_type(theta))
+
+        def step_fn(state, w, theta):
+            out = step(state, w, theta)
+            if len(out) == 3:
+                return out
+            return out[0], out[1], None
+
+        return cls._build(
+            name, conditions, parameters, outputs, step_fn, init_fn,
+            _variables(states, "states"), condition_range, input_check, None, None,
+            x64, None,
+        )  # fmt: skip
+
+    @classmethod
+    def _build(
+        cls, name, conditions, parameters, outputs, step, init_state, states,
+        condition_range, input_check, effects, effect_fn, x64, native,
+    ) -> Model:  # fmt: skip
+        conditions = _variables(conditions, "conditions")
+        if condition_range is not None:
+            low, high = (np.asarray(b, np.float64) for b in condition_range)
+            if low.shape != (len(conditions),) or high.shape != low.shape:
+                raise ValueError(
+                    f"condition_range must be (low [{len(conditions)}], high "
+                    f"[{len(conditions)}]), got shapes {low.shape}, {high.shape}"
+                )
+            if np.any(low > high) or np.isnan(low).any() or np.isnan(high).any():
+                raise ValueError("condition_range: need low <= high, no NaN")
+            condition_range = (low, high)
+        effects = _parameters(effects) if effects else ()
+        if effects and effect_fn is None:
+            raise ValueError("effects need an effect_fn(w, theta, e) -> x")
+        return cls(
+            name=str(name),
+            conditions=conditions,
+            parameters=_parameters(parameters),
+            outputs=_variables(outputs, "outputs"),
+            step_fn=step,
+            init_state_fn=init_state,
+            states=tuple(states),
+            condition_range=condition_range,
+            input_check=input_check,
+            effects=effects,
+            effect_fn=effect_fn,
+            x64=bool(x64),
+            native=native,
+        )
+
+    # ---------------------------------------------------------------- names
+
+    @property
+    def condition_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.conditions)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.outputs)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.states)
+
+    @property
+    def is_stateful(self) -> bool:
+        return bool(self.states)
+
+    @property
+    def nominal(self) -> np.ndarray:
+        """``[P_all]`` nominal parameter values."""
+        return np.array([p.nominal for p in self.parameters])
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low [P_all], high [P_all])``."""
+        return (
+            np.array([p.low for p in self.parameters]),
+            np.array([p.high for p in self.parameters]),
+        )
+
+    def parameter_index(self, names: Sequence[str]) -> list[int]:
+        return names_to_index(names, self.parameter_names, f"{self.name} parameters")
+
+    def output_index(self, names: Sequence[str]) -> list[int]:
+        return names_to_index(names, self.output_names, f"{self.name} outputs")
+
+    def unit_of(self, name: str) -> str:
+        """The unit of a condition, parameter, output or state called ``name``."""
+        for v in (*self.conditions, *self.outputs, *self.states, *self.parameters):
+            if v.name == name:
+                return v.unit
+        raise ValueError(f"{self.name} has no variable {name!r}")
+
+    # ---------------------------------------------------------------- evaluation
+
+    def inputs_valid(self, w: Array) -> Array:
+        """``[]`` bool: ``w`` is finite, inside ``condition_range`` and passes
+        ``input_check``."""
+        ok = jnp.all(jnp.isfinite(w))
+        if self.condition_range is not None:
+            low, high = self.condition_range
+            ok = ok & jnp.all((w >= low) & (w <= high))
+        if self.input_check is not None:
+            ok = ok & self.input_check(w)
+        return ok
+
+    def _info(self, w, theta, x, valid) -> ModelInfo:
+        native = None
+        if isinstance(valid, ModelInfo):
+            valid, native = valid.valid, valid.native
+        ok = (
+            self.inputs_valid(w)
+            & jnp.all(jnp.isfinite(theta))
+            & jnp.all(jnp.isfinite(x))
+        )
+        if valid is not None:
+            ok = ok & jnp.asarray(valid, bool)
+        return ModelInfo(valid=ok, native=native)
+
+    def init_state(self, w0: Array, theta: Array) -> Array:
+        """``[Z]`` initial hidden state (``[0]`` for a static model)."""
+        return self.init_state_fn(w0, theta)
+
+    def step(self, state: Array, w: Array, theta: Array):
+        """``(next_state [Z], x [S_all], ModelInfo)`` for one sample (pure, jittable)."""
+        next_state, x, valid = self.step_fn(state, w, theta)
+        return next_state, x, self._info(w, theta, x, valid)
+
+    def evaluate(self, w: Array, theta: Array) -> tuple[Array, ModelInfo]:
+        """``x = F(w [W], theta [P_all]) -> (x [S_all], ModelInfo)`` (static models).
+
+        Raises:
+            ValueError: the model is stateful (use :meth:`step`).
+        """
+        if self.is_stateful:
+            raise ValueError(
+                f"model {self.name!r} has hidden states {self.state_names}: use "
+                "model.step(state, w, theta)"
+            )
+        empty = jnp.zeros((0,), jnp.result_type(theta))
+        _, x, info = self.step(empty, w, theta)
+        return x, info
+
+    def evaluate_with_effects(self, w: Array, theta: Array, e: Array) -> Array:
+        """``x`` with the model-specific extension inputs ``e [E]`` applied."""
+        if self.effect_fn is None:
+            raise ValueError(f"model {self.name!r} registers no effects")
+        return self.effect_fn(w, theta, e)
+
+    def restrict(
+        self,
+        theta_names: Sequence[str],
+        output_names: Sequence[str] | None = None,
+        theta_base: Array | None = None,
+    ) -> Callable[[Array, Array], Array]:
+        """``F(w, theta_declared [P]) -> x_used [S]``: the other parameters are held
+        at ``theta_base`` (default the nominal values), only the used outputs kept.
+
+        Because the declared vector is scattered into the full one, ``jax.jacfwd``
+        of the result costs ``P`` tangent sweeps, not one per model parameter.
+        """
+        declared = np.asarray(self.parameter_index(theta_names))
+        used = (
+            None
+            if output_names is None
+            else np.asarray(self.output_index(output_names))
+        )
+        base = np.asarray(self.nominal if theta_base is None else theta_base)
+        if base.shape != (len(self.parameters),):
+            raise ValueError(
+                f"theta_base must be [{len(self.parameters)}], got {base.shape}"
+            )
+
+        def measure(w: Array, theta: Array) -> Array:
+            full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
+            x, _ = self.evaluate(w, full)
+            return x if used is None else x[used]
+
+        return measure
+
+    def __repr__(self) -> str:
+        kind = f"stateful, Z={len(self.states)}" if self.states else "static"
+        return (
+            f"Model({self.name!r}, {kind}, W={len(self.conditions)}, "
+            f"P={len(self.parameters)}, S={len(self.outputs)})"
+        )

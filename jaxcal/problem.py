@@ -1,0 +1,268 @@
+"""The one calibration problem: model + declared parameters + used outputs + data +
+normalisation.
+
+Every consumer reads the same object: the calibrators (:func:`jaxcal.calibrate`), the
+tracking environment and the training job, deployment and evaluation. It answers the
+questions each of them used to answer on its own:
+
+* which parameters are calibrated (``theta_names``, ``P``) and where the others are
+  held (``theta_base``, all ``P_all`` values);
+* the box the calibrated parameters live in (``theta_low``/``theta_high``: the
+  model's bounds, or the data's labelled range widened by a margin);
+* which outputs are used (``output_names``, ``S``) and their normalisation, and the
+  conditions' (:class:`Normalisation`, over the training rows);
+* the measurement noise per output (``noise_std``), given or estimated;
+* the range of the training data (``input_range``): a later sample far outside it is
+  flagged instead of being silently used.
+
+It is a frozen, identity-hashed container of host numpy arrays; its
+:meth:`Problem.to_json` / :meth:`Problem.from_json` pair is what a run folder stores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxcal.data.dataset import Dataset
+from jaxcal.model import Model
+
+# A constant channel (std below this, relative to its scale) is normalised by 1.
+_CONSTANT_REL_STD = 1e-12
+# A feature far outside the training range: beyond this share of the range's span.
+RANGE_MARGIN = 0.5
+
+
+class Normalisation(NamedTuple):
+    """Training statistics: ``w_n = (w - w_mean) / w_std``, likewise for ``x``."""
+
+    w_mean: np.ndarray  # [W]
+    w_std: np.ndarray  # [W] > 0
+    x_mean: np.ndarray  # [S]
+    x_std: np.ndarray  # [S] > 0
+
+    @classmethod
+    def of(cls, w: np.ndarray, x: np.ndarray) -> Normalisation:
+        """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1)."""
+
+        def stats(a):
+            a = np.asarray(a, np.float64)
+            mean, std = a.mean(axis=0), a.std(axis=0)
+            tiny = std <= _CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
+            return mean, np.where(tiny, 1.0, std)
+
+        return cls(*stats(w), *stats(x))
+
+
+class InputRange(NamedTuple):
+    """The training data's box ``[low, high]`` of ``w`` and ``x``."""
+
+    w_low: np.ndarray
+    w_high: np.ndarray
+    x_low: np.ndarray
+    x_high: np.ndarray
+
+    def widened(self, margin: float = RANGE_MARGIN) -> InputRange:
+        """The box widened by ``margin`` of its span on each side ("far outside")."""
+
+        def widen(low, high):
+            span = np.maximum(high - low, 1e-12 * np.maximum(np.abs(high), 1.0))
+            return low - margin * span, high + margin * span
+
+        return InputRange(
+            *widen(self.w_low, self.w_high), *widen(self.x_low, self.x_high)
+        )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """A calibration problem (see the module docstring).
+
+    Attributes:
+        model: the physics model.
+        theta_names: ``P`` calibrated parameter names.
+        output_names: ``S`` used output names.
+        theta_base: ``[P_all]`` values of every model parameter (undeclared held here).
+        theta_low, theta_high: ``[P]`` box of the calibrated parameters.
+        norm: training :class:`Normalisation`.
+        noise_std: ``[S]`` measurement noise std per used output.
+        input_range: training :class:`InputRange` (flags far-out samples).
+        noise_source: ``"given"`` or how it was estimated.
+    """
+
+    model: Model
+    theta_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    theta_base: np.ndarray
+    theta_low: np.ndarray
+    theta_high: np.ndarray
+    norm: Normalisation
+    noise_std: np.ndarray
+    input_range: InputRange | None = None
+    noise_source: str = "given"
+
+    @classmethod
+    def build(
+        cls,
+        model: Model,
+        data: Dataset,
+        *,
+        theta: Sequence[str] | None = None,
+        outputs: Sequence[str] | None = None,
+        noise: Mapping[str, float] | Sequence[float] | None = None,
+        box: str = "bounds",
+        margin: float = 0.1,
+    ) -> Problem:
+        """The problem of ``model`` on (training) ``data``.
+
+        Args:
+            model: the model.
+            data: its rows (columns checked against the model).
+            theta: calibrated parameter names (default: all the model's).
+            outputs: used outputs (default: every model output the data has).
+            noise: output name -> noise std (or ``[S]``); ``None``: estimated
+                later by the calibrator front (:func:`jaxcal.calibrate`), until
+                then 1 % of each output's spread.
+            box: ``"bounds"``: the model's parameter bounds; ``"data"``: the range
+                of the data's true parameters widened by ``margin`` of its width
+                (the paper's action box; needs labelled data).
+            margin: see ``box``.
+        """
+        data = data.for_model(model, outputs)
+        theta = tuple(theta) if theta else model.parameter_names
+        idx = model.parameter_index(theta)
+        low, high = (b[idx] for b in model.bounds)
+        base = model.nominal.copy()
+        if box == "data":
+            if data.theta is None or not set(theta) <= set(data.theta_names):
+                raise ValueError(
+                    "box='data' needs the true values of every calibrated parameter "
+                    f"{list(theta)} in the data (found {list(data.theta_names)})"
+                )
+            cols = [data.theta_names.index(n) for n in theta]
+            lo, hi = data.theta[:, cols].min(0), data.theta[:, cols].max(0)
+            width = hi - lo
+            pad = np.where(width > 1e-9, margin * width, 0.01)
+            low, high = lo - pad, hi + pad
+            for j, name in enumerate(data.theta_names):
+                base[model.parameter_names.index(name)] = data.theta[:, j].mean()
+        elif box != "bounds":
+            raise ValueError(f"box must be 'bounds' or 'data', got {box!r}")
+        norm = Normalisation.of(data.w, data.x)
+        noise_std, source = _noise_vector(noise, data.output_names, norm)
+        return cls(
+            model=model,
+            theta_names=theta,
+            output_names=data.output_names,
+            theta_base=base,
+            theta_low=np.asarray(low, np.float64),
+            theta_high=np.asarray(high, np.float64),
+            norm=norm,
+            noise_std=noise_std,
+            input_range=InputRange(
+                data.w.min(0), data.w.max(0), data.x.min(0), data.x.max(0)
+            ),
+            noise_source=source,
+        )
+
+    # ---------------------------------------------------------------- derived
+
+    @property
+    def theta_index(self) -> list[int]:
+        """Positions of the calibrated parameters among the model's."""
+        return self.model.parameter_index(self.theta_names)
+
+    @property
+    def theta_prior(self) -> np.ndarray:
+        """``[P]`` prior mean: the base (nominal) values of the calibrated parameters,
+        clipped into the box."""
+        prior = self.theta_base[self.theta_index]
+        return np.clip(prior, self.theta_low, self.theta_high)
+
+    @property
+    def theta_half_width(self) -> np.ndarray:
+        """``[P]`` half-width of the box (the parameters' natural scale)."""
+        return 0.5 * (self.theta_high - self.theta_low)
+
+    def measure(self):
+        """``F(w [W], theta [P]) -> x [S]`` on the calibrated parameters and used
+        outputs (the undeclared parameters held at ``theta_base``)."""
+        return self.model.restrict(self.theta_names, self.output_names, self.theta_base)
+
+    def with_noise(self, noise_std: np.ndarray, source: str) -> Problem:
+        """The same problem with another noise vector ``[S]``."""
+        noise_std = np.asarray(noise_std, np.float64)
+        if noise_std.shape != (len(self.output_names),) or not np.all(noise_std > 0):
+            raise ValueError(
+                f"noise std must be [{len(self.output_names)}] and > 0, got {noise_std}"
+            )
+        return dataclasses.replace(self, noise_std=noise_std, noise_source=source)
+
+    # ---------------------------------------------------------------- storage
+
+    def to_json(self) -> dict:
+        """Everything but the model object (stored by name in run folders)."""
+        return {
+            "model": self.model.name,
+            "theta_names": list(self.theta_names),
+            "output_names": list(self.output_names),
+            "theta_base": self.theta_base.tolist(),
+            "theta_low": self.theta_low.tolist(),
+            "theta_high": self.theta_high.tolist(),
+            "norm": {k: np.asarray(v).tolist() for k, v in self.norm._asdict().items()},
+            "noise_std": self.noise_std.tolist(),
+            "noise_source": self.noise_source,
+            "input_range": None
+            if self.input_range is None
+            else {
+                k: np.asarray(v).tolist() for k, v in self.input_range._asdict().items()
+            },
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping, model: Model) -> Problem:
+        """Inverse of :meth:`to_json` for ``model``."""
+        arr = lambda v: np.asarray(v, np.float64)  # noqa: E731
+        rng = data.get("input_range")
+        return cls(
+            model=model,
+            theta_names=tuple(data["theta_names"]),
+            output_names=tuple(data["output_names"]),
+            theta_base=arr(data["theta_base"]),
+            theta_low=arr(data["theta_low"]),
+            theta_high=arr(data["theta_high"]),
+            norm=Normalisation(**{k: arr(v) for k, v in data["norm"].items()}),
+            noise_std=arr(data["noise_std"]),
+            input_range=None
+            if rng is None
+            else InputRange(**{k: arr(v) for k, v in rng.items()}),
+            noise_source=str(data.get("noise_source", "given")),
+        )
+
+
+def _noise_vector(noise, names: Sequence[str], norm: Normalisation):
+    """The ``[S]`` noise std of a mapping / sequence / None (1 % of the spread)."""
+    if noise is None:
+        return 0.01 * norm.x_std, "provisional (1 % of each output's spread)"
+    if isinstance(noise, Mapping):
+        unknown = [k for k in noise if k not in names]
+        missing = [n for n in names if n not in noise]
+        if unknown or missing:
+            raise ValueError(
+                f"noise: give a std for every used output {list(names)}"
+                + (f"; unknown {unknown}" if unknown else "")
+                + (f"; missing {missing}" if missing else "")
+            )
+        values = np.array([float(noise[n]) for n in names])
+    else:
+        values = np.asarray(noise, np.float64).reshape(-1)
+        if values.shape != (len(names),):
+            raise ValueError(
+                f"noise must have {len(names)} entries, got {values.shape}"
+            )
+    if not np.all(np.isfinite(values) & (values > 0)):
+        raise ValueError(f"noise std must be finite and > 0, got {values.tolist()}")
+    return values, "given"

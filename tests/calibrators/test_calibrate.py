@@ -1,0 +1,118 @@
+"""jaxcal.calibrate on a model the test defines inline (not a turbofan)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import jaxcal
+from jaxcal.baselines.e2e import E2EConfig
+from jaxcal.nets.mlp import RegressorConfig
+
+NOISE = np.array([0.02, 0.02, 0.05])
+
+
+def tank(w, theta):
+    """A leaky tank heated by w[0] with inflow w[1]: level, temperature, outflow."""
+    heat, inflow = w[0], w[1]
+    leak, loss = theta[0], theta[1]
+    level = inflow / leak
+    temp = 20.0 + heat / (inflow * (1.0 + loss))
+    return jnp.stack([level, temp, leak * level * (1.0 - 0.1 * loss)])
+
+
+MODEL = jaxcal.Model.from_function(
+    tank,
+    conditions={"heat": "kW", "inflow": "kg/s"},
+    parameters={"leak": (1.0, 0.5, 2.0, "1/s"), "loss": (0.1, 0.0, 0.5)},
+    outputs={"level": "m", "temp": "degC", "outflow": "kg/s"},
+    condition_range=([0.0, 0.1], [50.0, 5.0]),
+    name="tank",
+)
+
+
+def make_frame(num_units=3, length=60, seed=0):
+    rng = np.random.default_rng(seed)
+    n = num_units * length
+    t = np.tile(np.arange(length), num_units)
+    frame = pd.DataFrame(
+        {"heat": rng.uniform(5, 30, n), "inflow": rng.uniform(0.5, 2.0, n)}
+    )
+    leak = 1.0 + 0.3 * t / length + 0.1 * np.repeat(np.arange(num_units), length)
+    loss = np.full(n, 0.2)
+    x = np.asarray(
+        jax.vmap(tank)(frame.to_numpy(), np.stack([leak, loss], 1))
+    ) + NOISE * rng.standard_normal((n, 3))
+    for j, name in enumerate(MODEL.output_names):
+        frame[name] = x[:, j]
+    frame["unit"], frame["time"] = np.repeat(np.arange(num_units), length), t
+    frame["leak"], frame["loss"] = leak, loss
+    return frame.sample(frac=1.0, random_state=1).reset_index(drop=True)  # shuffled
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return make_frame()
+
+
+def _late_rmse(result, frame):
+    late = frame.time.to_numpy() >= 20
+    truth = frame[list(result.theta_names)].to_numpy()
+    return np.sqrt(np.mean((result.theta[late] - truth[late]) ** 2, axis=0))
+
+
+@pytest.mark.parametrize("method", ["ukf", "ls"])
+def test_model_based_methods_track_the_parameters_in_row_order(frame, method):
+    noise = dict(zip(MODEL.output_names, NOISE, strict=True))
+    options = {"window": 8} if method == "ls" else {}  # a short window lags less
+    result = jaxcal.calibrate(MODEL, frame, method=method, noise=noise, **options)
+    assert result.theta.shape == (len(frame), 2)
+    assert result.valid.all()
+    rmse = _late_rmse(result, frame)
+    assert rmse[0] < 0.05 and rmse[1] < 0.05, rmse
+    if method == "ukf":
+        assert result.theta_std.shape == result.theta.shape
+        assert np.all(result.theta_std > 0)
+
+
+def test_noise_is_estimated_when_not_given(frame):
+    result = jaxcal.calibrate(MODEL, frame, method="ukf")
+    assert result.problem.noise_source.startswith("estimated")
+    # within a factor of three of the truth (the window lags the drift a little)
+    ratio = result.problem.noise_std / NOISE
+    assert np.all((ratio > 1 / 3) & (ratio < 3)), ratio
+
+
+def test_e2e_learns_the_inverse_from_simulations(frame):
+    cfg = E2EConfig(
+        hidden_sizes=(32, 32),
+        fit=RegressorConfig(learning_rate=3e-3, batch_size=128, num_epochs=40,
+                            validation_fraction=0.1, patience=10),
+    )  # fmt: skip
+    noise = dict(zip(MODEL.output_names, NOISE, strict=True))
+    result = jaxcal.calibrate(
+        MODEL, frame, method="e2e", noise=noise, theta=["leak"], e2e_config=cfg
+    )
+    assert _late_rmse(result, frame)[0] < 0.15
+
+
+def test_bad_samples_are_skipped_and_flagged(frame):
+    bad = frame.copy()
+    bad.loc[5, "heat"] = 80.0  # outside the model's condition range
+    noise = dict(zip(MODEL.output_names, NOISE, strict=True))
+    result = jaxcal.calibrate(MODEL, bad, method="ukf", noise=noise)
+    assert not result.valid[5] and result.reason[5] == "w_out_of_range"
+    assert result.valid.sum() == len(frame) - 1
+    assert result.num_flagged == {"w_out_of_range": 1}
+
+
+def test_front_door_errors_are_clear(frame):
+    with pytest.raises(ValueError, match="method must be one of"):
+        jaxcal.calibrate(MODEL, frame, method="kalman")
+    with pytest.raises(ValueError, match="unknown option"):
+        jaxcal.calibrate(MODEL, frame, method="ukf", noise=None, windw=3)
+    with pytest.raises(ValueError, match="unknown name"):
+        jaxcal.calibrate(MODEL, frame, theta=["leek"])
+    with pytest.raises(ValueError, match="run="):
+        jaxcal.calibrate(MODEL, frame, method="policy")
