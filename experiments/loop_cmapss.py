@@ -25,12 +25,12 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import config_to_dict, parse_overrides
 from jaxcal.data.cmapss_text import load_cmapss_text
-from jaxcal.loop.pipeline import LoopConfig, diagnose_record
-from jaxcal.loop.report import write_report, write_text
+from jaxcal.diagnosis.pipeline import LoopConfig, diagnose_record
+from jaxcal.diagnosis.report import write_report, write_text
 from jaxcal.physics import load_engine
 from jaxcal.precision import enable_compilation_cache, enable_x64
+from jaxcal.settings import config_to_dict, parse_overrides
 
 DEFAULT_DIR = os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "cmapss"

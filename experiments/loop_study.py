@@ -1,6 +1,6 @@
 """Identification study of the closing-the-loop diagnosis over seeds and effect kinds.
 
-For every effect kind of :data:`jaxcal.loop.synthetic.KINDS` (the clean record, one
+For every effect kind of :data:`jaxcal.diagnosis.synthetic.KINDS` (the clean record, one
 undeclared health modifier, the six engine effects, a sensor bias / gain / drift and an
 effect outside the library) and every seed, a synthetic N-CMAPSS-like record with
 exactly that effect is generated and diagnosed with the noise levels known. Measured:
@@ -33,12 +33,12 @@ import time
 import jax
 import numpy as np
 
-from jaxcal.cli_args import config_from_dict, config_to_dict, parse_overrides
-from jaxcal.loop.pipeline import LoopConfig, diagnose_record
-from jaxcal.loop.report import json_safe, write_text
-from jaxcal.loop.synthetic import KINDS, SyntheticConfig, make_synthetic_record
+from jaxcal.diagnosis.pipeline import LoopConfig, diagnose_record
+from jaxcal.diagnosis.report import json_safe, write_text
+from jaxcal.diagnosis.synthetic import KINDS, SyntheticConfig, make_synthetic_record
 from jaxcal.physics import load_engine
 from jaxcal.precision import enable_compilation_cache, enable_x64
+from jaxcal.settings import config_from_dict, config_to_dict, parse_overrides
 
 
 @dataclasses.dataclass(frozen=True)

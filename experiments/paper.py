@@ -118,8 +118,8 @@ class Context:
         )
 
     def suite(self, key: str):
-        """The :class:`~jaxcal.evaluation.suite.Suite` of ``key`` (built once)."""
-        from jaxcal.evaluation.suite import Suite
+        """The :class:`~jaxcal.paper.suite.Suite` of ``key`` (built once)."""
+        from jaxcal.paper.suite import Suite
 
         if key not in self._suites:
             runs = {a.upper(): self.run_dir(key, a) for a in self.agents(key)}
@@ -140,7 +140,7 @@ def estimate(preset: Preset, name: str) -> float:
 
 def make_plan(ctx: Context) -> list[Step]:
     """Every step of the experiment, in order."""
-    from jaxcal.evaluation.steps import ensure_dataset
+    from jaxcal.paper.steps import ensure_dataset
 
     preset, steps = ctx.preset, []
 
@@ -267,11 +267,11 @@ def evaluate(ctx: Context, key: str, variant: str, method: str, name: str) -> di
 
 def identifiability(ctx: Context, key: str) -> dict:
     """The weakest direction of each test unit of ``key`` and every method's error
-    along it and across it (:mod:`jaxcal.evaluation.identifiability`), from the clean
+    along it and across it (:mod:`jaxcal.paper.identifiability`), from the clean
     evaluations' traces."""
     import numpy as np
 
-    from jaxcal.evaluation.identifiability import identifiability_study
+    from jaxcal.paper.identifiability import identifiability_study
 
     suite, traces, stride = ctx.suite(key), {}, None
     for method in ALL_METHODS:
@@ -343,8 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     preset, out, seed = parsed
     from tqdm import tqdm
 
-    from jaxcal.evaluation.report import write_report
-    from jaxcal.evaluation.steps import StepStore, format_seconds
+    from jaxcal.paper.report import write_report
+    from jaxcal.paper.steps import StepStore, format_seconds
     from jaxcal.precision import enable_compilation_cache
 
     enable_compilation_cache()

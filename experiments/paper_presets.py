@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 
-from jaxcal.baselines.e2e import E2EConfig
-from jaxcal.evaluation.suite import SuiteConfig
-from jaxcal.evaluation.tables import POLICIES
+from jaxcal.calibrators.e2e import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
+from jaxcal.paper.suite import SuiteConfig
+from jaxcal.paper.tables import POLICIES
 
 # CLAC-F: the CLAC policy trained and deployed on the physics F instead of the
 # surrogate D (dynamics=physics), which isolates what D's model error costs

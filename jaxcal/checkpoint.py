@@ -31,7 +31,7 @@ from typing import Any
 import jax
 import orbax.checkpoint as ocp
 
-from jaxcal.cli_args import config_from_dict, config_to_dict
+from jaxcal.settings import config_from_dict, config_to_dict
 
 CONFIG_FILE = "config.json"
 

@@ -54,8 +54,8 @@ from collections.abc import Sequence
 from typing import Literal
 
 from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
-from jaxcal.cli_args import parse_overrides
 from jaxcal.nets.mlp import RegressorConfig
+from jaxcal.settings import parse_overrides
 from jaxcal.surrogate.model import SurrogateConfig
 from jaxcal.training.runner import RunnerConfig
 

@@ -13,18 +13,18 @@ at every checkpoint). No data file and no training code path is needed to deploy
     theta, xhat = cal.run(w, x, mask)        # batch: [U, T, W], [U, T, S], [U, T]
 
 Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
-training range (:func:`jaxcal.training.calibrator.range_check`), is *skipped*: the
+training range (:func:`jaxcal.calibrators.policy.range_check`), is *skipped*: the
 carried state is left exactly as it was, ``step`` returns the last valid theta
 (zeros, the healthy prior, before any valid sample) and the flag is readable
 (``cal.last_valid``, ``cal.last_reason``, :meth:`StreamingCalibrator.step_info`;
 ``run(..., return_flags=True)``). The stream then continues as if the sample had
 never arrived. Runs trained before the range was stored check finiteness only.
 
-Semantics (:mod:`jaxcal.training.calibrator`): the calibrator carries the model output
+Semantics (:mod:`jaxcal.calibrators.policy`): the calibrator carries the model output
 x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),
 norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (or F with ``dynamics=physics``).
 :func:`load_calibrator` returns the same method as a
-:class:`~jaxcal.baselines.interface.Calibrator`, so it runs beside the baselines through
+:class:`~jaxcal.calibrators.interface.Calibrator`, so it runs beside the baselines through
 ``run_calibrator`` / ``run_fleet``.
 """
 
@@ -40,13 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.agents.networks import make_networks
-from jaxcal.baselines.interface import REASONS, Calibrator, SampleCheck
-from jaxcal.checkpoint import Checkpointer, load_config
-from jaxcal.config import TrainConfig
-from jaxcal.envs.tracking import Dynamics
-from jaxcal.precision import enable_x64
-from jaxcal.surrogate.model import init_surrogate_params
-from jaxcal.training.calibrator import (
+from jaxcal.calibrators.interface import REASONS, Calibrator, SampleCheck
+from jaxcal.calibrators.policy import (
     PolicyParams,
     initial_guard_carry,
     make_fleet_runner,
@@ -54,6 +49,11 @@ from jaxcal.training.calibrator import (
     make_policy_calibrator,
     range_check,
 )
+from jaxcal.checkpoint import Checkpointer, load_config
+from jaxcal.config import TrainConfig
+from jaxcal.envs.tracking import Dynamics
+from jaxcal.precision import enable_x64
+from jaxcal.surrogate.model import init_surrogate_params
 from jaxcal.training.problem import RunMeta, make_agent, make_dynamics
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
 
@@ -171,7 +171,7 @@ class StepInfo(NamedTuple):
 
     theta: np.ndarray  # [P] this sample's theta, or the last valid one if skipped
     valid: bool  # the sample was used
-    reason: str  # "ok" or why it was skipped (jaxcal.baselines.interface.REASONS)
+    reason: str  # "ok" or why it was skipped (jaxcal.calibrators.interface.REASONS)
 
 
 class StreamingCalibrator:
@@ -262,7 +262,7 @@ class StreamingCalibrator:
         Returns:
             ``(theta [U, T, P], xhat [U, T, S])`` numpy arrays, plus
             ``(valid [U, T] bool, reason [U, T] int32)`` with ``return_flags``
-            (codes into ``jaxcal.baselines.interface.REASONS``; padding is
+            (codes into ``jaxcal.calibrators.interface.REASONS``; padding is
             ``masked``).
         """
         w = self._check("w", w, self.run_info.meta.condition_dim, 3)

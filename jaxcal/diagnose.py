@@ -21,7 +21,7 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import check_output_path, config_to_dict, parse_overrides
+from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,10 +94,10 @@ def output_dir(cfg: DiagnoseConfig) -> str:
 
 def run(cfg: DiagnoseConfig) -> dict:
     """Diagnose ``cfg.data`` and write the report; returns the report dict."""
-    from jaxcal.loop.discrepancy import DiscrepancyConfig
-    from jaxcal.loop.identify import IdentifyConfig
-    from jaxcal.loop.pipeline import LoopConfig, diagnose_record
-    from jaxcal.loop.report import dropped_rows_line, write_report
+    from jaxcal.diagnosis.discrepancy import DiscrepancyConfig
+    from jaxcal.diagnosis.identify import IdentifyConfig
+    from jaxcal.diagnosis.pipeline import LoopConfig, diagnose_record
+    from jaxcal.diagnosis.report import dropped_rows_line, write_report
     from jaxcal.physics import load_engine
     from jaxcal.precision import enable_compilation_cache, enable_x64
 

@@ -28,7 +28,8 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import check_output_path, parse_command_line
+from jaxcal.cli_args import parse_command_line
+from jaxcal.settings import check_output_path
 
 USAGE = "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=N]"
 KEYS = ("run", "split", "repeats")

@@ -21,8 +21,9 @@ import os
 import sys
 import time
 
-from jaxcal.cli_args import check_output_path, parse_command_line, parse_overrides
+from jaxcal.cli_args import parse_command_line
 from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
+from jaxcal.settings import check_output_path, parse_overrides
 
 USAGE = (
     "usage: python -m jaxcal.generate dataset={"

@@ -8,7 +8,7 @@ from typing import Literal
 
 import pytest
 
-from jaxcal.cli_args import coerce, config_from_dict, config_to_dict, parse_overrides
+from jaxcal.settings import coerce, config_from_dict, config_to_dict, parse_overrides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,7 +146,7 @@ def test_config_from_dict_rejects_unknown_fields_and_wrong_type():
 
 
 def test_real_nested_configs_parse_and_round_trip():
-    from jaxcal.baselines.e2e import E2EConfig
+    from jaxcal.calibrators.e2e import E2EConfig
     from jaxcal.surrogate.model import SurrogateConfig
 
     cfg = parse_overrides(

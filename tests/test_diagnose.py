@@ -11,8 +11,8 @@ import pytest
 from jaxcal.data.cmapss_text import SENSOR_MAP
 from jaxcal.data.ncmapss_io import write_ncmapss
 from jaxcal.diagnose import main
-from jaxcal.loop.effects import linearize
-from jaxcal.loop.synthetic import SyntheticConfig, make_synthetic_record
+from jaxcal.diagnosis.effects import linearize
+from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_record
 from jaxcal.physics import load_engine
 from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES
 from jaxcal.physics.reference import FD002_CONDITIONS

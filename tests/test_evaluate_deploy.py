@@ -10,8 +10,9 @@ import json
 import jax
 import numpy as np
 import pytest
+from support.synthetic_file import write_synthetic_ncmapss
 
-from jaxcal.baselines.interface import run_fleet
+from jaxcal.calibrators.interface import run_fleet
 from jaxcal.config import resolve_config
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import NormStats, make_env_params, make_tracking_env
@@ -20,7 +21,6 @@ from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.problem import make_agent
 from jaxcal.training.runner import evaluate_policy
-from jaxcal.training.synthetic_file import write_synthetic_ncmapss
 
 
 @pytest.fixture(scope="module")

@@ -15,11 +15,12 @@ import sys
 from types import SimpleNamespace
 
 import pytest
+from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal import evaluate
-from jaxcal.cli_args import check_output_path, config_to_dict
 from jaxcal.config import resolve_config
 from jaxcal.data.ncmapss_writer import NCMAPSSWriter
+from jaxcal.settings import check_output_path, config_to_dict
 from jaxcal.train import main as train_main
 from jaxcal.train import parse_args
 from jaxcal.training import pipeline
@@ -30,7 +31,6 @@ from jaxcal.training.run_dir import (
     release_temp,
     write_atomic,
 )
-from jaxcal.training.synthetic_file import write_synthetic_ncmapss
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

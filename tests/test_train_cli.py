@@ -5,10 +5,10 @@ import subprocess
 import sys
 
 import pytest
+from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.metrics_log import read_metrics
 from jaxcal.train import main, parse_args
-from jaxcal.training.synthetic_file import write_synthetic_ncmapss
 
 
 def test_unknown_key_is_an_error_listing_the_valid_keys(capsys):

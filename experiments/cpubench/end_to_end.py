@@ -11,9 +11,9 @@ the job afresh (under a new run name, so that no finished run is resumed) and re
 its ``final.json``.
 
 The deployment cost is measured in this run: the jitted single-sample step of
-:func:`jaxcal.training.calibrator.make_stream_step` (policy pi* and one step of D, host
+:func:`jaxcal.calibrators.policy.make_stream_step` (policy pi* and one step of D, host
 numpy in and out) and the vmapped fleet runner of
-:func:`~jaxcal.training.calibrator.make_fleet_runner`, with the production
+:func:`~jaxcal.calibrators.policy.make_fleet_runner`, with the production
 architectures and fresh weights (the cost does not depend on the values).
 """
 
@@ -32,16 +32,16 @@ import numpy as np
 from cpubench.measure import blocking, figure, published_peer, time_interleaved
 from jaxcal.agents.configs import CLACConfig
 from jaxcal.agents.networks import make_networks
-from jaxcal.surrogate.model import (
-    SurrogateConfig,
-    init_surrogate_params,
-    surrogate_apply,
-)
-from jaxcal.training.calibrator import (
+from jaxcal.calibrators.policy import (
     PolicyParams,
     PolicyState,
     make_fleet_runner,
     make_stream_step,
+)
+from jaxcal.surrogate.model import (
+    SurrogateConfig,
+    init_surrogate_params,
+    surrogate_apply,
 )
 
 PAPER = "Tian et al., Real-Time Model Calibration with Deep RL, Dataset #1"

@@ -1,4 +1,4 @@
-"""UKF: time per sample per unit of :mod:`jaxcal.baselines.ukf` against filterpy and
+"""UKF: time per sample per unit of :mod:`jaxcal.calibrators.ukf` against filterpy and
 dynamax, one unit and a vmapped fleet.
 
 Every filter runs the same model and the same maths: the paper's random-walk state
@@ -13,7 +13,7 @@ Two measurement models:
 
 * ``engine``: the C-MAPSS-like turbofan F of ``jaxcal.physics.load_engine("cmapss")``
   on the declared parameter HPT_eff_mod (the others at 0) and the 14 measured
-  sensors, through :func:`~jaxcal.baselines.interface.measure_declared`; filterpy calls
+  sensors, through :func:`~jaxcal.calibrators.interface.measure_declared`; filterpy calls
   the engine's evaluate jitted for one sample. F dominates the step here.
 * ``toy``: x = tanh(A theta + B w) with P = 4, S = 14, W = 4, cheap enough that the
   filters' own per-step overhead is what is measured; filterpy gets the same model in
@@ -41,8 +41,8 @@ from cpubench.measure import (
     time_interleaved,
     try_import,
 )
-from jaxcal.baselines.interface import SensorNorm, measure_declared
-from jaxcal.baselines.ukf import UKFConfig, ukf_filter
+from jaxcal.calibrators.interface import SensorNorm, measure_declared
+from jaxcal.calibrators.ukf import UKFConfig, ukf_filter
 
 CFG = UKFConfig(posterior_xhat=False)  # q = r = 0.01, alpha 1, beta 2, kappa 0
 _DISABLED = "optional peers disabled (--no-optional-peers)"

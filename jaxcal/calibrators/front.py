@@ -158,7 +158,7 @@ def calibrate(
 
 
 def _to_rows(out, padded: Padded, data: Dataset, problem: Problem, method: str):
-    from jaxcal.baselines.interface import REASONS
+    from jaxcal.calibrators.interface import REASONS
 
     n = data.num_rows
     rows = lambda v, fill=np.nan: padded.to_rows(np.asarray(v), n, fill)  # noqa: E731

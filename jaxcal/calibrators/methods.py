@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.baselines.interface import (
+from jaxcal.calibrators.interface import (
     Calibrator,
     SampleCheck,
     SensorNorm,
@@ -82,8 +82,8 @@ def make_runner(check: SampleCheck | None, key=None):
 
 
 def _model_based(method: str, problem: Problem, dtype, options: dict) -> Calibrator:
-    from jaxcal.baselines.least_squares import LeastSquaresConfig, make_least_squares
-    from jaxcal.baselines.ukf import UKFConfig, make_ukf
+    from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
+    from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 
     if method == "ukf":
         cfg = UKFConfig(r=1.0, **_take(options, UKFConfig))
@@ -113,7 +113,7 @@ def estimate_noise(problem: Problem, padded: Padded) -> Problem:
     variance is scaled by ``n / (n - P)``; the first ``window`` rows of each unit
     (a partly filled window) are left out.
     """
-    from jaxcal.baselines.least_squares import LeastSquaresConfig
+    from jaxcal.calibrators.least_squares import LeastSquaresConfig
 
     dtype = padded.w.dtype
     cfg = LeastSquaresConfig(window=_NOISE_WINDOW, num_iters=_NOISE_ITERS)
@@ -142,7 +142,7 @@ def estimate_noise(problem: Problem, padded: Padded) -> Problem:
 
 def _e2e(problem: Problem, padded: Padded, seed: int, options: dict) -> Calibrator:
     """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
-    from jaxcal.baselines.e2e import E2EConfig, fit_e2e, make_e2e_calibrator
+    from jaxcal.calibrators.e2e import E2EConfig, make_e2e_calibrator
     from jaxcal.nets.mlp import RegressorConfig
 
     params = options.pop("e2e", None)
@@ -167,7 +167,7 @@ def fit_e2e_sim(problem: Problem, padded: Padded, measure, cfg, seed: int, copie
     """Train G on ``copies`` simulated fleets: the data's conditions, a constant
     parameter vector per simulated unit drawn uniformly in the box, and Gaussian
     output noise of the problem's std."""
-    from jaxcal.baselines.e2e import fit_e2e
+    from jaxcal.calibrators.e2e import fit_e2e
 
     key = jax.random.key(seed)
     key_theta, key_noise, key_fit = jax.random.split(key, 3)

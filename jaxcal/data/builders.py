@@ -38,7 +38,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.cli_args import config_to_dict
 from jaxcal.data.chunked_engine import (
     NUM_UNKNOWNS,
     RowBlock,
@@ -69,6 +68,7 @@ from jaxcal.data.record import Record
 from jaxcal.physics import load_engine
 from jaxcal.physics.constants import SENSOR_NAMES
 from jaxcal.precision import is_x64
+from jaxcal.settings import config_to_dict
 
 
 class DatasetPlan(NamedTuple):

@@ -11,7 +11,7 @@
   :func:`calibrate_distributed` for units split over processes.
 * ``python -m jaxcal.fleet`` — the command line (see ``docs/fleet.md``).
 
-Any :class:`~jaxcal.baselines.interface.Calibrator` works: UKF, least squares, a
+Any :class:`~jaxcal.calibrators.interface.Calibrator` works: UKF, least squares, a
 deployed policy. Importing this package does not initialise JAX's backends, so
 :func:`~jaxcal.fleet.distributed.initialize` can still run afterwards.
 """

@@ -37,10 +37,11 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from jaxcal.baselines.least_squares import LeastSquaresConfig
-from jaxcal.baselines.ukf import UKFConfig
-from jaxcal.cli_args import config_to_dict, parse_command_line, parse_overrides
+from jaxcal.calibrators.least_squares import LeastSquaresConfig
+from jaxcal.calibrators.ukf import UKFConfig
+from jaxcal.cli_args import parse_command_line
 from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
+from jaxcal.settings import config_to_dict, parse_overrides
 
 DEFAULT_THETA_SCALE = 0.01  # of a health modifier (see FleetConfig.theta_scale)
 USAGE = (
@@ -145,17 +146,17 @@ def file_sensors(path: str) -> tuple[str, ...]:
 
 
 def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
-    """The :class:`~jaxcal.baselines.interface.Calibrator` of ``cfg.method``."""
+    """The :class:`~jaxcal.calibrators.interface.Calibrator` of ``cfg.method``."""
     import jax.numpy as jnp
 
-    from jaxcal.baselines.interface import measure_declared
+    from jaxcal.calibrators.interface import measure_declared
 
     if cfg.method == "policy":
         from jaxcal.deploy import load_calibrator
 
         return load_calibrator(cfg.run)
-    from jaxcal.baselines.least_squares import make_least_squares
-    from jaxcal.baselines.ukf import make_ukf
+    from jaxcal.calibrators.least_squares import make_least_squares
+    from jaxcal.calibrators.ukf import make_ukf
     from jaxcal.physics import load_engine
 
     engine = load_engine(cfg.engine)
@@ -177,7 +178,7 @@ def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
 def build_check(cfg: FleetConfig):
     """The valid input box of ``cfg.method``: the engine's envelope, or the policy
     run's training range (``None`` for a run that predates it: finiteness only)."""
-    from jaxcal.baselines.interface import SampleCheck
+    from jaxcal.calibrators.interface import SampleCheck
 
     if cfg.method == "policy":
         from jaxcal.deploy import load_run, run_check

@@ -27,7 +27,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
-from jaxcal.baselines.interface import Calibrator, CalOutput
+from jaxcal.calibrators.interface import Calibrator, CalOutput
 from jaxcal.fleet.sharded import (
     finish_units,
     make_unit_mesh,

@@ -22,7 +22,7 @@ from collections.abc import Iterator, Sequence
 import h5py
 import numpy as np
 
-from jaxcal.baselines.interface import SensorNorm
+from jaxcal.calibrators.interface import SensorNorm
 from jaxcal.data.fleet import to_fleet
 from jaxcal.data.ncmapss_io import load_ncmapss
 from jaxcal.fleet.streaming import UnitChunk, plan_chunks

@@ -3,7 +3,7 @@
 Units of a fleet never talk to each other, so the fleet axis ``U`` is embarrassingly
 parallel: :func:`run_sharded` places ``[U, T, ...]`` arrays with
 ``NamedSharding(mesh, P("units"))`` and runs
-:func:`~jaxcal.baselines.interface.run_fleet` under ``jax.shard_map``: every device
+:func:`~jaxcal.calibrators.interface.run_fleet` under ``jax.shard_map``: every device
 executes the single-device program on its own block of ``U / D`` units, with no
 collective at all. The per-unit arithmetic is therefore that of one device, and results
 agree with the unsharded path to round-off (bit for bit in our tests). ``jit`` with
@@ -21,7 +21,7 @@ when some shards live in other processes. :func:`start_units` / :func:`finish_un
 chain them for one process's units (tagged with global positions) and are shared by the
 multi-process and streaming paths; :func:`calibrate_sharded` is the one-process call.
 
-Every entry takes an optional :class:`~jaxcal.baselines.interface.SampleCheck`
+Every entry takes an optional :class:`~jaxcal.calibrators.interface.SampleCheck`
 (replicated on every device) and returns ``CalOutput.valid`` / ``.reason`` per sample:
 a flagged sample (NaN, out of range) is skipped as in ``run_calibrator``.
 """
@@ -37,7 +37,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 
-from jaxcal.baselines.interface import Calibrator, CalOutput, SampleCheck, run_fleet
+from jaxcal.calibrators.interface import Calibrator, CalOutput, SampleCheck, run_fleet
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 UNITS_AXIS = "units"

@@ -16,7 +16,7 @@ a process holds at most two input chunks and one gathered output chunk. Chunks c
 any iterable of :class:`UnitChunk`: :func:`iter_array_chunks` cuts in-memory arrays,
 :func:`jaxcal.fleet.ncmapss_source.iter_ncmapss_chunks` reads an N-CMAPSS file.
 Units are independent, so chunked results equal one-shot results unit for unit.
-A ``check`` (:class:`~jaxcal.baselines.interface.SampleCheck`) flags and skips bad
+A ``check`` (:class:`~jaxcal.calibrators.interface.SampleCheck`) flags and skips bad
 samples; their flags go to the file and their counts per reason to the summary.
 """
 
@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 from jax.sharding import Mesh
 
-from jaxcal.baselines.interface import Calibrator, SampleCheck, count_reasons
+from jaxcal.calibrators.interface import Calibrator, SampleCheck, count_reasons
 from jaxcal.fleet.results import FleetResultWriter
 from jaxcal.fleet.sharded import (
     finish_units,

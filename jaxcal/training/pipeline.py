@@ -20,7 +20,7 @@
    ``eval_every`` chunks (theta RMSE for progress only; the label-free tracking RMSE
    also selects the kept policy when ``budget.select=val_tracking``);
 5. the kept policy runs once through every test unit's whole trajectory (the
-   deployment calibrator of :mod:`jaxcal.training.calibrator`, ``lax.scan`` vmapped
+   deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
    time, updates/s and env steps/s (plus, for transparency, the scores of the last
    policy and of the last online actor).
@@ -28,7 +28,7 @@
 The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
 of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
 runner checkpoints, every checkpoint step saves the deployable
-:class:`~jaxcal.training.calibrator.PolicyParams` (actor, dynamics parameters,
+:class:`~jaxcal.calibrators.policy.PolicyParams` (actor, dynamics parameters,
 normalisation, action box) under ``policy/``, and the selected one under
 ``policy_best/``; :mod:`jaxcal.deploy` loads a run from those and ``config.json`` /
 ``data.json`` alone.
@@ -46,16 +46,16 @@ import h5py
 import jax
 import numpy as np
 
-from jaxcal.checkpoint import Checkpointer
-from jaxcal.cli_args import check_output_path
-from jaxcal.config import TrainConfig
-from jaxcal.envs.tracking import EnvConfig, EnvParams, NormStats, make_env_params
-from jaxcal.precision import enable_x64
-from jaxcal.training.calibrator import (
+from jaxcal.calibrators.policy import (
     PolicyParams,
     policy_params_from_env,
     range_check,
 )
+from jaxcal.checkpoint import Checkpointer
+from jaxcal.config import TrainConfig
+from jaxcal.envs.tracking import EnvConfig, EnvParams, NormStats, make_env_params
+from jaxcal.precision import enable_x64
+from jaxcal.settings import check_output_path
 from jaxcal.training.data import (
     CalibrationData,
     UnitArrays,

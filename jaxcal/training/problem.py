@@ -29,9 +29,9 @@ from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
 from jaxcal.agents.lac import make_lac
 from jaxcal.agents.networks import make_networks
 from jaxcal.agents.sac import make_sac
+from jaxcal.calibrators.policy import make_fleet_runner
 from jaxcal.envs.tracking import Dynamics, Env, EnvConfig, make_tracking_env
 from jaxcal.surrogate.model import surrogate_apply
-from jaxcal.training.calibrator import make_fleet_runner
 from jaxcal.training.data import CalibrationData
 from jaxcal.training.runner import RunnerConfig, make_train_chunk
 from jaxcal.typedefs import Array, PyTree
@@ -48,7 +48,7 @@ class RunMeta(NamedTuple):
         condition_dim: W.
         w_low, w_high, x_low, x_high: ``[W]`` / ``[S]`` min and max of the training
             units' valid samples (the deployed input check, see
-            :func:`jaxcal.training.calibrator.range_check`); ``None`` for runs
+            :func:`jaxcal.calibrators.policy.range_check`); ``None`` for runs
             written before they were stored.
     """
 
@@ -136,7 +136,7 @@ def make_dynamics(kind: str, meta: RunMeta) -> Dynamics:
     if kind != "physics":
         raise ValueError(f"dynamics must be 'surrogate' or 'physics', got {kind!r}")
     # Imported here: the engine loads its design tables, which surrogate runs skip.
-    from jaxcal.baselines.interface import measure_declared
+    from jaxcal.calibrators.interface import measure_declared
     from jaxcal.physics import load_engine
 
     engine = load_engine(meta.engine)
@@ -166,7 +166,7 @@ class Components(NamedTuple):
         train_chunk: ``jax.jit(make_train_chunk(env, agent, runner_cfg),
             donate_argnums=0)``.
         run_units: the jitted fleet calibrator
-            (:func:`~jaxcal.training.calibrator.make_fleet_runner`).
+            (:func:`~jaxcal.calibrators.policy.make_fleet_runner`).
     """
 
     env: Env

@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from jaxcal.checkpoint import CONFIG_FILE
-from jaxcal.cli_args import check_output_path, config_to_dict
 from jaxcal.metrics_log import read_metrics, to_json_value
+from jaxcal.settings import check_output_path, config_to_dict
 
 DATA_FILE = "data.json"
 SURROGATE_DIR = "surrogate"

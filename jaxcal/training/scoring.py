@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxcal.baselines.interface import OK, count_reasons
+from jaxcal.calibrators.interface import OK, count_reasons
 
 
 def describe_units(unit_ids: Sequence[int]) -> str:

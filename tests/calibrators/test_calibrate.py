@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.baselines.e2e import E2EConfig
+from jaxcal.calibrators.e2e import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
 
 NOISE = np.array([0.02, 0.02, 0.05])

@@ -11,7 +11,6 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxcal.cli_args import config_from_dict
 from jaxcal.data.builders import build_dataset
 from jaxcal.data.chunked_engine import (
     RowBlock,
@@ -26,6 +25,7 @@ from jaxcal.physics.constants import (
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,
 )
+from jaxcal.settings import config_from_dict
 
 TINY = DATASETS["tiny"]
 HPT_EFF = HEALTH_NAMES.index("HPT_eff_mod")

@@ -8,7 +8,7 @@ single-device result:
     python fleet_worker.py sharded OUT.npz                 # XLA_FLAGS: 4 devices
     python fleet_worker.py distributed OUT_DIR PORT PROCESS_ID   # 2 processes x 2
 
-The fleet is a tiny analytic problem (``jaxcal.training.analytic``), identical in every
+The fleet is a tiny analytic problem (``support.analytic``), identical in every
 process because it is generated from a fixed key.
 """
 
@@ -22,10 +22,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.baselines.interface import Calibrator, CalStepOutput, SensorNorm, run_fleet
-from jaxcal.baselines.least_squares import LeastSquaresConfig, make_least_squares
-from jaxcal.baselines.ukf import UKFConfig, make_ukf
-from jaxcal.training.analytic import analytic_dynamics, make_analytic_problem
+# run as a script in a fresh interpreter: make tests/support importable
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from support.analytic import analytic_dynamics, make_analytic_problem
+
+from jaxcal.calibrators.interface import (
+    Calibrator,
+    CalStepOutput,
+    SensorNorm,
+    run_fleet,
+)
+from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 
 NUM_UNITS, NUM_STEPS, NUM_SENSORS, NUM_PARAMS = 6, 12, 3, 2
 

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxcal.baselines.interface import REASON_CODE, SampleCheck
+from jaxcal.calibrators.interface import REASON_CODE, SampleCheck
 from jaxcal.fleet.sharded import (
     calibrate_sharded,
     make_unit_mesh,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fleet_worker import problem, reference, ukf
 
-from jaxcal.baselines.interface import REASON_CODE, Calibrator, SampleCheck
+from jaxcal.calibrators.interface import REASON_CODE, Calibrator, SampleCheck
 from jaxcal.data.fleet import to_fleet
 from jaxcal.data.ncmapss_io import load_ncmapss, write_ncmapss
 from jaxcal.data.record import Record

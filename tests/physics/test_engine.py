@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from jaxcal.physics import load_engine
-from jaxcal.physics.audit import audit_point
 from jaxcal.physics.atmosphere import isa_total_temperature
+from jaxcal.physics.audit import audit_point
 from jaxcal.physics.constants import (
     HEALTH_NAMES,
     MEASURED_SENSOR_NAMES,

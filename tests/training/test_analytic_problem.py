@@ -2,8 +2,7 @@
 
 import jax
 import numpy as np
-
-from jaxcal.training.analytic import analytic_dynamics, make_analytic_problem
+from support.analytic import analytic_dynamics, make_analytic_problem
 
 
 def test_problem_is_consistent_and_invertible():

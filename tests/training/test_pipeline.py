@@ -11,6 +11,7 @@ import chex
 import jax
 import numpy as np
 import pytest
+from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.config import make_train_config, resolve_config
 from jaxcal.deploy import load_run
@@ -18,7 +19,6 @@ from jaxcal.metrics_log import read_metrics
 from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import ensure_data_file, run_training
 from jaxcal.training.scoring import theta_rmse, tracking_rmse
-from jaxcal.training.synthetic_file import write_synthetic_ncmapss
 
 # Per-chunk wall-clock fields differ between runs by nature.
 TIMING = {"chunk_seconds", "updates_per_s", "env_steps_per_s", "includes_compile"}

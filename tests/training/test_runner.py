@@ -17,16 +17,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.analytic import (
+    analytic_dynamics,
+    make_analytic_problem,
+    problem_env_params,
+)
 
 from jaxcal.agents.clac import make_clac
 from jaxcal.agents.common import Agent
 from jaxcal.agents.configs import CLACConfig
 from jaxcal.envs.tracking import EnvConfig, NormStats, make_tracking_env
-from jaxcal.training.analytic import (
-    analytic_dynamics,
-    make_analytic_problem,
-    problem_env_params,
-)
 from jaxcal.training.runner import (
     RunnerConfig,
     evaluate_policy,

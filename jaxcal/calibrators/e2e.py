@@ -1,0 +1,230 @@
+"""End-to-end (E2E) baseline: a network that maps measurements straight to parameters.
+
+Tian et al. §2.4, eq. "e2e": θ_t = G(w_t, x_t, x_{t−1}), with G an MLP of three hidden
+layers of 100 ReLU units, linear output, Adam at learning rate 1e-4 (appendix "E2E
+Network" and the hyper-parameter table). It is supervised: the paper trains it on the
+labelled units 1, 4, 7 and 9 of Dataset #1, whose flights do not cover the envelope of
+the test units — the weakness the paper points out. "E2E-sim" is the same network
+trained on simulated labels over the whole envelope; both are this module with other
+training data, chosen by the caller.
+
+Inputs are [w_t, x_t, x_{t−1}] standardised with training statistics; at a unit's first
+valid sample x_{t−1} is taken equal to x_t. :func:`make_e2e_calibrator` wraps a trained
+network in the common :class:`~jaxcal.calibrators.interface.Calibrator` interface.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxcal.calibrators.interface import Calibrator, CalStepOutput, MeasureFn
+from jaxcal.nets.mlp import (
+    MLP,
+    Normalizer,
+    RegressorConfig,
+    RegressorParams,
+    fit_regressor,
+    regressor_apply,
+)
+from jaxcal.typedefs import Array, PRNGKey
+
+
+@dataclasses.dataclass(frozen=True)
+class E2EConfig:
+    """Architecture and fitting settings of the E2E network (paper appendix)."""
+
+    hidden_sizes: tuple[int, ...] = (100, 100, 100)  # paper: n1 = n2 = n3 = 100
+    activation: str = "relu"  # paper: ReLU hidden layers, identity output
+    fit: RegressorConfig = RegressorConfig(
+        learning_rate=1e-4,  # paper table: "Learning rate - E2E"
+        batch_size=256,
+        num_epochs=200,
+        validation_fraction=0.1,
+        patience=20,
+    )
+
+
+@struct.dataclass
+class E2EParams:
+    """Trained G: weights and statistics (leaves) plus its static shape."""
+
+    regressor: RegressorParams
+    hidden_sizes: tuple[int, ...] = struct.field(pytree_node=False)
+    activation: str = struct.field(pytree_node=False)
+    condition_dim: int = struct.field(pytree_node=False)  # W
+    sensor_dim: int = struct.field(pytree_node=False)  # S
+    theta_dim: int = struct.field(pytree_node=False)  # P
+
+    @property
+    def network(self) -> MLP:
+        """The (parameter-free) flax module of G, rebuilt from the static fields."""
+        return MLP(self.hidden_sizes, self.theta_dim, self.activation)
+
+
+def init_e2e_params(
+    key: PRNGKey, condition_dim: int, sensor_dim: int, theta_dim: int, cfg: E2EConfig
+) -> E2EParams:
+    """A fresh G with identity normalisation (e.g. a ``jax.eval_shape`` target)."""
+    in_dim = condition_dim + 2 * sensor_dim
+    net = MLP(tuple(cfg.hidden_sizes), theta_dim, cfg.activation)
+    weights = jax.jit(net.init)(key, jnp.zeros((1, in_dim), jnp.float32))["params"]
+
+    def identity(d):
+        return Normalizer(mean=jnp.zeros(d, jnp.float32), std=jnp.ones(d, jnp.float32))
+
+    return E2EParams(
+        regressor=RegressorParams(weights, identity(in_dim), identity(theta_dim)),
+        hidden_sizes=tuple(cfg.hidden_sizes),
+        activation=cfg.activation,
+        condition_dim=condition_dim,
+        sensor_dim=sensor_dim,
+        theta_dim=theta_dim,
+    )
+
+
+def e2e_features(w: Array, x: Array, mask: Array | None = None) -> Array:
+    """Stack [w_t, x_t, x_{t−1}] along time (axis −2), x_{t−1} = x_t where undefined.
+
+    Args:
+        w: ``[..., T, W]`` operating conditions.
+        x: ``[..., T, S]`` measurements.
+        mask: optional ``[..., T]`` validity; x_{t−1} is replaced by x_t at t = 0 and
+            wherever sample t − 1 is invalid (the first valid sample of a unit).
+
+    Returns:
+        ``[..., T, W + 2S]``.
+    """
+    x_prev = jnp.concatenate([x[..., :1, :], x[..., :-1, :]], axis=-2)
+    if mask is not None:
+        mask = jnp.asarray(mask, bool)
+        prev_valid = jnp.concatenate([mask[..., :1] & False, mask[..., :-1]], axis=-1)
+        x_prev = jnp.where(prev_valid[..., None], x_prev, x)
+    return jnp.concatenate([w, x, x_prev], axis=-1)
+
+
+def e2e_apply(params: E2EParams, w_t: Array, x_t: Array, x_prev: Array) -> Array:
+    """θ_t = G(w_t, x_t, x_{t−1}) for any leading batch shape; ``[..., P]``."""
+    inputs = jnp.concatenate([w_t, x_t, x_prev], axis=-1)
+    if inputs.shape[-1] != params.condition_dim + 2 * params.sensor_dim:
+        raise ValueError(
+            f"e2e_apply: expected w [..., {params.condition_dim}] and x, x_prev "
+            f"[..., {params.sensor_dim}], got {w_t.shape}, {x_t.shape}, {x_prev.shape}"
+        )
+    theta = regressor_apply(params.network, params.regressor, inputs)
+    dtype = jnp.result_type(x_t) if jnp.issubdtype(x_t.dtype, jnp.floating) else None
+    return theta if dtype is None else theta.astype(dtype)
+
+
+def e2e_predict(
+    params: E2EParams, w: Array, x: Array, mask: Array | None = None
+) -> Array:
+    """Parameters of whole trajectories: ``theta [..., T, P]`` from ``w``, ``x``.
+
+    Args:
+        params: trained G.
+        w: ``[U, T, W]`` (or ``[T, W]``); x: ``[U, T, S]`` (or ``[T, S]``).
+        mask: optional ``[U, T]`` validity (see :func:`e2e_features`); outputs at
+            invalid samples are meaningless and left to the caller to mask.
+    """
+    features = e2e_features(jnp.asarray(w), jnp.asarray(x), mask)
+    s = params.sensor_dim
+    return e2e_apply(
+        params,
+        features[..., : -2 * s],
+        features[..., -2 * s : -s],
+        features[..., -s:],
+    )
+
+
+def fit_e2e(
+    key: PRNGKey,
+    w: Array,
+    x: Array,
+    theta: Array,
+    mask: Array,
+    cfg: E2EConfig,
+    *,
+    log_fn: Callable[[int, dict[str, float]], None] | None = None,
+    progress: bool = False,
+) -> tuple[E2EParams, dict]:
+    """Fit G on labelled trajectories (supervised; Tian et al. §2.4).
+
+    Args:
+        key: PRNG key (initialisation, validation split, minibatch order).
+        w: ``[U, T, W]`` operating conditions of the labelled units.
+        x: ``[U, T, S]`` their measurements.
+        theta: ``[U, T, P]`` their true parameters (the labels).
+        mask: ``[U, T]`` validity; only valid samples are used.
+        cfg: architecture and optimisation settings.
+        log_fn: per-epoch callback ``log_fn(epoch, {"train_loss", "val_loss"})``.
+        progress: show a progress bar.
+
+    Returns:
+        ``(params, history)`` as in :func:`jaxcal.nets.mlp.fit_regressor`.
+    """
+    w, x, theta = (np.asarray(v) for v in (w, x, theta))
+    mask = np.asarray(mask, bool)
+    for name, v in (("w", w), ("x", x), ("theta", theta)):
+        if v.ndim != 3 or v.shape[:2] != mask.shape:
+            raise ValueError(f"{name} must be [U, T, ·] with [U, T] = {mask.shape}")
+    features = np.asarray(jax.jit(e2e_features)(w, x, mask))  # one compile, not many
+    keep = mask.reshape(-1)
+    inputs = features.reshape(-1, features.shape[-1])[keep]
+    targets = theta.reshape(-1, theta.shape[-1])[keep]
+    net = MLP(tuple(cfg.hidden_sizes), theta.shape[-1], cfg.activation)
+    regressor, history = fit_regressor(
+        key, net, inputs, targets, cfg.fit, log_fn=log_fn, progress=progress
+    )
+    params = E2EParams(
+        regressor=regressor,
+        hidden_sizes=tuple(cfg.hidden_sizes),
+        activation=cfg.activation,
+        condition_dim=w.shape[-1],
+        sensor_dim=x.shape[-1],
+        theta_dim=theta.shape[-1],
+    )
+    return params, history
+
+
+@struct.dataclass
+class E2EState:
+    """Streaming state of the E2E calibrator: the previous measurement."""
+
+    x_prev: Array  # [S]
+
+
+def make_e2e_calibrator(
+    params: E2EParams, measure: MeasureFn | None = None
+) -> Calibrator:
+    """The E2E network as a :class:`Calibrator` (``init``/``step`` pure functions).
+
+    Args:
+        params: trained G.
+        measure: optional model ``F(w [W], theta [P]) -> x [S]``; when given, ``xhat``
+            is F(w_t, θ_t). Without it ``xhat`` is NaN: G has no model output of its
+            own, and a zero or a copy of x_t would make tracking errors look perfect.
+
+    Returns:
+        ``Calibrator(init, step)``; ``init`` stores x_{−1} = x_0, so streaming output
+        equals :func:`e2e_predict` on the same record.
+    """
+
+    def init(key, w0, x0):
+        del key, w0  # deterministic; only the first measurement matters
+        return E2EState(x_prev=jnp.asarray(x0))
+
+    def step(state, w_t, x_t):
+        theta = e2e_apply(params, w_t, x_t, state.x_prev)
+        if measure is None:
+            xhat = jnp.full_like(x_t, jnp.nan, dtype=jnp.result_type(x_t, 0.0))
+        else:
+            xhat = measure(w_t, theta)
+        return E2EState(x_prev=x_t), CalStepOutput(theta=theta, xhat=xhat)
+
+    return Calibrator(init=init, step=step)

@@ -1,0 +1,504 @@
+"""The common calibrator interface shared by every calibration method.
+
+A *calibrator* turns a stream of operating conditions ``w_t`` and measurements ``x_t``
+into calibrated parameters ``theta_t`` and the model output ``xhat_t`` that goes with
+them. Every method in jaxcal — the UKF and sliding-window least squares
+(``jaxcal.calibrators``), the end-to-end network ``theta_t = G(w_t, x_t, x_{t-1})``
+(paper eq. e2e) and a trained RL policy ``theta_{t+1} = pi(xhat_t, x_{t+1}, w_{t+1})``
+— is the same two pure functions, in the optax style::
+
+    class Calibrator(NamedTuple):
+        init: (key | None, w0 [Wd], x0 [S]) -> CalState
+        step: (state: CalState, w_t [Wd], x_t [S]) -> (CalState, CalStepOutput)
+
+Contract for implementers:
+
+* ``init(key, w0, x0)`` builds the state before the first sample. ``key`` is a PRNG key
+  or ``None`` (deterministic methods ignore it). ``(w0, x0)`` is the first valid sample
+  of the stream, offered for methods that need a "previous" sample: the E2E network
+  stores ``x_prev = x0``, the RL policy starts ``xhat = x0`` (or ``D``/``F`` of it).
+  The UKF and least squares ignore it except for shapes. Prior parameter values and
+  other settings are closed over by the factory, not passed here.
+* ``step(state, w_t, x_t)`` consumes exactly one sample and returns the new state and
+  ``CalStepOutput(theta [P], xhat [S], aux)``. ``theta`` is the estimate *at time t*
+  (after seeing ``x_t``); ``xhat`` is the model output the method associates with it
+  (UKF: ``F(w_t, theta_t)``; RL: ``D(w_t, xhat_{t-1}, theta_t)``; E2E:
+  ``F(w_t, theta_t)`` if a model is available). ``aux`` is ``None`` or a dict of
+  fixed-shape per-step diagnostics (e.g. ``{"theta_std": [P]}``) with the same keys on
+  every step.
+* ``step`` is pure and deterministic given its state: a stochastic method carries its
+  own PRNG key in its state and splits it inside ``step``. No Python control flow on
+  traced values, static shapes, no jit inside (callers jit at entry points).
+* RL mapping: with ``state.xhat = xhat_{t-1}``, ``step`` computes
+  ``theta_t = pi(xhat_{t-1}, x_t, w_t)`` and ``xhat_t = D(w_t, xhat_{t-1}, theta_t)``,
+  i.e. the paper's ``theta_{t+1} = pi(xhat_t, x_{t+1}, w_{t+1})`` shifted by one index.
+
+:func:`run_calibrator` scans ``step`` over a padded record with a validity mask and
+:func:`run_fleet` vmaps it over units.
+
+Guarded samples: no single sample may poison a stream. Every row gets a *reason*
+(:data:`REASONS`, int32 codes): padding is ``masked``; a non-finite ``w`` or ``x``, or
+one outside the :class:`SampleCheck` box (the model's envelope, or the training range
+widened by a margin), is flagged; so is a step whose new state or ``theta`` is not
+finite (e.g. the model did not solve there). A flagged row is *skipped*: the step is
+fed the last ok ``(w, x)`` so no NaN enters any computation, the carried state stays
+exactly as it was and the outputs repeat the last ok ones. A stream then continues
+exactly as if the sample had not arrived. :func:`guarded_update` is that rule for one
+sample, shared by the scan and by single-sample streaming; ``CalOutput.valid`` and
+``CalOutput.reason`` report it per row, :func:`count_reasons` counts it for reports.
+
+:func:`measure_declared` adapts a full-parameter model ``F(w, theta_full) -> x_full``
+to the declared parameters and selected sensors that model-based calibrators work on.
+A ``Calibrator`` is hashable (a tuple of functions), so jit the runners with it as a
+static argument:
+``jax.jit(run_fleet, static_argnums=0)(calibrator, w, x, mask)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from jaxcal.physics.constants import health_index, sensor_index
+from jaxcal.typedefs import Array, Metrics, PRNGKey
+
+CalState = Any  # any pytree; each calibrator defines its own state dataclass
+MeasureFn = Callable[[Array, Array], Array]  # (w [Wd], theta [P]) -> x [S]
+
+
+class SensorNorm(NamedTuple):
+    """Per-sensor normalisation ``x_n = (x - mean) / std`` (training statistics)."""
+
+    mean: Array  # [S]
+    std: Array  # [S], > 0
+
+
+class CalStepOutput(NamedTuple):
+    """What one calibrator step reports."""
+
+    theta: Array  # [P] calibrated parameters at time t
+    xhat: Array  # [S] model output belonging to theta at time t
+    aux: Metrics | None = None  # optional per-step diagnostics, fixed keys and shapes
+
+
+class CalOutput(NamedTuple):
+    """Time-major results of :func:`run_calibrator` (a leading ``[U]`` for fleets)."""
+
+    theta: Array  # [T, P]
+    xhat: Array  # [T, S]
+    aux: Metrics | None = None  # each entry [T, ...]
+    valid: Array | None = None  # [T] bool: the row was used (reason "ok")
+    reason: Array | None = None  # [T] int32 code into REASONS
+
+
+class Calibrator(NamedTuple):
+    """A calibration method as a pair of pure functions (see the module docstring)."""
+
+    init: Callable[[PRNGKey | None, Array, Array], CalState]
+    step: Callable[[CalState, Array, Array], tuple[CalState, CalStepOutput]]
+
+
+# ------------------------------------------------------------------ guarded samples
+
+# Why a row was or was not used; the int32 code of a reason is its index. The order of
+# the input checks is the order of precedence (a NaN w hides a NaN x on the same row).
+REASONS = (
+    "ok",
+    "masked",  # padding (mask False)
+    "w_nonfinite",  # NaN / Inf in the operating conditions
+    "x_nonfinite",  # NaN / Inf in the measurements
+    "w_out_of_range",  # outside SampleCheck.w_low .. w_high
+    "x_out_of_range",  # outside SampleCheck.x_low .. x_high
+    "state_nonfinite",  # the step itself gave a non-finite theta or state
+)
+REASON_CODE = {name: code for code, name in enumerate(REASONS)}
+OK, MASKED, STATE_NONFINITE = 0, 1, REASON_CODE["state_nonfinite"]
+FLAG_REASONS = REASONS[2:]  # what reports count (ok and padding are not flags)
+
+
+class SampleCheck(NamedTuple):
+    """The valid input box of a calibrator; ``inf`` bounds turn a check off.
+
+    Attributes:
+        w_low, w_high: ``[Wd]`` bounds of the operating conditions.
+        x_low, x_high: ``[S]`` bounds of the measurements, or ``None`` (not checked).
+    """
+
+    w_low: Array
+    w_high: Array
+    x_low: Array | None = None
+    x_high: Array | None = None
+
+    @classmethod
+    def from_range(cls, w_low, w_high, x_low=None, x_high=None, *, margin=0.0):
+        """A box ``[low - margin * span, high + margin * span]`` per entry.
+
+        "Far outside the training range" is the training min/max widened by
+        ``margin`` times its span (``span = high - low``) on each side.
+
+        Args:
+            w_low, w_high: ``[Wd]``; x_low, x_high: ``[S]`` or ``None``.
+            margin: ``>= 0`` fraction of the span added on each side.
+
+        Returns:
+            :class:`SampleCheck` of float64 numpy arrays.
+        """
+        if not margin >= 0:
+            raise ValueError(
+                f"SampleCheck.from_range: margin must be >= 0, got {margin}"
+            )
+
+        def widen(low, high, name):
+            low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+            if low.ndim != 1 or low.shape != high.shape or np.any(low > high):
+                raise ValueError(
+                    f"SampleCheck.from_range: {name}_low and {name}_high must be [N] "
+                    f"with low <= high; got {low.tolist()} and {high.tolist()}"
+                )
+            span = high - low
+            return low - margin * span, high + margin * span
+
+        w_box = widen(w_low, w_high, "w")
+        x_box = (None, None) if x_low is None else widen(x_low, x_high, "x")
+        return cls(*w_box, *x_box)
+
+    @classmethod
+    def from_envelope(cls, envelope) -> SampleCheck:
+        """The w box of an engine's :class:`~jaxcal.physics.engine.Envelope`.
+
+        alt, Mach and TRA are its bounds; T2 is bounded by the hull of its ISA
+        deviation band (``isa_total_temperature`` is monotone in alt and Mach). A
+        sample inside the hull but off the band is caught after the step: the
+        engine then gives NaN and the row is flagged ``state_nonfinite``.
+        """
+        from jaxcal.physics.atmosphere import isa_total_temperature
+
+        alt, mach = envelope.alt_ft, envelope.mach
+        t2_low = float(isa_total_temperature(alt[1], mach[0])) + envelope.t2_dev_r[0]
+        t2_high = float(isa_total_temperature(alt[0], mach[1])) + envelope.t2_dev_r[1]
+        low = np.array([alt[0], mach[0], envelope.tra_pct[0], t2_low])
+        high = np.array([alt[1], mach[1], envelope.tra_pct[1], t2_high])
+        return cls(w_low=low, w_high=high)
+
+
+def sample_reason(check: SampleCheck | None, w: Array, x: Array) -> Array:
+    """The reason code of one sample before any step (jittable, vmappable).
+
+    Args:
+        check: the valid box, or ``None`` (finiteness only).
+        w: ``[Wd]``. x: ``[S]``.
+
+    Returns:
+        ``[]`` int32: ``OK`` or the first failing input check of :data:`REASONS`.
+    """
+    codes = [REASON_CODE["w_nonfinite"], REASON_CODE["x_nonfinite"]]
+    bad = [~jnp.all(jnp.isfinite(w)), ~jnp.all(jnp.isfinite(x))]
+    if check is not None:
+        codes.append(REASON_CODE["w_out_of_range"])
+        bad.append(jnp.any((w < check.w_low) | (w > check.w_high)))
+        if check.x_low is not None:
+            codes.append(REASON_CODE["x_out_of_range"])
+            bad.append(jnp.any((x < check.x_low) | (x > check.x_high)))
+    reason = jnp.asarray(OK, jnp.int32)
+    for code, flag in reversed(list(zip(codes, bad, strict=True))):
+        reason = jnp.where(flag, jnp.int32(code), reason)
+    return reason
+
+
+class GuardCarry(NamedTuple):
+    """What a guarded stream carries between samples."""
+
+    state: CalState  # the calibrator's state after the last ok sample
+    out: CalStepOutput  # outputs of the last ok sample (zeros before any)
+    w: Array  # [Wd] last ok w (fed to the step on a flagged sample)
+    x: Array  # [S] last ok x
+
+
+def _all_finite(tree) -> Array:
+    """``[]`` bool: every float leaf of ``tree`` is finite (keys, ints ignored)."""
+    leaves = [
+        jnp.all(jnp.isfinite(leaf))
+        for leaf in jax.tree.leaves(tree)
+        if jnp.issubdtype(leaf.dtype, jnp.inexact)
+    ]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def guarded_update(
+    step: Callable, carry: GuardCarry, w_t: Array, x_t: Array, reason_t: Array
+) -> tuple[GuardCarry, CalStepOutput, Array]:
+    """One sample through ``step`` unless it is flagged (the rule of the module doc).
+
+    Args:
+        step: ``calibrator.step``.
+        carry: :class:`GuardCarry` after the previous sample.
+        w_t: ``[Wd]``. x_t: ``[S]``.
+        reason_t: ``[]`` int32 from :func:`sample_reason` (or ``MASKED``).
+
+    Returns:
+        ``(carry, out, reason)``: ``out`` is the new outputs if the row is ok, else
+        ``carry.out`` unchanged; ``reason`` adds ``state_nonfinite`` to ``reason_t``.
+    """
+    ok = reason_t == OK
+    w_in = jnp.where(ok, w_t, carry.w)  # never feed a flagged value to the model
+    x_in = jnp.where(ok, x_t, carry.x)
+    new_state, new_out = step(carry.state, w_in, x_in)
+    finite = _all_finite((new_state, new_out.theta))
+    reason = jnp.where(ok & ~finite, jnp.int32(STATE_NONFINITE), reason_t)
+    ok = reason == OK
+    keep = lambda new, old: jnp.where(ok, new, old)  # noqa: E731
+    state = jax.tree.map(keep, new_state, carry.state)
+    out = jax.tree.map(keep, new_out, carry.out)
+    w_keep, x_keep = jnp.where(ok, w_in, carry.w), jnp.where(ok, x_in, carry.x)
+    return GuardCarry(state, out, w_keep, x_keep), out, reason.astype(jnp.int32)
+
+
+def count_reasons(reason, mask=None) -> dict[str, int]:
+    """Host-side counts of flagged samples per reason (for every report).
+
+    Args:
+        reason: ``[...]`` int codes (``CalOutput.reason``).
+        mask: same shape, True on real samples; ``None`` counts all.
+
+    Returns:
+        ``{reason: count}`` for every name of :data:`FLAG_REASONS` (zeros included).
+    """
+    reason = np.asarray(reason)
+    if mask is not None:
+        reason = reason[np.asarray(mask, bool)]
+    counts = np.bincount(reason.ravel().astype(np.int64), minlength=len(REASONS))
+    return {name: int(counts[REASON_CODE[name]]) for name in FLAG_REASONS}
+
+
+def run_calibrator(
+    calibrator: Calibrator,
+    w: Array,
+    x: Array,
+    mask: Array | None = None,
+    *,
+    key: PRNGKey | None = None,
+    unroll: int = 1,
+    check: SampleCheck | None = None,
+) -> CalOutput:
+    """Run a calibrator over one padded record with ``lax.scan``, guarded.
+
+    Every row gets a reason up front (:func:`sample_reason`, vmapped; masked rows are
+    ``masked``). A row that is not ok does not advance the state and repeats the
+    previous outputs; the step is fed the last ok ``(w, x)`` instead, so a model is
+    never evaluated at padding or at a bad sample. Rows before the first ok one output
+    zeros. ``init`` receives the first ok sample. Not jitted: jit the caller,
+    e.g. ``jax.jit(run_calibrator, static_argnums=0)``.
+
+    Args:
+        calibrator: the method.
+        w: operating conditions, ``[T, Wd]``.
+        x: measurements, ``[T, S]``.
+        mask: validity, ``[T]`` bool; ``None`` means all valid.
+        key: PRNG key handed to ``calibrator.init`` (``None`` for deterministic ones).
+        unroll: ``lax.scan`` unroll factor (8 speeds up cheap steps).
+        check: the valid input box; ``None`` checks finiteness only.
+
+    Returns:
+        ``CalOutput`` with ``theta [T, P]``, ``xhat [T, S]``, ``aux`` entries
+        ``[T, ...]``, ``valid [T]`` and ``reason [T]``. Sums over time must use
+        ``valid`` (held rows repeat).
+    """
+    w, x, mask = _check_record(w, x, mask)
+    reason = jax.vmap(lambda w_t, x_t: sample_reason(check, w_t, x_t))(w, x)
+    reason = jnp.where(mask, reason, jnp.int32(MASKED))
+    first = jnp.argmax(reason == OK)  # the first ok row (0 if none is)
+    # nan_to_num is the identity on an ok row; it only matters when no row is ok.
+    w0, x0 = jnp.nan_to_num(w[first]), jnp.nan_to_num(x[first])
+    state0 = calibrator.init(key, w0, x0)
+    out_shape = jax.eval_shape(calibrator.step, state0, w0, x0)[1]
+    out0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
+
+    def body(carry, inputs):
+        carry, out, reason_t = guarded_update(calibrator.step, carry, *inputs)
+        return carry, (out, reason_t)
+
+    carry0 = GuardCarry(state0, out0, w0, x0)
+    _, (outs, reason) = lax.scan(body, carry0, (w, x, reason), unroll=unroll)
+    return CalOutput(
+        theta=outs.theta, xhat=outs.xhat, aux=outs.aux, valid=reason == OK,
+        reason=reason,
+    )  # fmt: skip
+
+
+def run_fleet(
+    calibrator: Calibrator,
+    w: Array,
+    x: Array,
+    mask: Array | None = None,
+    *,
+    keys: PRNGKey | None = None,
+    unroll: int = 1,
+    check: SampleCheck | None = None,
+) -> CalOutput:
+    """:func:`run_calibrator` vmapped over units.
+
+    Args:
+        calibrator: the method.
+        w: ``[U, T, Wd]``.
+        x: ``[U, T, S]``.
+        mask: ``[U, T]`` bool or ``None`` (all valid).
+        keys: ``[U]`` PRNG keys, or ``None`` for deterministic calibrators.
+        unroll: ``lax.scan`` unroll factor.
+        check: the valid input box shared by every unit (``None``: finiteness).
+
+    Returns:
+        ``CalOutput`` with ``theta [U, T, P]``, ``xhat [U, T, S]``, ``aux [U, T, ...]``,
+        ``valid [U, T]``, ``reason [U, T]``.
+    """
+    w, x = jnp.asarray(w), jnp.asarray(x)
+    if w.ndim != 3 or x.ndim != 3 or w.shape[:2] != x.shape[:2]:
+        raise ValueError(
+            f"run_fleet: expected w [U, T, Wd] and x [U, T, S] with equal U, T; got "
+            f"w {w.shape}, x {x.shape}"
+        )
+    if mask is None:
+        mask = jnp.ones(w.shape[:2], bool)
+    mask = jnp.asarray(mask)
+    if mask.shape != w.shape[:2]:
+        raise ValueError(
+            f"run_fleet: mask must be [U, T] = {w.shape[:2]}, got {mask.shape}"
+        )
+
+    def one(w_u, x_u, m_u, key_u):
+        return run_calibrator(
+            calibrator, w_u, x_u, m_u, key=key_u, unroll=unroll, check=check
+        )
+
+    return jax.vmap(one, in_axes=(0, 0, 0, None if keys is None else 0))(
+        w, x, mask, keys
+    )
+
+
+def measure_declared(
+    measure_full: Callable[[Array, Array], Array],
+    theta_base: Array,
+    declared_idx: Sequence[int] | Sequence[str],
+    sensor_idx: Sequence[int] | Sequence[str] | None = None,
+) -> MeasureFn:
+    """Restrict a full-parameter model to the declared parameters and chosen sensors.
+
+    Model-based calibrators estimate only the ``P`` declared parameters; the others are
+    held at ``theta_base``. Because the declared vector is scattered into the full one,
+    ``jax.jacfwd`` of the result costs ``P`` tangent sweeps, not one per full parameter.
+
+    Args:
+        measure_full: ``F(w [Wd], theta_full [P_full]) -> x_full [S_full]`` (for the
+            engine: ``lambda w, th: engine.evaluate(w, th)[0]``).
+        theta_base: ``[P_full]`` values of all parameters (undeclared ones stay here).
+        declared_idx: positions in ``theta_full`` of the declared parameters, or their
+            names in ``jaxcal.physics.constants.HEALTH_NAMES``.
+        sensor_idx: positions in ``x_full`` of the sensors to return, or their names in
+            ``SENSOR_NAMES``; ``None`` keeps all.
+
+    Returns:
+        ``measure(w [Wd], theta [P]) -> x [S]``.
+    """
+    theta_base = jnp.asarray(theta_base)
+    if theta_base.ndim != 1:
+        raise ValueError(f"theta_base must be [P_full], got shape {theta_base.shape}")
+    declared = _as_index(
+        declared_idx, health_index, "declared_idx", theta_base.shape[0]
+    )
+    sensors = (
+        None
+        if sensor_idx is None
+        else _as_index(sensor_idx, sensor_index, "sensor_idx", None)
+    )
+
+    def measure(w: Array, theta: Array) -> Array:
+        theta_full = theta_base.astype(theta.dtype).at[declared].set(theta)
+        x_full = measure_full(w, theta_full)
+        return x_full if sensors is None else x_full[sensors]
+
+    return measure
+
+
+def _as_index(idx, from_names, field: str, size: int | None) -> np.ndarray:
+    """Names or integers -> a unique 1-D int array, with a clear error otherwise."""
+    idx = list(idx)
+    if not idx:
+        raise ValueError(f"{field} must name at least one entry")
+    if all(isinstance(i, str) for i in idx):
+        idx = from_names(idx)
+    arr = np.asarray(idx)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{field} must be a sequence of ints or of names, got {idx!r}")
+    if len(set(arr.tolist())) != arr.size or arr.min() < 0:
+        raise ValueError(f"{field} must be unique non-negative indices, got {idx!r}")
+    if size is not None and arr.max() >= size:
+        raise ValueError(f"{field} has index {arr.max()} >= number of entries {size}")
+    return arr
+
+
+def _check_record(w, x, mask):
+    """Shape checks for one record: w [T, Wd], x [T, S], mask [T] (default all)."""
+    w, x = jnp.asarray(w), jnp.asarray(x)
+    if w.ndim != 2 or x.ndim != 2 or w.shape[0] != x.shape[0]:
+        raise ValueError(
+            "expected w [T, Wd] and x [T, S] with equal T; "
+            f"got w {w.shape}, x {x.shape}"
+        )
+    if mask is None:
+        mask = jnp.ones(w.shape[:1], bool)
+    mask = jnp.asarray(mask)
+    if mask.shape != w.shape[:1]:
+        raise ValueError(f"mask must be [T] = {w.shape[:1]} bool, got {mask.shape}")
+    return w, x, mask.astype(bool)
+
+
+def check_norm(norm: Any, name: str = "norm") -> SensorNorm:
+    """Validate a normalisation (anything with ``.mean`` and ``.std`` of shape ``[S]``).
+
+    Args:
+        norm: e.g. :class:`SensorNorm` or a data-set statistics object.
+        name: the argument name used in error messages.
+
+    Returns:
+        A :class:`SensorNorm` of arrays. Value checks (``std > 0``, finite) run only
+        when the arrays are concrete, so the function is safe under ``jit``/``vmap``.
+    """
+    if not (hasattr(norm, "mean") and hasattr(norm, "std")):
+        raise ValueError(f"{name} must have .mean and .std arrays of shape [S]")
+    mean, std = jnp.asarray(norm.mean), jnp.asarray(norm.std)
+    if mean.ndim != 1 or mean.shape != std.shape:
+        raise ValueError(
+            f"{name}.mean and {name}.std must both be [S]; "
+            f"got {mean.shape}, {std.shape}"
+        )
+    if not isinstance(std, jax.core.Tracer) and not isinstance(mean, jax.core.Tracer):
+        if not (np.all(np.isfinite(np.asarray(mean))) and np.all(np.asarray(std) > 0)):
+            raise ValueError(f"{name}: mean must be finite and std > 0 everywhere")
+    return SensorNorm(mean=mean, std=std)
+
+
+def check_scale(theta_scale: Array | None, num_params: int, dtype: Any) -> Array:
+    """``theta_scale`` -> a positive ``[P]`` array (ones when ``None``).
+
+    Args:
+        theta_scale: ``[P]`` per-parameter scales or ``None``.
+        num_params: ``P``.
+        dtype: float dtype of the result.
+
+    Returns:
+        ``[P]`` scales. The positivity check runs only on concrete values.
+    """
+    if theta_scale is None:
+        return jnp.ones((num_params,), dtype)
+    scale = jnp.asarray(theta_scale, dtype=dtype)
+    if scale.shape != (num_params,):
+        raise ValueError(
+            f"theta_scale must be [P] = ({num_params},), got {scale.shape}"
+        )
+    if not isinstance(scale, jax.core.Tracer) and not bool(jnp.all(scale > 0)):
+        raise ValueError("theta_scale must be > 0 everywhere")
+    return scale

@@ -1,0 +1,234 @@
+"""A trained tracking policy as a :class:`~jaxcal.calibrators.interface.Calibrator`.
+
+Deployment of the paper's policy (§3.1, "Implementation stage"): with the model output
+x-hat_{t-1} carried in the state, each new sample (w_t, x_t) gives
+
+    s = [norm(x-hat_{t-1}), norm(x_t), norm(w_t)],   theta_t = box(pi*(s)),
+    x-hat_t = D(w_t, x-hat_{t-1}, theta_t),
+
+with pi* = tanh(mean) the deterministic policy and ``box`` the environment's affine map
+to [theta_low, theta_high]. This is the training environment's step shifted by one
+index, so on samples t >= 1 the calibrator reproduces
+:func:`jaxcal.training.runner.evaluate_policy`. On the first sample there is no x-hat
+yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
+norm(w_0)])) and x-hat_0 = x_0.
+
+Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner
+(:func:`make_fleet_runner`) serves any trained policy of the same architecture
+without retracing.
+
+Guarded samples (:mod:`jaxcal.calibrators.interface`): the runners take a
+:class:`~jaxcal.calibrators.interface.SampleCheck`; :func:`range_check` builds it from
+the run's training range (``RunMeta.w_low`` ...) widened by
+:data:`TRAINING_RANGE_MARGIN` of its span on each side. A sample outside it is
+flagged and skipped, never clipped into the action box.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxcal.calibrators.interface import (
+    Calibrator,
+    CalOutput,
+    CalStepOutput,
+    GuardCarry,
+    SampleCheck,
+    guarded_update,
+    run_fleet,
+    sample_reason,
+)
+from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
+from jaxcal.typedefs import Array, PRNGKey, PyTree
+
+# "Far outside the training range": beyond the training min/max by more than this
+# fraction of its span. Test units drift past the training range as they degrade;
+# half a span is far beyond any such drift and far inside a unit or sign error.
+TRAINING_RANGE_MARGIN = 0.5
+
+
+@struct.dataclass
+class PolicyParams:
+    """Everything a deployed policy reads (all leaves: traced, checkpointable).
+
+    Attributes:
+        actor: parameters of the squashed Gaussian actor.
+        dyn_params: parameters of the dynamics (surrogate weights or engine constants).
+        w_mean, w_std: ``[W]`` training normalisation of w.
+        x_mean, x_std: ``[S]`` training normalisation of x and x-hat.
+        theta_low, theta_high: ``[P]`` action box.
+    """
+
+    actor: PyTree
+    dyn_params: PyTree
+    w_mean: Array
+    w_std: Array
+    x_mean: Array
+    x_std: Array
+    theta_low: Array
+    theta_high: Array
+
+
+@struct.dataclass
+class PolicyState:
+    """Calibrator state: the model output of the previous sample.
+
+    Attributes:
+        xhat: ``[S]`` x-hat_{t-1} (physical units).
+        started: ``[]`` bool, False before the first sample.
+    """
+
+    xhat: Array
+    started: Array
+
+
+def policy_params_from_env(env_params: EnvParams, actor_params: PyTree) -> PolicyParams:
+    """The deployment parameters of a policy trained on ``env_params``."""
+    return PolicyParams(
+        actor=actor_params,
+        dyn_params=env_params.dyn_params,
+        w_mean=env_params.w_mean,
+        w_std=env_params.w_std,
+        x_mean=env_params.x_mean,
+        x_std=env_params.x_std,
+        theta_low=env_params.theta_low,
+        theta_high=env_params.theta_high,
+    )
+
+
+def make_policy_calibrator(
+    actor: nn.Module, dynamics: Dynamics, params: PolicyParams
+) -> Calibrator:
+    """The deterministic policy pi* and the dynamics as ``Calibrator(init, step)``.
+
+    Args:
+        actor: the agent's actor module (``apply(params, obs) -> (mean, log_std)``).
+        dynamics: ``dynamics(dyn_params, w [W], xhat [S], theta [P]) -> xhat [S]``.
+        params: :class:`PolicyParams` (may be traced).
+
+    Returns:
+        A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is ``None``.
+    """
+
+    def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
+        del key, w0  # deterministic; x-hat starts at the first measurement
+        return PolicyState(xhat=x0, started=jnp.zeros((), bool))
+
+    def step(
+        state: PolicyState, w_t: Array, x_t: Array
+    ) -> tuple[PolicyState, CalStepOutput]:
+        xhat_prev = jnp.where(state.started, state.xhat, x_t)
+        obs = jnp.concatenate(
+            [
+                (xhat_prev - params.x_mean) / params.x_std,
+                (x_t - params.x_mean) / params.x_std,
+                (w_t - params.w_mean) / params.w_std,
+            ]
+        ).astype(jnp.float32)
+        mean, _ = actor.apply(params.actor, obs)
+        theta = action_to_theta(jnp.tanh(mean), params)
+        xhat = dynamics(params.dyn_params, w_t, xhat_prev, theta).astype(x_t.dtype)
+        xhat = jnp.where(state.started, xhat, x_t)
+        new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool))
+        return new_state, CalStepOutput(theta=theta, xhat=xhat)
+
+    return Calibrator(init, step)
+
+
+def range_check(meta, margin: float = TRAINING_RANGE_MARGIN) -> SampleCheck | None:
+    """The valid input box of a run: its training range widened by ``margin``.
+
+    Args:
+        meta: a :class:`~jaxcal.training.problem.RunMeta` (anything with ``w_low``,
+            ``w_high``, ``x_low``, ``x_high`` tuples or ``None``).
+        margin: fraction of the span added on each side.
+
+    Returns:
+        :class:`SampleCheck`, or ``None`` for a run written before the range was
+        stored (``data.json`` without it): those check finiteness only.
+    """
+    bounds = [getattr(meta, name, None) for name in ("w_low", "w_high", "x_low")]
+    if any(b is None for b in bounds):
+        return None
+    return SampleCheck.from_range(*bounds, meta.x_high, margin=margin)
+
+
+def make_fleet_runner(
+    actor: nn.Module, dynamics: Dynamics, *, unroll: int = 1
+) -> Callable[..., CalOutput]:
+    """A jitted ``run(params, w [U,T,W], x [U,T,S], mask [U,T], check=None)``.
+
+    ``lax.scan`` over time, ``vmap`` over units
+    (:func:`~jaxcal.calibrators.interface.run_fleet`); compiled once per array shape
+    (and once more with a ``check``). Returns a ``CalOutput`` with ``valid`` and
+    ``reason`` per sample.
+    """
+
+    def run(
+        params: PolicyParams,
+        w: Array,
+        x: Array,
+        mask: Array,
+        check: SampleCheck | None = None,
+    ) -> CalOutput:
+        calibrator = make_policy_calibrator(actor, dynamics, params)
+        return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
+
+    return jax.jit(run)
+
+
+def make_stream_step(
+    actor: nn.Module, dynamics: Dynamics
+) -> Callable[[PolicyParams, PolicyState, Array, Array], tuple[PolicyState, Array]]:
+    """A jitted single-sample step ``(params, state, w [W], x [S]) -> (state, theta)``.
+
+    The raw step, unguarded (the CPU bench's reference); deployment uses
+    :func:`make_guarded_stream_step`.
+    """
+
+    def step(params: PolicyParams, state: PolicyState, w: Array, x: Array):
+        new_state, out = make_policy_calibrator(actor, dynamics, params).step(
+            state, w, x
+        )
+        return new_state, out.theta
+
+    return jax.jit(step)
+
+
+def initial_guard_carry(
+    actor: nn.Module, dynamics: Dynamics, params: PolicyParams
+) -> GuardCarry:
+    """The carry of a guarded stream before its first sample.
+
+    Before any ok sample the outputs are zeros (theta = 0: healthy modifiers, as
+    ``run_calibrator`` outputs on leading padding) and the step, if fed a flagged
+    first sample, sees zeros (its result is discarded).
+    """
+    w = jnp.zeros_like(params.w_mean)
+    x = jnp.zeros_like(params.x_mean)
+    state = PolicyState(xhat=x, started=jnp.zeros((), bool))
+    step = make_policy_calibrator(actor, dynamics, params).step
+    out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
+    out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
+    return GuardCarry(state=state, out=out, w=w, x=x)
+
+
+def make_guarded_stream_step(
+    actor: nn.Module, dynamics: Dynamics
+) -> Callable[..., tuple[GuardCarry, CalStepOutput, Array]]:
+    """A jitted guarded step ``(params, carry, w [W], x [S], check) -> (carry, out,
+    reason [])``: the rule of ``run_calibrator`` for one sample
+    (:func:`~jaxcal.calibrators.interface.guarded_update`). ``check`` may be ``None``.
+    """
+
+    def step(params, carry: GuardCarry, w: Array, x: Array, check):
+        calibrator = make_policy_calibrator(actor, dynamics, params)
+        reason = sample_reason(check, w, x)
+        return guarded_update(calibrator.step, carry, w, x, reason)
+
+    return jax.jit(step)

@@ -1,0 +1,300 @@
+"""Close the loop on one record: calibrate, trace the residual, add the effect, compare.
+
+:func:`diagnose_record` runs the steps of design/loop.md:
+
+1. **Calibrate** the declared health modifiers (per-unit splines in cycle, jointly over
+   the record) — the "before" model. When the noise levels are not given they are
+   estimated from this fit's residual (:func:`.problem.estimate_noise_std`), sensors
+   whose readings are quantised are dropped, and the fit is repeated.
+2. **Trace** the normalised residual to the library (:func:`.identify.identify`).
+3. **Fallback.** A cross-validated ``delta(w)`` is fitted to the residual of the best
+   model so far (:mod:`.discrepancy`). If it is significant, the declared parameters
+   and delta are fitted by backfitting (alternating), the library is screened again
+   against that model, and an effect is kept only if it is still significant beyond
+   delta — a smooth ``delta(w)`` can mimic any constant effect, so the library is
+   preferred when it explains the data and delta takes only what it cannot.
+4. **Add** the chosen effect(s) (declared from now on), refit, and report the errors
+   before and after: tracking RMSE per sensor, theta RMSE where the truth is known and
+   residual whiteness.
+
+Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
+(the winner shares its signature with others within the BIC margin; the set is reported,
+the winner only stands in for it in the "after" model), ``discrepancy`` (delta only)
+and ``identified+discrepancy`` / ``confounded+discrepancy``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxcal.data.record import Record
+from jaxcal.diagnosis.discrepancy import (
+    Discrepancy,
+    DiscrepancyConfig,
+    fit_discrepancy,
+    predict_discrepancy,
+)
+from jaxcal.diagnosis.effects import Candidate, build_library
+from jaxcal.diagnosis.fitting import FitResult, ModelSpec, fit_model
+from jaxcal.diagnosis.identify import (
+    Identification,
+    IdentifyConfig,
+    effect_sizes,
+    identify,
+)
+from jaxcal.diagnosis.noise import estimate_noise_std
+from jaxcal.diagnosis.problem import LoopData, prepare_data
+from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
+from jaxcal.diagnosis.screen import spec_for
+from jaxcal.physics.constants import HEALTH_NAMES, health_index
+
+VERDICTS = (
+    "none",
+    "identified",
+    "confounded",
+    "discrepancy",
+    "identified+discrepancy",
+    "confounded+discrepancy",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Static settings of the diagnosis."""
+
+    knots: int = 6  # B-spline functions per unit for each declared modifier
+    candidate_knots: int = 3  # ... for each candidate (undeclared) modifier
+    families: tuple[str, ...] = ()  # restrict the library (empty: all families)
+    identify: IdentifyConfig = IdentifyConfig()
+    discrepancy: DiscrepancyConfig = DiscrepancyConfig()
+    max_lag: int = 10  # autocorrelation lags / Ljung–Box h
+    max_iters: int = 20  # Levenberg–Marquardt iterations of the declared-only fit
+
+
+class Stage(NamedTuple):
+    """A calibrated model and its errors ("before" or "after")."""
+
+    fit: FitResult
+    offset: np.ndarray | None  # [N, S] discrepancy term, sensor units
+    summary: ResidualSummary
+    tracking_rmse: np.ndarray  # [S] sensor units
+    tracking_rmse_norm: np.ndarray  # [S] multiples of the noise std
+    theta_rmse: dict  # modifier -> RMSE against the truth (empty without truth)
+    whiteness: float  # share of sensors whose Ljung–Box test passes at 1 %
+
+
+class DiagnosisResult(NamedTuple):
+    """Everything :mod:`.report` writes."""
+
+    data: LoopData
+    declared: tuple[str, ...]
+    library: tuple[Candidate, ...]
+    identification: Identification  # the library against the declared-only residual
+    rescreen: Identification | None  # again, against declared + delta (when delta fits)
+    verdict: str
+    identified: list  # dicts: name, kind, size, std, unit (the added effects)
+    confounded: list  # names, when the verdict is "confounded"
+    discrepancy: Discrepancy | None  # significant delta(w), or None
+    before: Stage
+    after: Stage
+    added: list  # names of the model terms added for "after"
+
+
+def make_stage(
+    data: LoopData, fit: FitResult, offset, max_lag: int, theta_names=()
+) -> Stage:
+    """Errors of a fitted model on the rows where the engine converged.
+
+    ``theta_rmse`` covers the fitted modifiers and ``theta_names`` (a modifier the
+    model does not fit is held at 0, so its RMSE is the size of its truth).
+    """
+    valid = fit.evaluation.valid
+    r = fit.evaluation.resid
+    err = r[valid] * data.noise_std
+    theta_rmse = {}
+    if data.theta_true is not None:
+        names = list(fit.spec.unit_params)
+        names += [n for n in theta_names if n not in names]
+        for name in names:
+            j = HEALTH_NAMES.index(name)
+            diff = fit.evaluation.theta[valid, j] - data.theta_true[valid, j]
+            theta_rmse[name] = float(np.sqrt(np.mean(diff**2)))
+    summary = summarize_residuals(
+        r, data.w, data.cycle, data.starts, max_lag=min(max_lag, data.num_rows - 1)
+    )
+    return Stage(
+        fit,
+        offset,
+        summary,
+        np.sqrt(np.mean(err**2, axis=0)),
+        np.sqrt(np.mean(r[valid] ** 2, axis=0)),
+        theta_rmse,
+        float(np.mean(summary.ljung_box_p > 0.01)),
+    )
+
+
+def _backfit(engine, data, spec, init, cfg: LoopConfig):
+    """Alternate theta (and effects) with delta(w): Hastie & Tibshirani backfitting."""
+    fit, offset, disc = (
+        fit_model(engine, data, spec, init, max_iters=cfg.max_iters),
+        None,
+        None,
+    )
+    for _ in range(cfg.discrepancy.backfit_rounds):
+        raw = fit.evaluation.resid + (
+            0.0 if offset is None else offset / data.noise_std
+        )
+        disc = fit_discrepancy(
+            data.w, raw, data.unit, data.sensor_names, cfg.discrepancy
+        )
+        offset = predict_discrepancy(disc, data.w) * data.noise_std
+        fit = fit_model(
+            engine, data, spec, fit.params, offset=offset, max_iters=cfg.max_iters
+        )
+    return fit, offset, disc
+
+
+def _effects_of(ident: Identification, fit: FitResult, library, data) -> list:
+    by_name = {c.name: c for c in library}
+    members = [by_name[m] for m in ident.winner.members]
+    sizes, stds = effect_sizes(fit, members, data)
+    return [
+        {
+            "name": c.name,
+            "kind": c.kind,
+            "family": c.family,
+            "target": c.target,
+            "size": s,
+            "std": e,
+            "unit": c.unit,
+        }
+        for c, s, e in zip(members, sizes, stds, strict=True)
+    ]
+
+
+def diagnose_record(
+    record: Record,
+    engine,
+    declared: Sequence[str],
+    cfg: LoopConfig = LoopConfig(),
+    *,
+    sensors: Sequence[str] | None = None,
+    units: Sequence[int] | None = None,
+    max_rows: int | None = None,
+    noise_std: Mapping[str, float] | None = None,
+) -> DiagnosisResult:
+    """Find the residual, trace it to an effect, add it and compare (module docstring).
+
+    Args:
+        record: the data (real or synthetic).
+        engine: the engine model (``jaxcal.physics.load_engine``).
+        declared: the calibrated health modifiers.
+        cfg: settings.
+        sensors: sensors of the residual (default: all usable).
+        units: units to use (default: all).
+        max_rows: subsample to about this many rows.
+        noise_std: known noise std by sensor (default: estimated).
+
+    Returns:
+        :class:`DiagnosisResult`.
+    """
+    declared = tuple(declared)
+    health_index(declared)
+    if not declared or len(set(declared)) != len(declared):
+        raise ValueError(
+            f"calibrate must name distinct health modifiers, got {declared}"
+        )
+    data = prepare_data(
+        record,
+        engine.sensor_names,
+        sensors=sensors,
+        units=units,
+        max_rows=max_rows,
+        knots=cfg.knots,
+        candidate_knots=cfg.candidate_knots,
+        noise_std=noise_std,
+    )
+    spec0 = ModelSpec(declared)
+    null = fit_model(engine, data, spec0, max_iters=cfg.max_iters)
+    if not null.evaluation.valid.all():
+        bad = int(np.sum(~null.evaluation.valid))
+        data = data.take_rows(
+            null.evaluation.valid,
+            f"{bad} rows dropped: the engine balance failed there",
+        )
+        null = fit_model(engine, data, spec0, max_iters=cfg.max_iters)
+    if noise_std is None:
+        resid = null.evaluation.resid * data.noise_std
+        std, reasons = estimate_noise_std(data, resid)
+        std = np.where(std > 0, std, data.noise_std)
+        data = data.with_noise(std, "estimated").drop_sensors(reasons)
+        null = fit_model(engine, data, spec0, null.params, max_iters=cfg.max_iters)
+    library = build_library(
+        engine.effect_names,
+        declared,
+        data.sensor_names,
+        data.noise_std,
+        np.abs(data.x).mean(0),
+        families=cfg.families or None,
+    )
+    if not library:
+        raise ValueError(
+            f"the effect library is empty for families {cfg.families} with "
+            f"calibrate={list(declared)}"
+        )
+    ident = identify(engine, data, declared, library, cfg.identify, null)
+    best = ident.winner_fit if ident.winner is not None else null
+    disc = fit_discrepancy(
+        data.w, best.evaluation.resid, data.unit, data.sensor_names, cfg.discrepancy
+    )
+    offset, final_ident = None, ident
+    if disc.any_significant:
+        fit_d, offset, disc = _backfit(engine, data, spec0, null.params, cfg)
+        final_ident = identify(
+            engine, data, declared, library, cfg.identify, fit_d, offset=offset
+        )
+        best = fit_d
+        if final_ident.winner is not None:
+            spec = spec_for(
+                declared, [c for c in library if c.name in final_ident.winner.members]
+            )
+            best, offset, disc = _backfit(
+                engine, data, spec, final_ident.winner_fit.params, cfg
+            )
+        if not disc.any_significant:
+            disc = None
+    else:
+        disc = None
+    identified, confounded, added = [], [], []
+    if final_ident.winner is not None:
+        identified = _effects_of(final_ident, best, library, data)
+        added = list(final_ident.winner.members)
+        confounded = list(final_ident.confounded)
+    if disc is not None:
+        added.append("discrepancy")
+    if final_ident.winner is None:
+        verdict = "discrepancy" if disc is not None else "none"
+    else:
+        verdict = "confounded" if confounded else "identified"
+        verdict += "+discrepancy" if disc is not None else ""
+    after = make_stage(data, best, offset, cfg.max_lag)
+    # theta RMSE "before" also covers the added modifiers (held at 0 there)
+    before = make_stage(data, null, None, cfg.max_lag, best.spec.unit_params)
+    return DiagnosisResult(
+        data,
+        declared,
+        library,
+        ident,
+        None if final_ident is ident else final_ident,
+        verdict,
+        identified,
+        confounded,
+        disc,
+        before,
+        after,
+        added,
+    )

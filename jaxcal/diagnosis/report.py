@@ -1,0 +1,395 @@
+"""Write a diagnosis as ``report.json``, ``report.md`` and PNG figures (host-only leaf).
+
+The JSON names the verdict, the identified effect(s) with their fitted sizes and
+standard errors, the ranking with its evidence (LR statistic, log10 p, BIC and delta
+BIC against the declared-only model), the confounded and absorbed candidates, the
+discrepancy (what it depends on) and the errors before and after: tracking RMSE per
+sensor in sensor units and in noise multiples, theta RMSE where the truth is known and
+residual whiteness (Ljung–Box per sensor). Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from jaxcal.diagnosis.identify import Identification
+from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
+from jaxcal.diagnosis.residuals import summary_table
+from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.plotting import plot_stacked_traces, save_figure
+
+MAX_RANKING = 20  # ranking rows written to the report
+
+
+def write_text(path: str, text: str) -> str:
+    """Write ``text`` to ``path`` atomically (temp file in the same directory)."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def json_safe(value):
+    """JSON-safe copy of nested dicts / lists: numpy to Python, NaN / inf to None."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _ranking(ident: Identification) -> list[dict]:
+    return [e._asdict() for e in ident.ranking[:MAX_RANKING]]
+
+
+def _stage(stage: Stage, names) -> dict:
+    return {
+        "tracking_rmse": dict(zip(names, stage.tracking_rmse.tolist(), strict=True)),
+        "tracking_rmse_norm": dict(
+            zip(names, stage.tracking_rmse_norm.tolist(), strict=True)
+        ),
+        "mean_tracking_rmse_norm": float(np.mean(stage.tracking_rmse_norm)),
+        "theta_rmse": stage.theta_rmse,
+        "whiteness": stage.whiteness,
+        "ssr": stage.fit.ssr,
+        "bic": stage.fit.bic,
+        "num_params": stage.fit.num_params,
+        "residuals": summary_table(stage.summary, names),
+    }
+
+
+def report_dict(
+    res: DiagnosisResult,
+    *,
+    source: str = "",
+    engine: str = "",
+    truth: dict | None = None,
+    config: dict | None = None,
+) -> dict:
+    """Everything of the diagnosis as a JSON-ready dict."""
+    d = res.data
+    disc = None
+    if res.discrepancy is not None:
+        disc = [
+            {
+                **s._asdict(),
+                "amplitude_units": s.amplitude * float(d.noise_std[j]),
+                "mean_units": s.mean * float(d.noise_std[j]),
+            }
+            for j, s in enumerate(res.discrepancy.sensors)
+            if s.significant
+        ]
+    out = {
+        "source": source,
+        "engine": engine,
+        "declared": list(res.declared),
+        "data": {
+            "rows": d.num_rows,
+            "units": d.num_units,
+            "unit_ids": d.unit_ids.tolist(),
+            "sensors": list(d.sensor_names),
+            "excluded": d.excluded,
+            "noise_std": dict(zip(d.sensor_names, d.noise_std.tolist(), strict=True)),
+            "noise_source": d.noise_source,
+            "knots_per_unit": d.num_knots,
+            "notes": list(d.notes),
+            # rows with NaN / Inf, dropped before the fit: in total and per column
+            "dropped": {"rows": d.dropped_rows, "columns": dict(d.dropped)},
+        },
+        "verdict": res.verdict,
+        "identified": res.identified,
+        "confounded": res.confounded,
+        "absorbed": res.identification.absorbed,
+        "added": res.added,
+        "num_tests": res.identification.num_tests,
+        "ranking": _ranking(res.identification),
+        "ranking_with_discrepancy": None
+        if res.rescreen is None
+        else _ranking(res.rescreen),
+        "discrepancy": disc,
+        "before": _stage(res.before, d.sensor_names),
+        "after": _stage(res.after, d.sensor_names),
+        "truth": truth,
+        "config": config,
+    }
+    return json_safe(out)
+
+
+def _stacked_residuals(path, res: DiagnosisResult) -> str:
+    d = res.data
+    cols = min(3, d.num_sensors)
+    rows = math.ceil(d.num_sensors / cols)
+    fig = Figure(figsize=(4.2 * cols, 2.2 * rows + 0.6), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    stride = max(1, d.num_rows // 4000)
+    idx = np.arange(0, d.num_rows, stride)
+    for j, ax in enumerate(axes):
+        if j >= d.num_sensors:
+            ax.set_visible(False)
+            continue
+        ax.plot(
+            idx,
+            res.before.fit.evaluation.resid[idx, j],
+            ".",
+            ms=1.5,
+            color="0.6",
+            label="before",
+        )
+        ax.plot(
+            idx,
+            res.after.fit.evaluation.resid[idx, j],
+            ".",
+            ms=1.5,
+            color="tab:blue",
+            label="after",
+        )
+        for b in d.starts[1:-1]:
+            ax.axvline(b, color="0.8", lw=0.5, ls=":")
+        ax.set_title(d.sensor_names[j], fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, markerscale=4)
+    fig.supxlabel("row (units stacked)")
+    fig.supylabel("residual / noise std")
+    return save_figure(fig, path)
+
+
+def _explained(path, res: DiagnosisResult) -> str:
+    """Before-residual against what the added terms explain, per sensor."""
+    d = res.data
+    before, after = res.before.fit.evaluation, res.after.fit.evaluation
+    explained = (after.yhat - before.yhat) / d.noise_std
+    cols = min(3, d.num_sensors)
+    rows = math.ceil(d.num_sensors / cols)
+    fig = Figure(figsize=(3.6 * cols, 3.0 * rows + 0.6), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    idx = np.arange(0, d.num_rows, max(1, d.num_rows // 3000))
+    for j, ax in enumerate(axes):
+        if j >= d.num_sensors:
+            ax.set_visible(False)
+            continue
+        ax.plot(explained[idx, j], before.resid[idx, j], ".", ms=2, alpha=0.5)
+        lo = min(explained[:, j].min(), before.resid[:, j].min())
+        hi = max(explained[:, j].max(), before.resid[:, j].max())
+        ax.plot([lo, hi], [lo, hi], color="tab:red", lw=0.8)
+        ax.set_title(d.sensor_names[j], fontsize=9)
+        ax.grid(alpha=0.3)
+    fig.supxlabel("change of the model output by the added terms / noise std")
+    fig.supylabel("residual before / noise std")
+    fig.suptitle(f"signature of {' + '.join(res.added) or 'nothing'} vs the residual")
+    return save_figure(fig, path)
+
+
+def _theta(path, res: DiagnosisResult) -> str:
+    d = res.data
+    names = list(res.after.fit.spec.unit_params)
+    cols = [HEALTH_NAMES.index(n) for n in names]
+    series = {
+        "before": res.before.fit.evaluation.theta[:, cols],
+        "after": res.after.fit.evaluation.theta[:, cols],
+    }
+    truth = None if d.theta_true is None else d.theta_true[:, cols]
+    return plot_stacked_traces(
+        path,
+        series,
+        truth,
+        d.starts[1:-1],
+        names=names,
+        title="health modifiers, units stacked",
+    )
+
+
+def write_report(
+    out_dir: str,
+    res: DiagnosisResult,
+    *,
+    source: str = "",
+    engine: str = "",
+    truth: dict | None = None,
+    config: dict | None = None,
+) -> dict:
+    """Write report.json, report.md and the figures into ``out_dir``.
+
+    Returns:
+        The report dict (as written to report.json, with the figure paths).
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    rep = report_dict(res, source=source, engine=engine, truth=truth, config=config)
+    figures = {
+        "residuals": _stacked_residuals(os.path.join(out_dir, "residuals.png"), res),
+        "signature": _explained(os.path.join(out_dir, "signature.png"), res),
+        "theta": _theta(os.path.join(out_dir, "theta.png"), res),
+    }
+    rep["figures"] = {k: os.path.basename(v) for k, v in figures.items()}
+    write_text(os.path.join(out_dir, "report.json"), json.dumps(rep, indent=1) + "\n")
+    write_text(os.path.join(out_dir, "report.md"), render_markdown(rep))
+    return rep
+
+
+def dropped_rows_line(dropped: dict) -> str:
+    """``{"rows", "columns"}`` of the report as one sentence (no final stop)."""
+    per_column = ", ".join(f"{k}: {v}" for k, v in dropped["columns"].items())
+    return (
+        f"Dropped {dropped['rows']} rows with NaN or Inf values before the fit "
+        f"(rows per column: {per_column})"
+    )
+
+
+def _fmt(v, digits=4):
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def render_markdown(rep: dict) -> str:
+    """The human-readable page of a report dict."""
+    d = rep["data"]
+    lines = [
+        f"# Diagnosis: {rep['source'] or 'record'}",
+        "",
+        f"Engine `{rep['engine']}`, declared (calibrated): "
+        f"{', '.join(f'`{n}`' for n in rep['declared'])}. {d['rows']} rows, "
+        f"{d['units']} units, {len(d['sensors'])} sensors in the residual; noise std "
+        f"{d['noise_source']}; {d['knots_per_unit']} spline functions per unit and "
+        "declared modifier." + "".join(f" {n}." for n in d["notes"]),
+        "",
+        f"**Verdict: {rep['verdict']}.**",
+        "",
+    ]
+    dropped = d.get("dropped") or {}
+    if dropped.get("rows"):
+        lines += [dropped_rows_line(dropped) + ".", ""]
+    if d["excluded"]:
+        lines += [
+            "Not in the residual: "
+            + "; ".join(f"{k} ({v})" for k, v in d["excluded"].items())
+            + ".",
+            "",
+        ]
+    if rep["identified"]:
+        lines += [
+            "## Identified effect",
+            "",
+            "| effect | size | std | unit |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            f"| {e['name']} | {_fmt(e['size'])} | {_fmt(e['std'], 2)} | {e['unit']} |"
+            for e in rep["identified"]
+        ]
+        lines.append("")
+    if rep["confounded"]:
+        lines += [
+            f"Confounded (signatures nearly collinear after projecting out the "
+            f"declared parameters, BIC within the margin): "
+            f"{', '.join(rep['confounded'])}. The first stands in for the set.",
+            "",
+        ]
+    if rep["discrepancy"]:
+        lines += [
+            "## Discrepancy delta(w) (not explained by the library)",
+            "",
+            "Shares of the cross-validated gain: *alone* = an offset only "
+            "(constant), or what delta on that input alone adds to the offset; "
+            "*unique* = lost when the input is dropped from the full delta.",
+            "",
+            "| sensor | std of delta | mean of delta | CV gain / threshold | "
+            "alone | unique |",
+            "|---|---|---|---|---|---|",
+        ]
+        for s in rep["discrepancy"]:
+            dep, uni = (
+                ", ".join(
+                    f"{k} {v:.2f}"
+                    for k, v in sorted(s[key].items(), key=lambda kv: -kv[1])
+                )
+                for key in ("dependence", "unique")
+            )
+            lines.append(
+                f"| {s['sensor']} | {_fmt(s['amplitude_units'])} | "
+                f"{_fmt(s['mean_units'])} | {s['cv_gain']:.0f} / "
+                f"{s['threshold']:.0f} | {dep} | {uni} |"
+            )
+        lines.append("")
+    lines += [
+        "## Ranking (declared-only residual)",
+        "",
+        f"{rep['num_tests']} tests; delta BIC > 0 favours the candidate over the "
+        "declared-only model; LR = SSR_0 - SSR (chi2 with df).",
+        "",
+        "| # | candidate | df | LR | log10 p | delta BIC | size | refit "
+        "| detectability |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for i, e in enumerate(rep["ranking"][:10]):
+        size = ", ".join(_fmt(s) for s in e["sizes"])
+        lines.append(
+            f"| {i + 1} | {e['name']} | {e['df']} | {_fmt(e['lr_stat'], 6)} | "
+            f"{_fmt(e['log10_p'], 4)} | {_fmt(e['delta_bic'], 6)} | {size} | "
+            f"{'yes' if e['refit'] else 'linear'} | {e['detectability']:.2f} |"
+        )
+    if rep["absorbed"]:
+        lines += [
+            "",
+            "Absorbed by the declared parameters (undetectable in the residual): "
+            + ", ".join(rep["absorbed"])
+            + ".",
+        ]
+    b, a = rep["before"], rep["after"]
+    lines += [
+        "",
+        "## Before / after",
+        "",
+        f"Added: {', '.join(rep['added']) or 'nothing'}. Mean tracking RMSE "
+        f"{b['mean_tracking_rmse_norm']:.3f} -> {a['mean_tracking_rmse_norm']:.3f} "
+        f"noise std; white sensors (Ljung–Box p > 0.01) {b['whiteness']:.2f} -> "
+        f"{a['whiteness']:.2f}; BIC {b['bic']:.1f} -> {a['bic']:.1f}.",
+        "",
+        "| sensor | RMSE before | after | before / std | after / std "
+        "| LB p before | after |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for j, s in enumerate(d["sensors"]):
+        rb, ra = b["residuals"][j], a["residuals"][j]
+        lines.append(
+            f"| {s} | {_fmt(b['tracking_rmse'][s])} | {_fmt(a['tracking_rmse'][s])} | "
+            f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
+            f"{rb['ljung_box_p']:.2g} | {ra['ljung_box_p']:.2g} |"
+        )
+    if b["theta_rmse"]:
+        lines += ["", "| theta RMSE vs truth | before | after |", "|---|---|---|"]
+        for k in a["theta_rmse"]:
+            lines.append(
+                f"| {k} | {_fmt(b['theta_rmse'].get(k))} | {_fmt(a['theta_rmse'][k])} |"
+            )
+    if rep.get("truth"):
+        lines += [
+            "",
+            "Truth: " + ", ".join(f"{k}={_fmt(v)}" for k, v in rep["truth"].items()),
+        ]
+    if rep.get("figures"):
+        lines += ["", "## Figures", ""]
+        lines += [f"![{k}]({v})" for k, v in rep["figures"].items()]
+    return "\n".join(lines) + "\n"

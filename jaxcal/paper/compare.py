@@ -1,0 +1,208 @@
+"""Run any method over whole test trajectories and measure it like every other one.
+
+:func:`evaluate_method` runs a :class:`~jaxcal.paper.methods.Method` through every
+unit of a split (its jitted fleet runner: ``lax.scan`` over time, ``vmap`` over units),
+with the model perturbation of the paper's robustness tables if asked, and returns
+the scores of :func:`jaxcal.training.scoring.score_units` (theta RMSE pooled and per
+parameter, tracking RMSE normalised by the training std and in sensor units) plus
+per-unit theta RMSE and the cost of the run:
+
+* ``compile_s``: tracing and compiling the fleet runner (ahead of time, excluded);
+* ``run_s`` and ``batched_samples_per_s``: one execution over all units at once.
+
+:func:`measure_latency` is the single-stream cost of the paper's Table "time": one
+sample at a time through the method's jitted ``step``, host numpy in and out, blocking
+— the same harness for every method. The paper reports seconds per sample on one CPU
+thread; this machine has two shared cores.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.calibrators.interface import count_reasons
+from jaxcal.paper.methods import Method, Problem
+from jaxcal.training.data import UnitArrays
+from jaxcal.training.scoring import score_units, theta_rmse
+
+
+class MethodRun(NamedTuple):
+    """Scores (JSON-ready) and the outputs behind them (host numpy)."""
+
+    scores: dict
+    theta: np.ndarray  # [U, T, P]
+    xhat: np.ndarray  # [U, T, S]
+
+
+def limit_units(
+    units: UnitArrays,
+    *,
+    max_units: int | None = None,
+    max_steps: int | None = None,
+    seed: int = 0,
+) -> UnitArrays:
+    """A seeded subset of ``max_units`` units, each cut to ``max_steps`` samples.
+
+    Every method of a table is scored on the same limited split. The subset is drawn
+    at random (then kept in unit order): unit ids of a factorial design follow its
+    levels, so the first ids alone would be a biased sample. ``None`` keeps all.
+    """
+    num = len(units.lengths)
+    if max_units is not None and max_units < num:
+        pick = jax.random.choice(jax.random.key(seed), num, (max_units,), replace=False)
+        keep = np.sort(np.asarray(pick))
+    else:
+        keep = np.arange(num)
+    steps = units.x.shape[1] if max_steps is None else min(max_steps, units.x.shape[1])
+    lengths = np.minimum(units.lengths[keep], steps).astype(np.int32)
+    steps = int(lengths.max())
+    return UnitArrays(
+        *(a[keep, :steps] for a in units[:3]),
+        lengths=lengths,
+        unit_ids=units.unit_ids[keep],
+    )
+
+
+def evaluate_method(
+    method: Method,
+    units: UnitArrays,
+    problem: Problem,
+    *,
+    seed: int = 0,
+    bias: float = 1.0,
+    noise_sigma: float = 0.0,
+    model_output: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> MethodRun:
+    """Scores of one method over whole unit trajectories.
+
+    Args:
+        method: the method.
+        units: the split (``[U, T, ...]``, padded, with lengths).
+        problem: sensors, parameter names and normalisation of the data set.
+        seed: root of the per-unit keys (only stochastic models use them).
+        bias: model-output bias alpha (1: none).
+        noise_sigma: model-output noise alpha_eta in training-std units (0: none).
+        model_output: ``(w [N, W], theta [N, P]) -> x [N, S]`` evaluated at the valid
+            samples when the method gives no model output (E2E); without it such a
+            method gets no tracking score.
+
+    Returns:
+        :class:`MethodRun`.
+    """
+    dtype = method.dtype
+    w, x = units.w.astype(dtype), units.x.astype(dtype)
+    mask = units.mask
+    keys = jax.random.split(jax.random.key(seed), len(units.lengths))
+    settings = (jnp.asarray(bias, dtype), jnp.asarray(noise_sigma, dtype))
+    tic = time.perf_counter()
+    compiled = method.run.lower(w, x, mask, keys, *settings).compile()
+    compile_s = time.perf_counter() - tic
+    tic = time.perf_counter()
+    out = jax.block_until_ready(compiled(w, x, mask, keys, *settings))
+    run_s = time.perf_counter() - tic
+    theta = np.asarray(out.theta, np.float64)
+    xhat = np.asarray(out.xhat, np.float64)
+    reason = np.asarray(out.reason)
+    scored = mask & np.asarray(out.valid)  # flagged samples are counted, not scored
+    if method.model_free and model_output is not None:
+        xhat = np.full(x.shape, np.nan)
+        xhat[scored] = model_output(units.w[scored], theta[scored])
+    finite = np.isfinite(xhat[scored]).all()
+    if finite:
+        scores = score_units(
+            theta, xhat, units.theta, units.x, mask, problem.norm.std,
+            problem.sensors, problem.theta_names, reason=reason,
+        )  # fmt: skip
+    else:  # no model output (or a diverged one): theta scores only
+        pooled, per_param = theta_rmse(theta, units.theta, scored)
+        scores = {
+            "theta_rmse": pooled,
+            "theta_rmse_per_param": dict(
+                zip(problem.theta_names, per_param.tolist(), strict=True)
+            ),
+            "tracking_rmse_norm": None,
+            "num_samples": int(mask.sum()),
+            "num_scored": int(scored.sum()),
+            "flagged": count_reasons(reason, mask),
+        }
+        scores["num_flagged"] = sum(scores["flagged"].values())
+    per_unit = np.sqrt(
+        np.nanmean(
+            np.where(scored[..., None], (theta - units.theta) ** 2, np.nan), axis=(1, 2)
+        )
+    )
+    scores.update(
+        method=method.name,
+        theta_finite=bool(np.isfinite(theta[scored]).all()),
+        theta_rmse_per_unit=dict(
+            zip(map(str, units.unit_ids.tolist()), per_unit.tolist(), strict=True)
+        ),
+        units=units.unit_ids.tolist(),
+        bias=bias,
+        noise_sigma=noise_sigma,
+        seed=seed,
+        compile_s=compile_s,
+        run_s=run_s,
+        batched_samples_per_s=int(mask.sum()) / run_s,
+        batched_units=len(units.lengths),
+        info=method.info,
+    )
+    return MethodRun(scores=scores, theta=theta, xhat=xhat)
+
+
+def measure_latency(
+    method: Method, units: UnitArrays, *, repeats: int, seed: int = 0
+) -> dict:
+    """Single-stream seconds per sample of ``method`` (clean model).
+
+    The method's ``step`` is jitted alone and called on consecutive samples of the
+    first unit (cycled), numpy in and out, after a compiling warm-up call.
+
+    Returns:
+        ``{"median_s", "min_s", "repeats"}``.
+    """
+    calibrator = method.build(
+        jnp.asarray(1.0, method.dtype), jnp.asarray(0.0, method.dtype)
+    )
+    length = int(units.lengths[0])
+    w = units.w[0, :length].astype(method.dtype)
+    x = units.x[0, :length].astype(method.dtype)
+    step = jax.jit(calibrator.step)
+    state = calibrator.init(jax.random.key(seed), w[0], x[0])
+    state, out = step(state, w[0], x[0])
+    np.asarray(out.theta)  # compiled and finished
+    times = np.empty(repeats)
+    for i in range(repeats):  # the harness is the stream: one host call per sample
+        t = (i + 1) % length
+        tic = time.perf_counter()
+        state, out = step(state, w[t], x[t])
+        np.asarray(out.theta)
+        times[i] = time.perf_counter() - tic
+    return {
+        "median_s": float(np.median(times)),
+        "min_s": float(times.min()),
+        "repeats": repeats,
+    }
+
+
+def stacked(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Valid samples of all units, one after the other (the paper's figures).
+
+    Args:
+        values: ``[U, T, ...]``.
+        mask: ``[U, T]``.
+
+    Returns:
+        ``(values [N, ...], starts [U])`` with ``starts`` the index where each unit
+        begins.
+    """
+    mask = np.asarray(mask, bool)
+    counts = mask.sum(axis=1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return np.asarray(values)[mask], starts

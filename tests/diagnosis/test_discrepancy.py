@@ -1,0 +1,62 @@
+"""The discrepancy fallback finds structure in w, reports what it depends on."""
+
+import numpy as np
+
+from jaxcal.diagnosis.discrepancy import (
+    DiscrepancyConfig,
+    _folds,
+    fit_discrepancy,
+    predict_discrepancy,
+)
+
+
+def _conditions(rng, n):
+    return np.stack(
+        [
+            rng.uniform(1e4, 3.5e4, n),
+            rng.uniform(0.3, 0.75, n),
+            rng.uniform(30, 85, n),
+            rng.uniform(430, 510, n),
+        ],
+        axis=1,
+    )
+
+
+def test_bump_in_mach_is_significant_and_attributed_to_mach():
+    rng = np.random.default_rng(1)
+    n = 600
+    w = _conditions(rng, n)
+    bump = 4.0 * np.exp(-(((w[:, 1] - 0.55) / 0.12) ** 2))
+    resid = np.stack([bump + rng.normal(size=n), rng.normal(size=n)], axis=1)
+    groups = np.repeat(np.arange(6), n // 6)
+    disc = fit_discrepancy(w, resid, groups, ("T30", "T50"), DiscrepancyConfig())
+    assert disc.sensors[0].significant and not disc.sensors[1].significant
+    dep = disc.sensors[0].dependence
+    assert max((k for k in dep if k != "constant"), key=dep.get) == "Mach"
+    delta = predict_discrepancy(disc, w)
+    assert delta.shape == (n, 2) and np.all(delta[:, 1] == 0.0)
+    # out of sample the fitted delta removes most of the bump
+    w_new = _conditions(rng, 200)
+    truth = 4.0 * np.exp(-(((w_new[:, 1] - 0.55) / 0.12) ** 2))
+    err = predict_discrepancy(disc, w_new)[:, 0] - truth
+    assert np.sqrt(np.mean(err**2)) < 0.35 * np.std(truth) + 0.2
+
+
+def test_constant_offset_is_reported_as_constant():
+    rng = np.random.default_rng(2)
+    n = 300
+    w = _conditions(rng, n)
+    resid = (1.5 + rng.normal(size=n))[:, None]
+    disc = fit_discrepancy(w, resid, np.zeros(n), ("T24",), DiscrepancyConfig())
+    s = disc.sensors[0]
+    assert s.significant and s.dependence["constant"] > 0.9
+    assert abs(s.mean - 1.5) < 0.3
+
+
+def test_folds_group_whole_units_or_contiguous_blocks():
+    groups = np.repeat(np.arange(10), 3)
+    f = _folds(groups, 5)
+    for g in range(10):
+        assert len(set(f[groups == g])) == 1
+    f1 = _folds(np.zeros(10), 5)
+    np.testing.assert_array_equal(f1, np.repeat(np.arange(5), 2))

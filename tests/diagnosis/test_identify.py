@@ -1,0 +1,119 @@
+"""The loop on small synthetic records: the right effect is ranked first, and more.
+
+One representative per family of the library; the clean record reports nothing; an
+effect outside the library falls back to delta(w). All share one engine compilation.
+"""
+
+import numpy as np
+import pytest
+from conftest import DECLARED
+
+from jaxcal.diagnosis.effects import CHUNK_ROWS, LAYER_NAMES, build_library, linearize
+from jaxcal.diagnosis.pipeline import diagnose_record
+
+CASES = [
+    ("sensor_bias", "Ps30"),
+    ("sensor_drift", "T48"),
+    ("health", "HPT_flow_mod"),
+    ("t2_offset", None),
+    ("customer_bleed", None),
+    ("core_nozzle_area", None),
+]
+
+
+@pytest.mark.parametrize("kind,target", CASES)
+def test_right_effect_is_identified_and_error_drops(engine, synthetic, kind, target):
+    syn = synthetic(kind, 0, target)
+    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    assert res.verdict == "identified", res.identification.ranking[:3]
+    assert res.added == [syn.truth.name]
+    found = res.identified[0]
+    if kind != "health":
+        # fitted size within 4 standard errors (or 3 %) of the truth
+        tol = max(4.0 * found["std"], 0.03 * abs(syn.truth.size))
+        assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
+    else:
+        assert found["size"] == pytest.approx(syn.truth.size, rel=0.3)
+    best = res.identification.ranking[0]
+    assert best.delta_bic > 10.0 and best.log10_p < -3.0
+    assert res.after.tracking_rmse_norm.mean() < res.before.tracking_rmse_norm.mean()
+    assert res.after.tracking_rmse_norm.mean() < 1.1
+    for name, rmse in res.after.theta_rmse.items():
+        assert rmse <= res.before.theta_rmse[name] * 1.05 + 2e-4, name
+
+
+def test_clean_record_reports_nothing(engine, synthetic):
+    syn = synthetic("none", 0)
+    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    assert res.verdict == "none"
+    assert res.identified == [] and res.discrepancy is None and res.added == []
+    np.testing.assert_allclose(res.after.tracking_rmse, res.before.tracking_rmse)
+    assert res.identification.ranking[0].delta_bic < 10.0
+
+
+def test_effect_outside_library_falls_back_to_discrepancy(engine, synthetic):
+    syn = synthetic("discrepancy", 0, "T30", 6.0)
+    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    assert res.verdict.endswith("discrepancy") and res.discrepancy is not None
+    s = res.data.sensor_names.index("T30")
+    sd = res.discrepancy.sensors[s]
+    assert sd.significant
+    inputs = {k: v for k, v in sd.dependence.items() if k != "constant"}
+    assert max(inputs, key=inputs.get) == "Mach"
+    assert "discrepancy" in res.added
+    assert res.after.tracking_rmse[s] < 0.8 * res.before.tracking_rmse[s]
+
+
+def test_signatures_match_finite_differences(engine):
+    w = np.array([[15000.0, 0.5, 70.0, 470.0], [30000.0, 0.7, 80.0, 440.0]])
+    theta = np.zeros((2, 10))
+    tau = np.array([0.2, 0.5])
+    lin = linearize(engine, w, theta, np.zeros(6), np.zeros((3, 35)), tau)
+    assert lin.ok.all()
+    for e, h in ((0, 0.05), (1, 1e-4)):  # t2_offset [degR], customer_bleed
+        step = np.zeros(6)
+        step[e] = h
+        up = linearize(engine, w, theta, step, np.zeros((3, 35)), tau).y
+        down = linearize(engine, w, theta, -step, np.zeros((3, 35)), tau).y
+        np.testing.assert_allclose(
+            lin.jac_effects[:, :, e], (up - down) / (2 * h), rtol=2e-4, atol=1e-7
+        )
+    layer = np.zeros((3, 35))
+    layer[1, 1] = 1e-3  # gain on T30
+    out = linearize(engine, w, theta, np.zeros(6), layer, tau)
+    np.testing.assert_allclose(out.y[:, 1] - lin.y[:, 1], 1e-3 * lin.jac_layer[:, 1, 1])
+    np.testing.assert_allclose(
+        lin.jac_layer[:, 2, :], np.broadcast_to(tau[:, None], (2, 35))
+    )
+
+
+def test_linearize_pads_chunks_consistently(engine, synthetic):
+    rec = synthetic("none", 0).record
+    n = CHUNK_ROWS + 7
+    w = np.concatenate([rec.w, rec.w])[:n]
+    full = linearize(
+        engine, w, np.zeros((n, 10)), np.zeros(6), np.zeros((3, 35)), np.zeros(n)
+    )
+    tail = linearize(
+        engine, w[-7:], np.zeros((7, 10)), np.zeros(6), np.zeros((3, 35)), np.zeros(7)
+    )
+    np.testing.assert_allclose(full.y[-7:], tail.y, rtol=1e-12)
+    assert full.y.shape == (n, 35) and full.jac_theta.shape == (n, 35, 10)
+
+
+def test_library_covers_every_family_once(engine):
+    sensors = ("T24", "T30")
+    lib = build_library(engine.effect_names, DECLARED, sensors, np.ones(2), np.ones(2))
+    names = [c.name for c in lib]
+    assert len(names) == len(set(names)) == 9 + 6 + 3 * 2
+    assert "health[HPT_eff_mod]" not in names and "health[LPT_eff_mod]" in names
+    assert {c.family for c in lib} == {"health", "engine", *LAYER_NAMES}
+    with pytest.raises(ValueError, match="unknown effect families"):
+        build_library(
+            engine.effect_names,
+            DECLARED,
+            sensors,
+            np.ones(2),
+            np.ones(2),
+            families=["magic"],
+        )
