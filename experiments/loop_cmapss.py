@@ -26,9 +26,9 @@ import sys
 import time
 
 from jaxcal.data.cmapss_text import load_cmapss_text
-from jaxcal.diagnosis.pipeline import LoopConfig, diagnose_record
+from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
 from jaxcal.diagnosis.report import write_report, write_text
-from jaxcal.physics import load_engine
+from jaxcal.models import load
 from jaxcal.precision import enable_compilation_cache, enable_x64
 from jaxcal.settings import config_to_dict, parse_overrides
 
@@ -120,7 +120,7 @@ def main(argv: list[str]) -> int:
         return 2
     enable_x64()
     enable_compilation_cache()
-    engine = load_engine(cfg.engine)
+    model = load(cfg.engine)
     loop_cfg = LoopConfig(knots=cfg.knots)
     command = "python experiments/loop_cmapss.py " + " ".join(argv)
     lines = [
@@ -135,8 +135,8 @@ def main(argv: list[str]) -> int:
     for fd, path in paths.items():
         start = time.time()
         record = load_cmapss_text(path)
-        res = diagnose_record(
-            record, engine, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None
+        res = diagnose(
+            record, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None
         )
         seconds = time.time() - start
         config = {
@@ -148,7 +148,7 @@ def main(argv: list[str]) -> int:
             os.path.join(cfg.out, fd),
             res,
             source=path,
-            engine=cfg.engine,
+            model=cfg.engine,
             config=config,
         )
         lines += _line(fd, rep, seconds)

@@ -5,15 +5,20 @@ number of field overrides (STYLE §2.6)::
 
     python -m jaxcal.train dataset=cmapss agent=lac preset=default seed=3 \
         agent.actor_lr=1e-4 runner.num_envs=32 theta=HPT_eff_mod
+    python -m jaxcal.train model=my_models.py:pump data=pump.csv theta=eff,leak
 
 * ``dataset=`` picks a :data:`DATASET_PRESETS` entry (which file, how it is read);
+  ``model=`` (a ``jaxcal.models.load`` spec; ``engine=`` is an alias) with
+  ``data=<file>`` trains on any model's data (the ``file`` preset, the default when
+  ``model=`` or ``data=`` is given without ``dataset=``);
 * ``preset=`` picks a size / hyperparameter regime: ``default`` (the tuned run that fits
   the 20-minute budget on a 2-core CPU), ``smoke`` (tiny networks, two chunks; tests)
   and ``paper`` (the paper's appendix hyperparameters for the agent, same budget);
 * ``agent=`` picks SAC, LAC or CLAC *within* the preset (:func:`agent_presets`);
-* every other ``key=value`` sets a field (dotted for nested configs); ``path``,
-  ``sensors`` and ``theta`` are also accepted at top level (``path`` means
-  ``dataset.path``).
+* every other ``key=value`` sets a field (dotted for nested configs); ``sensors``
+  and ``theta`` are top-level fields, and :data:`TOP_LEVEL_ALIASES` lists the short
+  forms (``data``/``path`` mean ``dataset.path``, ``outputs`` means ``sensors``,
+  ``test_units``/``val_units`` the ``dataset.`` fields).
 
 Existing config dataclasses are reused, not redefined: ``SurrogateConfig`` (with its
 ``RegressorConfig``), ``SACConfig | LACConfig | CLACConfig`` and ``RunnerConfig``. The
@@ -51,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Literal
 
 from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
@@ -62,15 +68,29 @@ from jaxcal.training.runner import RunnerConfig
 AgentConfig = SACConfig | LACConfig | CLACConfig
 AGENT_NAMES: dict[type, str] = {SACConfig: "sac", LACConfig: "lac", CLACConfig: "clac"}
 PRESET_NAMES: tuple[str, ...] = ("default", "smoke", "paper")
-TOP_LEVEL_ALIASES: dict[str, str] = {"path": "dataset.path"}
+TOP_LEVEL_ALIASES: dict[str, str] = {
+    "path": "dataset.path",
+    "data": "dataset.path",
+    "outputs": "sensors",
+    "test_units": "dataset.test_units",
+    "val_units": "dataset.val_units",
+    "engine": "model",
+}
 
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    """Which N-CMAPSS-layout file a run trains on, and how it is read."""
+    """Which data file a run trains on, and how it is read.
 
-    name: str = "cmapss"  # preset name (run names use it)
-    path: str = "data/cmapss.h5"  # HDF5 file in the N-CMAPSS layout
+    An ``.h5`` file in the N-CMAPSS layout has dev / test splits; any other file
+    (``.csv``, ``.parquet``, NASA C-MAPSS ``.txt``) is read as rows of the model's
+    variables (:func:`jaxcal.data.readers.read_dataset`): a ``split`` column
+    (train / val / test, or dev / test) is used when present, else whole units are
+    held out (``test_units``, ``val_units``).
+    """
+
+    name: str = "cmapss"  # preset name (run names use it; "": the file's stem)
+    path: str = "data/cmapss.h5"  # the data file
     # jaxcal.generate preset that builds `path` when the file is missing ("": never)
     generate: str = "cmapss"
     stride: int = 1  # keep every stride-th row (NASA files are 1 Hz)
@@ -78,6 +98,10 @@ class DataConfig:
     # dev units; (): none. Test units are the file's test split, scored at the end.
     val_units: tuple[int, ...] | None = None
     val_fraction: float = 0.15
+    # units held out for the final test of a file without a split column; None: the
+    # last test_fraction of its units (N-CMAPSS files: their test split, always)
+    test_units: tuple[int, ...] | None = None
+    test_fraction: float = 0.2
     # rows with NaN / Inf in w, the sensors or theta: "error" refuses the file (the
     # message names file, columns, first rows, counts); "drop" drops and logs them
     nonfinite: Literal["error", "drop"] = "error"
@@ -97,6 +121,10 @@ class DataConfig:
             raise ValueError(
                 f"dataset.rename must be <file name>:<jaxcal name> pairs (e.g. "
                 f"dataset.rename=T_24:T24,T_30:T30), got {list(bad)}"
+            )
+        if not 0.0 < self.test_fraction < 1.0:
+            raise ValueError(
+                f"dataset.test_fraction must be in (0, 1), got {self.test_fraction}"
             )
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(
@@ -182,6 +210,9 @@ class TrainConfig:
     """The resolved configuration of one training run (written to ``config.json``)."""
 
     seed: int = 0  # root PRNG seed (surrogate fit, agent, environments)
+    # the physics model (jaxcal.models.load spec: name, module:attr, file.py:attr);
+    # "": the engine an N-CMAPSS file names (cmapss for NASA's files)
+    model: str = ""
     # transition of the tracking MDP: the learned surrogate D (paper) or the physics F
     dynamics: Literal["surrogate", "physics"] = "surrogate"
     preset: str = "default"  # the preset the config was built from (informational)
@@ -216,7 +247,8 @@ class TrainConfig:
         """The run folder name (``output.name`` or one derived from the choices)."""
         if self.output.name:
             return self.output.name
-        name = f"{self.dataset.name}-{self.agent_name}-{self.dynamics}-s{self.seed}"
+        data = self.dataset.name or Path(self.dataset.path).stem or "data"
+        name = f"{data}-{self.agent_name}-{self.dynamics}-s{self.seed}"
         return name if self.preset == "default" else f"{name}-{self.preset}"
 
 
@@ -235,6 +267,8 @@ DATASET_PRESETS: dict[str, DataConfig] = {
     "ncmapss": DataConfig(name="ncmapss", path="", generate="", stride=10),
     # The generator's tiny fleet (three short units), for quick end-to-end checks.
     "tiny": DataConfig(name="tiny", path="data/tiny.h5", generate="tiny"),
+    # Any model's data file (data=<file>, model=<spec>): read as it is.
+    "file": DataConfig(name="", path="", generate=""),
 }
 
 _TUNED_AGENT = dict(
@@ -325,9 +359,10 @@ def make_train_config(dataset: str = "cmapss", preset: str = "default") -> Train
             budget=BudgetConfig(
                 num_chunks=2, eval_every=1, ckpt_every=1, time_limit_s=None
             ),
-            dataset=dataclasses.replace(
-                cfg.dataset, stride=max(cfg.dataset.stride, 20)
-            ),
+            # the generated 1 Hz files are thinned; a user's file is read as it is
+            dataset=cfg.dataset
+            if dataset == "file"
+            else dataclasses.replace(cfg.dataset, stride=max(cfg.dataset.stride, 20)),
         )
     return cfg
 
@@ -335,9 +370,11 @@ def make_train_config(dataset: str = "cmapss", preset: str = "default") -> Train
 def resolve_config(argv: Sequence[str]) -> TrainConfig:
     """The :class:`TrainConfig` of a ``key=value`` command line.
 
-    ``preset`` and ``dataset`` pick the base (:func:`make_train_config`), ``agent``
-    picks from :func:`agent_presets` of that preset, ``path`` is ``dataset.path``;
-    everything else goes through :func:`jaxcal.cli_args.parse_overrides`.
+    ``preset`` and ``dataset`` pick the base (:func:`make_train_config`; without
+    ``dataset=``, ``model=``/``data=`` pick the ``file`` preset, else ``cmapss``),
+    ``agent`` picks from :func:`agent_presets` of that preset, the
+    :data:`TOP_LEVEL_ALIASES` are expanded; everything else goes through
+    :func:`jaxcal.settings.parse_overrides`.
 
     Raises:
         ValueError: malformed token, unknown key (the message lists the valid keys),
@@ -359,11 +396,14 @@ def resolve_config(argv: Sequence[str]) -> TrainConfig:
     preset = choices.get("preset", "default")
     if preset not in PRESET_NAMES:
         raise ValueError(f"unknown preset {preset!r}; choose one of {PRESET_NAMES}")
-    base = make_train_config(choices.get("dataset", "cmapss"), preset)
+    keys = {t.partition("=")[0].strip() for t in argv}
+    default = "file" if keys & {"model", "engine", "data"} else "cmapss"
+    base = make_train_config(choices.get("dataset", default), preset)
     try:
         return parse_overrides(rest, base, {"agent": agent_presets(preset)})
     except ValueError as err:
         raise ValueError(
             f"{err} (also: preset={'|'.join(PRESET_NAMES)}, "
-            f"dataset={'|'.join(DATASET_PRESETS)}, path=<file.h5>)"
+            f"dataset={'|'.join(DATASET_PRESETS)}, model=<name|module:attr|file.py:"
+            "attr>, data=<file>, outputs=<names>)"
         ) from None

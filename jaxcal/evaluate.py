@@ -3,12 +3,14 @@
 Usage::
 
     python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=500]
+    python -m jaxcal.evaluate run=runs/<name> data=<file>
 
-Runs the run's deterministic policy through every unit of the split, whole
-trajectories (``lax.scan`` over time, vmapped over units; the deployment calibrator of
-:mod:`jaxcal.deploy`), and reports the theta RMSE (pooled and per parameter), the
-tracking RMSE (normalised, and per sensor in sensor units) and the deployment cost per
-sample (paper Table "time"):
+Runs the run's deterministic policy through every unit of the split (the held-out
+units the run recorded in ``data.json``; with ``data=``, every unit of that file, whose
+columns follow the run's model), whole trajectories (``lax.scan`` over time, vmapped
+over units; the deployment calibrator of :mod:`jaxcal.deploy`), and reports the
+theta RMSE (pooled and per parameter), the tracking RMSE (normalised, and per
+sensor in sensor units) and the deployment cost per sample (paper Table "time"):
 
 * single-stream latency: :meth:`jaxcal.deploy.StreamingCalibrator.step` on one sample
   (host numpy in and out, one jitted call, blocking), median and minimum over
@@ -17,7 +19,10 @@ sample (paper Table "time"):
   the split (median of three timed runs after the compiling one).
 
 Prints the results and writes them to ``runs/<name>/evaluate.json``
-(``evaluate_val.json`` for ``split=val``). The data file named in the run's config must
+(``evaluate_val.json`` for ``split=val``, ``evaluate_<file stem>.json`` for
+``data=``). Without a true-parameter column the theta RMSE is not scored. Works for
+any model's run (the model is rebuilt from the spec in ``data.json``); x64 is enabled
+when the run's model needs it. The data file named in the run's config must
 be readable, and the run folder writable: a folder that cannot take the report is an
 error (exit code 2) before the evaluation starts.
 """
@@ -31,12 +36,15 @@ import time
 from jaxcal.cli_args import parse_command_line
 from jaxcal.settings import check_output_path
 
-USAGE = "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=N]"
-KEYS = ("run", "split", "repeats")
+USAGE = (
+    "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [data=FILE] "
+    "[repeats=N]"
+)
+KEYS = ("run", "split", "repeats", "data")
 
 
 def parse_args(argv: list[str]) -> dict:
-    """``{"run", "split", "repeats"}`` from ``key=value`` tokens.
+    """``{"run", "split", "repeats", "data"}`` from ``key=value`` tokens.
 
     Raises:
         ValueError: malformed token, unknown key (lists the valid ones), missing run,
@@ -65,7 +73,14 @@ def parse_args(argv: list[str]) -> dict:
         ) from None
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
-    return {"run": args["run"], "split": split, "repeats": repeats}
+    if "data" in args and "split" in args:
+        raise ValueError("give split= or data=, not both (data= scores every unit)")
+    return {
+        "run": args["run"],
+        "split": split,
+        "repeats": repeats,
+        "data": args.get("data") or None,
+    }
 
 
 def measure_latency(calibrator, w, x, repeats: int) -> dict:
@@ -96,29 +111,47 @@ def measure_latency(calibrator, w, x, repeats: int) -> dict:
     }
 
 
-def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
-    """Scores and deployment cost of a run on one split (see the module docstring)."""
+def _split_units(run, split: str, data: str | None):
+    """The scored units: the run's recorded split, or every unit of ``data``."""
+    import dataclasses
+
+    from jaxcal.training.pipeline import read_run_data
+    from jaxcal.training.run_dir import DATA_FILE, read_json
+
+    problem = run.problem
+    if data is not None:
+        from jaxcal.data.readers import read_dataset
+        from jaxcal.training.tables import pad_units
+
+        rows = read_dataset(data, problem.model).for_model(
+            problem.model, problem.output_names
+        )
+        return pad_units(rows, rows.units, problem.theta_names)
+    stored = read_json(run.run_dir / DATA_FILE)
+    cfg = dataclasses.replace(
+        run.config,
+        model=stored.get("model_spec", run.config.model),
+        theta=problem.theta_names,
+        sensors=problem.output_names,
+    )
+    units = getattr(read_run_data(cfg, units=stored["units"], log=print), split)
+    if units is None:
+        raise ValueError(f"run {run.run_dir} has no {split} units")
+    return units
+
+
+def evaluate_run(
+    run_dir: str, split: str = "test", repeats: int = 500, data: str | None = None
+) -> dict:
+    """Scores and deployment cost of a run on one split, or on every unit of the
+    file ``data`` (see the module docstring)."""
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
-    from jaxcal.training.data import load_calibration_data, read_options
     from jaxcal.training.scoring import score_units
 
     run = load_run(run_dir)
-    cfg = run.config
-    data = load_calibration_data(
-        cfg.dataset.path,
-        sensors=run.meta.sensors,
-        theta=run.meta.theta_names,
-        val_units=tuple(_data_units(run.run_dir)["val"]),
-        stride=cfg.dataset.stride,
-        theta_margin=cfg.env.theta_margin,
-        log=print,  # rows dropped by dataset.nonfinite=drop
-        **read_options(cfg.dataset),
-    )
-    units = getattr(data, split)
-    if units is None:
-        raise ValueError(f"run {run_dir} has no {split} units")
+    units = _split_units(run, split, data)
     calibrator = StreamingCalibrator(run)
     theta, xhat, _, reason = calibrator.run(
         units.w, units.x, units.mask, return_flags=True
@@ -135,9 +168,9 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
         units.theta,
         units.x,
         units.mask,
-        np.asarray(run.params.x_std),
-        run.meta.sensors,
-        run.meta.theta_names,
+        run.problem.norm.x_std,
+        run.problem.output_names,
+        run.problem.theta_names,
         reason=reason,  # flagged samples (NaN, far outside training) are counted
     )
     first = units.lengths[0]
@@ -146,7 +179,7 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
     )
     return {
         "run": str(run.run_dir),
-        "split": split,
+        "split": split if data is None else str(data),
         "units": units.unit_ids.tolist(),
         "checkpoint_step": run.step,
         **scores,
@@ -157,12 +190,6 @@ def evaluate_run(run_dir: str, split: str = "test", repeats: int = 500) -> dict:
             "batched_units": int(len(units.unit_ids)),
         },
     }
-
-
-def _data_units(run_dir) -> dict:
-    from jaxcal.training.run_dir import DATA_FILE, read_json
-
-    return read_json(f"{run_dir}/{DATA_FILE}")["units"]
 
 
 def format_report(report: dict) -> str:
@@ -176,7 +203,9 @@ def format_report(report: dict) -> str:
             f"{report['run']} (checkpoint {report['checkpoint_step']}), "
             f"{report['split']} units {describe_units(report['units'])}, "
             f"{report['num_samples']:,} samples",
-            f"theta RMSE {report['theta_rmse']:.3e} ("
+            "theta RMSE: no true parameters to score"
+            if report["theta_rmse"] is None
+            else f"theta RMSE {report['theta_rmse']:.3e} ("
             + ", ".join(
                 f"{k} {v:.3e}" for k, v in report["theta_rmse_per_param"].items()
             )
@@ -210,18 +239,24 @@ def main(argv: list[str] | None = None) -> int:
     args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
     if code is not None:
         return code
-    from jaxcal.precision import enable_compilation_cache
+    from jaxcal.precision import enable_compilation_cache, enable_x64
     from jaxcal.training.run_dir import EVALUATION_FILE, write_json
+    from jaxcal.training.runs import needs_x64
 
     enable_compilation_cache()
 
     name = EVALUATION_FILE
-    if args["split"] != "test":
+    if args["data"] is not None:
+        stem = os.path.splitext(os.path.basename(args["data"]))[0]
+        name = name.replace(".json", f"_{stem}.json")
+    elif args["split"] != "test":
         name = name.replace(".json", f"_{args['split']}.json")
     try:
         # The report goes into the run folder: refuse one it cannot go to up front.
         check_output_path(os.path.join(args["run"], name), "run")
-        report = evaluate_run(args["run"], args["split"], args["repeats"])
+        if needs_x64(args["run"]):
+            enable_x64()  # before the model loads: its constants take the dtype
+        report = evaluate_run(args["run"], args["split"], args["repeats"], args["data"])
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -75,6 +75,27 @@ class ModelInfo(NamedTuple):
     native: Any = None
 
 
+class DiagnosisHints(NamedTuple):
+    """What the diagnosis (:mod:`jaxcal.diagnosis`) may know about a model beyond
+    its names and bounds. Every field is optional; ``None`` means the generic rule.
+
+    Attributes:
+        scales: parameter or effect name -> natural size of one unit (the diagnosis
+            fits and screens in these units); default 1 % of the bound range.
+        noise_rel: output name -> typical noise std relative to the mean ``|x|``
+            (the start level before the noise is estimated); default 0.01.
+        uninformative: output name -> why it carries no information about the
+            parameters (e.g. set by a controller); left out of the residual.
+        offset_conditions: conditions whose logged value may be off by a constant
+            (generic candidate effects); default all, ``()`` none.
+    """
+
+    scales: Mapping[str, float] | None = None
+    noise_rel: Mapping[str, float] | None = None
+    uninformative: Mapping[str, str] | None = None
+    offset_conditions: tuple[str, ...] | None = None
+
+
 StepFn = Callable[[Array, Array, Array], tuple[Array, Array, Any]]
 """``step(state [Z], w [W], theta [P]) -> (next_state [Z], x [S], valid [] or info)``."""
 
@@ -176,7 +197,10 @@ class Model:
         input_check: optional finer validity predicate ``check(w) -> [] bool``.
         effects: model-specific extension inputs for the diagnosis (their nominal
             value is "no effect").
-        effect_fn: ``effect_fn(w, theta, e [E]) -> x`` when ``effects`` is set.
+        effect_fn: ``effect_fn(w, theta, e [E]) -> x`` (or ``(x, valid)``, like
+            ``fn``) when ``effects`` is set.
+        diagnosis: :class:`DiagnosisHints` (scales, noise levels, outputs to leave
+            out of a residual) for the diagnosis; all optional.
         x64: the model needs float64 (an iterative solver inside).
         native: the object the model wraps (e.g. the turbofan ``Engine``), or None.
     """
@@ -194,6 +218,7 @@ class Model:
     effect_fn: Callable[[Array, Array, Array], Array] | None = None
     x64: bool = False
     native: Any = None
+    diagnosis: DiagnosisHints = DiagnosisHints()
 
     # ---------------------------------------------------------------- builders
 
@@ -212,6 +237,7 @@ class Model:
         effect_fn: Callable[[Array, Array, Array], Array] | None = None,
         x64: bool = False,
         native: Any = None,
+        diagnosis: DiagnosisHints | None = None,
     ) -> Model:
         """A static model from a pure JAX function ``fn(w [W], theta [P]) -> x [S]``.
 
@@ -232,6 +258,7 @@ class Model:
         return cls._build(
             name, conditions, parameters, outputs, step, init_state, (),
             condition_range, input_check, effects, effect_fn, x64, native,
+            diagnosis=diagnosis,
         )  # fmt: skip
 
     @classmethod
@@ -280,6 +307,7 @@ class Model:
     def _build(
         cls, name, conditions, parameters, outputs, step, init_state, states,
         condition_range, input_check, effects, effect_fn, x64, native,
+        diagnosis=None,
     ) -> Model:  # fmt: skip
         conditions = _variables(conditions, "conditions")
         if condition_range is not None:
@@ -309,6 +337,7 @@ class Model:
             effect_fn=effect_fn,
             x64=bool(x64),
             native=native,
+            diagnosis=DiagnosisHints() if diagnosis is None else diagnosis,
         )
 
     # ---------------------------------------------------------------- names
@@ -411,9 +440,18 @@ class Model:
 
     def evaluate_with_effects(self, w: Array, theta: Array, e: Array) -> Array:
         """``x`` with the model-specific extension inputs ``e [E]`` applied."""
+        return self.evaluate_effects(w, theta, e)[0]
+
+    def evaluate_effects(
+        self, w: Array, theta: Array, e: Array
+    ) -> tuple[Array, ModelInfo]:
+        """``(x [S_all], ModelInfo)`` with the extension inputs ``e [E]`` applied
+        (validity as in :meth:`evaluate`)."""
         if self.effect_fn is None:
             raise ValueError(f"model {self.name!r} registers no effects")
-        return self.effect_fn(w, theta, e)
+        out = self.effect_fn(w, theta, e)
+        x, valid = out if isinstance(out, tuple) else (out, None)
+        return x, self._info(w, theta, x, valid)
 
     def restrict(
         self,

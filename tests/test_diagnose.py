@@ -10,12 +10,35 @@ import pytest
 
 from jaxcal.data.cmapss_text import SENSOR_MAP
 from jaxcal.data.ncmapss_io import write_ncmapss
+from jaxcal.data.record import Record
 from jaxcal.diagnose import main
 from jaxcal.diagnosis.effects import linearize
-from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_record
-from jaxcal.physics import load_engine
+from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
+from jaxcal.models import load
+from jaxcal.models.turbofan_scenario import EFFECT_SIZES, FleetConfig, make_scenario
 from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES
 from jaxcal.physics.reference import FD002_CONDITIONS
+
+
+def _t2_offset_record(engine, size):
+    """A small turbofan fleet with a T2 offset, as an N-CMAPSS Record (all sensors)."""
+    cfg = SyntheticConfig(
+        sensors=MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES,
+        declared=("HPT_eff_mod",),
+        sizes=EFFECT_SIZES,
+        parameter_physical=True,
+    )
+    fleet = FleetConfig(num_units=2, rows_per_cycle=2, cycle_stride=2)
+    syn = make_synthetic_data(
+        jax.random.key(3), engine, "t2_offset", cfg, make_scenario(fleet), size=size
+    )
+    d = syn.data
+    n = d.num_rows
+    return Record(
+        w=d.w, x=d.x, x_names=d.output_names, theta=d.theta, unit=d.unit,
+        cycle=d.time.astype(int), flight_class=np.ones(n), hs=np.ones(n),
+        rul=np.zeros(n, int),
+    )  # fmt: skip
 
 
 def test_unknown_key_exits_2_and_lists_valid_keys(capsys):
@@ -29,10 +52,16 @@ def test_missing_arguments_and_bad_names_exit_2(tmp_path, capsys):
     assert "data=" in capsys.readouterr().err
     assert main([f"data={tmp_path / 'missing.txt'}", "calibrate=HPC_eff_mod"]) == 2
     assert "file not found" in capsys.readouterr().err
-    path = tmp_path / "x.csv"
+    path = tmp_path / "x.xyz"
     path.write_text("1\n")
     assert main([f"data={path}", "calibrate=HPC_eff_mod"]) == 2
     assert ".txt" in capsys.readouterr().err
+    path = tmp_path / "x.csv"  # a table must name the model's columns
+    path.write_text("1\n")
+    assert main([f"data={path}", "calibrate=HPC_eff_mod"]) == 2
+    assert "missing conditions ['alt', 'Mach', 'TRA', 'T2']" in capsys.readouterr().err
+    assert main([f"data={path}", "calibrate=HPC_erosion"]) == 2
+    assert "HPC_erosion" in capsys.readouterr().err
 
 
 def test_unwritable_out_exits_2_before_the_data_is_read(tmp_path, capsys):
@@ -63,7 +92,7 @@ def _write_cmapss(path, engine, rng, t30_bias):
         y = linearize(
             engine, w, theta, np.zeros(6), np.zeros((3, 35)), np.zeros(cond.size)
         ).y
-        names = list(engine.sensor_names)
+        names = list(engine.output_names)
         cols = {s: y[:, names.index(n)] for s, n in SENSOR_MAP.items()}
         cols[3] = cols[3] + t30_bias
         for s, col in cols.items():
@@ -96,7 +125,7 @@ def _write_cmapss(path, engine, rng, t30_bias):
 
 @pytest.fixture(scope="module")
 def engine():
-    return load_engine("cmapss")
+    return load("cmapss")
 
 
 def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
@@ -109,7 +138,7 @@ def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
             "engine=cmapss",
             "calibrate=HPC_eff_mod,HPC_flow_mod",
             f"out={out}",
-            "families=sensor_bias,sensor_gain,engine",
+            "families=sensor_bias,sensor_gain,effect",
         ]
     )
     assert code == 0, capsys.readouterr().err
@@ -136,15 +165,9 @@ def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
 
 
 def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engine):
-    cfg = SyntheticConfig(
-        num_units=2,
-        rows_per_cycle=2,
-        cycle_stride=2,
-        sensors=MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES,
-    )
-    syn = make_synthetic_record(jax.random.key(3), engine, "t2_offset", cfg, size=2.0)
+    record = _t2_offset_record(engine, 2.0)
     path = tmp_path / "N-CMAPSS_fake.h5"
-    write_ncmapss(path, syn.record, syn.record)
+    write_ncmapss(path, record, record)
     out = tmp_path / "out"
     assert main([f"data={path}", "calibrate=HPT_eff_mod", f"out={out}"]) == 0
     rep = json.loads((out / "report.json").read_text())
@@ -155,23 +178,17 @@ def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engi
 
 
 def test_cli_drops_nan_rows_and_says_so(tmp_path, engine, capsys):
-    cfg = SyntheticConfig(
-        num_units=2,
-        rows_per_cycle=2,
-        cycle_stride=2,
-        sensors=MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES,
-    )
-    syn = make_synthetic_record(jax.random.key(3), engine, "t2_offset", cfg, size=2.0)
-    x = syn.record.x.copy()
-    x[10:17, syn.record.x_names.index("T30")] = np.nan  # a sensor drop-out
-    x[40, syn.record.x_names.index("P50")] = np.inf
+    record = _t2_offset_record(engine, 2.0)
+    x = record.x.copy()
+    x[10:17, record.x_names.index("T30")] = np.nan  # a sensor drop-out
+    x[40, record.x_names.index("P50")] = np.inf
     path = tmp_path / "N-CMAPSS_nan.h5"
-    write_ncmapss(path, dataclasses.replace(syn.record, x=x), syn.record)
+    write_ncmapss(path, dataclasses.replace(record, x=x), record)
     out = tmp_path / "out"
     assert main([f"data={path}", "calibrate=HPT_eff_mod", f"out={out}"]) == 0
     said = "Dropped 8 rows with NaN or Inf values before the fit (rows per column: "
     assert said + "T30: 7, P50: 1)" in capsys.readouterr().out
     rep = json.loads((out / "report.json").read_text())
     assert rep["data"]["dropped"] == {"rows": 8, "columns": {"T30": 7, "P50": 1}}
-    assert rep["data"]["rows"] == len(syn.record) - 8
+    assert rep["data"]["rows"] == len(record) - 8
     assert said in (out / "report.md").read_text()

@@ -15,8 +15,9 @@ from support.synthetic_file import write_synthetic_ncmapss
 from jaxcal.calibrators.interface import run_fleet
 from jaxcal.config import resolve_config
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
-from jaxcal.envs.tracking import NormStats, make_env_params, make_tracking_env
+from jaxcal.envs.tracking import make_env_params, make_tracking_env
 from jaxcal.evaluate import main, parse_args
+from jaxcal.problem import Normalisation
 from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.problem import make_agent
@@ -106,7 +107,7 @@ def test_calibrator_reproduces_the_training_environment_rollout(trained):
         params.theta_low,
         params.theta_high,
         params.dyn_params,
-        stats=NormStats(params.w_mean, params.w_std, params.x_mean, params.x_std),
+        stats=Normalisation(params.w_mean, params.w_std, params.x_mean, params.x_std),
     )
     from jaxcal.envs.tracking import EnvConfig
 
@@ -178,7 +179,7 @@ def test_batch_run_flags_and_scores_only_valid_samples(trained):
     np.testing.assert_array_equal(theta[0, 3], theta[0, 2])
     theta_ok, _ = cal.run(units.w, units.x, units.mask)
     np.testing.assert_array_equal(theta[1], theta_ok[1])  # other units untouched
-    meta = json.loads((run_dir / "data.json").read_text())
+    meta = json.loads((run_dir / "data.json").read_text())["problem"]["input_range"]
     assert len(meta["x_low"]) == len(data.sensors) and len(meta["w_high"]) == 4
 
 

@@ -147,6 +147,13 @@ def calibrate(
         )
     dtype = _dtype(model)
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
+    if method == "policy" and options.get("run"):
+        # a trained policy fixes its parameters and outputs: default to the run's
+        from jaxcal.training.runs import load_run
+
+        run = options["run"] = load_run(options["run"])
+        theta = run.problem.theta_names if theta is None else theta
+        outputs = run.problem.output_names if outputs is None else outputs
     data = read_dataset(data, model, **reader).for_model(model, outputs)
     problem = Problem.build(model, data, theta=theta, noise=noise)
     padded = data.padded(dtype)

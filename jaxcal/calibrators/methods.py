@@ -26,15 +26,14 @@ from jaxcal.calibrators.interface import (
     SensorNorm,
     run_fleet,
 )
+from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.data.dataset import Padded
 from jaxcal.problem import Problem
 
-# Residual-based noise estimate: sliding-window LS, variance corrected for the
-# window's degrees of freedom, floored relative to the output's spread.
+# Residual-based noise estimate (floored relative to the output's spread).
 _NOISE_FLOOR_REL = 1e-6
 _NOISE_PASSES = 2  # the first pass weighs outputs by 1 % of their spread
-_NOISE_ITERS = 10  # LM iterations per sample (converged, unlike the streaming 3)
-_NOISE_WINDOW = 12  # short: a drifting parameter biases a long window's residual
+_NOISE_SETTLE = 0.1  # share of each unit's rows left out while the filter settles
 
 
 def model_check(problem: Problem) -> SampleCheck | None:
@@ -107,36 +106,46 @@ def _take(options: dict, cfg_type) -> dict:
 
 
 def estimate_noise(problem: Problem, padded: Padded) -> Problem:
-    """The noise std per output from the residual of a sliding-window LS pass.
+    """The noise std per output from the post-fit residual of a UKF pass.
 
-    The window fits ``P`` parameters to ``window * S`` residuals, so the residual
-    variance is scaled by ``n / (n - P)``; the first ``window`` rows of each unit
-    (a partly filled window) are left out.
+    The filter runs on a provisional noise (first 1 % of each output's spread, then
+    the previous pass's estimate) and the residual ``x_t - F(w_t, theta_t)`` at its
+    posterior mean is pooled over the units, leaving out each unit's first
+    :data:`_NOISE_SETTLE` share of rows while the filter settles. With ``S``
+    outputs and ``P`` parameters the posterior fit absorbs about ``P / S`` of the
+    residual variance, which is added back. The UKF (``2P + 1`` model evaluations a
+    sample) is used rather than least squares, whose Jacobians cost far more on a
+    model with an iterative solver.
     """
-    from jaxcal.calibrators.least_squares import LeastSquaresConfig
+    from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 
     dtype = padded.w.dtype
-    cfg = LeastSquaresConfig(window=_NOISE_WINDOW, num_iters=_NOISE_ITERS)
+    lengths = padded.mask.sum(axis=1, keepdims=True)
+    settled = np.arange(padded.x.shape[1])[None] >= _NOISE_SETTLE * lengths
+    num_s, num_p = len(problem.output_names), len(problem.theta_names)
+    dof = num_s / max(num_s - num_p, 1)
     for _ in range(_NOISE_PASSES):  # the second pass weighs outputs by the first
-        options = {"num_iters": cfg.num_iters, "window": cfg.window}
-        cal = _model_based("ls", problem, dtype, options)
+        cal = make_ukf(
+            problem.measure(),
+            UKFConfig(r=1.0, posterior_xhat=True),
+            noise_norm(problem, dtype),
+            theta0=jnp.asarray(problem.theta_prior, dtype),
+            theta_scale=jnp.asarray(problem.theta_half_width, dtype),
+        )
         out = make_runner(model_check(problem))(cal, padded)
         resid = np.asarray(out.xhat) - padded.x
-        early = np.arange(padded.x.shape[1]) < cfg.window
-        keep = np.asarray(out.valid) & ~early[None]
+        keep = np.asarray(out.valid) & settled
         if keep.sum() < 2:
             keep = np.asarray(out.valid)
         if keep.sum() < 2:
             raise ValueError(
                 "cannot estimate the noise: fewer than two valid samples; give noise="
             )
-        n = cfg.window * len(problem.output_names)
-        dof = n / max(n - len(problem.theta_names), 1)
         std = np.sqrt(np.mean(resid[keep] ** 2, axis=0) * dof)
         floor = _NOISE_FLOOR_REL * np.maximum(problem.norm.x_std, 1.0)
         problem = problem.with_noise(np.maximum(std, floor), "estimating")
     return problem.with_noise(
-        problem.noise_std, "estimated (sliding-window least-squares residual)"
+        problem.noise_std, "estimated (post-fit residual of a UKF pass)"
     )
 
 
@@ -186,25 +195,39 @@ def fit_e2e_sim(problem: Problem, padded: Padded, measure, cfg, seed: int, copie
     return fit_e2e(key_fit, w, np.nan_to_num(x), np.array(theta), ok, cfg)
 
 
-def _policy(problem: Problem, options: dict) -> Calibrator:
-    """A trained policy from ``run=<folder>``; its names must match the problem."""
-    from jaxcal.deploy import load_calibrator, load_run
+def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | None]:
+    """A trained policy from ``run=<folder>`` and its sample check (the run's own
+    training range, not the range of the data being calibrated); its names must
+    match the problem."""
+    # The run loader belongs to the training layer: a trained policy is one of its
+    # artefacts (imported here, when the method is asked for, not at import time).
+    from jaxcal.training.runs import LoadedRun, load_run, run_check
 
     run_dir = options.pop("run", None)
     if not run_dir:
         raise ValueError("method='policy' needs run=<trained run folder>")
-    run = load_run(run_dir)
-    if tuple(run.meta.theta_names) != problem.theta_names:
+    run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
+    run_dir = run.run_dir
+    names = run.problem.theta_names
+    if tuple(names) != problem.theta_names:
         raise ValueError(
-            f"run {run_dir} calibrates {list(run.meta.theta_names)}, not "
-            f"{list(problem.theta_names)}: pass theta={list(run.meta.theta_names)}"
+            f"run {run_dir} calibrates {list(names)}, not "
+            f"{list(problem.theta_names)}: pass theta={list(names)}"
         )
-    if tuple(run.meta.sensors) != problem.output_names:
+    if run.problem.model.condition_names != problem.model.condition_names:
         raise ValueError(
-            f"run {run_dir} uses outputs {list(run.meta.sensors)}, the data give "
-            f"{list(problem.output_names)}: pass outputs={list(run.meta.sensors)}"
+            f"run {run_dir} was trained on model {run.problem.model.name!r} with "
+            f"conditions {list(run.problem.model.condition_names)}, not "
+            f"{list(problem.model.condition_names)}"
         )
-    return load_calibrator(run)
+    outputs = run.problem.output_names
+    if tuple(outputs) != problem.output_names:
+        raise ValueError(
+            f"run {run_dir} uses outputs {list(outputs)}, the data give "
+            f"{list(problem.output_names)}: pass outputs={list(outputs)}"
+        )
+    cal = make_policy_calibrator(run.actor, run.dynamics, run.params)
+    return cal, run_check(run)
 
 
 def build_calibrator(
@@ -219,8 +242,8 @@ def build_calibrator(
         cal = _e2e(problem, padded, seed, options)
         run = make_runner(range_check(problem))
     else:
-        cal = _policy(problem, options)
-        run = make_runner(range_check(problem))
+        cal, check = _policy(problem, options)
+        run = make_runner(check)
     if options:
         raise ValueError(f"unknown option(s) for method={method!r}: {sorted(options)}")
     return cal, run

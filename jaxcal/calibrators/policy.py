@@ -19,7 +19,7 @@ without retracing.
 
 Guarded samples (:mod:`jaxcal.calibrators.interface`): the runners take a
 :class:`~jaxcal.calibrators.interface.SampleCheck`; :func:`range_check` builds it from
-the run's training range (``RunMeta.w_low`` ...) widened by
+the run's training range (``Problem.input_range``) widened by
 :data:`TRAINING_RANGE_MARGIN` of its span on each side. A sample outside it is
 flagged and skipped, never clipped into the action box.
 """
@@ -140,22 +140,24 @@ def make_policy_calibrator(
     return Calibrator(init, step)
 
 
-def range_check(meta, margin: float = TRAINING_RANGE_MARGIN) -> SampleCheck | None:
+def range_check(problem, margin: float = TRAINING_RANGE_MARGIN) -> SampleCheck | None:
     """The valid input box of a run: its training range widened by ``margin``.
 
     Args:
-        meta: a :class:`~jaxcal.training.problem.RunMeta` (anything with ``w_low``,
-            ``w_high``, ``x_low``, ``x_high`` tuples or ``None``).
+        problem: the run's :class:`~jaxcal.problem.Problem` (its ``input_range``:
+            min / max of the training units' valid samples).
         margin: fraction of the span added on each side.
 
     Returns:
-        :class:`SampleCheck`, or ``None`` for a run written before the range was
-        stored (``data.json`` without it): those check finiteness only.
+        :class:`SampleCheck`, or ``None`` when no range is stored (a run written
+        before it was): those check finiteness only.
     """
-    bounds = [getattr(meta, name, None) for name in ("w_low", "w_high", "x_low")]
-    if any(b is None for b in bounds):
+    rng = getattr(problem, "input_range", None)
+    if rng is None:
         return None
-    return SampleCheck.from_range(*bounds, meta.x_high, margin=margin)
+    return SampleCheck.from_range(
+        rng.w_low, rng.w_high, rng.x_low, rng.x_high, margin=margin
+    )
 
 
 def make_fleet_runner(

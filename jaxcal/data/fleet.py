@@ -2,9 +2,10 @@
 
 Engine units have different lengths, but jitted code needs static shapes (STYLE §2.4):
 :func:`to_fleet` pads every unit to a common length ``T`` on the host and carries a
-``[U, T]`` validity mask. :class:`NormStats` holds per-column mean / std of ``w`` and
-``x`` over the valid rows only; :func:`normalise` / :func:`denormalise` are pure and
-jittable.
+``[U, T]`` validity mask. :func:`fit_norm_stats` gives per-column mean / std of
+``w`` and ``x`` over the valid rows only, as the problem's one
+:class:`~jaxcal.problem.Normalisation`; :func:`normalise` / :func:`denormalise` are
+pure and jittable.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from flax import struct
 from jaxcal.data.record import Record
 from jaxcal.physics.constants import HEALTH_NAMES
 from jaxcal.precision import float_dtype
+from jaxcal.problem import Normalisation
 
 
 @struct.dataclass
@@ -49,16 +51,6 @@ class Fleet:
     cycle: jax.Array
     x_names: tuple[str, ...] = struct.field(pytree_node=False, default=())
     has_theta: bool = struct.field(pytree_node=False, default=True)
-
-
-@struct.dataclass
-class NormStats:
-    """Per-column mean and std of ``w`` ``[4]`` and ``x`` ``[S]``."""
-
-    w_mean: jax.Array
-    w_std: jax.Array
-    x_mean: jax.Array
-    x_std: jax.Array
 
 
 def to_fleet(record: Record, max_len: int | None = None) -> Fleet:
@@ -125,7 +117,7 @@ def _masked_mean_std(values: jax.Array, mask: jax.Array, min_std: float):
     return mean, jnp.maximum(jnp.sqrt(var), floor)
 
 
-def fit_norm_stats(fleet: Fleet, *, min_std: float = 1e-6) -> NormStats:
+def fit_norm_stats(fleet: Fleet, *, min_std: float = 1e-6) -> Normalisation:
     """Per-column mean and std of ``w`` and ``x`` over the valid steps of ``fleet``.
 
     Args:
@@ -134,14 +126,14 @@ def fit_norm_stats(fleet: Fleet, *, min_std: float = 1e-6) -> NormStats:
             columns normalise to 0 instead of dividing by zero.
 
     Returns:
-        :class:`NormStats` with ``w_*`` ``[4]`` and ``x_*`` ``[S]``.
+        :class:`Normalisation` with ``w_*`` ``[4]`` and ``x_*`` ``[S]``.
     """
     w_mean, w_std = _masked_mean_std(fleet.w, fleet.mask, min_std)
     x_mean, x_std = _masked_mean_std(fleet.x, fleet.mask, min_std)
-    return NormStats(w_mean=w_mean, w_std=w_std, x_mean=x_mean, x_std=x_std)
+    return Normalisation(w_mean=w_mean, w_std=w_std, x_mean=x_mean, x_std=x_std)
 
 
-def normalise(fleet: Fleet, stats: NormStats) -> Fleet:
+def normalise(fleet: Fleet, stats: Normalisation) -> Fleet:
     """Standardise ``w`` and ``x``: ``(value - mean) / std`` per column.
 
     Args:
@@ -157,7 +149,7 @@ def normalise(fleet: Fleet, stats: NormStats) -> Fleet:
     )
 
 
-def denormalise(fleet: Fleet, stats: NormStats) -> Fleet:
+def denormalise(fleet: Fleet, stats: Normalisation) -> Fleet:
     """Inverse of :func:`normalise`: ``value * std + mean`` per column.
 
     Args:

@@ -2,7 +2,7 @@
 
 Kennedy & O'Hagan (2001) write the data as ``x_t = F(w_t, theta) + delta(w_t)`` (paper
 eq. cal2). Here ``delta_s`` is, per sensor, a ridge regression on the monomials (up to
-degree 3) of the standardised operating conditions (alt, Mach, TRA, T2), a smooth
+degree 3) of the standardised operating conditions (the model's ``W``), a smooth
 regressor that is fitted in closed form and cross-validated exactly. Degree and ridge
 strength are chosen per sensor by K-fold cross-validation with folds grouped by unit
 (contiguous blocks of rows when there are fewer units than folds), so no unit is seen
@@ -32,8 +32,6 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
-
-from jaxcal.physics.constants import CONDITION_NAMES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,8 +71,8 @@ class Discrepancy(NamedTuple):
     sensors: tuple[SensorDiscrepancy, ...]
     coef: tuple[np.ndarray, ...]  # per sensor, monomial coefficients
     inputs: tuple[int, ...]  # columns of w that vary (the others are dropped)
-    w_mean: np.ndarray  # [4]
-    w_std: np.ndarray  # [4]
+    w_mean: np.ndarray  # [W]
+    w_std: np.ndarray  # [W]
 
     @property
     def any_significant(self) -> bool:
@@ -128,19 +126,28 @@ def fit_discrepancy(
     groups: np.ndarray,
     sensor_names: Sequence[str],
     cfg: DiscrepancyConfig,
+    condition_names: Sequence[str] | None = None,
 ) -> Discrepancy:
     """Fit and test ``delta_s(w)`` to a normalised residual.
 
     Args:
-        w: ``[N, 4]`` operating conditions.
+        w: ``[N, W]`` operating conditions.
         resid: ``[N, S]`` normalised residual (multiples of each sensor's noise std).
         groups: ``[N]`` unit of each row (cross-validation groups).
         sensor_names: ``S`` names.
         cfg: settings.
+        condition_names: ``W`` names of the conditions in ``dependence`` / ``unique``
+            (default ``w[0]``, ``w[1]``, ...).
 
     Returns:
         :class:`Discrepancy`, one entry per sensor.
     """
+    if condition_names is None:
+        condition_names = [f"w[{j}]" for j in range(w.shape[1])]
+    if len(condition_names) != w.shape[1]:
+        raise ValueError(
+            f"condition_names has {len(condition_names)} names for w [N, {w.shape[1]}]"
+        )
     w_mean, w_std = w.mean(0), w.std(0)
     inputs = tuple(
         j for j in range(w.shape[1]) if w_std[j] > 1e-9 * max(abs(w_mean[j]), 1)
@@ -165,10 +172,10 @@ def fit_discrepancy(
             dependence["constant"] = max(float(base[s] - const), 0.0) / gain
             for k, j in enumerate(inputs):
                 alone = _cv_sse(z[:, [k]], y, folds, d, r)[0]
-                dependence[CONDITION_NAMES[j]] = max(float(const - alone), 0.0) / gain
+                dependence[condition_names[j]] = max(float(const - alone), 0.0) / gain
                 keep = [i for i in range(len(inputs)) if i != k]
                 loss = _cv_sse(z[:, keep], y, folds, d, r)[0] - full
-                unique[CONDITION_NAMES[j]] = max(float(loss), 0.0) / gain
+                unique[condition_names[j]] = max(float(loss), 0.0) / gain
         sensors.append(
             SensorDiscrepancy(
                 name,

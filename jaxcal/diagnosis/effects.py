@@ -1,31 +1,35 @@
-"""The effect library of the closing-the-loop diagnosis and the extended model it needs.
+"""The effect library of the diagnosis and the extended model it needs.
 
-Every candidate effect is a parametric extension phi of the engine model F (paper eq.
-cal: ``x = g(F(w, theta), w)``) with a known physical meaning:
+Every candidate effect is a parametric extension phi of a static model F (paper eq.
+cal: ``x = g(F(w, theta), w)``) with a known meaning, read from the
+:class:`~jaxcal.model.Model`:
 
-* ``health[<name>]``: an undeclared health modifier, fitted per unit as a smooth
-  function of cycle like the declared ones (a component degrading that calibration
+* ``parameter[<name>]``: an undeclared model parameter, fitted per unit as a smooth
+  function of time like the declared ones (something that drifts which calibration
   does not move);
-* ``t2_offset``, ``customer_bleed``, ``power_offtake``, ``core_nozzle_area``,
-  ``bypass_nozzle_area``, ``inlet_recovery``: the engine's own extension inputs
-  (:data:`jaxcal.physics.cycle.EFFECT_NAMES`), constant over the record;
+* ``<effect>``: the model's own registered extension inputs (``model.effects`` /
+  ``model.effect_fn``; the turbofan's bleed, power offtake, nozzle areas, inlet
+  recovery, T2 offset), constant over the data;
+* ``condition_offset[<w>]``: a logged condition off by a constant (the model sees
+  ``w + offset``), for the conditions the model allows
+  (``DiagnosisHints.offset_conditions``);
 * ``sensor_bias[<s>]``, ``sensor_gain[<s>]``, ``sensor_drift[<s>]``: the measurement
-  layer ``y_s = x_s (1 + gain_s) + bias_s + drift_s tau`` with ``tau`` the cycles since
-  the unit's first one, per 100 cycles (:func:`sensor_layer`).
+  layer ``y_s = x_s (1 + gain_s) + bias_s + drift_s tau`` with ``tau`` the time since
+  the unit's first row, per 100 time steps (:func:`sensor_layer`).
 
-The extended model is ``y = sensor_layer(F(w, theta, effects), layer, tau)``. Its
-signatures ``dy/dphi`` are never tabulated: :func:`linearize` returns ``y`` with
-``jax.jacfwd`` of the extended model with respect to all 10 health modifiers and the 6
-engine effects (through the engine's implicit-function gradients) and ``jax.jvp`` of the
-measurement layer with respect to its per-sensor parameters. One jitted function with a
-fixed chunk of :data:`CHUNK_ROWS` rows serves every record and every engine design (the
-engine is a traced argument), so the expensive engine compilation happens once per
-process.
+The extended model is ``y = sensor_layer(F(w + offset, theta, effects), layer, tau)``.
+Its signatures ``dy/dphi`` are never tabulated: :func:`linearize` returns ``y`` with
+``jax.jacfwd`` with respect to every model parameter, the registered effects and (when
+the model allows condition offsets) the conditions, and ``jax.jvp`` of the measurement
+layer with respect to its per-sensor parameters. One jitted function with a fixed chunk
+of :data:`CHUNK_ROWS` rows serves every data set of a model (the model is a static
+argument, hashed by identity), so an expensive model compiles once per process.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -33,22 +37,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES, SENSOR_UNITS
+from jaxcal.model import Model
 
-CHUNK_ROWS = 256  # the one row-chunk shape the engine linearisation is compiled for
+CHUNK_ROWS = 256  # the one row-chunk shape the linearisation is compiled for
 LAYER_NAMES = ("sensor_bias", "sensor_gain", "sensor_drift")
-TAU_CYCLES = 100.0  # drift unit: per 100 cycles since the unit's first cycle
-THETA_SCALE = 0.01  # health modifiers are fitted in units of 1 %
-
-# Natural size of one unit of each engine effect (conditioning and reporting).
-ENGINE_EFFECT_SCALE = {
-    "t2_offset": (1.0, "degR"),
-    "customer_bleed": (0.01, "fraction of W25"),
-    "power_offtake": (100.0, "hp"),
-    "core_nozzle_area": (0.01, "relative"),
-    "bypass_nozzle_area": (0.01, "relative"),
-    "inlet_recovery": (0.001, "P2/Pt0"),
-}
+FAMILIES = ("parameter", "effect", "condition_offset", *LAYER_NAMES)
+TAU_CYCLES = 100.0  # drift unit: per 100 time steps since the unit's first row
+DEFAULT_SCALE_FRACTION = 0.01  # natural step: 1 % of a parameter's bound range
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,13 +51,13 @@ class Candidate:
     """One effect of the library.
 
     Attributes:
-        name: display name, e.g. ``"sensor_bias[T30]"``, ``"health[LPT_eff_mod]"``,
+        name: display name, e.g. ``"sensor_bias[T30]"``, ``"parameter[fouling]"``,
             ``"t2_offset"``.
-        family: ``"health"``, ``"engine"`` or one of :data:`LAYER_NAMES`.
-        target: the health modifier, engine effect or sensor it acts on.
-        per_unit: True for health candidates (a per-unit function of cycle).
+        family: one of :data:`FAMILIES`.
+        target: the parameter, registered effect, condition or output it acts on.
+        per_unit: True for parameter candidates (a per-unit function of time).
         scale: physical size of one unit of the fitted coefficient.
-        unit: physical unit of the effect size.
+        unit: physical unit of the effect size (the model's vocabulary).
     """
 
     name: str
@@ -74,63 +69,105 @@ class Candidate:
 
     @property
     def kind(self) -> str:
-        """Study label: the effect name for engine effects, else the family."""
-        return self.target if self.family == "engine" else self.family
+        """Study label: the effect name for registered effects, else the family."""
+        return self.target if self.family == "effect" else self.family
 
 
 def candidate_name(family: str, target: str) -> str:
     """Display name of a library member (``family`` as in :class:`Candidate`)."""
-    return target if family == "engine" else f"{family}[{target}]"
+    return target if family == "effect" else f"{family}[{target}]"
+
+
+def natural_scale(model: Model, name: str) -> float:
+    """Size of one fitted unit of a parameter or registered effect ``name``:
+    ``DiagnosisHints.scales`` when given, else 1 % of its bound range."""
+    scales = model.diagnosis.scales or {}
+    if name in scales:
+        return float(scales[name])
+    for p in (*model.parameters, *model.effects):
+        if p.name == name:
+            return DEFAULT_SCALE_FRACTION * (p.high - p.low)
+    raise ValueError(f"model {model.name!r} has no parameter or effect {name!r}")
+
+
+def offset_conditions(model: Model) -> tuple[str, ...]:
+    """The conditions that may carry a constant offset (generic candidates)."""
+    allowed = model.diagnosis.offset_conditions
+    return model.condition_names if allowed is None else tuple(allowed)
 
 
 def build_library(
-    effect_names: Sequence[str],
+    model: Model,
     declared: Sequence[str],
     sensor_names: Sequence[str],
     noise_std: np.ndarray,
     sensor_mean_abs: np.ndarray,
+    condition_scale: np.ndarray | None = None,
     *,
     families: Sequence[str] | None = None,
 ) -> tuple[Candidate, ...]:
-    """All candidate effects for a record (the undeclared health modifiers first).
+    """All candidate effects for a data set (the undeclared parameters first).
 
     Args:
-        effect_names: the engine's ``effect_names``.
-        declared: declared (calibrated) health modifiers; they are not candidates.
-        sensor_names: the ``S`` sensors of the residual.
-        noise_std: ``[S]`` noise std per sensor (sets the sensor-layer scales).
+        model: the model (its parameters, effects, conditions and units).
+        declared: declared (calibrated) parameters; they are not candidates.
+        sensor_names: the ``S`` outputs of the residual.
+        noise_std: ``[S]`` noise std per output (sets the sensor-layer scales).
         sensor_mean_abs: ``[S]`` mean ``|x_s|`` (scale of a gain).
+        condition_scale: ``[W]`` natural size of a condition offset (default 1).
         families: restrict to these families (``None``: all).
 
     Returns:
-        The candidates in a fixed order: health, engine effects, then per sensor bias,
-        gain and drift.
+        The candidates in a fixed order: parameters, registered effects, condition
+        offsets, then per output bias, gain and drift.
     """
     keep = set(families) if families is not None else None
-    unknown = None if keep is None else keep - {"health", "engine", *LAYER_NAMES}
+    unknown = None if keep is None else keep - set(FAMILIES)
     if unknown:
         raise ValueError(
-            f"unknown effect families {sorted(unknown)}; valid: health, engine, "
-            f"{', '.join(LAYER_NAMES)}"
+            f"unknown effect families {sorted(unknown)}; valid: {', '.join(FAMILIES)}"
         )
+
+    def wanted(family):
+        return keep is None or family in keep
+
     out = []
-    if keep is None or "health" in keep:
-        for h in HEALTH_NAMES:
-            if h not in declared:
+    if wanted("parameter"):
+        for p in model.parameters:
+            if p.name not in declared:
                 out.append(
                     Candidate(
-                        candidate_name("health", h), "health", h, True, THETA_SCALE, "-"
-                    )
+                        candidate_name("parameter", p.name),
+                        "parameter",
+                        p.name,
+                        True,
+                        natural_scale(model, p.name),
+                        p.unit,
+                    )  # fmt: skip
                 )
-    if keep is None or "engine" in keep:
-        for e in effect_names:
-            scale, unit = ENGINE_EFFECT_SCALE.get(e, (1.0, "-"))
-            out.append(Candidate(e, "engine", e, False, scale, unit))
+    if wanted("effect"):
+        for e in model.effects:
+            scale = natural_scale(model, e.name)
+            out.append(Candidate(e.name, "effect", e.name, False, scale, e.unit))
+    if wanted("condition_offset"):
+        for name in offset_conditions(model):
+            j = model.condition_names.index(name)
+            scale = 1.0 if condition_scale is None else float(condition_scale[j])
+            out.append(
+                Candidate(
+                    candidate_name("condition_offset", name),
+                    "condition_offset",
+                    name,
+                    False,
+                    scale,
+                    model.conditions[j].unit,
+                )  # fmt: skip
+            )
     for family in LAYER_NAMES:
-        if keep is not None and family not in keep:
+        if not wanted(family):
             continue
         for s, name in enumerate(sensor_names):
-            unit = sensor_unit(name)
+            unit = model.unit_of(name)
             scale = {
                 "sensor_bias": float(noise_std[s]),
                 "sensor_gain": float(noise_std[s] / max(sensor_mean_abs[s], 1e-12)),
@@ -149,21 +186,16 @@ def build_library(
     return tuple(out)
 
 
-def sensor_unit(name: str) -> str:
-    """Physical unit of a sensor (``"-"`` when unknown)."""
-    return SENSOR_UNITS[SENSOR_NAMES.index(name)] if name in SENSOR_NAMES else "-"
-
-
 def sensor_layer(x: jax.Array, layer: jax.Array, tau: jax.Array) -> jax.Array:
     """The measurement extension ``y = x (1 + gain) + bias + drift tau``.
 
-    Elementwise over sensors: ``y_s`` depends on ``layer[:, s]`` only, which is what
-    lets :func:`linearize` read each per-sensor derivative from one ``jvp``.
+    Elementwise over outputs: ``y_s`` depends on ``layer[:, s]`` only, which is what
+    lets :func:`linearize` read each per-output derivative from one ``jvp``.
 
     Args:
         x: ``[S]`` model output.
-        layer: ``[3, S]`` (bias, gain, drift) per sensor, zeros = no extension.
-        tau: ``[]`` cycles since the unit's first cycle / :data:`TAU_CYCLES`.
+        layer: ``[3, S]`` (bias, gain, drift) per output, zeros = no extension.
+        tau: ``[]`` time since the unit's first row / :data:`TAU_CYCLES`.
 
     Returns:
         ``[S]`` measured values.
@@ -172,24 +204,31 @@ def sensor_layer(x: jax.Array, layer: jax.Array, tau: jax.Array) -> jax.Array:
 
 
 class Linearization(NamedTuple):
-    """The extended model and its signatures at ``N`` rows (``E`` engine sensors)."""
+    """The extended model and its signatures at ``N`` rows (``E`` model outputs)."""
 
     y: np.ndarray  # [N, E] extended model output
-    jac_theta: np.ndarray  # [N, E, 10] dy/dtheta
-    jac_effects: np.ndarray  # [N, E, 6] dy/d(engine effects)
+    jac_theta: np.ndarray  # [N, E, P_all] dy/dtheta
+    jac_effects: np.ndarray  # [N, E, n_eff] dy/d(registered effects)
+    jac_w: np.ndarray  # [N, E, W] dy/d(condition offset), or [N, E, 0] when off
     jac_layer: np.ndarray  # [N, 3, E] dy_s/d(bias_s, gain_s, drift_s)
-    ok: np.ndarray  # [N] bool: finite outputs and signatures, balance converged
+    ok: np.ndarray  # [N] bool: finite outputs and signatures, the model valid
 
 
-def _linearize_row(engine, w, theta, effects, layer, tau):
-    def extended(th, ef):
-        x, info = engine.evaluate(w, th, effects=ef)
+def _linearize_row(model: Model, with_w: bool, w, theta, effects, w_off, layer, tau):
+    def extended(th, ef, off):
+        if model.effects:
+            x, info = model.evaluate_effects(w + off, th, ef)
+        else:
+            x, info = model.evaluate(w + off, th)
         y = sensor_layer(x, layer, tau)
-        return y, (y, x, info.converged)
+        return y, (y, x, info.valid)
 
-    (j_th, j_ef), (y, x, converged) = jax.jacfwd(
-        extended, argnums=(0, 1), has_aux=True
-    )(theta, effects)
+    argnums = (0, 1, 2) if with_w else (0, 1)
+    jacs, (y, x, valid) = jax.jacfwd(extended, argnums=argnums, has_aux=True)(
+        theta, effects, w_off
+    )
+    j_th, j_ef = jacs[0], jacs[1]
+    j_w = jacs[2] if with_w else jnp.zeros(y.shape + (0,), y.dtype)
     eye3 = jnp.eye(3, dtype=layer.dtype)
     j_layer = jax.vmap(
         lambda e: jax.jvp(
@@ -198,21 +237,28 @@ def _linearize_row(engine, w, theta, effects, layer, tau):
             (jnp.outer(e, jnp.ones_like(x)),),
         )[1]
     )(eye3)
-    ok = converged & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(j_th))
-    ok = ok & jnp.all(jnp.isfinite(j_ef))
-    return y, j_th, j_ef, j_layer, ok
+    ok = valid & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(j_th))
+    ok = ok & jnp.all(jnp.isfinite(j_ef)) & jnp.all(jnp.isfinite(j_w))
+    return y, j_th, j_ef, j_w, j_layer, ok
 
 
-@jax.jit
-def _linearize_chunk(engine, w, theta, effects, layer, tau):
-    """Jitted entry point: ``[C]`` rows, one shape for every record (engine traced)."""
-    return jax.vmap(_linearize_row, in_axes=(None, 0, 0, None, None, 0))(
-        engine, w, theta, effects, layer, tau
-    )
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _linearize_chunk(model, with_w, w, theta, effects, w_off, layer, tau):
+    """Jitted entry point: ``[C]`` rows, one shape for every data set of a model."""
+    return jax.vmap(
+        functools.partial(_linearize_row, model, with_w),
+        in_axes=(0, 0, None, None, None, 0),
+    )(w, theta, effects, w_off, layer, tau)
 
 
 def linearize(
-    engine, w: np.ndarray, theta: np.ndarray, effects, layer, tau: np.ndarray
+    model: Model,
+    w: np.ndarray,
+    theta: np.ndarray,
+    effects,
+    layer,
+    tau: np.ndarray,
+    w_offset=None,
 ) -> Linearization:
     """Extended-model output and signatures for any number of rows.
 
@@ -220,28 +266,38 @@ def linearize(
     chunk is padded with its final row so that the compiled shape never changes.
 
     Args:
-        engine: an engine (``evaluate(w, theta, *, effects)``, ``effect_names``).
-        w: ``[N, 4]`` operating conditions.
-        theta: ``[N, 10]`` health modifiers.
-        effects: ``[6]`` engine effects, constant over the rows.
-        layer: ``[3, E]`` sensor layer (bias, gain, drift) for all engine sensors.
-        tau: ``[N]`` drift time (cycles since the unit's first cycle / 100).
+        model: a static :class:`~jaxcal.model.Model` (float64 enabled by the caller).
+        w: ``[N, W]`` logged operating conditions.
+        theta: ``[N, P_all]`` all model parameters.
+        effects: ``[n_eff]`` registered effects, constant over the rows.
+        layer: ``[3, E]`` sensor layer (bias, gain, drift) for all model outputs.
+        tau: ``[N]`` drift time (time since the unit's first row / 100).
+        w_offset: ``[W]`` condition offsets (default zeros); the signatures
+            ``jac_w`` are computed only when the model allows condition offsets.
 
     Returns:
         :class:`Linearization` of numpy arrays.
     """
+    if not jnp.zeros(()).dtype == jnp.float64:
+        raise ValueError(
+            "the diagnosis needs float64: call jax.config.update('jax_enable_x64', "
+            "True) (or jaxcal.precision.enable_x64()) at the start of the program"
+        )
+    num_w, num_p = len(model.conditions), len(model.parameters)
     w = np.asarray(w, np.float64)
     theta = np.asarray(theta, np.float64)
     tau = np.asarray(tau, np.float64)
     n = w.shape[0]
-    if w.ndim != 2 or w.shape[1] != 4 or theta.shape != (n, len(HEALTH_NAMES)):
+    if w.ndim != 2 or w.shape[1] != num_w or theta.shape != (n, num_p):
         raise ValueError(
-            f"linearize: expected w [N, 4] and theta [N, 10], got {w.shape}, "
-            f"{theta.shape}"
+            f"linearize: expected w [N, {num_w}] and theta [N, {num_p}], got "
+            f"{w.shape}, {theta.shape}"
         )
     if n == 0:
         raise ValueError("linearize: no rows")
-    effects = jnp.asarray(effects, jnp.float64)
+    with_w = bool(offset_conditions(model))
+    effects = jnp.asarray(effects, jnp.float64).reshape(len(model.effects))
+    w_off = jnp.zeros(num_w) if w_offset is None else jnp.asarray(w_offset)
     layer = jnp.asarray(layer, jnp.float64)
     parts = []
     for start in range(0, n, CHUNK_ROWS):
@@ -249,15 +305,17 @@ def linearize(
         pad = CHUNK_ROWS - (stop - start)
         take = np.concatenate([np.arange(start, stop), np.full(pad, stop - 1)])
         out = _linearize_chunk(
-            engine,
+            model,
+            with_w,
             jnp.asarray(w[take]),
             jnp.asarray(theta[take]),
             effects,
+            w_off,
             layer,
             jnp.asarray(tau[take]),
         )
         parts.append([np.asarray(a)[: stop - start] for a in out])
-    y, j_th, j_ef, j_layer, ok = (
+    y, j_th, j_ef, j_w, j_layer, ok = (
         np.concatenate(p, axis=0) for p in zip(*parts, strict=True)
     )
-    return Linearization(y, j_th, j_ef, j_layer, ok.astype(bool))
+    return Linearization(y, j_th, j_ef, j_w, j_layer, ok.astype(bool))

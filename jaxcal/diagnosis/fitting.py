@@ -1,9 +1,11 @@
 """Joint Gauss–Newton fit of per-unit declared parameters and constant effects.
 
-The model of a record is ``y_t = G(w_t, theta_u(c_t), phi) (+ offset_t)``: the extended
-engine of :mod:`jaxcal.diagnosis.effects` with, per unit ``u``, the fitted health modifiers
-``theta_u(c) = 0.01 sum_k B_k(c) a_uk`` (B-splines in cycle, :mod:`.problem`) and a few
-constant effects ``phi = scale * b`` shared by all units. The normalised residual
+The model of a data set is ``y_t = G(w_t, theta_u(c_t), phi) (+ offset_t)``: the
+extended model of :mod:`jaxcal.diagnosis.effects` with, per unit ``u``, the fitted
+parameters ``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
+:mod:`.problem`; ``scale`` the parameter's natural step, :func:`.effects.natural_scale`)
+and a few constant effects ``phi = scale * b`` shared by all units. The normalised
+residual
 ``r = (x - y) / sigma`` is minimised by Levenberg–Marquardt (Nocedal & Wright 2006, sec.
 10.3) with Marquardt damping ``lambda diag(J^T J)``.
 
@@ -13,9 +15,9 @@ own rows and to the shared ``b``. :func:`schur_solve` eliminates the unit blocks
 units costs 260 small solves plus one of the size of ``b``. The Jacobian blocks are
 stored per unit as Gram matrices (:class:`GramStats`), which also gives the linearised
 likelihood-ratio of *any* subset of candidate columns at once (used by
-:mod:`.identify`). Engine evaluations are jitted (:func:`.effects.linearize`); the
+:mod:`.identify`). Model evaluations are jitted (:func:`.effects.linearize`); the
 block algebra runs in numpy on the host because the number of units and rows varies
-from record to record.
+from data set to data set.
 """
 
 from __future__ import annotations
@@ -28,15 +30,15 @@ import numpy as np
 
 from jaxcal.diagnosis.effects import (
     LAYER_NAMES,
-    THETA_SCALE,
     Candidate,
     Linearization,
     linearize,
+    natural_scale,
 )
 from jaxcal.diagnosis.problem import LoopData
-from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.model import Model
 
-_RIDGE = 1e-6  # on unit coefficients (1 = 1 % of a modifier): keeps empty knots finite
+_RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +46,7 @@ class ModelSpec:
     """Which parameters a fit moves.
 
     Attributes:
-        unit_params: health modifiers fitted per unit as splines (declared first).
+        unit_params: model parameters fitted per unit as splines (declared first).
         global_effects: constant effects shared by all units.
         num_declared: the first ``num_declared`` unit parameters use the declared
             basis ``data.basis``, the others ``data.basis_candidate`` (``None``: all
@@ -73,7 +75,8 @@ class ModelSpec:
 
 
 class ModelParams(NamedTuple):
-    """Fitted coefficients in scaled units (``theta = 0.01 a``, ``phi = scale b``)."""
+    """Fitted coefficients in natural steps (``theta = nominal + scale a``,
+    ``phi = scale b``)."""
 
     unit_coef: np.ndarray  # [U, sum_j K_j], parameter-major
     global_coef: np.ndarray  # [m]
@@ -86,7 +89,7 @@ class Evaluation(NamedTuple):
     resid: np.ndarray  # [N, S] normalised residual, 0 on invalid rows
     valid: np.ndarray  # [N] bool
     ssr: float  # sum of squared normalised residuals over valid rows
-    theta: np.ndarray  # [N, 10] health modifiers used
+    theta: np.ndarray  # [N, P_all] model parameters used
     lin: Linearization
 
 
@@ -115,37 +118,44 @@ class FitResult(NamedTuple):
 
 
 def zero_params(data: LoopData, spec: ModelSpec) -> ModelParams:
-    """All coefficients zero (healthy engine, no effect)."""
+    """All coefficients zero (nominal parameters, no effect)."""
     return ModelParams(
         np.zeros((data.num_units, spec.local_size(data))),
         np.zeros(len(spec.global_effects)),
     )
 
 
-def model_inputs(engine, data: LoopData, spec: ModelSpec, params: ModelParams):
-    """``(theta [N, 10], effects [6], layer [3, E])`` of the extended engine."""
-    theta = np.zeros((data.num_rows, len(HEALTH_NAMES)))
+def model_inputs(model: Model, data: LoopData, spec: ModelSpec, params: ModelParams):
+    """``(theta [N, P_all], effects [n_eff], layer [3, E], w_offset [W])`` of the
+    extended model."""
+    names = model.parameter_names
+    theta = np.tile(model.nominal, (data.num_rows, 1))
     start = 0
     for name, basis in spec.unit_blocks(data):
         coef = params.unit_coef[data.unit, start : start + basis.shape[1]]  # [N, K_j]
-        theta[:, HEALTH_NAMES.index(name)] += THETA_SCALE * np.sum(coef * basis, axis=1)
+        step = natural_scale(model, name)
+        theta[:, names.index(name)] += step * np.sum(coef * basis, axis=1)
         start += basis.shape[1]
-    effects = np.zeros(len(engine.effect_names))
-    layer = np.zeros((len(LAYER_NAMES), len(engine.sensor_names)))
+    effects = np.zeros(len(model.effects))
+    effect_names = [e.name for e in model.effects]
+    layer = np.zeros((len(LAYER_NAMES), len(model.outputs)))
+    w_offset = np.zeros(len(model.conditions))
     for cand, b in zip(spec.global_effects, params.global_coef, strict=True):
         value = cand.scale * b
-        if cand.family == "engine":
-            effects[list(engine.effect_names).index(cand.target)] += value
+        if cand.family == "effect":
+            effects[effect_names.index(cand.target)] += value
+        elif cand.family == "condition_offset":
+            w_offset[model.condition_names.index(cand.target)] += value
         elif cand.family in LAYER_NAMES:
-            s = list(engine.sensor_names).index(cand.target)
+            s = model.output_names.index(cand.target)
             layer[LAYER_NAMES.index(cand.family), s] += value
         else:
             raise ValueError(f"{cand.name}: a per-unit candidate cannot be global")
-    return theta, effects, layer
+    return theta, effects, layer, w_offset
 
 
 def evaluate_model(
-    engine,
+    model: Model,
     data: LoopData,
     spec: ModelSpec,
     params: ModelParams,
@@ -153,9 +163,9 @@ def evaluate_model(
     offset: np.ndarray | None = None,
     valid: np.ndarray | None = None,
 ) -> Evaluation:
-    """Run the extended engine at ``params`` (rows outside ``valid`` get r = 0)."""
-    theta, effects, layer = model_inputs(engine, data, spec, params)
-    lin = linearize(engine, data.w, theta, effects, layer, data.tau)
+    """Run the extended model at ``params`` (rows outside ``valid`` get r = 0)."""
+    theta, effects, layer, w_offset = model_inputs(model, data, spec, params)
+    lin = linearize(model, data.w, theta, effects, layer, data.tau, w_offset)
     yhat = lin.y[:, data.sensor_idx]
     if offset is not None:
         yhat = yhat + offset
@@ -171,7 +181,7 @@ def signature_columns(
     data: LoopData,
     lin: Linearization,
     spec: ModelSpec,
-    engine_effect_names: Sequence[str],
+    model: Model,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normalised Jacobian columns ``dr/dcoef`` (with a minus sign dropped).
 
@@ -183,15 +193,20 @@ def signature_columns(
     global_effects = spec.global_effects
     local = []
     for name, basis in spec.unit_blocks(data):
-        jac = lin.jac_theta[:, data.sensor_idx, HEALTH_NAMES.index(name)]
-        local.append((THETA_SCALE * jac / sig)[:, :, None] * basis[:, None, :])
+        jac = lin.jac_theta[:, data.sensor_idx, model.parameter_names.index(name)]
+        step = natural_scale(model, name)
+        local.append((step * jac / sig)[:, :, None] * basis[:, None, :])
     local = np.concatenate(local, axis=2) if local else np.zeros(data.x.shape + (0,))
     glob = np.zeros(data.x.shape + (len(global_effects),))
     names = list(data.sensor_names)
+    effect_names = [e.name for e in model.effects]
     for c, cand in enumerate(global_effects):
-        if cand.family == "engine":
-            e = list(engine_effect_names).index(cand.target)
+        if cand.family == "effect":
+            e = effect_names.index(cand.target)
             glob[:, :, c] = cand.scale * lin.jac_effects[:, data.sensor_idx, e] / sig
+        elif cand.family == "condition_offset":
+            j = model.condition_names.index(cand.target)
+            glob[:, :, c] = cand.scale * lin.jac_w[:, data.sensor_idx, j] / sig
         else:
             s = names.index(cand.target)
             f = LAYER_NAMES.index(cand.family)
@@ -278,12 +293,12 @@ def schur_solve(
     return SchurSolution(du, dg, schur, reduction)
 
 
-def _columns(data, engine, spec, lin):
-    return signature_columns(data, lin, spec, engine.effect_names)
+def _columns(data, model, spec, lin):
+    return signature_columns(data, lin, spec, model)
 
 
 def fit_model(
-    engine,
+    model: Model,
     data: LoopData,
     spec: ModelSpec,
     init: ModelParams | None = None,
@@ -292,13 +307,13 @@ def fit_model(
     max_iters: int = 20,
     rtol: float = 1e-7,
 ) -> FitResult:
-    """Levenberg–Marquardt fit of ``spec`` to the record.
+    """Levenberg–Marquardt fit of ``spec`` to the data.
 
-    Rows on which the engine fails at the start point are left out for the whole fit;
+    Rows on which the model fails at the start point are left out for the whole fit;
     a trial point that makes another row fail is rejected like one that raises the cost.
 
     Args:
-        engine: the engine model.
+        model: the model.
         data: the rows.
         spec: parameters to fit.
         init: start point (default zeros).
@@ -311,26 +326,29 @@ def fit_model(
         physical units (sigma known), from the Schur complement at the solution.
     """
     params = zero_params(data, spec) if init is None else init
-    ev = evaluate_model(engine, data, spec, params, offset=offset)
+    ev = evaluate_model(model, data, spec, params, offset=offset)
     valid = ev.valid
     if not valid.any():
-        raise ValueError("the engine fails on every row of the record")
+        raise ValueError(
+            f"model {model.name!r} is invalid (non-finite or outside its valid "
+            "input range) on every row of the data"
+        )
     local_idx = np.arange(spec.local_size(data))
     global_idx = np.arange(len(spec.global_effects))
     damping, converged, it = 1e-3, False, 0
-    stats = gram_stats(data, ev.resid, valid, *_columns(data, engine, spec, ev.lin))
+    stats = gram_stats(data, ev.resid, valid, *_columns(data, model, spec, ev.lin))
     while it < max_iters:
         it += 1
         step = schur_solve(stats, local_idx, global_idx, damping=damping)
         trial = ModelParams(
             params.unit_coef + step.local_step, params.global_coef + step.global_step
         )
-        ev_t = evaluate_model(engine, data, spec, trial, offset=offset, valid=valid)
+        ev_t = evaluate_model(model, data, spec, trial, offset=offset, valid=valid)
         if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr:
             gain = ev.ssr - ev_t.ssr
             params, ev = trial, ev_t
             stats = gram_stats(
-                data, ev.resid, valid, *_columns(data, engine, spec, ev.lin)
+                data, ev.resid, valid, *_columns(data, model, spec, ev.lin)
             )
             damping = max(damping / 10.0, 1e-9)
             if gain <= rtol * max(ev.ssr, 1.0):

@@ -37,7 +37,7 @@ from jaxcal.diagnosis.effects import Candidate
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.problem import LoopData
 from jaxcal.diagnosis.screen import Screen, init_from, spec_for
-from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.model import Model
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,7 +73,7 @@ class RankEntry(NamedTuple):
     log10_p: float  # log10 of the chi2(df) tail probability of lr_stat
     bic: float
     delta_bic: float  # BIC_0 - BIC_c, > 0 favours the candidate
-    sizes: tuple[float, ...]  # per member, physical units (health: mean EOL value)
+    sizes: tuple[float, ...]  # per member, physical units (parameter: mean end value)
     stds: tuple[float, ...]  # per member
     refit: bool  # True: nonlinear joint refit; False: linearised screening
     detectability: float  # projected / raw signature norm (singles; 1 for pairs)
@@ -130,16 +130,18 @@ def effect_sizes(fit: FitResult, members, data: LoopData):
     """Physical sizes of the members of a fitted model and their standard errors.
 
     Constant effects: the fitted value and its standard error (inflated by the
-    residual variance factor when that exceeds 1). Per-unit modifiers: the mean over
-    units of the value at each unit's last cycle and its standard error across units.
+    residual variance factor when that exceeds 1). Per-unit parameters: the mean over
+    units of the departure from nominal at each unit's last row and its standard
+    error across units.
     """
     s2 = max(1.0, fit.ssr / max(fit.num_resid - fit.num_params, 1))
     glob_vals, glob_std = fit.global_values(), np.sqrt(np.diag(fit.global_cov) * s2)
     sizes, stds, gi = [], [], 0
     last = data.starts[1:] - 1
     for c in members:
-        if c.per_unit:  # mean over units of the value at each unit's last cycle
-            eol = fit.evaluation.theta[last, HEALTH_NAMES.index(c.target)]
+        if c.per_unit:  # mean over units of the value at each unit's last row
+            j = data.parameter_names.index(c.target)
+            eol = fit.evaluation.theta[last, j] - data.parameter_nominal[j]
             sizes.append(float(eol.mean()))
             stds.append(float(eol.std() / np.sqrt(eol.size)) if eol.size > 1 else 0.0)
         else:
@@ -150,7 +152,7 @@ def effect_sizes(fit: FitResult, members, data: LoopData):
 
 
 def identify(
-    engine,
+    model: Model,
     data: LoopData,
     declared: Sequence[str],
     library: Sequence[Candidate],
@@ -162,9 +164,9 @@ def identify(
     """Rank the library against the residual of the declared-only fit ``null``.
 
     Args:
-        engine: the engine model.
+        model: the model.
         data: the rows.
-        declared: the calibrated health modifiers.
+        declared: the calibrated parameters.
         library: candidate effects (:func:`.effects.build_library`).
         cfg: settings.
         null: the declared-only fit (the "before" calibration).
@@ -173,7 +175,7 @@ def identify(
     Returns:
         :class:`Identification`.
     """
-    screen = Screen(engine, data, declared, library, null)
+    screen = Screen(model, data, declared, library, null)
     n_resid = null.num_resid
     singles = []
     for cand in library:
@@ -216,7 +218,7 @@ def identify(
     def refit(members):
         spec = spec_for(declared, members)
         fit = fit_model(
-            engine,
+            model,
             data,
             spec,
             init_from(null, spec, data),

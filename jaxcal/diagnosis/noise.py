@@ -1,15 +1,13 @@
-"""Sensor noise levels: C-MAPSS reference levels and an estimate from a residual.
+"""Output noise levels estimated from the residual of a first calibration.
 
-:func:`reference_noise_rel` gives each sensor's relative noise std from the early life
-of C-MAPSS FD002 (:mod:`jaxcal.physics.reference`); the synthetic records use it, and
-the diagnosis starts from it when the noise is unknown.
-
-:func:`estimate_noise_std` estimates the noise from the residual of a first calibration:
-within each unit it pairs every row with its nearest neighbour in standardised
-(w, cycle) space and takes ``1.4826 MAD(r_i - r_j) / sqrt(2)``. Differencing removes
-what the model misses smoothly in w and cycle (the pair shares the operating point), the
-MAD ignores the few pairs that do not, and raw first differences would not work on
-C-MAPSS, whose consecutive cycles fly different operating conditions.
+:func:`estimate_noise_std` pairs, within each unit, every row with its nearest
+neighbour in standardised (w, time) space and takes ``1.4826 MAD(r_i - r_j) /
+sqrt(2)``. Differencing removes what the model misses smoothly in w and time (the pair
+shares the operating point), the MAD ignores the few pairs that do not, and raw first
+differences would not work on data whose consecutive rows visit different operating
+conditions (C-MAPSS flies a different condition every cycle). The start level before
+this estimate is the model's reference (``DiagnosisHints.noise_rel``, see
+:mod:`.problem`).
 """
 
 from __future__ import annotations
@@ -18,56 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from jaxcal.physics.reference import FD002_EARLY_MEANS, FD002_EARLY_STD
-
 if TYPE_CHECKING:
     from jaxcal.diagnosis.problem import LoopData
-
-# Sensors without a measured C-MAPSS noise level borrow the relative level of a sensor
-# of the same kind (temperature, pressure, speed, flow).
-NOISE_PROXY = {
-    "T48": "T50",
-    "T40": "T50",
-    "P15": "P30",
-    "P2": "P30",
-    "P21": "P30",
-    "P24": "P30",
-    "Ps30": "P30",
-    "P40": "P30",
-    "P50": "P30",
-    "P45": "P30",
-    "epr": "P30",
-    "Nf": "Nc",
-    "NRf": "Nc",
-    "NRc": "Nc",
-    "Nf_dmd": "Nc",
-    "PCNfR_dmd": "Nc",
-    "Wf": "W31",
-    "W21": "W31",
-    "W22": "W31",
-    "W25": "W31",
-    "W48": "W31",
-    "W50": "W31",
-    "phi": "W31",
-    "farB": "W31",
-    "SmFan": "BPR",
-    "SmLPC": "BPR",
-    "SmHPC": "BPR",
-}
-
-
-def reference_noise_rel(name: str) -> float:
-    """Relative noise std (std / mean) of a sensor, from the C-MAPSS FD002 early life.
-
-    The median over the six operating conditions of ``FD002_EARLY_STD /
-    FD002_EARLY_MEANS`` (jaxcal.physics.reference); sensors C-MAPSS does not measure
-    use the proxy of :data:`NOISE_PROXY`.
-    """
-    key = NOISE_PROXY.get(name, name)
-    if key not in FD002_EARLY_STD:
-        raise ValueError(f"no reference noise level for sensor {name!r}")
-    ratio = np.asarray(FD002_EARLY_STD[key]) / np.abs(FD002_EARLY_MEANS[key])
-    return float(np.median(ratio))
 
 
 def estimate_noise_std(
@@ -87,7 +37,7 @@ def estimate_noise_std(
     w_std = data.w.std(0)
     feats = [
         (data.w[:, j] - data.w[:, j].mean()) / w_std[j]
-        for j in range(4)
+        for j in range(data.w.shape[1])
         if w_std[j] > 0
     ]
     span = np.maximum(

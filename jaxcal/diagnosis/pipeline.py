@@ -1,10 +1,12 @@
-"""Close the loop on one record: calibrate, trace the residual, add the effect, compare.
+"""Close the loop on one data set: calibrate, trace the residual, add the effect.
 
-:func:`diagnose_record` runs the steps of design/loop.md:
+:func:`diagnose` runs the steps of design/loop.md on any static
+:class:`~jaxcal.model.Model` and a :class:`~jaxcal.data.dataset.Dataset` (time =
+cycle; a turbofan :class:`~jaxcal.data.record.Record` is converted):
 
-1. **Calibrate** the declared health modifiers (per-unit splines in cycle, jointly over
-   the record) — the "before" model. When the noise levels are not given they are
-   estimated from this fit's residual (:func:`.problem.estimate_noise_std`), sensors
+1. **Calibrate** the declared parameters (per-unit splines in time, jointly over
+   the data) — the "before" model. When the noise levels are not given they are
+   estimated from this fit's residual (:func:`.noise.estimate_noise_std`), outputs
    whose readings are quantised are dropped, and the fit is repeated.
 2. **Trace** the normalised residual to the library (:func:`.identify.identify`).
 3. **Fallback.** A cross-validated ``delta(w)`` is fitted to the residual of the best
@@ -31,7 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxcal.data.record import Record
+from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.discrepancy import (
     Discrepancy,
     DiscrepancyConfig,
@@ -50,7 +52,7 @@ from jaxcal.diagnosis.noise import estimate_noise_std
 from jaxcal.diagnosis.problem import LoopData, prepare_data
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import spec_for
-from jaxcal.physics.constants import HEALTH_NAMES, health_index
+from jaxcal.model import Model
 
 VERDICTS = (
     "none",
@@ -66,8 +68,8 @@ VERDICTS = (
 class LoopConfig:
     """Static settings of the diagnosis."""
 
-    knots: int = 6  # B-spline functions per unit for each declared modifier
-    candidate_knots: int = 3  # ... for each candidate (undeclared) modifier
+    knots: int = 6  # B-spline functions per unit for each declared parameter
+    candidate_knots: int = 3  # ... for each candidate (undeclared) parameter
     families: tuple[str, ...] = ()  # restrict the library (empty: all families)
     identify: IdentifyConfig = IdentifyConfig()
     discrepancy: DiscrepancyConfig = DiscrepancyConfig()
@@ -83,7 +85,7 @@ class Stage(NamedTuple):
     summary: ResidualSummary
     tracking_rmse: np.ndarray  # [S] sensor units
     tracking_rmse_norm: np.ndarray  # [S] multiples of the noise std
-    theta_rmse: dict  # modifier -> RMSE against the truth (empty without truth)
+    theta_rmse: dict  # parameter -> RMSE against the truth (empty without truth)
     whiteness: float  # share of sensors whose Ljung–Box test passes at 1 %
 
 
@@ -107,10 +109,11 @@ class DiagnosisResult(NamedTuple):
 def make_stage(
     data: LoopData, fit: FitResult, offset, max_lag: int, theta_names=()
 ) -> Stage:
-    """Errors of a fitted model on the rows where the engine converged.
+    """Errors of a fitted model on the rows where the model is valid.
 
-    ``theta_rmse`` covers the fitted modifiers and ``theta_names`` (a modifier the
-    model does not fit is held at 0, so its RMSE is the size of its truth).
+    ``theta_rmse`` covers the fitted parameters and ``theta_names`` that have a true
+    value in the data (a parameter the model does not fit is held at its nominal
+    value, so its RMSE is the size of its departure).
     """
     valid = fit.evaluation.valid
     r = fit.evaluation.resid
@@ -120,8 +123,11 @@ def make_stage(
         names = list(fit.spec.unit_params)
         names += [n for n in theta_names if n not in names]
         for name in names:
-            j = HEALTH_NAMES.index(name)
-            diff = fit.evaluation.theta[valid, j] - data.theta_true[valid, j]
+            if name not in data.theta_names:
+                continue
+            j = data.parameter_names.index(name)
+            t = data.theta_names.index(name)
+            diff = fit.evaluation.theta[valid, j] - data.theta_true[valid, t]
             theta_rmse[name] = float(np.sqrt(np.mean(diff**2)))
     summary = summarize_residuals(
         r, data.w, data.cycle, data.starts, max_lag=min(max_lag, data.num_rows - 1)
@@ -137,10 +143,10 @@ def make_stage(
     )
 
 
-def _backfit(engine, data, spec, init, cfg: LoopConfig):
+def _backfit(model, data, spec, init, cfg: LoopConfig):
     """Alternate theta (and effects) with delta(w): Hastie & Tibshirani backfitting."""
     fit, offset, disc = (
-        fit_model(engine, data, spec, init, max_iters=cfg.max_iters),
+        fit_model(model, data, spec, init, max_iters=cfg.max_iters),
         None,
         None,
     )
@@ -149,11 +155,12 @@ def _backfit(engine, data, spec, init, cfg: LoopConfig):
             0.0 if offset is None else offset / data.noise_std
         )
         disc = fit_discrepancy(
-            data.w, raw, data.unit, data.sensor_names, cfg.discrepancy
-        )
+            data.w, raw, data.unit, data.sensor_names, cfg.discrepancy,
+            data.condition_names,
+        )  # fmt: skip
         offset = predict_discrepancy(disc, data.w) * data.noise_std
         fit = fit_model(
-            engine, data, spec, fit.params, offset=offset, max_iters=cfg.max_iters
+            model, data, spec, fit.params, offset=offset, max_iters=cfg.max_iters
         )
     return fit, offset, disc
 
@@ -176,9 +183,22 @@ def _effects_of(ident: Identification, fit: FitResult, library, data) -> list:
     ]
 
 
-def diagnose_record(
-    record: Record,
-    engine,
+def _as_dataset(data) -> tuple[Dataset, int | None]:
+    """A Dataset and the reader's dropped-row count (a Record is converted)."""
+    if isinstance(data, Dataset):
+        return data, None
+    if hasattr(data, "x_names") and hasattr(data, "cycle"):  # a turbofan Record
+        from jaxcal.data.readers import dataset_from_record
+
+        return dataset_from_record(data), int(data.dropped_rows)
+    raise ValueError(
+        f"data must be a jaxcal Dataset (or a turbofan Record), got {type(data)}"
+    )
+
+
+def diagnose(
+    data,
+    model: Model | str,
     declared: Sequence[str],
     cfg: LoopConfig = LoopConfig(),
     *,
@@ -190,55 +210,72 @@ def diagnose_record(
     """Find the residual, trace it to an effect, add it and compare (module docstring).
 
     Args:
-        record: the data (real or synthetic).
-        engine: the engine model (``jaxcal.physics.load_engine``).
-        declared: the calibrated health modifiers.
+        data: a :class:`~jaxcal.data.dataset.Dataset` (``time`` = cycle) or a
+            turbofan ``Record``.
+        model: a static :class:`~jaxcal.model.Model` or a ``jaxcal.models.load``
+            spec; float64 must be enabled by the caller.
+        declared: the calibrated (declared) parameters.
         cfg: settings.
-        sensors: sensors of the residual (default: all usable).
+        sensors: outputs of the residual (default: all usable).
         units: units to use (default: all).
         max_rows: subsample to about this many rows.
-        noise_std: known noise std by sensor (default: estimated).
+        noise_std: known noise std by output (default: estimated).
 
     Returns:
         :class:`DiagnosisResult`.
     """
-    declared = tuple(declared)
-    health_index(declared)
-    if not declared or len(set(declared)) != len(declared):
+    if not isinstance(model, Model):
+        from jaxcal.models import load
+
+        model = load(model)
+    if model.is_stateful:
         raise ValueError(
-            f"calibrate must name distinct health modifiers, got {declared}"
+            f"model {model.name!r} has hidden states {model.state_names}; the "
+            "diagnosis handles static models only (for now)"
         )
+    declared = tuple(declared)
+    if not declared or len(set(declared)) != len(declared):
+        raise ValueError(f"calibrate must name distinct parameters, got {declared}")
+    model.parameter_index(declared)
+    dataset, dropped_rows = _as_dataset(data)
     data = prepare_data(
-        record,
-        engine.sensor_names,
+        dataset,
+        model,
         sensors=sensors,
         units=units,
         max_rows=max_rows,
         knots=cfg.knots,
         candidate_knots=cfg.candidate_knots,
         noise_std=noise_std,
+        dropped_rows=dropped_rows,
     )
     spec0 = ModelSpec(declared)
-    null = fit_model(engine, data, spec0, max_iters=cfg.max_iters)
+    null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
     if not null.evaluation.valid.all():
         bad = int(np.sum(~null.evaluation.valid))
         data = data.take_rows(
             null.evaluation.valid,
-            f"{bad} rows dropped: the engine balance failed there",
+            f"{bad} rows dropped: the model is invalid there (did not converge or "
+            "inputs outside its range)",
         )
-        null = fit_model(engine, data, spec0, max_iters=cfg.max_iters)
+        null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
     if noise_std is None:
         resid = null.evaluation.resid * data.noise_std
         std, reasons = estimate_noise_std(data, resid)
         std = np.where(std > 0, std, data.noise_std)
         data = data.with_noise(std, "estimated").drop_sensors(reasons)
-        null = fit_model(engine, data, spec0, null.params, max_iters=cfg.max_iters)
+        null = fit_model(model, data, spec0, null.params, max_iters=cfg.max_iters)
+    w_std = data.w.std(0)
+    condition_scale = 0.01 * np.where(
+        w_std > 0, w_std, np.maximum(np.abs(data.w).mean(0), 1.0)
+    )
     library = build_library(
-        engine.effect_names,
+        model,
         declared,
         data.sensor_names,
         data.noise_std,
         np.abs(data.x).mean(0),
+        condition_scale,
         families=cfg.families or None,
     )
     if not library:
@@ -246,16 +283,17 @@ def diagnose_record(
             f"the effect library is empty for families {cfg.families} with "
             f"calibrate={list(declared)}"
         )
-    ident = identify(engine, data, declared, library, cfg.identify, null)
+    ident = identify(model, data, declared, library, cfg.identify, null)
     best = ident.winner_fit if ident.winner is not None else null
     disc = fit_discrepancy(
-        data.w, best.evaluation.resid, data.unit, data.sensor_names, cfg.discrepancy
-    )
+        data.w, best.evaluation.resid, data.unit, data.sensor_names, cfg.discrepancy,
+        data.condition_names,
+    )  # fmt: skip
     offset, final_ident = None, ident
     if disc.any_significant:
-        fit_d, offset, disc = _backfit(engine, data, spec0, null.params, cfg)
+        fit_d, offset, disc = _backfit(model, data, spec0, null.params, cfg)
         final_ident = identify(
-            engine, data, declared, library, cfg.identify, fit_d, offset=offset
+            model, data, declared, library, cfg.identify, fit_d, offset=offset
         )
         best = fit_d
         if final_ident.winner is not None:
@@ -263,7 +301,7 @@ def diagnose_record(
                 declared, [c for c in library if c.name in final_ident.winner.members]
             )
             best, offset, disc = _backfit(
-                engine, data, spec, final_ident.winner_fit.params, cfg
+                model, data, spec, final_ident.winner_fit.params, cfg
             )
         if not disc.any_significant:
             disc = None
@@ -282,7 +320,7 @@ def diagnose_record(
         verdict = "confounded" if confounded else "identified"
         verdict += "+discrepancy" if disc is not None else ""
     after = make_stage(data, best, offset, cfg.max_lag)
-    # theta RMSE "before" also covers the added modifiers (held at 0 there)
+    # theta RMSE "before" also covers the added parameters (held at nominal there)
     before = make_stage(data, null, None, cfg.max_lag, best.spec.unit_params)
     return DiagnosisResult(
         data,
@@ -298,3 +336,7 @@ def diagnose_record(
         after,
         added,
     )
+
+
+# The name of the turbofan-era entry point, kept for callers of the old API.
+diagnose_record = diagnose

@@ -1,18 +1,22 @@
-"""The record as the diagnosis sees it: sorted rows, spline bases per unit, noise.
+"""The data as the diagnosis sees it: sorted rows, spline bases per unit, noise.
 
-:func:`prepare_data` turns a :class:`~jaxcal.data.record.Record` into a
-:class:`LoopData`: rows sorted by (unit, cycle), an optional even subsample, the sensors
-of the residual, a clamped cubic B-spline basis in cycle for each unit (the declared
-health modifiers are ``theta_u(c) = sum_k B_k(c) a_uk``: time-varying, smooth, and cheap
-to fit jointly with constant effects) and the drift time ``tau``.
+:func:`prepare_data` turns a :class:`~jaxcal.data.dataset.Dataset` (time = cycle) and
+a :class:`~jaxcal.model.Model` into a :class:`LoopData`: rows sorted by (unit, time),
+an optional even subsample, the outputs of the residual ("sensors"), a clamped cubic
+B-spline basis in time for each unit (the declared parameters are ``theta_u(c) =
+nominal + scale sum_k B_k(c) a_uk``: time-varying, smooth, and cheap to fit jointly
+with constant effects) and the drift time ``tau``.
 
-Sensors left out of the residual, with the reason recorded: controller-set ones (the
-fan speed follows the TRA schedule, so Nf, NRf, Nf_dmd and PCNfR_dmd carry no
-information about the engine), sensors the engine does not output, constant ones and,
-when the noise is estimated, quantised ones (the rounding step dominates the noise).
+Outputs left out of the residual, with the reason recorded: those the model calls
+uninformative (``DiagnosisHints.uninformative``, e.g. the turbofan's controller-set fan
+speeds), columns the model does not output, constant ones and, when the noise is
+estimated, quantised ones (the rounding step dominates the noise). A condition just
+outside the model's valid range (by less than :data:`JITTER_FRACTION` of the range,
+e.g. Mach -0.0005 of a static point) is clipped onto the bound, and the note says so.
 
-Noise levels: known per-sensor std when given (synthetic data), else a reference level
-until :func:`.noise.estimate_noise_std` replaces it after a first calibration.
+Noise levels: known per-output std when given (synthetic data), else the model's
+reference level (``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
+:func:`.noise.estimate_noise_std` replaces it after a first calibration.
 """
 
 from __future__ import annotations
@@ -23,42 +27,48 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.interpolate import BSpline
 
-from jaxcal.data.record import Record
+from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.effects import TAU_CYCLES
-from jaxcal.diagnosis.noise import reference_noise_rel
-from jaxcal.physics.constants import CONDITION_NAMES, SENSOR_NAMES
+from jaxcal.model import Model
 
-CONTROLLER_SET = ("Nf", "NRf", "Nf_dmd", "PCNfR_dmd")
 MIN_DISTINCT = 20  # fewer distinct values: a setting or a heavily rounded output
+JITTER_FRACTION = 0.01  # conditions this close outside their range are clipped onto it
+DEFAULT_NOISE_REL = 0.01  # start noise std / mean |x| when the model gives none
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class LoopData:
-    """Rows of one record ready for fitting (numpy, sorted by unit then cycle).
+    """Rows of one data set ready for fitting (numpy, sorted by unit then time).
 
     Attributes:
-        w: ``[N, 4]`` operating conditions.
-        x: ``[N, S]`` measured sensors of the residual.
-        sensor_names: ``S`` names; ``sensor_idx`` their positions in the engine output.
+        w: ``[N, W]`` operating conditions (the model's order).
+        x: ``[N, S]`` measured outputs of the residual.
+        sensor_names: ``S`` output names; ``sensor_idx`` their positions in the
+            model output.
         sensor_idx: ``[S]`` int.
         unit: ``[N]`` unit position ``0..U-1``; ``unit_ids`` ``[U]`` the record ids.
         unit_ids: ``[U]`` int.
         starts: ``[U + 1]`` row offsets: unit ``u`` is rows ``starts[u]:starts[u+1]``.
         cycle: ``[N]`` float cycle number.
         tau: ``[N]`` (cycle - first cycle of the unit) / 100 (``TAU_CYCLES``).
-        basis: ``[N, K]`` B-spline basis of each row's cycle within its unit (the
-            declared modifiers).
+        basis: ``[N, K]`` B-spline basis of each row's time within its unit (the
+            declared parameters).
         basis_candidate: ``[N, Kc]`` the smaller basis of candidate (undeclared)
-            modifiers: fewer functions, fewer degrees of freedom to pay for in BIC.
-        noise_std: ``[S]`` sensor noise std (sensor units).
+            parameters: fewer functions, fewer degrees of freedom to pay for in BIC.
+        noise_std: ``[S]`` output noise std (output units).
         noise_source: ``"given"``, ``"reference"`` or ``"estimated"``.
-        theta_true: ``[N, 10]`` ground truth or ``None``.
-        row_index: ``[N]`` row of the original record.
-        excluded: sensor -> reason it is not in the residual.
+        theta_true: ``[N, len(theta_names)]`` ground truth or ``None``.
+        row_index: ``[N]`` row of the data set (``Dataset.take`` order).
+        excluded: output -> reason it is not in the residual.
         notes: what data cleaning did (clipped or dropped rows).
         dropped: column -> rows dropped for a NaN / Inf in that column, by the reader
-            (``Record.dropped``) or here; a row bad in two columns counts in both.
-        dropped_rows: rows dropped for NaN / Inf in total (each row once).
+            (``Dataset.dropped``) or here; a row bad in two columns counts in both.
+        dropped_rows: rows dropped for NaN / Inf in total (each row once), or
+            ``None`` when the reader did not count them.
+        condition_names: ``W`` condition names; ``parameter_names`` and
+            ``parameter_nominal`` the model's ``P_all`` parameters and nominal
+            values; ``theta_names`` the columns of ``theta_true``.
+        sensor_units, condition_units: the model's units of those names.
     """
 
     w: np.ndarray
@@ -79,7 +89,13 @@ class LoopData:
     excluded: dict[str, str]
     notes: tuple[str, ...] = ()
     dropped: dict[str, int] = dataclasses.field(default_factory=dict)
-    dropped_rows: int = 0
+    dropped_rows: int | None = 0
+    condition_names: tuple[str, ...] = ()
+    condition_units: tuple[str, ...] = ()
+    sensor_units: tuple[str, ...] = ()
+    parameter_names: tuple[str, ...] = ()
+    parameter_nominal: np.ndarray | None = None
+    theta_names: tuple[str, ...] = ()
 
     @property
     def num_rows(self) -> int:
@@ -98,12 +114,12 @@ class LoopData:
 
     @property
     def num_knots(self) -> int:
-        """Spline functions ``K`` per declared modifier."""
+        """Spline functions ``K`` per declared parameter."""
         return int(self.basis.shape[1])
 
     @property
     def num_candidate_knots(self) -> int:
-        """Spline functions ``Kc`` per candidate modifier."""
+        """Spline functions ``Kc`` per candidate parameter."""
         return int(self.basis_candidate.shape[1])
 
     def with_noise(self, noise_std: np.ndarray, source: str) -> LoopData:
@@ -142,7 +158,7 @@ class LoopData:
         keep = [j for j, s in enumerate(self.sensor_names) if s not in reasons]
         if not keep:
             raise ValueError(
-                f"no sensor left in the residual; excluded: {dict(reasons)}"
+                f"no output left in the residual; excluded: {dict(reasons)}"
             )
         return dataclasses.replace(
             self,
@@ -150,6 +166,7 @@ class LoopData:
             sensor_names=tuple(self.sensor_names[j] for j in keep),
             sensor_idx=self.sensor_idx[keep],
             noise_std=self.noise_std[keep],
+            sensor_units=tuple(self.sensor_units[j] for j in keep),
             excluded={**self.excluded, **dict(reasons)},
         )
 
@@ -158,10 +175,11 @@ def spline_basis(cycle: np.ndarray, num_knots: int) -> np.ndarray:
     """Clamped B-spline basis on ``[min(cycle), max(cycle)]``, ``K`` functions.
 
     Cubic when ``K >= 4`` (degree ``K - 1`` below); ``K = 1`` is a constant. A unit
-    with a single cycle gets the constant in its first column (the others stay zero).
+    with a single time step gets the constant in its first column (the others stay
+    zero).
 
     Args:
-        cycle: ``[n]`` cycles of one unit.
+        cycle: ``[n]`` times (cycles) of one unit.
         num_knots: ``K >= 1``.
 
     Returns:
@@ -182,25 +200,30 @@ def spline_basis(cycle: np.ndarray, num_knots: int) -> np.ndarray:
     return out
 
 
-def _select_sensors(record: Record, engine_sensors, sensors) -> tuple[list, dict]:
+def _select_sensors(data: Dataset, model: Model, sensors) -> tuple[list, dict]:
     excluded = {}
+    uninformative = model.diagnosis.uninformative or {}
     if sensors is None:
         chosen = []
-        for s in record.x_names:
-            if s in CONTROLLER_SET:
-                excluded[s] = "set by the fan-speed controller (TRA schedule)"
-            elif s not in engine_sensors:
-                excluded[s] = "not an output of the engine model"
+        for s in data.output_names:
+            if s in uninformative:
+                excluded[s] = uninformative[s]
+            elif s not in model.output_names:
+                excluded[s] = f"not an output of the model {model.name!r}"
             else:
                 chosen.append(s)
     else:
         chosen = list(sensors)
-        bad = [s for s in chosen if s not in record.x_names or s not in engine_sensors]
+        bad = [
+            s
+            for s in chosen
+            if s not in data.output_names or s not in model.output_names
+        ]
         if bad:
-            valid = [s for s in record.x_names if s in engine_sensors]
+            valid = [s for s in data.output_names if s in model.output_names]
             raise ValueError(
-                f"sensors {bad} are not in both the record and the engine "
-                f"outputs; valid: {valid}"
+                f"outputs {bad} are not in both the data and the model's outputs; "
+                f"valid: {valid}"
             )
     return chosen, excluded
 
@@ -219,9 +242,31 @@ def _subsample(
     )
 
 
+def _clip_jitter(w: np.ndarray, model: Model) -> tuple[np.ndarray, list[str]]:
+    """Clip conditions that lie just outside the model's range onto its bounds."""
+    if model.condition_range is None:
+        return w, []
+    low, high = model.condition_range
+    width = np.where(np.isfinite(high - low), high - low, np.inf)
+    notes, w = [], w.copy()
+    for j, name in enumerate(model.condition_names):
+        tol = JITTER_FRACTION * width[j]
+        for bound, outside in (
+            (low[j], (w[:, j] < low[j]) & (w[:, j] >= low[j] - tol)),
+            (high[j], (w[:, j] > high[j]) & (w[:, j] <= high[j] + tol)),
+        ):
+            if outside.any():
+                notes.append(
+                    f"{name} just outside its range (jitter) set to {bound:g} on "
+                    f"{int(outside.sum())} rows"
+                )
+                w[outside, j] = bound
+    return w, notes
+
+
 def prepare_data(
-    record: Record,
-    engine_sensors: Sequence[str] = SENSOR_NAMES,
+    data: Dataset,
+    model: Model,
     *,
     sensors: Sequence[str] | None = None,
     units: Sequence[int] | None = None,
@@ -229,32 +274,37 @@ def prepare_data(
     knots: int = 6,
     candidate_knots: int = 3,
     noise_std: Mapping[str, float] | np.ndarray | None = None,
+    dropped_rows: int | None = None,
 ) -> LoopData:
-    """Select, sort and subsample a record for the diagnosis.
+    """Select, sort and subsample a data set for the diagnosis.
 
     Args:
-        record: the data.
-        engine_sensors: the engine's ``sensor_names``.
-        sensors: sensors of the residual (``None``: all usable ones).
+        data: the rows (``time`` is the cycle index).
+        model: the model whose conditions and outputs the columns name.
+        sensors: outputs of the residual (``None``: all usable ones).
         units: unit ids to keep (``None``: all).
         max_rows: keep at most about this many rows (even stride within units).
         knots: B-spline functions per unit for the declared parameters.
-        candidate_knots: B-spline functions per unit for candidate modifiers.
-        noise_std: known noise std, by sensor name or ``[S]`` in the chosen order;
+        candidate_knots: B-spline functions per unit for candidate parameters.
+        noise_std: known noise std, by output name or ``[S]`` in the chosen order;
             ``None``: a reference level now, to be estimated after a first fit.
+        dropped_rows: rows the reader dropped for NaN / Inf (``None``: not counted).
 
     Returns:
-        :class:`LoopData`; rows with NaN / Inf in w or a chosen sensor are dropped
+        :class:`LoopData`; rows with NaN / Inf in w or a chosen output are dropped
         and counted per column in ``dropped`` (with those the reader dropped).
     """
     if units is not None:
-        record = record.select_units(units)
-    chosen, excluded = _select_sensors(record, engine_sensors, sensors)
-    x_all = record.columns(chosen) if chosen else np.zeros((record.num_rows, 0))
+        data = data.select_units(units)
+    chosen, excluded = _select_sensors(data, model, sensors)
+    if not chosen:
+        raise ValueError(f"no usable output in the data; excluded: {excluded}")
+    data = data.for_model(model, chosen)
+    x_all = data.x
     for j, s in enumerate(list(chosen)):
         col = x_all[:, j][np.isfinite(x_all[:, j])]
         if col.size and np.ptp(col) == 0:
-            excluded[s] = "constant in this record"
+            excluded[s] = "constant in this data"
     if noise_std is None:
         for j, s in enumerate(chosen):
             if s not in excluded and np.unique(x_all[:, j]).size < MIN_DISTINCT:
@@ -262,30 +312,30 @@ def prepare_data(
     keep = [j for j, s in enumerate(chosen) if s not in excluded]
     chosen = [chosen[j] for j in keep]
     if not chosen:
-        raise ValueError(f"no usable sensor in the record; excluded: {excluded}")
+        raise ValueError(f"no usable output in the data; excluded: {excluded}")
     x_all = x_all[:, keep]
-    finite_w, finite_x = np.isfinite(record.w), np.isfinite(x_all)
+    finite_w, finite_x = np.isfinite(data.w), np.isfinite(x_all)
     finite = finite_w.all(1) & finite_x.all(1)
-    dropped = dict(record.dropped)
+    dropped = dict(data.dropped or {})
     for name, ok in zip(
-        CONDITION_NAMES + tuple(chosen),
+        model.condition_names + tuple(chosen),
         np.concatenate([finite_w, finite_x], axis=1).T,
         strict=True,
     ):
         if not ok.all():
             dropped[name] = dropped.get(name, 0) + int(ok.size - ok.sum())
-    order = np.lexsort((np.arange(record.num_rows), record.cycle, record.unit))
+    order = np.lexsort((np.arange(data.num_rows), data.time, data.unit))
     order = order[finite[order]]
     if order.size == 0:
-        raise ValueError("the record has no row with finite w and sensors")
-    unit_raw = record.unit[order]
+        raise ValueError("the data have no row with finite conditions and outputs")
+    unit_raw = data.unit[order]
     unit_ids, first = np.unique(unit_raw, return_index=True)
     starts = np.append(first, order.size)
     order = order[_subsample(unit_raw, starts, max_rows)]
-    unit_raw = record.unit[order]
+    unit_raw = data.unit[order]
     unit_ids, first, unit = np.unique(unit_raw, return_index=True, return_inverse=True)
     starts = np.append(first, order.size)
-    cycle = record.cycle[order].astype(np.float64)
+    cycle = data.time[order].astype(np.float64)
     tau = np.empty_like(cycle)
     basis = np.empty((order.size, knots))
     basis_c = np.empty((order.size, candidate_knots))
@@ -295,24 +345,23 @@ def prepare_data(
         basis[sl] = spline_basis(cycle[sl], knots)
         basis_c[sl] = spline_basis(cycle[sl], candidate_knots)
     x = x_all[order]
-    w = record.w[order].copy()
-    notes = []
-    if np.any(w[:, 1] < 0):
-        notes.append(
-            f"Mach < 0 (jitter of a static condition) set to 0 on "
-            f"{int(np.sum(w[:, 1] < 0))} rows"
-        )
-        w[:, 1] = np.maximum(w[:, 1], 0.0)
+    w, notes = _clip_jitter(data.w[order], model)
     if noise_std is None:
-        std = np.array([reference_noise_rel(s) for s in chosen]) * np.abs(x).mean(0)
+        rel = model.diagnosis.noise_rel or {}
+        std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in chosen])
+        std = std * np.abs(x).mean(0)
         source = "reference"
     else:
         std, source = _given_noise(noise_std, chosen), "given"
+    if dropped_rows is None and not data.dropped:
+        dropped_rows = 0  # the reader dropped nothing, so the count is known
+    if dropped_rows is not None:
+        dropped_rows = dropped_rows + int(finite.size - finite.sum())
     return LoopData(
         w=w,
         x=x,
         sensor_names=tuple(chosen),
-        sensor_idx=np.array([list(engine_sensors).index(s) for s in chosen]),
+        sensor_idx=np.array(model.output_index(chosen)),
         unit=unit.astype(np.int64),
         unit_ids=unit_ids,
         starts=starts,
@@ -322,12 +371,18 @@ def prepare_data(
         basis_candidate=basis_c,
         noise_std=std,
         noise_source=source,
-        theta_true=None if record.theta is None else record.theta[order],
-        row_index=order,
+        theta_true=None if data.theta is None else data.theta[order],
+        row_index=data.row[order],
         excluded=excluded,
         notes=tuple(notes),
         dropped=dropped,
-        dropped_rows=record.dropped_rows + int(finite.size - finite.sum()),
+        dropped_rows=dropped_rows,
+        condition_names=model.condition_names,
+        condition_units=tuple(v.unit for v in model.conditions),
+        sensor_units=tuple(model.unit_of(s) for s in chosen),
+        parameter_names=model.parameter_names,
+        parameter_nominal=model.nominal,
+        theta_names=tuple(data.theta_names) if data.theta is not None else (),
     )
 
 
@@ -335,12 +390,12 @@ def _given_noise(noise_std, chosen) -> np.ndarray:
     if isinstance(noise_std, Mapping):
         missing = [s for s in chosen if s not in noise_std]
         if missing:
-            raise ValueError(f"noise_std has no entry for sensors {missing}")
+            raise ValueError(f"noise_std has no entry for outputs {missing}")
         std = np.array([float(noise_std[s]) for s in chosen])
     else:
         std = np.asarray(noise_std, np.float64)
         if std.shape != (len(chosen),):
             raise ValueError(f"noise_std must be [S={len(chosen)}], got {std.shape}")
     if not np.all(np.isfinite(std) & (std > 0)):
-        raise ValueError("noise_std must be finite and > 0 for every sensor")
+        raise ValueError("noise_std must be finite and > 0 for every output")
     return std

@@ -4,8 +4,10 @@ The JSON names the verdict, the identified effect(s) with their fitted sizes and
 standard errors, the ranking with its evidence (LR statistic, log10 p, BIC and delta
 BIC against the declared-only model), the confounded and absorbed candidates, the
 discrepancy (what it depends on) and the errors before and after: tracking RMSE per
-sensor in sensor units and in noise multiples, theta RMSE where the truth is known and
-residual whiteness (Ljung–Box per sensor). Every file is written atomically.
+output in the model's units and in noise multiples, theta RMSE where the truth is known
+and residual whiteness (Ljung–Box per output). Names and units are the model's
+(:class:`~jaxcal.model.Model` conditions, parameters, outputs and effects). Every file
+is written atomically.
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ from matplotlib.figure import Figure
 from jaxcal.diagnosis.identify import Identification
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
 from jaxcal.diagnosis.residuals import summary_table
-from jaxcal.physics.constants import HEALTH_NAMES
 from jaxcal.plotting import plot_stacked_traces, save_figure
 
 MAX_RANKING = 20  # ranking rows written to the report
@@ -63,7 +64,7 @@ def _ranking(ident: Identification) -> list[dict]:
     return [e._asdict() for e in ident.ranking[:MAX_RANKING]]
 
 
-def _stage(stage: Stage, names) -> dict:
+def _stage(stage: Stage, names, condition_names) -> dict:
     return {
         "tracking_rmse": dict(zip(names, stage.tracking_rmse.tolist(), strict=True)),
         "tracking_rmse_norm": dict(
@@ -75,7 +76,7 @@ def _stage(stage: Stage, names) -> dict:
         "ssr": stage.fit.ssr,
         "bic": stage.fit.bic,
         "num_params": stage.fit.num_params,
-        "residuals": summary_table(stage.summary, names),
+        "residuals": summary_table(stage.summary, names, condition_names),
     }
 
 
@@ -83,11 +84,11 @@ def report_dict(
     res: DiagnosisResult,
     *,
     source: str = "",
-    engine: str = "",
+    model: str = "",
     truth: dict | None = None,
     config: dict | None = None,
 ) -> dict:
-    """Everything of the diagnosis as a JSON-ready dict."""
+    """Everything of the diagnosis as a JSON-ready dict (``model``: its name)."""
     d = res.data
     disc = None
     if res.discrepancy is not None:
@@ -102,13 +103,17 @@ def report_dict(
         ]
     out = {
         "source": source,
-        "engine": engine,
+        "model": model,
         "declared": list(res.declared),
         "data": {
             "rows": d.num_rows,
             "units": d.num_units,
             "unit_ids": d.unit_ids.tolist(),
             "sensors": list(d.sensor_names),
+            "units_of": {
+                **dict(zip(d.condition_names, d.condition_units, strict=True)),
+                **dict(zip(d.sensor_names, d.sensor_units, strict=True)),
+            },
             "excluded": d.excluded,
             "noise_std": dict(zip(d.sensor_names, d.noise_std.tolist(), strict=True)),
             "noise_source": d.noise_source,
@@ -128,8 +133,8 @@ def report_dict(
         if res.rescreen is None
         else _ranking(res.rescreen),
         "discrepancy": disc,
-        "before": _stage(res.before, d.sensor_names),
-        "after": _stage(res.after, d.sensor_names),
+        "before": _stage(res.before, d.sensor_names, d.condition_names),
+        "after": _stage(res.after, d.sensor_names, d.condition_names),
         "truth": truth,
         "config": config,
     }
@@ -166,7 +171,7 @@ def _stacked_residuals(path, res: DiagnosisResult) -> str:
         )
         for b in d.starts[1:-1]:
             ax.axvline(b, color="0.8", lw=0.5, ls=":")
-        ax.set_title(d.sensor_names[j], fontsize=9)
+        ax.set_title(f"{d.sensor_names[j]} [{d.sensor_units[j]}]", fontsize=9)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, markerscale=4)
     fig.supxlabel("row (units stacked)")
@@ -203,19 +208,21 @@ def _explained(path, res: DiagnosisResult) -> str:
 def _theta(path, res: DiagnosisResult) -> str:
     d = res.data
     names = list(res.after.fit.spec.unit_params)
-    cols = [HEALTH_NAMES.index(n) for n in names]
+    cols = [d.parameter_names.index(n) for n in names]
     series = {
         "before": res.before.fit.evaluation.theta[:, cols],
         "after": res.after.fit.evaluation.theta[:, cols],
     }
-    truth = None if d.theta_true is None else d.theta_true[:, cols]
+    truth = None
+    if d.theta_true is not None and all(n in d.theta_names for n in names):
+        truth = d.theta_true[:, [d.theta_names.index(n) for n in names]]
     return plot_stacked_traces(
         path,
         series,
         truth,
         d.starts[1:-1],
         names=names,
-        title="health modifiers, units stacked",
+        title="calibrated parameters, units stacked",
     )
 
 
@@ -224,7 +231,7 @@ def write_report(
     res: DiagnosisResult,
     *,
     source: str = "",
-    engine: str = "",
+    model: str = "",
     truth: dict | None = None,
     config: dict | None = None,
 ) -> dict:
@@ -234,7 +241,7 @@ def write_report(
         The report dict (as written to report.json, with the figure paths).
     """
     os.makedirs(out_dir, exist_ok=True)
-    rep = report_dict(res, source=source, engine=engine, truth=truth, config=config)
+    rep = report_dict(res, source=source, model=model, truth=truth, config=config)
     figures = {
         "residuals": _stacked_residuals(os.path.join(out_dir, "residuals.png"), res),
         "signature": _explained(os.path.join(out_dir, "signature.png"), res),
@@ -247,10 +254,12 @@ def write_report(
 
 
 def dropped_rows_line(dropped: dict) -> str:
-    """``{"rows", "columns"}`` of the report as one sentence (no final stop)."""
+    """``{"rows", "columns"}`` of the report as one sentence (no final stop);
+    ``rows`` is ``None`` when the reader did not count them."""
     per_column = ", ".join(f"{k}: {v}" for k, v in dropped["columns"].items())
+    count = "" if dropped["rows"] is None else f"{dropped['rows']} "
     return (
-        f"Dropped {dropped['rows']} rows with NaN or Inf values before the fit "
+        f"Dropped {count}rows with NaN or Inf values before the fit "
         f"(rows per column: {per_column})"
     )
 
@@ -266,20 +275,21 @@ def _fmt(v, digits=4):
 def render_markdown(rep: dict) -> str:
     """The human-readable page of a report dict."""
     d = rep["data"]
+    units = d.get("units_of") or {}
     lines = [
         f"# Diagnosis: {rep['source'] or 'record'}",
         "",
-        f"Engine `{rep['engine']}`, declared (calibrated): "
+        f"Model `{rep['model']}`, declared (calibrated): "
         f"{', '.join(f'`{n}`' for n in rep['declared'])}. {d['rows']} rows, "
-        f"{d['units']} units, {len(d['sensors'])} sensors in the residual; noise std "
+        f"{d['units']} units, {len(d['sensors'])} outputs in the residual; noise std "
         f"{d['noise_source']}; {d['knots_per_unit']} spline functions per unit and "
-        "declared modifier." + "".join(f" {n}." for n in d["notes"]),
+        "declared parameter." + "".join(f" {n}." for n in d["notes"]),
         "",
         f"**Verdict: {rep['verdict']}.**",
         "",
     ]
     dropped = d.get("dropped") or {}
-    if dropped.get("rows"):
+    if dropped.get("rows") or dropped.get("columns"):
         lines += [dropped_rows_line(dropped) + ".", ""]
     if d["excluded"]:
         lines += [
@@ -328,7 +338,8 @@ def render_markdown(rep: dict) -> str:
                 for key in ("dependence", "unique")
             )
             lines.append(
-                f"| {s['sensor']} | {_fmt(s['amplitude_units'])} | "
+                f"| {s['sensor']} [{units.get(s['sensor'], '-')}] | "
+                f"{_fmt(s['amplitude_units'])} | "
                 f"{_fmt(s['mean_units'])} | {s['cv_gain']:.0f} / "
                 f"{s['threshold']:.0f} | {dep} | {uni} |"
             )
@@ -367,14 +378,15 @@ def render_markdown(rep: dict) -> str:
         f"noise std; white sensors (Ljung–Box p > 0.01) {b['whiteness']:.2f} -> "
         f"{a['whiteness']:.2f}; BIC {b['bic']:.1f} -> {a['bic']:.1f}.",
         "",
-        "| sensor | RMSE before | after | before / std | after / std "
+        "| output | unit | RMSE before | after | before / std | after / std "
         "| LB p before | after |",
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for j, s in enumerate(d["sensors"]):
         rb, ra = b["residuals"][j], a["residuals"][j]
         lines.append(
-            f"| {s} | {_fmt(b['tracking_rmse'][s])} | {_fmt(a['tracking_rmse'][s])} | "
+            f"| {s} | {units.get(s, '-')} | {_fmt(b['tracking_rmse'][s])} | "
+            f"{_fmt(a['tracking_rmse'][s])} | "
             f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
             f"{rb['ljung_box_p']:.2g} | {ra['ljung_box_p']:.2g} |"
         )

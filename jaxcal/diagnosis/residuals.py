@@ -4,8 +4,8 @@ Per sensor: bias (mean), spread (std), RMS; autocorrelation at lags ``1..max_lag
 within units (pairs never straddle two units) and the Ljung–Box portmanteau test of
 whiteness (Ljung & Box 1978), ``Q = n (n + 2) sum_k rho_k^2 / (n - k)`` against
 ``chi2(h)``, with the per-unit autocovariances pooled (``n`` the number of rows); the
-regression of ``r`` on the standardised operating conditions (alt, Mach, TRA, T2) with
-its R^2 and F-test; and the regression on cycle (slope per 100 cycles and its t-test).
+regression of ``r`` on the ``W`` standardised operating conditions with its R^2 and
+F-test; and the regression on time (cycle) (slope per 100 cycles and its t-test).
 Pure numpy: this is host-side reporting, not a hot path. Rows must be sorted by unit and
 time within each unit.
 """
@@ -27,7 +27,7 @@ class ResidualSummary(NamedTuple):
     acf: np.ndarray  # [S, L] autocorrelation at lags 1..L
     ljung_box: np.ndarray  # Q statistic over lags 1..L
     ljung_box_p: np.ndarray
-    w_coef: np.ndarray  # [S, 5] intercept + 4 standardised conditions
+    w_coef: np.ndarray  # [S, 1 + W] intercept + W standardised conditions
     w_r2: np.ndarray
     w_p: np.ndarray  # F-test p-value of the conditions (all slopes zero)
     cycle_slope: np.ndarray  # per 100 cycles
@@ -81,7 +81,7 @@ def summarize_residuals(
 
     Args:
         r: ``[N, S]`` normalised residual, rows sorted by unit then time.
-        w: ``[N, 4]`` operating conditions.
+        w: ``[N, W]`` operating conditions.
         cycle: ``[N]`` cycle of each row.
         starts: ``[U + 1]`` row offsets of the units.
         max_lag: autocorrelation lags (and Ljung–Box ``h``).
@@ -90,10 +90,10 @@ def summarize_residuals(
         :class:`ResidualSummary`.
     """
     n, num_s = r.shape
-    if w.shape != (n, 4) or cycle.shape != (n,):
+    if w.ndim != 2 or w.shape[0] != n or cycle.shape != (n,):
         raise ValueError(
-            f"need r [N, S], w [N, 4], cycle [N]; got {r.shape}, {w.shape}, "
-            f"{cycle.shape}"
+            f"need r [N, S], w [N, W], cycle [N] with the same N; got {r.shape}, "
+            f"{w.shape}, {cycle.shape}"
         )
     acf = autocorrelation(r, starts, max_lag)
     q, q_p = ljung_box(acf, n)
@@ -102,7 +102,7 @@ def summarize_residuals(
     z = (w[:, varying] - w[:, varying].mean(0)) / w_std[varying]
     design = np.concatenate([np.ones((n, 1)), z], axis=1)
     coef_v, sse, sst = _regress(design, r)
-    coef = np.zeros((5, num_s))
+    coef = np.zeros((1 + w.shape[1], num_s))
     coef[np.concatenate([[True], varying])] = coef_v
     k = design.shape[1] - 1
     r2 = np.where(sst > 0, 1.0 - sse / np.where(sst > 0, sst, 1.0), 0.0)
@@ -136,8 +136,10 @@ def summarize_residuals(
     )
 
 
-def summary_table(summary: ResidualSummary, sensor_names) -> list[dict]:
-    """JSON-ready rows, one per sensor."""
+def summary_table(
+    summary: ResidualSummary, sensor_names, condition_names
+) -> list[dict]:
+    """JSON-ready rows, one per output (``condition_names``: the ``W`` conditions)."""
     rows = []
     for s, name in enumerate(sensor_names):
         rows.append(
@@ -154,7 +156,7 @@ def summary_table(summary: ResidualSummary, sensor_names) -> list[dict]:
                 "w_coef": {
                     k: float(v)
                     for k, v in zip(
-                        ("intercept", "alt", "Mach", "TRA", "T2"),
+                        ("intercept", *condition_names),
                         summary.w_coef[s],
                         strict=True,
                     )

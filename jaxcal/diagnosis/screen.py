@@ -5,7 +5,7 @@ coefficients and of every candidate are accumulated per unit as Gram blocks
 (:func:`.fitting.gram_stats`). The Gauss–Newton step of *any* subset of columns is then
 a Schur-complement solve on those blocks, and its SSR reduction is the linearised
 likelihood-ratio statistic of that subset (the score test of Rao 1948 in Gauss–Newton
-form), so every single candidate and every pair is scored without another engine
+form), so every single candidate and every pair is scored without another model
 evaluation. The same blocks give each candidate's *detectability* (the share of its
 signature's norm left after projecting out the declared parameters' signatures) and
 the *overlap* of two candidates (the share of one's fitted signal that the other's
@@ -36,7 +36,7 @@ def _split(members: Sequence[Candidate]):
 
 
 def spec_for(declared: Sequence[str], members: Sequence[Candidate]) -> ModelSpec:
-    """The model: declared + per-unit health members, global members as effects."""
+    """The model: declared + per-unit parameter members, global members as effects."""
     local, glob = _split(members)
     return ModelSpec(
         tuple(declared) + tuple(c.target for c in local), tuple(glob), len(declared)
@@ -55,17 +55,15 @@ class Screen:
     """Linearised scores of candidate sets at the declared-only solution ``null``.
 
     Column layout of the Gram blocks: the declared spline coefficients, then ``Kc``
-    per health candidate (per unit), then one column per constant candidate.
+    per parameter candidate (per unit), then one column per constant candidate.
     """
 
-    def __init__(self, engine, data: LoopData, declared, library, null: FitResult):
+    def __init__(self, model, data: LoopData, declared, library, null: FitResult):
         self.data, self.library = data, list(library)
-        health = [c for c in library if c.per_unit]
+        per_unit = [c for c in library if c.per_unit]
         self.glob = [c for c in library if not c.per_unit]
-        spec = spec_for(declared, health + self.glob)
-        local, glob = signature_columns(
-            data, null.evaluation.lin, spec, engine.effect_names
-        )
+        spec = spec_for(declared, per_unit + self.glob)
+        local, glob = signature_columns(data, null.evaluation.lin, spec, model)
         self.stats: GramStats = gram_stats(
             data, null.evaluation.resid, null.evaluation.valid, local, glob
         )
@@ -74,7 +72,7 @@ class Screen:
         self.decl = list(range(d0))
         self.local_pos = {
             c.name: list(range(d0 + i * kc, d0 + (i + 1) * kc))
-            for i, c in enumerate(health)
+            for i, c in enumerate(per_unit)
         }
         self.global_pos = {c.name: i for i, c in enumerate(self.glob)}
         self.base = schur_solve(self.stats, self.decl, []).reduction

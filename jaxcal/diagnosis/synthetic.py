@@ -1,257 +1,284 @@
-"""Test records with exactly one undeclared effect of a chosen kind.
+"""Test data sets with exactly one undeclared effect of a chosen kind, for any model.
 
-A record is an N-CMAPSS-like fleet: each unit flies a run-to-failure life
-(:func:`jaxcal.data.degradation.sample_unit_degradation`, the declared modifiers degrade
-with the unit's health index) and every cycle is a climb / cruise / descent flight
-(:func:`jaxcal.data.flights.sample_flight`) from which ``rows_per_cycle`` random
-recorded samples are kept, so that a record holds a realistic number of cycles at a
-size a test can afford. Sensors are the extended engine model
-(:mod:`jaxcal.diagnosis.effects`) with one effect switched on, plus white Gaussian noise of
-the C-MAPSS relative level of each sensor (:func:`.problem.reference_noise_rel`).
+A *scenario* supplies the clean rows: conditions, all parameters (the declared ones
+drifting with a per-row health index), unit and cycle (e.g.
+:func:`jaxcal.models.turbofan_scenario.make_scenario` flies N-CMAPSS-like lives). This
+module switches one effect on in the extended model of :mod:`.effects`, adds white
+Gaussian noise at the model's reference relative level per output
+(``DiagnosisHints.noise_rel``, times ``noise_scale``) and returns a
+:class:`~jaxcal.data.dataset.Dataset` with the truth.
 
-Effect kinds (:data:`KINDS`) and the size ranges they are drawn from
-(:data:`EFFECT_SIZES`, magnitude uniform in the range, sign as noted):
+Effect kinds (:func:`kinds`), drawn from ``SyntheticConfig.sizes`` (magnitude uniform
+in the range, sign as noted; defaults :func:`default_sizes`):
 
-* ``none``: the clean record (false-alarm runs);
-* ``health``: an undeclared modifier degrading with the unit's health index to an
-  end-of-life value in -2 % ... -0.5 %;
-* the six engine effects, constant over the record;
-* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` on a random sensor, sized in
-  multiples of its noise std (a gain relative to the sensor's mean level, a drift per
+* ``none``: the clean data (false-alarm runs);
+* ``parameter``: an undeclared parameter drifting from nominal with the unit's health
+  index to an end value in the range;
+* each registered effect of the model (``model.effects``), constant over the data;
+* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` on a random output, sized in
+  multiples of its noise std (a gain relative to the output's mean level, a drift per
   100 cycles since the unit's first cycle);
-* ``discrepancy``: an effect outside the library, a smooth bump in Mach added to one
-  sensor, ``A sigma exp(-((M - m0) / 0.12)^2)``.
+* ``discrepancy``: an effect outside the library, a smooth bump in one condition
+  added to one output, ``A sigma exp(-((w_c - c0) / width)^2)``
+  (``SyntheticConfig.bump``);
+* ``condition_offset`` (only if the model allows condition offsets): a logged
+  condition off by a constant, in multiples of the condition's spread.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
-from typing import NamedTuple
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.data.degradation import DegradationConfig, sample_unit_degradation
-from jaxcal.data.flights import FlightConfig, sample_flight
-from jaxcal.data.record import Record
+from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.effects import (
-    ENGINE_EFFECT_SCALE,
     LAYER_NAMES,
     TAU_CYCLES,
     candidate_name,
     linearize,
-    sensor_unit,
+    natural_scale,
+    offset_conditions,
 )
-from jaxcal.diagnosis.noise import reference_noise_rel
-from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
+from jaxcal.diagnosis.problem import DEFAULT_NOISE_REL
+from jaxcal.model import Model
 from jaxcal.typedefs import PRNGKey
 
-ENGINE_KINDS = (
-    "t2_offset",
-    "customer_bleed",
-    "power_offtake",
-    "core_nozzle_area",
-    "bypass_nozzle_area",
-    "inlet_recovery",
-)
-KINDS = ("none", "health", *ENGINE_KINDS, *LAYER_NAMES, "discrepancy")
 
-# kind -> ((low, high) magnitude, sign): +1 positive, -1 negative, 0 random sign.
-EFFECT_SIZES: dict[str, tuple[tuple[float, float], int]] = {
-    "health": ((0.005, 0.02), -1),  # end-of-life value of the modifier
-    "t2_offset": ((1.0, 3.0), 0),  # degR
-    "customer_bleed": ((0.005, 0.02), 1),  # fraction of W25
-    "power_offtake": ((150.0, 500.0), 1),  # hp
-    "core_nozzle_area": ((0.01, 0.03), 0),  # relative
-    "bypass_nozzle_area": ((0.01, 0.03), 0),  # relative
-    "inlet_recovery": ((0.003, 0.01), -1),  # P2/Pt0
-    "sensor_bias": ((2.0, 5.0), 0),  # noise std
-    "sensor_gain": ((2.0, 5.0), 0),  # noise std / mean level
-    "sensor_drift": ((3.0, 6.0), 0),  # noise std per 100 cycles
-    "discrepancy": ((3.0, 6.0), 0),  # noise std (bump height)
-}
+def kinds(model: Model) -> tuple[str, ...]:
+    """The effect kinds a synthetic data set of ``model`` can hold (module doc)."""
+    extra = ("condition_offset",) if offset_conditions(model) else ()
+    return (
+        "none", "parameter", *(e.name for e in model.effects), *LAYER_NAMES,
+        "discrepancy", *extra,
+    )  # fmt: skip
+
+
+def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
+    """kind -> ((low, high) magnitude, sign); sign +1, -1 or 0 (random).
+
+    Parameters and registered effects: 0.5 to 2 natural steps
+    (:func:`.effects.natural_scale`; the parameter's drift is taken by its natural
+    step for every undeclared parameter alike); output layers: 2 to 5 noise std (3 to
+    6 for a drift); the discrepancy bump: 3 to 6 noise std; a condition offset: 0.5 to
+    2 % of the condition's spread (x100 below).
+    """
+    sizes = {e.name: ((0.5 * s, 2.0 * s), 0) for e in model.effects
+             for s in [natural_scale(model, e.name)]}  # fmt: skip
+    return {
+        "parameter": ((0.5, 2.0), 0),  # natural steps of the chosen parameter
+        **sizes,
+        "sensor_bias": ((2.0, 5.0), 0),
+        "sensor_gain": ((2.0, 5.0), 0),
+        "sensor_drift": ((3.0, 6.0), 0),
+        "discrepancy": ((3.0, 6.0), 0),
+        "condition_offset": ((0.5, 2.0), 0),  # % of the condition's std
+    }
+
+
+class Scenario(NamedTuple):
+    """Clean rows of a synthetic data set (``N`` rows)."""
+
+    w: np.ndarray  # [N, W]
+    theta: np.ndarray  # [N, P_all] (the declared parameters drifting)
+    unit: np.ndarray  # [N] int
+    cycle: np.ndarray  # [N] cycle (time) index; every life starts at cycle 1
+    health: np.ndarray  # [N] health index, 1 new -> 0 end of life
 
 
 @dataclasses.dataclass(frozen=True)
 class SyntheticConfig:
-    """Static settings of :func:`make_synthetic_record`."""
+    """Static settings of :func:`make_synthetic_data`.
 
-    num_units: int = 3
-    rows_per_cycle: int = 2  # recorded samples kept per flight
-    cycle_stride: int = 1  # keep every k-th cycle of each life
-    declared: tuple[str, ...] = ("HPT_eff_mod",)  # modifiers that degrade (calibrated)
-    sensors: tuple[str, ...] = tuple(s for s in MEASURED_SENSOR_NAMES if s != "Nf")
-    noise_scale: float = 1.0  # multiplies the reference noise levels
-    flight: FlightConfig = FlightConfig(dt_s=60.0)  # 1-min samples are plenty here
+    Attributes:
+        sensors: outputs recorded (default all of the model's).
+        declared: parameters that drift in the scenario (the calibrated ones).
+        noise_scale: multiplies the reference noise levels.
+        sizes: kind -> ((low, high), sign) (default :func:`default_sizes`); the
+            units of ``parameter`` are the parameter's own when ``parameter_physical``.
+        parameter_physical: ``sizes["parameter"]`` is in the parameter's units
+            (True) or in natural steps (False).
+        bump: ``(condition, (c0_low, c0_high), width)`` of the discrepancy bump
+            (default: the first condition that varies, centre between its 45th and
+            65th percentile, width 20 % of its spread).
+    """
+
+    sensors: tuple[str, ...] = ()
+    declared: tuple[str, ...] = ()
+    noise_scale: float = 1.0
+    sizes: Mapping[str, Any] | None = None
+    parameter_physical: bool = False
+    bump: tuple[str, tuple[float, float], float] | None = None
 
     def __post_init__(self):
-        if self.num_units < 1 or self.rows_per_cycle < 1 or self.cycle_stride < 1:
-            raise ValueError(
-                "SyntheticConfig: num_units, rows_per_cycle, cycle_stride >= 1"
-            )
         if not self.noise_scale > 0:
             raise ValueError("SyntheticConfig.noise_scale must be > 0")
 
 
 class EffectTruth(NamedTuple):
-    """The effect put into a record."""
+    """The effect put into a data set."""
 
-    kind: str  # one of KINDS
+    kind: str  # one of kinds(model)
     name: str  # the library candidate's name ("" for none, "discrepancy[<s>]")
-    target: str  # sensor, health modifier or engine effect ("" for none)
-    size: float  # physical units (see EFFECT_SIZES)
+    target: str  # output, parameter, effect or condition ("" for none)
+    size: float  # physical units (the model's)
     unit: str
+    condition: str = ""  # the bump's condition (discrepancy only)
 
 
-class SyntheticRecord(NamedTuple):
-    """A generated record, the noise it got and the effect it contains."""
+class SyntheticData(NamedTuple):
+    """A generated data set, the noise it got and the effect it contains."""
 
-    record: Record
-    noise_std: dict  # sensor -> std used for the noise
+    data: Dataset
+    noise_std: dict  # output -> std used for the noise
     truth: EffectTruth
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3))
-def _sample_fleet(key_deg, key_flight, deg_cfg, flight_cfg, classes):
-    """Degradation per unit [U, C] and one flight per (unit, cycle) [U, C, T]."""
-    c_max = deg_cfg.max_eol_cycle
-    deg = jax.vmap(lambda k, fc: sample_unit_degradation(k, c_max, deg_cfg, fc))(
-        jax.random.split(key_deg, classes.shape[0]), classes
-    )
-    keys = jax.random.split(key_flight, (classes.shape[0], c_max))
-    flights = jax.vmap(
-        lambda ku, fc: jax.vmap(lambda k: sample_flight(k, fc, flight_cfg))(ku)
-    )(keys, classes)
-    return deg, flights
-
-
-def _pick(rng: np.random.Generator, kind: str, sensors, declared) -> tuple[str, float]:
-    (lo, hi), sign = EFFECT_SIZES[kind]
+def _pick(rng, kind, sensors, declared, model, sizes) -> tuple[str, float]:
+    (lo, hi), sign = sizes[kind]
     size = rng.uniform(lo, hi) * (sign if sign else rng.choice([-1.0, 1.0]))
-    if kind == "health":
-        target = str(rng.choice([h for h in HEALTH_NAMES if h not in declared]))
+    if kind == "parameter":
+        free = [p for p in model.parameter_names if p not in declared]
+        target = str(rng.choice(free))
     elif kind in LAYER_NAMES or kind == "discrepancy":
         target = str(rng.choice(list(sensors)))
+    elif kind == "condition_offset":
+        target = str(rng.choice(list(offset_conditions(model))))
     else:
         target = kind
     return target, float(size)
 
 
-def make_synthetic_record(
+def make_synthetic_data(
     key: PRNGKey,
-    engine,
+    model: Model,
     kind: str,
     cfg: SyntheticConfig,
+    scenario: Callable[[jax.Array], Scenario],
     *,
     target: str | None = None,
     size: float | None = None,
-) -> SyntheticRecord:
-    """One record with exactly one undeclared effect of ``kind`` (module docstring).
+) -> SyntheticData:
+    """One data set with exactly one undeclared effect of ``kind`` (module docstring).
 
     Args:
-        key: PRNG key (the same key gives the same record).
-        engine: the engine model.
-        kind: one of :data:`KINDS`.
+        key: PRNG key (the same key gives the same data). It is split in six: the
+            first four go to ``scenario``, then the effect and the noise.
+        model: a static model (float64 enabled by the caller).
+        kind: one of :func:`kinds`.
         cfg: static settings.
-        target: force the sensor / modifier the effect acts on (default: random).
-        size: force the size, in the units of :data:`EFFECT_SIZES` (default: drawn).
+        scenario: ``scenario(keys [4]) -> Scenario`` (the clean rows).
+        target: force the output / parameter / condition the effect acts on.
+        size: force the size, in the units of ``cfg.sizes`` (default: drawn).
 
     Returns:
-        :class:`SyntheticRecord` with the record, the noise levels and the truth.
+        :class:`SyntheticData`; rows where the model is invalid are left out.
     """
-    if kind not in KINDS:
-        raise ValueError(f"unknown effect kind {kind!r}; valid: {', '.join(KINDS)}")
+    valid_kinds = kinds(model)
+    if kind not in valid_kinds:
+        raise ValueError(
+            f"unknown effect kind {kind!r}; valid: {', '.join(valid_kinds)}"
+        )
+    sensors = tuple(cfg.sensors) or model.output_names
+    sizes = {**default_sizes(model), **dict(cfg.sizes or {})}
     valid_targets = {
-        "health": [h for h in HEALTH_NAMES if h not in cfg.declared],
-        "discrepancy": cfg.sensors,
-        **{f: cfg.sensors for f in LAYER_NAMES},
+        "parameter": [p for p in model.parameter_names if p not in cfg.declared],
+        "discrepancy": sensors,
+        "condition_offset": offset_conditions(model),
+        **{f: sensors for f in LAYER_NAMES},
     }
     if target is not None and target not in valid_targets.get(kind, ()):
         raise ValueError(
             f"target={target!r} is not valid for kind {kind!r}; valid: "
             f"{list(valid_targets.get(kind, ()))}"
         )
-    key_class, key_deg, key_flight, key_rows, key_effect, key_noise = jax.random.split(
-        key, 6
-    )
+    keys = jax.random.split(key, 6)
+    key_effect, key_noise = keys[4], keys[5]
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key_effect)).ravel())
     tgt, size_drawn = (
-        ("", 0.0) if kind == "none" else _pick(rng, kind, cfg.sensors, cfg.declared)
-    )
+        ("", 0.0) if kind == "none" else _pick(
+            rng, kind, sensors, cfg.declared, model, sizes
+        )
+    )  # fmt: skip
     tgt = target or tgt
     size = size if size is not None else size_drawn
-    deg_cfg = DegradationConfig(degrading=cfg.declared)
-    classes = jax.random.randint(key_class, (cfg.num_units,), 1, 4)
-    deg, flights = _sample_fleet(key_deg, key_flight, deg_cfg, cfg.flight, classes)
-    scores = jnp.where(
-        flights.mask, jax.random.uniform(key_rows, flights.mask.shape), -1.0
-    )
-    picks = np.asarray(jnp.argsort(-scores, axis=-1)[..., : cfg.rows_per_cycle])
-    eol = np.asarray(deg.eol_cycle)
-    rows = [
-        (u, c, k)
-        for u in range(cfg.num_units)
-        for c in range(0, int(eol[u]), cfg.cycle_stride)
-        for k in picks[u, c]
-    ]
-    u_i, c_i, k_i = (np.array(a) for a in zip(*rows, strict=True))
-    w = np.asarray(flights.w)[u_i, c_i, k_i]
-    theta = np.asarray(deg.theta)[u_i, c_i].copy()
-    if kind == "health":  # degrades with the unit's health index, like the declared
-        theta[:, HEALTH_NAMES.index(tgt)] = size * (
-            1.0 - np.asarray(deg.health)[u_i, c_i]
-        )
-    cycle = np.asarray(deg.cycle)[u_i, c_i]
-    effects = np.zeros(len(engine.effect_names))
-    layer = np.zeros((len(LAYER_NAMES), len(engine.sensor_names)))
-    sidx = [list(engine.sensor_names).index(s) for s in cfg.sensors]
+    scn = scenario(keys[:4])
+    w, theta, cycle = scn.w, np.array(scn.theta, np.float64), scn.cycle
+    if kind == "parameter":  # drifts with the unit's health index, like the declared
+        j = model.parameter_names.index(tgt)
+        step = 1.0 if cfg.parameter_physical else natural_scale(model, tgt)
+        size = size * step
+        theta[:, j] = model.nominal[j] + size * (1.0 - scn.health)
+    effects = np.zeros(len(model.effects))
+    layer = np.zeros((len(LAYER_NAMES), len(model.outputs)))
+    w_offset = np.zeros(len(model.conditions))
+    sidx = model.output_index(sensors)
     tau = (cycle - 1) / TAU_CYCLES  # every life starts at cycle 1
-    clean = linearize(engine, w, theta, effects, layer, tau).y[:, sidx]
+    clean = linearize(model, w, theta, effects, layer, tau).y[:, sidx]
     level = np.abs(clean).mean(0)
+    rel = model.diagnosis.noise_rel or {}
     std = (
-        np.array([reference_noise_rel(s) for s in cfg.sensors])
+        np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors])
         * level
         * cfg.noise_scale
     )
     unit = "-"
-    if kind in ENGINE_KINDS:
-        effects[list(engine.effect_names).index(kind)] = size
-        unit = ENGINE_EFFECT_SCALE[kind][1]
+    effect_names = [e.name for e in model.effects]
+    if kind in effect_names:
+        effects[effect_names.index(kind)] = size
+        unit = model.effects[effect_names.index(kind)].unit
+    elif kind == "parameter":
+        unit = model.unit_of(tgt)
+    elif kind == "condition_offset":
+        c = model.condition_names.index(tgt)
+        size = size * 0.01 * float(np.std(w[:, c]) or 1.0)
+        w_offset[c] = size
+        unit = model.conditions[c].unit
     elif kind in LAYER_NAMES:
-        s = list(cfg.sensors).index(tgt)
+        s = list(sensors).index(tgt)
         scale = std[s] / level[s] if kind == "sensor_gain" else std[s]
         size = size * scale
         layer[LAYER_NAMES.index(kind), sidx[s]] = size
-        unit = "-" if kind == "sensor_gain" else sensor_unit(tgt)
-    y = linearize(engine, w, theta, effects, layer, tau)
+        unit = "-" if kind == "sensor_gain" else model.unit_of(tgt)
+    y = linearize(model, w, theta, effects, layer, tau, w_offset)
     x = y.y[:, sidx]
+    bump_on = ""
     if kind == "discrepancy":
-        s = list(cfg.sensors).index(tgt)
-        m0 = rng.uniform(0.45, 0.65)
+        s = list(sensors).index(tgt)
+        bump_on, (c_lo, c_hi), width = cfg.bump or _default_bump(model, w)
+        c = model.condition_names.index(bump_on)
+        c0 = rng.uniform(c_lo, c_hi)
         size = size * std[s]
-        x[:, s] += size * np.exp(-(((w[:, 1] - m0) / 0.12) ** 2))
-        unit = sensor_unit(tgt)
+        x[:, s] += size * np.exp(-(((w[:, c] - c0) / width) ** 2))
+        unit = model.unit_of(tgt)
     noise = np.asarray(jax.random.normal(key_noise, x.shape, dtype=jnp.float64))
     x = x + std * noise
     ok = y.ok
-    record = Record(
+    data = Dataset(
         w=w[ok],
         x=x[ok],
-        x_names=cfg.sensors,
+        condition_names=model.condition_names,
+        output_names=sensors,
+        unit=scn.unit[ok],
+        time=cycle[ok],
         theta=theta[ok],
-        unit=u_i[ok] + 1,
-        cycle=cycle[ok],
-        flight_class=np.asarray(classes)[u_i[ok]].astype(float),
-        hs=np.asarray(deg.hs)[u_i, c_i][ok].astype(float),
-        rul=np.asarray(deg.rul)[u_i, c_i][ok],
+        theta_names=model.parameter_names,
         source=f"synthetic:{kind}",
     )
+    family = "effect" if kind in effect_names else kind
     name = {"none": "", "discrepancy": f"discrepancy[{tgt}]"}.get(
-        kind, candidate_name("engine" if kind in ENGINE_KINDS else kind, tgt)
+        kind, candidate_name(family, tgt)
     )
-    truth = EffectTruth(kind, name, tgt, float(size), unit)
-    return SyntheticRecord(
-        record, dict(zip(cfg.sensors, std.tolist(), strict=True)), truth
-    )
+    truth = EffectTruth(kind, name, tgt, float(size), unit, bump_on)
+    return SyntheticData(data, dict(zip(sensors, std.tolist(), strict=True)), truth)
+
+
+def _default_bump(model: Model, w: np.ndarray):
+    spread = w.std(0)
+    c = int(np.argmax(spread > 0))
+    lo, hi = np.percentile(w[:, c], [45.0, 65.0])
+    return model.condition_names[c], (float(lo), float(hi)), 0.2 * float(spread[c])

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 Dynamics = Callable[[PyTree, Array, Array, Array], Array]
@@ -100,26 +101,21 @@ class EnvParams:
     dyn_params: PyTree
 
 
-class NormStats(NamedTuple):
-    """Normalisation statistics of a training set (store them with the run)."""
-
-    w_mean: Array
-    w_std: Array
-    x_mean: Array
-    x_std: Array
-
-
-def compute_norm_stats(w: Array, x: Array, lengths: Array) -> NormStats:
+def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
     """Mean and std over the valid rows of all units (host-side, numpy).
 
     A feature with std below 1e-12 relative to its scale (a constant channel) gets
-    std = 1 so that normalisation never divides by zero.
+    std = 1 so that normalisation never divides by zero. Unlike
+    :meth:`Normalisation.of` (always float64), the statistics are computed in the
+    data's own dtype: a float32 run normalises with exactly the float32 statistics
+    it always had.
 
     Args:
         w: [U, T, W]; x: [U, T, S]; lengths: [U].
 
     Returns:
-        :class:`NormStats` of float arrays in the data's dtype.
+        The problem's :class:`~jaxcal.problem.Normalisation`, arrays in the data's
+        dtype.
     """
     w, x, lengths = np.asarray(w), np.asarray(x), np.asarray(lengths)
     valid = np.arange(x.shape[1])[None, :] < lengths[:, None]
@@ -132,7 +128,7 @@ def compute_norm_stats(w: Array, x: Array, lengths: Array) -> NormStats:
 
     w_mean, w_std = stats(w)
     x_mean, x_std = stats(x)
-    return NormStats(*(jnp.asarray(a) for a in (w_mean, w_std, x_mean, x_std)))
+    return Normalisation(*(jnp.asarray(a) for a in (w_mean, w_std, x_mean, x_std)))
 
 
 def make_env_params(
@@ -143,7 +139,7 @@ def make_env_params(
     theta_high: Array,
     dyn_params: PyTree,
     *,
-    stats: NormStats | None = None,
+    stats: Normalisation | None = None,
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
@@ -152,8 +148,9 @@ def make_env_params(
         lengths: [U] valid rows per unit, 2 <= lengths[u] <= T.
         theta_low, theta_high: [P] action box, theta_low < theta_high.
         dyn_params: the dynamics' parameters.
-        stats: normalisation statistics; ``None`` computes them from (w, x). Pass the
-            training set's statistics when building test/held-out parameters.
+        stats: normalisation statistics (the problem's ``norm``); ``None`` computes
+            them from (w, x). Pass the training set's statistics when building
+            test/held-out parameters. They are cast to the data's dtype.
 
     Returns:
         :class:`EnvParams`.
@@ -200,10 +197,10 @@ def make_env_params(
         w=jnp.asarray(w_np),
         x=jnp.asarray(x_np),
         lengths=jnp.asarray(lengths_np, jnp.int32),
-        w_mean=jnp.asarray(stats.w_mean),
-        w_std=jnp.asarray(stats.w_std),
-        x_mean=jnp.asarray(stats.x_mean),
-        x_std=jnp.asarray(stats.x_std),
+        w_mean=jnp.asarray(stats.w_mean, w_np.dtype),
+        w_std=jnp.asarray(stats.w_std, w_np.dtype),
+        x_mean=jnp.asarray(stats.x_mean, x_np.dtype),
+        x_std=jnp.asarray(stats.x_std, x_np.dtype),
         theta_low=jnp.asarray(low),
         theta_high=jnp.asarray(high),
         dyn_params=dyn_params,

@@ -7,16 +7,22 @@ virtual ones and the C-MAPSS extras). Validity is the engine's own: the Newton b
 closed, the outputs are finite and the inputs lie inside the envelope (whose T2 limit
 is a deviation from the ISA temperature at (alt, Mach), hence ``input_check`` beside
 the plain box). The engine's extension inputs (bleed, power offtake, nozzle areas,
-inlet recovery, T2 offset) are the model's registered effects for the diagnosis.
+inlet recovery, T2 offset) are the model's registered effects for the diagnosis, and
+its :class:`~jaxcal.model.DiagnosisHints` say what else the diagnosis should know: the
+health modifiers move in steps of 1 %, the C-MAPSS FD002 noise levels are the start
+noise, the fan-speed outputs follow the TRA schedule (no information), and the generic
+condition offsets stay off (the T2 offset is a registered effect; alt, Mach and TRA
+offsets were not part of the validated study library, experiments/loop_study.py).
 """
 
 from __future__ import annotations
 
 import functools
 
+import jax
 import numpy as np
 
-from jaxcal.model import Model, ModelInfo, Parameter
+from jaxcal.model import DiagnosisHints, Model, ModelInfo, Parameter
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.physics.constants import (
     CONDITION_NAMES,
@@ -27,6 +33,7 @@ from jaxcal.physics.constants import (
 )
 from jaxcal.physics.cycle import EFFECT_NAMES
 from jaxcal.physics.engine import Engine, load_engine
+from jaxcal.physics.reference import FD002_EARLY_MEANS, FD002_EARLY_STD
 
 # Natural size of one unit of each engine effect, and its unit (reporting scale).
 EFFECT_SCALE = {
@@ -39,6 +46,51 @@ EFFECT_SCALE = {
 }
 # Effects are bounded at this many natural units either way (a generous prior box).
 EFFECT_BOUND_UNITS = 50.0
+HEALTH_SCALE = 0.01  # health modifiers are diagnosed in steps of 1 %
+# Set by the fan-speed controller (TRA schedule): no information about the engine.
+CONTROLLER_SET = ("Nf", "NRf", "Nf_dmd", "PCNfR_dmd")
+
+# Outputs without a measured C-MAPSS noise level borrow the relative level of an
+# output of the same kind (temperature, pressure, speed, flow).
+NOISE_PROXY = {
+    "T48": "T50", "T40": "T50", "P15": "P30", "P2": "P30", "P21": "P30",
+    "P24": "P30", "Ps30": "P30", "P40": "P30", "P50": "P30", "P45": "P30",
+    "epr": "P30", "Nf": "Nc", "NRf": "Nc", "NRc": "Nc", "Nf_dmd": "Nc",
+    "PCNfR_dmd": "Nc", "Wf": "W31", "W21": "W31", "W22": "W31", "W25": "W31",
+    "W48": "W31", "W50": "W31", "phi": "W31", "farB": "W31", "SmFan": "BPR",
+    "SmLPC": "BPR", "SmHPC": "BPR",
+}  # fmt: skip
+
+
+def reference_noise_rel(name: str) -> float:
+    """Relative noise std (std / mean) of an output, from the C-MAPSS FD002 early life.
+
+    The median over the six operating conditions of ``FD002_EARLY_STD /
+    FD002_EARLY_MEANS`` (jaxcal.physics.reference); outputs C-MAPSS does not measure
+    use the proxy of :data:`NOISE_PROXY`.
+
+    Raises:
+        ValueError: no reference level for ``name``.
+    """
+    key = NOISE_PROXY.get(name, name)
+    if key not in FD002_EARLY_STD:
+        raise ValueError(f"no reference noise level for sensor {name!r}")
+    ratio = np.asarray(FD002_EARLY_STD[key]) / np.abs(FD002_EARLY_MEANS[key])
+    return float(np.median(ratio))
+
+
+def diagnosis_hints() -> DiagnosisHints:
+    """What the diagnosis should know about the turbofan (module docstring)."""
+    scales = {n: HEALTH_SCALE for n in HEALTH_NAMES}
+    scales.update({n: EFFECT_SCALE.get(n, (1.0, "-"))[0] for n in EFFECT_NAMES})
+    return DiagnosisHints(
+        scales=scales,
+        noise_rel={s: reference_noise_rel(s) for s in SENSOR_NAMES},
+        uninformative={
+            s: "set by the fan-speed controller (TRA schedule)" for s in CONTROLLER_SET
+        },
+        offset_conditions=(),
+    )
 
 
 def turbofan_model(engine: Engine) -> Model:
@@ -58,7 +110,7 @@ def turbofan_model(engine: Engine) -> Model:
     high = [env.alt_ft[1], env.mach[1], env.tra_pct[1], np.inf]
 
     def fn(w, theta):
-        x, info = engine.evaluate(w, theta)
+        x, info = evaluate_engine(engine, w, theta)
         return x, ModelInfo(valid=info.converged, native=info)
 
     def t2_in_envelope(w):
@@ -66,7 +118,8 @@ def turbofan_model(engine: Engine) -> Model:
         return (dev >= env.t2_dev_r[0]) & (dev <= env.t2_dev_r[1])
 
     def with_effects(w, theta, e):
-        return engine.evaluate(w, theta, effects=e)[0]
+        x, info = engine.evaluate(w, theta, effects=e)
+        return x, ModelInfo(valid=info.converged, native=info)
 
     return Model.from_function(
         fn,
@@ -80,11 +133,29 @@ def turbofan_model(engine: Engine) -> Model:
         effect_fn=with_effects,
         x64=True,
         native=engine,
+        diagnosis=diagnosis_hints(),
     )
 
 
-@functools.lru_cache(maxsize=4)
+def _evaluate(engine: Engine, w, theta):
+    return engine.evaluate(w, theta)
+
+
+# Jitted (against the style's "entry points only") because a nested jit keeps its
+# traced jaxpr: the engine's large Newton graph is traced once per process and vmap
+# pattern, not once per calibrator, pass and data set (tens of seconds each). The
+# engine is a pytree argument, so every configuration shares the one trace.
+evaluate_engine = jax.jit(_evaluate)
+
+
 def load_turbofan(name: str = "cmapss") -> Model:
     """The stored engine configuration ``name`` (``cmapss`` or ``agtf30``), cached so
-    that every caller shares one model object (and so one compiled program)."""
+    that every caller shares one model object (and so one compiled program); the
+    cache is per precision, as the design constants load in the current float type."""
+    return _load_turbofan(name, bool(jax.config.jax_enable_x64))
+
+
+@functools.lru_cache(maxsize=8)
+def _load_turbofan(name: str, x64: bool) -> Model:
+    del x64  # part of the cache key only
     return turbofan_model(load_engine(name))

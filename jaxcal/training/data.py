@@ -1,11 +1,20 @@
-"""The calibration data set of a training run: padded ``[U, T, ...]`` arrays per split.
+"""The calibration data set of a training run: padded ``[U, T, ...]`` arrays per split
+and the one :class:`~jaxcal.problem.Problem` they define.
 
-:func:`load_calibration_data` reads an N-CMAPSS-layout HDF5 file (one of ours or any of
-NASA's DS01-DS08) and returns, for the train / validation / test units, the operating
-conditions w, the chosen sensors x and the declared parameters theta, each unit padded
-to the longest one of its split (the padding repeats the unit's last row, see
-:func:`jaxcal.data.fleet.to_fleet`) with its valid length. Only the needed columns and
-the rows of the needed units are read (``load_ncmapss`` slices by unit).
+:class:`CalibrationData` is what training, evaluation and the paper's comparison read:
+the train / validation / test units as :class:`UnitArrays` and the problem (model,
+declared parameters, used outputs, action box, normalisation over the training units,
+training input range). Two sources make one:
+
+* :func:`load_calibration_data` (this module) reads an N-CMAPSS-layout HDF5 file (one
+  of ours or any of NASA's DS01-DS08) for the turbofan;
+* :func:`jaxcal.training.tables.load_table_data` reads any model's rows (CSV,
+  Parquet, C-MAPSS text) through :func:`jaxcal.data.readers.read_dataset`.
+
+Each unit is padded to the longest one of its split (the padding repeats the unit's
+last row, see :func:`jaxcal.data.fleet.to_fleet`) with its valid length. Only the
+needed columns and the rows of the needed units of an HDF5 file are read
+(``load_ncmapss`` slices by unit).
 
 Splits (the policy never sees theta; labels are kept for reporting only):
 
@@ -37,7 +46,9 @@ import numpy as np
 from jaxcal.data.fleet import to_fleet
 from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
 from jaxcal.data.record import Record
+from jaxcal.model import Model
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
+from jaxcal.problem import InputRange, Normalisation, Problem
 
 # Half-width of the action box of a declared parameter that is constant in the data.
 CONSTANT_THETA_HALF_WIDTH = 0.01
@@ -51,14 +62,15 @@ class UnitArrays(NamedTuple):
     Attributes:
         w: ``[U, T, W]`` operating conditions (ft, -, %, degR).
         x: ``[U, T, S]`` sensors in file units.
-        theta: ``[U, T, P]`` declared parameters (labels, for scoring only).
+        theta: ``[U, T, P]`` declared parameters (labels, for scoring only), or
+            ``None`` when the data carry no true values.
         lengths: ``[U]`` int32 valid rows per unit.
         unit_ids: ``[U]`` int64 unit ids of the file.
     """
 
     w: np.ndarray
     x: np.ndarray
-    theta: np.ndarray
+    theta: np.ndarray | None
     lengths: np.ndarray
     unit_ids: np.ndarray
 
@@ -74,29 +86,89 @@ class UnitArrays(NamedTuple):
 
 
 class CalibrationData(NamedTuple):
-    """Everything a run needs from the data file.
+    """Everything a run needs from its data.
 
     Attributes:
         train, val, test: the splits; ``val`` is ``None`` when no unit is held out.
-        sensors: S sensor names (columns of x).
-        theta_names: P declared parameter names (columns of theta).
-        theta_low, theta_high: ``[P]`` action box.
-        theta_base: ``[10]`` mean of every T column over the dev rows; the physics
-            dynamics hold the undeclared parameters there.
-        engine: engine configuration of the file (``cmapss`` for NASA files).
+        problem: the :class:`~jaxcal.problem.Problem`: model, declared parameters
+            (``theta_names``, action box ``theta_low``/``theta_high``, the other
+            parameters' values ``theta_base``), used outputs, normalisation and
+            input range of the training units.
         info: provenance (path, sample rate, rows and units per split).
     """
 
     train: UnitArrays
     val: UnitArrays | None
     test: UnitArrays
-    sensors: tuple[str, ...]
-    theta_names: tuple[str, ...]
-    theta_low: np.ndarray
-    theta_high: np.ndarray
-    theta_base: np.ndarray
-    engine: str
+    problem: Problem
     info: dict
+
+    # Read-only views of the problem, for readers written against the older fields.
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        return self.problem.output_names
+
+    @property
+    def theta_names(self) -> tuple[str, ...]:
+        return self.problem.theta_names
+
+    @property
+    def theta_low(self) -> np.ndarray:
+        return self.problem.theta_low
+
+    @property
+    def theta_high(self) -> np.ndarray:
+        return self.problem.theta_high
+
+    @property
+    def theta_base(self) -> np.ndarray:
+        return self.problem.theta_base
+
+    @property
+    def engine(self) -> str:
+        """The model's name (the engine configuration for the turbofan)."""
+        return self.problem.model.name
+
+
+def labelled_box(
+    theta: np.ndarray, theta_margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The action box of labelled rows ``theta [N, P]``: their range widened by
+    ``theta_margin`` of its width on each side (a constant parameter by
+    :data:`CONSTANT_THETA_HALF_WIDTH`)."""
+    low, high = theta.min(axis=0), theta.max(axis=0)
+    width = high - low
+    margin = np.where(
+        width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
+    )
+    return low - margin, high + margin
+
+
+def training_problem(
+    model: Model,
+    train: UnitArrays,
+    theta_names, output_names, theta_base, theta_low, theta_high,
+) -> Problem:  # fmt: skip
+    """The problem of a run: normalisation and input range over the valid rows of
+    the training units (float64; the pipeline re-derives the normalisation in the
+    run's dtype), noise provisional (1 % of each output's spread; the policy does
+    not use it)."""
+    rows = np.asarray(train.mask, bool)
+    w = np.asarray(train.w, np.float64)[rows]
+    x = np.asarray(train.x, np.float64)[rows]
+    norm = Normalisation.of(w, x)
+    return Problem(
+        model=model,
+        theta_names=tuple(theta_names),
+        output_names=tuple(output_names),
+        theta_base=np.asarray(theta_base, np.float64),
+        theta_low=np.asarray(theta_low, np.float64),
+        theta_high=np.asarray(theta_high, np.float64),
+        norm=norm,
+        noise_std=0.01 * norm.x_std,
+        input_range=InputRange(w.min(0), w.max(0), x.min(0), x.max(0)),
+        noise_source="provisional (1 % of each output's spread)",
+    )
 
 
 def _json_attr(attrs: dict, key: str):
@@ -200,6 +272,7 @@ def load_calibration_data(
     nonfinite: str = "error",
     rename: dict[str, str] | None = None,
     log: Callable[[str], None] | None = None,
+    model: Model | None = None,
 ) -> CalibrationData:
     """Reads the train / val / test splits of an N-CMAPSS file.
 
@@ -218,6 +291,8 @@ def load_calibration_data(
             refuses the file, ``"drop"`` drops them (``info["dropped"]``, logged).
         rename: ``{file column name: jaxcal name}`` (see ``load_ncmapss``).
         log: where the dropped-row summary goes (``None``: not printed).
+        model: the turbofan model (``None``: the engine the file names, through
+            ``jaxcal.models.load``).
 
     Returns:
         :class:`CalibrationData`.
@@ -271,11 +346,7 @@ def load_calibration_data(
                 "parameters to calibrate with theta=<name>,<name>"
             )
     theta_idx = [HEALTH_NAMES.index(n) for n in theta_names]
-    low, high = low[theta_idx], high[theta_idx]
-    width = high - low
-    margin = np.where(
-        width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
-    )
+    theta_low, theta_high = labelled_box(dev.theta[:, theta_idx], theta_margin)
     dev_fleet = _pad(dev, theta_idx)
     is_val = np.isin(dev_fleet.unit_ids, val_ids)
 
@@ -288,17 +359,21 @@ def load_calibration_data(
             unit_ids=dev_fleet.unit_ids[mask],
         )
 
-    engine = _json_attr(info["attrs"], "engine")
+    if model is None:
+        from jaxcal.models import load
+
+        engine = _json_attr(info["attrs"], "engine")
+        model = load(str(engine) if engine else "cmapss")
+    train = take(~is_val)
+    problem = training_problem(
+        model, train, theta_names, sensors, dev.theta.mean(axis=0), theta_low,
+        theta_high,
+    )  # fmt: skip
     return CalibrationData(
-        train=take(~is_val),
+        train=train,
         val=take(is_val) if val_ids else None,
         test=_pad(test, theta_idx),
-        sensors=sensors,
-        theta_names=theta_names,
-        theta_low=low - margin,
-        theta_high=high + margin,
-        theta_base=dev.theta.mean(axis=0),
-        engine=str(engine) if engine else "cmapss",
+        problem=problem,
         info={
             "path": str(path),
             "sample_rate_hz": info["sample_rate_hz"] / stride,

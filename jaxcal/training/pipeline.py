@@ -8,8 +8,10 @@
    (:func:`jaxcal.training.run_dir.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
    (``python -m jaxcal.generate`` in a subprocess, so the engine's float64 setting
-   does not leak into training), then the train / val / test units are read
-   (:mod:`jaxcal.training.data`). Only then, every check of the config and the data
+   does not leak into training), then the train / val / test units and the one
+   :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
+   file through :mod:`jaxcal.training.data`, any model's rows through
+   :mod:`jaxcal.training.tables`). Only then, every check of the config and the data
    passed, is the run folder created with its ``config.json``
    (:func:`jaxcal.training.run_dir.prepare_run_dir`): a start that fails leaves
    nothing behind that would block the corrected command;
@@ -30,12 +32,18 @@ of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides t
 runner checkpoints, every checkpoint step saves the deployable
 :class:`~jaxcal.calibrators.policy.PolicyParams` (actor, dynamics parameters,
 normalisation, action box) under ``policy/``, and the selected one under
-``policy_best/``; :mod:`jaxcal.deploy` loads a run from those and ``config.json`` /
-``data.json`` alone.
+``policy_best/``; :func:`jaxcal.training.runs.load_run` loads a run from those and
+``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.
+
+No x64 switch here: a model that needs float64 (``model.x64``) with
+``dynamics=physics`` is an error unless the caller enabled x64 (the command line
+does).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import subprocess
 import sys
 import time
@@ -53,8 +61,9 @@ from jaxcal.calibrators.policy import (
 )
 from jaxcal.checkpoint import Checkpointer
 from jaxcal.config import TrainConfig
-from jaxcal.envs.tracking import EnvConfig, EnvParams, NormStats, make_env_params
-from jaxcal.precision import enable_x64
+from jaxcal.envs.tracking import EnvConfig, EnvParams, make_env_params
+from jaxcal.model import Model
+from jaxcal.problem import Normalisation, Problem
 from jaxcal.settings import check_output_path
 from jaxcal.training.data import (
     CalibrationData,
@@ -63,7 +72,7 @@ from jaxcal.training.data import (
     read_options,
 )
 from jaxcal.training.policy_stage import train_policy
-from jaxcal.training.problem import RunMeta, make_components
+from jaxcal.training.problem import make_components, require_x64
 from jaxcal.training.run_dir import (
     DATA_FILE,
     FINAL_FILE,
@@ -135,21 +144,85 @@ def _check_readable(path: Path) -> Path:
     return path
 
 
-def _env_params(
-    units: UnitArrays,
-    data: CalibrationData,
-    dyn_params,
-    dtype,
-    stats: NormStats | None = None,
-) -> EnvParams:
+def _env_params(units: UnitArrays, problem: Problem, dyn_params, dtype) -> EnvParams:
+    # The normalisation is computed here, in the run's dtype, as it always was: a
+    # float32 run keeps bit for bit the statistics (and so the training) it had.
     return make_env_params(
         units.w.astype(dtype),
         units.x.astype(dtype),
         units.lengths,
-        data.theta_low.astype(dtype),
-        data.theta_high.astype(dtype),
+        problem.theta_low.astype(dtype),
+        problem.theta_high.astype(dtype),
         dyn_params,
-        stats=stats,
+    )
+
+
+def model_spec(cfg: TrainConfig, model: Model) -> str:
+    """The ``jaxcal.models.load`` spec a run folder stores: ``cfg.model`` (a file
+    path made absolute, so the run loads from any folder) or the model's name."""
+    spec = cfg.model or model.name
+    where, sep, attr = spec.rpartition(":")
+    if sep and (where.endswith(".py") or os.sep in where):
+        spec = f"{os.path.abspath(where)}:{attr}"
+    return spec
+
+
+def read_run_data(
+    cfg: TrainConfig,
+    *,
+    path: str | os.PathLike | None = None,
+    units: dict | None = None,
+    log: Callable[[str], None] | None = None,
+) -> CalibrationData:
+    """The splits and problem of ``cfg``'s data (no writes).
+
+    Args:
+        cfg: the run's config (``model``, ``dataset``, ``sensors``, ``theta``).
+        path: the data file (default ``cfg.dataset.path``).
+        units: ``{"val": [...], "test": [...]}`` to reproduce a run's split
+            (``data.json``); ``None``: the config's.
+        log: where reader notes go.
+
+    Raises:
+        ValueError: a bad ``model=`` spec, a table without ``model=``, or bad data.
+    """
+    from jaxcal.models import load
+
+    path = str(path or cfg.dataset.path)
+    model = load(cfg.model) if cfg.model else None
+    units = units or {}
+    is_h5 = Path(path).suffix.lower() in (".h5", ".hdf5")
+    if is_h5 and (model is None or model.native is not None):
+        return load_calibration_data(
+            path,
+            sensors=cfg.sensors,
+            theta=cfg.theta,
+            val_units=units.get("val", cfg.dataset.val_units),
+            val_fraction=cfg.dataset.val_fraction,
+            stride=cfg.dataset.stride,
+            theta_margin=cfg.env.theta_margin,
+            log=log,  # rows dropped by dataset.nonfinite=drop
+            model=model,
+            **read_options(cfg.dataset),
+        )
+    if model is None:
+        raise ValueError(
+            f"data={path}: name the model its columns follow with model=<name | "
+            "module:attr | path.py:attr>"
+        )
+    from jaxcal.training.tables import load_table_data
+
+    return load_table_data(
+        path,
+        model,
+        theta=cfg.theta,
+        outputs=cfg.sensors,
+        test_units=units.get("test", cfg.dataset.test_units),
+        val_units=units.get("val", cfg.dataset.val_units),
+        test_fraction=cfg.dataset.test_fraction,
+        val_fraction=cfg.dataset.val_fraction,
+        theta_margin=cfg.env.theta_margin,
+        **read_options(cfg.dataset),
     )
 
 
@@ -188,23 +261,21 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
     }[status]
     log(f"run {run_dir} ({state}), seed {cfg.seed}")
     path = ensure_data_file(cfg, log)
+    data = read_run_data(cfg, path=path, log=log)
+    problem = data.problem
+    model = problem.model
     if cfg.dynamics == "physics":
-        enable_x64()  # the engine's Newton solve needs float64
-    dtype = np.float64 if cfg.dynamics == "physics" else np.float32
-    data = load_calibration_data(
-        str(path),
-        sensors=cfg.sensors,
-        theta=cfg.theta,
-        val_units=cfg.dataset.val_units,
-        val_fraction=cfg.dataset.val_fraction,
-        stride=cfg.dataset.stride,
-        theta_margin=cfg.env.theta_margin,
-        log=log,  # rows dropped by dataset.nonfinite=drop
-        **read_options(cfg.dataset),
-    )
-    meta = RunMeta.from_data(data)
+        require_x64(model, "dynamics=physics")
+    elif data.train.theta is None:
+        raise ValueError(
+            f"dynamics=surrogate fits D on labelled transitions, but {path} has no "
+            f"true values of {list(problem.theta_names)}: add those columns or use "
+            "dynamics=physics"
+        )
+    # float64 only around a model that needs it; everything else in float32
+    dtype = np.float64 if cfg.dynamics == "physics" and model.x64 else np.float32
     log(
-        f"data {path}: theta {list(data.theta_names)} in "
+        f"model {model.name!r}; data {path}: theta {list(data.theta_names)} in "
         f"[{', '.join(f'{v:.4g}' for v in data.theta_low)}] .. "
         f"[{', '.join(f'{v:.4g}' for v in data.theta_high)}]; {len(data.sensors)} "
         f"sensors; units train {describe_units(data.info['units']['train'])}, val "
@@ -224,37 +295,41 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
             progress=cfg.output.progress,
             log=log,
         )
-    train_params = _env_params(data.train, data, dyn_params, dtype)
-    stats = NormStats(
-        train_params.w_mean, train_params.w_std, train_params.x_mean, train_params.x_std
+    train_params = _env_params(data.train, problem, dyn_params, dtype)
+    norm = (train_params.w_mean, train_params.w_std, train_params.x_mean,
+            train_params.x_std)  # fmt: skip
+    problem = dataclasses.replace(
+        problem, norm=Normalisation(*(np.asarray(a, np.float64) for a in norm))
     )
     write_json(
         run_dir / DATA_FILE,
-        {**meta._asdict(), **data.info, "theta_low": data.theta_low,
-         "theta_high": data.theta_high, "norm": stats._asdict()},
+        {"model_spec": model_spec(cfg, model), "x64": model.x64,
+         "problem": problem.to_json(), **data.info,
+         # kept at the top for readers of the older layout (the paper suite)
+         "sensors": problem.output_names, "theta_names": problem.theta_names},
     )  # fmt: skip
     env_cfg = EnvConfig(
-        len(data.sensors),
-        meta.condition_dim,
-        len(data.theta_names),
+        len(problem.output_names),
+        len(model.conditions),
+        len(problem.theta_names),
         episode_length=cfg.env.episode_length,
     )
-    parts = make_components(cfg.dynamics, meta, env_cfg, cfg.agent, cfg.runner)
+    parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
+    check = range_check(problem)  # samples far outside the training range: flagged
 
     def score(units: UnitArrays, params: PolicyParams) -> dict:
         out = parts.run_units(
-            params, units.w.astype(dtype), units.x.astype(dtype), units.mask,
-            range_check(meta),  # samples far outside the training range: flagged
-        )  # fmt: skip
+            params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
+        )
         return score_units(
             out.theta,
             out.xhat,
             units.theta,
             units.x,
             units.mask,
-            np.asarray(stats.x_std),
-            data.sensors,
-            data.theta_names,
+            problem.norm.x_std,
+            problem.output_names,
+            problem.theta_names,
             reason=out.reason,
         )
 
@@ -266,7 +341,8 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
 
     def val_scorer(agent_state) -> dict:
         scores = score(data.val, deployable(agent_state))
-        return {k: scores[k] for k in ("theta_rmse", "tracking_rmse_norm")}
+        keys = ("theta_rmse", "tracking_rmse_norm")
+        return {k: scores[k] for k in keys if scores[k] is not None}
 
     select = cfg.budget.select == "val_tracking" and data.val is not None
     deadline = (
@@ -325,6 +401,7 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         "preset": cfg.preset,
         "seed": cfg.seed,
         "data": str(path),
+        "model": model.name,
         "theta_names": list(data.theta_names),
         "test_units": data.info["units"]["test"],
         "select": cfg.budget.select if select else "last",

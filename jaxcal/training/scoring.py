@@ -86,7 +86,8 @@ def score_units(
 
     Args:
         theta_hat, xhat: ``[U, T, P]``, ``[U, T, S]`` calibrator outputs.
-        theta, x: ``[U, T, P]`` labels, ``[U, T, S]`` measurements.
+        theta, x: ``[U, T, P]`` labels (``None``: unlabelled data, no theta
+            RMSE), ``[U, T, S]`` measurements.
         mask: ``[U, T]`` real (not padded) samples.
         x_std: ``[S]`` training std of each sensor.
         sensors, theta_names: names of the S sensors and P parameters.
@@ -106,11 +107,14 @@ def score_units(
             f"score_units: every one of the {int(mask.sum())} samples was flagged "
             f"({flagged}); nothing to score"
         )
-    pooled, per_param = theta_rmse(theta_hat, theta, scored)
+    pooled, per_param = None, {}  # theta RMSE None: no labels to score against
+    if theta is not None:
+        pooled, per_param = theta_rmse(theta_hat, theta, scored)
+        per_param = dict(zip(theta_names, per_param.tolist(), strict=True))
     track, track_norm, track_units = tracking_rmse(xhat, x, scored, x_std)
     return {
         "theta_rmse": pooled,
-        "theta_rmse_per_param": dict(zip(theta_names, per_param.tolist(), strict=True)),
+        "theta_rmse_per_param": per_param,
         "tracking_rmse_norm": track,
         "tracking_rmse_norm_per_sensor": dict(
             zip(sensors, track_norm.tolist(), strict=True)

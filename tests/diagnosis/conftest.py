@@ -1,7 +1,8 @@
-"""Shared fixtures of the closing-the-loop tests: one engine, cached small records.
+"""Shared fixtures of the diagnosis tests: one turbofan model, cached small data sets.
 
-Every engine-based test goes through the one jitted linearisation of
-:mod:`jaxcal.diagnosis.effects` (fixed chunk shape), so the engine compiles once per session.
+Every turbofan test goes through the one jitted linearisation of
+:mod:`jaxcal.diagnosis.effects` (fixed chunk shape), so the engine compiles once per
+session.
 """
 
 import functools
@@ -9,28 +10,43 @@ import functools
 import jax
 import pytest
 
-from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_record
-from jaxcal.physics import load_engine
+from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
+from jaxcal.models import load
+from jaxcal.models.turbofan_scenario import (
+    DISCREPANCY_BUMP,
+    EFFECT_SIZES,
+    STUDY_OUTPUTS,
+    FleetConfig,
+    make_scenario,
+)
 
 DECLARED = ("HPT_eff_mod",)
 # Two units, every other cycle, two samples per flight: ~150 rows, one engine chunk.
-SMALL = SyntheticConfig(
-    num_units=2, rows_per_cycle=2, cycle_stride=2, declared=DECLARED
+SMALL = FleetConfig(num_units=2, rows_per_cycle=2, cycle_stride=2, declared=DECLARED)
+STUDY = SyntheticConfig(
+    sensors=STUDY_OUTPUTS,
+    declared=DECLARED,
+    sizes=EFFECT_SIZES,
+    parameter_physical=True,
+    bump=DISCREPANCY_BUMP,
 )
 
 
 @pytest.fixture(scope="session")
 def engine():
-    return load_engine("cmapss")
+    """The ``cmapss`` turbofan as a :class:`jaxcal.Model`."""
+    return load("cmapss")
 
 
 @pytest.fixture(scope="session")
 def synthetic(engine):
-    """``synthetic(kind, seed=0, target=None, size=None)``: a cached record."""
+    """``synthetic(kind, seed=0, target=None, size=None)``: a cached data set."""
 
     @functools.cache
     def make(kind, seed=0, target=None, size=None):
         key = jax.random.fold_in(jax.random.key(seed), 7)
-        return make_synthetic_record(key, engine, kind, SMALL, target=target, size=size)
+        return make_synthetic_data(
+            key, engine, kind, STUDY, make_scenario(SMALL), target=target, size=size
+        )
 
     return make

@@ -9,6 +9,8 @@ from jaxcal.diagnosis.discrepancy import (
     predict_discrepancy,
 )
 
+NAMES = ("alt", "Mach", "TRA", "T2")
+
 
 def _conditions(rng, n):
     return np.stack(
@@ -29,7 +31,7 @@ def test_bump_in_mach_is_significant_and_attributed_to_mach():
     bump = 4.0 * np.exp(-(((w[:, 1] - 0.55) / 0.12) ** 2))
     resid = np.stack([bump + rng.normal(size=n), rng.normal(size=n)], axis=1)
     groups = np.repeat(np.arange(6), n // 6)
-    disc = fit_discrepancy(w, resid, groups, ("T30", "T50"), DiscrepancyConfig())
+    disc = fit_discrepancy(w, resid, groups, ("T30", "T50"), DiscrepancyConfig(), NAMES)
     assert disc.sensors[0].significant and not disc.sensors[1].significant
     dep = disc.sensors[0].dependence
     assert max((k for k in dep if k != "constant"), key=dep.get) == "Mach"

@@ -6,11 +6,22 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
+from jaxcal.data.readers import dataset_from_record
 from jaxcal.data.record import Record
 from jaxcal.diagnosis.fitting import GramStats, schur_solve
 from jaxcal.diagnosis.identify import log10_chi2_sf
 from jaxcal.diagnosis.noise import estimate_noise_std
-from jaxcal.diagnosis.problem import prepare_data, spline_basis
+from jaxcal.diagnosis.problem import prepare_data as _prepare
+from jaxcal.diagnosis.problem import spline_basis
+from jaxcal.models import load
+
+
+def prepare_data(record, **kwargs):
+    """The turbofan Record through the Dataset adapter (as the pipeline does)."""
+    return _prepare(
+        dataset_from_record(record), load("cmapss"), dropped_rows=record.dropped_rows,
+        **kwargs,
+    )  # fmt: skip
 
 
 def _random_blocks(rng, units=3, rows=40, local=4, glob=2):
@@ -116,7 +127,7 @@ def test_prepare_data_sorts_selects_and_explains_exclusions():
     assert np.all(np.diff(data.cycle[:30]) > 0)
     assert data.basis.shape == (60, 4) and data.basis_candidate.shape == (60, 2)
     np.testing.assert_allclose(data.tau[:30], np.arange(30) / 100.0)
-    assert data.w[:, 1].min() >= 0.0 and "Mach < 0" in data.notes[0]
+    assert data.w[:, 1].min() >= 0.0 and "Mach just outside" in data.notes[0]
     small = prepare_data(_record(rng), max_rows=20)
     assert 14 <= small.num_rows <= 22 and small.num_units == 2
     keep = np.arange(data.num_rows) >= 30
@@ -129,7 +140,7 @@ def test_prepare_data_rejects_unknown_sensor_and_bad_noise():
     rng = np.random.default_rng(3)
     with pytest.raises(ValueError, match="not in both"):
         prepare_data(_record(rng), sensors=["T48"])
-    with pytest.raises(ValueError, match="no entry for sensors"):
+    with pytest.raises(ValueError, match="no entry for outputs"):
         prepare_data(_record(rng), sensors=["T30"], noise_std={"T24": 1.0})
 
 

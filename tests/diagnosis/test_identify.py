@@ -9,12 +9,12 @@ import pytest
 from conftest import DECLARED
 
 from jaxcal.diagnosis.effects import CHUNK_ROWS, LAYER_NAMES, build_library, linearize
-from jaxcal.diagnosis.pipeline import diagnose_record
+from jaxcal.diagnosis.pipeline import diagnose
 
 CASES = [
     ("sensor_bias", "Ps30"),
     ("sensor_drift", "T48"),
-    ("health", "HPT_flow_mod"),
+    ("parameter", "HPT_flow_mod"),
     ("t2_offset", None),
     ("customer_bleed", None),
     ("core_nozzle_area", None),
@@ -24,11 +24,11 @@ CASES = [
 @pytest.mark.parametrize("kind,target", CASES)
 def test_right_effect_is_identified_and_error_drops(engine, synthetic, kind, target):
     syn = synthetic(kind, 0, target)
-    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
     assert res.verdict == "identified", res.identification.ranking[:3]
     assert res.added == [syn.truth.name]
     found = res.identified[0]
-    if kind != "health":
+    if kind != "parameter":
         # fitted size within 4 standard errors (or 3 %) of the truth
         tol = max(4.0 * found["std"], 0.03 * abs(syn.truth.size))
         assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
@@ -44,7 +44,7 @@ def test_right_effect_is_identified_and_error_drops(engine, synthetic, kind, tar
 
 def test_clean_record_reports_nothing(engine, synthetic):
     syn = synthetic("none", 0)
-    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
     assert res.verdict == "none"
     assert res.identified == [] and res.discrepancy is None and res.added == []
     np.testing.assert_allclose(res.after.tracking_rmse, res.before.tracking_rmse)
@@ -53,7 +53,7 @@ def test_clean_record_reports_nothing(engine, synthetic):
 
 def test_effect_outside_library_falls_back_to_discrepancy(engine, synthetic):
     syn = synthetic("discrepancy", 0, "T30", 6.0)
-    res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+    res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
     assert res.verdict.endswith("discrepancy") and res.discrepancy is not None
     s = res.data.sensor_names.index("T30")
     sd = res.discrepancy.sensors[s]
@@ -88,7 +88,7 @@ def test_signatures_match_finite_differences(engine):
 
 
 def test_linearize_pads_chunks_consistently(engine, synthetic):
-    rec = synthetic("none", 0).record
+    rec = synthetic("none", 0).data
     n = CHUNK_ROWS + 7
     w = np.concatenate([rec.w, rec.w])[:n]
     full = linearize(
@@ -103,14 +103,18 @@ def test_linearize_pads_chunks_consistently(engine, synthetic):
 
 def test_library_covers_every_family_once(engine):
     sensors = ("T24", "T30")
-    lib = build_library(engine.effect_names, DECLARED, sensors, np.ones(2), np.ones(2))
+    lib = build_library(engine, DECLARED, sensors, np.ones(2), np.ones(2))
     names = [c.name for c in lib]
     assert len(names) == len(set(names)) == 9 + 6 + 3 * 2
-    assert "health[HPT_eff_mod]" not in names and "health[LPT_eff_mod]" in names
-    assert {c.family for c in lib} == {"health", "engine", *LAYER_NAMES}
+    assert "parameter[HPT_eff_mod]" not in names
+    assert "parameter[LPT_eff_mod]" in names
+    # the turbofan allows no generic condition offset (its T2 offset is an effect)
+    assert {c.family for c in lib} == {"parameter", "effect", *LAYER_NAMES}
+    units = {c.name: c.unit for c in lib}
+    assert units["power_offtake"] == "hp" and units["sensor_bias[T30]"] == "degR"
     with pytest.raises(ValueError, match="unknown effect families"):
         build_library(
-            engine.effect_names,
+            engine,
             DECLARED,
             sensors,
             np.ones(2),

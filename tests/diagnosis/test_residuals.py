@@ -63,7 +63,7 @@ def test_summary_detects_bias_w_dependence_cycle_trend_and_colour():
 
 
 def test_summary_rejects_bad_shapes():
-    with pytest.raises(ValueError, match="w \\[N, 4\\]"):
+    with pytest.raises(ValueError, match="w \\[N, W\\]"):
         summarize_residuals(
-            np.zeros((5, 2)), np.zeros((5, 3)), np.zeros(5), np.array([0, 5])
+            np.zeros((5, 2)), np.zeros((4, 3)), np.zeros(5), np.array([0, 5])
         )

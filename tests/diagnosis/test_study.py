@@ -4,17 +4,17 @@ import numpy as np
 import pytest
 from conftest import DECLARED
 
-from jaxcal.diagnosis.pipeline import diagnose_record
-from jaxcal.diagnosis.synthetic import KINDS
+from jaxcal.diagnosis.pipeline import diagnose
+from jaxcal.diagnosis.synthetic import kinds
 
 
 @pytest.mark.slow
 def test_identification_rate_over_seeds_and_kinds(engine, synthetic):
     first, alarms, fallbacks = [], [], []
-    for kind in KINDS:
+    for kind in kinds(engine):
         for seed in range(3):
             syn = synthetic(kind, 100 + seed)
-            res = diagnose_record(syn.record, engine, DECLARED, noise_std=syn.noise_std)
+            res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
             added = [a for a in res.added if a != "discrepancy"]
             if kind == "none":
                 alarms.append(res.verdict != "none")

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxcal.envs.tracking import NormStats, make_env_params
+from jaxcal.envs.tracking import make_env_params
+from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey
 
 
@@ -155,7 +156,7 @@ def make_analytic_problem(
 
 
 def problem_env_params(
-    problem: AnalyticProblem, units: slice | Array, stats: NormStats | None = None
+    problem: AnalyticProblem, units: slice | Array, stats: Normalisation | None = None
 ):
     """:class:`~jaxcal.envs.tracking.EnvParams` of a subset of the problem's units.
 

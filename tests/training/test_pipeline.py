@@ -154,7 +154,7 @@ def test_resume_reproduces_the_uninterrupted_run(resumed_and_straight):
 def test_checkpointed_policy_round_trips(resumed_and_straight, data_file):
     runs, _, final_resumed, _ = resumed_and_straight
     run = load_run(runs / "straight", which="last")
-    assert run.step == 4 and run.meta.theta_names == ("HPT_eff_mod",)
+    assert run.step == 4 and run.problem.theta_names == ("HPT_eff_mod",)
     assert load_run(runs / "straight").step == final_resumed["selected_chunk"]
     chex.assert_tree_all_finite(run.params)
     # Rescoring the restored policy gives the scores computed in memory at the end.

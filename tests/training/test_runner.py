@@ -26,7 +26,8 @@ from support.analytic import (
 from jaxcal.agents.clac import make_clac
 from jaxcal.agents.common import Agent
 from jaxcal.agents.configs import CLACConfig
-from jaxcal.envs.tracking import EnvConfig, NormStats, make_tracking_env
+from jaxcal.envs.tracking import EnvConfig, make_tracking_env
+from jaxcal.problem import Normalisation
 from jaxcal.training.runner import (
     RunnerConfig,
     evaluate_policy,
@@ -67,7 +68,7 @@ def _problem(param_dim, interaction):
         min_length=150,
     )
     train = problem_env_params(problem, slice(0, NUM_TRAIN))
-    stats = NormStats(train.w_mean, train.w_std, train.x_mean, train.x_std)
+    stats = Normalisation(train.w_mean, train.w_std, train.x_mean, train.x_std)
     test = problem_env_params(problem, slice(NUM_TRAIN, None), stats)
     env = make_tracking_env(
         analytic_dynamics, EnvConfig(4, 2, param_dim, episode_length=EPISODE)

@@ -1,0 +1,215 @@
+"""A trained run folder, loaded: its problem, policy and dynamics, ready to deploy.
+
+A run folder written by :func:`jaxcal.training.pipeline.run_training` holds
+everything a policy needs: ``config.json`` (architecture, dynamics), ``data.json``
+(the model spec and ``Problem.to_json()``: names, units, action box, normalisation,
+training input range) and ``policy/`` (actor weights, surrogate weights,
+normalisation and action box, saved at every checkpoint). No data file and no
+training code path is needed. :func:`load_run` rebuilds the model with
+:func:`jaxcal.models.load`; ``data.json`` files of the older layout (the turbofan's
+``RunMeta`` fields) are read too.
+
+This module sits below the command lines: :mod:`jaxcal.deploy` re-exports it for
+users, and :func:`jaxcal.calibrate` (``method="policy"``) and the fleet runners use
+it directly.
+
+Float64: a run whose model needs it (``model.x64``) with ``dynamics=physics`` is
+refused with a clear message unless x64 is enabled; the command lines enable it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.agents.networks import make_networks
+from jaxcal.calibrators.interface import Calibrator, SampleCheck
+from jaxcal.calibrators.policy import (
+    PolicyParams,
+    make_policy_calibrator,
+    range_check,
+)
+from jaxcal.checkpoint import Checkpointer, load_config
+from jaxcal.config import TrainConfig
+from jaxcal.envs.tracking import Dynamics
+from jaxcal.problem import InputRange, Normalisation, Problem
+from jaxcal.surrogate.model import init_surrogate_params
+from jaxcal.training.problem import make_agent, make_dynamics
+from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
+
+# Runs of the older data.json layout are the turbofan's, which needs float64.
+_LEGACY_X64 = True
+
+
+class LoadedRun(NamedTuple):
+    """A trained policy ready to run.
+
+    Attributes:
+        run_dir: the run folder.
+        config: its resolved :class:`~jaxcal.config.TrainConfig`.
+        problem: the run's :class:`~jaxcal.problem.Problem` (model, names, box,
+            normalisation, training input range).
+        params: the deployable :class:`PolicyParams`.
+        actor: the actor module (static).
+        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static).
+        step: the checkpoint step (chunks trained) the policy comes from.
+    """
+
+    run_dir: Path
+    config: TrainConfig
+    problem: Problem
+    params: PolicyParams
+    actor: nn.Module
+    dynamics: Dynamics
+    step: int
+
+    @property
+    def meta(self) -> Problem:
+        """The problem, under the name older callers use (``range_check(run.meta)``)."""
+        return self.problem
+
+
+def needs_x64(run_dir: str | os.PathLike) -> bool:
+    """Whether loading the run needs x64 (``dynamics=physics`` on a float64 model),
+    read from its files without loading the model."""
+    cfg = load_config(run_dir)
+    if cfg.get("dynamics") != "physics":
+        return False
+    data = read_json(Path(run_dir) / DATA_FILE)
+    return bool(data.get("x64", _LEGACY_X64))
+
+
+def run_problem(data: dict, model=None) -> Problem:
+    """The :class:`Problem` of a ``data.json`` dict (either layout).
+
+    Args:
+        data: the parsed ``data.json``.
+        model: the model (``None``: ``jaxcal.models.load`` of the stored spec).
+    """
+    from jaxcal.models import load
+
+    if "problem" in data:
+        model = model or load(data["model_spec"])
+        return Problem.from_json(data["problem"], model)
+    # the older layout: RunMeta fields + the box and normalisation beside them
+    model = model or load(data["engine"])
+    arr = lambda v: np.asarray(v, np.float64)  # noqa: E731
+    norm = Normalisation(**{k: arr(v) for k, v in data["norm"].items()})
+    rng = None
+    if data.get("w_low") is not None:
+        rng = InputRange(
+            *(arr(data[k]) for k in ("w_low", "w_high", "x_low", "x_high"))
+        )
+    return Problem(
+        model=model,
+        theta_names=tuple(data["theta_names"]),
+        output_names=tuple(data["sensors"]),
+        theta_base=arr(data["theta_base"]),
+        theta_low=arr(data["theta_low"]),
+        theta_high=arr(data["theta_high"]),
+        norm=norm,
+        noise_std=0.01 * norm.x_std,
+        input_range=rng,
+        noise_source="provisional (1 % of each output's spread)",
+    )
+
+
+def load_run(
+    run_dir: str | os.PathLike, *, which: str = "selected", step: int | None = None
+) -> LoadedRun:
+    """Load a run's policy.
+
+    Args:
+        run_dir: the run folder.
+        which: ``"selected"``: the policy the run kept (``budget.select``: the best
+            validation tracking RMSE, or the last one); ``"last"``: the latest
+            checkpoint.
+        step: a specific checkpoint step of ``which`` (``None``: the newest).
+
+    Raises:
+        FileNotFoundError: the folder is not a run, or it has no policy checkpoint.
+        ValueError: the checkpoint does not match the run's config, the model
+            cannot be loaded, or it needs x64 and x64 is off.
+    """
+    if which not in ("selected", "last"):
+        raise ValueError(f"which must be 'selected' or 'last', got {which!r}")
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir, TrainConfig)
+    if needs_x64(run_dir) and not jax.config.jax_enable_x64:
+        raise ValueError(
+            f"run {run_dir} uses dynamics=physics on a model that needs float64: "
+            "call jax.config.update('jax_enable_x64', True) (or "
+            "jaxcal.precision.enable_x64()) before loading it"
+        )
+    problem = run_problem(read_json(run_dir / DATA_FILE))
+    physics64 = cfg.dynamics == "physics" and problem.model.x64
+    dtype = jnp.float64 if physics64 else jnp.float32
+    dims = (
+        len(problem.model.conditions), len(problem.output_names),
+        len(problem.theta_names),
+    )  # fmt: skip
+    agent = make_agent(cfg.agent, 2 * dims[1] + dims[0], dims[2])
+
+    def abstract(key):
+        dyn = (
+            init_surrogate_params(key, *dims, cfg.surrogate)
+            if cfg.dynamics == "surrogate"
+            else None
+        )
+        return PolicyParams(
+            actor=agent.init(key).actor.params,
+            dyn_params=dyn,
+            w_mean=jnp.zeros(dims[0], dtype),
+            w_std=jnp.ones(dims[0], dtype),
+            x_mean=jnp.zeros(dims[1], dtype),
+            x_std=jnp.ones(dims[1], dtype),
+            theta_low=jnp.zeros(dims[2], dtype),
+            theta_high=jnp.ones(dims[2], dtype),
+        )
+
+    target = jax.eval_shape(abstract, jax.random.key(0))
+    folder = run_dir / POLICY_DIR
+    best = run_dir / POLICY_BEST_DIR
+    if which == "selected" and cfg.budget.select != "last" and best.is_dir():
+        folder = best
+    with Checkpointer(folder) as ckpt:
+        if ckpt.latest_step() is None:
+            raise FileNotFoundError(
+                f"{folder} holds no policy checkpoint; train the run "
+                "first (python -m jaxcal.train ...)"
+            )
+        step = ckpt.latest_step() if step is None else step
+        params = ckpt.restore(step, target)
+    return LoadedRun(
+        run_dir=run_dir,
+        config=cfg,
+        problem=problem,
+        params=params,
+        actor=make_networks(cfg.agent, dims[2]).actor,
+        dynamics=make_dynamics(cfg.dynamics, problem),
+        step=int(step),
+    )
+
+
+def run_check(run: LoadedRun) -> SampleCheck | None:
+    """The run's valid input box (training range + margin; ``None``: finiteness).
+
+    Pass it as ``check=`` to ``run_calibrator`` / ``run_fleet`` / the fleet paths.
+    """
+    return range_check(run.problem)
+
+
+def load_calibrator(run_dir: str | os.PathLike | LoadedRun) -> Calibrator:
+    """The run's policy as a ``Calibrator(init, step)`` (pure functions, not jitted).
+
+    Use it like any other method: ``jax.jit(run_fleet, static_argnums=0)(cal, w, x,
+    m)``, with ``check=run_check(run)`` to flag samples outside the training range.
+    """
+    run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
+    return make_policy_calibrator(run.actor, run.dynamics, run.params)

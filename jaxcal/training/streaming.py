@@ -1,0 +1,146 @@
+"""Sample-by-sample calibration with a trained run: :class:`StreamingCalibrator`.
+
+Host numpy in and out, one jitted call per sample (or one per batch of whole
+trajectories). Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far
+outside the run's training range (:func:`jaxcal.calibrators.policy.range_check` of
+the run's problem), is *skipped*: the carried state is left exactly as it was,
+``step`` returns the last valid theta (zeros before any valid sample) and the flag is
+readable (``last_valid``, ``last_reason``, :meth:`StreamingCalibrator.step_info`;
+``run(..., return_flags=True)``). Users import it from :mod:`jaxcal.deploy`.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.calibrators.interface import REASONS
+from jaxcal.calibrators.policy import (
+    initial_guard_carry,
+    make_fleet_runner,
+    make_guarded_stream_step,
+)
+from jaxcal.training.runs import LoadedRun, load_run, run_check
+
+
+class StepInfo(NamedTuple):
+    """One streamed sample's result."""
+
+    theta: np.ndarray  # [P] this sample's theta, or the last valid one if skipped
+    valid: bool  # the sample was used
+    reason: str  # "ok" or why it was skipped (jaxcal.calibrators.interface.REASONS)
+
+
+class StreamingCalibrator:
+    """Sample-by-sample calibration with host numpy in and out (jitted inside).
+
+    Args:
+        run: a run folder or a :class:`LoadedRun`.
+
+    Attributes:
+        conditions: the W condition names ``w`` must follow, in order.
+        sensors: the S output names ``x`` must follow, in order.
+        theta_names: the P parameter names of ``theta``.
+        check: the valid input box (:func:`run_check`), ``None``: finiteness only.
+        last_valid, last_reason: the flag of the last :meth:`step` (``None`` after
+            :meth:`reset`).
+    """
+
+    def __init__(self, run: str | os.PathLike | LoadedRun):
+        self.run_info = run if isinstance(run, LoadedRun) else load_run(run)
+        problem = self.run_info.problem
+        self.sensors = problem.output_names
+        self.theta_names = problem.theta_names
+        self.conditions = problem.model.condition_names
+        self._params = self.run_info.params
+        self._dtype = np.dtype(self._params.x_mean.dtype)
+        self.check = run_check(self.run_info)
+        # placed once: a numpy box would be copied to the device on every step
+        self._check_dev = jax.tree.map(jnp.asarray, self.check)
+        actor, dynamics = self.run_info.actor, self.run_info.dynamics
+        self._step = make_guarded_stream_step(actor, dynamics)
+        self._run = make_fleet_runner(actor, dynamics)
+        self._carry0 = initial_guard_carry(actor, dynamics, self._params)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the carried model output (start a new stream)."""
+        self._carry = self._carry0
+        self.last_valid: bool | None = None
+        self.last_reason: str | None = None
+
+    def _check(self, name: str, value, size: int, ndim: int) -> np.ndarray:
+        try:
+            array = np.asarray(value, dtype=self._dtype)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{name} must be numeric with {ndim} dimension(s) of last size {size}"
+            ) from None
+        if array.ndim != ndim or array.shape[-1] != size:
+            raise ValueError(
+                f"{name} must have {ndim} dimension(s) with last size {size}, got "
+                f"shape {array.shape}"
+            )
+        return array
+
+    def step_info(self, w, x) -> StepInfo:
+        """Calibrate on one sample and say whether it was used.
+
+        Args:
+            w: ``[W]`` the model's conditions (``conditions``). x: ``[S]``
+                (``sensors``).
+
+        Returns:
+            :class:`StepInfo`; a skipped sample leaves the state untouched.
+        """
+        w = self._check("w", w, len(self.conditions), 1)
+        x = self._check("x", x, len(self.sensors), 1)
+        self._carry, out, reason = self._step(
+            self._params, self._carry, w, x, self._check_dev
+        )
+        self.last_reason = REASONS[int(reason)]
+        self.last_valid = self.last_reason == "ok"
+        return StepInfo(np.asarray(out.theta), self.last_valid, self.last_reason)
+
+    def step(self, w, x) -> np.ndarray:
+        """Calibrate on one sample: ``w [W]`` (``conditions``) and ``x [S]``.
+
+        Returns:
+            ``theta [P]`` (numpy) for this sample; the last valid one when the
+            sample is skipped (see ``last_valid`` / ``last_reason``).
+        """
+        return self.step_info(w, x).theta
+
+    def run(self, w, x, mask=None, *, return_flags: bool = False) -> tuple:
+        """Calibrate whole trajectories: ``lax.scan`` over time, vmapped over units.
+
+        Args:
+            w: ``[U, T, W]``; x: ``[U, T, S]``; mask: ``[U, T]`` valid samples
+                (``None``: all valid). Padded and flagged samples repeat the last
+                valid outputs.
+            return_flags: also return the per-sample flags.
+
+        Returns:
+            ``(theta [U, T, P], xhat [U, T, S])`` numpy arrays, plus
+            ``(valid [U, T] bool, reason [U, T] int32)`` with ``return_flags``
+            (codes into ``jaxcal.calibrators.interface.REASONS``; padding is
+            ``masked``).
+        """
+        w = self._check("w", w, len(self.conditions), 3)
+        x = self._check("x", x, len(self.sensors), 3)
+        if mask is None:
+            mask = np.ones(w.shape[:2], bool)
+        mask = np.asarray(mask, bool)
+        if mask.shape != w.shape[:2] or x.shape[:2] != w.shape[:2]:
+            raise ValueError(
+                f"w {w.shape}, x {x.shape} and mask {mask.shape} must share [U, T]"
+            )
+        out = self._run(self._params, w, x, mask, self._check_dev)
+        theta, xhat = np.asarray(out.theta), np.asarray(out.xhat)
+        if return_flags:
+            return theta, xhat, np.asarray(out.valid), np.asarray(out.reason)
+        return theta, xhat

@@ -1,0 +1,181 @@
+"""Training, evaluation and deployment of a policy on a model that is not a turbofan.
+
+The model is defined here, as a user would: a plain JAX function through
+``jaxcal.Model.from_function``, loaded by the command line as ``<this file>:MODEL``.
+"""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import jaxcal
+from jaxcal.deploy import StreamingCalibrator
+from jaxcal.evaluate import main as evaluate_main
+from jaxcal.train import main as train_main
+from jaxcal.training.tables import hold_out_units, load_table_data
+
+
+def _toy(w, theta):
+    """Two conditions (a, b), two parameters (p, q) -> three outputs."""
+    a, b = w[0], w[1]
+    p, q = theta[0], theta[1]
+    return jnp.stack([p * a + q * b, p * q + 0.5 * a, p - q * a * b])
+
+
+MODEL = jaxcal.Model.from_function(
+    _toy,
+    conditions={"a": "m", "b": "s"},
+    parameters={"p": (1.0, 0.5, 2.0, "-"), "q": (0.5, 0.1, 1.0, "-")},
+    outputs=("y1", "y2", "y3"),
+    name="toy",
+)
+SPEC = f"{__file__}:MODEL"
+NUM_UNITS, NUM_ROWS = 7, 40
+
+
+def _frame(seed: int = 0, labels: bool = True) -> pd.DataFrame:
+    """7 units of 40 rows: random conditions, slowly drifting p and q."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for unit in range(1, NUM_UNITS + 1):
+        t = np.arange(NUM_ROWS)
+        a, b = rng.uniform(0.5, 1.5, NUM_ROWS), rng.uniform(0.2, 1.0, NUM_ROWS)
+        p = 1.0 + 0.1 * unit / NUM_UNITS + 0.002 * t
+        q = 0.4 + 0.05 * unit / NUM_UNITS + 0.001 * t
+        x = np.array(
+            [np.asarray(_toy(jnp.array(wi), jnp.array(th))) for wi, th in zip(
+                np.stack([a, b], 1), np.stack([p, q], 1), strict=True
+            )]
+        )  # fmt: skip
+        x = x + 1e-3 * rng.standard_normal(x.shape)
+        cols = {"unit": unit, "time": t, "a": a, "b": b}
+        cols.update({f"y{i + 1}": x[:, i] for i in range(3)})
+        if labels:
+            cols.update(p=p, q=q)
+        rows.append(pd.DataFrame(cols))
+    return pd.concat(rows, ignore_index=True)
+
+
+@pytest.fixture(scope="module")
+def csv(tmp_path_factory):
+    path = tmp_path_factory.mktemp("toy") / "toy.csv"
+    _frame().to_csv(path, index=False)
+    return path
+
+
+def _argv(csv, runs, *extra):
+    return [
+        f"model={SPEC}",
+        f"data={csv}",
+        "theta=p,q",
+        "preset=smoke",
+        f"output.runs_dir={runs}",
+        "output.progress=false",
+        *extra,
+    ]
+
+
+@pytest.fixture(scope="module")
+def trained(csv, tmp_path_factory):
+    runs = tmp_path_factory.mktemp("runs")
+    assert train_main(_argv(csv, runs, "name=toy")) == 0
+    return runs / "toy"
+
+
+def test_hold_out_units_without_a_split_column():
+    units = list(range(1, 11))
+    train, val, test = hold_out_units(units, None, None, 0.2, 0.15, "f.csv")
+    assert test == [9, 10] and val == [8] and train == list(range(1, 8))
+    train, val, test = hold_out_units(units, [1], [2, 3], 0.2, 0.15, "f.csv")
+    assert test == [1] and val == [2, 3] and 1 not in train and 2 not in train
+    with pytest.raises(ValueError, match="at least 3"):
+        hold_out_units([1, 2], None, None, 0.2, 0.15, "f.csv")
+    with pytest.raises(ValueError, match=r"test_units=\[42\]: not units"):
+        hold_out_units(units, [42], None, 0.2, 0.15, "f.csv")
+
+
+def test_table_data_splits_box_and_problem(csv, tmp_path):
+    data = load_table_data(csv, MODEL, theta=("p", "q"))
+    assert data.info["units"] == {"train": [1, 2, 3, 4, 5], "val": [6], "test": [7]}
+    assert data.train.w.shape == (5, NUM_ROWS, 2) and data.test.theta.shape[-1] == 2
+    # labelled data: the box is the train+val range widened by 10 % on each side
+    assert data.info["box"] == "labelled range"
+    frame = _frame()
+    dev = frame[frame.unit <= 6]
+    width = dev.p.max() - dev.p.min()
+    assert data.problem.theta_low[0] == pytest.approx(dev.p.min() - 0.1 * width)
+    assert data.problem.output_names == ("y1", "y2", "y3")
+    # a split column is used as it is
+    split = frame.assign(split=np.where(frame.unit <= 2, "test", "train"))
+    split.to_csv(tmp_path / "split.csv", index=False)
+    data = load_table_data(tmp_path / "split.csv", MODEL, val_units=(7,))
+    assert data.info["units"] == {"train": [3, 4, 5, 6], "val": [7], "test": [1, 2]}
+    # without labels the box is the model's bounds
+    _frame(labels=False).to_csv(tmp_path / "nolabel.csv", index=False)
+    data = load_table_data(tmp_path / "nolabel.csv", MODEL, test_units=(1, 2))
+    assert data.info["box"] == "model bounds" and data.train.theta is None
+    np.testing.assert_array_equal(data.problem.theta_low, [0.5, 0.1])
+
+
+def test_train_evaluate_deploy_and_calibrate_a_non_turbofan_run(trained, csv, capsys):
+    stored = json.loads((trained / "data.json").read_text())
+    assert stored["model_spec"].endswith("test_train_any_model.py:MODEL")
+    assert stored["problem"]["theta_names"] == ["p", "q"]
+    final = json.loads((trained / "final.json").read_text())
+    assert final["model"] == "toy" and final["test_units"] == [7]
+    assert np.isfinite(final["test"]["theta_rmse"])
+    capsys.readouterr()
+    assert evaluate_main([f"run={trained}", "repeats=2"]) == 0
+    assert "theta RMSE" in capsys.readouterr().out
+    assert evaluate_main([f"run={trained}", f"data={csv}", "repeats=2"]) == 0
+    report = json.loads((trained / "evaluate_toy.json").read_text())
+    assert report["units"] == list(range(1, NUM_UNITS + 1))
+    cal = StreamingCalibrator(trained)
+    assert cal.conditions == ("a", "b") and cal.sensors == ("y1", "y2", "y3")
+    frame = _frame()
+    theta = cal.step(frame.loc[0, ["a", "b"]], frame.loc[0, ["y1", "y2", "y3"]])
+    assert theta.shape == (2,) and cal.last_valid
+    result = jaxcal.calibrate(
+        MODEL, csv, method="policy", theta=["p", "q"], run=trained
+    )
+    assert result.theta.shape == (len(frame), 2) and result.valid.all()
+    low, high = stored["problem"]["theta_low"], stored["problem"]["theta_high"]
+    assert np.all((result.theta >= low) & (result.theta <= high))
+
+
+def test_physics_dynamics_on_unlabelled_data(tmp_path):
+    path = tmp_path / "nolabel.csv"
+    _frame(labels=False).to_csv(path, index=False)
+    argv = _argv(path, tmp_path / "runs", "dynamics=physics", "name=phys")
+    assert train_main(argv) == 0
+    final = json.loads((tmp_path / "runs" / "phys" / "final.json").read_text())
+    assert final["test"]["theta_rmse"] is None
+    assert np.isfinite(final["test"]["tracking_rmse_norm"])
+    # the surrogate needs labelled transitions: refused before any folder exists
+    argv = _argv(path, tmp_path / "runs", "name=sur")
+    assert train_main(argv) == 2
+    assert not (tmp_path / "runs" / "sur").exists()
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("model=no_such_model", "unknown model"),
+        ("model=/nowhere/m.py:MODEL", "not found"),
+        ("data=/nowhere/toy.csv", "not found"),
+        ("theta=p,nope", "unknown name"),
+        ("test_units=99", "not units"),
+    ],
+)
+def test_bad_model_data_or_theta_exit_2_and_leave_no_run(
+    csv, tmp_path, capsys, bad, message
+):
+    argv = _argv(csv, tmp_path, "name=bad")
+    key = bad.partition("=")[0]
+    argv = [a for a in argv if not a.startswith(f"{key}=")] + [bad]
+    assert train_main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
