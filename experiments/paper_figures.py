@@ -32,7 +32,7 @@ def save_traces(path: Path, run, units, suite) -> None:
     theta, starts = stacked(run.theta, units.mask)
     truth, _ = stacked(units.theta, units.mask)
     stride = max(1, math.ceil(len(theta) / MAX_POINTS))
-    sensors = list(suite.problem.sensors)
+    sensors = list(suite.problem.output_names)
     chosen = [s for s in TRACK_SENSORS if s in sensors]
     chosen += [s for s in sensors if s not in chosen][: 4 - len(chosen)]
     cols = [sensors.index(s) for s in chosen]

@@ -97,7 +97,7 @@ class DiagnosisHints(NamedTuple):
 
 
 StepFn = Callable[[Array, Array, Array], tuple[Array, Array, Any]]
-"""``step(state [Z], w [W], theta [P]) -> (next_state [Z], x [S], valid [] or info)``."""
+"""``step(state [Z], w [W], theta [P]) -> (next_state [Z], x [S], valid or info)``."""
 
 
 def _variables(spec, field: str) -> tuple[Variable, ...]:
@@ -419,7 +419,7 @@ class Model:
         return self.init_state_fn(w0, theta)
 
     def step(self, state: Array, w: Array, theta: Array):
-        """``(next_state [Z], x [S_all], ModelInfo)`` for one sample (pure, jittable)."""
+        """``(next_state [Z], x [S_all], ModelInfo)`` of one sample (pure, jittable)."""
         next_state, x, valid = self.step_fn(state, w, theta)
         return next_state, x, self._info(w, theta, x, valid)
 

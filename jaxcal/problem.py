@@ -183,6 +183,11 @@ class Problem:
         return np.clip(prior, self.theta_low, self.theta_high)
 
     @property
+    def theta_centre(self) -> np.ndarray:
+        """``[P]`` centre of the box (the paper's prior mean for the UKF and LS)."""
+        return 0.5 * (self.theta_low + self.theta_high)
+
+    @property
     def theta_half_width(self) -> np.ndarray:
         """``[P]`` half-width of the box (the parameters' natural scale)."""
         return 0.5 * (self.theta_high - self.theta_low)

@@ -36,7 +36,12 @@ def _schedule(rng, n):
         return low + (high - low) * (0.15 + 0.7 * walk)
 
     return np.stack(
-        [smooth(340.0, 400.0), smooth(280.0, 300.0), smooth(0.6, 2.0), smooth(0.6, 2.0)],
+        [
+            smooth(340.0, 400.0),
+            smooth(280.0, 300.0),
+            smooth(0.6, 2.0),
+            smooth(0.6, 2.0),
+        ],
         axis=1,
     )
 
@@ -71,7 +76,10 @@ def main(out_dir: str = "data/examples/heat_exchanger") -> tuple[str, str]:
     fleet = make_fleet()
     biased = fleet.copy()
     biased[BIAS[0]] += BIAS[1]
-    paths = (os.path.join(out_dir, "fleet.csv"), os.path.join(out_dir, "fleet_bias.csv"))
+    paths = (
+        os.path.join(out_dir, "fleet.csv"),
+        os.path.join(out_dir, "fleet_bias.csv"),
+    )
     fleet.to_csv(paths[0], index=False)
     biased.to_csv(paths[1], index=False)
     return paths

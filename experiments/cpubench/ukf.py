@@ -13,7 +13,8 @@ Two measurement models:
 
 * ``engine``: the C-MAPSS-like turbofan F of ``jaxcal.physics.load_engine("cmapss")``
   on the declared parameter HPT_eff_mod (the others at 0) and the 14 measured
-  sensors, through :func:`~jaxcal.calibrators.interface.measure_declared`; filterpy calls
+  sensors, through :func:`~jaxcal.calibrators.interface.measure_declared`; filterpy
+  calls
   the engine's evaluate jitted for one sample. F dominates the step here.
 * ``toy``: x = tanh(A theta + B w) with P = 4, S = 14, W = 4, cheap enough that the
   filters' own per-step overhead is what is measured; filterpy gets the same model in

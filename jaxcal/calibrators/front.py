@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.data.dataset import Dataset, Padded
+from jaxcal.data.dataset import Dataset, Padded, clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.problem import Problem
@@ -53,6 +53,8 @@ class CalibrationResult:
         unit, time: ``[N]`` the rows' unit and time (as read).
         method: the method's name.
         problem: the :class:`~jaxcal.problem.Problem` that was solved.
+        notes: what data cleaning did (conditions within 1 % of their range outside
+            it, logging jitter, set onto the bound; farther ones are flagged).
     """
 
     theta: np.ndarray
@@ -66,6 +68,7 @@ class CalibrationResult:
     time: np.ndarray
     method: str
     problem: Problem
+    notes: tuple[str, ...] = ()
 
     @property
     def num_flagged(self) -> dict:
@@ -155,16 +158,18 @@ def calibrate(
         theta = run.problem.theta_names if theta is None else theta
         outputs = run.problem.output_names if outputs is None else outputs
     data = read_dataset(data, model, **reader).for_model(model, outputs)
+    clipped, notes = clip_jitter(data.w, model)
+    data = dataclasses.replace(data, w=clipped)
     problem = Problem.build(model, data, theta=theta, noise=noise)
     padded = data.padded(dtype)
     if noise is None and method != "policy":
         problem = estimate_noise(problem, padded)
     calibrator, run = build_calibrator(method, problem, padded, seed, options)
     out = run(calibrator, padded)
-    return _to_rows(out, padded, data, problem, method)
+    return _to_rows(out, padded, data, problem, method, notes)
 
 
-def _to_rows(out, padded: Padded, data: Dataset, problem: Problem, method: str):
+def _to_rows(out, padded, data: Dataset, problem: Problem, method: str, notes):
     from jaxcal.calibrators.interface import REASONS
 
     n = data.num_rows
@@ -186,6 +191,7 @@ def _to_rows(out, padded: Padded, data: Dataset, problem: Problem, method: str):
         time=data.time,
         method=method,
         problem=problem,
+        notes=tuple(notes),
     )
 
 

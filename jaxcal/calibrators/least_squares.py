@@ -5,8 +5,9 @@ Nocedal & Wright 2006, sec. 10.3), working in scaled parameters
 ``z = theta / theta_scale`` on residuals normalised by each sensor's spread:
 
 * :func:`make_least_squares` — a streaming calibrator (the interface of
-  :mod:`jaxcal.calibrators.interface`). Its state is a ring buffer of the last ``window``
-  samples; each step inserts the new sample and runs ``num_iters`` LM iterations on
+  :mod:`jaxcal.calibrators.interface`). Its state is a ring buffer of the last
+  ``window`` samples; each step inserts the new sample and runs ``num_iters`` LM
+  iterations on
   ``sum_i ||(F(w_i, theta) - x_i) / (std r)||^2 [+ ||(z - z_prev) / prior_std||^2]``,
   warm-started from the previous estimate ``z_prev``. The optional Gaussian prior
   (a Tikhonov term towards ``z_prev``) steadies poorly observed directions.

@@ -1,4 +1,4 @@
-"""Each method of :func:`jaxcal.calibrate` built from a :class:`~jaxcal.problem.Problem`.
+"""Each method of :func:`jaxcal.calibrate` built from a the problem.
 
 The model-based methods (UKF, least squares) work on the restricted model
 ``F(w, theta_declared) -> x_used`` with outputs normalised by their *noise* std, so
@@ -26,7 +26,7 @@ from jaxcal.calibrators.interface import (
     SensorNorm,
     run_fleet,
 )
-from jaxcal.calibrators.policy import make_policy_calibrator
+from jaxcal.calibrators.policy import make_policy_calibrator, range_check
 from jaxcal.data.dataset import Padded
 from jaxcal.problem import Problem
 
@@ -42,14 +42,6 @@ def model_check(problem: Problem) -> SampleCheck | None:
         return None
     low, high = problem.model.condition_range
     return SampleCheck(w_low=jnp.asarray(low), w_high=jnp.asarray(high))
-
-
-def range_check(problem: Problem) -> SampleCheck | None:
-    """Far outside the training range of ``w`` and ``x`` (learned methods)."""
-    if problem.input_range is None:
-        return model_check(problem)
-    box = problem.input_range.widened()
-    return SampleCheck(*(jnp.asarray(b) for b in box))
 
 
 def noise_norm(problem: Problem, dtype) -> SensorNorm:
@@ -236,7 +228,7 @@ def build_calibrator(
     """``(Calibrator, run)`` of ``method``; unknown options are an error."""
     dtype = padded.w.dtype
     if method in ("ukf", "ls"):
-        cal, run = _model_based(method, problem, dtype, options), None
+        cal = _model_based(method, problem, dtype, options)
         run = make_runner(model_check(problem))
     elif method == "e2e":
         cal = _e2e(problem, padded, seed, options)

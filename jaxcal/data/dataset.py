@@ -23,6 +23,10 @@ import numpy as np
 
 from jaxcal.model import Model, names_to_index
 
+# Conditions this close outside the model's range (share of its width) are logging
+# jitter around a bound, clipped onto it (and said so) rather than flagged.
+JITTER_FRACTION = 0.01
+
 
 def _float_matrix(name: str, value, num_rows: int | None, names) -> np.ndarray:
     arr = np.asarray(value, dtype=np.float64)
@@ -221,6 +225,42 @@ class Dataset:
             unit_ids=np.asarray(units, np.int64),
             theta=theta,
         )
+
+
+def clip_jitter(
+    w: np.ndarray, model: Model, fraction: float = JITTER_FRACTION
+) -> tuple[np.ndarray, list[str]]:
+    """Conditions just outside the model's range (within ``fraction`` of its width,
+    e.g. a Mach of -0.0005 logged at a static point) set onto the bound, with a note
+    per condition and bound saying on how many rows; farther ones are left for the
+    sample guard to flag.
+
+    Args:
+        w: ``[N, W]`` conditions in the model's order.
+        model: the model (its ``condition_range``).
+        fraction: tolerance as a share of each condition's range width.
+
+    Returns:
+        ``(w, notes)``: a clipped copy and human-readable notes (empty: unchanged).
+    """
+    if model.condition_range is None:
+        return w, []
+    low, high = model.condition_range
+    width = np.where(np.isfinite(high - low), high - low, np.inf)
+    notes, w = [], np.array(w, copy=True)
+    for j, name in enumerate(model.condition_names):
+        tol = fraction * width[j]
+        for bound, outside in (
+            (low[j], (w[:, j] < low[j]) & (w[:, j] >= low[j] - tol)),
+            (high[j], (w[:, j] > high[j]) & (w[:, j] <= high[j] + tol)),
+        ):
+            if outside.any():
+                notes.append(
+                    f"{name} just outside its range (jitter) set to {bound:g} on "
+                    f"{int(outside.sum())} rows"
+                )
+                w[outside, j] = bound
+    return w, notes
 
 
 class Padded(NamedTuple):

@@ -11,8 +11,9 @@ Outputs left out of the residual, with the reason recorded: those the model call
 uninformative (``DiagnosisHints.uninformative``, e.g. the turbofan's controller-set fan
 speeds), columns the model does not output, constant ones and, when the noise is
 estimated, quantised ones (the rounding step dominates the noise). A condition just
-outside the model's valid range (by less than :data:`JITTER_FRACTION` of the range,
-e.g. Mach -0.0005 of a static point) is clipped onto the bound, and the note says so.
+outside the model's valid range (by less than
+:data:`jaxcal.data.dataset.JITTER_FRACTION` of the range, e.g. Mach -0.0005 of a
+static point) is clipped onto the bound, and the note says so.
 
 Noise levels: known per-output std when given (synthetic data), else the model's
 reference level (``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
@@ -27,12 +28,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.interpolate import BSpline
 
-from jaxcal.data.dataset import Dataset
+from jaxcal.data.dataset import Dataset, clip_jitter
 from jaxcal.diagnosis.effects import TAU_CYCLES
 from jaxcal.model import Model
 
 MIN_DISTINCT = 20  # fewer distinct values: a setting or a heavily rounded output
-JITTER_FRACTION = 0.01  # conditions this close outside their range are clipped onto it
 DEFAULT_NOISE_REL = 0.01  # start noise std / mean |x| when the model gives none
 
 
@@ -242,28 +242,6 @@ def _subsample(
     )
 
 
-def _clip_jitter(w: np.ndarray, model: Model) -> tuple[np.ndarray, list[str]]:
-    """Clip conditions that lie just outside the model's range onto its bounds."""
-    if model.condition_range is None:
-        return w, []
-    low, high = model.condition_range
-    width = np.where(np.isfinite(high - low), high - low, np.inf)
-    notes, w = [], w.copy()
-    for j, name in enumerate(model.condition_names):
-        tol = JITTER_FRACTION * width[j]
-        for bound, outside in (
-            (low[j], (w[:, j] < low[j]) & (w[:, j] >= low[j] - tol)),
-            (high[j], (w[:, j] > high[j]) & (w[:, j] <= high[j] + tol)),
-        ):
-            if outside.any():
-                notes.append(
-                    f"{name} just outside its range (jitter) set to {bound:g} on "
-                    f"{int(outside.sum())} rows"
-                )
-                w[outside, j] = bound
-    return w, notes
-
-
 def prepare_data(
     data: Dataset,
     model: Model,
@@ -345,7 +323,7 @@ def prepare_data(
         basis[sl] = spline_basis(cycle[sl], knots)
         basis_c[sl] = spline_basis(cycle[sl], candidate_knots)
     x = x_all[order]
-    w, notes = _clip_jitter(data.w[order], model)
+    w, notes = clip_jitter(data.w[order], model)
     if noise_std is None:
         rel = model.diagnosis.noise_rel or {}
         std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in chosen])

@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import count_reasons
-from jaxcal.paper.methods import Method, Problem
+from jaxcal.paper.methods import Method
+from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
 from jaxcal.training.scoring import score_units, theta_rmse
 
@@ -116,8 +117,8 @@ def evaluate_method(
     finite = np.isfinite(xhat[scored]).all()
     if finite:
         scores = score_units(
-            theta, xhat, units.theta, units.x, mask, problem.norm.std,
-            problem.sensors, problem.theta_names, reason=reason,
+            theta, xhat, units.theta, units.x, mask, problem.norm.x_std,
+            problem.output_names, problem.theta_names, reason=reason,
         )  # fmt: skip
     else:  # no model output (or a diverged one): theta scores only
         pooled, per_param = theta_rmse(theta, units.theta, scored)

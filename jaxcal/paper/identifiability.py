@@ -29,7 +29,8 @@ import numpy as np
 
 from jaxcal.calibrators.interface import measure_declared
 from jaxcal.paper.compare import stacked
-from jaxcal.paper.methods import Problem, engine_outputs
+from jaxcal.paper.methods import engine_outputs
+from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
 
 
@@ -47,9 +48,9 @@ def normalised_jacobians(
     with jax.enable_x64(True):  # the engine's Newton solve needs float64
         measure = measure_declared(
             lambda ww, th: engine_outputs(engine, ww, th),  # the shared traced F
-            problem.theta_base, problem.theta_names, problem.sensors,
+            problem.theta_base, problem.theta_names, problem.output_names,
         )  # fmt: skip
-        std = jnp.asarray(problem.norm.std, jnp.float64)
+        std = jnp.asarray(problem.norm.x_std, jnp.float64)
         jac = jax.jit(
             jax.vmap(jax.jacfwd(lambda ww, th: measure(ww, th) / std, argnums=1))
         )

@@ -1,10 +1,10 @@
 """Every method of the paper's comparison behind one calibrator interface.
 
-For one data set (:class:`Problem`: engine, sensors, declared parameters, action box,
-training normalisation) this module builds the paper's methods and ours as
-:class:`Method` objects, each a ``Calibrator`` factory plus one jitted fleet runner
-(``lax.scan`` over time, ``vmap`` over units, :func:`~jaxcal.calibrators.interface.
-run_fleet`):
+For one data set (the run's :class:`~jaxcal.problem.Problem`: model, outputs, declared
+parameters, action box, training normalisation) this module builds the paper's
+methods and ours as :class:`Method` objects, each a ``Calibrator`` factory plus one
+jitted fleet runner (``lax.scan`` over time, ``vmap`` over units,
+:func:`~jaxcal.calibrators.interface.run_fleet`):
 
 * UKF on the physics F (Tian et al. §2.3, eq. ukf; q = r = 0.01 on normalised
   outputs and on parameters scaled by the half-width of the action box);
@@ -49,61 +49,21 @@ from jaxcal.calibrators.interface import (
     run_fleet,
 )
 from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
-from jaxcal.calibrators.policy import make_policy_calibrator, range_check
+from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
-from jaxcal.envs.tracking import Dynamics, compute_norm_stats
-from jaxcal.training.data import CalibrationData
+from jaxcal.envs.tracking import Dynamics
+from jaxcal.problem import Problem
+from jaxcal.training.runs import run_check
 from jaxcal.typedefs import Array, PRNGKey
 
 
-class Problem(NamedTuple):
-    """What every method of one data set shares (host numpy).
-
-    Attributes:
-        engine: engine configuration of the data file (``load_engine`` name).
-        sensors: S observed sensor names.
-        theta_names: P declared parameter names.
-        theta_base: ``[10]`` values of all health modifiers (undeclared ones stay here).
-        theta_low, theta_high: ``[P]`` action box (the RL policy's, from dev labels).
-        norm: training normalisation of x (``mean``, ``std`` ``[S]``), the same
-            statistics the RL environment uses.
-    """
-
-    engine: str
-    sensors: tuple[str, ...]
-    theta_names: tuple[str, ...]
-    theta_base: np.ndarray
-    theta_low: np.ndarray
-    theta_high: np.ndarray
-    norm: SensorNorm
-
-    @classmethod
-    def from_data(cls, data: CalibrationData) -> Problem:
-        """The problem of a loaded data set (normalisation over its training units)."""
-        stats = compute_norm_stats(
-            data.train.w.astype(np.float64),
-            data.train.x.astype(np.float64),
-            data.train.lengths,
-        )
-        return cls(
-            engine=data.engine,
-            sensors=tuple(data.sensors),
-            theta_names=tuple(data.theta_names),
-            theta_base=np.asarray(data.theta_base, np.float64),
-            theta_low=np.asarray(data.theta_low, np.float64),
-            theta_high=np.asarray(data.theta_high, np.float64),
-            norm=SensorNorm(np.asarray(stats.x_mean), np.asarray(stats.x_std)),
-        )
-
-    @property
-    def theta_centre(self) -> np.ndarray:
-        """``[P]`` centre of the action box (the model-based methods' prior mean)."""
-        return 0.5 * (self.theta_low + self.theta_high)
-
-    @property
-    def theta_half_width(self) -> np.ndarray:
-        """``[P]`` half-width of the action box (their parameter scale)."""
-        return 0.5 * (self.theta_high - self.theta_low)
+def output_norm(problem: Problem) -> SensorNorm:
+    """The outputs' training normalisation (``x_n = (x - mean) / std``) that the
+    paper's UKF and least squares use: q = r = 0.01 are in these units."""
+    return SensorNorm(
+        np.asarray(problem.norm.x_mean, np.float64),
+        np.asarray(problem.norm.x_std, np.float64),
+    )
 
 
 BuildFn = Callable[[Array, Array], Calibrator]  # (bias [], noise_sigma []) -> method
@@ -256,9 +216,9 @@ def make_model(
         lambda w, theta: engine_outputs(engine, w, theta),
         problem.theta_base,
         problem.theta_names,
-        problem.sensors,
+        problem.output_names,
     )
-    std = jnp.asarray(problem.norm.std)
+    std = jnp.asarray(problem.norm.x_std)
 
     def model(w: Array, theta: Array) -> Array:
         w, theta = w.astype(jnp.float64), theta.astype(jnp.float64)
@@ -277,13 +237,13 @@ def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Metho
             lambda key: make(
                 make_model(engine, problem, bias, noise_sigma, key),
                 cfg,
-                problem.norm,
+                output_norm(problem),
                 theta0=problem.theta_centre,
                 theta_scale=problem.theta_half_width,
             )
         )
 
-    info = {"model": f"F ({problem.engine})", **dataclasses.asdict(cfg)}
+    info = {"model": f"F ({problem.model.name})", **dataclasses.asdict(cfg)}
     # the engine's valid inputs; a model without an envelope checks finiteness only
     envelope = getattr(engine, "envelope", None)
     check = None if envelope is None else SampleCheck.from_envelope(envelope)
@@ -354,4 +314,4 @@ def policy_method(run, name: str) -> Method:
     }
     dtype = jnp.float64 if run.config.dynamics == "physics" else jnp.float32
     # flags samples far outside the run's training range
-    return make_method(name, build, dtype, info, check=range_check(run.meta))
+    return make_method(name, build, dtype, info, check=run_check(run))

@@ -19,8 +19,8 @@ import jax
 import numpy as np
 
 from jaxcal.data.chunked_engine import NUM_UNKNOWNS, jit_evaluate_engine
-from jaxcal.paper.methods import Problem
 from jaxcal.physics.constants import HEALTH_NAMES, sensor_index
+from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
 
 
@@ -35,7 +35,7 @@ def evaluate_declared(
     (``jax.enable_x64``) like every engine call.
 
     Args:
-        engine: the loaded engine of ``problem.engine``.
+        engine: the loaded engine of ``problem.model.name``.
         problem: sensors, declared parameters, base values.
         w: ``[N, W]`` operating conditions.
         theta: ``[N, P]`` declared parameters.
@@ -60,7 +60,7 @@ def evaluate_declared(
     num = w.shape[0]
     full = np.broadcast_to(problem.theta_base, (num, len(HEALTH_NAMES))).copy()
     full[:, [HEALTH_NAMES.index(n) for n in problem.theta_names]] = theta
-    cols = sensor_index(problem.sensors)
+    cols = sensor_index(problem.output_names)
     x = np.zeros((num, len(cols)))
     ok = np.zeros(num, bool)
     for start in range(0, num, chunk_size):  # a loop over chunks, not samples
@@ -153,7 +153,7 @@ def simulated_units(
     x_flat, ok_flat = evaluate_declared(
         engine, problem, w[valid], theta[valid], chunk_size=chunk_size
     )
-    x = np.zeros((num_units, num_steps, len(problem.sensors)))
+    x = np.zeros((num_units, num_steps, len(problem.output_names)))
     ok = np.zeros((num_units, num_steps), bool)
     x[valid], ok[valid] = x_flat, ok_flat
     # an unsolved sample ends its unit: E2E reads x_{t-1}, so no gap may be bridged

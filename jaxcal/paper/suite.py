@@ -3,7 +3,7 @@
 A :class:`Suite` holds everything the evaluation steps of one data set share, loaded
 once and kept: the splits as the reference policy run read them (same sensors,
 parameters, validation units and stride, :func:`jaxcal.training.data.
-load_calibration_data`), the :class:`~jaxcal.paper.methods.Problem`, the engine
+load_calibration_data`), their :class:`~jaxcal.problem.Problem`, the engine
 and the built methods. Its step functions return JSON-ready dicts:
 
 * :meth:`Suite.fit_e2e`: the E2E network on labelled units (the paper's), or on the
@@ -39,7 +39,6 @@ from jaxcal.paper.compare import (
 )
 from jaxcal.paper.methods import (
     Method,
-    Problem,
     e2e_method,
     least_squares_method,
     policy_method,
@@ -99,7 +98,7 @@ class Suite:
             theta_margin=float(run_cfg["env"]["theta_margin"]),
         )
         self.data = load_calibration_data(data_path, **self._read)
-        self.problem = Problem.from_data(self.data)
+        self.problem = self.data.problem
         self._engine = None
         self._methods: dict[str, Method] = {}
         self._test: dict[str, UnitArrays] = {}
@@ -111,7 +110,7 @@ class Suite:
             from jaxcal.physics import load_engine
 
             with jax.enable_x64(True):  # else its design constants load as float32
-                self._engine = load_engine(self.problem.engine)
+                self._engine = load_engine(self.problem.model.name)
         return self._engine
 
     def test_units(self, data_path: str | None = None) -> UnitArrays:
@@ -157,7 +156,7 @@ class Suite:
         w = units.w.reshape(-1, units.w.shape[-1])[flat]
         x = units.x.reshape(-1, units.x.shape[-1])[flat]
         theta = units.theta.reshape(-1, units.theta.shape[-1])[flat]
-        gap = np.abs(self.model_output(w, theta) - x) / self.problem.norm.std
+        gap = np.abs(self.model_output(w, theta) - x) / self.problem.norm.x_std
         solved = np.isfinite(gap).all(axis=1)
         gap = gap[solved]
         return {
@@ -165,7 +164,7 @@ class Suite:
             "mean_norm": float(gap.mean()),
             "max_norm": float(gap.max()),
             "per_sensor_max_norm": dict(
-                zip(self.problem.sensors, gap.max(axis=0).tolist(), strict=True)
+                zip(self.problem.output_names, gap.max(axis=0).tolist(), strict=True)
             ),
             "unsolved": int((~solved).sum()),
         }
@@ -189,7 +188,7 @@ class Suite:
             target = init_e2e_params(
                 jax.random.key(0),
                 self.data.train.w.shape[-1],
-                len(self.problem.sensors),
+                len(self.problem.output_names),
                 len(self.problem.theta_names),
                 self.cfg.e2e,
             )
@@ -199,11 +198,11 @@ class Suite:
                 **dataclasses.asdict(self.cfg.e2e),
             }
             # the engine's envelope, without loading the engine (G has no model)
-            envelope = ENVELOPES.get(self.problem.engine)
+            envelope = ENVELOPES.get(self.problem.model.name)
             check = None if envelope is None else SampleCheck.from_envelope(envelope)
             return e2e_method(params, name, info, check)
         if name in self.runs:
-            from jaxcal.deploy import load_run
+            from jaxcal.training.runs import load_run
 
             return policy_method(load_run(self.runs[name]), name)
         raise ValueError(f"unknown method {name!r} (no run given for it?)")

@@ -116,3 +116,12 @@ def test_front_door_errors_are_clear(frame):
         jaxcal.calibrate(MODEL, frame, theta=["leek"])
     with pytest.raises(ValueError, match="run="):
         jaxcal.calibrate(MODEL, frame, method="policy")
+
+
+def test_condition_jitter_just_outside_the_range_is_clipped_and_noted(frame):
+    jitter = frame.copy()
+    jitter.loc[7, "heat"] = -0.2  # range [0, 50]: within 1 % of its width below 0
+    noise = dict(zip(MODEL.output_names, NOISE, strict=True))
+    result = jaxcal.calibrate(MODEL, jitter, method="ukf", noise=noise)
+    assert result.valid.all()
+    assert result.notes == ("heat just outside its range (jitter) set to 0 on 1 rows",)
