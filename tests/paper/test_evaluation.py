@@ -11,12 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import struct
+from support.paper_problem import paper_problem
 
-from jaxcal.calibrators.interface import Calibrator, CalStepOutput, SensorNorm
+from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.calibrators.least_squares import LeastSquaresConfig
 from jaxcal.paper.compare import evaluate_method, limit_units, stacked
 from jaxcal.paper.methods import (
-    Problem,
     evaluation_key,
     least_squares_method,
     perturb_output,
@@ -26,6 +26,7 @@ from jaxcal.paper.methods import (
 from jaxcal.paper.report import write_report
 from jaxcal.paper.simulate import gather_units, subset_units
 from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
 
 SENSORS = ("T24", "T30", "T48", "Nc")
@@ -93,15 +94,7 @@ def _units(engine, lengths=(30, 22), seed=1) -> UnitArrays:
 
 def _problem(units: UnitArrays) -> Problem:
     x = units.x[units.mask]
-    return Problem(
-        engine="toy",
-        sensors=SENSORS,
-        theta_names=THETA,
-        theta_base=np.zeros(len(HEALTH_NAMES)),
-        theta_low=np.array([-0.02]),
-        theta_high=np.array([0.002]),
-        norm=SensorNorm(x.mean(0), x.std(0)),
-    )
+    return paper_problem("toy", SENSORS, THETA, [-0.02], [0.002], x.mean(0), x.std(0))
 
 
 @pytest.fixture(scope="module")

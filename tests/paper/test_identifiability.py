@@ -4,14 +4,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import struct
+from support.paper_problem import paper_problem
 
-from jaxcal.calibrators.interface import SensorNorm
 from jaxcal.paper.identifiability import (
     identifiability_study,
     split_error,
     weak_directions,
 )
-from jaxcal.paper.methods import Problem
 from jaxcal.physics.constants import (
     HEALTH_NAMES,
     SENSOR_NAMES,
@@ -43,11 +42,9 @@ def _setup(num_units=3, steps=6):
     s = sensor_index(list(SENSORS))
     wiggle = rng.normal(0, 1, len(SENSOR_NAMES))
     a[:, j] = -2.0 * a[:, i] + EPS * wiggle  # the blind spot: (1, 0.5) / |.|
-    problem = Problem(
-        engine="toy", sensors=SENSORS, theta_names=THETA,
-        theta_base=np.zeros(len(HEALTH_NAMES)), theta_low=np.full(2, -0.02),
-        theta_high=np.zeros(2), norm=SensorNorm(np.zeros(4), np.ones(4)),
-    )  # fmt: skip
+    problem = paper_problem(
+        "toy", SENSORS, THETA, np.full(2, -0.02), np.zeros(2), np.zeros(4), np.ones(4)
+    )
     theta = rng.uniform(-0.02, 0.0, (num_units, 1, 2)).repeat(steps, axis=1)
     units = UnitArrays(
         w=rng.uniform(1.0, 2.0, (num_units, steps, 4)),
