@@ -18,9 +18,9 @@ from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env
 from jaxcal.evaluate import main, parse_args
 from jaxcal.problem import Normalisation
+from jaxcal.training.components import make_agent
 from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import run_training
-from jaxcal.training.problem import make_agent
 from jaxcal.training.runner import evaluate_policy
 
 

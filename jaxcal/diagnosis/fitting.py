@@ -35,7 +35,7 @@ from jaxcal.diagnosis.effects import (
     linearize,
     natural_scale,
 )
-from jaxcal.diagnosis.problem import LoopData
+from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite

@@ -35,7 +35,7 @@ from scipy.special import gammaln
 
 from jaxcal.diagnosis.effects import Candidate
 from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.problem import LoopData
+from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.screen import Screen, init_from, spec_for
 from jaxcal.model import Model
 

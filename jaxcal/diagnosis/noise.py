@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from jaxcal.diagnosis.problem import LoopData
+    from jaxcal.diagnosis.prepare import LoopData
 
 
 def estimate_noise_std(

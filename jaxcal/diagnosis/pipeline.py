@@ -49,7 +49,7 @@ from jaxcal.diagnosis.identify import (
     identify,
 )
 from jaxcal.diagnosis.noise import estimate_noise_std
-from jaxcal.diagnosis.problem import LoopData, prepare_data
+from jaxcal.diagnosis.prepare import LoopData, prepare_data
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import spec_for
 from jaxcal.model import Model

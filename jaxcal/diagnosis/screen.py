@@ -28,7 +28,7 @@ from jaxcal.diagnosis.fitting import (
     schur_solve,
     signature_columns,
 )
-from jaxcal.diagnosis.problem import LoopData
+from jaxcal.diagnosis.prepare import LoopData
 
 
 def _split(members: Sequence[Candidate]):

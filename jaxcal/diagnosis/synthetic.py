@@ -44,7 +44,7 @@ from jaxcal.diagnosis.effects import (
     natural_scale,
     offset_conditions,
 )
-from jaxcal.diagnosis.problem import DEFAULT_NOISE_REL
+from jaxcal.diagnosis.prepare import DEFAULT_NOISE_REL
 from jaxcal.model import Model
 from jaxcal.typedefs import PRNGKey
 

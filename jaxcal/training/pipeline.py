@@ -65,6 +65,7 @@ from jaxcal.envs.tracking import EnvConfig, EnvParams, make_env_params
 from jaxcal.model import Model
 from jaxcal.problem import Normalisation, Problem
 from jaxcal.settings import check_output_path
+from jaxcal.training.components import make_components, require_x64
 from jaxcal.training.data import (
     CalibrationData,
     UnitArrays,
@@ -72,7 +73,6 @@ from jaxcal.training.data import (
     read_options,
 )
 from jaxcal.training.policy_stage import train_policy
-from jaxcal.training.problem import make_components, require_x64
 from jaxcal.training.run_dir import (
     DATA_FILE,
     FINAL_FILE,

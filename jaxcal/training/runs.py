@@ -40,7 +40,7 @@ from jaxcal.config import TrainConfig
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import InputRange, Normalisation, Problem
 from jaxcal.surrogate.model import init_surrogate_params
-from jaxcal.training.problem import make_agent, make_dynamics
+from jaxcal.training.components import make_agent, make_dynamics
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
 
 # Runs of the older data.json layout are the turbofan's, which needs float64.

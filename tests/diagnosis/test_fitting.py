@@ -11,8 +11,8 @@ from jaxcal.data.record import Record
 from jaxcal.diagnosis.fitting import GramStats, schur_solve
 from jaxcal.diagnosis.identify import log10_chi2_sf
 from jaxcal.diagnosis.noise import estimate_noise_std
-from jaxcal.diagnosis.problem import prepare_data as _prepare
-from jaxcal.diagnosis.problem import spline_basis
+from jaxcal.diagnosis.prepare import prepare_data as _prepare
+from jaxcal.diagnosis.prepare import spline_basis
 from jaxcal.models import load
 
 
