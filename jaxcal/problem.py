@@ -45,14 +45,16 @@ class Normalisation(NamedTuple):
     x_std: np.ndarray  # [S] > 0
 
     @classmethod
-    def of(cls, w: np.ndarray, x: np.ndarray) -> Normalisation:
-        """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1)."""
+    def of(cls, w: np.ndarray, x: np.ndarray, dtype=np.float64) -> Normalisation:
+        """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1),
+        computed in ``dtype`` (``None``: the arrays' own, so a float32 run keeps the
+        exact float32 statistics it always had)."""
 
         def stats(a):
-            a = np.asarray(a, np.float64)
+            a = np.asarray(a, dtype)
             mean, std = a.mean(axis=0), a.std(axis=0)
             tiny = std <= _CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
-            return mean, np.where(tiny, 1.0, std)
+            return mean, np.where(tiny, 1.0, std).astype(a.dtype)
 
         return cls(*stats(w), *stats(x))
 

@@ -105,10 +105,9 @@ def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
     """Mean and std over the valid rows of all units (host-side, numpy).
 
     A feature with std below 1e-12 relative to its scale (a constant channel) gets
-    std = 1 so that normalisation never divides by zero. Unlike
-    :meth:`Normalisation.of` (always float64), the statistics are computed in the
-    data's own dtype: a float32 run normalises with exactly the float32 statistics
-    it always had.
+    std = 1 so that normalisation never divides by zero
+    (:meth:`Normalisation.of`). The statistics are computed in the data's own dtype:
+    a float32 run normalises with exactly the float32 statistics it always had.
 
     Args:
         w: [U, T, W]; x: [U, T, S]; lengths: [U].
@@ -119,16 +118,8 @@ def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
     """
     w, x, lengths = np.asarray(w), np.asarray(x), np.asarray(lengths)
     valid = np.arange(x.shape[1])[None, :] < lengths[:, None]
-
-    def stats(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows = data[valid]
-        mean, std = rows.mean(axis=0), rows.std(axis=0)
-        tiny = std <= 1e-12 * np.maximum(np.abs(mean), 1.0)
-        return mean, np.where(tiny, 1.0, std).astype(data.dtype)
-
-    w_mean, w_std = stats(w)
-    x_mean, x_std = stats(x)
-    return Normalisation(*(jnp.asarray(a) for a in (w_mean, w_std, x_mean, x_std)))
+    stats = Normalisation.of(w[valid], x[valid], dtype=None)
+    return Normalisation(*(jnp.asarray(a) for a in stats))
 
 
 def make_env_params(
