@@ -155,3 +155,24 @@ def test_models_load_specs(tmp_path):
     assert jaxcal.models.load(f"{path}:model").parameter_names == ("k",)
     with pytest.raises(ValueError, match="registered"):
         jaxcal.models.load("no_such_model")
+
+
+def test_a_run_folder_of_the_older_layout_reads_as_the_same_problem():
+    from jaxcal.training.runs import run_problem
+
+    model = _model()
+    frame = _frame()
+    problem = Problem.build(model, read_dataset(frame, model), theta=["p"])
+    new = {"problem": problem.to_json(), "model_spec": "unused"}
+    rng = problem.input_range._asdict()
+    old = {
+        "engine": "unused",
+        "sensors": list(problem.output_names),
+        **{k: v for k, v in problem.to_json().items() if k.startswith("theta")},
+        "norm": problem.to_json()["norm"],
+        **{k: np.asarray(v).tolist() for k, v in rng.items()},
+    }
+    a, b = run_problem(new, model), run_problem(old, model)
+    assert a.theta_names == b.theta_names and a.output_names == b.output_names
+    np.testing.assert_allclose(a.norm.x_std, b.norm.x_std)
+    np.testing.assert_allclose(a.input_range.x_high, b.input_range.x_high)

@@ -38,7 +38,7 @@ from jaxcal.calibrators.policy import (
 from jaxcal.checkpoint import Checkpointer, load_config
 from jaxcal.config import TrainConfig
 from jaxcal.envs.tracking import Dynamics
-from jaxcal.problem import InputRange, Normalisation, Problem
+from jaxcal.problem import Problem
 from jaxcal.surrogate.model import init_surrogate_params
 from jaxcal.training.components import make_agent, make_dynamics
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
@@ -97,27 +97,23 @@ def run_problem(data: dict, model=None) -> Problem:
     if "problem" in data:
         model = model or load(data["model_spec"])
         return Problem.from_json(data["problem"], model)
-    # the older layout: RunMeta fields + the box and normalisation beside them
-    model = model or load(data["engine"])
-    arr = lambda v: np.asarray(v, np.float64)  # noqa: E731
-    norm = Normalisation(**{k: arr(v) for k, v in data["norm"].items()})
-    rng = None
-    if data.get("w_low") is not None:
-        rng = InputRange(
-            *(arr(data[k]) for k in ("w_low", "w_high", "x_low", "x_high"))
-        )
-    return Problem(
-        model=model,
-        theta_names=tuple(data["theta_names"]),
-        output_names=tuple(data["sensors"]),
-        theta_base=arr(data["theta_base"]),
-        theta_low=arr(data["theta_low"]),
-        theta_high=arr(data["theta_high"]),
-        norm=norm,
-        noise_std=0.01 * norm.x_std,
-        input_range=rng,
-        noise_source="provisional (1 % of each output's spread)",
-    )
+    # the older layout: RunMeta fields + the box and normalisation beside them,
+    # mapped onto the current one
+    ranges = ("w_low", "w_high", "x_low", "x_high")
+    x_std = np.asarray(data["norm"]["x_std"], np.float64)
+    current = {
+        **{
+            k: data[k] for k in ("theta_names", "theta_base", "theta_low", "theta_high")
+        },
+        "output_names": data["sensors"],
+        "norm": data["norm"],
+        "noise_std": 0.01 * x_std,
+        "noise_source": "provisional (1 % of each output's spread)",
+        "input_range": {k: data[k] for k in ranges}
+        if data.get("w_low") is not None
+        else None,
+    }
+    return Problem.from_json(current, model or load(data["engine"]))
 
 
 def load_run(
