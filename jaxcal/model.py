@@ -438,10 +438,6 @@ class Model:
         _, x, info = self.step(empty, w, theta)
         return x, info
 
-    def evaluate_with_effects(self, w: Array, theta: Array, e: Array) -> Array:
-        """``x`` with the model-specific extension inputs ``e [E]`` applied."""
-        return self.evaluate_effects(w, theta, e)[0]
-
     def evaluate_effects(
         self, w: Array, theta: Array, e: Array
     ) -> tuple[Array, ModelInfo]:

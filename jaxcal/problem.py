@@ -32,8 +32,26 @@ from jaxcal.model import Model
 
 # A constant channel (std below this, relative to its scale) is normalised by 1.
 _CONSTANT_REL_STD = 1e-12
-# A feature far outside the training range: beyond this share of the range's span.
-RANGE_MARGIN = 0.5
+
+
+# Half-width of the box of a declared parameter that is constant in labelled data.
+CONSTANT_THETA_HALF_WIDTH = 0.01
+# A labelled parameter "varies" when its range exceeds this (files store exact zeros).
+VARYING_TOLERANCE = 1e-9
+
+
+def labelled_box(
+    theta: np.ndarray, theta_margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The box of labelled rows ``theta [N, P]``: their range widened by
+    ``theta_margin`` of its width on each side (a constant parameter by
+    :data:`CONSTANT_THETA_HALF_WIDTH`) — the paper's action box."""
+    low, high = theta.min(axis=0), theta.max(axis=0)
+    width = high - low
+    margin = np.where(
+        width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
+    )
+    return low - margin, high + margin
 
 
 class Normalisation(NamedTuple):
@@ -66,17 +84,6 @@ class InputRange(NamedTuple):
     w_high: np.ndarray
     x_low: np.ndarray
     x_high: np.ndarray
-
-    def widened(self, margin: float = RANGE_MARGIN) -> InputRange:
-        """The box widened by ``margin`` of its span on each side ("far outside")."""
-
-        def widen(low, high):
-            span = np.maximum(high - low, 1e-12 * np.maximum(np.abs(high), 1.0))
-            return low - margin * span, high + margin * span
-
-        return InputRange(
-            *widen(self.w_low, self.w_high), *widen(self.x_low, self.x_high)
-        )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -145,10 +152,7 @@ class Problem:
                     f"{list(theta)} in the data (found {list(data.theta_names)})"
                 )
             cols = [data.theta_names.index(n) for n in theta]
-            lo, hi = data.theta[:, cols].min(0), data.theta[:, cols].max(0)
-            width = hi - lo
-            pad = np.where(width > 1e-9, margin * width, 0.01)
-            low, high = lo - pad, hi + pad
+            low, high = labelled_box(data.theta[:, cols], margin)
             for j, name in enumerate(data.theta_names):
                 base[model.parameter_names.index(name)] = data.theta[:, j].mean()
         elif box != "bounds":

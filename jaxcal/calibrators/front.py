@@ -27,10 +27,9 @@ import dataclasses
 from collections.abc import Mapping, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.data.dataset import Dataset, Padded, clip_jitter
+from jaxcal.data.dataset import Dataset, clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.problem import Problem
@@ -193,8 +192,3 @@ def _to_rows(out, padded, data: Dataset, problem: Problem, method: str, notes):
         problem=problem,
         notes=tuple(notes),
     )
-
-
-def as_jax(padded: Padded):
-    """``(w, x, mask)`` of a padded data set as JAX arrays."""
-    return jnp.asarray(padded.w), jnp.asarray(padded.x), jnp.asarray(padded.mask)

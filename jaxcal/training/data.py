@@ -48,12 +48,13 @@ from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
 from jaxcal.data.record import Record
 from jaxcal.model import Model
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
-from jaxcal.problem import InputRange, Normalisation, Problem
-
-# Half-width of the action box of a declared parameter that is constant in the data.
-CONSTANT_THETA_HALF_WIDTH = 0.01
-# A T column "varies" when its dev range exceeds this (the files store exact zeros).
-VARYING_TOLERANCE = 1e-9
+from jaxcal.problem import (
+    VARYING_TOLERANCE,
+    InputRange,
+    Normalisation,
+    Problem,
+    labelled_box,
+)
 
 
 class UnitArrays(NamedTuple):
@@ -128,20 +129,6 @@ class CalibrationData(NamedTuple):
     def engine(self) -> str:
         """The model's name (the engine configuration for the turbofan)."""
         return self.problem.model.name
-
-
-def labelled_box(
-    theta: np.ndarray, theta_margin: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The action box of labelled rows ``theta [N, P]``: their range widened by
-    ``theta_margin`` of its width on each side (a constant parameter by
-    :data:`CONSTANT_THETA_HALF_WIDTH`)."""
-    low, high = theta.min(axis=0), theta.max(axis=0)
-    width = high - low
-    margin = np.where(
-        width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
-    )
-    return low - margin, high + margin
 
 
 def training_problem(

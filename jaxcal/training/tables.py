@@ -32,13 +32,8 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.precision import float_dtype
-from jaxcal.training.data import (
-    VARYING_TOLERANCE,
-    CalibrationData,
-    UnitArrays,
-    labelled_box,
-    training_problem,
-)
+from jaxcal.problem import VARYING_TOLERANCE, labelled_box
+from jaxcal.training.data import CalibrationData, UnitArrays, training_problem
 
 SPLITS = ("train", "val", "test", "dev")
 
