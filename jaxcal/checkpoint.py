@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import jax
 import orbax.checkpoint as ocp
 
+from jaxcal.atomic import write_atomic
 from jaxcal.settings import config_from_dict, config_to_dict
 
 CONFIG_FILE = "config.json"
@@ -210,15 +210,7 @@ def save_config(run_dir: str | os.PathLike, cfg: Any) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     data = cfg if isinstance(cfg, dict) else config_to_dict(cfg)
     text = json.dumps(data, indent=2, sort_keys=False) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=run_dir, prefix=".config.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, run_dir / CONFIG_FILE)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return run_dir / CONFIG_FILE
+    return write_atomic(run_dir / CONFIG_FILE, text)
 
 
 def load_config(run_dir: str | os.PathLike, cls: type | None = None) -> Any:

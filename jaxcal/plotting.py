@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+
+from jaxcal.atomic import make_temp, release_temp
 
 TRUTH_COLOR = "tab:orange"  # the paper draws ground truth as orange squares
 SERIES_COLORS = ("tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -31,19 +32,16 @@ _PROFILE_PANELS = ((0, "alt [kft]", 1e-3), (1, "Mach [-]", 1.0), (2, "TRA [%]", 
 def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> str:
     """Write ``fig`` as PNG to ``path`` atomically (temp file + rename); return path."""
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=".png")
+    fd, tmp = make_temp(path)
     try:
         with os.fdopen(fd, "wb") as f:
             fig.savefig(f, format="png", dpi=dpi)
         os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; figures are for sharing
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    finally:
+        release_temp(tmp)
     return path
 
 

@@ -18,19 +18,14 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal import evaluate
+from jaxcal.atomic import host_tag, make_temp, release_temp, write_atomic
 from jaxcal.config import resolve_config
 from jaxcal.data.ncmapss_writer import NCMAPSSWriter
 from jaxcal.settings import check_output_path, config_to_dict
 from jaxcal.train import main as train_main
 from jaxcal.train import parse_args
 from jaxcal.training import pipeline
-from jaxcal.training.run_dir import (
-    _host_tag,
-    check_run_dir,
-    make_temp,
-    release_temp,
-    write_atomic,
-)
+from jaxcal.training.run_dir import check_run_dir
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -130,7 +125,7 @@ def test_check_run_dir_writes_nothing_and_tells_stale_from_real_runs(tmp_path):
     assert check_run_dir(run_dir, cfg) == "new" and not run_dir.exists()
     run_dir.mkdir(parents=True)
     (run_dir / "config.json").write_text(json.dumps(config_to_dict(other)))
-    (run_dir / f".config.json.{_host_tag()}.1.abcdefgh.tmp").write_text("")
+    (run_dir / f".config.json.{host_tag()}.1.abcdefgh.tmp").write_text("")
     assert check_run_dir(run_dir, cfg) == "stale"
     (run_dir / "metrics.jsonl").write_text("")
     with pytest.raises(ValueError, match=r"different config \(dataset.path"):
@@ -182,7 +177,7 @@ def _dead_pid() -> int:
 
 def test_a_write_removes_only_the_temps_of_dead_writers_of_that_target(tmp_path):
     target = tmp_path / "final.json"
-    host, dead = _host_tag(), _dead_pid()
+    host, dead = host_tag(), _dead_pid()
     own_live_fd, own_live = make_temp(target)  # this process is writing it now
     os.close(own_live_fd)
     names = {

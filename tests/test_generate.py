@@ -8,10 +8,10 @@ import sys
 import h5py
 import pytest
 
+from jaxcal.atomic import host_tag
 from jaxcal.data.chunked_engine import jit_evaluate_engine
 from jaxcal.data.ncmapss_io import load_ncmapss
 from jaxcal.generate import main, parse_args
-from jaxcal.training.run_dir import _host_tag
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -100,7 +100,7 @@ def test_cli_writes_a_readable_file(tmp_path, capsys, evaluate):
     out.parent.mkdir()
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
-    stale = out.parent / f".tiny.h5.{_host_tag()}.{proc.pid}.abcdefgh.tmp"
+    stale = out.parent / f".tiny.h5.{host_tag()}.{proc.pid}.abcdefgh.tmp"
     stale.write_bytes(b"partial")
     assert main(["dataset=tiny", f"out={out}", "seed=3", "sensor_snr_db=70"]) == 0
     assert sorted(p.name for p in out.parent.iterdir()) == ["tiny.h5"]

@@ -15,6 +15,7 @@ import os
 import h5py
 import numpy as np
 
+from jaxcal.atomic import make_temp, release_temp
 from jaxcal.data.ncmapss_layout import (
     _BLOCK_ROWS,
     _CHUNK_ROWS,
@@ -30,7 +31,6 @@ from jaxcal.data.ncmapss_layout import (
     _width,
 )
 from jaxcal.data.record import Record
-from jaxcal.training.run_dir import make_temp, release_temp
 
 
 class NCMAPSSWriter:

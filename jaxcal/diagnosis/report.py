@@ -15,11 +15,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from jaxcal.atomic import write_atomic
 from jaxcal.diagnosis.identify import Identification
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
 from jaxcal.diagnosis.residuals import summary_table
@@ -29,20 +29,8 @@ MAX_RANKING = 20  # ranking rows written to the report
 
 
 def write_text(path: str, text: str) -> str:
-    """Write ``text`` to ``path`` atomically (temp file in the same directory)."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Write ``text`` to ``path`` atomically (:func:`jaxcal.atomic.write_atomic`)."""
+    return str(write_atomic(path, text))
 
 
 def json_safe(value):

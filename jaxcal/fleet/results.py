@@ -32,8 +32,8 @@ from collections.abc import Mapping, Sequence
 import h5py
 import numpy as np
 
+from jaxcal.atomic import make_temp, release_temp
 from jaxcal.calibrators.interface import REASONS, count_reasons
-from jaxcal.training.run_dir import make_temp, release_temp
 
 _CHUNK_ROWS = 8192  # HDF5 chunk length of the growable datasets
 
