@@ -22,9 +22,10 @@ It is a frozen, identity-hashed container of host numpy arrays; its
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
@@ -75,6 +76,18 @@ class Normalisation(NamedTuple):
             return mean, np.where(tiny, 1.0, std).astype(a.dtype)
 
         return cls(*stats(w), *stats(x))
+
+
+class Transition(NamedTuple):
+    """A model with memory on the calibrated parameters (:meth:`Problem.transition`).
+
+    ``init(w0 [W], theta [P]) -> z [Z]``; ``step(z, w [W], theta [P]) -> (z', x [S])``;
+    ``num_states`` is ``Z`` (0 for a static model).
+    """
+
+    init: Callable
+    step: Callable
+    num_states: int
 
 
 class InputRange(NamedTuple):
@@ -202,6 +215,30 @@ class Problem:
         """``F(w [W], theta [P]) -> x [S]`` on the calibrated parameters and used
         outputs (the undeclared parameters held at ``theta_base``)."""
         return self.model.restrict(self.theta_names, self.output_names, self.theta_base)
+
+    def transition(self) -> Transition:
+        """The restricted model with its memory: ``init(w0, theta [P]) -> z [Z]`` and
+        ``step(z, w, theta [P]) -> (z', x [S])`` on the calibrated parameters and
+        used outputs. A static model is the stateful one with ``Z = 0`` (``z`` an
+        empty array, ``step`` is ``F``), so every calibrator takes both through this
+        one path."""
+        model = self.model
+        declared = np.asarray(self.theta_index)
+        used = np.asarray(model.output_index(self.output_names))
+        base = np.asarray(self.theta_base)
+
+        def full(theta):
+            return jnp.asarray(base, theta.dtype).at[declared].set(theta)
+
+        def init(w0, theta):
+            z0 = model.init_state(w0, full(theta))
+            return jnp.asarray(z0, theta.dtype).reshape(len(model.states))
+
+        def step(z, w, theta):
+            z_next, x, _ = model.step(z, w, full(theta))
+            return jnp.asarray(z_next, z.dtype).reshape(z.shape), x[used]
+
+        return Transition(init=init, step=step, num_states=len(model.states))
 
     def with_noise(self, noise_std: np.ndarray, source: str) -> Problem:
         """The same problem with another noise vector ``[S]``."""
