@@ -8,7 +8,8 @@ wrong way. Each check below is a rule stated on the final fit's per-unit values
 
 * ``outside_bounds``: an added effect (or a per-unit parameter after the extension)
   whose value leaves the model's stated range (``Parameter.low/high`` of a parameter
-  or registered effect; the sensor layer and condition offsets state none).
+  or registered effect; the sensor layer and condition offsets state none); a
+  per-unit parameter by more than its band ``z_band std``.
 * ``better_than_new``: a parameter with a known direction of wear
   (``DiagnosisHints.degradation_sign``) that is, at some cycle of some unit, on the
   other side of nominal by more than the band ``z_band std`` *and* by at least half a
@@ -106,7 +107,8 @@ def plausibility_flags(
     for name, value in after.value.items():  # per-unit parameters (theta - nominal)
         p = bounds[name]
         theta = p.nominal + value
-        out = _per_unit_any(data, (theta < p.low) | (theta > p.high))
+        band = z_band * after.std[name]  # a value at a bound within noise is fine
+        out = _per_unit_any(data, (theta < p.low - band) | (theta > p.high + band))
         if out.any():
             worst = value[np.argmax(np.abs(value))]
             flags.append(_flag(
