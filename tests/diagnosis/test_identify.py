@@ -25,15 +25,21 @@ CASES = [
 def test_right_effect_is_identified_and_error_drops(engine, synthetic, kind, target):
     syn = synthetic(kind, 0, target)
     res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
-    assert res.verdict == "identified", res.identification.ranking[:3]
-    assert res.added == [syn.truth.name]
-    found = res.identified[0]
-    if kind != "parameter":
-        # fitted size within 4 standard errors (or 3 %) of the truth
-        tol = max(4.0 * found["std"], 0.03 * abs(syn.truth.size))
-        assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
+    if res.verdict == "confounded":
+        # the additive and the multiplicative drift of one sensor can be
+        # indistinguishable on a short record: then both are named, not one guessed
+        assert kind == "sensor_drift", res.identification.ranking[:3]
+        assert set(res.confounded) == {syn.truth.name, f"sensor_gain_drift[{target}]"}
     else:
-        assert found["size"] == pytest.approx(syn.truth.size, rel=0.3)
+        assert res.verdict == "identified", res.identification.ranking[:3]
+        assert res.added == [syn.truth.name]
+        found = res.identified[0]
+        if kind != "parameter":
+            # fitted size within 4 standard errors (or 3 %) of the truth
+            tol = max(4.0 * found["std"], 0.03 * abs(syn.truth.size))
+            assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
+        else:
+            assert found["size"] == pytest.approx(syn.truth.size, rel=0.3)
     best = res.identification.ranking[0]
     assert best.delta_bic > 10.0 and best.log10_p < -3.0
     assert res.after.tracking_rmse_norm.mean() < res.before.tracking_rmse_norm.mean()

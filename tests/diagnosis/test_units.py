@@ -169,7 +169,7 @@ def test_each_plausibility_rule_is_triggered_by_a_constructed_case():
     # wear (declared) and leak: "better than new" (negative: the pump's parameters
     # grow with wear, nominal at the lower bound) in the second unit
     value = np.zeros(n)
-    value[10:20] = -0.01
+    value[10:20] = np.linspace(0.0, -0.01, 10)  # improving over the unit's life
     after = UnitTrajectories(
         {"wear": value, "leak": np.zeros(n)}, {"wear": std, "leak": std}
     )
