@@ -228,3 +228,24 @@ def test_holm_and_the_printed_numbers():
     assert fmt_p(0.0123) == "0.012"
     assert fmt_std(0.0) == fmt_std(float("nan")) == fmt_std(None) == "n/a"
     assert fmt_std(6e-5) == "6e-05"
+
+
+def test_the_fallback_keeps_a_library_effect_that_explains_better():
+    """A t_out bias and a bump in head outside the library: delta(w) on t_out can
+    absorb the bias (its constant), so the screen against delta finds nothing; the
+    bias (or its confounded twin, an inlet-temperature offset) explains it with one
+    number and is kept beside delta instead of being discarded."""
+    d = _fleet([], seed=2)
+    x = d.x.copy()
+    x[:, 2] += 0.5
+    x[:, 0] += np.exp(-(((d.w[:, 0] - 1.3) / 0.2) ** 2))
+    d = Dataset(
+        w=d.w, x=x, condition_names=d.condition_names, output_names=d.output_names,
+        unit=d.unit, time=d.time,
+    )  # fmt: skip
+    res = diagnose(d, PUMP, ["wear"], noise_std=NOISE)
+    assert res.rescreen is not None and res.rescreen.winner is None
+    first = res.identification.winner.name
+    assert first in res.added and "discrepancy" in res.added
+    assert {first, "sensor_bias[t_out]"} <= {first, *res.confounded}
+    assert "kept beside delta" in res.fallback_note
