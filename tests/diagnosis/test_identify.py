@@ -4,6 +4,7 @@ One representative per family of the library; the clean record reports nothing; 
 effect outside the library falls back to delta(w). All share one engine compilation.
 """
 
+import jax
 import numpy as np
 import pytest
 from conftest import DECLARED
@@ -162,3 +163,26 @@ def test_library_covers_every_family_once(engine):
             np.ones(2),
             families=["magic"],
         )
+
+
+def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine):
+    """The FD003 / FD004 situation on generated data: a fan-efficiency loss grows in
+    two of six engines; the per-unit verdict lists exactly those two."""
+    from conftest import STUDY
+
+    from jaxcal.diagnosis.synthetic import make_synthetic_data
+    from jaxcal.models.turbofan_scenario import FleetConfig, make_scenario
+
+    fleet = FleetConfig(
+        num_units=6, rows_per_cycle=1, cycle_stride=3, declared=DECLARED
+    )
+    syn = make_synthetic_data(
+        jax.random.key(3), engine, "parameter", STUDY, make_scenario(fleet),
+        target="fan_eff_mod", size=-0.02, carriers=[2, 4],
+    )  # fmt: skip
+    res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
+    assert res.added == ["parameter[fan_eff_mod]"], res.identification.ranking[:3]
+    eff = res.unit_effects[0]
+    assert res.data.unit_ids[eff.carries].tolist() == [2, 4]
+    np.testing.assert_allclose(eff.size[eff.carries], -0.02, atol=0.003)
+    assert np.all(np.isfinite(eff.onset[eff.carries]))
