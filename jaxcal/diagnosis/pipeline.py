@@ -433,10 +433,11 @@ def _per_unit(model, data, declared, best, null, members, before, after, cfg):
 def _fleet_summary(eff, entry: dict) -> dict:
     """Fleet numbers of one effect from the same final fit as its per-unit values.
 
-    A per-unit parameter's fleet size is the mean end value over units; its standard
-    error is that of the mean, at least the units' own mean standard error (so a
-    single unit does not get 0). Carriers and the rest are summarised apart, since a
-    fleet mean blends them.
+    A per-unit parameter's fleet size is the mean over units of its change over each
+    record (the per-unit size), beside the mean values at the first and the last
+    cycle; its standard error is that of the mean, at least the units' own mean
+    standard error (so a single unit does not get 0). Carriers and the rest are
+    summarised apart, since a fleet mean blends them.
     """
     out = {"carriers": int(eff.carries.sum())}
     if entry["family"] == "parameter":
@@ -445,6 +446,8 @@ def _fleet_summary(eff, entry: dict) -> dict:
         own = float(np.mean(eff.size_std**2)) / u
         out["size"] = float(np.mean(eff.size))
         out["std"] = float(np.sqrt(max(spread, own)))
+        out["start_value"] = float(np.mean(eff.start_value))
+        out["end_value"] = float(np.mean(eff.start_value + eff.size))
     for key, mask in (("size_carriers", eff.carries), ("size_others", ~eff.carries)):
         out[key] = float(np.mean(eff.size[mask])) if mask.any() else None
     return out

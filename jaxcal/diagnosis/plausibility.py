@@ -15,11 +15,11 @@ wrong way. Each check below is a rule stated on the final fit's per-unit values
   other side of nominal by more than the band ``z_band std`` *and* by at least half a
   natural step (so that a statistically clear but physically negligible improvement on
   a large data set is not flagged).
-* ``constant_from_start``: an added parameter carried from the first cycle: in a
-  carrying unit its value at the first cycle is beyond the band, at least half a
-  natural step (the floor of every rule here), and at least half its end value. Wear grows in service; a loss that is already
-  there on day one is more likely an offset of another kind (a condition or sensor
-  error) taken for wear.
+* ``constant_from_start``: an added parameter present from the first cycle: in some
+  unit its value at the first cycle is beyond the band, at least half a natural step
+  (the floor of every rule here) and at least half its end value. Wear grows in
+  service; a loss already there on day one is more likely an offset of another kind
+  (a condition or sensor error, a design mismatch of the model) taken for wear.
 * ``declared_against_sign``: a declared parameter that, after the extension,
   improves over a unit's life (last minus first value against the direction of wear,
   beyond the band of the difference and at least half a natural step) in some unit:
@@ -157,10 +157,9 @@ def plausibility_flags(
         if target.startswith("parameter["):
             pname = target[len("parameter[") : -1]
             step = natural_scale(model, pname)
-            start, end = eff.start_value, eff.size
+            start, end = eff.start_value, eff.start_value + eff.size
             const = (
-                eff.carries
-                & (np.abs(start) > z_band * eff.start_std)
+                (np.abs(start) > z_band * eff.start_std)
                 & (np.abs(start) >= 0.5 * step)
                 & (np.abs(start) >= 0.5 * np.abs(end))
             )
@@ -168,8 +167,8 @@ def plausibility_flags(
                 flags.append(_flag(
                     "constant_from_start", target,
                     f"{target} is already {np.median(start[const]):+.4g} (median) at "
-                    f"the first cycle in {const.sum()} of {eff.carries.sum()} "
-                    "carrying units: a loss present from day one, not wear",
+                    f"the first cycle in {const.sum()} of {data.num_units} units: a "
+                    "departure present from day one, not wear",
                     _ids(data, const),
                 ))  # fmt: skip
     for name, (target, family, value) in effect_values.items():
