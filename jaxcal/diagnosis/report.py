@@ -413,7 +413,7 @@ def _unit_table(e: dict) -> list[str]:
             carriers, key=lambda u: -abs(u["size"] / (u["size_std"] or math.inf))
         )[:MAX_UNIT_ROWS]
         shown.sort(key=lambda u: u["unit"])
-        lines += ["| unit | size | std | z | onset |", "|---|---|---|---|---|"]
+        lines += ["| unit | size | std | size / std | onset |", "|---|---|---|---|---|"]
         for u in shown:
             z = u["size"] / u["size_std"] if u["size_std"] else None
             lines.append(
