@@ -186,3 +186,23 @@ def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine):
     assert res.data.unit_ids[eff.carries].tolist() == [2, 4]
     np.testing.assert_allclose(eff.size[eff.carries], -0.02, atol=0.003)
     assert np.all(np.isfinite(eff.onset[eff.carries]))
+
+
+@pytest.mark.parametrize(
+    "kind,target,size",
+    [
+        ("condition_offset", "T2", 20.0),  # % of T2's spread: a few degR
+        ("sensor_gain_drift", "Wf", 5.0),  # noise std / mean level per 100 cycles
+    ],
+)
+def test_the_field_forms_of_issue_16_are_named(engine, synthetic, kind, target, size):
+    """A hotter inlet that engine and controller both see (the log on the standard
+    day) and a multiplicative drift of the fuel-flow meter: each is named as itself
+    (not as a component loss or another sensor) and raises no plausibility flag."""
+    syn = synthetic(kind, 0, target, size)
+    res = diagnose(syn.data, engine, DECLARED, noise_std=syn.noise_std)
+    assert res.added == [syn.truth.name], res.identification.ranking[:3]
+    found = res.identified[0]
+    tol = max(4.0 * found["std"], 0.1 * abs(syn.truth.size))
+    assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
+    assert res.flags == ()
