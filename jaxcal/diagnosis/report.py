@@ -276,7 +276,7 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
         layout="constrained",
     )
     axes = np.atleast_1d(fig.subplots(n, 1, squeeze=False)).ravel()
-    unit_of = {c.name: c.unit for c in res.library}
+    by_name = {c.name: c for c in res.library}
     for ax, eff in zip(axes, res.unit_effects, strict=True):
         grid = np.full((d.num_units, cols), np.nan)
         grid[d.unit, col] = eff.trajectory
@@ -303,7 +303,11 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
             f"{eff.name}: carried by {carriers.size} of {d.num_units} units",
             fontsize=9,
         )
-        fig.colorbar(im, ax=ax, label=unit_of.get(eff.name, ""), shrink=0.8)
+        cand = by_name[eff.name]
+        label = cand.unit  # a drift is drawn as its accumulated change
+        if cand.family in ("sensor_drift", "sensor_gain_drift"):
+            label = "accumulated change " + cand.unit.split(" per ")[0]
+        fig.colorbar(im, ax=ax, label=label, shrink=0.8)
         ax.legend(fontsize=6, loc="lower right")
     axes[-1].set_xlabel("cycles since the unit's first cycle")
     return save_figure(fig, path)
