@@ -142,8 +142,8 @@ def calibrate(
             ``num_iters`` (LS), ``e2e``/``e2e_config``/``e2e_window`` (E2E), ``run``
             (policy); for a model with hidden states ``state_std`` (initial-state
             std: scalar, ``[Z]`` or ``{state: std}``; default 1 % of the state's
-            size) and ``state_q`` (UKF process noise on the states per step, default 1e-6 of the state's
-            size: the model is trusted);
+            size) and ``state_q`` (UKF process noise on the states per step,
+            default 1e-6 of the state's size: the model is trusted);
             and the readers' ``rename``, ``ignore``, ``nonfinite``.
 
     Returns:

@@ -118,8 +118,8 @@ def state_scale(problem: Problem, dtype) -> np.ndarray:
     and the mid-range conditions (1 where that is 0)."""
     tr = problem.transition()
     w_mid = 0.5 * (problem.input_range.w_low + problem.input_range.w_high)
-    z0 = np.abs(np.asarray(tr.init(jnp.asarray(w_mid, dtype),
-                                   jnp.asarray(problem.theta_prior, dtype))))  # fmt: skip
+    theta = jnp.asarray(problem.theta_prior, dtype)
+    z0 = np.abs(np.asarray(tr.init(jnp.asarray(w_mid, dtype), theta)))
     return np.where(np.isfinite(z0) & (z0 > 0), z0, 1.0).astype(dtype)
 
 
@@ -131,9 +131,11 @@ def _state_option(value, states, default) -> np.ndarray:
     if isinstance(value, dict):
         unknown = sorted(set(value) - set(states))
         if unknown:
-            raise ValueError(f"unknown state(s) {unknown}; the model has {list(states)}")
-        arr = np.array([float(value.get(n, d)) for n, d in zip(states, default,
-                                                                strict=True)])  # fmt: skip
+            raise ValueError(
+                f"unknown state(s) {unknown}; the model has {list(states)}"
+            )
+        pairs = zip(states, default, strict=True)
+        arr = np.array([float(value.get(n, d)) for n, d in pairs])
     else:
         arr = np.broadcast_to(np.asarray(value, np.float64), (len(states),)).copy()
     if not np.all(np.isfinite(arr) & (arr >= 0)):

@@ -233,8 +233,8 @@ def make_joint_ukf(
     eye = jnp.eye(num_params, dtype=theta0.dtype)
     # Process noise: q on the parameters before the transform (theta_t = theta_{t-1}
     # + xi_t enters x_t), state_q on z_t after it (it enters x_{t+1}).
-    q_theta = jnp.zeros((n, n), theta0.dtype).at[num_states:, num_states:].set(
-        cfg.q**2 * eye
+    q_theta = (
+        jnp.zeros((n, n), theta0.dtype).at[num_states:, num_states:].set(cfg.q**2 * eye)
     )
     q_state = jnp.diag(
         jnp.concatenate([(s_q / s_scale) ** 2, jnp.zeros((num_params,), theta0.dtype)])
@@ -255,9 +255,7 @@ def make_joint_ukf(
         var = jnp.concatenate(
             [(s_std / s_scale) ** 2, jnp.full((num_params,), cfg.prior_std**2)]
         )
-        return UKFState(
-            mean=jnp.concatenate([z0, theta0 / scale]), cov=jnp.diag(var)
-        )
+        return UKFState(mean=jnp.concatenate([z0, theta0 / scale]), cov=jnp.diag(var))
 
     def step(state: UKFState, w_t: Array, x_t: Array) -> tuple[UKFState, CalStepOutput]:
         def propagate(a: Array):
@@ -272,9 +270,9 @@ def make_joint_ukf(
         z_points, y_points = jax.vmap(propagate)(points)  # [K, Z], [K, S]
         # The parameter block is carried unchanged: its prediction stays exact.
         mean_pred = jnp.concatenate([wm @ z_points, mean_prior[num_states:]])
-        da = jnp.concatenate(
-            [z_points, points[:, num_states:]], axis=1
-        ) - mean_pred  # [K, n]
+        da = (
+            jnp.concatenate([z_points, points[:, num_states:]], axis=1) - mean_pred
+        )  # [K, n]
         y_mean = wm @ y_points
         dy = y_points - y_mean
         if num_states:

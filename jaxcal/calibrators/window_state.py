@@ -23,7 +23,6 @@ make_least_squares` (no scan, samples evaluated in parallel); the front picks it
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from flax import struct
 from jax import lax
@@ -97,15 +96,16 @@ def make_window_least_squares(
     scale = check_scale(theta_scale, num_params, theta0.dtype)
     init_state, step_fn, num_states = transition
     s_scale = check_scale(state_scale, num_states, theta0.dtype)
-    s_std = s_scale if state_std is None else jnp.broadcast_to(
-        jnp.asarray(state_std, theta0.dtype), (num_states,)
+    s_std = (
+        s_scale
+        if state_std is None
+        else jnp.broadcast_to(jnp.asarray(state_std, theta0.dtype), (num_states,))
     )
     sigma = norm.std * cfg.r  # residual unit: one noise std
     if theta_box is None:
         u_low = u_high = None
     else:
         u_low, u_high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
-
 
     def simulate(theta, zs, w_buf, valid):
         """Outputs over the window and the final state; invalid slots hold z."""
