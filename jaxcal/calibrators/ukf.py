@@ -251,11 +251,24 @@ def make_joint_ukf(
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> UKFState:
         del key, x0  # the prior is fixed by the factory
-        z0 = jnp.asarray(init_state(w0, admissible(theta0)), theta0.dtype) / s_scale
-        var = jnp.concatenate(
-            [(s_std / s_scale) ** 2, jnp.full((num_params,), cfg.prior_std**2)]
-        )
-        return UKFState(mean=jnp.concatenate([z0, theta0 / scale]), cov=jnp.diag(var))
+        u0 = theta0 / scale
+        cov_u = cfg.prior_std**2 * eye
+        if not num_states:
+            return UKFState(mean=u0, cov=cov_u)
+        # The initial state depends on the unknown parameters (a cell at rest:
+        # z0 = init(w0, theta)): its prior is the unscented transform of init over
+        # the parameter prior, cross-covariance included, plus state_std.
+        wm_p, wc_p, spread_p = unscented_weights(num_params, cfg)
+        points = sigma_points(u0, cov_u, spread_p, cfg.jitter)  # [2P + 1, P]
+        z_points = jax.vmap(
+            lambda u: jnp.asarray(init_state(w0, admissible(scale * u)), u0.dtype)
+        )(points) / s_scale
+        z_mean = wm_p @ z_points
+        dz, du = z_points - z_mean, points - u0
+        cov_zz = dz.T @ (wc_p[:, None] * dz) + jnp.diag((s_std / s_scale) ** 2)
+        cov_zu = dz.T @ (wc_p[:, None] * du)
+        cov = jnp.block([[cov_zz, cov_zu], [cov_zu.T, cov_u]])
+        return UKFState(mean=jnp.concatenate([z_mean, u0]), cov=cov)
 
     def step(state: UKFState, w_t: Array, x_t: Array) -> tuple[UKFState, CalStepOutput]:
         def propagate(a: Array):
