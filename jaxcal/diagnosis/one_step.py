@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
-from jaxcal.model import DiagnosisHints, Model, Variable
+from jaxcal.model import Model, Variable
 
 PREV = "_prev"  # suffix of the estimated-state conditions
 PARAMETER_Q = 1e-3  # random-walk std per sample of the filter (half-widths)
