@@ -20,11 +20,12 @@
 4. the policy learns on the training units' (w, x) only, no theta label
    (:mod:`jaxcal.training.policy_stage`); a model with memory trains on its own
    step (``dynamics=physics``), the environment carrying its state, and episodes
-   start from the reference state track of :func:`jaxcal.envs.memory.reference_states`
-   (the model run along each unit with the prior theta: label-free, and what the
-   deployed calibrator carries from a unit's first sample); validation units are scored every
-   ``eval_every`` chunks (theta RMSE for progress only; the label-free tracking RMSE
-   also selects the kept policy when ``budget.select=val_tracking``);
+   start from the reference state track
+   (:func:`jaxcal.envs.memory.reference_states`: the model run along each unit with
+   the prior theta, label-free, what the deployed calibrator carries from a unit's
+   first sample); validation units are scored every ``eval_every`` chunks (theta
+   RMSE for progress only; the label-free tracking RMSE also selects the kept
+   policy when ``budget.select=val_tracking``);
 5. the kept policy runs once through every test unit's whole trajectory (the
    deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
