@@ -11,8 +11,9 @@ where ``z`` is the model state *after* the current sample. A plain (static)
 ``dynamics(dyn_params, w_next, xhat, theta) -> xhat_next`` is the special case
 ``Z = 0`` (:func:`as_stateful`): z is ``None``, passed through, and x-hat is exactly
 the callable's, so a static run computes the very numbers it did before z existed.
-(``None`` rather than a ``[0]`` array: Orbax refuses to checkpoint zero-size arrays,
-and with ``None`` a static run's checkpoints keep their layout, so older runs resume.)
+(``None`` rather than a ``[0]`` array: Orbax refuses to checkpoint zero-size arrays;
+the environment then keeps its plain state, so a static run's checkpoints keep their
+layout and older runs resume.)
 
 Where an episode or a stream starts, z must come from somewhere:
 

@@ -10,10 +10,11 @@ observed trajectory x of one unit:
   ``dynamics`` is any pure callable: the learned surrogate D uses x-hat_t, the physics
   F(w, theta) ignores it. A model with memory carries its hidden state z [Z] in the
   env state: (z_{t+1}, x-hat_{t+1}) = step(z_t, w_{t+1}, theta_{t+1})
-  (:class:`StatefulDynamics`); a plain callable is the stateful one with Z = 0, so
-  the static path is the same code, with z = None rather than an empty array (Orbax
-  refuses to checkpoint zero-size arrays, and so a static run's checkpoints keep the
-  layout they had);
+  (:class:`StatefulDynamics`, the state :class:`StatefulEnvState`); a plain callable
+  is the stateful one with Z = 0, so the static path is the same code, its state the
+  plain :class:`EnvState` rather than one with an empty z (Orbax refuses to
+  checkpoint zero-size arrays, and so a static run's checkpoints keep the layout
+  they had: older runs resume);
 * cost c_t = mean_S ((x_{t+1} - x-hat_{t+1}) / sigma)^2, sigma = training std of x.
 
 Episodes are windows of ``episode_length`` steps of one unit (random unit, random
@@ -262,14 +263,30 @@ class EnvState:
         time: [] int32, index t of the current sample in the unit.
         step: [] int32, steps taken in this episode.
         xhat: [S] current model output x-hat_t (physical units).
-        z: [Z] model state after sample t; ``None`` for a static model.
     """
 
     unit: Array
     time: Array
     step: Array
     xhat: Array
-    z: Array | None = None
+
+
+@struct.dataclass
+class StatefulEnvState(EnvState):
+    """:class:`EnvState` of a model with memory.
+
+    Attributes:
+        z: [Z] model state after sample t.
+    """
+
+    z: Array
+
+
+def _env_state(unit, time, step, xhat, z) -> EnvState:
+    """The state of a static model (``z is None``) or of one with memory."""
+    if z is None:
+        return EnvState(unit=unit, time=time, step=step, xhat=xhat)
+    return StatefulEnvState(unit=unit, time=time, step=step, xhat=xhat, z=z)
 
 
 class Env(NamedTuple):
@@ -359,7 +376,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         check(params)
         unit = jnp.asarray(unit, jnp.int32)
         time = jnp.asarray(time, jnp.int32)
-        state = EnvState(
+        state = _env_state(
             unit=unit,
             time=time,
             step=jnp.zeros((), jnp.int32),
@@ -386,13 +403,14 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         theta = action_to_theta(action, params)
         time = state.time + 1
         w_next = _row(params.w, params, state.unit, time)
-        z, xhat = dyn.step(params.dyn_params, state.z, w_next, state.xhat, theta)
+        z = getattr(state, "z", None)  # None: a static model's EnvState
+        z, xhat = dyn.step(params.dyn_params, z, w_next, state.xhat, theta)
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = tracking_cost(
             _row(params.x, params, state.unit, time), xhat, params.x_std
         )
-        next_state = EnvState(
+        next_state = _env_state(
             unit=state.unit,
             time=time,
             step=state.step + 1,
