@@ -249,3 +249,17 @@ def test_static_env_transitions_are_those_of_before():
     assert np.asarray(done)[:, -1].all() and not np.asarray(done)[:, :-1].any()
     state = env.reset(keys[0], params)[1]
     assert type(state) is EnvState and len(jax.tree.leaves(state)) == 4
+
+
+def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(
+    trained, csv
+):
+    """``jaxcal.calibrate(model, data, "policy", run=...)``: the same rows as the
+    deployed calibrator's batch run, theta and names from the run."""
+    result = jaxcal.calibrate(MODEL, csv, "policy", run=trained)
+    frame = _frame()
+    assert result.theta.shape == (len(frame), 2) and result.valid.all()
+    unit = (frame.unit == 7).to_numpy()
+    w, x = frame[unit][["u", "v"]].to_numpy(), frame[unit][["y1", "y2"]].to_numpy()
+    theta, _ = StreamingCalibrator(trained).run(w[None], x[None])
+    np.testing.assert_allclose(result.theta[unit], theta[0], atol=1e-6)
