@@ -53,7 +53,8 @@ def _jaxcal_seconds(sub) -> float:
     from peers import THETA, UKF
     from run import _method_options
 
-    data = read_dataset(sub, MODEL).for_model(MODEL, None)
+    cols = ["unit", "time", "current", "dt", "voltage"]  # the model's columns only
+    data = read_dataset(sub[cols], MODEL).for_model(MODEL, None)
     problem = Problem.build(MODEL, data, theta=THETA, noise={"voltage": UKF["noise"]})
     padded = data.padded(np.float64)
     cal, run = build_calibrator("ukf", problem, padded, 0, _method_options("ukf", {}))

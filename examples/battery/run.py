@@ -108,7 +108,7 @@ def run_jaxcal(frame, csv: str, opts: dict) -> tuple[dict, dict]:
                 extra["train_seconds"] = _train_policy(csv, opts)
             start = time.perf_counter()
             res = jaxcal.calibrate(
-                MODEL, frame, method=method, theta=THETA,
+                MODEL, csv, method=method, theta=THETA,
                 noise={"voltage": UKF["noise"]}, **_method_options(method, opts),
             )  # fmt: skip
             wall = time.perf_counter() - start
@@ -194,8 +194,12 @@ def main(argv: list[str]) -> int:
 
     opts = _args(argv)
     os.makedirs(opts["out"], exist_ok=True)
-    csv = make_data.main([f"out={opts['data']}"])
-    frame = pd.read_csv(csv)
+    frame = pd.read_csv(make_data.main([f"out={opts['data']}"]))
+    # jaxcal's readers take the model's columns only; the truths under the
+    # parameters' names are the "true parameters" its CLI scores against
+    csv = os.path.join(opts["data"], "fleet_jaxcal.csv")
+    columns = {"R0_true": "R0", "Q_true": "Q"}
+    frame[["unit", "time", "current", "dt", "voltage", *columns]].rename(columns=columns).to_csv(csv, index=False)  # fmt: skip
     print(f"data: {len(frame)} rows, units {sorted(set(frame.unit))}", flush=True)
     summary, tracks = run_jaxcal(frame, csv, opts)
     print("dynamax UKF ...", flush=True)
