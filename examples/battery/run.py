@@ -83,6 +83,7 @@ def _train_policy(csv: str, opts: dict) -> float:
         f"model={os.path.join(HERE, 'model.py')}:MODEL", f"data={csv}",
         f"theta={','.join(THETA)}", f"test_units={units}", f"name={NAME}",
         f"budget.num_chunks={opts['chunks']}", f"output.runs_dir={opts['runs']}",
+        "dynamics=physics",  # the surrogate is refused for a model with memory
     ]  # fmt: skip
     print("$ " + " ".join(command[1:]), flush=True)
     subprocess.run(command, check=True)

@@ -305,8 +305,6 @@ def make_joint_ukf(
         mean = mean_pred + gain @ innovation
         cov = cov_pred - gain @ s_cov @ gain.T
         cov = 0.5 * (cov + cov.T)  # keep symmetric against round-off
-        if num_states:
-            cov = _floor_eigenvalues(cov)
         log_likelihood = -0.5 * (
             innovation @ cho_solve(s_chol, innovation)
             + 2.0 * jnp.sum(jnp.log(jnp.diag(s_chol[0])))
@@ -333,20 +331,6 @@ def make_joint_ukf(
         return new_state, CalStepOutput(theta=theta_post, xhat=xhat, aux=aux)
 
     return Calibrator(init=init, step=step)
-
-
-def _floor_eigenvalues(cov: Array) -> Array:
-    """``cov`` with its eigenvalues floored at ``100 eps`` of the largest.
-
-    A hidden state the outputs pin down has a variance that shrinks towards
-    round-off; ``cov - K S K^T`` then loses positive definiteness by a few ulps and
-    the next Cholesky factorisation fails (measured: a float32 joint filter
-    diverged on a first-order lag). The floor is far below any variance that
-    matters and leaves a well-conditioned covariance unchanged.
-    """
-    eigval, eigvec = jnp.linalg.eigh(cov)
-    floor = 100.0 * jnp.finfo(cov.dtype).eps * jnp.max(jnp.abs(eigval))
-    return (eigvec * jnp.maximum(eigval, floor)) @ eigvec.T
 
 
 def _state_vector(value, num_states: int, default: Array, field: str) -> Array:
