@@ -93,7 +93,8 @@ def _synthetic_frame(theta, num_units=2, steps=1500, seed=0):
     rng = np.random.default_rng(seed)
     frames = []
     for unit in range(1, num_units + 1):
-        pulses = rng.choice([0.0, 5.0, 10.0, -5.0], size=steps // 15, p=[0.2, 0.35, 0.2, 0.25])  # fmt: skip
+        levels, weights = [0.0, 5.0, 10.0, -5.0], [0.2, 0.35, 0.2, 0.25]
+        pulses = rng.choice(levels, size=steps // 15, p=weights)
         current = np.repeat(pulses, 15)[:steps]
         current -= current.mean() * (np.arange(steps) >= steps // 2) * 2  # charge back
         dt = np.full(steps, 10.0)
@@ -110,16 +111,12 @@ def test_joint_ukf_recovers_r0_and_capacity():
 
     truth = np.array([0.04, ecm.R1_FRESH, ecm.TAU1_FRESH, 4.5])
     frame = _synthetic_frame(truth)
-    try:
-        res = jaxcal.calibrate(
-            ecm.MODEL, frame, method="ukf", theta=("R0", "Q"),
-            noise={"voltage": 0.002}, q=1e-5, prior_std=0.25,
-            state_std={"soc": 0.02, "v_rc1": 0.01}, state_q={"soc": 1e-5, "v_rc1": 1e-4},
-        )  # fmt: skip
-    except ValueError as exc:
-        if "stateful support is the next step" in str(exc):
-            pytest.skip("jaxcal.calibrate does not take stateful models yet")
-        raise
+    res = jaxcal.calibrate(
+        ecm.MODEL, frame, method="ukf", theta=("R0", "Q"),
+        noise={"voltage": 0.002}, q=1e-5, prior_std=0.25,
+        state_std={"soc": 0.02, "v_rc1": 0.01},
+        state_q={"soc": 1e-5, "v_rc1": 1e-4},
+    )  # fmt: skip
     last = res.theta[frame.groupby("unit").tail(1).index]
     # tolerances: 1 mOhm on R0 (2.5 %), 0.05 Ah on Q (1.1 %) after 4 h of pulses
     np.testing.assert_allclose(last[:, 0], 0.04, atol=1e-3)
