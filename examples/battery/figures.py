@@ -16,28 +16,30 @@ def _plt():
 
 
 def tracking_figure(frame, tracks: dict, path: str) -> None:
-    """Truth and every method's R0 and Q over the cycles, one row per unit."""
+    """Truth and every method's R0 and Q at the end of each cycle (the estimate a
+    user reads after the cycle; the within-cycle traces of the sample-by-sample
+    methods swing with the current and would hide the trend), one row per unit."""
     plt = _plt()
     units = sorted(frame.unit.unique())
-    fig, axes = plt.subplots(len(units), 2, figsize=(12, 2.6 * len(units)), sharex=True)
+    fig, axes = plt.subplots(len(units), 2, figsize=(11, 2.5 * len(units)), sharex=True)
     axes = np.atleast_2d(axes)
     for i, unit in enumerate(units):
-        rows = (frame.unit == unit).to_numpy()
-        part = frame[rows]
-        # cycle number plus the share of the cycle done: an x axis in cycles
-        start = part.groupby("cycle").time.transform("min").to_numpy()
-        span = part.groupby("cycle").time.transform("max").to_numpy() - start + 1
-        x = part.cycle.to_numpy() + (part.time.to_numpy() - start) / span
+        rows = np.flatnonzero((frame.unit == unit).to_numpy())
+        part = frame.iloc[rows]
+        last = part.groupby("cycle").tail(1).index  # frame labels of each cycle end
+        pos = np.searchsorted(frame.index.to_numpy(), last.to_numpy())
+        cycles = frame.loc[last, "cycle"].to_numpy() + 1
         for j, (col, label, scale) in enumerate(
             (("R0_true", "R0 [mOhm]", 1e3), ("Q_true", "Q [Ah]", 1.0))
         ):
             ax = axes[i, j]
-            ax.plot(x, part[col] * scale, "k", lw=2.2, label="truth")
+            ax.plot(cycles, frame.loc[last, col] * scale, "k", lw=2.5, label="truth")
             for name, theta in tracks.items():
-                ax.plot(x, theta[rows, j] * scale, lw=0.9, label=name)
+                ax.plot(cycles, theta[pos, j] * scale, ".-", lw=1.0, ms=4, label=name)
             ax.set_ylabel(f"unit {unit}: {label}")
-    axes[-1, 0].set_xlabel("cycle")
-    axes[-1, 1].set_xlabel("cycle")
+            ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("cycles completed")
+    axes[-1, 1].set_xlabel("cycles completed")
     axes[0, 1].legend(fontsize=8, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
