@@ -67,7 +67,9 @@ def _method_options(method: str, opts: dict) -> dict:
     if method == "ukf":
         return {k: UKF[k] for k in ("q", "prior_std", "state_std", "state_q")}
     if method == "ls":
-        return {"window": 60, "num_iters": 10}  # 10 min of samples
+        # an hour of samples: the state of charge moves enough to show capacity
+        # (a 10-minute window, 10 iterations: Q RMSE 0.91 Ah, measured)
+        return {"window": 360, "num_iters": 3}
     if method == "policy":
         return {"run": os.path.join(opts["runs"], NAME)}
     return {}
