@@ -96,8 +96,10 @@ def _probe(model, kind, target, std, level, sensors):
         return float(std[s])
     if kind in ("sensor_gain", "sensor_gain_drift"):
         return float(std[s] / level[s])
-    return -natural_scale(model, target) if kind == "parameter" else natural_scale(
-        model, target
+    return (
+        -natural_scale(model, target)
+        if kind == "parameter"
+        else natural_scale(model, target)
     )
 
 
@@ -118,12 +120,16 @@ def detectability(model, cfg: RobustConfig, loop: LoopConfig) -> dict:
                                      cfg.declared, noise=False)  # fmt: skip
             ld = prepare_data(data, model, noise_std=noise, knots=loop.knots,
                               candidate_knots=loop.candidate_knots)  # fmt: skip
-            null = fit_model(model, ld, ModelSpec(cfg.declared), max_iters=loop.max_iters)
+            null = fit_model(
+                model, ld, ModelSpec(cfg.declared), max_iters=loop.max_iters
+            )
             lib = build_library(model, cfg.declared, ld.sensor_names, ld.noise_std,
                                 np.abs(ld.x).mean(0))  # fmt: skip
             df = ld.num_units * ld.num_candidate_knots if kind == "parameter" else 1
             n = null.num_resid
-            tests = len(lib) + loop.identify.pair_top  # singles + at most pair_top pairs
+            tests = (
+                len(lib) + loop.identify.pair_top
+            )  # singles + at most pair_top pairs
             lr_star = max(
                 loop.identify.bic_margin + df * np.log(n),
                 float(sps.chi2.isf(loop.identify.alpha / tests, df)),
@@ -151,7 +157,9 @@ def run_one(model, cfg, loop, s1, kind, m_idx, seed) -> dict:
     start = time.time()
     data, std = rs.make_record(model, setting, kind, target, size, key, cfg.sensors,
                                cfg.declared)  # fmt: skip
-    noise = dict(zip(cfg.sensors, std.tolist(), strict=True)) if cfg.noise_known else None
+    noise = (
+        dict(zip(cfg.sensors, std.tolist(), strict=True)) if cfg.noise_known else None
+    )
     res = diagnose(data, model, cfg.declared, loop, noise_std=noise)
     added = [a for a in res.added if a != "discrepancy"]
     flagged = []
@@ -204,7 +212,10 @@ def summarize(rows: list[dict], cfg: RobustConfig) -> dict:
     out["false_alarm_verdicts"] = [r["verdict"] + ":" + "+".join(r["added"])
                                    for r in clean if r["verdict"] != "none"]  # fmt: skip
     eff = [r for r in rows if r["kind"] != "none"]
-    for key, sel in (("unit_hit", lambda r: r["multiple"] >= 2.0), ("unit_hit_all", None)):
+    for key, sel in (
+        ("unit_hit", lambda r: r["multiple"] >= 2.0),
+        ("unit_hit_all", None),
+    ):
         rr = [r for r in eff if sel is None or sel(r)]
         out[key] = _rate([u in r["flagged"] for r in rr for u in r["carriers"]])
     rr = [r for r in eff if r["multiple"] >= 2.0 and r["name"] in r["added"]]
@@ -270,7 +281,8 @@ def _fmt(v):
 def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
            s1: dict, rows: list[dict]) -> str:  # fmt: skip
     """README.md body (the old study's table is added by hand beside it)."""
-    n_cell = cfg.seeds
+    ns = [c["n"] for per in summary["kinds"].values() for c in per.values()]
+    n_cell = f"{min(ns)}" if min(ns) == max(ns) else f"{min(ns)}-{max(ns)}"
     lines = [
         "## Detection curves (measured)",
         "",
@@ -281,7 +293,8 @@ def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
         "",
         "![detection curves](detection.png)",
         "",
-        "| kind | " + " | ".join(f"ident. {m:g}x" for m in cfg.multiples)
+        "| kind | "
+        + " | ".join(f"ident. {m:g}x" for m in cfg.multiples)
         + " | conf. set 2x / 5x / 10x | unit hit 2x / 5x / 10x | unit false flag 2x / 5x / 10x |",
         "|---|" + "---|" * (len(cfg.multiples) + 3),
     ]
@@ -290,9 +303,13 @@ def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
         lines.append(
             f"| {kind} | "
             + " | ".join(_fmt(per[str(m)]["identified"]) for m in cfg.multiples)
-            + " | " + " / ".join(_fmt(c.get("first_or_confounded")) for c in three)
-            + " | " + " / ".join(_fmt(c.get("unit_hit")) for c in three)
-            + " | " + " / ".join(_fmt(c.get("unit_false_flag")) for c in three) + " |"
+            + " | "
+            + " / ".join(_fmt(c.get("first_or_confounded")) for c in three)
+            + " | "
+            + " / ".join(_fmt(c.get("unit_hit")) for c in three)
+            + " | "
+            + " / ".join(_fmt(c.get("unit_false_flag")) for c in three)
+            + " |"
         )
     lines += [
         "",
@@ -308,13 +325,17 @@ def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
         "",
         "| records | identified (n) | false alarm (n clean) |",
         "|---|---|---|",
-        *(f"| {k} | {_fmt(v['identified_ge2x'])} ({v['n_ge2x']}) | "
-          f"{_fmt(v['false_alarm'])} ({v['n_clean']}) |"
-          for k, v in summary["breakdown"].items()),  # fmt: skip
+        *(
+            f"| {k} | {_fmt(v['identified_ge2x'])} ({v['n_ge2x']}) | "
+            f"{_fmt(v['false_alarm'])} ({v['n_clean']}) |"
+            for k, v in summary["breakdown"].items()
+        ),  # fmt: skip
         "",
         "Detectability sizes s1 (range over targets, physical units): "
-        + "; ".join(f"{k} {min(v.values()):.3g}-{max(v.values()):.3g}"
-                    for k, v in s1.items()) + ".",  # fmt: skip
+        + "; ".join(
+            f"{k} {min(v.values()):.3g}-{max(v.values()):.3g}" for k, v in s1.items()
+        )
+        + ".",  # fmt: skip
     ]
     misses = [f"{r['name']} {r['multiple']:g}x (seed {r['seed']}) -> "
               f"{' + '.join(r['added']) or r['verdict']}"
@@ -326,6 +347,58 @@ def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
     return "\n".join(lines) + "\n"
 
 
+HEADER = """# Closing the loop: a study that cannot flatter itself (detection curves)
+
+The first study (`results/loop/README.md`) draws its records from the settings the
+diagnosis is built on. Here every record is drawn from settings it does not assume
+(`experiments/robust_scenario.py`):
+
+* flight profiles: one of three families (short-haul, the default N-CMAPSS-like one,
+  long-haul; different flight times, cruise levels, thrust and day temperatures), each
+  unit's flight class random;
+* record length: 2-5 units, each life 30-110 cycles, 1-3 samples kept per flight,
+  every cycle or every other one;
+* the declared modifier's wear (HPT_eff_mod): linear, exponential or piecewise-linear
+  with a knee, per unit, end value in the ground-truth range; an undeclared parameter
+  effect follows its own random shape per unit;
+* noise: level 0.5x-2x the reference (log-uniform) with a 0.8x-1.25x jitter per sensor,
+  colour AR(1) along each unit's rows (white in a third of the records, else
+  coefficient 0.3-0.8, marginal std kept); the diagnosis *estimates* the noise levels;
+* units: the effect is carried by a random subset of 1 to all units (the others clean).
+
+Effect sizes are multiples of a **detectability size** s1, computed, not tuned: on the
+nominal reference record (3 units of 80 cycles, 2 samples per flight, linear wear,
+white noise at the reference level, every unit carrying), the noise-free record with
+the effect at a small probe size p is fitted with the declared parameter only; the SSR
+left, in noise std, is the energy E of the part of the effect's signature the declared
+parameter cannot absorb, and s1 = p sqrt(LR* / E) with LR* the likelihood-ratio
+statistic the diagnosis needs to call a single candidate found (identify.py):
+max(bic_margin + df ln n, chi2_df quantile at alpha / number of tests); df = 1 for a
+constant effect, units x candidate knots for an undeclared parameter. At 1x the
+expected statistic of the truth equals the threshold on the reference record.
+
+Rates: **identified** = the diagnosis adds exactly the true effect (the old study's
+"first"); **conf. set** = identified or the truth in the reported confounded set;
+**unit hit** = carrier units flagged by the per-unit verdict (`carries`, Holm z-test,
+jaxcal/diagnosis/units.py) for the true effect (0 when the truth is not added);
+**unit false flag** = non-carrier units flagged, in records where the truth was added;
+**false alarm** = a clean record whose verdict is not `none`.
+
+"""
+
+
+def _old_table(path="results/loop/README.md") -> str:
+    """The first study's table and summary lines, for comparison."""
+    if not os.path.exists(path):
+        return ""
+    lines = open(path).read().splitlines()
+    groups = [[ln for ln in lines if ln.startswith(p)]
+              for p in ("Command:", "|", ("Library kinds", "False-alarm"))]  # fmt: skip
+    return "\n## The first study, for comparison (results/loop/README.md)\n\n" + (
+        "\n\n".join("\n".join(g) for g in groups) + "\n"
+    )
+
+
 def _write(cfg, rows, s1, command, minutes):
     summary = summarize(rows, cfg)
     payload = {"config": dataclasses.asdict(cfg), "command": command,
@@ -334,7 +407,7 @@ def _write(cfg, rows, s1, command, minutes):
                  json.dumps(json_safe(payload), indent=1) + "\n")  # fmt: skip
     write_atomic(os.path.join(cfg.out, "detection.png"), plot(summary, cfg))
     text = render(summary, cfg, command, minutes, s1, rows)
-    write_atomic(os.path.join(cfg.out, "curves.md"), text)
+    write_atomic(os.path.join(cfg.out, "README.md"), HEADER + text + _old_table())
     return text
 
 
@@ -391,6 +464,10 @@ def main(argv: list[str]) -> int:
               f"carriers {row['carriers']} flagged {row['flagged']} "
               f"({row['rows']} rows, {row['seconds']:.1f} s)", flush=True)  # fmt: skip
     minutes = (time.time() - start) / 60.0
+    study = os.path.join(cfg.out, "study.json")
+    if os.path.exists(study):  # a resumed run: the sessions' wall times add up
+        with open(study) as f:
+            minutes += json.load(f)["minutes"]
     print(_write(cfg, rows, s1, command.strip(), minutes))
     return 0
 

@@ -93,7 +93,9 @@ def _shape(rng) -> tuple:
 
 
 def draw_setting(
-    rng: np.random.Generator, num_sensors: int, max_units: int = U_MAX,
+    rng: np.random.Generator,
+    num_sensors: int,
+    max_units: int = U_MAX,
     max_life: int = C_MAX,
 ) -> Setting:
     """One random record setting (module docstring); ``max_units`` / ``max_life``
@@ -102,20 +104,25 @@ def draw_setting(
     max_life = min(max_life, C_MAX)
     k = int(rng.integers(1, units + 1))
     carriers = tuple(sorted(int(u) + 1 for u in rng.choice(units, k, replace=False)))
-    wear = tuple((*_shape(rng), float(rng.uniform(*DECLARED_EOL))) for _ in range(units))
+    wear = tuple(
+        (*_shape(rng), float(rng.uniform(*DECLARED_EOL))) for _ in range(units)
+    )
     phi = 0.0 if rng.uniform() < 1.0 / 3.0 else float(rng.uniform(0.3, 0.8))
     return Setting(
         profile=str(rng.choice(list(PROFILES))),
         units=units,
         classes=tuple(int(c) for c in rng.integers(1, 4, units)),
-        lives=tuple(int(c) for c in rng.integers(min(30, max_life), max_life + 1, units)),
+        lives=tuple(
+            int(c) for c in rng.integers(min(30, max_life), max_life + 1, units)
+        ),
         rows_per_cycle=int(rng.integers(1, 4)),
         stride=int(rng.integers(1, 3)),
         wear=wear,
         effect_shape=tuple(_shape(rng) for _ in range(units)),
         noise_factor=float(np.exp(rng.uniform(np.log(0.5), np.log(2.0)))),
         noise_jitter=tuple(
-            float(v) for v in np.exp(rng.uniform(np.log(0.8), np.log(1.25), num_sensors))
+            float(v)
+            for v in np.exp(rng.uniform(np.log(0.8), np.log(1.25), num_sensors))
         ),
         phi=phi,
         carriers=carriers,

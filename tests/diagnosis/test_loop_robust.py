@@ -26,7 +26,9 @@ def test_scenario_draws_what_the_diagnosis_does_not_assume():
     t = np.linspace(0.0, 1.0, 11)
     for shape, p in (("linear", 0.0), ("exponential", 3.0), ("piecewise", 0.4)):
         g = rs.wear_shape(shape, p, t)
-        assert abs(g[0]) < 1e-12 and abs(g[-1] - 1.0) < 1e-12 and np.all(np.diff(g) >= 0)
+        assert (
+            abs(g[0]) < 1e-12 and abs(g[-1] - 1.0) < 1e-12 and np.all(np.diff(g) >= 0)
+        )
 
 
 def test_tiny_study_resumes_and_summarises(tmp_path, engine):
@@ -34,9 +36,13 @@ def test_tiny_study_resumes_and_summarises(tmp_path, engine):
             "kinds=sensor_bias", f"sensors={','.join(SENSORS)}", "max_units=2",
             "max_life=30"]  # fmt: skip
     assert loop_robust.main(argv) == 0
-    rows = [json.loads(x) for x in (tmp_path / "records.jsonl").read_text().splitlines()]
+    rows = [
+        json.loads(x) for x in (tmp_path / "records.jsonl").read_text().splitlines()
+    ]
     assert [(r["kind"], r["multiple"]) for r in rows] == [
-        ("none", 0.0), ("sensor_bias", 1.0), ("sensor_bias", 10.0)
+        ("none", 0.0),
+        ("sensor_bias", 1.0),
+        ("sensor_bias", 10.0),
     ]
     s1 = json.loads((tmp_path / "detectability.json").read_text())["sensor_bias"]
     assert set(s1) == set(SENSORS) and all(v > 0 for v in s1.values())
