@@ -165,8 +165,8 @@ def run_one(model, cfg, loop, s1, kind, m_idx, seed) -> dict:
     flagged = []
     for eff in res.unit_effects:
         if eff.name == name:
-            flagged = [int(u) for u, c in zip(res.data.unit_ids, eff.carries, strict=True)
-                       if c]  # fmt: skip
+            pairs = zip(res.data.unit_ids, eff.carries, strict=True)
+            flagged = [int(u) for u, c in pairs if c]
     return {
         "kind": kind, "multiple": multiple, "seed": seed, "target": target,
         "name": name, "size": size, "s1": s1[kind][target] if kind != "none" else None,
@@ -209,8 +209,10 @@ def summarize(rows: list[dict], cfg: RobustConfig) -> dict:
     clean = [r for r in rows if r["kind"] == "none"]
     out["false_alarm"] = _rate([r["verdict"] != "none" for r in clean])
     out["false_alarm_n"] = len(clean)
-    out["false_alarm_verdicts"] = [r["verdict"] + ":" + "+".join(r["added"])
-                                   for r in clean if r["verdict"] != "none"]  # fmt: skip
+    alarms = [r for r in clean if r["verdict"] != "none"]
+    out["false_alarm_verdicts"] = [
+        f"{r['verdict']}:{'+'.join(r['added'])}" for r in alarms
+    ]
     eff = [r for r in rows if r["kind"] != "none"]
     for key, sel in (
         ("unit_hit", lambda r: r["multiple"] >= 2.0),
@@ -295,7 +297,8 @@ def render(summary: dict, cfg: RobustConfig, command: str, minutes: float,
         "",
         "| kind | "
         + " | ".join(f"ident. {m:g}x" for m in cfg.multiples)
-        + " | conf. set 2x / 5x / 10x | unit hit 2x / 5x / 10x | unit false flag 2x / 5x / 10x |",
+        + " | conf. set 2x / 5x / 10x | unit hit 2x / 5x / 10x"
+        + " | unit false flag 2x / 5x / 10x |",
         "|---|" + "---|" * (len(cfg.multiples) + 3),
     ]
     for kind, per in summary["kinds"].items():
@@ -429,6 +432,9 @@ def main(argv: list[str]) -> int:
             rows = [json.loads(line) for line in f if line.strip()]
     command = "python experiments/loop_robust.py " + " ".join(argv)
     if cfg.rerender:
+        if not os.path.exists(os.path.join(cfg.out, "study.json")):
+            print(f"loop_robust: rerender needs {cfg.out}/study.json", file=sys.stderr)
+            return 2
         with open(os.path.join(cfg.out, "study.json")) as f:
             old = json.load(f)
         print(_write(cfg, rows, old["detectability"], old["command"], old["minutes"]))

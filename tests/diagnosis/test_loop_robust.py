@@ -1,5 +1,6 @@
-"""The robust identification study's machinery at a tiny size (experiments/loop_robust.py):
-randomised records, detectability sizes, the resumable record file and the summary."""
+"""The robust identification study's machinery at a tiny size
+(experiments/loop_robust.py): randomised records, detectability sizes, the resumable
+record file and the summary."""
 
 import json
 import sys
