@@ -16,6 +16,10 @@ Usage::
 
     python experiments/loop_cmapss.py [files=FD001,FD002] [max_rows=0]
         [data_dir=/work/shared/data/cmapss] [out=results/loop/cmapss]
+
+``files`` also takes paths to any C-MAPSS text file (``files=/x/train_FD003.txt``).
+Every page lists, per added effect, the units that carry it (Holm-corrected z-test),
+their sizes and onsets, and the plausibility flags of the verdict.
 """
 
 from __future__ import annotations
@@ -25,9 +29,11 @@ import os
 import sys
 import time
 
+import numpy as np
+
 from jaxcal.data.cmapss_text import load_cmapss_text
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-from jaxcal.diagnosis.report import write_report, write_text
+from jaxcal.diagnosis.report import effect_line, write_report, write_text
 from jaxcal.models import load
 from jaxcal.precision import enable_compilation_cache, enable_x64
 from jaxcal.settings import config_to_dict, parse_overrides
@@ -39,7 +45,8 @@ DEFAULT_DIR = os.path.join(
 
 @dataclasses.dataclass(frozen=True)
 class CmapssLoopConfig:
-    files: tuple[str, ...] = ("FD001", "FD002")  # train_<FD>.txt files to diagnose
+    # train_<FD>.txt files in data_dir, or paths to any C-MAPSS .txt files
+    files: tuple[str, ...] = ("FD001", "FD002")
     data_dir: str = os.path.normpath(DEFAULT_DIR)  # folder of the NASA text files
     declared: tuple[str, ...] = ("HPC_eff_mod", "HPC_flow_mod")
     engine: str = "cmapss"
@@ -48,15 +55,45 @@ class CmapssLoopConfig:
     out: str = "results/loop/cmapss"
 
 
+def _per_unit(rep: dict) -> list[str]:
+    """One bullet per added effect: who carries it, how much, from when."""
+    rows = []
+    for e in rep["identified"]:
+        units = e["units"]
+        car = [u for u in units if u["carries"]]
+        ids = ", ".join(str(u["unit"]) for u in car[:40])
+        more = f" and {len(car) - 40} more" if len(car) > 40 else ""
+        onsets = [u["onset"] for u in car if u["onset"] is not None]
+        onset = (
+            f"; onset cycle median {np.median(onsets):.0f} (range "
+            f"{min(onsets):.0f}-{max(onsets):.0f})"
+            if onsets
+            else ""
+        )
+        sizes = np.array([u["size"] for u in car])
+        size_txt = (
+            f"; size in the carriers median {np.median(sizes):.4g}, range "
+            f"[{sizes.min():.4g}, {sizes.max():.4g}] {e['unit']}"
+            if sizes.size
+            else ""
+        )
+        others = "–" if e["size_others"] is None else f"{e['size_others']:.4g}"
+        rows.append(
+            f"- Per unit, {e['name']}: carried by {len(car)} of {len(units)} units "
+            f"({e['unit_test']}){size_txt}{onset}; mean in the others "
+            f"{others}." + (f" Carriers: {ids}{more}." if car else "")
+        )
+    return rows
+
+
 def _line(name: str, rep: dict, seconds: float) -> list[str]:
     b, a = rep["before"], rep["after"]
+    num_units = rep["data"]["units"]
     found = (
-        "; ".join(
-            f"{e['name']} = {e['size']:.4g} ± {e['std']:.2g} {e['unit']}"
-            for e in rep["identified"]
-        )
+        "; ".join(effect_line(e, num_units) for e in rep["identified"])
         or "no library effect"
     )
+    flags = [f"{f['flag']} ({f['subject']}): {f['detail']}" for f in rep["flags"]]
     disc = rep["discrepancy"] or []
     disc_txt = (
         "; ".join(
@@ -78,9 +115,12 @@ def _line(name: str, rep: dict, seconds: float) -> list[str]:
         f"{', '.join(rep['data']['sensors'])} ({seconds / 60:.1f} min). "
         f"[Full page]({name}/report.md).",
         "",
-        f"- Verdict: **{rep['verdict']}**; added: "
+        f"- Verdict: **{rep['verdict']}**"
+        f"{' — FLAGGED' if flags else ' (no plausibility flag)'}; added: "
         f"{', '.join(rep['added']) or 'nothing'}.",
         f"- Library effect: {found}.",
+        *_per_unit(rep),
+        *[f"- Flag: {f}." for f in flags],
         f"- Confounded with it: {', '.join(rep['confounded']) or 'none'}.",
         f"- Discrepancy delta(w): {disc_txt}.",
         f"- Mean tracking RMSE {b['mean_tracking_rmse_norm']:.3f} -> "
@@ -106,10 +146,26 @@ def _line(name: str, rep: dict, seconds: float) -> list[str]:
     return rows
 
 
+def _path(data_dir: str, entry: str) -> str:
+    """``FD003`` -> ``<data_dir>/train_FD003.txt``; a ``.txt`` path is used as is."""
+    if entry.endswith(".txt"):
+        return entry
+    return os.path.join(data_dir, f"train_{entry}.txt")
+
+
+def _label(entry: str) -> str:
+    """The page name of a file entry (``FD003``, or a path's file stem)."""
+    return (
+        os.path.splitext(os.path.basename(entry))[0]
+        if entry.endswith(".txt")
+        else entry
+    )
+
+
 def main(argv: list[str]) -> int:
     try:
         cfg = parse_overrides(argv, CmapssLoopConfig())
-        paths = {fd: os.path.join(cfg.data_dir, f"train_{fd}.txt") for fd in cfg.files}
+        paths = {_label(fd): _path(cfg.data_dir, fd) for fd in cfg.files}
         missing = [p for p in paths.values() if not os.path.isfile(p)]
         if missing:
             raise FileNotFoundError(
@@ -124,7 +180,9 @@ def main(argv: list[str]) -> int:
     loop_cfg = LoopConfig(knots=cfg.knots)
     command = "python experiments/loop_cmapss.py " + " ".join(argv)
     lines = [
-        "# Closing the loop on NASA C-MAPSS (train_FD001, train_FD002)",
+        "# Closing the loop on NASA C-MAPSS ("
+        + ", ".join(os.path.basename(p) for p in paths.values())
+        + ")",
         "",
         f"Command: `{command.strip()}`. Engine `{cfg.engine}` with its current design "
         f"constants; declared {', '.join(cfg.declared)} per unit ({cfg.knots} cubic "

@@ -53,7 +53,8 @@ from jaxcal.settings import config_from_dict, config_to_dict, parse_overrides
 KINDS = (
     "none", "parameter", "t2_offset", "customer_bleed", "power_offtake",
     "core_nozzle_area", "bypass_nozzle_area", "inlet_recovery", "sensor_bias",
-    "sensor_gain", "sensor_drift", "discrepancy",
+    "sensor_gain", "sensor_drift", "discrepancy", "sensor_gain_drift",
+    "condition_offset",
 )  # fmt: skip
 
 

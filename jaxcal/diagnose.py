@@ -175,16 +175,18 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxcal.diagnose: {err}", file=sys.stderr)
         return 2
+    from jaxcal.diagnosis.report import effect_line
+
+    units = rep["data"]["units"]
     found = (
-        ", ".join(
-            f"{e['name']} = {e['size']:.4g} ± {e['std']:.2g} {e['unit']}"
-            for e in rep["identified"]
-        )
+        ", ".join(effect_line(e, units) for e in rep["identified"])
         or "no library effect"
     )
+    flags = sorted({f"{f['flag']} ({f['subject']})" for f in rep["flags"]})
+    flagged = f"; FLAGGED: {'; '.join(flags)}" if flags else ""
     b, a = rep["before"], rep["after"]
     print(
-        f"verdict: {rep['verdict']} ({found}); mean tracking RMSE "
+        f"verdict: {rep['verdict']} ({found}){flagged}; mean tracking RMSE "
         f"{b['mean_tracking_rmse_norm']:.3f} -> {a['mean_tracking_rmse_norm']:.3f} "
         f"noise std; report in {rep['out']}/report.md"
     )

@@ -88,12 +88,18 @@ class DiagnosisHints(NamedTuple):
             parameters (e.g. set by a controller); left out of the residual.
         offset_conditions: conditions whose logged value may be off by a constant
             (generic candidate effects); default all, ``()`` none.
+        degradation_sign: parameter name -> the sign of its usual change in service
+            (-1: it falls as the system wears, e.g. an efficiency; +1: it grows, e.g.
+            wear). The diagnosis flags a value of the other sign ("better than
+            new"). Default: +1 when the nominal value is the lower bound, -1 when it
+            is the upper bound, else unknown (not checked).
     """
 
     scales: Mapping[str, float] | None = None
     noise_rel: Mapping[str, float] | None = None
     uninformative: Mapping[str, str] | None = None
     offset_conditions: tuple[str, ...] | None = None
+    degradation_sign: Mapping[str, int] | None = None
 
 
 StepFn = Callable[[Array, Array, Array], tuple[Array, Array, Any]]

@@ -169,13 +169,17 @@ def fit_discrepancy(
         if gain > threshold:
             full, y = cv[:, s].min(), resid[:, [s]]
             const = _cv_sse(z[:, :0], y, folds, 0, r)[0]
-            dependence["constant"] = max(float(base[s] - const), 0.0) / gain
+            # shares in [0, 1]: a sub-model's CV gain can exceed the selected full
+            # model's by the noise of cross-validation, which is no share above 1
+            dependence["constant"] = min(max(float(base[s] - const), 0.0) / gain, 1.0)
             for k, j in enumerate(inputs):
                 alone = _cv_sse(z[:, [k]], y, folds, d, r)[0]
-                dependence[condition_names[j]] = max(float(const - alone), 0.0) / gain
+                dependence[condition_names[j]] = min(
+                    max(float(const - alone), 0.0) / gain, 1.0
+                )
                 keep = [i for i in range(len(inputs)) if i != k]
                 loss = _cv_sse(z[:, keep], y, folds, d, r)[0] - full
-                unique[condition_names[j]] = max(float(loss), 0.0) / gain
+                unique[condition_names[j]] = min(max(float(loss), 0.0) / gain, 1.0)
         sensors.append(
             SensorDiscrepancy(
                 name,

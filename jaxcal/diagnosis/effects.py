@@ -13,9 +13,18 @@ cal: ``x = g(F(w, theta), w)``) with a known meaning, read from the
 * ``condition_offset[<w>]``: a logged condition off by a constant (the model sees
   ``w + offset``), for the conditions the model allows
   (``DiagnosisHints.offset_conditions``);
-* ``sensor_bias[<s>]``, ``sensor_gain[<s>]``, ``sensor_drift[<s>]``: the measurement
-  layer ``y_s = x_s (1 + gain_s) + bias_s + drift_s tau`` with ``tau`` the time since
-  the unit's first row, per 100 time steps (:func:`sensor_layer`).
+* ``sensor_bias[<s>]``, ``sensor_gain[<s>]``, ``sensor_drift[<s>]``,
+  ``sensor_gain_drift[<s>]``: the measurement layer
+  ``y_s = x_s (1 + gain_s + gain_drift_s tau) + bias_s + drift_s tau`` with ``tau`` the
+  time since the unit's first row, per 100 time steps (:func:`sensor_layer`): a sensor
+  drifts in the field either additively (an offset growing in time) or
+  multiplicatively (a gain growing in time, e.g. a fuel-flow meter's calibration).
+
+An inlet-temperature error comes in two forms on an engine whose controller schedules
+on the inlet temperature: the engine's registered ``t2_offset`` (the engine is hotter
+than the log, the controller sees the logged value) and ``condition_offset[T2]`` (the
+log alone is wrong: engine and controller both see the true inlet). A model enables the
+second through ``DiagnosisHints.offset_conditions``.
 
 The extended model is ``y = sensor_layer(F(w + offset, theta, effects), layer, tau)``.
 Its signatures ``dy/dphi`` are never tabulated: :func:`linearize` returns ``y`` with
@@ -40,7 +49,7 @@ import numpy as np
 from jaxcal.model import Model
 
 CHUNK_ROWS = 256  # the one row-chunk shape the linearisation is compiled for
-LAYER_NAMES = ("sensor_bias", "sensor_gain", "sensor_drift")
+LAYER_NAMES = ("sensor_bias", "sensor_gain", "sensor_drift", "sensor_gain_drift")
 FAMILIES = ("parameter", "effect", "condition_offset", *LAYER_NAMES)
 TAU_CYCLES = 100.0  # drift unit: per 100 time steps since the unit's first row
 DEFAULT_SCALE_FRACTION = 0.01  # natural step: 1 % of a parameter's bound range
@@ -172,11 +181,15 @@ def build_library(
                 "sensor_bias": float(noise_std[s]),
                 "sensor_gain": float(noise_std[s] / max(sensor_mean_abs[s], 1e-12)),
                 "sensor_drift": float(noise_std[s]),
+                "sensor_gain_drift": float(
+                    noise_std[s] / max(sensor_mean_abs[s], 1e-12)
+                ),
             }[family]
             unit = {
                 "sensor_bias": unit,
                 "sensor_gain": "-",
                 "sensor_drift": f"{unit} per {TAU_CYCLES:g} cycles",
+                "sensor_gain_drift": f"- per {TAU_CYCLES:g} cycles",
             }[family]
             out.append(
                 Candidate(
@@ -187,20 +200,21 @@ def build_library(
 
 
 def sensor_layer(x: jax.Array, layer: jax.Array, tau: jax.Array) -> jax.Array:
-    """The measurement extension ``y = x (1 + gain) + bias + drift tau``.
+    """The measurement layer ``y = x (1 + gain + gain_drift tau) + bias + drift tau``.
 
     Elementwise over outputs: ``y_s`` depends on ``layer[:, s]`` only, which is what
     lets :func:`linearize` read each per-output derivative from one ``jvp``.
 
     Args:
         x: ``[S]`` model output.
-        layer: ``[3, S]`` (bias, gain, drift) per output, zeros = no extension.
+        layer: ``[4, S]`` (bias, gain, drift, gain drift) per output, zeros = no
+            extension.
         tau: ``[]`` time since the unit's first row / :data:`TAU_CYCLES`.
 
     Returns:
         ``[S]`` measured values.
     """
-    return x * (1.0 + layer[1]) + layer[0] + layer[2] * tau
+    return x * (1.0 + layer[1] + layer[3] * tau) + layer[0] + layer[2] * tau
 
 
 class Linearization(NamedTuple):
@@ -209,27 +223,33 @@ class Linearization(NamedTuple):
     y: np.ndarray  # [N, E] extended model output
     jac_theta: np.ndarray  # [N, E, P_all] dy/dtheta
     jac_effects: np.ndarray  # [N, E, n_eff] dy/d(registered effects)
-    jac_w: np.ndarray  # [N, E, W] dy/d(condition offset), or [N, E, 0] when off
-    jac_layer: np.ndarray  # [N, 3, E] dy_s/d(bias_s, gain_s, drift_s)
+    jac_w: np.ndarray  # [N, E, K] dy/d(offset of the K offset_conditions)
+    jac_layer: np.ndarray  # [N, 4, E] dy_s/d(bias_s, gain_s, drift_s, gain_drift_s)
     ok: np.ndarray  # [N] bool: finite outputs and signatures, the model valid
 
 
-def _linearize_row(model: Model, with_w: bool, w, theta, effects, w_off, layer, tau):
-    def extended(th, ef, off):
+def _linearize_row(model: Model, offset_idx, w, theta, effects, w_off, layer, tau):
+    # the offset signature is taken only for the conditions that may carry one
+    # (offset_idx): each extra tangent costs a pass through the model
+    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
+
+    def extended(th, ef, off_k):
+        w_in = w + w_off + select @ off_k
         if model.effects:
-            x, info = model.evaluate_effects(w + off, th, ef)
+            x, info = model.evaluate_effects(w_in, th, ef)
         else:
-            x, info = model.evaluate(w + off, th)
+            x, info = model.evaluate(w_in, th)
         y = sensor_layer(x, layer, tau)
         return y, (y, x, info.valid)
 
-    argnums = (0, 1, 2) if with_w else (0, 1)
+    argnums = (0, 1, 2) if offset_idx else (0, 1)
+    off_k = jnp.zeros(len(offset_idx), w.dtype)
     jacs, (y, x, valid) = jax.jacfwd(extended, argnums=argnums, has_aux=True)(
-        theta, effects, w_off
+        theta, effects, off_k
     )
     j_th, j_ef = jacs[0], jacs[1]
-    j_w = jacs[2] if with_w else jnp.zeros(y.shape + (0,), y.dtype)
-    eye3 = jnp.eye(3, dtype=layer.dtype)
+    j_w = jacs[2] if offset_idx else jnp.zeros(y.shape + (0,), y.dtype)
+    eye3 = jnp.eye(len(LAYER_NAMES), dtype=layer.dtype)
     j_layer = jax.vmap(
         lambda e: jax.jvp(
             lambda p: sensor_layer(x, p, tau),
@@ -243,10 +263,10 @@ def _linearize_row(model: Model, with_w: bool, w, theta, effects, w_off, layer, 
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _linearize_chunk(model, with_w, w, theta, effects, w_off, layer, tau):
+def _linearize_chunk(model, offset_idx, w, theta, effects, w_off, layer, tau):
     """Jitted entry point: ``[C]`` rows, one shape for every data set of a model."""
     return jax.vmap(
-        functools.partial(_linearize_row, model, with_w),
+        functools.partial(_linearize_row, model, offset_idx),
         in_axes=(0, 0, None, None, None, 0),
     )(w, theta, effects, w_off, layer, tau)
 
@@ -270,10 +290,12 @@ def linearize(
         w: ``[N, W]`` logged operating conditions.
         theta: ``[N, P_all]`` all model parameters.
         effects: ``[n_eff]`` registered effects, constant over the rows.
-        layer: ``[3, E]`` sensor layer (bias, gain, drift) for all model outputs.
+        layer: ``[4, E]`` sensor layer (bias, gain, drift, gain drift) for all model
+            outputs.
         tau: ``[N]`` drift time (time since the unit's first row / 100).
         w_offset: ``[W]`` condition offsets (default zeros); the signatures
-            ``jac_w`` are computed only when the model allows condition offsets.
+            ``jac_w`` are computed for the conditions the model allows offsets on
+            (:func:`offset_conditions`, in that order).
 
     Returns:
         :class:`Linearization` of numpy arrays.
@@ -295,7 +317,7 @@ def linearize(
         )
     if n == 0:
         raise ValueError("linearize: no rows")
-    with_w = bool(offset_conditions(model))
+    offset_idx = tuple(model.condition_names.index(c) for c in offset_conditions(model))
     effects = jnp.asarray(effects, jnp.float64).reshape(len(model.effects))
     w_off = jnp.zeros(num_w) if w_offset is None else jnp.asarray(w_offset)
     layer = jnp.asarray(layer, jnp.float64)
@@ -306,7 +328,7 @@ def linearize(
         take = np.concatenate([np.arange(start, stop), np.full(pad, stop - 1)])
         out = _linearize_chunk(
             model,
-            with_w,
+            offset_idx,
             jnp.asarray(w[take]),
             jnp.asarray(theta[take]),
             effects,

@@ -34,6 +34,7 @@ from jaxcal.diagnosis.effects import (
     Linearization,
     linearize,
     natural_scale,
+    offset_conditions,
 )
 from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.model import Model
@@ -205,7 +206,7 @@ def signature_columns(
             e = effect_names.index(cand.target)
             glob[:, :, c] = cand.scale * lin.jac_effects[:, data.sensor_idx, e] / sig
         elif cand.family == "condition_offset":
-            j = model.condition_names.index(cand.target)
+            j = offset_conditions(model).index(cand.target)
             glob[:, :, c] = cand.scale * lin.jac_w[:, data.sensor_idx, j] / sig
         else:
             s = names.index(cand.target)

@@ -1,7 +1,8 @@
 """Trace a residual to the library: screen, refit the finalists, rank, flag confounding.
 
 1. **Screen.** At the declared-only fit, every candidate (and every pair of the best
-   ``pair_top``) is scored by the likelihood-ratio statistic of the *linearised* joint
+   ``pair_top`` whose members do not reproduce each other's signature, see 4) is
+   scored by the likelihood-ratio statistic of the *linearised* joint
    fit ``LR = SSR_0 - SSR_c`` (sigma known, so ``-2 log L = SSR``), computed for all
    candidates at once from the per-unit Gram blocks (:mod:`.fitting`): this is the
    score test of Rao (1948) in Gauss–Newton form.
@@ -136,18 +137,22 @@ def effect_sizes(fit: FitResult, members, data: LoopData):
     """
     s2 = max(1.0, fit.ssr / max(fit.num_resid - fit.num_params, 1))
     glob_vals, glob_std = fit.global_values(), np.sqrt(np.diag(fit.global_cov) * s2)
-    sizes, stds, gi = [], [], 0
+    sizes, stds = [], []
     last = data.starts[1:] - 1
+    # the fit orders its constant effects as the library does, members may not
+    order = [c.name for c in fit.spec.global_effects]
     for c in members:
         if c.per_unit:  # mean over units of the value at each unit's last row
             j = data.parameter_names.index(c.target)
             eol = fit.evaluation.theta[last, j] - data.parameter_nominal[j]
             sizes.append(float(eol.mean()))
-            stds.append(float(eol.std() / np.sqrt(eol.size)) if eol.size > 1 else 0.0)
+            # one unit has no spread to estimate from: NaN (reported as n/a), not 0
+            spread = eol.std() / np.sqrt(eol.size) if eol.size > 1 else np.nan
+            stds.append(float(spread))
         else:
+            gi = order.index(c.name)
             sizes.append(float(glob_vals[gi]))
             stds.append(float(glob_std[gi]))
-            gi += 1
     return sizes, stds
 
 
@@ -205,7 +210,14 @@ def identify(
     singles.sort(key=lambda t: t[1].bic)
     by_name = {c.name: c for c in library}
     entries = {e.name: e for _, e in singles}
-    pairs = list(itertools.combinations([c for c, _ in singles[: cfg.pair_top]], 2))
+    # two forms of one effect (an additive and a multiplicative drift of a sensor at
+    # one operating point) are near collinear: as a pair they fit large cancelling
+    # sizes, so a pair whose members reproduce each other is not formed
+    pairs = [
+        p
+        for p in itertools.combinations([c for c, _ in singles[: cfg.pair_top]], 2)
+        if max(screen.overlap(p[0], p[1]), screen.overlap(p[1], p[0])) < cfg.confound_r2
+    ]
     for pair in pairs:
         lr, _ = screen.score(list(pair))
         df = sum(

@@ -18,6 +18,14 @@ cycle; a turbofan :class:`~jaxcal.data.record.Record` is converted):
 4. **Add** the chosen effect(s) (declared from now on), refit, and report the errors
    before and after: tracking RMSE per sensor, theta RMSE where the truth is known and
    residual whiteness.
+5. **Per unit and plausibility.** Each added effect gets its size, carriers (a
+   Holm-corrected z-test across units) and onset per unit (:mod:`.units`), and the
+   final fit is checked against the model's bounds and direction of wear
+   (:mod:`.plausibility`); triggered checks are flags on the verdict.
+
+The fallback never discards a library effect that explains the residual better: when
+the screen against delta finds nothing but the screen without it did, the first winner
+is kept (refitted with delta) if it still lowers the BIC by the margin.
 
 Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
 (the winner shares its signature with others within the BIC margin; the set is reported,
@@ -49,9 +57,11 @@ from jaxcal.diagnosis.identify import (
     identify,
 )
 from jaxcal.diagnosis.noise import estimate_noise_std
+from jaxcal.diagnosis.plausibility import plausibility_flags
 from jaxcal.diagnosis.prepare import LoopData, prepare_data
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import spec_for
+from jaxcal.diagnosis.units import unit_effects, unit_trajectories
 from jaxcal.model import Model
 
 VERDICTS = (
@@ -104,6 +114,10 @@ class DiagnosisResult(NamedTuple):
     before: Stage
     after: Stage
     added: list  # names of the model terms added for "after"
+    unit_effects: tuple = ()  # units.UnitEffect per added library effect
+    flags: tuple = ()  # plausibility flags (dicts, plausibility.FLAGS)
+    fallback_note: str = ""  # what the fallback kept or dropped, and why
+    alpha: float = 0.01  # level of the per-unit test and bands
 
 
 def make_stage(
@@ -295,14 +309,24 @@ def diagnose(
         data.w, best.evaluation.resid, data.unit, data.sensor_names, cfg.discrepancy,
         data.condition_names,
     )  # fmt: skip
-    offset, final_ident = None, ident
+    offset, final_ident, rescreen, note = None, ident, None, ""
     if disc.any_significant:
         fit_d, offset, disc = _backfit(model, data, spec0, null.params, cfg)
-        final_ident = identify(
+        final_ident = rescreen = identify(
             model, data, declared, library, cfg.identify, fit_d, offset=offset
         )
         best = fit_d
-        if final_ident.winner is not None:
+        if final_ident.winner is None and ident.winner is not None:
+            kept = _keep_winner(model, data, declared, library, ident, fit_d, cfg)
+            if kept is not None:
+                final_ident, note = ident, kept[3]
+                best, offset, disc = kept[:3]
+            else:
+                note = (
+                    f"{ident.winner.name} (the screen's winner without delta) was "
+                    "dropped: with delta it no longer lowers the BIC by the margin"
+                )
+        elif final_ident.winner is not None:
             spec = spec_for(
                 declared, [c for c in library if c.name in final_ident.winner.members]
             )
@@ -328,12 +352,19 @@ def diagnose(
     after = make_stage(data, best, offset, cfg.max_lag)
     # theta RMSE "before" also covers the added parameters (held at nominal there)
     before = make_stage(data, null, None, cfg.max_lag, best.spec.unit_params)
+    by_name = {c.name: c for c in library}
+    members = [by_name[e["name"]] for e in identified]
+    per_unit, flags = _per_unit(
+        model, data, declared, best, null, members, before, after, cfg
+    )
+    for entry, eff in zip(identified, per_unit, strict=True):
+        entry.update(_fleet_summary(eff, entry))
     return DiagnosisResult(
         data,
         declared,
         library,
         ident,
-        None if final_ident is ident else final_ident,
+        rescreen,
         verdict,
         identified,
         confounded,
@@ -341,7 +372,72 @@ def diagnose(
         before,
         after,
         added,
+        tuple(per_unit),
+        tuple(flags),
+        note,
+        cfg.identify.alpha,
     )
+
+
+def _keep_winner(model, data, declared, library, ident, fit_d, cfg: LoopConfig):
+    """``(fit, offset, delta, note)`` with the first screen's winner and delta, when it
+    lowers the BIC of declared + delta by the margin; else ``None``."""
+    members = [c for c in library if c.name in ident.winner.members]
+    fit_w, offset_w, disc_w = _backfit(
+        model, data, spec_for(declared, members), ident.winner_fit.params, cfg
+    )
+    gain = fit_d.ssr - fit_w.ssr
+    penalty = ident.winner.df * np.log(max(fit_w.num_resid, 2))
+    if gain - penalty < cfg.identify.bic_margin:
+        return None
+    note = (
+        f"{ident.winner.name} kept beside delta: with delta it still lowers the BIC "
+        f"by {gain - penalty:.1f} (margin {cfg.identify.bic_margin:g})"
+    )
+    return fit_w, offset_w, disc_w, note
+
+
+def _per_unit(model, data, declared, best, null, members, before, after, cfg):
+    """Per-unit verdicts of the added effects and the plausibility flags."""
+    traj_after = unit_trajectories(model, data, best)
+    traj_before = unit_trajectories(model, data, null)
+    alpha = cfg.identify.alpha
+    per_unit = unit_effects(model, data, best, members, alpha, traj_after)
+    values = dict(
+        zip(
+            [c.name for c in best.spec.global_effects],
+            best.global_values().tolist(),
+            strict=True,
+        )
+    )
+    effect_values = {
+        c.name: (c.target, c.family, values[c.name]) for c in best.spec.global_effects
+    }
+    flags = plausibility_flags(
+        model, data, declared, per_unit, effect_values, traj_after, traj_before,
+        before.tracking_rmse, after.tracking_rmse, alpha,
+    )  # fmt: skip
+    return per_unit, flags
+
+
+def _fleet_summary(eff, entry: dict) -> dict:
+    """Fleet numbers of one effect from the same final fit as its per-unit values.
+
+    A per-unit parameter's fleet size is the mean end value over units; its standard
+    error is that of the mean, at least the units' own mean standard error (so a
+    single unit does not get 0). Carriers and the rest are summarised apart, since a
+    fleet mean blends them.
+    """
+    out = {"carriers": int(eff.carries.sum())}
+    if entry["family"] == "parameter":
+        u = eff.size.size
+        spread = float(np.var(eff.size, ddof=1)) / u if u > 1 else 0.0
+        own = float(np.mean(eff.size_std**2)) / u
+        out["size"] = float(np.mean(eff.size))
+        out["std"] = float(np.sqrt(max(spread, own)))
+    for key, mask in (("size_carriers", eff.carries), ("size_others", ~eff.carries)):
+        out[key] = float(np.mean(eff.size[mask])) if mask.any() else None
+    return out
 
 
 # The name of the turbofan-era entry point, kept for callers of the old API.

@@ -49,7 +49,47 @@ def json_safe(value):
 
 
 def _ranking(ident: Identification) -> list[dict]:
-    return [e._asdict() for e in ident.ranking[:MAX_RANKING]]
+    """Ranking rows; a candidate's sizes there are from its own screening refit, so
+    they are named ``screen_sizes`` (the reported sizes are the final fit's, in
+    ``identified``)."""
+    out = []
+    for e in ident.ranking[:MAX_RANKING]:
+        row = e._asdict()
+        row["screen_sizes"], row["screen_stds"] = row.pop("sizes"), row.pop("stds")
+        out.append(row)
+    return out
+
+
+UNIT_TEST = (
+    "two-sided z-test of each unit's size against its standard error, Holm "
+    "step-down across the units at family-wise level {alpha:g}"
+)
+ONSET_RULE = (
+    "parameter: first cycle from which |value| stays above its band (z = {z:.2f}, "
+    "Bonferroni at {alpha:g} / units) to the unit's last cycle; drift: first cycle "
+    "at which the accumulated change reaches one noise std of the sensor; constant "
+    "form: the unit's first cycle"
+)
+
+
+def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
+    """The added effects with their fleet and per-unit verdicts."""
+    from scipy import stats as sps
+
+    from jaxcal.diagnosis.units import units_json
+
+    z = float(sps.norm.isf(alpha / (2.0 * max(res.data.num_units, 1))))
+    out = []
+    for entry, eff in zip(res.identified, res.unit_effects, strict=True):
+        out.append(
+            {
+                **entry,
+                "unit_test": UNIT_TEST.format(alpha=alpha),
+                "onset_rule": ONSET_RULE.format(z=z, alpha=alpha),
+                "units": units_json(eff, res.data.unit_ids),
+            }
+        )
+    return out
 
 
 def _stage(stage: Stage, names, condition_names) -> dict:
@@ -78,6 +118,7 @@ def report_dict(
 ) -> dict:
     """Everything of the diagnosis as a JSON-ready dict (``model``: its name)."""
     d = res.data
+    alpha = res.alpha
     disc = None
     if res.discrepancy is not None:
         disc = [
@@ -111,7 +152,10 @@ def report_dict(
             "dropped": {"rows": d.dropped_rows, "columns": dict(d.dropped)},
         },
         "verdict": res.verdict,
-        "identified": res.identified,
+        "flags": list(res.flags),
+        "plausible": not res.flags,
+        "identified": _identified(res, alpha),
+        "fallback_note": res.fallback_note,
         "confounded": res.confounded,
         "absorbed": res.identification.absorbed,
         "added": res.added,
@@ -214,6 +258,54 @@ def _theta(path, res: DiagnosisResult) -> str:
     )
 
 
+def _unit_map(path, res: DiagnosisResult) -> str | None:
+    """Units x cycles heat map of each added effect, carriers and onsets marked."""
+    if not res.unit_effects:
+        return None
+    d = res.data
+    offset = d.cycle - d.cycle[d.starts[:-1]][d.unit]
+    span = max(float(offset.max()), 1.0)
+    cols = int(min(400, span + 1))
+    col = np.minimum((offset / span * (cols - 1)).round().astype(int), cols - 1)
+    n = len(res.unit_effects)
+    fig = Figure(
+        figsize=(9.0, 1.2 + n * min(0.05 * d.num_units + 1.5, 9.0)),
+        layout="constrained",
+    )
+    axes = np.atleast_1d(fig.subplots(n, 1, squeeze=False)).ravel()
+    unit_of = {c.name: c.unit for c in res.library}
+    for ax, eff in zip(axes, res.unit_effects, strict=True):
+        grid = np.full((d.num_units, cols), np.nan)
+        grid[d.unit, col] = eff.trajectory
+        vmax = float(np.nanpercentile(np.abs(grid), 98)) or 1.0
+        im = ax.imshow(
+            grid, aspect="auto", cmap="RdBu_r", vmin=-vmax, vmax=vmax,
+            interpolation="nearest", extent=(0, span, d.num_units - 0.5, -0.5),
+        )  # fmt: skip
+        carriers = np.flatnonzero(eff.carries)
+        first = d.cycle[d.starts[:-1]]
+        ax.plot(
+            eff.onset[carriers] - first[carriers], carriers, "k|", ms=4,
+            label="onset (carriers)",
+        )  # fmt: skip
+        ax.plot(
+            np.full(carriers.size, -0.01 * span), carriers, "k>", ms=3,
+            clip_on=False, label="carries",
+        )  # fmt: skip
+        step = max(1, d.num_units // 30)
+        ticks = np.arange(0, d.num_units, step)
+        ax.set_yticks(ticks, [str(u) for u in d.unit_ids[ticks]], fontsize=6)
+        ax.set_ylabel("unit")
+        ax.set_title(
+            f"{eff.name}: carried by {carriers.size} of {d.num_units} units",
+            fontsize=9,
+        )
+        fig.colorbar(im, ax=ax, label=unit_of.get(eff.name, ""), shrink=0.8)
+        ax.legend(fontsize=6, loc="lower right")
+    axes[-1].set_xlabel("cycles since the unit's first cycle")
+    return save_figure(fig, path)
+
+
 def write_report(
     out_dir: str,
     res: DiagnosisResult,
@@ -234,7 +326,9 @@ def write_report(
         "residuals": _stacked_residuals(os.path.join(out_dir, "residuals.png"), res),
         "signature": _explained(os.path.join(out_dir, "signature.png"), res),
         "theta": _theta(os.path.join(out_dir, "theta.png"), res),
+        "units": _unit_map(os.path.join(out_dir, "units.png"), res),
     }
+    figures = {k: v for k, v in figures.items() if v is not None}
     rep["figures"] = {k: os.path.basename(v) for k, v in figures.items()}
     write_text(os.path.join(out_dir, "report.json"), json.dumps(rep, indent=1) + "\n")
     write_text(os.path.join(out_dir, "report.md"), render_markdown(rep))
@@ -260,6 +354,87 @@ def _fmt(v, digits=4):
     return str(v)
 
 
+def fmt_std(v, digits=2) -> str:
+    """A standard error; never "0": one that could not be estimated is "n/a"."""
+    if v is None or not math.isfinite(v) or v <= 0:
+        return "n/a"
+    return f"{v:.{digits}g}"
+
+
+P_FLOOR = 1e-16  # below this a p-value says only "far in the tail" (model error rules)
+
+
+def fmt_p(p) -> str:
+    """A p-value: ``< 1e-16`` far in the tail, never 0 or a denormal."""
+    if p is None or not math.isfinite(p):
+        return "–"
+    return f"< {P_FLOOR:.0e}" if p < P_FLOOR else f"{p:.2g}"
+
+
+def effect_line(e: dict, num_units: int | None = None) -> str:
+    """``name = size ± std unit`` (with the carriers when known), for one-line use."""
+    text = f"{e['name']} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
+    if num_units is not None and "carriers" in e:
+        text += f" (carried by {e['carriers']} of {num_units} units)"
+    return text
+
+
+def verdict_line(rep: dict) -> str:
+    """The verdict with its plausibility flags."""
+    text = f"**Verdict: {rep['verdict']}"
+    flags = rep.get("flags") or []
+    if flags:
+        kinds = sorted({f"{f['flag']} ({f['subject']})" for f in flags})
+        text += " — FLAGGED: " + "; ".join(kinds)
+    return text + ".**"
+
+
+MAX_UNIT_ROWS = 100  # carriers listed in report.md (all are in report.json)
+
+
+def _unit_table(e: dict) -> list[str]:
+    units = e["units"]
+    carriers = [u for u in units if u["carries"]]
+    rest = [u for u in units if not u["carries"]]
+    lines = [
+        f"### {e['name']} per unit",
+        "",
+        f"Carried by **{len(carriers)} of {len(units)} units** ({e['unit_test']}). "
+        f"Onset: {e['onset_rule']}. Mean size: carriers "
+        f"{_fmt(e.get('size_carriers'))}, others {_fmt(e.get('size_others'))} "
+        f"{e['unit']}.",
+        "",
+    ]
+    if carriers:
+        shown = sorted(
+            carriers, key=lambda u: -abs(u["size"] / (u["size_std"] or math.inf))
+        )[:MAX_UNIT_ROWS]
+        shown.sort(key=lambda u: u["unit"])
+        lines += ["| unit | size | std | z | onset |", "|---|---|---|---|---|"]
+        for u in shown:
+            z = u["size"] / u["size_std"] if u["size_std"] else None
+            lines.append(
+                f"| {u['unit']} | {_fmt(u['size'])} | {fmt_std(u['size_std'])} | "
+                f"{_fmt(z, 3)} | {_fmt(u['onset'])} |"
+            )
+        if len(carriers) > len(shown):
+            lines.append(
+                f"\n{len(carriers) - len(shown)} more carriers (smaller |z|) in "
+                "report.json."
+            )
+        lines.append("")
+    if rest:
+        sizes = np.array([u["size"] for u in rest if u["size"] is not None])
+        spread = (
+            f"; their sizes: median {np.median(sizes):.4g}, range "
+            f"[{sizes.min():.4g}, {sizes.max():.4g}] {e['unit']}"
+            if sizes.size
+            else ""
+        )
+        lines += [f"{len(rest)} units do not carry it{spread}.", ""]
+    return lines
+
+
 def render_markdown(rep: dict) -> str:
     """The human-readable page of a report dict."""
     d = rep["data"]
@@ -273,7 +448,7 @@ def render_markdown(rep: dict) -> str:
         f"{d['noise_source']}; {d['knots_per_unit']} spline functions per unit and "
         "declared parameter." + "".join(f" {n}." for n in d["notes"]),
         "",
-        f"**Verdict: {rep['verdict']}.**",
+        verdict_line(rep),
         "",
     ]
     dropped = d.get("dropped") or {}
@@ -286,18 +461,37 @@ def render_markdown(rep: dict) -> str:
             + ".",
             "",
         ]
+    flags = rep.get("flags") or []
+    lines += ["## Plausibility", ""]
+    if flags:
+        lines += [f"- **{f['flag']}** ({f['subject']}): {f['detail']}." for f in flags]
+    else:
+        lines.append(
+            "No flag: no effect outside the model's bounds, no parameter better than "
+            "new, no loss constant from the first cycle, no declared parameter "
+            "moved against its direction of wear, no sensor worse after the extension."
+        )
+    lines.append("")
+    if rep.get("fallback_note"):
+        lines += [f"Fallback: {rep['fallback_note']}.", ""]
     if rep["identified"]:
         lines += [
             "## Identified effect",
             "",
-            "| effect | size | std | unit |",
-            "|---|---|---|---|",
+            "Sizes and standard errors from the final fit (a per-unit parameter: the "
+            "mean end value over units; carriers and the others apart below).",
+            "",
+            "| effect | size | std | unit | carriers |",
+            "|---|---|---|---|---|",
         ]
         lines += [
-            f"| {e['name']} | {_fmt(e['size'])} | {_fmt(e['std'], 2)} | {e['unit']} |"
+            f"| {e['name']} | {_fmt(e['size'])} | {fmt_std(e['std'])} | {e['unit']} "
+            f"| {e.get('carriers', '–')} of {d['units']} |"
             for e in rep["identified"]
         ]
         lines.append("")
+        for e in rep["identified"]:
+            lines += _unit_table(e)
     if rep["confounded"]:
         lines += [
             f"Confounded (signatures nearly collinear after projecting out the "
@@ -338,12 +532,12 @@ def render_markdown(rep: dict) -> str:
         f"{rep['num_tests']} tests; delta BIC > 0 favours the candidate over the "
         "declared-only model; LR = SSR_0 - SSR (chi2 with df).",
         "",
-        "| # | candidate | df | LR | log10 p | delta BIC | size | refit "
+        "| # | candidate | df | LR | log10 p | delta BIC | size (own refit) | refit "
         "| detectability |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for i, e in enumerate(rep["ranking"][:10]):
-        size = ", ".join(_fmt(s) for s in e["sizes"])
+        size = ", ".join(_fmt(s) for s in e["screen_sizes"])
         lines.append(
             f"| {i + 1} | {e['name']} | {e['df']} | {_fmt(e['lr_stat'], 6)} | "
             f"{_fmt(e['log10_p'], 4)} | {_fmt(e['delta_bic'], 6)} | {size} | "
@@ -376,7 +570,7 @@ def render_markdown(rep: dict) -> str:
             f"| {s} | {units.get(s, '-')} | {_fmt(b['tracking_rmse'][s])} | "
             f"{_fmt(a['tracking_rmse'][s])} | "
             f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
-            f"{rb['ljung_box_p']:.2g} | {ra['ljung_box_p']:.2g} |"
+            f"{fmt_p(rb['ljung_box_p'])} | {fmt_p(ra['ljung_box_p'])} |"
         )
     if b["theta_rmse"]:
         lines += ["", "| theta RMSE vs truth | before | after |", "|---|---|---|"]

@@ -15,9 +15,10 @@ in the range, sign as noted; defaults :func:`default_sizes`):
 * ``parameter``: an undeclared parameter drifting from nominal with the unit's health
   index to an end value in the range;
 * each registered effect of the model (``model.effects``), constant over the data;
-* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` on a random output, sized in
-  multiples of its noise std (a gain relative to the output's mean level, a drift per
-  100 cycles since the unit's first cycle);
+* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` / ``sensor_gain_drift`` on a
+  random output, sized in multiples of its noise std (a gain relative to the output's
+  mean level, a drift per 100 cycles since the unit's first cycle; the gain drift is
+  the multiplicative one);
 * ``discrepancy``: an effect outside the library, a smooth bump in one condition
   added to one output, ``A sigma exp(-((w_c - c0) / width)^2)``
   (``SyntheticConfig.bump``);
@@ -52,9 +53,11 @@ from jaxcal.typedefs import PRNGKey
 def kinds(model: Model) -> tuple[str, ...]:
     """The effect kinds a synthetic data set of ``model`` can hold (module doc)."""
     extra = ("condition_offset",) if offset_conditions(model) else ()
+    # later additions go last, so that the position of the older kinds (which seeds
+    # the study's records) does not move
     return (
-        "none", "parameter", *(e.name for e in model.effects), *LAYER_NAMES,
-        "discrepancy", *extra,
+        "none", "parameter", *(e.name for e in model.effects), *LAYER_NAMES[:3],
+        "discrepancy", *LAYER_NAMES[3:], *extra,
     )  # fmt: skip
 
 
@@ -75,6 +78,7 @@ def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
         "sensor_bias": ((2.0, 5.0), 0),
         "sensor_gain": ((2.0, 5.0), 0),
         "sensor_drift": ((3.0, 6.0), 0),
+        "sensor_gain_drift": ((3.0, 6.0), 0),
         "discrepancy": ((3.0, 6.0), 0),
         "condition_offset": ((0.5, 2.0), 0),  # % of the condition's std
     }
@@ -128,6 +132,7 @@ class EffectTruth(NamedTuple):
     size: float  # physical units (the model's)
     unit: str
     condition: str = ""  # the bump's condition (discrepancy only)
+    carriers: tuple[int, ...] = ()  # unit ids that carry it (empty: every unit)
 
 
 class SyntheticData(NamedTuple):
@@ -162,6 +167,7 @@ def make_synthetic_data(
     *,
     target: str | None = None,
     size: float | None = None,
+    carriers=None,
 ) -> SyntheticData:
     """One data set with exactly one undeclared effect of ``kind`` (module docstring).
 
@@ -174,6 +180,8 @@ def make_synthetic_data(
         scenario: ``scenario(keys [4]) -> Scenario`` (the clean rows).
         target: force the output / parameter / condition the effect acts on.
         size: force the size, in the units of ``cfg.sizes`` (default: drawn).
+        carriers: unit ids that carry the effect (default every unit): a fleet in
+            which only some engines have it; the others get the clean rows.
 
     Returns:
         :class:`SyntheticData`; rows where the model is invalid are left out.
@@ -218,7 +226,8 @@ def make_synthetic_data(
     w_offset = np.zeros(len(model.conditions))
     sidx = model.output_index(sensors)
     tau = (cycle - 1) / TAU_CYCLES  # every life starts at cycle 1
-    clean = linearize(model, w, theta, effects, layer, tau).y[:, sidx]
+    clean_lin = linearize(model, w, theta, effects, layer, tau)
+    clean = clean_lin.y[:, sidx]
     level = np.abs(clean).mean(0)
     rel = model.diagnosis.noise_rel or {}
     std = (
@@ -240,12 +249,22 @@ def make_synthetic_data(
         unit = model.conditions[c].unit
     elif kind in LAYER_NAMES:
         s = list(sensors).index(tgt)
-        scale = std[s] / level[s] if kind == "sensor_gain" else std[s]
-        size = size * scale
+        relative = kind in ("sensor_gain", "sensor_gain_drift")
+        size = size * (std[s] / level[s] if relative else std[s])
         layer[LAYER_NAMES.index(kind), sidx[s]] = size
-        unit = "-" if kind == "sensor_gain" else model.unit_of(tgt)
+        unit = "-" if relative else model.unit_of(tgt)
+    on = np.ones(w.shape[0], bool)
+    if carriers is not None:
+        on = np.isin(scn.unit, np.asarray(carriers))
+        bad = sorted(set(np.asarray(carriers).tolist()) - set(scn.unit.tolist()))
+        if bad:
+            raise ValueError(f"carriers {bad} are not units of the scenario")
+        if kind == "parameter":
+            theta[~on, j] = model.nominal[j]
     y = linearize(model, w, theta, effects, layer, tau, w_offset)
     x = y.y[:, sidx]
+    if not on.all() and kind != "parameter":  # the other units stay clean
+        x = np.where(on[:, None], x, clean)
     bump_on = ""
     if kind == "discrepancy":
         s = list(sensors).index(tgt)
@@ -253,11 +272,11 @@ def make_synthetic_data(
         c = model.condition_names.index(bump_on)
         c0 = rng.uniform(c_lo, c_hi)
         size = size * std[s]
-        x[:, s] += size * np.exp(-(((w[:, c] - c0) / width) ** 2))
+        x[:, s] += on * size * np.exp(-(((w[:, c] - c0) / width) ** 2))
         unit = model.unit_of(tgt)
     noise = np.asarray(jax.random.normal(key_noise, x.shape, dtype=jnp.float64))
     x = x + std * noise
-    ok = y.ok
+    ok = y.ok if on.all() or kind == "parameter" else np.where(on, y.ok, clean_lin.ok)
     data = Dataset(
         w=w[ok],
         x=x[ok],
@@ -273,7 +292,10 @@ def make_synthetic_data(
     name = {"none": "", "discrepancy": f"discrepancy[{tgt}]"}.get(
         kind, candidate_name(family, tgt)
     )
-    truth = EffectTruth(kind, name, tgt, float(size), unit, bump_on)
+    truth = EffectTruth(
+        kind, name, tgt, float(size), unit, bump_on,
+        () if carriers is None else tuple(int(u) for u in carriers),
+    )  # fmt: skip
     return SyntheticData(data, dict(zip(sensors, std.tolist(), strict=True)), truth)
 
 

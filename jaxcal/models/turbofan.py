@@ -10,9 +10,13 @@ the plain box). The engine's extension inputs (bleed, power offtake, nozzle area
 inlet recovery, T2 offset) are the model's registered effects for the diagnosis, and
 its :class:`~jaxcal.model.DiagnosisHints` say what else the diagnosis should know: the
 health modifiers move in steps of 1 %, the C-MAPSS FD002 noise levels are the start
-noise, the fan-speed outputs follow the TRA schedule (no information), and the generic
-condition offsets stay off (the T2 offset is a registered effect; alt, Mach and TRA
-offsets were not part of the validated study library, experiments/loop_study.py).
+noise, the fan-speed outputs follow the TRA schedule (no information), and of the
+generic condition offsets only T2's is on: the registered ``t2_offset`` is an inlet
+hotter than the log with the controller scheduling on the logged T2, the condition
+offset on T2 is a wrong log with engine and controller both on the true inlet (the two
+forms a field inlet error takes); alt, Mach and TRA offsets stay off (not part of the
+validated study library, experiments/loop_study.py). Health modifiers lose in service
+(``degradation_sign`` -1 for all ten).
 """
 
 from __future__ import annotations
@@ -89,7 +93,8 @@ def diagnosis_hints() -> DiagnosisHints:
         uninformative={
             s: "set by the fan-speed controller (TRA schedule)" for s in CONTROLLER_SET
         },
-        offset_conditions=(),
+        offset_conditions=("T2",),
+        degradation_sign={n: -1 for n in HEALTH_NAMES},
     )
 
 

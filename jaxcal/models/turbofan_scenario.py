@@ -41,6 +41,8 @@ EFFECT_SIZES: dict[str, tuple[tuple[float, float], int]] = {
     "sensor_bias": ((2.0, 5.0), 0),  # noise std
     "sensor_gain": ((2.0, 5.0), 0),  # noise std / mean level
     "sensor_drift": ((3.0, 6.0), 0),  # noise std per 100 cycles
+    "sensor_gain_drift": ((3.0, 6.0), 0),  # noise std / mean level per 100 cycles
+    "condition_offset": ((2.0, 6.0), 1),  # % of T2's std (T2 is the one offset)
     "discrepancy": ((3.0, 6.0), 0),  # noise std (bump height)
 }
 DISCREPANCY_BUMP = ("Mach", (0.45, 0.65), 0.12)  # condition, centre range, width

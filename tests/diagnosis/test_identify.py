@@ -68,23 +68,41 @@ def test_signatures_match_finite_differences(engine):
     w = np.array([[15000.0, 0.5, 70.0, 470.0], [30000.0, 0.7, 80.0, 440.0]])
     theta = np.zeros((2, 10))
     tau = np.array([0.2, 0.5])
-    lin = linearize(engine, w, theta, np.zeros(6), np.zeros((3, 35)), tau)
+    lin = linearize(
+        engine, w, theta, np.zeros(6), np.zeros((len(LAYER_NAMES), 35)), tau
+    )
     assert lin.ok.all()
     for e, h in ((0, 0.05), (1, 1e-4)):  # t2_offset [degR], customer_bleed
         step = np.zeros(6)
         step[e] = h
-        up = linearize(engine, w, theta, step, np.zeros((3, 35)), tau).y
-        down = linearize(engine, w, theta, -step, np.zeros((3, 35)), tau).y
+        up = linearize(engine, w, theta, step, np.zeros((len(LAYER_NAMES), 35)), tau).y
+        down = linearize(
+            engine, w, theta, -step, np.zeros((len(LAYER_NAMES), 35)), tau
+        ).y
         np.testing.assert_allclose(
             lin.jac_effects[:, :, e], (up - down) / (2 * h), rtol=2e-4, atol=1e-7
         )
-    layer = np.zeros((3, 35))
+    layer = np.zeros((len(LAYER_NAMES), 35))
     layer[1, 1] = 1e-3  # gain on T30
     out = linearize(engine, w, theta, np.zeros(6), layer, tau)
     np.testing.assert_allclose(out.y[:, 1] - lin.y[:, 1], 1e-3 * lin.jac_layer[:, 1, 1])
     np.testing.assert_allclose(
         lin.jac_layer[:, 2, :], np.broadcast_to(tau[:, None], (2, 35))
     )
+    # the multiplicative drift: d y / d gain_drift = x tau
+    np.testing.assert_allclose(lin.jac_layer[:, 3, :], lin.y * tau[:, None])
+    # the T2 offset with the controller on the true inlet (a condition offset)
+    # differs from the registered t2_offset (controller on the logged T2)
+    assert lin.jac_w.shape == (2, 35, 1)
+    zero = np.zeros((len(LAYER_NAMES), 35))
+    dt2 = np.array([0.0, 0.0, 0.0, 0.05])
+    up = linearize(engine, w, theta, np.zeros(6), zero, tau, dt2).y
+    down = linearize(engine, w, theta, np.zeros(6), zero, tau, -dt2).y
+    np.testing.assert_allclose(
+        lin.jac_w[:, :, 0], (up - down) / 0.1, rtol=2e-4, atol=1e-7
+    )
+    nf = engine.output_names.index("Nf")
+    assert abs(lin.jac_w[0, nf, 0] - lin.jac_effects[0, nf, 0]) > 1e-3
 
 
 def test_linearize_pads_chunks_consistently(engine, synthetic):
@@ -92,10 +110,20 @@ def test_linearize_pads_chunks_consistently(engine, synthetic):
     n = CHUNK_ROWS + 7
     w = np.concatenate([rec.w, rec.w])[:n]
     full = linearize(
-        engine, w, np.zeros((n, 10)), np.zeros(6), np.zeros((3, 35)), np.zeros(n)
+        engine,
+        w,
+        np.zeros((n, 10)),
+        np.zeros(6),
+        np.zeros((len(LAYER_NAMES), 35)),
+        np.zeros(n),
     )
     tail = linearize(
-        engine, w[-7:], np.zeros((7, 10)), np.zeros(6), np.zeros((3, 35)), np.zeros(7)
+        engine,
+        w[-7:],
+        np.zeros((7, 10)),
+        np.zeros(6),
+        np.zeros((len(LAYER_NAMES), 35)),
+        np.zeros(7),
     )
     np.testing.assert_allclose(full.y[-7:], tail.y, rtol=1e-12)
     assert full.y.shape == (n, 35) and full.jac_theta.shape == (n, 35, 10)
@@ -105,11 +133,18 @@ def test_library_covers_every_family_once(engine):
     sensors = ("T24", "T30")
     lib = build_library(engine, DECLARED, sensors, np.ones(2), np.ones(2))
     names = [c.name for c in lib]
-    assert len(names) == len(set(names)) == 9 + 6 + 3 * 2
+    assert len(names) == len(set(names)) == 9 + 6 + 1 + 4 * 2
     assert "parameter[HPT_eff_mod]" not in names
     assert "parameter[LPT_eff_mod]" in names
-    # the turbofan allows no generic condition offset (its T2 offset is an effect)
-    assert {c.family for c in lib} == {"parameter", "effect", *LAYER_NAMES}
+    # of the generic condition offsets the turbofan allows T2's only (the inlet
+    # error with the controller on the true inlet; t2_offset is the other form)
+    assert {c.family for c in lib} == {
+        "parameter",
+        "effect",
+        "condition_offset",
+        *LAYER_NAMES,
+    }
+    assert "condition_offset[T2]" in names and "sensor_gain_drift[T30]" in names
     units = {c.name: c.unit for c in lib}
     assert units["power_offtake"] == "hp" and units["sensor_bias[T30]"] == "degR"
     with pytest.raises(ValueError, match="unknown effect families"):

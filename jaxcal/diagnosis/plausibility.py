@@ -1,0 +1,180 @@
+"""Plausibility flags on a diagnosis: what "identified" must not hide.
+
+A library effect that lowers the BIC is not necessarily a physical explanation: an
+effect outside the library can be mimicked by one inside it (a hot inlet taken for a
+large LPC efficiency loss), and an added term can push the declared parameters the
+wrong way. Each check below is a rule stated on the final fit's per-unit values
+(:mod:`.units`); a triggered one becomes a flag in the verdict.
+
+* ``outside_bounds``: an added effect (or a per-unit parameter after the extension)
+  whose value leaves the model's stated range (``Parameter.low/high`` of a parameter
+  or registered effect; the sensor layer and condition offsets state none); a
+  per-unit parameter by more than its band ``z_band std``.
+* ``better_than_new``: a parameter with a known direction of wear
+  (``DiagnosisHints.degradation_sign``) that is, at some cycle of some unit, on the
+  other side of nominal by more than the band ``z_band std`` *and* by at least half a
+  natural step (so that a statistically clear but physically negligible improvement on
+  a large data set is not flagged).
+* ``constant_from_start``: an added parameter carried from the first cycle: in a
+  carrying unit its value at the first cycle is beyond the band, at least one natural
+  step, and at least half its end value. Wear grows in service; a loss that is already
+  there on day one is more likely an offset of another kind (a condition or sensor
+  error) taken for wear.
+* ``declared_against_sign``: a declared parameter that the extension moves toward
+  "better" (its end value after minus before, against the direction of wear, beyond
+  the band and at least half a natural step) in some unit: the added term took more
+  than the residual and the declared parameter compensates.
+* ``sensor_worse``: an output whose tracking RMSE is higher after the extension than
+  before by more than its own sampling spread, ``3 / sqrt(2 n)`` relative (``n`` rows;
+  the relative std of an RMSE of ``n`` Gaussian residuals is ``1 / sqrt(2 n)``), and
+  at least :data:`WORSE_FRACTION`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats as sps
+
+from jaxcal.diagnosis.effects import natural_scale
+from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories
+from jaxcal.model import Model
+
+WORSE_FRACTION = 0.01  # relative increase of a sensor's RMSE that counts as worse
+FLAGS = (
+    "outside_bounds",
+    "better_than_new",
+    "constant_from_start",
+    "declared_against_sign",
+    "sensor_worse",
+)
+
+
+def degradation_sign(model: Model, name: str) -> int:
+    """+1 / -1: the direction ``name`` moves as the system wears; 0 unknown."""
+    signs = model.diagnosis.degradation_sign or {}
+    if name in signs:
+        return int(np.sign(signs[name]))
+    for p in model.parameters:
+        if p.name == name:
+            if p.nominal <= p.low:
+                return 1
+            if p.nominal >= p.high:
+                return -1
+    return 0
+
+
+def _flag(kind, subject, detail, units=()):
+    return {"flag": kind, "subject": subject, "detail": detail, "units": list(units)}
+
+
+def _ids(data, mask):
+    return [int(u) for u in data.unit_ids[np.flatnonzero(mask)]]
+
+
+def _per_unit_any(data: LoopData, rows: np.ndarray) -> np.ndarray:
+    return np.add.reduceat(rows.astype(int), data.starts[:-1]) > 0
+
+
+def plausibility_flags(
+    model: Model,
+    data: LoopData,
+    declared,
+    unit_effects: list[UnitEffect],
+    effect_values: dict,
+    after: UnitTrajectories,
+    before: UnitTrajectories,
+    rmse_before: np.ndarray,
+    rmse_after: np.ndarray,
+    alpha: float,
+) -> list[dict]:
+    """The triggered flags (module docstring), each ``{flag, subject, detail, units}``.
+
+    Args:
+        model, data: as in the diagnosis.
+        declared: the declared parameters.
+        unit_effects: the per-unit verdicts of the added effects (:mod:`.units`).
+        effect_values: added constant effect name -> ``(target, family, value)``.
+        after, before: per-unit parameter trajectories of the final and the
+            declared-only fit.
+        rmse_before, rmse_after: ``[S]`` tracking RMSE per output.
+        alpha: level of the band (``z_band`` at ``alpha / U``, two-sided).
+    """
+    flags = []
+    z_band = float(sps.norm.isf(alpha / (2.0 * max(data.num_units, 1))))
+    last = data.starts[1:] - 1
+    bounds = {p.name: p for p in (*model.parameters, *model.effects)}
+    for name, value in after.value.items():  # per-unit parameters (theta - nominal)
+        p = bounds[name]
+        theta = p.nominal + value
+        band = z_band * after.std[name]  # a value at a bound within noise is fine
+        out = _per_unit_any(data, (theta < p.low - band) | (theta > p.high + band))
+        if out.any():
+            worst = value[np.argmax(np.abs(value))]
+            flags.append(_flag(
+                "outside_bounds", name,
+                f"{name} leaves its range [{p.low:g}, {p.high:g}] in {out.sum()} "
+                f"unit(s) (departure up to {worst:+.4g})", _ids(data, out),
+            ))  # fmt: skip
+        sign = degradation_sign(model, name)
+        if sign == 0:
+            continue
+        floor = 0.5 * natural_scale(model, name)
+        wrong = -sign * value
+        rows = (wrong > z_band * after.std[name]) & (wrong > floor)
+        bad = _per_unit_any(data, rows)
+        if bad.any():
+            flags.append(_flag(
+                "better_than_new", name,
+                f"{name} is better than new (the wrong side of nominal by up to "
+                f"{-sign * wrong.max():+.4g}, beyond its band) in {bad.sum()} of "
+                f"{data.num_units} units", _ids(data, bad),
+            ))  # fmt: skip
+        if name in declared and name in before.value:
+            change = -sign * (value[last] - before.value[name][last])
+            moved = (change > z_band * after.std[name][last]) & (change > floor)
+            if moved.any():
+                flags.append(_flag(
+                    "declared_against_sign", name,
+                    f"the extension moves the declared {name} toward better than new "
+                    f"in {moved.sum()} of {data.num_units} units (end value change up "
+                    f"to {-sign * change.max():+.4g})", _ids(data, moved),
+                ))  # fmt: skip
+    for eff in unit_effects:
+        target = eff.name
+        if target.startswith("parameter["):
+            pname = target[len("parameter[") : -1]
+            step = natural_scale(model, pname)
+            start, end = eff.start_value, eff.size
+            const = (
+                eff.carries
+                & (np.abs(start) > z_band * eff.start_std)
+                & (np.abs(start) >= step)
+                & (np.abs(start) >= 0.5 * np.abs(end))
+            )
+            if const.any():
+                flags.append(_flag(
+                    "constant_from_start", target,
+                    f"{target} is already {np.median(start[const]):+.4g} (median) at "
+                    f"the first cycle in {const.sum()} of {eff.carries.sum()} "
+                    "carrying units: a loss present from day one, not wear",
+                    _ids(data, const),
+                ))  # fmt: skip
+    for name, (target, family, value) in effect_values.items():
+        if family == "effect" and target in bounds:
+            p = bounds[target]
+            if not p.low <= value <= p.high:
+                flags.append(_flag(
+                    "outside_bounds", name,
+                    f"{name} = {value:.4g} lies outside its range "
+                    f"[{p.low:g}, {p.high:g}]",
+                ))  # fmt: skip
+    margin = max(WORSE_FRACTION, 3.0 / np.sqrt(2.0 * max(data.num_rows, 1)))
+    worse = rmse_after > rmse_before * (1.0 + margin)
+    for s in np.flatnonzero(worse):
+        flags.append(_flag(
+            "sensor_worse", data.sensor_names[s],
+            f"{data.sensor_names[s]} tracks worse after the extension: RMSE "
+            f"{rmse_before[s]:.4g} -> {rmse_after[s]:.4g}",
+        ))  # fmt: skip
+    return flags
