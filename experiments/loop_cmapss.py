@@ -55,8 +55,14 @@ class CmapssLoopConfig:
     out: str = "results/loop/cmapss"
 
 
-def _per_unit(rep: dict) -> list[str]:
-    """One bullet per added effect: who carries it, how much, from when."""
+def _per_unit(rep: dict, length: dict) -> list[str]:
+    """One bullet per added effect: who carries it, how much, from when.
+
+    ``length``: unit id -> cycles in its record. The correlation of the per-unit size
+    with the record length and the onset as a share of the record tell a fault that
+    ends every life at a similar level (rate ~ 1 / life, late onset) from a sensor
+    fault (rate independent of life).
+    """
     rows = []
     for e in rep["identified"]:
         units = e["units"]
@@ -78,15 +84,28 @@ def _per_unit(rep: dict) -> list[str]:
             else ""
         )
         others = "–" if e["size_others"] is None else f"{e['size_others']:.4g}"
+        every = np.array([u["size"] for u in units], float)
+        life = np.array([length[u["unit"]] for u in units], float)
+        ok = np.isfinite(every)
+        corr = (
+            f"; correlation of the per-unit size with the record length "
+            f"{np.corrcoef(every[ok], life[ok])[0, 1]:+.2f}"
+            if ok.sum() > 2 and np.ptp(every[ok]) > 0 and np.ptp(life[ok]) > 0
+            else ""
+        )
+        share = [u["onset"] / length[u["unit"]] for u in car if u["onset"] is not None]
+        share_txt = (
+            f"; onset at {np.median(share):.0%} of the record (median)" if share else ""
+        )
         rows.append(
             f"- Per unit, {e['name']}: carried by {len(car)} of {len(units)} units "
-            f"({e['unit_test']}){size_txt}{onset}; mean in the others "
-            f"{others}." + (f" Carriers: {ids}{more}." if car else "")
+            f"({e['unit_test']}){size_txt}{onset}{share_txt}; mean in the others "
+            f"{others}{corr}." + (f" Carriers: {ids}{more}." if car else "")
         )
     return rows
 
 
-def _line(name: str, rep: dict, seconds: float) -> list[str]:
+def _line(name: str, rep: dict, seconds: float, length: dict) -> list[str]:
     b, a = rep["before"], rep["after"]
     num_units = rep["data"]["units"]
     found = (
@@ -119,7 +138,7 @@ def _line(name: str, rep: dict, seconds: float) -> list[str]:
         f"{' — FLAGGED' if flags else ' (no plausibility flag)'}; added: "
         f"{', '.join(rep['added']) or 'nothing'}.",
         f"- Library effect: {found}.",
-        *_per_unit(rep),
+        *_per_unit(rep, length),
         *[f"- Flag: {f}." for f in flags],
         f"- Confounded with it: {', '.join(rep['confounded']) or 'none'}.",
         f"- Discrepancy delta(w): {disc_txt}.",
@@ -209,7 +228,15 @@ def main(argv: list[str]) -> int:
             model=cfg.engine,
             config=config,
         )
-        lines += _line(fd, rep, seconds)
+        d = res.data
+        length = dict(
+            zip(
+                d.unit_ids.tolist(),
+                (d.cycle[d.starts[1:] - 1] - d.cycle[d.starts[:-1]] + 1).tolist(),
+                strict=True,
+            )
+        )
+        lines += _line(fd, rep, seconds, length)
         print(
             f"{fd}: verdict {rep['verdict']}, added {rep['added']}, mean tracking "
             f"RMSE {rep['before']['mean_tracking_rmse_norm']:.3f} -> "

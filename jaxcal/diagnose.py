@@ -7,7 +7,10 @@
 Any static :class:`jaxcal.Model` (``jaxcal.models.load`` spec); ``engine=`` is the
 old name of ``model=`` and ``cmapss`` the default, so turbofan commands of before
 still work. Writes ``report.md``, ``report.json`` and PNG figures to ``out`` (default
-``results/diagnose/<file stem>/``), naming effects in the model's vocabulary and units.
+``results/diagnose/<file stem>/``), naming effects in the model's vocabulary and units,
+per unit (report.json ``identified[i].units``: ``unit``, ``carries``, ``size``,
+``size_std``, ``onset``; ``units.png``) and with the plausibility flags of the verdict
+(``flags``; :mod:`jaxcal.diagnosis.plausibility`), which the console line repeats.
 Arguments are ``key=value`` (``jaxcal.settings.parse_overrides``); an unknown key, a
 missing required one or bad data exits with code 2 and a message that names the field
 and the valid choices. CSV / Parquet columns are named as the model's conditions and

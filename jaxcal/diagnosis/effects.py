@@ -321,6 +321,11 @@ def linearize(
     effects = jnp.asarray(effects, jnp.float64).reshape(len(model.effects))
     w_off = jnp.zeros(num_w) if w_offset is None else jnp.asarray(w_offset)
     layer = jnp.asarray(layer, jnp.float64)
+    if layer.shape != (len(LAYER_NAMES), len(model.outputs)):
+        raise ValueError(
+            f"linearize: layer must be [{len(LAYER_NAMES)}, {len(model.outputs)}] "
+            f"({', '.join(LAYER_NAMES)} per model output), got {layer.shape}"
+        )
     parts = []
     for start in range(0, n, CHUNK_ROWS):
         stop = min(start + CHUNK_ROWS, n)

@@ -25,7 +25,8 @@ cycle; a turbofan :class:`~jaxcal.data.record.Record` is converted):
 
 The fallback never discards a library effect that explains the residual better: when
 the screen against delta finds nothing but the screen without it did, the first winner
-is kept (refitted with delta) if it still lowers the BIC by the margin.
+is kept (refitted with delta) unless delta alone has the lower BIC, delta's effective
+degrees of freedom counted.
 
 Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
 (the winner shares its signature with others within the BIC margin; the set is reported,
@@ -317,14 +318,15 @@ def diagnose(
         )
         best = fit_d
         if final_ident.winner is None and ident.winner is not None:
-            kept = _keep_winner(model, data, declared, library, ident, fit_d, cfg)
+            kept = _keep_winner(model, data, declared, library, ident, fit_d, disc, cfg)
             if kept is not None:
                 final_ident, note = ident, kept[3]
                 best, offset, disc = kept[:3]
             else:
                 note = (
                     f"{ident.winner.name} (the screen's winner without delta) was "
-                    "dropped: with delta it no longer lowers the BIC by the margin"
+                    "dropped: delta alone explains the data better (BIC with "
+                    "delta's degrees of freedom counted)"
                 )
         elif final_ident.winner is not None:
             spec = spec_for(
@@ -379,20 +381,34 @@ def diagnose(
     )
 
 
-def _keep_winner(model, data, declared, library, ident, fit_d, cfg: LoopConfig):
-    """``(fit, offset, delta, note)`` with the first screen's winner and delta, when it
-    lowers the BIC of declared + delta by the margin; else ``None``."""
+def _delta_df(disc: Discrepancy | None) -> float:
+    """Effective degrees of freedom of the significant part of delta."""
+    if disc is None:
+        return 0.0
+    return float(sum(s.df for s in disc.sensors if s.significant))
+
+
+def _keep_winner(model, data, declared, library, ident, fit_d, disc_d, cfg):
+    """``(fit, offset, delta, note)`` with the first screen's winner beside delta when
+    that explains the data at least as well as delta alone, else ``None``.
+
+    "As well" is the BIC with delta's effective degrees of freedom counted: a flexible
+    delta(w) that absorbs a constant effect pays for it, so it displaces a library
+    effect only when it fits better at its price (the library is preferred, module
+    docstring).
+    """
     members = [c for c in library if c.name in ident.winner.members]
     fit_w, offset_w, disc_w = _backfit(
         model, data, spec_for(declared, members), ident.winner_fit.params, cfg
     )
-    gain = fit_d.ssr - fit_w.ssr
-    penalty = ident.winner.df * np.log(max(fit_w.num_resid, 2))
-    if gain - penalty < cfg.identify.bic_margin:
+    log_n = np.log(max(fit_w.num_resid, 2))
+    bic_d = fit_d.bic + _delta_df(disc_d) * log_n
+    bic_w = fit_w.bic + _delta_df(disc_w) * log_n
+    if bic_w > bic_d:
         return None
     note = (
-        f"{ident.winner.name} kept beside delta: with delta it still lowers the BIC "
-        f"by {gain - penalty:.1f} (margin {cfg.identify.bic_margin:g})"
+        f"{ident.winner.name} kept beside delta: the BIC with delta's degrees of "
+        f"freedom counted is {bic_d - bic_w:.1f} lower than with delta alone"
     )
     return fit_w, offset_w, disc_w, note
 
@@ -423,10 +439,11 @@ def _per_unit(model, data, declared, best, null, members, before, after, cfg):
 def _fleet_summary(eff, entry: dict) -> dict:
     """Fleet numbers of one effect from the same final fit as its per-unit values.
 
-    A per-unit parameter's fleet size is the mean end value over units; its standard
-    error is that of the mean, at least the units' own mean standard error (so a
-    single unit does not get 0). Carriers and the rest are summarised apart, since a
-    fleet mean blends them.
+    A per-unit parameter's fleet size is the mean over units of its change over each
+    record (the per-unit size), beside the mean values at the first and the last
+    cycle; its standard error is that of the mean, at least the units' own mean
+    standard error (so a single unit does not get 0). Carriers and the rest are
+    summarised apart, since a fleet mean blends them.
     """
     out = {"carriers": int(eff.carries.sum())}
     if entry["family"] == "parameter":
@@ -435,6 +452,8 @@ def _fleet_summary(eff, entry: dict) -> dict:
         own = float(np.mean(eff.size_std**2)) / u
         out["size"] = float(np.mean(eff.size))
         out["std"] = float(np.sqrt(max(spread, own)))
+        out["start_value"] = float(np.mean(eff.start_value))
+        out["end_value"] = float(np.mean(eff.start_value + eff.size))
     for key, mask in (("size_carriers", eff.carries), ("size_others", ~eff.carries)):
         out[key] = float(np.mean(eff.size[mask])) if mask.any() else None
     return out

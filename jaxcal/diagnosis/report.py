@@ -61,14 +61,16 @@ def _ranking(ident: Identification) -> list[dict]:
 
 
 UNIT_TEST = (
-    "two-sided z-test of each unit's size against its standard error, Holm "
-    "step-down across the units at family-wise level {alpha:g}"
+    "one-sided minimum-effect z-test of H0: |size| <= {delta:.3g} (half the effect's "
+    "natural step) per unit, Holm step-down across the units at family-wise level "
+    "{alpha:g}; a parameter's size is its change over the unit's record (last minus "
+    "first cycle)"
 )
 ONSET_RULE = (
-    "parameter: first cycle from which |value| stays above its band (z = {z:.2f}, "
-    "Bonferroni at {alpha:g} / units) to the unit's last cycle; drift: first cycle "
-    "at which the accumulated change reaches one noise std of the sensor; constant "
-    "form: the unit's first cycle"
+    "parameter: first cycle from which its change since the first cycle stays "
+    "beyond {delta:.3g} + {z:.2f} std (Bonferroni at {alpha:g} / units) to the unit's "
+    "last cycle; drift: first cycle at which the accumulated change reaches one "
+    "noise std of the sensor; constant form: the unit's first cycle"
 )
 
 
@@ -78,14 +80,15 @@ def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
 
     from jaxcal.diagnosis.units import units_json
 
-    z = float(sps.norm.isf(alpha / (2.0 * max(res.data.num_units, 1))))
+    z = float(sps.norm.isf(alpha / max(res.data.num_units, 1)))
     out = []
     for entry, eff in zip(res.identified, res.unit_effects, strict=True):
         out.append(
             {
                 **entry,
-                "unit_test": UNIT_TEST.format(alpha=alpha),
-                "onset_rule": ONSET_RULE.format(z=z, alpha=alpha),
+                "unit_test": UNIT_TEST.format(alpha=alpha, delta=eff.min_size),
+                "onset_rule": ONSET_RULE.format(z=z, alpha=alpha, delta=eff.min_size),
+                "min_size": eff.min_size,
                 "units": units_json(eff, res.data.unit_ids),
             }
         )
@@ -273,7 +276,7 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
         layout="constrained",
     )
     axes = np.atleast_1d(fig.subplots(n, 1, squeeze=False)).ravel()
-    unit_of = {c.name: c.unit for c in res.library}
+    by_name = {c.name: c for c in res.library}
     for ax, eff in zip(axes, res.unit_effects, strict=True):
         grid = np.full((d.num_units, cols), np.nan)
         grid[d.unit, col] = eff.trajectory
@@ -300,7 +303,11 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
             f"{eff.name}: carried by {carriers.size} of {d.num_units} units",
             fontsize=9,
         )
-        fig.colorbar(im, ax=ax, label=unit_of.get(eff.name, ""), shrink=0.8)
+        cand = by_name[eff.name]
+        label = cand.unit  # a drift is drawn as its accumulated change
+        if cand.family in ("sensor_drift", "sensor_gain_drift"):
+            label = "accumulated change " + cand.unit.split(" per ")[0]
+        fig.colorbar(im, ax=ax, label=label, shrink=0.8)
         ax.legend(fontsize=6, loc="lower right")
     axes[-1].set_xlabel("cycles since the unit's first cycle")
     return save_figure(fig, path)
@@ -410,7 +417,7 @@ def _unit_table(e: dict) -> list[str]:
             carriers, key=lambda u: -abs(u["size"] / (u["size_std"] or math.inf))
         )[:MAX_UNIT_ROWS]
         shown.sort(key=lambda u: u["unit"])
-        lines += ["| unit | size | std | z | onset |", "|---|---|---|---|---|"]
+        lines += ["| unit | size | std | size / std | onset |", "|---|---|---|---|---|"]
         for u in shown:
             z = u["size"] / u["size_std"] if u["size_std"] else None
             lines.append(
@@ -478,14 +485,17 @@ def render_markdown(rep: dict) -> str:
         lines += [
             "## Identified effect",
             "",
-            "Sizes and standard errors from the final fit (a per-unit parameter: the "
-            "mean end value over units; carriers and the others apart below).",
+            "Sizes and standard errors from the final fit. A per-unit parameter's "
+            "size is its change over each unit's record (mean over units), its "
+            "departure from nominal at the first and last cycle beside it; carriers "
+            "and the others apart below.",
             "",
-            "| effect | size | std | unit | carriers |",
-            "|---|---|---|---|---|",
+            "| effect | size | std | unit | at first / last cycle | carriers |",
+            "|---|---|---|---|---|---|",
         ]
         lines += [
             f"| {e['name']} | {_fmt(e['size'])} | {fmt_std(e['std'])} | {e['unit']} "
+            f"| {_fmt(e.get('start_value'))} / {_fmt(e.get('end_value'))} "
             f"| {e.get('carriers', '–')} of {d['units']} |"
             for e in rep["identified"]
         ]

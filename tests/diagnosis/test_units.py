@@ -155,7 +155,7 @@ def _fake_data(units=4, rows=10):
 
 def _flags(data, after, before=None, effects=(), values=None, rmse=(1.0, 1.0)):
     zeros = {k: np.zeros_like(v) for k, v in after.value.items()}
-    before = before or UnitTrajectories(zeros, dict(after.std))
+    before = before or UnitTrajectories(zeros, dict(after.std), {}, {})
     return plausibility_flags(
         PUMP, data, ("wear",), list(effects), values or {}, after, before,
         np.ones(2), np.asarray(rmse), 0.01,
@@ -169,9 +169,9 @@ def test_each_plausibility_rule_is_triggered_by_a_constructed_case():
     # wear (declared) and leak: "better than new" (negative: the pump's parameters
     # grow with wear, nominal at the lower bound) in the second unit
     value = np.zeros(n)
-    value[10:20] = -0.01
+    value[10:20] = np.linspace(0.0, -0.01, 10)  # improving over the unit's life
     after = UnitTrajectories(
-        {"wear": value, "leak": np.zeros(n)}, {"wear": std, "leak": std}
+        {"wear": value, "leak": np.zeros(n)}, {"wear": std, "leak": std}, {}, {}
     )
     kinds = {(f["flag"], f["subject"]) for f in _flags(data, after)}
     assert ("better_than_new", "wear") in kinds
@@ -180,13 +180,14 @@ def test_each_plausibility_rule_is_triggered_by_a_constructed_case():
     flag = next(f for f in _flags(data, after) if f["flag"] == "better_than_new")
     assert flag["units"] == [102]
     # a clean case raises nothing
-    clean = UnitTrajectories({"wear": np.full(n, 0.02)}, {"wear": std})
+    clean = UnitTrajectories({"wear": np.full(n, 0.02)}, {"wear": std}, {}, {})
     assert _flags(data, clean) == []
-    # a carried parameter already at its end value at the first cycle
+    # an added parameter already at its end value at the first cycle (no change
+    # over the record, so no unit carries a developing effect)
     eff = UnitEffect(
-        "parameter[leak]", np.full(4, 0.05), np.full(4, 1e-3), np.zeros(4),
-        np.array([True, True, False, False]), np.array([1.0, 1.0, np.nan, np.nan]),
-        np.zeros(n), np.full(4, 0.05), np.full(4, 1e-3),
+        "parameter[leak]", np.zeros(4), np.full(4, 1e-3), np.ones(4),
+        np.zeros(4, bool), np.full(4, np.nan), 0.0015, np.zeros(n),
+        np.array([0.05, 0.05, 0.0, 0.0]), np.full(4, 1e-3),
     )  # fmt: skip
     flags = _flags(data, clean, effects=[eff])
     assert [f["flag"] for f in flags] == ["constant_from_start"]
@@ -204,7 +205,7 @@ def test_effect_outside_its_stated_range_is_flagged():
         diagnosis=PUMP.diagnosis,
         name="pump+",
     )
-    clean = UnitTrajectories({}, {})
+    clean = UnitTrajectories({}, {}, {}, {})
     flags = plausibility_flags(
         model, data, ("wear",), [], {"bleed": ("bleed", "effect", 0.3)}, clean,
         clean, np.ones(2), np.ones(2), 0.01,
@@ -228,3 +229,24 @@ def test_holm_and_the_printed_numbers():
     assert fmt_p(0.0123) == "0.012"
     assert fmt_std(0.0) == fmt_std(float("nan")) == fmt_std(None) == "n/a"
     assert fmt_std(6e-5) == "6e-05"
+
+
+def test_the_fallback_keeps_a_library_effect_that_explains_better():
+    """A t_out bias and a bump in head outside the library: delta(w) on t_out can
+    absorb the bias (its constant), so the screen against delta finds nothing; the
+    bias (or its confounded twin, an inlet-temperature offset) explains it with one
+    number and is kept beside delta instead of being discarded."""
+    d = _fleet([], seed=2)
+    x = d.x.copy()
+    x[:, 2] += 0.5
+    x[:, 0] += np.exp(-(((d.w[:, 0] - 1.3) / 0.2) ** 2))
+    d = Dataset(
+        w=d.w, x=x, condition_names=d.condition_names, output_names=d.output_names,
+        unit=d.unit, time=d.time,
+    )  # fmt: skip
+    res = diagnose(d, PUMP, ["wear"], noise_std=NOISE)
+    assert res.rescreen is not None and res.rescreen.winner is None
+    first = res.identification.winner.name
+    assert first in res.added and "discrepancy" in res.added
+    assert {first, "sensor_bias[t_out]"} <= {first, *res.confounded}
+    assert "kept beside delta" in res.fallback_note
