@@ -56,6 +56,7 @@ from jaxcal.calibrators.interface import (
     MeasureFn,
     SensorNorm,
     check_norm,
+    check_prior,
     check_scale,
     run_calibrator,
     run_fleet,
@@ -218,11 +219,8 @@ def make_joint_ukf(
         ``aux["state_std"] [Z]`` (the filtered state after the sample) when ``Z > 0``.
     """
     norm = check_norm(norm)
-    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
-    if theta0.ndim != 1:
-        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
+    theta0, scale = check_prior(theta0, theta_scale)
     num_params = theta0.shape[0]
-    scale = check_scale(theta_scale, num_params, theta0.dtype)
     init_state, step_fn, num_states = transition
     s_scale = check_scale(state_scale, num_states, theta0.dtype)
     s_std = _state_vector(state_std, num_states, s_scale, "state_std")

@@ -32,6 +32,7 @@ from jaxcal.calibrators.interface import (
     CalStepOutput,
     SensorNorm,
     check_norm,
+    check_prior,
     check_scale,
 )
 from jaxcal.calibrators.least_squares import (
@@ -89,11 +90,8 @@ def make_window_least_squares(
         window) and ``state_std [Z]`` (of the window start).
     """
     norm = check_norm(norm)
-    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
-    if theta0.ndim != 1:
-        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
+    theta0, scale = check_prior(theta0, theta_scale)
     num_params = theta0.shape[0]
-    scale = check_scale(theta_scale, num_params, theta0.dtype)
     init_state, step_fn, num_states = transition
     s_scale = check_scale(state_scale, num_states, theta0.dtype)
     s_std = (
