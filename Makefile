@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 
-.PHONY: setup install test test-all lint format train validate bench-engine bench paper clean
+.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper clean
 
 setup: $(STAMP)
 
@@ -61,6 +61,18 @@ $(BENCH_STAMP): $(STAMP)
 
 bench: $(BENCH_STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_cpu.py $(BENCH_ARGS)
+
+# The battery example (examples/battery): PyBaMM data, every calibrator, dynamax and
+# PyBOP beside -> results/examples/battery/README.md. The extras are installed with
+# the core's jax/numpy/flax/optax pinned (a constraints file of the installed versions).
+EXAMPLES_STAMP := $(VENV)/.examples-installed
+$(EXAMPLES_STAMP): $(STAMP)
+	$(BIN)/python -m pip freeze | grep -iE '^(jax|jaxlib|numpy|flax|optax)==' > $(VENV)/.examples-constraints
+	$(BIN)/python -m pip install --quiet -c $(VENV)/.examples-constraints -e '.[examples]'
+	touch $(EXAMPLES_STAMP)
+
+battery: $(EXAMPLES_STAMP)
+	$(BIN)/python examples/battery/run.py $(BATTERY_ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -25,7 +25,9 @@ never arrived. Runs trained before the range was stored check finiteness only.
 Semantics (:mod:`jaxcal.calibrators.policy`): the calibrator carries the model output
 x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),
 norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (or F with
-``dynamics=physics``). :func:`load_calibrator` returns the same method as a
+``dynamics=physics``). A model with memory carries its hidden state z as well,
+z_0 = the state after the first sample with the prior theta
+(:mod:`jaxcal.envs.memory`). :func:`load_calibrator` returns the same method as a
 :class:`~jaxcal.calibrators.interface.Calibrator`, so it runs beside the other
 methods through ``run_calibrator`` / ``run_fleet``; ``jaxcal.calibrate(model, data,
 method="policy", run=<folder>)`` does the same on a data file.

@@ -21,3 +21,17 @@ def test_bring_your_own_model_block_runs(capsys):
     err = abs(result.theta[-1] - [1.3, 0.2]) / result.theta_std[-1]
     assert (err < 3).all(), err
     assert "+-" in capsys.readouterr().out
+
+
+def test_models_with_memory_block_runs(capsys):
+    text = README.read_text()
+    section = text.split("## Models with memory", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    assert len(blocks) == 1
+    namespace = {}
+    exec(compile(blocks[0], "README.md", "exec"), namespace)  # noqa: S102
+    result = namespace["result"]
+    assert result.theta.shape == (400, 2) and result.states.shape == (400, 1)
+    err = abs(result.theta[-1] - [3.0, 1.4]) / result.theta_std[-1]
+    assert (err < 3).all(), err
+    assert "state" in capsys.readouterr().out

@@ -60,6 +60,9 @@ class E2EParams:
     condition_dim: int = struct.field(pytree_node=False)  # W
     sensor_dim: int = struct.field(pytree_node=False)  # S
     theta_dim: int = struct.field(pytree_node=False)  # P
+    # 0: the paper's inputs [w_t, x_t, x_{t-1}]; K >= 1: the last K samples
+    # [w_t, x_t, ..., w_{t-K+1}, x_{t-K+1}] (models with memory).
+    window: int = struct.field(pytree_node=False, default=0)
 
     @property
     def network(self) -> MLP:
@@ -108,17 +111,56 @@ def e2e_features(w: Array, x: Array, mask: Array | None = None) -> Array:
     return jnp.concatenate([w, x, x_prev], axis=-1)
 
 
-def e2e_apply(params: E2EParams, w_t: Array, x_t: Array, x_prev: Array) -> Array:
-    """θ_t = G(w_t, x_t, x_{t−1}) for any leading batch shape; ``[..., P]``."""
-    inputs = jnp.concatenate([w_t, x_t, x_prev], axis=-1)
-    if inputs.shape[-1] != params.condition_dim + 2 * params.sensor_dim:
+def window_features(w: Array, x: Array, mask: Array | None, window: int) -> Array:
+    """Stack the last ``window`` samples ``[w_t, x_t, w_{t-1}, x_{t-1}, ...]`` along
+    time; a sample before the unit's first valid one (or an invalid one) is replaced
+    by the next more recent sample, as :func:`e2e_features` does for ``x_{t-1}``.
+
+    Returns:
+        ``[..., T, window (W + S)]``.
+    """
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window}")
+    if mask is None:
+        mask = jnp.ones(x.shape[:-1], bool)
+    mask = jnp.asarray(mask, bool)
+    cur = jnp.concatenate([w, x], axis=-1)
+    blocks, prev = [cur], cur
+    for k in range(1, window):  # a static, small loop over lags, not over time
+        shifted = jnp.concatenate(
+            [jnp.repeat(cur[..., :1, :], k, axis=-2), cur[..., :-k, :]], axis=-2
+        )
+        ok = jnp.concatenate(
+            [jnp.zeros(mask.shape[:-1] + (k,), bool), mask[..., :-k]], axis=-1
+        )
+        prev = jnp.where(ok[..., None], shifted, prev)
+        blocks.append(prev)
+    return jnp.concatenate(blocks, axis=-1)
+
+
+def _input_dim(condition_dim: int, sensor_dim: int, window: int) -> int:
+    if window == 0:
+        return condition_dim + 2 * sensor_dim
+    return window * (condition_dim + sensor_dim)
+
+
+def _apply(params: E2EParams, inputs: Array, like: Array) -> Array:
+    expected = _input_dim(params.condition_dim, params.sensor_dim, params.window)
+    if inputs.shape[-1] != expected:
         raise ValueError(
-            f"e2e_apply: expected w [..., {params.condition_dim}] and x, x_prev "
-            f"[..., {params.sensor_dim}], got {w_t.shape}, {x_t.shape}, {x_prev.shape}"
+            f"e2e: expected {expected} inputs (W = {params.condition_dim}, S = "
+            f"{params.sensor_dim}, window = {params.window}), got {inputs.shape[-1]}"
         )
     theta = regressor_apply(params.network, params.regressor, inputs)
-    dtype = jnp.result_type(x_t) if jnp.issubdtype(x_t.dtype, jnp.floating) else None
+    dtype = jnp.result_type(like) if jnp.issubdtype(like.dtype, jnp.floating) else None
     return theta if dtype is None else theta.astype(dtype)
+
+
+def e2e_apply(params: E2EParams, w_t: Array, x_t: Array, x_prev: Array) -> Array:
+    """θ_t = G(w_t, x_t, x_{t−1}) for any leading batch shape; ``[..., P]``."""
+    if params.window:
+        raise ValueError("e2e_apply takes the paper's inputs; this G has a window")
+    return _apply(params, jnp.concatenate([w_t, x_t, x_prev], axis=-1), x_t)
 
 
 def e2e_predict(
@@ -132,6 +174,9 @@ def e2e_predict(
         mask: optional ``[U, T]`` validity (see :func:`e2e_features`); outputs at
             invalid samples are meaningless and left to the caller to mask.
     """
+    if params.window:
+        feats = window_features(jnp.asarray(w), jnp.asarray(x), mask, params.window)
+        return _apply(params, feats, jnp.asarray(x))
     features = e2e_features(jnp.asarray(w), jnp.asarray(x), mask)
     s = params.sensor_dim
     return e2e_apply(
@@ -152,6 +197,7 @@ def fit_e2e(
     *,
     log_fn: Callable[[int, dict[str, float]], None] | None = None,
     progress: bool = False,
+    window: int = 0,
 ) -> tuple[E2EParams, dict]:
     """Fit G on labelled trajectories (supervised; Tian et al. §2.4).
 
@@ -164,6 +210,7 @@ def fit_e2e(
         cfg: architecture and optimisation settings.
         log_fn: per-epoch callback ``log_fn(epoch, {"train_loss", "val_loss"})``.
         progress: show a progress bar.
+        window: 0 for the paper's inputs, ``K`` for the last ``K`` samples.
 
     Returns:
         ``(params, history)`` as in :func:`jaxcal.nets.mlp.fit_regressor`.
@@ -173,7 +220,11 @@ def fit_e2e(
     for name, v in (("w", w), ("x", x), ("theta", theta)):
         if v.ndim != 3 or v.shape[:2] != mask.shape:
             raise ValueError(f"{name} must be [U, T, ·] with [U, T] = {mask.shape}")
-    features = np.asarray(jax.jit(e2e_features)(w, x, mask))  # one compile, not many
+    if window:
+        feats = jax.jit(window_features, static_argnums=3)(w, x, mask, window)
+    else:
+        feats = jax.jit(e2e_features)(w, x, mask)  # one compile, not many
+    features = np.asarray(feats)
     keep = mask.reshape(-1)
     inputs = features.reshape(-1, features.shape[-1])[keep]
     targets = theta.reshape(-1, theta.shape[-1])[keep]
@@ -188,20 +239,26 @@ def fit_e2e(
         condition_dim=w.shape[-1],
         sensor_dim=x.shape[-1],
         theta_dim=theta.shape[-1],
+        window=int(window),
     )
     return params, history
 
 
 @struct.dataclass
 class E2EState:
-    """Streaming state of the E2E calibrator: the previous measurement."""
+    """Streaming state of the E2E calibrator: the previous samples (and the model
+    state that goes with x-hat, for a model with memory)."""
 
     x_prev: Array  # [S]
+    w_hist: Array  # [K - 1, W] the samples before t, most recent first ([0, W]: none)
+    x_hist: Array  # [K - 1, S]
+    z: Array  # [Z] model state of x-hat ([0] for a static model)
 
 
 def make_e2e_calibrator(
-    params: E2EParams, measure: MeasureFn | None = None
-) -> Calibrator:
+    params: E2EParams, measure: MeasureFn | None = None, *, transition=None,
+    theta0: Array | None = None,
+) -> Calibrator:  # fmt: skip
     """The E2E network as a :class:`Calibrator` (``init``/``step`` pure functions).
 
     Args:
@@ -209,22 +266,51 @@ def make_e2e_calibrator(
         measure: optional model ``F(w [W], theta [P]) -> x [S]``; when given, ``xhat``
             is F(w_t, θ_t). Without it ``xhat`` is NaN: G has no model output of its
             own, and a zero or a copy of x_t would make tracking errors look perfect.
+        transition: for a model with memory, ``Problem.transition()`` instead of
+            ``measure``: ``xhat`` is the model run with the estimated θ, its state
+            starting at ``init(w0, theta0)``.
+        theta0: ``[P]`` parameters of that initial state.
 
     Returns:
-        ``Calibrator(init, step)``; ``init`` stores x_{−1} = x_0, so streaming output
-        equals :func:`e2e_predict` on the same record.
+        ``Calibrator(init, step)``; ``init`` stores x_{−1} = x_0 (the window holds
+        copies of the first sample), so streaming output equals :func:`e2e_predict`
+        on the same record.
     """
+    lags = max(params.window - 1, 0)
 
     def init(key, w0, x0):
-        del key, w0  # deterministic; only the first measurement matters
-        return E2EState(x_prev=jnp.asarray(x0))
+        del key  # deterministic
+        w0, x0 = jnp.asarray(w0), jnp.asarray(x0)
+        z = jnp.zeros((0,), x0.dtype)
+        if transition is not None:
+            z = transition.init(w0, jnp.asarray(theta0, x0.dtype))
+        return E2EState(
+            x_prev=x0, w_hist=jnp.tile(w0, (lags, 1)), x_hist=jnp.tile(x0, (lags, 1)),
+            z=z,
+        )  # fmt: skip
 
     def step(state, w_t, x_t):
-        theta = e2e_apply(params, w_t, x_t, state.x_prev)
-        if measure is None:
+        if params.window:
+            blocks = [jnp.concatenate([w_t, x_t])]
+            blocks += [
+                jnp.concatenate([state.w_hist[i], state.x_hist[i]]) for i in range(lags)
+            ]
+            theta = _apply(params, jnp.concatenate(blocks), x_t)
+        else:
+            theta = e2e_apply(params, w_t, x_t, state.x_prev)
+        z = state.z
+        if transition is not None:
+            z, xhat = transition.step(state.z, w_t, theta)
+        elif measure is None:
             xhat = jnp.full_like(x_t, jnp.nan, dtype=jnp.result_type(x_t, 0.0))
         else:
             xhat = measure(w_t, theta)
-        return E2EState(x_prev=x_t), CalStepOutput(theta=theta, xhat=xhat)
+        new_state = E2EState(
+            x_prev=x_t,
+            w_hist=jnp.concatenate([w_t[None], state.w_hist])[:lags],
+            x_hist=jnp.concatenate([x_t[None], state.x_hist])[:lags],
+            z=z,
+        )
+        return new_state, CalStepOutput(theta=theta, xhat=xhat)
 
     return Calibrator(init=init, step=step)

@@ -17,6 +17,12 @@ Methods (peers under the one ``Calibrator(init, step)`` interface):
   the model over the parameter box (or pass trained weights as ``e2e=``);
 * ``"policy"``: a trained tracking policy, ``run=<run folder>``.
 
+A model with hidden states (``Model.from_step``) takes the same call: the UKF
+filters the states jointly with the parameters, least squares fits the parameters
+and the window's initial state by simulating the model over a sliding window, E2E
+reads a window of past samples, a policy carries the model state;
+``result.states [N, Z]`` holds the estimated states where a method has them.
+
 Noise: ``noise={output: std}``; when omitted it is estimated from the data as the
 residual of a sliding-window least-squares pass (``result.noise_source`` says so).
 """
@@ -45,6 +51,9 @@ class CalibrationResult:
     Attributes:
         theta: ``[N, P]`` calibrated parameters after each row.
         theta_std: ``[N, P]`` their standard deviation, or ``None``.
+        states: ``[N, Z]`` the model's hidden state after each row (the joint UKF's
+            filtered state, the window fit's simulated one), or ``None``.
+        state_names: ``Z`` names (empty for a static model).
         xhat: ``[N, S]`` the model output that goes with ``theta``.
         valid: ``[N]`` bool; False where the sample was skipped (``reason``).
         reason: ``[N]`` str: ``ok`` or why the sample was skipped.
@@ -58,6 +67,8 @@ class CalibrationResult:
 
     theta: np.ndarray
     theta_std: np.ndarray | None
+    states: np.ndarray | None
+    state_names: tuple[str, ...]
     xhat: np.ndarray
     valid: np.ndarray
     reason: np.ndarray
@@ -85,6 +96,9 @@ class CalibrationResult:
             cols[name] = self.theta[:, j]
             if self.theta_std is not None:
                 cols[f"{name}_std"] = self.theta_std[:, j]
+        if self.states is not None:
+            for j, name in enumerate(self.state_names):
+                cols[name] = self.states[:, j]
         for j, name in enumerate(self.output_names):
             cols[f"{name}_hat"] = self.xhat[:, j]
         cols["valid"], cols["reason"] = self.valid, self.reason
@@ -125,7 +139,11 @@ def calibrate(
         outputs: outputs to use (default: every model output in the data).
         seed: PRNG seed (E2E training).
         options: method settings — ``q``, ``prior_std`` (UKF), ``window``,
-            ``num_iters`` (LS), ``e2e``/``e2e_config`` (E2E), ``run`` (policy);
+            ``num_iters`` (LS), ``e2e``/``e2e_config``/``e2e_window`` (E2E), ``run``
+            (policy); for a model with hidden states ``state_std`` (initial-state
+            std: scalar, ``[Z]`` or ``{state: std}``; default 1 % of the state's
+            size) and ``state_q`` (UKF process noise on the states per step,
+            default 1e-6 of the state's size: the model is trusted);
             and the readers' ``rename``, ``ignore``, ``nonfinite``.
 
     Returns:
@@ -141,12 +159,6 @@ def calibrate(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     model = load(model)
-    if model.is_stateful:
-        raise ValueError(
-            f"model {model.name!r} has hidden states {model.state_names}; the "
-            "calibrators take static models for now (stateful support is the next "
-            "step of the roadmap)"
-        )
     dtype = _dtype(model)
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
     if method == "policy" and options.get("run"):
@@ -162,7 +174,8 @@ def calibrate(
     problem = Problem.build(model, data, theta=theta, noise=noise)
     padded = data.padded(dtype)
     if noise is None and method != "policy":
-        problem = estimate_noise(problem, padded)
+        state_opts = {k: options[k] for k in ("state_std", "state_q") if k in options}
+        problem = estimate_noise(problem, padded, state_opts)
     calibrator, run = build_calibrator(method, problem, padded, seed, options)
     out = run(calibrator, padded)
     return _to_rows(out, padded, data, problem, method, notes)
@@ -176,11 +189,16 @@ def _to_rows(out, padded, data: Dataset, problem: Problem, method: str, notes):
     std = None
     if isinstance(out.aux, dict) and "theta_std" in out.aux:
         std = rows(out.aux["theta_std"]).astype(np.float64)
+    states = None
+    if isinstance(out.aux, dict) and "state" in out.aux:
+        states = rows(out.aux["state"]).astype(np.float64)
     valid = rows(out.valid, False).astype(bool)
     reason = np.asarray(REASONS)[rows(out.reason, 0).astype(np.int64)]
     return CalibrationResult(
         theta=rows(out.theta).astype(np.float64),
         theta_std=std,
+        states=states,
+        state_names=problem.model.state_names,
         xhat=rows(out.xhat).astype(np.float64),
         valid=valid,
         reason=reason,

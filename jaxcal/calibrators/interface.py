@@ -315,6 +315,14 @@ def check_norm(norm: Any, name: str = "norm") -> SensorNorm:
     return SensorNorm(mean=mean, std=std)
 
 
+def check_prior(theta0: Array, theta_scale: Array | None) -> tuple[Array, Array]:
+    """``theta0`` as a float ``[P]`` array and its ``[P]`` scales (ones when None)."""
+    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
+    if theta0.ndim != 1:
+        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
+    return theta0, check_scale(theta_scale, theta0.shape[0], theta0.dtype)
+
+
 def check_scale(theta_scale: Array | None, num_params: int, dtype: Any) -> Array:
     """``theta_scale`` -> a positive ``[P]`` array (ones when ``None``).
 

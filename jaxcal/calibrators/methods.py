@@ -73,22 +73,74 @@ def make_runner(check: SampleCheck | None, key=None):
 
 
 def _model_based(method: str, problem: Problem, dtype, options: dict) -> Calibrator:
+    """UKF or least squares on the problem's model; a model with hidden states gets
+    the joint state-and-parameter filter / the moving-window fit (options
+    ``state_std``, ``state_q``)."""
     from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
-    from jaxcal.calibrators.ukf import UKFConfig, make_ukf
+    from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
+    from jaxcal.calibrators.window_state import make_window_least_squares
 
-    if method == "ukf":
-        cfg = UKFConfig(r=1.0, **_take(options, UKFConfig))
-        make = make_ukf
-    else:
-        cfg = LeastSquaresConfig(r=1.0, **_take(options, LeastSquaresConfig))
-        make = make_least_squares
-    return make(
-        problem.measure(),
-        cfg,
-        noise_norm(problem, dtype),
+    cfg_type = UKFConfig if method == "ukf" else LeastSquaresConfig
+    cfg = cfg_type(r=1.0, **_take(options, cfg_type))
+    common = dict(
         theta0=jnp.asarray(problem.theta_prior, dtype),
         theta_scale=jnp.asarray(problem.theta_half_width, dtype),
     )
+    norm = noise_norm(problem, dtype)
+    if not problem.model.is_stateful:
+        options.pop("state_std", None), options.pop("state_q", None)
+        make = make_ukf if method == "ukf" else make_least_squares
+        return make(problem.measure(), cfg, norm, **common)
+    tr = problem.transition()
+    states = problem.model.state_names
+    scale = state_scale(problem, dtype)
+    std = _state_option(options.pop("state_std", None), states, 0.01 * scale)
+    if method == "ukf":
+        # a floor of process noise on the states (the model is trusted)
+        q = _state_option(options.pop("state_q", None), states, 1e-6 * scale)
+        return make_joint_ukf(
+            tr, cfg, norm, state_std=std, state_q=q, state_scale=scale,
+            theta_box=(problem.theta_low, problem.theta_high), **common,
+        )  # fmt: skip
+    if "state_q" in options:
+        raise ValueError("state_q is a UKF option; least squares takes state_std")
+    if cfg.prior_std is None:  # a window without excitation must not run off
+        cfg = dataclasses.replace(cfg, prior_std=1.0)
+    return make_window_least_squares(
+        tr, cfg, norm, state_std=np.maximum(std, 1e-9 * scale),
+        state_scale=scale, theta_box=(problem.theta_low, problem.theta_high),
+        **common,
+    )  # fmt: skip
+
+
+def state_scale(problem: Problem, dtype) -> np.ndarray:
+    """``[Z]`` natural size of each hidden state: ``|z0|`` at the nominal parameters
+    and the mid-range conditions (1 where that is 0)."""
+    tr = problem.transition()
+    w_mid = 0.5 * (problem.input_range.w_low + problem.input_range.w_high)
+    theta = jnp.asarray(problem.theta_prior, dtype)
+    z0 = np.abs(np.asarray(tr.init(jnp.asarray(w_mid, dtype), theta)))
+    return np.where(np.isfinite(z0) & (z0 > 0), z0, 1.0).astype(dtype)
+
+
+def _state_option(value, states, default) -> np.ndarray:
+    """``state_std`` / ``state_q``: a scalar, ``{state: value}`` or ``[Z]`` (state
+    units, >= 0) -> ``[Z]``."""
+    if value is None:
+        return np.asarray(default)
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - set(states))
+        if unknown:
+            raise ValueError(
+                f"unknown state(s) {unknown}; the model has {list(states)}"
+            )
+        pairs = zip(states, default, strict=True)
+        arr = np.array([float(value.get(n, d)) for n, d in pairs])
+    else:
+        arr = np.broadcast_to(np.asarray(value, np.float64), (len(states),)).copy()
+    if not np.all(np.isfinite(arr) & (arr >= 0)):
+        raise ValueError(f"state settings must be finite and >= 0, got {arr.tolist()}")
+    return arr.astype(np.asarray(default).dtype)
 
 
 def _take(options: dict, cfg_type) -> dict:
@@ -97,7 +149,7 @@ def _take(options: dict, cfg_type) -> dict:
     return {k: options.pop(k) for k in list(options) if k in names}
 
 
-def estimate_noise(problem: Problem, padded: Padded) -> Problem:
+def estimate_noise(problem: Problem, padded: Padded, options=None) -> Problem:
     """The noise std per output from the post-fit residual of a UKF pass.
 
     The filter runs on a provisional noise (first 1 % of each output's spread, then
@@ -109,21 +161,13 @@ def estimate_noise(problem: Problem, padded: Padded) -> Problem:
     sample) is used rather than least squares, whose Jacobians cost far more on a
     model with an iterative solver.
     """
-    from jaxcal.calibrators.ukf import UKFConfig, make_ukf
-
     dtype = padded.w.dtype
     lengths = padded.mask.sum(axis=1, keepdims=True)
     settled = np.arange(padded.x.shape[1])[None] >= _NOISE_SETTLE * lengths
     num_s, num_p = len(problem.output_names), len(problem.theta_names)
     dof = num_s / max(num_s - num_p, 1)
     for _ in range(_NOISE_PASSES):  # the second pass weighs outputs by the first
-        cal = make_ukf(
-            problem.measure(),
-            UKFConfig(r=1.0, posterior_xhat=True),
-            noise_norm(problem, dtype),
-            theta0=jnp.asarray(problem.theta_prior, dtype),
-            theta_scale=jnp.asarray(problem.theta_half_width, dtype),
-        )
+        cal = _model_based("ukf", problem, dtype, dict(options or {}))
         out = make_runner(model_check(problem))(cal, padded)
         resid = np.asarray(out.xhat) - padded.x
         keep = np.asarray(out.valid) & settled
@@ -147,7 +191,8 @@ def _e2e(problem: Problem, padded: Padded, seed: int, options: dict) -> Calibrat
     from jaxcal.nets.mlp import RegressorConfig
 
     params = options.pop("e2e", None)
-    measure = problem.measure()
+    measure = problem.measure() if not problem.model.is_stateful else None
+    window = int(options.pop("e2e_window", 16 if measure is None else 0))
     if params is None:
         cfg = options.pop(
             "e2e_config",
@@ -160,14 +205,42 @@ def _e2e(problem: Problem, padded: Padded, seed: int, options: dict) -> Calibrat
             ),
         )  # fmt: skip
         copies = int(options.pop("e2e_copies", 8))
-        params = fit_e2e_sim(problem, padded, measure, cfg, seed, copies)[0]
-    return make_e2e_calibrator(params, measure)
+        params = fit_e2e_sim(problem, padded, cfg, seed, copies, window)[0]
+    if measure is not None:
+        return make_e2e_calibrator(params, measure)
+    return make_e2e_calibrator(
+        params, transition=problem.transition(),
+        theta0=jnp.asarray(problem.theta_prior, padded.w.dtype),
+    )  # fmt: skip
 
 
-def fit_e2e_sim(problem: Problem, padded: Padded, measure, cfg, seed: int, copies: int):
+def simulate_fleet(problem: Problem, w: np.ndarray, theta: np.ndarray, mask):
+    """``x [U, T, S]`` of the problem's model along ``w [U, T, W]`` with ``theta
+    [U, T, P]``: evaluated in parallel for a static model, by ``lax.scan`` from
+    ``init(w_0, theta_0)`` for one with memory (invalid rows hold the state)."""
+    if not problem.model.is_stateful:
+        simulate = jax.jit(jax.vmap(jax.vmap(problem.measure())))
+        return np.asarray(simulate(jnp.asarray(w), jnp.asarray(theta)))
+    tr = problem.transition()
+
+    def unit(w_u, th_u, m_u):
+        def body(z, inputs):
+            w_t, th_t, ok = inputs
+            z_next, x = tr.step(z, w_t, th_t)
+            return jnp.where(ok, z_next, z), x
+
+        return jax.lax.scan(body, tr.init(w_u[0], th_u[0]), (w_u, th_u, m_u))[1]
+
+    run = jax.jit(jax.vmap(unit))
+    return np.asarray(run(jnp.asarray(w), jnp.asarray(theta), jnp.asarray(mask)))
+
+
+def fit_e2e_sim(
+    problem: Problem, padded: Padded, cfg, seed: int, copies: int, window: int = 0
+):
     """Train G on ``copies`` simulated fleets: the data's conditions, a constant
     parameter vector per simulated unit drawn uniformly in the box, and Gaussian
-    output noise of the problem's std."""
+    output noise of the problem's std (``window``: G's input, see ``fit_e2e``)."""
     from jaxcal.calibrators.e2e import fit_e2e
 
     key = jax.random.key(seed)
@@ -180,11 +253,12 @@ def fit_e2e_sim(problem: Problem, padded: Padded, measure, cfg, seed: int, copie
         jax.random.uniform(key_theta, (num, len(low)), minval=low, maxval=high)
     ).astype(w.dtype)
     theta = np.broadcast_to(theta_u[:, None, :], w.shape[:2] + theta_u.shape[-1:])
-    simulate = jax.jit(jax.vmap(jax.vmap(measure)))
-    x = np.asarray(simulate(jnp.asarray(w), jnp.asarray(theta)))
+    x = simulate_fleet(problem, w, theta, mask)
     x = x + problem.noise_std * np.asarray(jax.random.normal(key_noise, x.shape))
     ok = mask & np.all(np.isfinite(x), axis=-1)
-    return fit_e2e(key_fit, w, np.nan_to_num(x), np.array(theta), ok, cfg)
+    return fit_e2e(
+        key_fit, w, np.nan_to_num(x), np.array(theta), ok, cfg, window=window
+    )
 
 
 def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | None]:

@@ -13,6 +13,12 @@ index, so on samples t >= 1 the calibrator reproduces
 yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
 norm(w_0)])) and x-hat_0 = x_0.
 
+A model with memory (:class:`~jaxcal.envs.memory.StatefulDynamics`) also carries its
+state z: (z_t, x-hat_t) = step(z_{t-1}, w_t, x-hat_{t-1}, theta_t), and the first
+sample sets z_0 = init(w_0), the state after w_0 with the prior theta (the training
+environment's reference state at t = 0 is the same, so on whole trajectories the two
+still agree). A static model carries ``z = None``.
+
 Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner
 (:func:`make_fleet_runner`) serves any trained policy of the same architecture
 without retracing.
@@ -43,6 +49,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
+from jaxcal.envs.memory import StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
@@ -76,15 +83,17 @@ class PolicyParams:
 
 @struct.dataclass
 class PolicyState:
-    """Calibrator state: the model output of the previous sample.
+    """Calibrator state: the model output (and state) of the previous sample.
 
     Attributes:
         xhat: ``[S]`` x-hat_{t-1} (physical units).
         started: ``[]`` bool, False before the first sample.
+        z: ``[Z]`` model state after the previous sample; ``None``: static model.
     """
 
     xhat: Array
     started: Array
+    z: Array | None = None
 
 
 def policy_params_from_env(env_params: EnvParams, actor_params: PyTree) -> PolicyParams:
@@ -102,22 +111,26 @@ def policy_params_from_env(env_params: EnvParams, actor_params: PyTree) -> Polic
 
 
 def make_policy_calibrator(
-    actor: nn.Module, dynamics: Dynamics, params: PolicyParams
+    actor: nn.Module, dynamics: Dynamics | StatefulDynamics, params: PolicyParams
 ) -> Calibrator:
     """The deterministic policy pi* and the dynamics as ``Calibrator(init, step)``.
 
     Args:
         actor: the agent's actor module (``apply(params, obs) -> (mean, log_std)``).
-        dynamics: ``dynamics(dyn_params, w [W], xhat [S], theta [P]) -> xhat [S]``.
+        dynamics: ``dynamics(dyn_params, w [W], xhat [S], theta [P]) -> xhat [S]``,
+            or a :class:`~jaxcal.envs.memory.StatefulDynamics`.
         params: :class:`PolicyParams` (may be traced).
 
     Returns:
         A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is ``None``.
     """
+    dyn = as_stateful(dynamics)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
-        del key, w0  # deterministic; x-hat starts at the first measurement
-        return PolicyState(xhat=x0, started=jnp.zeros((), bool))
+        del key  # deterministic; x-hat starts at the first measurement
+        z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
+        z0 = None if z0 is None else z0.astype(x0.dtype)
+        return PolicyState(xhat=x0, started=jnp.zeros((), bool), z=z0)
 
     def step(
         state: PolicyState, w_t: Array, x_t: Array
@@ -132,9 +145,12 @@ def make_policy_calibrator(
         ).astype(jnp.float32)
         mean, _ = actor.apply(params.actor, obs)
         theta = action_to_theta(jnp.tanh(mean), params)
-        xhat = dynamics(params.dyn_params, w_t, xhat_prev, theta).astype(x_t.dtype)
-        xhat = jnp.where(state.started, xhat, x_t)
-        new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool))
+        z, xhat = dyn.step(params.dyn_params, state.z, w_t, xhat_prev, theta)
+        xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
+        if dyn.num_states:  # the first sample's state: init (as the env's reset)
+            z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
+            z = jnp.where(state.started, z, z_first.astype(z.dtype))
+        new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z)
         return new_state, CalStepOutput(theta=theta, xhat=xhat)
 
     return Calibrator(init, step)
@@ -213,7 +229,9 @@ def initial_guard_carry(
     """
     w = jnp.zeros_like(params.w_mean)
     x = jnp.zeros_like(params.x_mean)
-    state = PolicyState(xhat=x, started=jnp.zeros((), bool))
+    num_states = as_stateful(dynamics).num_states
+    z = jnp.zeros((num_states,), x.dtype) if num_states else None
+    state = PolicyState(xhat=x, started=jnp.zeros((), bool), z=z)
     step = make_policy_calibrator(actor, dynamics, params).step
     out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
     out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)

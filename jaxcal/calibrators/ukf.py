@@ -24,6 +24,16 @@ transform). Choices the paper leaves open, fixed here:
   sigma points local for strongly nonlinear models at the price of a large negative
   centre weight (cancellation; use float64 then).
 
+Hidden states (Särkkä 2013, sec. 5.6 on augmented state-space models; the joint
+filter of e.g. Wan & van der Merwe 2001): for a model with memory,
+``(z_t, x_t) = step(z_{t-1}, w_t, theta_t)``, the filter's state is the augmented
+``a = [z / state_scale, theta / theta_scale]``. One unscented transform per sample
+propagates the sigma points of ``(z_{t-1}, theta_t)`` through ``step`` and gives the
+predicted ``z_t``, the predicted ``x_t`` and their cross-covariances at once; the
+parameter block keeps its exact identity prediction, process noise ``state_q`` is
+added to ``z_t`` after the transform. A static model is the case ``Z = 0``
+(:func:`make_ukf`): the same code, the same numbers.
+
 Float64 is recommended (covariance updates lose positive definiteness in float32 at
 ``q = r = 0.01``); the Cholesky factorisation adds ``jitter`` to the diagonal.
 """
@@ -46,10 +56,12 @@ from jaxcal.calibrators.interface import (
     MeasureFn,
     SensorNorm,
     check_norm,
+    check_prior,
     check_scale,
     run_calibrator,
     run_fleet,
 )
+from jaxcal.problem import Transition
 from jaxcal.typedefs import Array, PRNGKey
 
 
@@ -79,10 +91,11 @@ class UKFConfig:
 
 @struct.dataclass
 class UKFState:
-    """Gaussian belief over the scaled parameters ``z = theta / theta_scale``."""
+    """Gaussian belief over the scaled augmented state
+    ``[z / state_scale, theta / theta_scale]`` (``[P]`` for a static model)."""
 
-    mean: Array  # [P]
-    cov: Array  # [P, P]
+    mean: Array  # [Z + P]
+    cov: Array  # [Z + P, Z + P]
 
 
 def unscented_weights(num_params: int, cfg: UKFConfig) -> tuple[Array, Array, float]:
@@ -155,62 +168,177 @@ def make_ukf(
         ``log_likelihood []`` (of the normalised ``x_t`` given the past) and, if asked,
         ``theta_cov [P, P]``.
     """
+
+    def init_state(w0, theta):
+        del w0
+        return jnp.zeros((0,), theta.dtype)
+
+    def step(z, w, theta):
+        return z, measure_fn(w, theta)
+
+    return make_joint_ukf(
+        Transition(init_state, step, 0), cfg, norm, theta0=theta0,
+        theta_scale=theta_scale,
+    )  # fmt: skip
+
+
+def make_joint_ukf(
+    transition: Transition,
+    cfg: UKFConfig,
+    norm: SensorNorm,
+    *,
+    theta0: Array,
+    theta_scale: Array | None = None,
+    state_std: Array | None = None,
+    state_q: Array | None = None,
+    state_scale: Array | None = None,
+    theta_box: tuple[Array, Array] | None = None,
+) -> Calibrator:
+    """The joint (augmented) state-and-parameter UKF of a model with memory.
+
+    Args:
+        transition: ``Transition(init, step, Z)`` (``Problem.transition()``):
+            ``init(w0 [Wd], theta [P]) -> z0 [Z]`` is the prior mean of the state
+            before the first sample, ``step(z [Z], w [Wd], theta [P]) -> (z', x
+            [S])``; with ``Z = 0`` this is the static filter of :func:`make_ukf`.
+        cfg, norm, theta0, theta_scale: as in :func:`make_ukf`.
+        state_std: ``[Z]`` std of the initial state around ``init_state`` (state
+            units; 0 = known exactly). Default: ``state_scale``.
+        state_q: ``[Z]`` process-noise std added to the state per step (model error
+            in the state equation; default 0, the model is trusted).
+        state_scale: ``[Z]`` positive natural size of each state (the filter works
+            in ``z / state_scale``); default ones.
+        theta_box: ``(low [P], high [P])``: the model is evaluated at each sigma
+            point's parameters clipped into this box. Sigma points spread
+            ``sqrt(Z + P)`` standard deviations; with a broad prior they leave the
+            range where a dynamic model is stable (a time constant below zero),
+            and one non-finite point stalls the filter for good.
+
+    Returns:
+        ``Calibrator(init, step)`` as :func:`make_ukf`, with ``aux["state"] [Z]`` and
+        ``aux["state_std"] [Z]`` (the filtered state after the sample) when ``Z > 0``.
+    """
     norm = check_norm(norm)
-    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
-    if theta0.ndim != 1:
-        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
+    theta0, scale = check_prior(theta0, theta_scale)
     num_params = theta0.shape[0]
-    scale = check_scale(theta_scale, num_params, theta0.dtype)
-    wm, wc, spread = unscented_weights(num_params, cfg)
+    init_state, step_fn, num_states = transition
+    s_scale = check_scale(state_scale, num_states, theta0.dtype)
+    s_std = _state_vector(state_std, num_states, s_scale, "state_std")
+    s_q = _state_vector(state_q, num_states, 0.0 * s_scale, "state_q")
+    n = num_states + num_params
+    wm, wc, spread = unscented_weights(n, cfg)
+
     eye = jnp.eye(num_params, dtype=theta0.dtype)
+    # Process noise: q on the parameters before the transform (theta_t = theta_{t-1}
+    # + xi_t enters x_t), state_q on z_t after it (it enters x_{t+1}).
+    q_theta = (
+        jnp.zeros((n, n), theta0.dtype).at[num_states:, num_states:].set(cfg.q**2 * eye)
+    )
+    q_state = jnp.diag(
+        jnp.concatenate([(s_q / s_scale) ** 2, jnp.zeros((num_params,), theta0.dtype)])
+    )
+
+    def unpack(a):
+        return s_scale * a[:num_states], scale * a[num_states:]
+
+    if theta_box is None:
+        admissible = lambda theta: theta  # noqa: E731
+    else:
+        low, high = (jnp.asarray(b, theta0.dtype) for b in theta_box)
+        admissible = lambda theta: jnp.clip(theta, low, high)  # noqa: E731
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> UKFState:
-        del key, w0, x0  # the prior is fixed by the factory
-        return UKFState(mean=theta0 / scale, cov=cfg.prior_std**2 * eye)
+        del key, x0  # the prior is fixed by the factory
+        u0 = theta0 / scale
+        cov_u = cfg.prior_std**2 * eye
+        if not num_states:
+            return UKFState(mean=u0, cov=cov_u)
+        # The initial state depends on the unknown parameters (a cell at rest:
+        # z0 = init(w0, theta)): its prior is the unscented transform of init over
+        # the parameter prior, cross-covariance included, plus state_std.
+        wm_p, wc_p, spread_p = unscented_weights(num_params, cfg)
+        points = sigma_points(u0, cov_u, spread_p, cfg.jitter)  # [2P + 1, P]
+        z_points = jax.vmap(
+            lambda u: jnp.asarray(init_state(w0, admissible(scale * u)), u0.dtype)
+        )(points) / s_scale
+        z_mean = wm_p @ z_points
+        dz, du = z_points - z_mean, points - u0
+        cov_zz = dz.T @ (wc_p[:, None] * dz) + jnp.diag((s_std / s_scale) ** 2)
+        cov_zu = dz.T @ (wc_p[:, None] * du)
+        cov = jnp.block([[cov_zz, cov_zu], [cov_zu.T, cov_u]])
+        return UKFState(mean=jnp.concatenate([z_mean, u0]), cov=cov)
 
     def step(state: UKFState, w_t: Array, x_t: Array) -> tuple[UKFState, CalStepOutput]:
-        def measure_n(z: Array) -> Array:
-            return (measure_fn(w_t, scale * z) - norm.mean) / norm.std
+        def propagate(a: Array):
+            z, theta = unpack(a)
+            z_next, x = step_fn(z, w_t, admissible(theta))
+            return z_next / s_scale, (x - norm.mean) / norm.std
 
-        # Prediction (Särkkä alg. 5.14, identity dynamics => exact): m, P + Q.
+        # One unscented transform of (z_{t-1}, theta_t) through the step.
         mean_prior = state.mean
-        cov_prior = state.cov + cfg.q**2 * eye
-        # Update: propagate the sigma points through the normalised measurement model.
-        points = sigma_points(mean_prior, cov_prior, spread, cfg.jitter)  # [K, P]
-        y_points = jax.vmap(measure_n)(points)  # [K, S]
+        cov_prior = state.cov + q_theta
+        points = sigma_points(mean_prior, cov_prior, spread, cfg.jitter)  # [K, n]
+        z_points, y_points = jax.vmap(propagate)(points)  # [K, Z], [K, S]
+        # The parameter block is carried unchanged: its prediction stays exact.
+        mean_pred = jnp.concatenate([wm @ z_points, mean_prior[num_states:]])
+        da = (
+            jnp.concatenate([z_points, points[:, num_states:]], axis=1) - mean_pred
+        )  # [K, n]
         y_mean = wm @ y_points
         dy = y_points - y_mean
-        dz = points - mean_prior
+        if num_states:
+            cov_pred = da.T @ (wc[:, None] * da) + q_state
+            cov_pred = cov_pred.at[num_states:, num_states:].set(
+                cov_prior[num_states:, num_states:]
+            )
+        else:
+            cov_pred = cov_prior
         s_cov = dy.T @ (wc[:, None] * dy) + cfg.r**2 * jnp.eye(
             dy.shape[1], dtype=dy.dtype
         )
-        cross = dz.T @ (wc[:, None] * dy)  # [P, S]
+        cross = da.T @ (wc[:, None] * dy)  # [n, S]
         s_chol = cho_factor(s_cov, lower=True)
         gain = cho_solve(s_chol, cross.T).T  # C S^-1
         innovation = (x_t - norm.mean) / norm.std - y_mean
-        mean = mean_prior + gain @ innovation
-        cov = cov_prior - gain @ s_cov @ gain.T
+        mean = mean_pred + gain @ innovation
+        cov = cov_pred - gain @ s_cov @ gain.T
         cov = 0.5 * (cov + cov.T)  # keep symmetric against round-off
         log_likelihood = -0.5 * (
             innovation @ cho_solve(s_chol, innovation)
             + 2.0 * jnp.sum(jnp.log(jnp.diag(s_chol[0])))
             + innovation.shape[0] * math.log(2.0 * math.pi)
         )
-        if cfg.posterior_xhat:
-            xhat = measure_fn(w_t, scale * mean)
+        z_post, theta_post = unpack(mean)
+        if cfg.posterior_xhat:  # x_t of the previous posterior state, new theta
+            xhat = step_fn(unpack(state.mean)[0], w_t, admissible(theta_post))[1]
         else:  # the predicted measurement mean, free but one step behind the update
             xhat = norm.mean + norm.std * y_mean
+        std = jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0))
         aux = {
-            "theta_std": scale * jnp.sqrt(jnp.clip(jnp.diag(cov), 0.0)),
+            "theta_std": scale * std[num_states:],
             "innovation": innovation,
             "log_likelihood": log_likelihood,
         }
+        if num_states:
+            aux["state"] = z_post
+            aux["state_std"] = s_scale * std[:num_states]
         if cfg.return_cov:
-            aux["theta_cov"] = cov * scale[:, None] * scale[None, :]
+            block = cov[num_states:, num_states:]
+            aux["theta_cov"] = block * scale[:, None] * scale[None, :]
         new_state = UKFState(mean=mean, cov=cov)
-        return new_state, CalStepOutput(theta=scale * mean, xhat=xhat, aux=aux)
+        return new_state, CalStepOutput(theta=theta_post, xhat=xhat, aux=aux)
 
     return Calibrator(init=init, step=step)
+
+
+def _state_vector(value, num_states: int, default: Array, field: str) -> Array:
+    """A scalar or ``[Z]`` non-negative setting -> ``[Z]`` (``default`` if None)."""
+    if value is None:
+        return default
+    arr = jnp.broadcast_to(jnp.asarray(value, default.dtype), (num_states,))
+    if not isinstance(arr, jax.core.Tracer) and not bool(jnp.all(arr >= 0)):
+        raise ValueError(f"{field} must be >= 0 (scalar or [Z]), got {value}")
+    return arr
 
 
 def ukf_filter(

@@ -227,8 +227,9 @@ def diagnose(
     Args:
         data: a :class:`~jaxcal.data.dataset.Dataset` (``time`` = cycle) or a
             turbofan ``Record``.
-        model: a static :class:`~jaxcal.model.Model` or a ``jaxcal.models.load``
-            spec; float64 must be enabled by the caller.
+        model: a :class:`~jaxcal.model.Model` (one with hidden states is
+            diagnosed on its one-step prediction, :mod:`.one_step`) or a
+            ``jaxcal.models.load`` spec; float64 must be enabled by the caller.
         declared: the calibrated (declared) parameters.
         cfg: settings.
         sensors: outputs of the residual (default: all usable).
@@ -243,16 +244,19 @@ def diagnose(
         from jaxcal.models import load
 
         model = load(model)
-    if model.is_stateful:
-        raise ValueError(
-            f"model {model.name!r} has hidden states {model.state_names}; the "
-            "diagnosis handles static models only (for now)"
-        )
     declared = tuple(declared)
     if not declared or len(set(declared)) != len(declared):
         raise ValueError(f"calibrate must name distinct parameters, got {declared}")
     model.parameter_index(declared)
     dataset, dropped_rows = _as_dataset(data)
+    state_note = None
+    if model.is_stateful:  # one-step residuals (jaxcal.diagnosis.one_step)
+        from jaxcal.diagnosis.one_step import one_step_data, one_step_model
+
+        dataset, state_note = one_step_data(
+            model, dataset, declared, noise_std, sensors
+        )
+        model = one_step_model(model)
     data = prepare_data(
         dataset,
         model,
@@ -264,6 +268,8 @@ def diagnose(
         noise_std=noise_std,
         dropped_rows=dropped_rows,
     )
+    if state_note is not None:
+        data = dataclasses.replace(data, notes=(state_note, *data.notes))
     spec0 = ModelSpec(declared)
     null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
     if not null.evaluation.valid.all():

@@ -8,12 +8,19 @@ observed trajectory x of one unit:
 * action a_t in [-1, 1]^P, mapped affinely to theta_{t+1} in [theta_low, theta_high];
 * transition x-hat_{t+1} = dynamics(dyn_params, w_{t+1}, x-hat_t, theta_{t+1}), where
   ``dynamics`` is any pure callable: the learned surrogate D uses x-hat_t, the physics
-  F(w, theta) ignores it;
+  F(w, theta) ignores it. A model with memory carries its hidden state z [Z] in the
+  env state: (z_{t+1}, x-hat_{t+1}) = step(z_t, w_{t+1}, theta_{t+1})
+  (:class:`StatefulDynamics`, the state :class:`StatefulEnvState`); a plain callable
+  is the stateful one with Z = 0, so the static path is the same code, its state the
+  plain :class:`EnvState` rather than one with an empty z (Orbax refuses to
+  checkpoint zero-size arrays, and so a static run's checkpoints keep the layout
+  they had: older runs resume);
 * cost c_t = mean_S ((x_{t+1} - x-hat_{t+1}) / sigma)^2, sigma = training std of x.
 
 Episodes are windows of ``episode_length`` steps of one unit (random unit, random
 start such that the window and its last next state fit the unit's valid length),
-x-hat_0 = x_0.
+x-hat_0 = x_0 and z_0 = the reference state of that sample (``EnvParams.z_ref``, the
+model state after the sample, computed by the training pipeline).
 The data live in :class:`EnvParams` (so a new data set or surrogate is new input, not a
 recompilation); static sizes live in :class:`EnvConfig`. The transition is wrapped in
 ``lax.stop_gradient`` unless ``EnvConfig.differentiable`` is set. ``step`` returns the
@@ -31,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
 from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
@@ -87,6 +95,8 @@ class EnvParams:
         x_mean, x_std: [S] normalisation of x and x-hat; x_std is also the cost's sigma.
         theta_low, theta_high: [P] action box.
         dyn_params: pytree passed to ``dynamics`` (surrogate weights, engine constants).
+        z_ref: [U, T, Z] reference model state after each sample (where an episode
+            starting there takes its z from); ``None`` for a static model.
     """
 
     w: Array
@@ -99,6 +109,7 @@ class EnvParams:
     theta_low: Array
     theta_high: Array
     dyn_params: PyTree
+    z_ref: Array | None = None
 
 
 def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
@@ -131,6 +142,7 @@ def make_env_params(
     dyn_params: PyTree,
     *,
     stats: Normalisation | None = None,
+    z_ref: Array | None = None,
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
@@ -142,6 +154,8 @@ def make_env_params(
         stats: normalisation statistics (the problem's ``norm``); ``None`` computes
             them from (w, x). Pass the training set's statistics when building
             test/held-out parameters. They are cast to the data's dtype.
+        z_ref: ``[U, T, Z]`` reference model states, finite on valid rows;
+            ``None``: a static model (no state).
 
     Returns:
         :class:`EnvParams`.
@@ -184,6 +198,16 @@ def make_env_params(
         value = np.asarray(value)
         if value.shape != (dim,) or not np.all(value > 0):
             raise ValueError(f"stats.{name} must be a positive [{dim}] array")
+    z_ref_np = None
+    if z_ref is not None:
+        z_ref_np = np.asarray(z_ref, x_np.dtype)
+        if z_ref_np.ndim != 3 or z_ref_np.shape[:2] != (num_units, num_steps):
+            raise ValueError(
+                f"z_ref must be [U, T, Z] with [U, T] = ({num_units}, {num_steps}), "
+                f"got {z_ref_np.shape}"
+            )
+        if not np.isfinite(z_ref_np[valid]).all():
+            raise ValueError("z_ref must be finite on valid rows (t < lengths[u])")
     return EnvParams(
         w=jnp.asarray(w_np),
         x=jnp.asarray(x_np),
@@ -195,6 +219,7 @@ def make_env_params(
         theta_low=jnp.asarray(low),
         theta_high=jnp.asarray(high),
         dyn_params=dyn_params,
+        z_ref=None if z_ref_np is None else jnp.asarray(z_ref_np),
     )
 
 
@@ -244,6 +269,24 @@ class EnvState:
     time: Array
     step: Array
     xhat: Array
+
+
+@struct.dataclass
+class StatefulEnvState(EnvState):
+    """:class:`EnvState` of a model with memory.
+
+    Attributes:
+        z: [Z] model state after sample t.
+    """
+
+    z: Array
+
+
+def _env_state(unit, time, step, xhat, z) -> EnvState:
+    """The state of a static model (``z is None``) or of one with memory."""
+    if z is None:
+        return EnvState(unit=unit, time=time, step=step, xhat=xhat)
+    return StatefulEnvState(unit=unit, time=time, step=step, xhat=xhat, z=z)
 
 
 class Env(NamedTuple):
@@ -300,29 +343,45 @@ def tracking_cost(x: Array, xhat: Array, x_std: Array) -> Array:
     return jnp.mean(jnp.square((x - xhat) / x_std), axis=-1)
 
 
-def make_tracking_env(dynamics: Dynamics, cfg: EnvConfig) -> Env:
+def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> Env:
     """Builds the tracking environment around a dynamics callable.
 
     Args:
         dynamics: pure ``(dyn_params, w_next [W], xhat [S], theta [P]) -> xhat_next
-            [S]``; ``dyn_params`` is read from :attr:`EnvParams.dyn_params`.
+            [S]``, or a :class:`StatefulDynamics` for a model with memory;
+            ``dyn_params`` is read from :attr:`EnvParams.dyn_params`.
         cfg: static sizes and episode length.
 
     Returns:
         :class:`Env`.
     """
-    if not callable(dynamics):
-        raise ValueError(f"dynamics must be callable, got {type(dynamics).__name__}")
+    dyn = as_stateful(dynamics)
+
+    def check(params: EnvParams) -> None:
+        _check_dims(params, cfg)
+        got = 0 if params.z_ref is None else params.z_ref.shape[-1]
+        if got != dyn.num_states:
+            raise ValueError(
+                f"EnvParams.z_ref has {got} states (last dimension; None: 0), the "
+                f"dynamics carry Z = {dyn.num_states}: build the params with "
+                "make_env_params(..., z_ref=reference_states(...))"
+            )
+
+    def z_at(params: EnvParams, unit: Array, time: Array) -> Array | None:
+        if not dyn.num_states:
+            return None
+        return _row(params.z_ref, params, unit, time)
 
     def reset_at(params: EnvParams, unit: Array, time: Array) -> tuple[Array, EnvState]:
-        _check_dims(params, cfg)
+        check(params)
         unit = jnp.asarray(unit, jnp.int32)
         time = jnp.asarray(time, jnp.int32)
-        state = EnvState(
+        state = _env_state(
             unit=unit,
             time=time,
             step=jnp.zeros((), jnp.int32),
             xhat=_row(params.x, params, unit, time),
+            z=z_at(params, unit, time),
         )
         return observation(state, params), state
 
@@ -340,21 +399,23 @@ def make_tracking_env(dynamics: Dynamics, cfg: EnvConfig) -> Env:
         key: PRNGKey, state: EnvState, action: Array, params: EnvParams
     ) -> tuple[Array, EnvState, Array, Array, dict[str, Array]]:
         del key  # the transition is deterministic; kept for the gymnax signature
-        _check_dims(params, cfg)
+        check(params)
         theta = action_to_theta(action, params)
         time = state.time + 1
         w_next = _row(params.w, params, state.unit, time)
-        xhat = dynamics(params.dyn_params, w_next, state.xhat, theta)
+        z = getattr(state, "z", None)  # None: a static model's EnvState
+        z, xhat = dyn.step(params.dyn_params, z, w_next, state.xhat, theta)
         if not cfg.differentiable:
-            xhat = jax.lax.stop_gradient(xhat)
+            z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = tracking_cost(
             _row(params.x, params, state.unit, time), xhat, params.x_std
         )
-        next_state = EnvState(
+        next_state = _env_state(
             unit=state.unit,
             time=time,
             step=state.step + 1,
             xhat=xhat.astype(state.xhat.dtype),
+            z=None if z is None else z.astype(state.z.dtype),
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}

@@ -5,7 +5,8 @@
 * :func:`make_dynamics`: the transition of the tracking MDP, either the learned
   surrogate D (``surrogate_apply``, the paper's choice) or the problem's model F
   (:meth:`Problem.measure`: declared parameters, used outputs, the others held at
-  ``theta_base``);
+  ``theta_base``); for a model with memory, its step with the state carried
+  (:meth:`Problem.transition`, :class:`~jaxcal.envs.memory.StatefulDynamics`);
 * :func:`make_components`: environment, agent and the two jitted entry points of a
   run (the training chunk and the fleet calibrator). They depend only on static,
   hashable choices, so they are cached per process: a resumed or repeated run in the
@@ -30,6 +31,7 @@ from jaxcal.agents.lac import make_lac
 from jaxcal.agents.networks import make_networks
 from jaxcal.agents.sac import make_sac
 from jaxcal.calibrators.policy import make_fleet_runner
+from jaxcal.envs.memory import StatefulDynamics, transition_dynamics
 from jaxcal.envs.tracking import Dynamics, Env, EnvConfig, make_tracking_env
 from jaxcal.model import Model
 from jaxcal.problem import Problem
@@ -51,7 +53,7 @@ def make_agent(
     return factories[type(cfg)](cfg, observation_size, action_size)
 
 
-def make_dynamics(kind: str, problem: Problem) -> Dynamics:
+def make_dynamics(kind: str, problem: Problem) -> Dynamics | StatefulDynamics:
     """The transition ``dynamics(dyn_params, w_next, xhat, theta) -> xhat_next``.
 
     Args:
@@ -60,16 +62,44 @@ def make_dynamics(kind: str, problem: Problem) -> Dynamics:
             problem's model on the declared parameters (the others at
             ``problem.theta_base``), ignoring ``xhat`` and ``dyn_params``. A model
             that needs float64 (``model.x64``, the turbofan's Newton solve) runs in
-            float64 and needs x64 enabled; any other runs in the data's dtype.
+            float64 and needs x64 enabled; any other runs in the data's dtype. A
+            model with memory gives a :class:`StatefulDynamics` (its step, the state
+            carried; a stream's first state built with ``problem.theta_prior``).
         problem: the run's problem.
 
     Raises:
-        ValueError: unknown kind, or a float64 model with x64 disabled.
+        ValueError: unknown kind, a float64 model with x64 disabled, or the
+            surrogate asked of a model with memory.
     """
-    return _dynamics(
-        kind, problem.model, problem.theta_names, problem.output_names,
+    return _dynamics(kind, *_dynamics_key(problem))
+
+
+def _dynamics_key(problem: Problem) -> tuple:
+    # Hashable, by value: a new Problem object of the same run reuses the cache.
+    return (
+        problem.model, problem.theta_names, problem.output_names,
         tuple(float(v) for v in problem.theta_base),
+        tuple(float(v) for v in problem.theta_prior),
     )  # fmt: skip
+
+
+def check_dynamics(kind: str, model: Model) -> None:
+    """A clear error, before any work, for a dynamics the model cannot have.
+
+    The surrogate D learns x_{t+1} = D(w_{t+1}, x_t, theta_{t+1}) in output space:
+    the outputs of a model with memory do not determine its hidden state, so D
+    would have to guess it, and the fitted transition (and every policy trained on
+    it) would be biased without warning. Such a model trains on its own step.
+    """
+    if kind == "surrogate" and model.is_stateful:
+        raise ValueError(
+            f"dynamics=surrogate: model {model.name!r} has hidden states "
+            f"{model.state_names} that its outputs do not determine, and the "
+            "surrogate D (x_next = D(w_next, x, theta)) cannot carry them: use "
+            "dynamics=physics"
+        )
+    if kind == "physics":
+        require_x64(model, "dynamics=physics")
 
 
 def require_x64(model: Model, what: str) -> None:
@@ -82,12 +112,19 @@ def require_x64(model: Model, what: str) -> None:
         )
 
 
-def _dynamics(kind, model: Model, theta_names, output_names, theta_base) -> Dynamics:
+def _dynamics(kind, model, theta_names, output_names, theta_base, theta_prior):
+    if kind not in ("surrogate", "physics"):
+        raise ValueError(f"dynamics must be 'surrogate' or 'physics', got {kind!r}")
+    check_dynamics(kind, model)
     if kind == "surrogate":
         return surrogate_apply
-    if kind != "physics":
-        raise ValueError(f"dynamics must be 'surrogate' or 'physics', got {kind!r}")
-    require_x64(model, "dynamics=physics")
+    if model.is_stateful:
+        # The one restricted transition (Problem.transition); the box is not read.
+        problem = Problem(
+            model, tuple(theta_names), tuple(output_names), np.asarray(theta_base),
+            None, None, None, None,
+        )  # fmt: skip
+        return transition_dynamics(problem.transition(), theta_prior, x64=model.x64)
     measure = model.restrict(theta_names, output_names, np.asarray(theta_base))
 
     def physics(dyn_params: PyTree, w_next: Array, xhat: Array, theta: Array):
@@ -132,10 +169,7 @@ def make_components(
 ) -> Components:
     """Environment, agent and jitted entry points of a run (cached per process on
     the model object and the problem's names and base values)."""
-    key = (
-        problem.model, problem.theta_names, problem.output_names,
-        tuple(float(v) for v in problem.theta_base),
-    )  # fmt: skip
+    key = _dynamics_key(problem)
     return _components(dynamics_kind, key, env_cfg, agent_cfg, runner_cfg)
 
 

@@ -18,9 +18,14 @@
 3. the surrogate D is fitted on the training units' transitions or restored
    (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it;
 4. the policy learns on the training units' (w, x) only, no theta label
-   (:mod:`jaxcal.training.policy_stage`); validation units are scored every
-   ``eval_every`` chunks (theta RMSE for progress only; the label-free tracking RMSE
-   also selects the kept policy when ``budget.select=val_tracking``);
+   (:mod:`jaxcal.training.policy_stage`); a model with memory trains on its own
+   step (``dynamics=physics``), the environment carrying its state, and episodes
+   start from the reference state track
+   (:func:`jaxcal.envs.memory.reference_states`: the model run along each unit with
+   the prior theta, label-free, what the deployed calibrator carries from a unit's
+   first sample); validation units are scored every ``eval_every`` chunks (theta
+   RMSE for progress only; the label-free tracking RMSE also selects the kept
+   policy when ``budget.select=val_tracking``);
 5. the kept policy runs once through every test unit's whole trajectory (the
    deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
@@ -61,11 +66,12 @@ from jaxcal.calibrators.policy import (
 )
 from jaxcal.checkpoint import Checkpointer
 from jaxcal.config import TrainConfig
+from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvConfig, EnvParams, make_env_params
 from jaxcal.model import Model
 from jaxcal.problem import Normalisation, Problem
 from jaxcal.settings import check_output_path
-from jaxcal.training.components import make_components, require_x64
+from jaxcal.training.components import check_dynamics, make_components, make_dynamics
 from jaxcal.training.data import (
     CalibrationData,
     UnitArrays,
@@ -144,16 +150,28 @@ def _check_readable(path: Path) -> Path:
     return path
 
 
-def _env_params(units: UnitArrays, problem: Problem, dyn_params, dtype) -> EnvParams:
+def _env_params(
+    units: UnitArrays, problem: Problem, dyn_params, dtype, dynamics_kind: str
+) -> EnvParams:
     # The normalisation is computed here, in the run's dtype, as it always was: a
     # float32 run keeps bit for bit the statistics (and so the training) it had.
+    w, x = units.w.astype(dtype), units.x.astype(dtype)
+    z_ref = None  # a static model: Z = 0
+    if problem.model.is_stateful:
+        # The label-free reference: the model along each unit at the prior theta
+        # (the joint UKF's filtered states would be closer; see the module note).
+        dyn = as_stateful(make_dynamics(dynamics_kind, problem))
+        z_ref = reference_states(
+            dyn, dyn_params, w, x, units.lengths, problem.theta_prior
+        )
     return make_env_params(
-        units.w.astype(dtype),
-        units.x.astype(dtype),
+        w,
+        x,
         units.lengths,
         problem.theta_low.astype(dtype),
         problem.theta_high.astype(dtype),
         dyn_params,
+        z_ref=z_ref,
     )
 
 
@@ -264,9 +282,8 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
     data = read_run_data(cfg, path=path, log=log)
     problem = data.problem
     model = problem.model
-    if cfg.dynamics == "physics":
-        require_x64(model, "dynamics=physics")
-    elif data.train.theta is None:
+    check_dynamics(cfg.dynamics, model)  # a model with memory: physics only
+    if cfg.dynamics == "surrogate" and data.train.theta is None:
         raise ValueError(
             f"dynamics=surrogate fits D on labelled transitions, but {path} has no "
             f"true values of {list(problem.theta_names)}: add those columns or use "
@@ -295,7 +312,7 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
             progress=cfg.output.progress,
             log=log,
         )
-    train_params = _env_params(data.train, problem, dyn_params, dtype)
+    train_params = _env_params(data.train, problem, dyn_params, dtype, cfg.dynamics)
     norm = (train_params.w_mean, train_params.w_std, train_params.x_mean,
             train_params.x_std)  # fmt: skip
     problem = dataclasses.replace(

@@ -37,6 +37,7 @@ from jaxcal.calibrators.policy import (
 )
 from jaxcal.checkpoint import Checkpointer, load_config
 from jaxcal.config import TrainConfig
+from jaxcal.envs.memory import StatefulDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
 from jaxcal.surrogate.model import init_surrogate_params
@@ -57,7 +58,8 @@ class LoadedRun(NamedTuple):
             normalisation, training input range).
         params: the deployable :class:`PolicyParams`.
         actor: the actor module (static).
-        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static).
+        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
+            :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
         step: the checkpoint step (chunks trained) the policy comes from.
     """
 
@@ -66,7 +68,7 @@ class LoadedRun(NamedTuple):
     problem: Problem
     params: PolicyParams
     actor: nn.Module
-    dynamics: Dynamics
+    dynamics: Dynamics | StatefulDynamics
     step: int
 
     @property

@@ -1,0 +1,180 @@
+"""Sliding-window least squares for a model with memory: theta and the window's
+initial state fitted by simulating the model over the window.
+
+For ``(z_t, x_t) = step(z_{t-1}, w_t, theta)`` the window of the last ``N`` samples
+is explained by the parameters *and* the state ``z_s`` the window starts from (the
+moving-horizon estimate of Rao, Rawlings & Mayne 2003, with a constant theta over
+the window and an arrival-cost prior on ``z_s``). Each step
+
+1. advances ``z_s`` through the sample that leaves the window, with the current
+   theta (the prior of the new window start, weight ``state_std``);
+2. shifts the new sample in (time order: the model is simulated forwards);
+3. runs ``num_iters`` Levenberg–Marquardt iterations on
+   ``sum_i ||(x_i(theta, z_s) - x_i) / (std r)||^2 + ||(z_s - z_prior) / state_std||^2
+   [+ ||(u - u_prev) / prior_std||^2]``, ``x_i`` simulated by ``lax.scan`` and
+   differentiated by ``jax.jacfwd`` over the ``P + Z`` unknowns; warm-started from
+   the previous estimate. The damped Gauss–Newton step is the one of
+   :mod:`jaxcal.calibrators.least_squares` (one solver core).
+
+A static model is better served by :func:`~jaxcal.calibrators.least_squares.
+make_least_squares` (no scan, samples evaluated in parallel); the front picks it when
+``Z = 0``.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+from jax import lax
+
+from jaxcal.calibrators.interface import (
+    Calibrator,
+    CalStepOutput,
+    SensorNorm,
+    check_norm,
+    check_prior,
+    check_scale,
+)
+from jaxcal.calibrators.least_squares import (
+    LeastSquaresConfig,
+    _inverse_psd,
+    _lm_iteration,
+    _lm_start,
+    _residual_jacobian,
+)
+from jaxcal.problem import Transition
+from jaxcal.typedefs import Array, PRNGKey
+
+
+@struct.dataclass
+class WindowState:
+    """Estimate plus the last ``window`` samples, oldest first."""
+
+    u: Array  # [P] scaled parameters theta / theta_scale
+    zs: Array  # [Z] state before the window's first sample (state units)
+    w_buf: Array  # [N, Wd]
+    x_buf: Array  # [N, S]
+    valid: Array  # [N] bool, False until a slot holds a sample
+
+
+def make_window_least_squares(
+    transition: Transition,
+    cfg: LeastSquaresConfig,
+    norm: SensorNorm,
+    *,
+    theta0: Array,
+    theta_scale: Array | None = None,
+    state_std: Array | None = None,
+    state_scale: Array | None = None,
+    theta_box: tuple[Array, Array] | None = None,
+) -> Calibrator:
+    """The moving-window least-squares calibrator of a stateful model.
+
+    Args:
+        transition: ``Transition(init, step, Z)`` (``Problem.transition()``):
+            ``init(w0, theta [P]) -> z0 [Z]``, ``step(z, w, theta [P]) -> (z', x
+            [S])``, differentiable.
+        cfg: window, iterations, noise ``r`` and the optional theta prior.
+        norm: output normalisation (``std [S]`` is the residual unit with ``r``).
+        theta0: ``[P]`` initial estimate; theta_scale: ``[P]`` scales.
+        state_std: ``[Z]`` (or scalar) std of the window-start state around its
+            propagated value (the arrival cost); default ``state_scale``.
+        state_scale: ``[Z]`` natural size of each state (default ones).
+        theta_box: ``(low [P], high [P])``: each LM step is projected onto it (a
+            window without excitation leaves a direction unobserved; the projection
+            keeps the estimate where the model is defined).
+
+    Returns:
+        ``Calibrator(init, step)``; ``aux`` holds ``theta_std [P]`` (Laplace),
+        ``cost []``, ``state [Z]`` (the state after the sample, simulated over the
+        window) and ``state_std [Z]`` (of the window start).
+    """
+    norm = check_norm(norm)
+    theta0, scale = check_prior(theta0, theta_scale)
+    num_params = theta0.shape[0]
+    init_state, step_fn, num_states = transition
+    s_scale = check_scale(state_scale, num_states, theta0.dtype)
+    s_std = (
+        s_scale
+        if state_std is None
+        else jnp.broadcast_to(jnp.asarray(state_std, theta0.dtype), (num_states,))
+    )
+    sigma = norm.std * cfg.r  # residual unit: one noise std
+    if theta_box is None:
+        u_low = u_high = None
+    else:
+        u_low, u_high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
+
+    def simulate(theta, zs, w_buf, valid):
+        """Outputs over the window and the final state; invalid slots hold z."""
+
+        def body(z, inputs):
+            w, ok = inputs
+            z_next, x = step_fn(z, w, theta)
+            return jnp.where(ok, z_next, z), x
+
+        z_end, x = lax.scan(body, zs, (w_buf, valid))
+        return x, z_end
+
+    def init(key: PRNGKey | None, w0: Array, x0: Array) -> WindowState:
+        del key
+        # Unfilled slots hold the first sample so the model is never run at zeros.
+        return WindowState(
+            u=theta0 / scale,
+            zs=jnp.asarray(init_state(w0, theta0), theta0.dtype),
+            w_buf=jnp.tile(w0, (cfg.window, 1)),
+            x_buf=jnp.tile(x0, (cfg.window, 1)),
+            valid=jnp.zeros((cfg.window,), bool),
+        )
+
+    def step(state: WindowState, w_t: Array, x_t: Array):
+        theta_now = scale * state.u
+        # 1. the oldest sample leaves: the window now starts one step later.
+        z_left, _ = step_fn(state.zs, state.w_buf[0], theta_now)
+        zs_prior = jnp.where(state.valid[0], z_left, state.zs)
+        # 2. shift the new sample in (oldest first).
+        w_buf = jnp.concatenate([state.w_buf[1:], w_t[None]])
+        x_buf = jnp.concatenate([state.x_buf[1:], x_t[None]])
+        valid = jnp.concatenate([state.valid[1:], jnp.ones((1,), bool)])
+        u_prev = state.u
+
+        def residual(v):
+            u, dz = v[:num_params], v[num_params:]
+            zs = zs_prior + s_std * dz
+            pred, _ = simulate(scale * u, zs, w_buf, valid)
+            r = jnp.where(valid[:, None], (pred - x_buf) / sigma, 0.0).ravel()
+            r = jnp.concatenate([r, dz])  # arrival cost: z_s ~ N(z_prior, std^2)
+            if cfg.prior_std is not None:
+                r = jnp.concatenate([r, (u - u_prev) / cfg.prior_std])
+            return r
+
+        resid_jac = _residual_jacobian(residual)
+
+        def iterate(_, carry):
+            carry = _lm_iteration(resid_jac, carry, cfg.damping_factor)[0]
+            if u_low is None:
+                return carry
+            u = jnp.clip(carry.z[:num_params], u_low, u_high)
+            v = carry.z.at[:num_params].set(u)
+            resid, jac = resid_jac(v)  # the projected point's residual and Jacobian
+            return carry._replace(z=v, resid=resid, jac=jac, cost=0.5 * resid @ resid)
+
+        v0 = jnp.concatenate([u_prev, jnp.zeros((num_states,), u_prev.dtype)])
+        carry = _lm_start(resid_jac, v0, cfg.damping_init)
+        carry = lax.fori_loop(0, cfg.num_iters, iterate, carry)
+        u, dz = carry.z[:num_params], carry.z[num_params:]
+        zs = zs_prior + s_std * dz
+        theta = scale * u
+        pred, z_end = simulate(theta, zs, w_buf, valid)
+        cov = _inverse_psd(carry.jac.T @ carry.jac)
+        std = jnp.sqrt(jnp.diagonal(cov))
+        aux = {
+            "theta_std": scale * std[:num_params],
+            "cost": carry.cost,
+            "state": z_end,
+            "state_std": s_std * std[num_params:],
+        }
+        new_state = WindowState(u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, valid=valid)
+        return new_state, CalStepOutput(theta=theta, xhat=pred[-1], aux=aux)
+
+    return Calibrator(init=init, step=step)
