@@ -126,8 +126,9 @@ def run(cfg: DiagnoseConfig) -> dict:
     """Diagnose ``cfg.data`` and write the report; returns the report dict."""
     from jaxcal.diagnosis.discrepancy import DiscrepancyConfig
     from jaxcal.diagnosis.identify import IdentifyConfig
+    from jaxcal.diagnosis.markdown import dropped_rows_line
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-    from jaxcal.diagnosis.report import dropped_rows_line, write_report
+    from jaxcal.diagnosis.report import write_report
     from jaxcal.models import load
     from jaxcal.precision import enable_compilation_cache, enable_x64
 
@@ -178,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxcal.diagnose: {err}", file=sys.stderr)
         return 2
-    from jaxcal.diagnosis.report import effect_line
+    from jaxcal.diagnosis.markdown import effect_line
 
     units = rep["data"]["units"]
     found = (

@@ -16,9 +16,10 @@ import pytest
 
 import jaxcal
 from jaxcal.data.dataset import Dataset
+from jaxcal.diagnosis.markdown import fmt_p, fmt_std
 from jaxcal.diagnosis.pipeline import diagnose
 from jaxcal.diagnosis.plausibility import degradation_sign, plausibility_flags
-from jaxcal.diagnosis.report import fmt_p, fmt_std, write_report
+from jaxcal.diagnosis.report import write_report
 from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories, holm
 
 UNIT_KEYS = {"unit", "carries", "size", "size_std", "onset"}

@@ -1,0 +1,273 @@
+"""The human-readable page of a diagnosis (report.md) and its one-line summaries.
+
+Pure text from the report dict of :mod:`.report` (no plotting), so a console line
+(:mod:`jaxcal.diagnose`, experiments/loop_cmapss.py) can use the same wording. Numbers
+are printed so that they cannot mislead: a standard error that could not be estimated
+is "n/a", never "0" (:func:`fmt_std`); a p-value far in the tail is "< 1e-16", never
+"0" or a denormal (:func:`fmt_p`); the verdict carries its plausibility flags
+(:func:`verdict_line`); each added effect gets its per-unit table, carriers listed and
+the rest counted (:func:`render_markdown`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def dropped_rows_line(dropped: dict) -> str:
+    """``{"rows", "columns"}`` of the report as one sentence (no final stop);
+    ``rows`` is ``None`` when the reader did not count them."""
+    per_column = ", ".join(f"{k}: {v}" for k, v in dropped["columns"].items())
+    count = "" if dropped["rows"] is None else f"{dropped['rows']} "
+    return (
+        f"Dropped {count}rows with NaN or Inf values before the fit "
+        f"(rows per column: {per_column})"
+    )
+
+
+def _fmt(v, digits=4):
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def fmt_std(v, digits=2) -> str:
+    """A standard error; never "0": one that could not be estimated is "n/a"."""
+    if v is None or not math.isfinite(v) or v <= 0:
+        return "n/a"
+    return f"{v:.{digits}g}"
+
+
+P_FLOOR = 1e-16  # below this a p-value says only "far in the tail" (model error rules)
+
+
+def fmt_p(p) -> str:
+    """A p-value: ``< 1e-16`` far in the tail, never 0 or a denormal."""
+    if p is None or not math.isfinite(p):
+        return "–"
+    return f"< {P_FLOOR:.0e}" if p < P_FLOOR else f"{p:.2g}"
+
+
+def effect_line(e: dict, num_units: int | None = None) -> str:
+    """``name = size ± std unit`` (with the carriers when known), for one-line use."""
+    text = f"{e['name']} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
+    if num_units is not None and "carriers" in e:
+        text += f" (carried by {e['carriers']} of {num_units} units)"
+    return text
+
+
+def verdict_line(rep: dict) -> str:
+    """The verdict with its plausibility flags."""
+    text = f"**Verdict: {rep['verdict']}"
+    flags = rep.get("flags") or []
+    if flags:
+        kinds = sorted({f"{f['flag']} ({f['subject']})" for f in flags})
+        text += " — FLAGGED: " + "; ".join(kinds)
+    return text + ".**"
+
+
+MAX_UNIT_ROWS = 100  # carriers listed in report.md (all are in report.json)
+
+
+def _unit_table(e: dict) -> list[str]:
+    units = e["units"]
+    carriers = [u for u in units if u["carries"]]
+    rest = [u for u in units if not u["carries"]]
+    lines = [
+        f"### {e['name']} per unit",
+        "",
+        f"Carried by **{len(carriers)} of {len(units)} units** ({e['unit_test']}). "
+        f"Onset: {e['onset_rule']}. Mean size: carriers "
+        f"{_fmt(e.get('size_carriers'))}, others {_fmt(e.get('size_others'))} "
+        f"{e['unit']}.",
+        "",
+    ]
+    if carriers:
+        shown = sorted(
+            carriers, key=lambda u: -abs(u["size"] / (u["size_std"] or math.inf))
+        )[:MAX_UNIT_ROWS]
+        shown.sort(key=lambda u: u["unit"])
+        lines += ["| unit | size | std | size / std | onset |", "|---|---|---|---|---|"]
+        for u in shown:
+            z = u["size"] / u["size_std"] if u["size_std"] else None
+            lines.append(
+                f"| {u['unit']} | {_fmt(u['size'])} | {fmt_std(u['size_std'])} | "
+                f"{_fmt(z, 3)} | {_fmt(u['onset'])} |"
+            )
+        if len(carriers) > len(shown):
+            lines.append(
+                f"\n{len(carriers) - len(shown)} more carriers (smaller |z|) in "
+                "report.json."
+            )
+        lines.append("")
+    if rest:
+        sizes = np.array([u["size"] for u in rest if u["size"] is not None])
+        spread = (
+            f"; their sizes: median {np.median(sizes):.4g}, range "
+            f"[{sizes.min():.4g}, {sizes.max():.4g}] {e['unit']}"
+            if sizes.size
+            else ""
+        )
+        lines += [f"{len(rest)} units do not carry it{spread}.", ""]
+    return lines
+
+
+def render_markdown(rep: dict) -> str:
+    """The human-readable page of a report dict."""
+    d = rep["data"]
+    units = d.get("units_of") or {}
+    lines = [
+        f"# Diagnosis: {rep['source'] or 'record'}",
+        "",
+        f"Model `{rep['model']}`, declared (calibrated): "
+        f"{', '.join(f'`{n}`' for n in rep['declared'])}. {d['rows']} rows, "
+        f"{d['units']} units, {len(d['sensors'])} outputs in the residual; noise std "
+        f"{d['noise_source']}; {d['knots_per_unit']} spline functions per unit and "
+        "declared parameter." + "".join(f" {n}." for n in d["notes"]),
+        "",
+        verdict_line(rep),
+        "",
+    ]
+    dropped = d.get("dropped") or {}
+    if dropped.get("rows") or dropped.get("columns"):
+        lines += [dropped_rows_line(dropped) + ".", ""]
+    if d["excluded"]:
+        lines += [
+            "Not in the residual: "
+            + "; ".join(f"{k} ({v})" for k, v in d["excluded"].items())
+            + ".",
+            "",
+        ]
+    flags = rep.get("flags") or []
+    lines += ["## Plausibility", ""]
+    if flags:
+        lines += [f"- **{f['flag']}** ({f['subject']}): {f['detail']}." for f in flags]
+    else:
+        lines.append(
+            "No flag: no effect outside the model's bounds, no parameter better than "
+            "new, no loss constant from the first cycle, no declared parameter "
+            "moved against its direction of wear, no sensor worse after the extension."
+        )
+    lines.append("")
+    if rep.get("fallback_note"):
+        lines += [f"Fallback: {rep['fallback_note']}.", ""]
+    if rep["identified"]:
+        lines += [
+            "## Identified effect",
+            "",
+            "Sizes and standard errors from the final fit. A per-unit parameter's "
+            "size is its change over each unit's record (mean over units), its "
+            "departure from nominal at the first and last cycle beside it; carriers "
+            "and the others apart below.",
+            "",
+            "| effect | size | std | unit | at first / last cycle | carriers |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {e['name']} | {_fmt(e['size'])} | {fmt_std(e['std'])} | {e['unit']} "
+            f"| {_fmt(e.get('start_value'))} / {_fmt(e.get('end_value'))} "
+            f"| {e.get('carriers', '–')} of {d['units']} |"
+            for e in rep["identified"]
+        ]
+        lines.append("")
+        for e in rep["identified"]:
+            lines += _unit_table(e)
+    if rep["confounded"]:
+        lines += [
+            f"Confounded (signatures nearly collinear after projecting out the "
+            f"declared parameters, BIC within the margin): "
+            f"{', '.join(rep['confounded'])}. The first stands in for the set.",
+            "",
+        ]
+    if rep["discrepancy"]:
+        lines += [
+            "## Discrepancy delta(w) (not explained by the library)",
+            "",
+            "Shares of the cross-validated gain: *alone* = an offset only "
+            "(constant), or what delta on that input alone adds to the offset; "
+            "*unique* = lost when the input is dropped from the full delta.",
+            "",
+            "| sensor | std of delta | mean of delta | CV gain / threshold | "
+            "alone | unique |",
+            "|---|---|---|---|---|---|",
+        ]
+        for s in rep["discrepancy"]:
+            dep, uni = (
+                ", ".join(
+                    f"{k} {v:.2f}"
+                    for k, v in sorted(s[key].items(), key=lambda kv: -kv[1])
+                )
+                for key in ("dependence", "unique")
+            )
+            lines.append(
+                f"| {s['sensor']} [{units.get(s['sensor'], '-')}] | "
+                f"{_fmt(s['amplitude_units'])} | "
+                f"{_fmt(s['mean_units'])} | {s['cv_gain']:.0f} / "
+                f"{s['threshold']:.0f} | {dep} | {uni} |"
+            )
+        lines.append("")
+    lines += [
+        "## Ranking (declared-only residual)",
+        "",
+        f"{rep['num_tests']} tests; delta BIC > 0 favours the candidate over the "
+        "declared-only model; LR = SSR_0 - SSR (chi2 with df).",
+        "",
+        "| # | candidate | df | LR | log10 p | delta BIC | size (own refit) | refit "
+        "| detectability |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for i, e in enumerate(rep["ranking"][:10]):
+        size = ", ".join(_fmt(s) for s in e["screen_sizes"])
+        lines.append(
+            f"| {i + 1} | {e['name']} | {e['df']} | {_fmt(e['lr_stat'], 6)} | "
+            f"{_fmt(e['log10_p'], 4)} | {_fmt(e['delta_bic'], 6)} | {size} | "
+            f"{'yes' if e['refit'] else 'linear'} | {e['detectability']:.2f} |"
+        )
+    if rep["absorbed"]:
+        lines += [
+            "",
+            "Absorbed by the declared parameters (undetectable in the residual): "
+            + ", ".join(rep["absorbed"])
+            + ".",
+        ]
+    b, a = rep["before"], rep["after"]
+    lines += [
+        "",
+        "## Before / after",
+        "",
+        f"Added: {', '.join(rep['added']) or 'nothing'}. Mean tracking RMSE "
+        f"{b['mean_tracking_rmse_norm']:.3f} -> {a['mean_tracking_rmse_norm']:.3f} "
+        f"noise std; white sensors (Ljung–Box p > 0.01) {b['whiteness']:.2f} -> "
+        f"{a['whiteness']:.2f}; BIC {b['bic']:.1f} -> {a['bic']:.1f}.",
+        "",
+        "| output | unit | RMSE before | after | before / std | after / std "
+        "| LB p before | after |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for j, s in enumerate(d["sensors"]):
+        rb, ra = b["residuals"][j], a["residuals"][j]
+        lines.append(
+            f"| {s} | {units.get(s, '-')} | {_fmt(b['tracking_rmse'][s])} | "
+            f"{_fmt(a['tracking_rmse'][s])} | "
+            f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
+            f"{fmt_p(rb['ljung_box_p'])} | {fmt_p(ra['ljung_box_p'])} |"
+        )
+    if b["theta_rmse"]:
+        lines += ["", "| theta RMSE vs truth | before | after |", "|---|---|---|"]
+        for k in a["theta_rmse"]:
+            lines.append(
+                f"| {k} | {_fmt(b['theta_rmse'].get(k))} | {_fmt(a['theta_rmse'][k])} |"
+            )
+    if rep.get("truth"):
+        lines += [
+            "",
+            "Truth: " + ", ".join(f"{k}={_fmt(v)}" for k, v in rep["truth"].items()),
+        ]
+    if rep.get("figures"):
+        lines += ["", "## Figures", ""]
+        lines += [f"![{k}]({v})" for k, v in rep["figures"].items()]
+    return "\n".join(lines) + "\n"
