@@ -33,6 +33,13 @@ STUDY = SyntheticConfig(
 
 
 @pytest.fixture(scope="session")
+def study_config():
+    """The study's synthetic settings (a fixture: ``from conftest import`` picks
+    whichever conftest module the run imported first)."""
+    return STUDY
+
+
+@pytest.fixture(scope="session")
 def engine():
     """The ``cmapss`` turbofan as a :class:`jaxcal.Model`."""
     return load("cmapss")

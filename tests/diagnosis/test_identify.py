@@ -165,11 +165,10 @@ def test_library_covers_every_family_once(engine):
         )
 
 
-def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine):
+def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine, study_config):
     """The FD003 / FD004 situation on generated data: a fan-efficiency loss grows in
     two of six engines; the per-unit verdict lists exactly those two."""
-    from conftest import STUDY
-
+    STUDY = study_config  # noqa: N806 (the conftest's name)
     from jaxcal.diagnosis.synthetic import make_synthetic_data
     from jaxcal.models.turbofan_scenario import FleetConfig, make_scenario
 
