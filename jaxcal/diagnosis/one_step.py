@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -102,9 +103,11 @@ def one_step_data(
     prev[1:] = states[:-1]
     full = np.tile(model.nominal, (len(states), 1))
     full[:, model.parameter_index(declared)] = result.theta
-    for i in np.flatnonzero(first):  # one initial state per unit, not per sample
-        theta = jnp.asarray(full[i], data.w.dtype)  # the filter's first estimate
-        prev[i] = np.asarray(model.init_state(jnp.asarray(data.w[i]), theta))
+    # each unit's first row: its initial state at the filter's first estimate
+    init = jax.jit(jax.vmap(model.init_state))
+    prev[first] = np.asarray(
+        init(jnp.asarray(data.w[first]), jnp.asarray(full[first], data.w.dtype))
+    )
     # While the filter settles its state is not yet known; a residual there is the
     # filter's start-up, not an effect: each unit's first share of rows is left out.
     index = np.arange(len(first)) - np.maximum.accumulate(
