@@ -140,8 +140,26 @@ class TrackingConfig:
     episode_length: int = 200  # steps per training window
     # the action box is the dev range of theta widened by this share on each side
     theta_margin: float = 0.1
+    # "absolute": the action sets theta (the paper's); "increment": it changes theta,
+    # gated by the residual (jaxcal.envs.increment: a learned feedback that drives
+    # the tracking error to zero instead of guessing theta)
+    action: Literal["absolute", "increment"] = "absolute"
+    # incremental actions: the largest change per step, as a share of the box width
+    max_increment: float = 0.05
+    # "squared": the paper's tracking cost; "log": log(1 + cost / cost_floor^2), the
+    # same weight for halving the error at every scale (jaxcal.envs.tracking.EnvConfig)
+    cost: Literal["squared", "log"] = "squared"
+    cost_floor: float = 1e-4
 
     def __post_init__(self) -> None:
+        if self.action not in ("absolute", "increment"):
+            raise ValueError(
+                f"env.action must be 'absolute' or 'increment', got {self.action!r}"
+            )
+        if not 0.0 < self.max_increment <= 1.0:
+            raise ValueError(
+                f"env.max_increment must be in (0, 1], got {self.max_increment}"
+            )
         if self.episode_length < 1:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"

@@ -13,6 +13,17 @@ index, so on samples t >= 1 the calibrator reproduces
 yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
 norm(w_0)])) and x-hat_0 = x_0.
 
+With incremental actions (:class:`IncrementPolicyParams`, ``env.action=increment``,
+:mod:`jaxcal.envs.increment`) the state also carries theta_{t-1} and the normalised
+residual r_{t-1} = (x_{t-1} - x-hat_{t-1}) / sigma_x, and each sample gives
+
+    s = [r / |r|, lg |r|, norm(w_t), theta_{t-1}],
+    theta_t = clip(theta_{t-1} + M pi*(s) |r| / (|r| + n_ref), box),
+    x-hat_t = F(w_t, theta_t),  r_t = (x_t - x-hat_t) / sigma_x;
+
+the first sample starts at the box centre with r = 0 (so theta_0 = theta_1 = the
+centre), as the environment's ``reset_at``.
+
 A model with memory (:class:`~jaxcal.envs.memory.StatefulDynamics`) also carries its
 state z: (z_t, x-hat_t) = step(z_{t-1}, w_t, x-hat_{t-1}, theta_t), and the first
 sample sets z_0 = init(w_0), the state after w_0 with the prior theta (the training
@@ -49,6 +60,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
+from jaxcal.envs.increment import apply_increment, increment_observation
 from jaxcal.envs.memory import StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
 from jaxcal.typedefs import Array, PRNGKey, PyTree
@@ -82,6 +94,20 @@ class PolicyParams:
 
 
 @struct.dataclass
+class IncrementPolicyParams(PolicyParams):
+    """:class:`PolicyParams` of a policy with incremental actions (its own class, so
+    that checkpoints of absolute-action policies keep their layout).
+
+    Attributes:
+        step_ref: ``[P]`` residual RMS at which a step is half its largest.
+        max_increment: largest step as a share of the box width (static).
+    """
+
+    step_ref: Array
+    max_increment: float = struct.field(pytree_node=False, default=0.05)
+
+
+@struct.dataclass
 class PolicyState:
     """Calibrator state: the model output (and state) of the previous sample.
 
@@ -94,11 +120,16 @@ class PolicyState:
     xhat: Array
     started: Array
     z: Array | None = None
+    theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
+    resid: Array | None = None  # [S] normalised residual r_{t-1} (incremental)
 
 
-def policy_params_from_env(env_params: EnvParams, actor_params: PyTree) -> PolicyParams:
-    """The deployment parameters of a policy trained on ``env_params``."""
-    return PolicyParams(
+def policy_params_from_env(
+    env_params: EnvParams, actor_params: PyTree, *, max_increment: float | None = None
+) -> PolicyParams:
+    """The deployment parameters of a policy trained on ``env_params``
+    (``max_increment``: the env's, for incremental actions)."""
+    fields = dict(
         actor=actor_params,
         dyn_params=env_params.dyn_params,
         w_mean=env_params.w_mean,
@@ -107,6 +138,13 @@ def policy_params_from_env(env_params: EnvParams, actor_params: PyTree) -> Polic
         x_std=env_params.x_std,
         theta_low=env_params.theta_low,
         theta_high=env_params.theta_high,
+    )
+    if env_params.step_ref is None:
+        return PolicyParams(**fields)
+    if max_increment is None:
+        raise ValueError("an incremental policy needs the env's max_increment")
+    return IncrementPolicyParams(
+        **fields, step_ref=env_params.step_ref, max_increment=max_increment
     )
 
 
@@ -125,17 +163,40 @@ def make_policy_calibrator(
         A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is ``None``.
     """
     dyn = as_stateful(dynamics)
+    incremental = isinstance(params, IncrementPolicyParams)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
         del key  # deterministic; x-hat starts at the first measurement
         z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
         z0 = None if z0 is None else z0.astype(x0.dtype)
-        return PolicyState(xhat=x0, started=jnp.zeros((), bool), z=z0)
+        theta0 = resid0 = None
+        if incremental:  # the box centre, no residual yet (the env's reset_at)
+            theta0 = 0.5 * (params.theta_low + params.theta_high)
+            resid0 = jnp.zeros_like(params.x_mean)
+        return PolicyState(
+            xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, resid=resid0
+        )
 
-    def step(
-        state: PolicyState, w_t: Array, x_t: Array
-    ) -> tuple[PolicyState, CalStepOutput]:
-        xhat_prev = jnp.where(state.started, state.xhat, x_t)
+    def act(state: PolicyState, xhat_prev: Array, w_t: Array, x_t: Array) -> Array:
+        if incremental:
+            resid = jnp.where(state.started, state.resid, 0.0)
+            obs = increment_observation(
+                resid,
+                (w_t - params.w_mean) / params.w_std,
+                state.theta,
+                params.theta_low,
+                params.theta_high,
+            )
+            mean, _ = actor.apply(params.actor, obs)
+            return apply_increment(
+                jnp.tanh(mean),
+                state.theta,
+                resid,
+                params.theta_low,
+                params.theta_high,
+                params.max_increment,
+                params.step_ref,
+            )
         obs = jnp.concatenate(
             [
                 (xhat_prev - params.x_mean) / params.x_std,
@@ -144,13 +205,27 @@ def make_policy_calibrator(
             ]
         ).astype(jnp.float32)
         mean, _ = actor.apply(params.actor, obs)
-        theta = action_to_theta(jnp.tanh(mean), params)
+        return action_to_theta(jnp.tanh(mean), params)
+
+    def step(
+        state: PolicyState, w_t: Array, x_t: Array
+    ) -> tuple[PolicyState, CalStepOutput]:
+        xhat_prev = jnp.where(state.started, state.xhat, x_t)
+        theta = act(state, xhat_prev, w_t, x_t)
         z, xhat = dyn.step(params.dyn_params, state.z, w_t, xhat_prev, theta)
         xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
         if dyn.num_states:  # the first sample's state: init (as the env's reset)
             z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
             z = jnp.where(state.started, z, z_first.astype(z.dtype))
-        new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z)
+        new_state = PolicyState(
+            xhat=xhat,
+            started=jnp.ones((), bool),
+            z=z,
+            theta=theta.astype(state.theta.dtype) if incremental else None,
+            resid=((x_t - xhat) / params.x_std).astype(state.resid.dtype)
+            if incremental
+            else None,
+        )
         return new_state, CalStepOutput(theta=theta, xhat=xhat)
 
     return Calibrator(init, step)
@@ -231,7 +306,13 @@ def initial_guard_carry(
     x = jnp.zeros_like(params.x_mean)
     num_states = as_stateful(dynamics).num_states
     z = jnp.zeros((num_states,), x.dtype) if num_states else None
-    state = PolicyState(xhat=x, started=jnp.zeros((), bool), z=z)
+    theta = resid = None
+    if isinstance(params, IncrementPolicyParams):
+        theta = 0.5 * (params.theta_low + params.theta_high)
+        resid = jnp.zeros_like(x)
+    state = PolicyState(
+        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, resid=resid
+    )
     step = make_policy_calibrator(actor, dynamics, params).step
     out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
     out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxcal.envs.increment import apply_increment, increment_observation
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
 from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey, PyTree
@@ -56,6 +57,16 @@ class EnvConfig:
         param_dim: P, number of calibrated parameters theta.
         episode_length: steps per training episode (window length).
         differentiable: if True, gradients flow through the transition.
+        action: ``"absolute"``: the action sets theta (the paper's); ``"increment"``:
+            the action changes theta, gated by the residual
+            (:mod:`jaxcal.envs.increment`).
+        max_increment: the largest change of theta per step as a share of the box
+            width (``action="increment"`` only).
+        cost: ``"squared"``: c = mean_S ((x - x-hat) / sigma)^2 (the paper's);
+            ``"log"``: log(1 + c / floor^2), which weighs a halving of the error the
+            same at every scale (a feedback policy must keep contracting the error
+            where the outputs barely see theta, at idle, not only where they do).
+        cost_floor: the residual RMS below which the log cost is flat.
     """
 
     sensor_dim: int
@@ -63,6 +74,10 @@ class EnvConfig:
     param_dim: int
     episode_length: int = 100
     differentiable: bool = False
+    action: str = "absolute"
+    max_increment: float = 0.05
+    cost: str = "squared"
+    cost_floor: float = 1e-4
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):
@@ -71,10 +86,31 @@ class EnvConfig:
                 raise ValueError(
                     f"EnvConfig.{name} must be a positive int, got {value!r}"
                 )
+        if self.action not in ("absolute", "increment"):
+            raise ValueError(
+                f"env.action must be 'absolute' or 'increment', got {self.action!r}"
+            )
+        if not 0.0 < self.max_increment <= 1.0:
+            raise ValueError(
+                f"env.max_increment must be in (0, 1], got {self.max_increment}"
+            )
+        if self.cost not in ("squared", "log") or not self.cost_floor > 0:
+            raise ValueError(
+                "env.cost must be 'squared' or 'log' and env.cost_floor > 0, got "
+                f"{self.cost!r}, {self.cost_floor}"
+            )
+
+    @property
+    def incremental(self) -> bool:
+        """True when the action changes theta rather than setting it."""
+        return self.action == "increment"
 
     @property
     def observation_size(self) -> int:
-        """Size of s_t = [x-hat_t, x_{t+1}, w_{t+1}]: 2 S + W."""
+        """Size of s_t: 2 S + W ([x-hat_t, x_{t+1}, w_{t+1}]), or S + 1 + W + P for
+        incremental actions ([r / |r|, lg |r|, w_{t+1}, theta_t])."""
+        if self.incremental:
+            return self.sensor_dim + 1 + self.condition_dim + self.param_dim
         return 2 * self.sensor_dim + self.condition_dim
 
     @property
@@ -97,6 +133,9 @@ class EnvParams:
         dyn_params: pytree passed to ``dynamics`` (surrogate weights, engine constants).
         z_ref: [U, T, Z] reference model state after each sample (where an episode
             starting there takes its z from); ``None`` for a static model.
+        step_ref: [P] residual RMS at which an incremental step is half its
+            largest (:func:`jaxcal.envs.increment.apply_increment`); ``None`` for
+            absolute actions.
     """
 
     w: Array
@@ -110,6 +149,7 @@ class EnvParams:
     theta_high: Array
     dyn_params: PyTree
     z_ref: Array | None = None
+    step_ref: Array | None = None
 
 
 def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
@@ -143,6 +183,7 @@ def make_env_params(
     *,
     stats: Normalisation | None = None,
     z_ref: Array | None = None,
+    step_ref: Array | None = None,
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
@@ -156,6 +197,8 @@ def make_env_params(
             test/held-out parameters. They are cast to the data's dtype.
         z_ref: ``[U, T, Z]`` reference model states, finite on valid rows;
             ``None``: a static model (no state).
+        step_ref: ``[P]`` positive gate scale of incremental actions; ``None``:
+            absolute actions.
 
     Returns:
         :class:`EnvParams`.
@@ -208,6 +251,13 @@ def make_env_params(
             )
         if not np.isfinite(z_ref_np[valid]).all():
             raise ValueError("z_ref must be finite on valid rows (t < lengths[u])")
+    if step_ref is not None:
+        step_ref = np.asarray(step_ref, x_np.dtype)
+        if step_ref.shape != low.shape or not np.all(step_ref > 0):
+            raise ValueError(
+                f"step_ref must be a positive [{low.shape[0]}] array, got {step_ref}"
+            )
+        step_ref = jnp.asarray(step_ref)
     return EnvParams(
         w=jnp.asarray(w_np),
         x=jnp.asarray(x_np),
@@ -220,6 +270,7 @@ def make_env_params(
         theta_high=jnp.asarray(high),
         dyn_params=dyn_params,
         z_ref=None if z_ref_np is None else jnp.asarray(z_ref_np),
+        step_ref=step_ref,
     )
 
 
@@ -282,11 +333,32 @@ class StatefulEnvState(EnvState):
     z: Array
 
 
-def _env_state(unit, time, step, xhat, z) -> EnvState:
-    """The state of a static model (``z is None``) or of one with memory."""
+@struct.dataclass
+class IncrementEnvState(EnvState):
+    """:class:`EnvState` of incremental actions: theta_t [P] is carried."""
+
+    theta: Array
+
+
+@struct.dataclass
+class StatefulIncrementEnvState(StatefulEnvState):
+    """:class:`StatefulEnvState` of incremental actions: theta_t [P] is carried."""
+
+    theta: Array
+
+
+def _env_state(unit, time, step, xhat, z, theta=None) -> EnvState:
+    """The state of a static model (``z is None``) or of one with memory, with
+    theta when the actions are incremental (each its own class, so that the
+    checkpoints of absolute-action runs keep their layout)."""
+    fields = dict(unit=unit, time=time, step=step, xhat=xhat)
     if z is None:
-        return EnvState(unit=unit, time=time, step=step, xhat=xhat)
-    return StatefulEnvState(unit=unit, time=time, step=step, xhat=xhat, z=z)
+        if theta is None:
+            return EnvState(**fields)
+        return IncrementEnvState(**fields, theta=theta)
+    if theta is None:
+        return StatefulEnvState(**fields, z=z)
+    return StatefulIncrementEnvState(**fields, z=z, theta=theta)
 
 
 class Env(NamedTuple):
@@ -297,8 +369,9 @@ class Env(NamedTuple):
         step: ``step(key, state, action [P], params) -> (obs, state, cost, done,
             info)``; ``info`` holds ``theta`` [P], ``terminated`` and ``truncated``.
         reset_at: ``reset_at(params, unit, time) -> (obs, state)``, a deterministic
-            start at a given sample (evaluation over whole trajectories).
-        observation_size: O = 2 S + W.
+            start at a given sample (evaluation over whole trajectories; incremental
+            actions start from the box centre, as a deployed stream).
+        observation_size: O (:attr:`EnvConfig.observation_size`).
         action_size: P.
         config: the static :class:`EnvConfig` the env was built with.
     """
@@ -366,41 +439,89 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
                 f"dynamics carry Z = {dyn.num_states}: build the params with "
                 "make_env_params(..., z_ref=reference_states(...))"
             )
+        if cfg.incremental and params.step_ref is None:
+            raise ValueError(
+                "env.action='increment' needs EnvParams.step_ref (the gate scale of "
+                "each parameter): build the params with make_env_params(..., "
+                "step_ref=...)"
+            )
 
     def z_at(params: EnvParams, unit: Array, time: Array) -> Array | None:
         if not dyn.num_states:
             return None
         return _row(params.z_ref, params, unit, time)
 
-    def reset_at(params: EnvParams, unit: Array, time: Array) -> tuple[Array, EnvState]:
+    def theta_centre(params: EnvParams) -> Array:
+        return 0.5 * (params.theta_low + params.theta_high)
+
+    def observe(state: EnvState, params: EnvParams) -> Array:
+        if not cfg.incremental:
+            return observation(state, params)
+        x_now = _row(params.x, params, state.unit, state.time)
+        w_next = _row(params.w, params, state.unit, state.time + 1)
+        return increment_observation(
+            (x_now - state.xhat) / params.x_std,
+            (w_next - params.w_mean) / params.w_std,
+            state.theta,
+            params.theta_low,
+            params.theta_high,
+        )
+
+    def reset_at(
+        params: EnvParams, unit: Array, time: Array, theta: Array | None = None
+    ) -> tuple[Array, EnvState]:
         check(params)
         unit = jnp.asarray(unit, jnp.int32)
         time = jnp.asarray(time, jnp.int32)
+        if cfg.incremental and theta is None:
+            theta = theta_centre(params)
         state = _env_state(
             unit=unit,
             time=time,
             step=jnp.zeros((), jnp.int32),
             xhat=_row(params.x, params, unit, time),
             z=z_at(params, unit, time),
+            theta=theta if cfg.incremental else None,
         )
-        return observation(state, params), state
+        return observe(state, params), state
 
     def reset(key: PRNGKey, params: EnvParams) -> tuple[Array, EnvState]:
-        key_unit, key_start = jax.random.split(key)
+        key_unit, key_start, key_theta = jax.random.split(key, 3)
         eligible = params.lengths >= cfg.min_unit_length
         unit = jax.random.choice(
             key_unit, eligible.shape[0], p=eligible / jnp.sum(eligible)
         )
         last_start = jnp.maximum(params.lengths[unit] - cfg.min_unit_length, 0)
         start = jax.random.randint(key_start, (), 0, last_start + 1)
-        return reset_at(params, unit, start)
+        theta = None
+        if cfg.incremental:  # episodes start anywhere in the box
+            theta = jax.random.uniform(
+                key_theta,
+                params.theta_low.shape,
+                params.theta_low.dtype,
+                params.theta_low,
+                params.theta_high,
+            )
+        return reset_at(params, unit, start, theta)
 
     def step(
         key: PRNGKey, state: EnvState, action: Array, params: EnvParams
     ) -> tuple[Array, EnvState, Array, Array, dict[str, Array]]:
         del key  # the transition is deterministic; kept for the gymnax signature
         check(params)
-        theta = action_to_theta(action, params)
+        if cfg.incremental:
+            x_now = _row(params.x, params, state.unit, state.time)
+            theta = apply_increment(
+                action,
+                state.theta,
+                (x_now - state.xhat) / params.x_std,
+                params.theta_low,
+                params.theta_high,
+                cfg.max_increment,
+                params.step_ref,
+            )
+        else:
+            theta = action_to_theta(action, params)
         time = state.time + 1
         w_next = _row(params.w, params, state.unit, time)
         z = getattr(state, "z", None)  # None: a static model's EnvState
@@ -410,17 +531,20 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         cost = tracking_cost(
             _row(params.x, params, state.unit, time), xhat, params.x_std
         )
+        if cfg.cost == "log":
+            cost = jnp.log1p(cost / cfg.cost_floor**2)
         next_state = _env_state(
             unit=state.unit,
             time=time,
             step=state.step + 1,
             xhat=xhat.astype(state.xhat.dtype),
             z=None if z is None else z.astype(state.z.dtype),
+            theta=theta if cfg.incremental else None,
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}
         return (
-            observation(next_state, params),
+            observe(next_state, params),
             next_state,
             cost.astype(jnp.float32),
             done,

@@ -53,6 +53,23 @@ def make_agent(
     return factories[type(cfg)](cfg, observation_size, action_size)
 
 
+def env_config(
+    cfg, condition_dim: int, sensor_dim: int, param_dim: int
+) -> EnvConfig:
+    """The :class:`EnvConfig` of a run's :class:`~jaxcal.config.TrainConfig` and its
+    data's dimensions (the one place the run-level ``env.*`` fields are mapped)."""
+    return EnvConfig(
+        sensor_dim,
+        condition_dim,
+        param_dim,
+        episode_length=cfg.env.episode_length,
+        action=cfg.env.action,
+        max_increment=cfg.env.max_increment,
+        cost=cfg.env.cost,
+        cost_floor=cfg.env.cost_floor,
+    )
+
+
 def make_dynamics(kind: str, problem: Problem) -> Dynamics | StatefulDynamics:
     """The transition ``dynamics(dyn_params, w_next, xhat, theta) -> xhat_next``.
 

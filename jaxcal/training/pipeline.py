@@ -57,6 +57,7 @@ from pathlib import Path
 
 import h5py
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.policy import (
@@ -66,12 +67,18 @@ from jaxcal.calibrators.policy import (
 )
 from jaxcal.checkpoint import Checkpointer
 from jaxcal.config import TrainConfig
+from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
-from jaxcal.envs.tracking import EnvConfig, EnvParams, make_env_params
+from jaxcal.envs.tracking import EnvParams, make_env_params
 from jaxcal.model import Model
 from jaxcal.problem import Normalisation, Problem
 from jaxcal.settings import check_output_path
-from jaxcal.training.components import check_dynamics, make_components, make_dynamics
+from jaxcal.training.components import (
+    check_dynamics,
+    env_config,
+    make_components,
+    make_dynamics,
+)
 from jaxcal.training.data import (
     CalibrationData,
     UnitArrays,
@@ -151,20 +158,25 @@ def _check_readable(path: Path) -> Path:
 
 
 def _env_params(
-    units: UnitArrays, problem: Problem, dyn_params, dtype, dynamics_kind: str
+    units: UnitArrays,
+    problem: Problem,
+    dyn_params,
+    dtype,
+    dynamics_kind: str,
+    max_increment: float | None = None,
 ) -> EnvParams:
     # The normalisation is computed here, in the run's dtype, as it always was: a
     # float32 run keeps bit for bit the statistics (and so the training) it had.
     w, x = units.w.astype(dtype), units.x.astype(dtype)
     z_ref = None  # a static model: Z = 0
+    dyn = as_stateful(make_dynamics(dynamics_kind, problem))
     if problem.model.is_stateful:
         # The label-free reference: the model along each unit at the prior theta
         # (the joint UKF's filtered states would be closer; see the module note).
-        dyn = as_stateful(make_dynamics(dynamics_kind, problem))
         z_ref = reference_states(
             dyn, dyn_params, w, x, units.lengths, problem.theta_prior
         )
-    return make_env_params(
+    params = make_env_params(
         w,
         x,
         units.lengths,
@@ -172,6 +184,13 @@ def _env_params(
         problem.theta_high.astype(dtype),
         dyn_params,
         z_ref=z_ref,
+    )
+    if max_increment is None:
+        return params
+    return params.replace(
+        step_ref=jnp.asarray(
+            increment_step_ref(dyn, params, problem.theta_prior, max_increment), dtype
+        )
     )
 
 
@@ -312,7 +331,17 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
             progress=cfg.output.progress,
             log=log,
         )
-    train_params = _env_params(data.train, problem, dyn_params, dtype, cfg.dynamics)
+    incremental = cfg.env.action == "increment"
+    train_params = _env_params(
+        data.train, problem, dyn_params, dtype, cfg.dynamics,
+        cfg.env.max_increment if incremental else None,
+    )  # fmt: skip
+    if incremental:
+        log(
+            "incremental actions: step gate n_ref "
+            f"{np.asarray(train_params.step_ref).tolist()} (residual RMS), largest "
+            f"step {cfg.env.max_increment:g} of the box width"
+        )
     norm = (train_params.w_mean, train_params.w_std, train_params.x_mean,
             train_params.x_std)  # fmt: skip
     problem = dataclasses.replace(
@@ -325,11 +354,8 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
          # kept at the top for readers of the older layout (the paper suite)
          "sensors": problem.output_names, "theta_names": problem.theta_names},
     )  # fmt: skip
-    env_cfg = EnvConfig(
-        len(problem.output_names),
-        len(model.conditions),
-        len(problem.theta_names),
-        episode_length=cfg.env.episode_length,
+    env_cfg = env_config(
+        cfg, len(model.conditions), len(problem.output_names), len(problem.theta_names)
     )
     parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
     check = range_check(problem)  # samples far outside the training range: flagged
@@ -354,7 +380,9 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         actor = agent_state.actor.params
         if which == "target":
             actor = getattr(agent_state, "target_actor_params", actor)
-        return policy_params_from_env(train_params, actor)
+        return policy_params_from_env(
+            train_params, actor, max_increment=env_cfg.max_increment
+        )
 
     def val_scorer(agent_state) -> dict:
         scores = score(data.val, deployable(agent_state))

@@ -31,6 +31,7 @@ import numpy as np
 from jaxcal.agents.networks import make_networks
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
 from jaxcal.calibrators.policy import (
+    IncrementPolicyParams,
     PolicyParams,
     make_policy_calibrator,
     range_check,
@@ -41,7 +42,7 @@ from jaxcal.envs.memory import StatefulDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
 from jaxcal.surrogate.model import init_surrogate_params
-from jaxcal.training.components import make_agent, make_dynamics
+from jaxcal.training.components import env_config, make_agent, make_dynamics
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
 
 # Runs of the older data.json layout are the turbofan's, which needs float64.
@@ -152,7 +153,8 @@ def load_run(
         len(problem.model.conditions), len(problem.output_names),
         len(problem.theta_names),
     )  # fmt: skip
-    agent = make_agent(cfg.agent, 2 * dims[1] + dims[0], dims[2])
+    env_cfg = env_config(cfg, *dims)
+    agent = make_agent(cfg.agent, env_cfg.observation_size, dims[2])
 
     def abstract(key):
         dyn = (
@@ -160,7 +162,7 @@ def load_run(
             if cfg.dynamics == "surrogate"
             else None
         )
-        return PolicyParams(
+        fields = dict(
             actor=agent.init(key).actor.params,
             dyn_params=dyn,
             w_mean=jnp.zeros(dims[0], dtype),
@@ -169,6 +171,13 @@ def load_run(
             x_std=jnp.ones(dims[1], dtype),
             theta_low=jnp.zeros(dims[2], dtype),
             theta_high=jnp.ones(dims[2], dtype),
+        )
+        if not env_cfg.incremental:
+            return PolicyParams(**fields)
+        return IncrementPolicyParams(
+            **fields,
+            step_ref=jnp.ones(dims[2], dtype),
+            max_increment=env_cfg.max_increment,
         )
 
     target = jax.eval_shape(abstract, jax.random.key(0))

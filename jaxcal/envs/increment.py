@@ -1,0 +1,150 @@
+"""Incremental actions: the policy as a learned feedback on the tracking residual.
+
+The paper's policy outputs theta itself (``action_to_theta``: an affine map of the
+action box), so its resolution is that of a function approximator: on noise-free
+data it stops an order of magnitude or more above the exact filter, whatever the
+training budget (the E2E network, trained with labels, stops at the same level).
+Here the action is a *change* of theta driven by the last residual, as in a
+controller with integral action:
+
+    r_t   = (x_t - x-hat_t) / sigma_x                          residual, [S]
+    s_t   = [r_t / |r_t|, lg |r_t|, norm(w_{t+1}), theta_t in [-1, 1]]
+    theta_{t+1} = clip(theta_t + M * a_t * |r_t| / (|r_t| + n_ref), box)
+
+with |r| the RMS of r over the outputs, M the largest step (``max_increment`` of
+the box width) and n_ref = 0.5 * J * M, J the RMS sensitivity of the normalised
+outputs to each parameter (:func:`sensitivity`). The gate |r| / (|r| + n_ref) makes
+the change exactly zero when the model tracks the data, so a fixed point of the
+closed loop is a point of zero residual whatever small offset the network has at
+zero input; far from it the step saturates at M. With the gate, an action of about
+0.5 is a Gauss-Newton step for small residuals. The direction r / |r| and the
+logarithm of |r| keep the network's input of order one from a residual of 1e-8 to 1.
+
+The residual of sample t is known before sample t + 1 arrives, so a step costs one
+model evaluation, as the absolute policy's (deployment: x-hat_t = F(w_t, theta_t)).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.typedefs import Array
+
+# |r| below this counts as zero in the direction r / |r| (float32 observations)
+_TINY = 1e-12
+
+
+def residual_features(resid: Array) -> tuple[Array, Array]:
+    """``(r / |r|, lg-scaled |r|)`` of a normalised residual ``[S]``.
+
+    ``|r|`` is the RMS over the outputs; the log is mapped so that |r| = 1e-8 .. 1
+    spans [-2, 2] (clipped outside).
+    """
+    norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
+    direction = resid / (norm + _TINY)
+    log_norm = jnp.clip((jnp.log10(norm + _TINY) + 4.0) / 2.0, -3.0, 3.0)
+    return direction, log_norm[None]
+
+
+def increment_observation(
+    resid: Array, w_next_norm: Array, theta: Array, low: Array, high: Array
+) -> Array:
+    """``s = [r / |r|, lg |r|, norm(w_{t+1}), theta_t in [-1, 1]]`` as float32
+    ``[S + 1 + W + P]``."""
+    direction, log_norm = residual_features(resid)
+    theta_unit = 2.0 * (theta - low) / (high - low) - 1.0
+    obs = jnp.concatenate([direction, log_norm, w_next_norm, theta_unit])
+    return obs.astype(jnp.float32)
+
+
+def apply_increment(
+    action: Array,
+    theta: Array,
+    resid: Array,
+    low: Array,
+    high: Array,
+    max_increment: float,
+    step_ref: Array,
+) -> Array:
+    """theta + M a |r| / (|r| + n_ref), clipped into the box (see the module doc).
+
+    Args:
+        action: ``[P]`` squashed action in [-1, 1] (clipped).
+        theta: ``[P]`` current theta.
+        resid: ``[S]`` normalised residual of the current sample.
+        low, high: ``[P]`` box.
+        max_increment: M as a share of the box width.
+        step_ref: ``[P]`` n_ref, the residual RMS at which the gate is 1/2.
+    """
+    norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
+    gate = norm / (norm + step_ref)
+    step = max_increment * (high - low) * jnp.clip(action, -1.0, 1.0) * gate
+    return jnp.clip(theta + step.astype(theta.dtype), low, high)
+
+
+def sensitivity(
+    measure, inputs, theta: np.ndarray, x_std: np.ndarray, step: np.ndarray
+) -> np.ndarray:
+    """J_p: RMS over samples and outputs of d(x / sigma_x) / d theta_p (host-side).
+
+    Central differences of ``measure(row, theta [P]) -> x [S]`` (one vmapped call
+    per parameter and sign) at the given samples, ``step`` ``[P]`` per parameter: a
+    finite difference rather than ``jvp`` so that any dynamics callable works (a
+    surrogate, a solver without a tangent rule).
+
+    Args:
+        measure: the model's outputs at (one row of ``inputs``, theta).
+        inputs: a pytree of ``[N, ...]`` arrays (conditions, ...); theta: ``[P]``
+            where the slope is taken.
+        x_std: ``[S]`` output scale; step: ``[P]`` difference step.
+
+    Returns:
+        ``[P]`` positive sensitivities (a parameter the outputs do not see gets the
+        smallest positive one of the others, or 1).
+    """
+    theta = jnp.asarray(theta)
+    batched = jax.jit(jax.vmap(measure, in_axes=(0, None)))
+    out = []
+    for p in range(theta.shape[0]):  # P calls at set-up, not a hot path
+        up = theta.at[p].add(step[p])
+        down = theta.at[p].add(-step[p])
+        slope = (
+            np.asarray(batched(inputs, up)) - np.asarray(batched(inputs, down))
+        ) / (2.0 * step[p])
+        out.append(np.sqrt(np.mean(np.square(slope / np.asarray(x_std)))))
+    sens = np.asarray(out, np.float64)
+    good = np.isfinite(sens) & (sens > 0)
+    fill = sens[good].min() if good.any() else 1.0
+    return np.where(good, sens, fill)
+
+
+def increment_step_ref(
+    dyn, params, theta: np.ndarray, max_increment: float, samples: int = 256
+) -> np.ndarray:
+    """n_ref = 0.5 J M per parameter (:mod:`jaxcal.envs.increment`): J the RMS
+    sensitivity of the normalised outputs at ``theta`` over ``samples`` training rows
+    spread evenly over the valid rows, M the largest step."""
+    lengths = np.asarray(params.lengths)
+    units, times = np.nonzero(np.arange(params.x.shape[1])[None] < lengths[:, None])
+    pick = np.linspace(0, units.size - 1, min(samples, units.size)).astype(int)
+    u, t = units[pick], times[pick]
+    inputs = (
+        params.w[u, t],
+        params.x[u, t],
+        None if params.z_ref is None else params.z_ref[u, t],
+    )
+
+    def measure(row, th):
+        w1, x1, z1 = row
+        return dyn.step(params.dyn_params, z1, w1, x1, th.astype(x1.dtype))[1]
+
+    width = np.asarray(params.theta_high - params.theta_low, np.float64)
+    theta = np.clip(
+        np.asarray(theta, np.float64),
+        np.asarray(params.theta_low) + 1e-3 * width,
+        np.asarray(params.theta_high) - 1e-3 * width,
+    )
+    sens = sensitivity(measure, inputs, theta, np.asarray(params.x_std), 1e-3 * width)
+    return 0.5 * sens * max_increment * width
