@@ -283,7 +283,7 @@ def robustness_table(r: Results) -> list[str]:
                     )
                 )  # fmt: skip
     covered = [
-        f"{labels[v]}: "
+        f"{'clean' if v == 'clean' else labels[v]}: "
         + ", ".join(f"{m} {share(c)}" for m in ("UKF", *POLICIES)
                     if (c := r.coverage("ds1", m, v)) is not None)
         for v in labels
