@@ -4,6 +4,7 @@ Usage (from the repository root)::
 
     python experiments/paper.py [preset=full|quick] [out=results/paper] [seed=0]
         [skip=LS,SAC]           # leave methods out (shorter; "–" in the report)
+        [skip=CLAC-inc]         # e.g. where the training CLI has no env.action
     make paper                  # preset=full, out=results/paper
     make paper PRESET=quick     # 1.5 minutes with a warm cache, results/paper-quick
 
@@ -12,14 +13,17 @@ writes ``<out>/steps/<name>.json`` and is skipped when that file exists:
 
 1. data sets: Dataset #1 (``cmapss``), its 70 dB sensor-noise copy, Dataset #2
    (``agtf30``, d = 4) and the d = 1 / d = 2 variants of the scalability study;
-2. trainings through the training CLI with deterministic run names (CLAC, LAC, SAC
-   on Dataset #1; CLAC on each Dataset #2 variant); existing runs are reused;
+2. trainings through the training CLI with deterministic run names (CLAC, LAC, SAC,
+   CLAC-F and CLAC-inc on Dataset #1; CLAC on each Dataset #2 variant); existing runs
+   are reused;
 3. E2E on labelled units (Dataset #1: units 1, 4, 7, 9 as in the paper) and E2E-sim
    on simulated labels;
 4. every method over whole test trajectories: clean, model bias x 1.02, model noise
    N(0, 0.1), 70 dB sensor noise; the scalability runs; single-stream latency;
    on Dataset #2, each method's error along the direction the sensors barely see;
-5. figures (PNG) and ``<out>/REPORT.md`` (rewritten on every run).
+5. figures (PNG), ``<out>/REPORT.md`` and ``<out>/results.json`` (the step results
+   plus the issue's summary against its goals, :mod:`jaxcal.paper.summary`),
+   rewritten on every run.
 
 The ``full`` preset reuses ``data/*.h5`` and ``runs/*`` (the files ``python -m
 jaxcal.generate`` and ``python -m jaxcal.train dataset=cmapss agent=clac`` write); the
@@ -41,7 +45,14 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the presets beside us
 
 from paper_figures import make_figures, save_traces  # noqa: E402
-from paper_presets import ALL_METHODS, EVALUATIONS, PRESETS, VARIANTS, Preset  # noqa: E402
+from paper_presets import (  # noqa: E402
+    AGENTS,
+    ALL_METHODS,
+    EVALUATIONS,
+    PRESETS,
+    VARIANTS,
+    Preset,
+)
 
 # ----------------------------------------------------------------------- plan
 
@@ -82,10 +93,8 @@ class Context:
         from jaxcal.train import parse_args
 
         spec = self.preset.datasets[key]
-        # "clac-f": the CLAC policy on the physics F (method CLAC-F)
-        on_f = agent.endswith("-f")
-        argv = [f"dataset={spec.train_dataset}", f"agent={agent.removesuffix('-f')}"]
-        argv += ["dynamics=physics"] if on_f else []
+        # AGENTS: e.g. "clac-f" -> agent=clac dynamics=physics (method CLAC-F)
+        argv = [f"dataset={spec.train_dataset}", *AGENTS[agent][1]]
         default = (
             self.data_path(key) == make_train_config(spec.train_dataset).dataset.path
         )
@@ -96,10 +105,23 @@ class Context:
             argv.append(f"output.runs_dir={self.out / 'runs'}")
         if self.seed:
             argv.append(f"seed={self.seed}")
-        if not default:  # not the CLI's own file: a name of its own, never regenerated
+        try:
             cfg = parse_args(argv)
-            stem = Path(spec.file).stem
-            argv.append(f"name={cfg.run_name.replace(cfg.dataset.name, stem, 1)}")
+        except ValueError as err:
+            raise ValueError(
+                f"training of {AGENTS[agent][0]} on {key}: {err} (skip="
+                f"{AGENTS[agent][0]} leaves the method out)"
+            ) from None
+        name = cfg.run_name
+        if not default:  # not the CLI's own file: a name of its own, never regenerated
+            name = name.replace(cfg.dataset.name, Path(spec.file).stem, 1)
+        # a run name that does not tell incremental actions apart (the CLI names
+        # agent, dynamics and seed) would share CLAC-F's folder
+        if agent == "clac-inc" and "inc" not in name:
+            name += "-inc"
+        if not default or name != cfg.run_name:
+            argv.append(f"name={name}")
+        if not default:
             argv.append("dataset.generate=")
         return argv
 
@@ -111,10 +133,11 @@ class Context:
         return str(Path(cfg.output.runs_dir) / cfg.run_name)
 
     def agents(self, key: str) -> tuple[str, ...]:
-        """The policies trained on data set ``key`` (CLAC always; LAC, SAC on ds1)."""
-        extra = ("lac", "sac", "clac-f") if key == "ds1" else ()
+        """The policies trained on data set ``key`` (CLAC always; the others of
+        :data:`AGENTS` on ds1, unless skipped)."""
+        extra = tuple(a for a in AGENTS if a != "clac") if key == "ds1" else ()
         return ("clac",) + tuple(
-            a for a in extra if (key, a.upper()) not in self.preset.skip
+            a for a in extra if (key, AGENTS[a][0]) not in self.preset.skip
         )
 
     def suite(self, key: str):
@@ -122,7 +145,7 @@ class Context:
         from jaxcal.paper.suite import Suite
 
         if key not in self._suites:
-            runs = {a.upper(): self.run_dir(key, a) for a in self.agents(key)}
+            runs = {AGENTS[a][0]: self.run_dir(key, a) for a in self.agents(key)}
             # F runs in the generator's chunks: one compiled program for both
             chunk = self.generator_config(key).chunk_size
             cfg = dataclasses.replace(self.preset.suites[key], chunk_size=chunk)
@@ -225,7 +248,9 @@ def train_or_reuse(argv: list[str], *, log: Callable[[str], None] = print) -> di
         log: printer.
 
     Returns:
-        The run's ``final.json`` plus ``{"run_dir", "reused", "argv"}``.
+        The run's ``final.json`` plus ``{"run_dir", "reused", "argv"}``;
+        ``time_to_target_s`` (the issue's training-speed measure) is copied from it,
+        null when the training job did not record it.
 
     Raises:
         ValueError: the run folder holds a run of another config.
@@ -250,6 +275,8 @@ def train_or_reuse(argv: list[str], *, log: Callable[[str], None] = print) -> di
         if code != 0:
             raise RuntimeError(f"training failed (exit code {code}): {argv}")
     final = read_json(final_path)
+    # the issue's training-speed measure; null when the training job did not record it
+    final.setdefault("time_to_target_s", None)
     return {**final, "run_dir": str(run_dir), "reused": reused, "argv": list(argv)}
 
 
@@ -295,7 +322,7 @@ USAGE = (
 )
 
 
-SKIPPABLE = ("UKF", "LS", "E2E", "E2E-sim", "LAC", "SAC", "CLAC-F")
+SKIPPABLE = ("UKF", "LS", "E2E", "E2E-sim", "LAC", "SAC", "CLAC-F", "CLAC-inc")
 
 
 def parse_args(argv: list[str]) -> tuple[Preset, Path, int]:

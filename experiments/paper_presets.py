@@ -17,8 +17,24 @@ from jaxcal.paper.suite import SuiteConfig
 from jaxcal.paper.tables import POLICIES
 
 # CLAC-F: the CLAC policy trained and deployed on the physics F instead of the
-# surrogate D (dynamics=physics), which isolates what D's model error costs
-ALL_METHODS = ("UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F")
+# surrogate D (dynamics=physics), which isolates what D's model error costs;
+# CLAC-inc: the formulation, incremental actions deployed through F
+ALL_METHODS = (
+    "UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc"
+)  # fmt: skip
+# Policies trained through `python -m jaxcal.train`: agent key (the step name
+# train-<data set>-<key>) -> (method name, the training overrides that make it).
+AGENTS = {
+    "clac": ("CLAC", ("agent=clac",)),
+    "lac": ("LAC", ("agent=lac",)),
+    "sac": ("SAC", ("agent=sac",)),
+    "clac-f": ("CLAC-F", ("agent=clac", "dynamics=physics")),
+    "clac-inc": (
+        "CLAC-inc", ("agent=clac", "dynamics=physics", "env.action=increment")
+    ),
+}  # fmt: skip
+# the "best policy" configuration, whose numbers the report's summary shows
+BEST_POLICY = "CLAC-inc"
 # (data set, variant, methods): the paper's tables and our extra columns
 EVALUATIONS = (
     ("ds1", "clean", ALL_METHODS),
@@ -46,6 +62,7 @@ FULL_ESTIMATES = {
     "data-ds2-d2": 150,
     "train-ds1-clac": 1650, "train-ds1-lac": 2100, "train-ds1-sac": 2300,
     "train-ds1-clac-f": 2700, "eval-ds1-CLAC-F": 120, "latency-ds1-CLAC-F": 60,
+    "train-ds1-clac-inc": 2700, "eval-ds1-CLAC-inc": 120, "latency-ds1-CLAC-inc": 60,
     "train-ds2-clac": 1900, "train-ds2-d": 1500, "ident-ds2": 90,
     "check": 30,
     "fit-ds1-E2E": 180, "fit-ds1-E2E-sim": 240, "fit-ds2-E2E": 240,
@@ -59,6 +76,8 @@ FULL_ESTIMATES = {
 QUICK_ESTIMATES = {
     "data": 5, "train": 6, "check": 1, "fit": 2, "eval": 1, "eval-ds1-UKF-clean": 30,
     "latency": 1, "latency-ds1-UKF": 7, "figures": 5,
+    # a smoke training on F compiles the engine inside the environment (~1 min)
+    "train-ds1-clac-inc": 70, "eval-ds1-CLAC-inc": 15, "latency-ds1-CLAC-inc": 5,
 }
 # fmt: on
 

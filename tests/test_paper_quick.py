@@ -47,11 +47,23 @@ def _load_paper():
     return module
 
 
+def _args(out) -> list[str]:
+    """The quick run's arguments; CLAC-inc is left out where the training CLI has
+    no incremental actions (``env.action``) yet."""
+    from jaxcal.train import parse_args
+
+    try:
+        parse_args(["dataset=tiny", "env.action=increment"])
+    except ValueError:
+        return ["preset=quick", f"out={out}", "skip=CLAC-inc"]
+    return ["preset=quick", f"out={out}"]
+
+
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     paper = _load_paper()
     out = tmp_path_factory.mktemp("paper") / "quick"
-    assert paper.main(["preset=quick", f"out={out}"]) == 0
+    assert paper.main(_args(out)) == 0
     return paper, out
 
 
@@ -66,6 +78,8 @@ def test_quick_preset_writes_every_table_and_figure(quick):
         assert f"(figures/{name})" in report
     assert "| UKF on F |" in report and "| E2E-sim (simulated labels) |" in report
     assert "Smoke run, not results" in report
+    assert "## The RL calibrator (issue 15)" in report
+    assert "| CLAC-inc (increments through F) |" in report
 
 
 def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
@@ -85,12 +99,26 @@ def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
     assert steps["train-ds1-clac"]["argv"][:2] == ["dataset=tiny", "agent=clac"]
     assert steps["latency-ds1-UKF"]["median_s"] > 0
     assert set(steps["figures"]["figures"]) >= set(FIGURES)
+    # the UKF's std reaches its scores; the summary sits beside the steps
+    assert 0.0 <= clean["coverage90"] <= 1.0
+    results = json.loads((out / "results.json").read_text())
+    summary = results["summary"]
+    assert summary["ds1_ukf_coverage90"] == clean["coverage90"]
+    assert summary["ds1_clac_over_ukf"] > 0 and len(summary) == 6
+    assert set(results["summary_goals"]) == set(summary)
+    inc = "eval-ds1-CLAC-inc-clean" in steps
+    assert results["summary_policy"] == ("CLAC-inc" if inc else "CLAC")
+    if inc:  # the training CLI knows incremental actions
+        for variant in ("bias", "noise", "snr70"):
+            assert f"eval-ds1-CLAC-inc-{variant}" in steps
+        assert "latency-ds1-CLAC-inc" in steps
+        assert "time_to_target_s" in steps["train-ds1-clac-inc"]
 
 
 def test_rerun_skips_every_step_and_bad_arguments_fail(quick, capsys):
     paper, out = quick
     capsys.readouterr()
-    assert paper.main(["preset=quick", f"out={out}"]) == 0
+    assert paper.main(_args(out)) == 0
     printed = capsys.readouterr().out
     num_steps = len(list((out / "steps").glob("*.json")))
     assert "[step]" not in printed and printed.count("[skip]") == num_steps

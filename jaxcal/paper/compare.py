@@ -10,6 +10,11 @@ per-unit theta RMSE and the cost of the run:
 * ``compile_s``: tracing and compiling the fleet runner (ahead of time, excluded);
 * ``run_s`` and ``batched_samples_per_s``: one execution over all units at once.
 
+A method that reports its uncertainty (``aux["theta_std"]``, a Gaussian-equivalent
+std: the UKF's, a policy's band) also gets ``coverage90``, the share of scored samples
+whose error is within the 90 % interval ``+-1.6449 std`` (:func:`interval_coverage`),
+and ``theta_std_median``: an honest band covers about 90 %, a narrow one much less.
+
 :func:`measure_latency` is the single-stream cost of the paper's Table "time": one
 sample at a time through the method's jitted ``step``, host numpy in and out, blocking
 — the same harness for every method. The paper reports seconds per sample on one CPU
@@ -31,6 +36,52 @@ from jaxcal.paper.methods import Method
 from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
 from jaxcal.training.scoring import score_units, theta_rmse
+
+Z90 = 1.6449  # two-sided 90 % quantile of the standard normal
+
+
+def interval_coverage(
+    theta: np.ndarray,
+    theta_std: np.ndarray,
+    truth: np.ndarray,
+    mask: np.ndarray,
+    names: tuple[str, ...] | list[str],
+    *,
+    z: float = Z90,
+) -> dict:
+    """How often the interval ``theta +- z std`` holds the true theta.
+
+    Args:
+        theta: ``[U, T, P]`` estimates.
+        theta_std: ``[U, T, P]`` their Gaussian-equivalent std.
+        truth: ``[U, T, P]`` true values.
+        mask: ``[U, T]`` the scored samples (the theta RMSE's mask).
+        names: the ``P`` parameter names.
+        z: the interval's half-width in stds (``Z90``: the 90 % interval).
+
+    Returns:
+        ``{"coverage90", "coverage90_per_param", "theta_std_median"}``: the share of
+        scored samples covered, averaged over parameters and per parameter, and the
+        median std over scored samples and parameters (None without scored samples).
+    """
+    mask = np.asarray(mask, bool)
+    std = np.asarray(theta_std, np.float64)
+    if std.shape != np.shape(theta):
+        raise ValueError(
+            f"aux['theta_std'] must be shaped like theta {np.shape(theta)}, got "
+            f"{std.shape}"
+        )
+    if not mask.any():
+        return {"coverage90": None, "coverage90_per_param": None,
+                "theta_std_median": None}  # fmt: skip
+    err = np.abs(np.asarray(theta, np.float64) - truth)[mask]  # [N, P]
+    # a NaN std or estimate counts as not covered
+    covered = (err <= z * std[mask]).mean(axis=0)
+    return {
+        "coverage90": float(covered.mean()),
+        "coverage90_per_param": dict(zip(names, covered.tolist(), strict=True)),
+        "theta_std_median": float(np.median(std[mask])),
+    }
 
 
 class MethodRun(NamedTuple):
@@ -154,6 +205,12 @@ def evaluate_method(
         batched_units=len(units.lengths),
         info=method.info,
     )
+    if out.aux is not None and "theta_std" in out.aux:  # methods with a std only
+        scores.update(
+            interval_coverage(
+                theta, out.aux["theta_std"], units.theta, scored, problem.theta_names
+            )
+        )
     return MethodRun(scores=scores, theta=theta, xhat=xhat)
 
 

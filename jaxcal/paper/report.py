@@ -1,6 +1,7 @@
 """``REPORT.md`` of the paper reproduction.
 
-:func:`write_report` assembles the tables of :mod:`jaxcal.paper.tables`, the
+:func:`write_report` assembles the issue's summary against its goals
+(:mod:`jaxcal.paper.summary`), the tables of :mod:`jaxcal.paper.tables`, the
 figures, the list of comparisons in which our CLAC scores worse than a baseline (each
 with the reason that applies), the set-up (data files, trainings, seeds, method
 settings, scored units), notes on what each experiment perturbs, and the estimated
@@ -12,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxcal.paper.findings import identifiability_section, losses_to_baselines
+from jaxcal.paper.summary import summary_json, summary_section
 from jaxcal.paper.tables import (
     NAMES,
     Results,
@@ -190,7 +192,9 @@ def write_report(
     command: str,
     wall_seconds: float,
 ) -> Path:
-    """Write ``REPORT.md`` (and ``results.json``, the step results) next to each other.
+    """Write ``REPORT.md`` and ``results.json`` (the step results by name, plus
+    ``summary``, ``summary_goals`` and ``summary_policy`` of
+    :mod:`jaxcal.paper.summary`) next to each other.
 
     Args:
         path: the Markdown file.
@@ -218,6 +222,8 @@ def write_report(
         "",
         description,
         "",
+        "## The RL calibrator (issue 15)",
+        "", *summary_section(r), "",
         "## 1. Inference accuracy (theta RMSE, whole test trajectories)",
         "", *inference_table(r), "",
         "## 2. Deployment and training time (Dataset #1)",
@@ -251,5 +257,6 @@ def write_report(
         "", *_timings(r), "",
     ]  # fmt: skip
     path = Path(path)
-    write_json(path.with_name("results.json"), steps)
+    # the step results, plus the issue's summary under keys no step name takes
+    write_json(path.with_name("results.json"), {**steps, **summary_json(r)})
     return write_atomic(path, "\n".join(lines) + "\n")

@@ -33,8 +33,9 @@ PAPER = {
     },
     "ablation": {"LAC": 1.3e-3, "CLAC": 3.3e-4},
 }
-EXTRA = ("LAC", "SAC", "CLAC-F", "LS", "E2E-sim")
-POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F")  # trained through python -m jaxcal.train
+EXTRA = ("LAC", "SAC", "CLAC-F", "CLAC-inc", "LS", "E2E-sim")
+# trained through python -m jaxcal.train
+POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc")
 NAMES = {
     "UKF": "UKF on F",
     "E2E": "E2E (labelled units)",
@@ -44,6 +45,7 @@ NAMES = {
     "LS": "least squares on F",
     "E2E-sim": "E2E-sim (simulated labels)",
     "CLAC-F": "CLAC on F (dynamics=physics)",
+    "CLAC-inc": "CLAC-inc (increments through F)",
 }
 
 
@@ -79,6 +81,11 @@ class Results:
         ev = self.eval(ds, method, variant)
         return None if ev is None else ev["theta_rmse"]
 
+    def coverage(self, ds: str, method: str, variant: str = "clean"):
+        """Its 90 % interval coverage, or None (no run, or no std)."""
+        ev = self.eval(ds, method, variant)
+        return None if ev is None else ev.get("coverage90")
+
     def tracking(self, ds: str, method: str, variant: str = "clean"):
         """Its normalised tracking RMSE, or None."""
         ev = self.eval(ds, method, variant)
@@ -103,19 +110,30 @@ def ratio_line(label: str, ours, paper) -> str:
     )
 
 
+def share(value) -> str:
+    """A share as a percentage (``88.1 %``); missing -> "–"."""
+    return "–" if value is None else f"{100 * value:.1f} %"
+
+
 def inference_table(r: Results) -> list[str]:
-    """Paper Table "inference": theta RMSE per method and data set, per parameter on
-    Dataset #2, E2E per unit, and the check against the training job's score."""
+    """Paper Table "inference": theta RMSE per method and data set (with the 90 %
+    coverage of the methods that report a std), per parameter on Dataset #2, E2E per
+    unit, and the check against the training job's score."""
     rows = []
     for method in ("UKF", "E2E", "CLAC", *EXTRA):
         paper = [PAPER["inference"][ds].get(method) for ds in ("ds1", "ds2")]
         rows.append(
             [NAMES[method], fmt(r.theta("ds1", method)), fmt(paper[0]),
-             fmt(r.theta("ds2", method)), fmt(paper[1])]
+             fmt(r.theta("ds2", method)), fmt(paper[1]),
+             share(r.coverage("ds1", method)), share(r.coverage("ds2", method))]
         )  # fmt: skip
     out = table(
-        ["method", "Dataset #1 ours", "paper", "Dataset #2 ours", "paper"], rows
-    ) + [""]
+        ["method", "Dataset #1 ours", "paper", "Dataset #2 ours", "paper",
+         "90 % coverage #1", "90 % coverage #2"],
+        rows,
+    ) + ["", "90 % coverage: share of scored samples whose true theta lies within "
+         "+-1.6449 times the method's reported std (methods without a std: –); an "
+         "honest band covers about 90 %.", ""]  # fmt: skip
     for ds, label in (("ds1", "Dataset #1"), ("ds2", "Dataset #2")):
         paper = PAPER["inference"][ds]
         out.append(
@@ -199,16 +217,18 @@ def timing_table(r: Results) -> list[str]:
          "batched samples/s (test units vmapped)", "training s", "paper training s"],
         rows,
     ) + [""]  # fmt: skip
-    lat = {m: r.steps.get(f"latency-ds1-{m}") for m in ("UKF", "CLAC")}
-    ours = None
-    if all(v is not None for v in lat.values()):
-        ours = ratio(lat["UKF"]["median_s"], lat["CLAC"]["median_s"])
-    out.append(
-        ratio_line(
-            "UKF / CLAC deployment time", ours,
-            ratio(PAPER["deploy_s"]["UKF"], PAPER["deploy_s"]["CLAC"]),
-        )
-    )  # fmt: skip
+    lat = {m: r.steps.get(f"latency-ds1-{m}") for m in ("UKF", "CLAC", "CLAC-inc")}
+    for policy in ("CLAC", "CLAC-inc"):
+        ours = None
+        if lat["UKF"] is not None and lat[policy] is not None:
+            ours = ratio(lat["UKF"]["median_s"], lat[policy]["median_s"])
+        if policy == "CLAC" or ours is not None:
+            out.append(
+                ratio_line(
+                    f"UKF / {policy} deployment time", ours,
+                    ratio(PAPER["deploy_s"]["UKF"], PAPER["deploy_s"]["CLAC"]),
+                )
+            )  # fmt: skip
     clac = r.train("ds1", "CLAC")
     paper_clac = PAPER["train_s"]["CLAC"]
     if clac is not None:
@@ -241,29 +261,43 @@ def robustness_table(r: Results) -> list[str]:
             [label, fmt(r.theta("ds1", "UKF", variant)), fmt(paper.get("UKF")),
              fmt(r.theta("ds1", "CLAC", variant)), fmt(paper.get("CLAC")),
              fmt(r.theta("ds1", "LAC", variant)), fmt(r.theta("ds1", "SAC", variant)),
-             fmt(r.theta("ds1", "CLAC-F", variant))]
+             fmt(r.theta("ds1", "CLAC-F", variant)),
+             fmt(r.theta("ds1", "CLAC-inc", variant))]
         )  # fmt: skip
     out = table(
         ["model perturbation", "UKF ours", "paper", "CLAC ours", "paper", "LAC ours",
-         "SAC ours", "CLAC on F ours"],
+         "SAC ours", "CLAC on F ours", "CLAC-inc ours"],
         rows,
     ) + [""]  # fmt: skip
     for variant in ("bias", "noise"):
         paper = PAPER[variant]
-        out.append(
-            ratio_line(
-                f"{labels[variant]}: CLAC / UKF",
-                ratio(r.theta("ds1", "CLAC", variant), r.theta("ds1", "UKF", variant)),
-                ratio(paper["CLAC"], paper["UKF"]),
+        for policy in ("CLAC", "CLAC-inc"):
+            ours = ratio(
+                r.theta("ds1", policy, variant), r.theta("ds1", "UKF", variant)
             )
-        )
+            if policy == "CLAC" or ours is not None:
+                out.append(
+                    ratio_line(
+                        f"{labels[variant]}: {policy} / UKF", ours,
+                        ratio(paper["CLAC"], paper["UKF"]),
+                    )
+                )  # fmt: skip
+    covered = [
+        f"{'clean' if v == 'clean' else labels[v]}: "
+        + ", ".join(f"{m} {share(c)}" for m in ("UKF", *POLICIES)
+                    if (c := r.coverage("ds1", m, v)) is not None)
+        for v in labels
+        if any(r.coverage("ds1", m, v) is not None for m in ("UKF", *POLICIES))
+    ]  # fmt: skip
+    if covered:
+        out += ["", "90 % coverage of the methods with a std: " + "; ".join(covered)]
     return out
 
 
 def sensor_noise_table(r: Results) -> list[str]:
     """Paper Table "sensor_noise": theta RMSE on the 70 dB copy of Dataset #1."""
     rows = []
-    for method in ("UKF", "CLAC", "LAC", "SAC", "CLAC-F", "E2E", "E2E-sim"):
+    for method in ("UKF", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc", "E2E", "E2E-sim"):
         rows.append(
             [NAMES[method], fmt(r.theta("ds1", method)),
              fmt(r.theta("ds1", method, "snr70")), fmt(PAPER["snr70"].get(method))]

@@ -171,6 +171,9 @@ def test_ukf_and_least_squares_recover_theta_and_suffer_from_model_bias(toy):
             assert clean.scores["tracking_rmse_norm"] < 0.05
             assert set(clean.scores["theta_rmse_per_unit"]) == {"7", "8"}
             assert clean.scores["num_samples"] == 52
+            # the std in the method's aux reaches the scores
+            assert 0.0 <= clean.scores["coverage90"] <= 1.0
+            assert clean.scores["theta_std_median"] > 0
             # padded rows hold the last valid estimate
             assert clean.theta[1, 21] == clean.theta[1, 29]
 
