@@ -115,10 +115,6 @@ class Context:
         name = cfg.run_name
         if not default:  # not the CLI's own file: a name of its own, never regenerated
             name = name.replace(cfg.dataset.name, Path(spec.file).stem, 1)
-        # a run name that does not tell incremental actions apart (the CLI names
-        # agent, dynamics and seed) would share CLAC-F's folder
-        if agent == "clac-inc" and "inc" not in name:
-            name += "-inc"
         if not default or name != cfg.run_name:
             argv.append(f"name={name}")
         if not default:

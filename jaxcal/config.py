@@ -145,7 +145,7 @@ class TrackingConfig:
     # the tracking error to zero instead of guessing theta)
     action: Literal["absolute", "increment"] = "absolute"
     # incremental actions: the largest change per step, as a share of the box width
-    max_increment: float = 0.05
+    max_increment: float = 0.5
     # "squared": the paper's tracking cost; "log": log(1 + cost / cost_floor^2), the
     # same weight for halving the error at every scale (jaxcal.envs.tracking.EnvConfig)
     cost: Literal["squared", "log"] = "squared"
@@ -266,7 +266,8 @@ class TrainConfig:
         if self.output.name:
             return self.output.name
         data = self.dataset.name or Path(self.dataset.path).stem or "data"
-        name = f"{data}-{self.agent_name}-{self.dynamics}-s{self.seed}"
+        dynamics = self.dynamics + ("-inc" if self.env.action == "increment" else "")
+        name = f"{data}-{self.agent_name}-{dynamics}-s{self.seed}"
         return name if self.preset == "default" else f"{name}-{self.preset}"
 
 

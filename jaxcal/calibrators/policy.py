@@ -14,15 +14,15 @@ yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), nor
 norm(w_0)])) and x-hat_0 = x_0.
 
 With incremental actions (:class:`IncrementPolicyParams`, ``env.action=increment``,
-:mod:`jaxcal.envs.increment`) the state also carries theta_{t-1} and the normalised
-residual r_{t-1} = (x_{t-1} - x-hat_{t-1}) / sigma_x, and each sample gives
+:mod:`jaxcal.envs.increment`) the state carries theta_{t-1}, and each sample is
+predicted, then corrected:
 
+    x-hat_t = F(w_t, theta_{t-1}),  r = (x_t - x-hat_t) / sigma_x,
     s = [r / |r|, lg |r|, norm(w_t), theta_{t-1}],
-    theta_t = clip(theta_{t-1} + M pi*(s) |r| / (|r| + n_ref), box),
-    x-hat_t = F(w_t, theta_t),  r_t = (x_t - x-hat_t) / sigma_x;
+    theta_t = clip(theta_{t-1} + M pi*(s) |r| / (|r| + n_ref), box);
 
-the first sample starts at the box centre with r = 0 (so theta_0 = theta_1 = the
-centre), as the environment's ``reset_at``.
+one model evaluation per sample, theta_{-1} = the box centre (the environment's
+``reset_at``), and x-hat_t is the one-step prediction.
 
 A model with memory (:class:`~jaxcal.envs.memory.StatefulDynamics`) also carries its
 state z: (z_t, x-hat_t) = step(z_{t-1}, w_t, x-hat_{t-1}, theta_t), and the first
@@ -104,7 +104,7 @@ class IncrementPolicyParams(PolicyParams):
     """
 
     step_ref: Array
-    max_increment: float = struct.field(pytree_node=False, default=0.05)
+    max_increment: float = struct.field(pytree_node=False, default=0.5)
 
 
 @struct.dataclass
@@ -121,7 +121,6 @@ class PolicyState:
     started: Array
     z: Array | None = None
     theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
-    resid: Array | None = None  # [S] normalised residual r_{t-1} (incremental)
 
 
 def policy_params_from_env(
@@ -169,34 +168,13 @@ def make_policy_calibrator(
         del key  # deterministic; x-hat starts at the first measurement
         z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
         z0 = None if z0 is None else z0.astype(x0.dtype)
-        theta0 = resid0 = None
-        if incremental:  # the box centre, no residual yet (the env's reset_at)
+        theta0 = None
+        if incremental:  # the box centre (the env's reset_at)
             theta0 = 0.5 * (params.theta_low + params.theta_high)
-            resid0 = jnp.zeros_like(params.x_mean)
-        return PolicyState(
-            xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, resid=resid0
-        )
+        return PolicyState(xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0)
 
-    def act(state: PolicyState, xhat_prev: Array, w_t: Array, x_t: Array) -> Array:
-        if incremental:
-            resid = jnp.where(state.started, state.resid, 0.0)
-            obs = increment_observation(
-                resid,
-                (w_t - params.w_mean) / params.w_std,
-                state.theta,
-                params.theta_low,
-                params.theta_high,
-            )
-            mean, _ = actor.apply(params.actor, obs)
-            return apply_increment(
-                jnp.tanh(mean),
-                state.theta,
-                resid,
-                params.theta_low,
-                params.theta_high,
-                params.max_increment,
-                params.step_ref,
-            )
+    def absolute_step(state: PolicyState, w_t: Array, x_t: Array):
+        xhat_prev = jnp.where(state.started, state.xhat, x_t)
         obs = jnp.concatenate(
             [
                 (xhat_prev - params.x_mean) / params.x_std,
@@ -205,27 +183,54 @@ def make_policy_calibrator(
             ]
         ).astype(jnp.float32)
         mean, _ = actor.apply(params.actor, obs)
-        return action_to_theta(jnp.tanh(mean), params)
-
-    def step(
-        state: PolicyState, w_t: Array, x_t: Array
-    ) -> tuple[PolicyState, CalStepOutput]:
-        xhat_prev = jnp.where(state.started, state.xhat, x_t)
-        theta = act(state, xhat_prev, w_t, x_t)
+        theta = action_to_theta(jnp.tanh(mean), params)
         z, xhat = dyn.step(params.dyn_params, state.z, w_t, xhat_prev, theta)
         xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
         if dyn.num_states:  # the first sample's state: init (as the env's reset)
             z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
             z = jnp.where(state.started, z, z_first.astype(z.dtype))
+        return PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z), theta, xhat
+
+    def increment_step(state: PolicyState, w_t: Array, x_t: Array):
+        # predict sample t with theta_{t-1}, then correct theta on its error
+        xhat_prev = jnp.where(state.started, state.xhat, x_t)
+        z_prev = state.z
+        if dyn.num_states:  # before the first sample: init (the env's z_ref[0])
+            z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
+            z_prev = jnp.where(state.started, z_prev, z_first.astype(z_prev.dtype))
+        z, xhat = dyn.step(params.dyn_params, z_prev, w_t, xhat_prev, state.theta)
+        xhat = xhat.astype(x_t.dtype)
+        resid = (x_t - xhat) / params.x_std
+        obs = increment_observation(
+            resid,
+            (w_t - params.w_mean) / params.w_std,
+            state.theta,
+            params.theta_low,
+            params.theta_high,
+        )
+        mean, _ = actor.apply(params.actor, obs)
+        theta = apply_increment(
+            jnp.tanh(mean),
+            state.theta,
+            resid,
+            params.theta_low,
+            params.theta_high,
+            params.max_increment,
+            params.step_ref,
+        )
         new_state = PolicyState(
             xhat=xhat,
             started=jnp.ones((), bool),
-            z=z,
-            theta=theta.astype(state.theta.dtype) if incremental else None,
-            resid=((x_t - xhat) / params.x_std).astype(state.resid.dtype)
-            if incremental
-            else None,
+            z=None if z is None else z.astype(z_prev.dtype),
+            theta=theta.astype(state.theta.dtype),
         )
+        return new_state, theta, xhat
+
+    def step(
+        state: PolicyState, w_t: Array, x_t: Array
+    ) -> tuple[PolicyState, CalStepOutput]:
+        run = increment_step if incremental else absolute_step
+        new_state, theta, xhat = run(state, w_t, x_t)
         return new_state, CalStepOutput(theta=theta, xhat=xhat)
 
     return Calibrator(init, step)
@@ -306,13 +311,10 @@ def initial_guard_carry(
     x = jnp.zeros_like(params.x_mean)
     num_states = as_stateful(dynamics).num_states
     z = jnp.zeros((num_states,), x.dtype) if num_states else None
-    theta = resid = None
+    theta = None
     if isinstance(params, IncrementPolicyParams):
         theta = 0.5 * (params.theta_low + params.theta_high)
-        resid = jnp.zeros_like(x)
-    state = PolicyState(
-        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, resid=resid
-    )
+    state = PolicyState(xhat=x, started=jnp.zeros((), bool), z=z, theta=theta)
     step = make_policy_calibrator(actor, dynamics, params).step
     out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
     out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)

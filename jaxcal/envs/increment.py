@@ -4,24 +4,29 @@ The paper's policy outputs theta itself (``action_to_theta``: an affine map of t
 action box), so its resolution is that of a function approximator: on noise-free
 data it stops an order of magnitude or more above the exact filter, whatever the
 training budget (the E2E network, trained with labels, stops at the same level).
-Here the action is a *change* of theta driven by the last residual, as in a
-controller with integral action:
+Here the action is a *change* of theta driven by the model's prediction error, as in
+a controller with integral action, predict then correct:
 
-    r_t   = (x_t - x-hat_t) / sigma_x                          residual, [S]
-    s_t   = [r_t / |r_t|, lg |r_t|, norm(w_{t+1}), theta_t in [-1, 1]]
-    theta_{t+1} = clip(theta_t + M * a_t * |r_t| / (|r_t| + n_ref), box)
+    x-hat_t = F(w_t, theta_{t-1}),  r_t = (x_t - x-hat_t) / sigma_x     [S]
+    s_t   = [r_t / |r_t|, lg |r_t|, norm(w_t), theta_{t-1} in [-1, 1]]
+    theta_t = clip(theta_{t-1} + M * a_t * |r_t| / (|r_t| + n_ref), box)
 
 with |r| the RMS of r over the outputs, M the largest step (``max_increment`` of
 the box width) and n_ref = 0.5 * J * M, J the RMS sensitivity of the normalised
 outputs to each parameter (:func:`sensitivity`). The gate |r| / (|r| + n_ref) makes
-the change exactly zero when the model tracks the data, so a fixed point of the
-closed loop is a point of zero residual whatever small offset the network has at
-zero input; far from it the step saturates at M. With the gate, an action of about
-0.5 is a Gauss-Newton step for small residuals. The direction r / |r| and the
-logarithm of |r| keep the network's input of order one from a residual of 1e-8 to 1.
+the change exactly zero when the model predicts the data, so a fixed point of the
+closed loop is a point of zero prediction error whatever small offset the network has
+at zero input; far from it the step saturates at M. With the gate, an action of
+about 0.5 is a Gauss-Newton step for small errors. The direction r / |r| and the
+logarithm of |r| keep the network's input of order one from an error of 1e-8 to 1.
 
-The residual of sample t is known before sample t + 1 arrives, so a step costs one
-model evaluation, as the absolute policy's (deployment: x-hat_t = F(w_t, theta_t)).
+theta_t answers sample t itself (no lag: a jump of theta between flights is
+corrected on the sample that shows it), and a step costs one model evaluation, the
+prediction, as the absolute policy's. The training cost of the action is the
+prediction error of the next sample, F(w_{t+1}, theta_t), the same evaluation that
+gives the next state. A model with memory advances its state with theta_{t-1}, the
+value the prediction used (theta moves slowly; a second evaluation per sample would
+be exact).
 """
 
 from __future__ import annotations

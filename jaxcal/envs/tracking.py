@@ -75,7 +75,7 @@ class EnvConfig:
     episode_length: int = 100
     differentiable: bool = False
     action: str = "absolute"
-    max_increment: float = 0.05
+    max_increment: float = 0.5
     cost: str = "squared"
     cost_floor: float = 1e-4
 
@@ -457,15 +457,26 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
     def observe(state: EnvState, params: EnvParams) -> Array:
         if not cfg.incremental:
             return observation(state, params)
+        # predict-correct: x-hat is the prediction of sample t with theta_{t-1}
         x_now = _row(params.x, params, state.unit, state.time)
-        w_next = _row(params.w, params, state.unit, state.time + 1)
+        w_now = _row(params.w, params, state.unit, state.time)
         return increment_observation(
             (x_now - state.xhat) / params.x_std,
-            (w_next - params.w_mean) / params.w_std,
+            (w_now - params.w_mean) / params.w_std,
             state.theta,
             params.theta_low,
             params.theta_high,
         )
+
+    def predict_first(params, unit, time, theta):
+        # the prediction of sample t with theta_{t-1} = theta: the model from the
+        # previous sample's reference state (x-hat of the surrogate: the previous
+        # measurement)
+        z_prev = z_at(params, unit, time - 1)
+        x_prev = _row(params.x, params, unit, time - 1)
+        w_now = _row(params.w, params, unit, time)
+        z, xhat = dyn.step(params.dyn_params, z_prev, w_now, x_prev, theta)
+        return jax.lax.stop_gradient((z, xhat.astype(x_prev.dtype)))
 
     def reset_at(
         params: EnvParams, unit: Array, time: Array, theta: Array | None = None
@@ -473,20 +484,23 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         check(params)
         unit = jnp.asarray(unit, jnp.int32)
         time = jnp.asarray(time, jnp.int32)
-        if cfg.incremental and theta is None:
-            theta = theta_centre(params)
+        xhat = _row(params.x, params, unit, time)
+        z = z_at(params, unit, time)
+        if cfg.incremental:
+            theta = theta_centre(params) if theta is None else theta
+            z, xhat = predict_first(params, unit, time, theta)
         state = _env_state(
             unit=unit,
             time=time,
             step=jnp.zeros((), jnp.int32),
-            xhat=_row(params.x, params, unit, time),
-            z=z_at(params, unit, time),
+            xhat=xhat,
+            z=None if z is None else z.astype(xhat.dtype),
             theta=theta if cfg.incremental else None,
         )
         return observe(state, params), state
 
     def reset(key: PRNGKey, params: EnvParams) -> tuple[Array, EnvState]:
-        key_unit, key_start, key_theta = jax.random.split(key, 3)
+        key_unit, key_start = jax.random.split(key)
         eligible = params.lengths >= cfg.min_unit_length
         unit = jax.random.choice(
             key_unit, eligible.shape[0], p=eligible / jnp.sum(eligible)
@@ -496,7 +510,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         theta = None
         if cfg.incremental:  # episodes start anywhere in the box
             theta = jax.random.uniform(
-                key_theta,
+                jax.random.fold_in(key, 1),
                 params.theta_low.shape,
                 params.theta_low.dtype,
                 params.theta_low,
@@ -509,7 +523,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
     ) -> tuple[Array, EnvState, Array, Array, dict[str, Array]]:
         del key  # the transition is deterministic; kept for the gymnax signature
         check(params)
-        if cfg.incremental:
+        if cfg.incremental:  # theta_t from the prediction error of sample t
             x_now = _row(params.x, params, state.unit, state.time)
             theta = apply_increment(
                 action,

@@ -202,8 +202,13 @@ def make_train_chunk(
             terminal=info["terminated"].astype(jnp.float32),
         )
         buffer = add_transitions(runner.buffer, transition)
-        reset_obs, reset_env_state = reset_envs(
-            jax.random.split(key_reset, cfg.num_envs), env_params
+        # Resets only on iterations where an episode ends (episodes of equal length
+        # end together): a reset may evaluate the model (incremental actions predict
+        # the first sample), which would otherwise double the cost of every step.
+        reset_obs, reset_env_state = jax.lax.cond(
+            jnp.any(done),
+            lambda: reset_envs(jax.random.split(key_reset, cfg.num_envs), env_params),
+            lambda: (next_obs, next_env_state),
         )
         env_state = jax.tree.map(
             lambda r, n: _where_done(done, r, n), reset_env_state, next_env_state
@@ -317,7 +322,10 @@ def evaluate_policy(
 
         keys = jax.random.split(key_unit, num_steps - 1)
         _, (theta, xhat, cost) = jax.lax.scan(body, (obs, state), keys)
-        theta = jnp.concatenate([theta[:1], theta])
+        if env.config.incremental:  # the step at t returns theta_t (predict-correct)
+            theta = jnp.concatenate([theta, theta[-1:]])
+        else:  # the step at t sets the theta of sample t + 1
+            theta = jnp.concatenate([theta[:1], theta])
         xhat = jnp.concatenate([xhat_first[None], xhat])
         cost = jnp.concatenate([jnp.zeros((1,), cost.dtype), cost])
         mask = jnp.arange(num_steps) < env_params.lengths[unit]

@@ -88,16 +88,14 @@ def test_observation_layout_and_scale_invariant_direction():
     np.testing.assert_allclose(obs[S + 1 :], [0.5, -1.0, 0.0, 0.5])
 
 
-def test_env_step_adds_the_gated_increment(setup):
+def test_env_predicts_then_corrects_with_the_gated_increment(setup):
     env, params, w, x, _ = setup
     obs, state = env.reset_at(params, 0, 5)
     np.testing.assert_allclose(state.theta, 0.0)  # the box centre
-    assert obs.shape == (env.observation_size,)
-    # no residual at the start (x-hat = x): the first action cannot move theta
-    _, state, *_ = env.step(jax.random.key(0), state, jnp.array([1.0, -1.0]), params)
-    np.testing.assert_allclose(state.theta, 0.0)
-    np.testing.assert_allclose(state.xhat, B @ w[0, 6], rtol=1e-6)
-    resid = (x[0, 6] - state.xhat) / np.asarray(params.x_std)
+    # x-hat: the prediction of sample 5 with the centre theta
+    np.testing.assert_allclose(state.xhat, B @ w[0, 5], rtol=1e-6)
+    resid = (x[0, 5] - state.xhat) / np.asarray(params.x_std)
+    np.testing.assert_allclose(obs[:S], resid / np.sqrt(np.mean(resid**2)), rtol=1e-5)
     norm = np.sqrt(np.mean(resid**2))
     gate = norm / (norm + np.asarray(params.step_ref))
     _, nxt, cost, _, info = env.step(
@@ -105,7 +103,10 @@ def test_env_step_adds_the_gated_increment(setup):
     )
     want = np.clip(MAX_INC * 2.0 * np.array([1.0, -1.0]) * gate, -1, 1)
     np.testing.assert_allclose(info["theta"], want, rtol=1e-5)
-    got = (x[0, 7] - A @ want - B @ w[0, 7]) / np.asarray(params.x_std)
+    np.testing.assert_allclose(nxt.theta, want, rtol=1e-5)
+    # the cost: the prediction error of the next sample with the corrected theta
+    np.testing.assert_allclose(nxt.xhat, A @ want + B @ w[0, 6], rtol=1e-5)
+    got = (x[0, 6] - A @ want - B @ w[0, 6]) / np.asarray(params.x_std)
     np.testing.assert_allclose(cost, np.mean(got**2), rtol=1e-4)
 
 
@@ -145,8 +146,14 @@ def test_closed_loop_with_the_ideal_feedback_reaches_the_truth(setup):
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
     theta = np.asarray(out.theta)
     np.testing.assert_allclose(theta[:, -1], np.broadcast_to(truth, (U, P)), atol=1e-8)
-    # the first two samples sit at the centre (no residual yet), as the env's reset
-    np.testing.assert_allclose(theta[:, :2], 0.0)
+    # predict-correct: the first sample already moves theta from the centre
+    assert np.all(np.abs(theta[:, 0]) > 0.1)
+    # one-step predictions: x-hat_t = F(w_t, theta_{t-1})
+    np.testing.assert_allclose(
+        np.asarray(out.xhat)[:, 1:],
+        np.einsum("sp,utp->uts", A, theta[:, :-1]) + np.einsum("sw,utw->uts", B, w[:, 1:]),
+        rtol=1e-6, atol=1e-9,
+    )
 
 
 def test_calibrator_reproduces_the_environment_rollout(setup):
@@ -161,4 +168,4 @@ def test_calibrator_reproduces_the_environment_rollout(setup):
         mean, _ = actor.apply(None, obs)
         obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
         thetas.append(np.asarray(state.theta))
-    np.testing.assert_allclose(np.asarray(out.theta)[1, 1:11], thetas, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(out.theta)[1, :10], thetas, atol=1e-6)
