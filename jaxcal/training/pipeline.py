@@ -279,12 +279,9 @@ def run_training(
     Every check of the config and the data runs before the run folder is created or
     written, so a failed start leaves nothing behind.
 
-    Args:
-        cfg: the resolved config.
-        log: where one-line messages go.
-        clock: seconds since the job's start, earlier sessions of a resumed run
-            included (the command line starts it before its imports); ``None``: from
-            this call's start. Time to target is read from it.
+    ``clock()`` gives the seconds since the job's start (earlier sessions included;
+    the command line starts it before its imports), which time to target reads;
+    ``None``: from this call's start.
 
     Raises:
         ValueError: bad data selection, an unwritable run folder or one made by
@@ -489,16 +486,10 @@ def run_training(
         "surrogate": surrogate_report,
         **time_to_target(records, target),
     }
+    val_out = None if data.val is None else run(data.val, selected)
+    names = tuple(data.theta_names)
     final.update(
-        fit_policy_band(
-            data.val,
-            None if data.val is None else run(data.val, selected),
-            data.test,
-            test_out,
-            run_dir,
-            tuple(data.theta_names),
-            log=log,
-        )
+        fit_policy_band(data.val, val_out, data.test, test_out, run_dir, names, log=log)
     )
     write_json(run_dir / FINAL_FILE, final)
     return final
