@@ -193,8 +193,18 @@ class BudgetConfig:
     # (theta-bar <- tau theta + (1 - tau) theta-bar; LAC and CLAC keep one, SAC has
     # none and falls back to its online actor), or "online", the last gradient iterate.
     policy: Literal["target", "online"] = "target"
+    # Time to target: every scoring also runs the test units and final.json reports
+    # the job's wall time at the first scoring whose test theta RMSE <= this value
+    # (reporting only: selection never sees test scores). None: off. The dataset
+    # presets' values are in TARGET_THETA_RMSE (cmapss: 2.5e-4, the issue's goal).
+    target_theta_rmse: float | None = None
 
     def __post_init__(self) -> None:
+        if self.target_theta_rmse is not None and not self.target_theta_rmse > 0:
+            raise ValueError(
+                "budget.target_theta_rmse must be > 0 or None, got "
+                f"{self.target_theta_rmse!r}"
+            )
         if self.num_chunks < 0 or self.eval_every < 0 or self.ckpt_every < 1:
             raise ValueError(
                 "budget.num_chunks and budget.eval_every must be >= 0 and "
@@ -290,6 +300,10 @@ DATASET_PRESETS: dict[str, DataConfig] = {
     "file": DataConfig(name="", path="", generate=""),
 }
 
+# budget.target_theta_rmse per dataset preset: Dataset #1's accuracy goal (the
+# paper's CLAC reached 3.30e-4 in 6,200 s); other presets have none yet.
+TARGET_THETA_RMSE: dict[str, float] = {"cmapss": 2.5e-4}
+
 _TUNED_AGENT = dict(
     actor_lr=3e-4,
     initial_entropy_temperature=0.01,
@@ -383,7 +397,10 @@ def make_train_config(dataset: str = "cmapss", preset: str = "default") -> Train
             if dataset == "file"
             else dataclasses.replace(cfg.dataset, stride=max(cfg.dataset.stride, 20)),
         )
-    return cfg
+    target = TARGET_THETA_RMSE.get(dataset)
+    return dataclasses.replace(
+        cfg, budget=dataclasses.replace(cfg.budget, target_theta_rmse=target)
+    )
 
 
 def resolve_config(argv: Sequence[str]) -> TrainConfig:

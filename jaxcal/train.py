@@ -22,7 +22,10 @@ needs it, which this command enables).
 Generates the data set if its file is missing, fits the surrogate D, trains the policy
 with progress (steps, updates/s, cost, validation theta RMSE), writes
 ``runs/<name>/`` (resolved ``config.json``, ``metrics.jsonl``, Orbax checkpoints,
-``final.json``) and prints the test units' theta RMSE and tracking RMSE. Rerunning
+``final.json``, the kept policy's 90 % theta band ``uncertainty.json``) and prints
+the test units' theta RMSE and tracking RMSE, the band's test coverage and, with
+``budget.target_theta_rmse`` set (``dataset=cmapss``: 2.5e-4), the job's wall time
+to the first scoring whose test theta RMSE reached it. Rerunning
 the same command resumes from the last checkpoint; a run folder made with a different
 config is an error. Every check of the config and the data (path given, file readable,
 theta and sensor names, unit splits, run folder writable) runs before the run folder is
@@ -96,6 +99,26 @@ def format_final(final: dict) -> str:
             f"{final['env_steps_per_s']:,.0f} env steps/s; policy training "
             f"{final['train_seconds']:.0f} s"
         )
+    target = final.get("target_theta_rmse")
+    if target is not None:
+        reached = final.get("time_to_target_s")
+        lines.append(
+            f"time to target (test theta RMSE <= {target:.2e}): "
+            + (
+                f"{reached:.0f} s of job wall time (chunk "
+                f"{final['time_to_target_chunk']})"
+                if reached is not None
+                else f"not reached in {final.get('test_scorings', 0)} scorings"
+            )
+            + f"; test scoring took {final.get('test_scoring_seconds', 0.0):.1f} s"
+        )
+    if final.get("test_coverage90") is not None:
+        band = final["uncertainty"]
+        lines.append(
+            f"90 % theta band: test coverage {final['test_coverage90']:.3f} "
+            f"({band['num_buckets']} buckets fitted on val units "
+            f"{describe_units(band['val_units'])}, {band['file']})"
+        )
     if final.get("wall_seconds") is not None:
         total = final.get("wall_seconds_total", final["wall_seconds"])
         sessions = final.get("sessions", 1)
@@ -149,8 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     previous = _previous_final(
         os.path.join(cfg.output.runs_dir, cfg.run_name, FINAL_FILE)
     )
+    before = previous.get("wall_seconds_total", previous.get("wall_seconds", 0.0))
     try:
-        final = run_training(cfg)
+        final = run_training(cfg, clock=lambda: before + time.perf_counter() - start)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -116,3 +116,23 @@ def test_figure_ratio_means_jaxcal_is_better_above_one():
     assert absent["ratio"] is None and absent["reason"] == "not installed"
     with pytest.raises(ValueError, match="better"):
         figure(1.0, "s", "faster", peer("p", 1.0, "s"))
+
+
+def test_training_figures_report_time_to_target_beside_the_paper():
+    from cpubench.end_to_end import training_figures
+
+    final = {"wall_seconds": 500.0, "target_theta_rmse": 2.5e-4,
+             "time_to_target_s": 310.0, "time_to_target_chunk": 60,
+             "test_scorings": 30, "test": {"theta_rmse": 2e-4}}  # fmt: skip
+    figs = training_figures(final, "runs/x/final.json")
+    to_target = figs["train_to_target_s"]
+    assert to_target["value"] == 310.0 and to_target["peer"]["value"] == 6200.0
+    assert to_target["ratio"] == pytest.approx(6200.0 / 310.0)
+    assert to_target["chunk"] == 60 and "reason" not in to_target
+    missed = training_figures({**final, "time_to_target_s": None}, "f.json")
+    assert missed["train_to_target_s"]["ratio"] is None
+    assert "never reached" in missed["train_to_target_s"]["reason"]
+    old = {k: v for k, v in final.items() if k != "time_to_target_s"}
+    assert "predates" in training_figures(old, "f.json")["train_to_target_s"]["reason"]
+    absent = training_figures(None, "no final.json")
+    assert all(fig["reason"] == "no final.json" for fig in absent.values())

@@ -8,7 +8,10 @@ its figures are read from the run folder that ``python -m jaxcal.train dataset=c
 wrote (``runs/cmapss-clac-surrogate-s0/final.json``), else from the committed copy
 ``results/train/clac_final.json``; the JSON names the file it read. ``--train`` runs
 the job afresh (under a new run name, so that no finished run is resumed) and reads
-its ``final.json``.
+its ``final.json``. Beside the whole job's wall time it reports ``train_to_target_s``,
+the job's own record of its wall time at the first scoring whose test theta RMSE
+reached ``budget.target_theta_rmse`` (2.5e-4 on Dataset #1), next to the paper's
+6,200 s.
 
 The deployment cost is measured in this run: the jitted single-sample step of
 :func:`jaxcal.calibrators.policy.make_stream_step` (policy pi* and one step of D, host
@@ -162,6 +165,23 @@ def bench_end_to_end(
     )  # fmt: skip
 
     final, source = _read_final(root, run_final)
+    figures.update(training_figures(final, source))
+    return {"config": sizes, "figures": figures}
+
+
+def training_figures(final: dict | None, source: str) -> dict:
+    """The training job's figures, read from its ``final.json``, beside the paper's.
+
+    Args:
+        final: the run's ``final.json`` (``None``: not found).
+        source: the file it came from, or why there is none.
+
+    Returns:
+        ``{"training_wall_time", "train_to_target_s", "training_test_theta_rmse"}``.
+        ``train_to_target_s`` is the job's wall time (data, surrogate fit and
+        training included) at the first validation scoring whose test theta RMSE
+        reached ``budget.target_theta_rmse``, as the job itself recorded it.
+    """
     train_paper = published_peer("paper: CLAC training", 6200.0, "s", PAPER_TIME)
     rmse_paper = published_peer(
         "paper: CLAC test theta RMSE",
@@ -170,30 +190,55 @@ def bench_end_to_end(
         f"{PAPER}, inference table",
     )
     if final is None:
-        figures["training_wall_time"] = figure(None, "s", "lower", train_paper,
-                                               reason=source)  # fmt: skip
-        figures["training_test_theta_rmse"] = figure(
-            None, "theta RMSE", "lower", rmse_paper, reason=source
-        )
+        return {
+            name: figure(None, unit, "lower", paper, reason=source)
+            for name, unit, paper in (
+                ("training_wall_time", "s", train_paper),
+                ("train_to_target_s", "s", train_paper),
+                ("training_test_theta_rmse", "theta RMSE", rmse_paper),
+            )
+        }
+    read = {"read_from": source, "command": TRAIN_COMMAND,
+            "updates_per_s": final.get("updates_per_s"),
+            "env_steps_per_s": final.get("env_steps_per_s"),
+            "train_seconds": final.get("train_seconds"),
+            "num_updates": final.get("num_updates"),
+            "chunks": final.get("chunks"),
+            "stopped_early": final.get("stopped_early"),
+            "sessions": final.get("sessions", 1),
+            "run": {k: final.get(k) for k in ("agent", "dynamics", "preset",
+                                              "seed")}}  # fmt: skip
+    wall = final.get("wall_seconds_total", final.get("wall_seconds"))
+    target = final.get("target_theta_rmse")
+    to_target = final.get("time_to_target_s")
+    if to_target is not None:
+        why = None
+    elif "time_to_target_s" not in final:
+        why = f"{source} predates time to target: rerun `{TRAIN_COMMAND}`"
+    elif target is None:
+        why = f"{source}: the run had no budget.target_theta_rmse"
     else:
-        read = {"read_from": source, "command": TRAIN_COMMAND,
-                "updates_per_s": final.get("updates_per_s"),
-                "env_steps_per_s": final.get("env_steps_per_s"),
-                "train_seconds": final.get("train_seconds"),
-                "num_updates": final.get("num_updates"),
-                "chunks": final.get("chunks"),
-                "stopped_early": final.get("stopped_early"),
-                "sessions": final.get("sessions", 1),
-                "run": {k: final.get(k) for k in ("agent", "dynamics", "preset",
-                                                  "seed")}}  # fmt: skip
-        wall = final.get("wall_seconds_total", final.get("wall_seconds"))
-        figures["training_wall_time"] = figure(
+        why = (
+            f"{source}: the test theta RMSE never reached {target:.2e} in "
+            f"{final.get('test_scorings')} scorings"
+        )
+    return {
+        "training_wall_time": figure(
             wall, "s", "lower", train_paper, **read,
             note="whole job (data load, surrogate fit, policy, test scoring), read "
             "from the run's final.json, not timed by this bench",
-        )  # fmt: skip
-        figures["training_test_theta_rmse"] = figure(
-            final.get("test", {}).get("theta_rmse"), "theta RMSE", "lower", rmse_paper,
-            read_from=source, note="different data from the paper's (our generator)",
-        )  # fmt: skip
-    return {"config": sizes, "figures": figures}
+        ),
+        "train_to_target_s": figure(
+            to_target, "s", "lower", train_paper, reason=why, read_from=source,
+            target_theta_rmse=target, chunk=final.get("time_to_target_chunk"),
+            test_scoring_seconds=final.get("test_scoring_seconds"),
+            note="job wall time (data, surrogate fit, training) at the first "
+            "scoring whose test theta RMSE <= target, recorded by the job itself; "
+            "the paper's 6,200 s is its whole training time to a 3.30e-4 RMSE",
+        ),
+        "training_test_theta_rmse": figure(
+            final.get("test", {}).get("theta_rmse"), "theta RMSE", "lower",
+            rmse_paper, read_from=source,
+            note="different data from the paper's (our generator)",
+        ),
+    }  # fmt: skip

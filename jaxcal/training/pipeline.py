@@ -25,12 +25,17 @@
    the prior theta, label-free, what the deployed calibrator carries from a unit's
    first sample); validation units are scored every ``eval_every`` chunks (theta
    RMSE for progress only; the label-free tracking RMSE also selects the kept
-   policy when ``budget.select=val_tracking``);
+   policy when ``budget.select=val_tracking``); with ``budget.target_theta_rmse``
+   set, every scoring also runs the test units, for reporting only (the job's time
+   to target; selection never sees a test score);
 5. the kept policy runs once through every test unit's whole trajectory (the
    deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
-   time, updates/s and env steps/s (plus, for transparency, the scores of the last
-   policy and of the last online actor).
+   time, updates/s and env steps/s, the time to target (plus, for transparency, the
+   scores of the last policy and of the last online actor);
+6. the kept policy's run over the validation units fits its split-conformal theta
+   band, written to ``uncertainty.json``; ``final.json`` gets the band's 90 %
+   coverage on the test units (:mod:`jaxcal.training.uncertainty_stage`).
 
 The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
 of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
@@ -95,8 +100,13 @@ from jaxcal.training.run_dir import (
     prepare_run_dir,
     write_json,
 )
-from jaxcal.training.scoring import describe_units, score_units
+from jaxcal.training.scoring import describe_units, score_units, theta_rmse
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
+from jaxcal.training.uncertainty_stage import (
+    fit_policy_band,
+    scored_mask,
+    time_to_target,
+)
 
 
 class GenerationError(RuntimeError):
@@ -277,17 +287,28 @@ def _throughput(records: list[dict]) -> dict:
     }
 
 
-def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dict:
+def run_training(
+    cfg: TrainConfig,
+    *,
+    log: Callable[[str], None] = print,
+    clock: Callable[[], float] | None = None,
+) -> dict:
     """Runs (or resumes) the training job of ``cfg``; returns the ``final.json`` dict.
 
     Every check of the config and the data runs before the run folder is created or
     written, so a failed start leaves nothing behind.
+
+    ``clock()`` gives the seconds since the job's start (earlier sessions included;
+    the command line starts it before its imports), which time to target reads;
+    ``None``: from this call's start.
 
     Raises:
         ValueError: bad data selection, an unwritable run folder or one made by
             another config.
     """
     wall_start = time.perf_counter()
+    if clock is None:
+        clock = lambda: time.perf_counter() - wall_start  # noqa: E731
     run_dir = Path(cfg.output.runs_dir) / cfg.run_name
     status = check_run_dir(run_dir, cfg)  # writes nothing
     state = {
@@ -360,10 +381,13 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
     parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
     check = range_check(problem)  # samples far outside the training range: flagged
 
-    def score(units: UnitArrays, params: PolicyParams) -> dict:
-        out = parts.run_units(
+    def run(units: UnitArrays, params: PolicyParams):
+        return parts.run_units(
             params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
         )
+
+    def score(units: UnitArrays, params: PolicyParams, out=None) -> dict:
+        out = run(units, params) if out is None else out
         return score_units(
             out.theta,
             out.xhat,
@@ -389,6 +413,18 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         keys = ("theta_rmse", "tracking_rmse_norm")
         return {k: scores[k] for k in keys if scores[k] is not None}
 
+    def test_reporter(agent_state) -> dict:
+        # Reporting only (time to target): train_policy logs it as test_*, and
+        # selection reads val_* alone, so test labels never choose the policy.
+        out = run(data.test, deployable(agent_state))
+        pooled, _ = theta_rmse(out.theta, data.test.theta, scored_mask(data.test, out))
+        return {"theta_rmse": pooled}
+
+    target = cfg.budget.target_theta_rmse
+    if target is not None and data.test.theta is None:
+        log("budget.target_theta_rmse: the test units have no true theta, so the "
+            "time to target is not measured")  # fmt: skip
+        target = None
     select = cfg.budget.select == "val_tracking" and data.val is not None
     deadline = (
         None
@@ -428,6 +464,9 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
             scorer=val_scorer if data.val is not None else None,
             on_checkpoint=save_latest,
             on_best=save_best if select else None,
+            reporter=test_reporter if target is not None else None,
+            target=target,
+            clock=clock,
             progress=cfg.output.progress,
             log=log,
         )
@@ -436,7 +475,8 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         if select and best_ckpt.latest_step() is not None:
             selected_step = best_ckpt.latest_step()
             selected = best_ckpt.restore(selected_step, last)
-    test = score(data.test, selected)
+    test_out = run(data.test, selected)
+    test = score(data.test, selected, test_out)
     records = policy.records
     val_record = next((r for r in records if r["step"] == selected_step), {})
     final = {
@@ -472,6 +512,12 @@ def run_training(cfg: TrainConfig, *, log: Callable[[str], None] = print) -> dic
         **_throughput(records),
         "session_wall_seconds": time.perf_counter() - wall_start,
         "surrogate": surrogate_report,
+        **time_to_target(records, target),
     }
+    val_out = None if data.val is None else run(data.val, selected)
+    names = tuple(data.theta_names)
+    final.update(
+        fit_policy_band(data.val, val_out, data.test, test_out, run_dir, names, log=log)
+    )
     write_json(run_dir / FINAL_FILE, final)
     return final

@@ -5,7 +5,8 @@ The environment steps and agent updates run inside
 iterations, environments vmapped, replay buffer on device); this module is the host loop
 around it (STYLE §2.4): per chunk it writes one JSONL record (cost, agent diagnostics,
 counters, wall time, updates/s, env steps/s and, every ``eval_every`` chunks, the
-validation scores), updates a tqdm bar, and saves an Orbax checkpoint every
+validation scores, plus the test units' theta RMSE and the job's wall time when a
+reporter is given), updates a tqdm bar, and saves an Orbax checkpoint every
 ``ckpt_every`` chunks and after the last one.
 
 Checkpoints hold the whole :class:`~jaxcal.training.runner.RunnerState` (agent, env
@@ -44,6 +45,9 @@ BEST_KEY = "val_tracking_rmse_norm"
 
 Scorer = Callable[[Any], dict]
 """``scorer(agent_state) -> {"theta_rmse": ..., "tracking_rmse_norm": ...}``."""
+
+# The reporting-only test score of time to target (never read by selection).
+TEST_KEY = "test_theta_rmse"
 
 
 class PolicyResult(NamedTuple):
@@ -125,6 +129,9 @@ def train_policy(
     scorer: Scorer | None = None,
     on_checkpoint: Callable[[int, RunnerState], None] | None = None,
     on_best: Callable[[int, RunnerState], None] | None = None,
+    reporter: Scorer | None = None,
+    target: float | None = None,
+    clock: Callable[[], float] | None = None,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> PolicyResult:
@@ -151,6 +158,15 @@ def train_policy(
             (the pipeline saves the deployable policy there).
         on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
             lowest ``val_tracking_rmse_norm`` so far (earlier sessions included).
+        reporter: test scores of an agent state, called at the same chunks as
+            ``scorer`` and logged as ``test_*`` with ``test_score_seconds``. For
+            reporting only (time to target): selection reads ``val_*`` keys alone.
+        target: the test theta RMSE whose first crossing (``test_theta_rmse <=
+            target``, earlier sessions included) is logged once, and marked in
+            its record as ``time_to_target_s`` / ``time_to_target_chunk``.
+        clock: seconds since the job's start (earlier sessions included); stamped
+            as ``job_seconds`` on every scored record, after the validation
+            scores and before the test scores (reporting is not part of the job).
         progress: show a tqdm bar.
         log: where one-line messages go.
 
@@ -175,6 +191,7 @@ def train_policy(
         best = min(
             (r[BEST_KEY] for r in records if BEST_KEY in r), default=float("inf")
         )
+        reached = any(_reaches(r, target) for r in records)
         last_val = next(
             (r["val_theta_rmse"] for r in reversed(records) if "val_theta_rmse" in r),
             None,
@@ -205,11 +222,26 @@ def train_policy(
                 last = chunk == num_chunks or (
                     deadline is not None and time.perf_counter() >= deadline
                 )
-                if scorer is not None and (
-                    last or (eval_every and chunk % eval_every == 0)
-                ):
+                scored = last or bool(eval_every and chunk % eval_every == 0)
+                if scored and scorer is not None:
                     scores = scorer(runner.agent_state)
                     record.update({f"val_{k}": v for k, v in scores.items()})
+                if scored and clock is not None:
+                    record["job_seconds"] = clock()
+                if scored and reporter is not None:
+                    tic_test = time.perf_counter()
+                    scores = reporter(runner.agent_state)
+                    record.update({f"test_{k}": v for k, v in scores.items()})
+                    record["test_score_seconds"] = time.perf_counter() - tic_test
+                    if not reached and _reaches(record, target):
+                        reached = True
+                        record["time_to_target_s"] = record.get("job_seconds")
+                        record["time_to_target_chunk"] = chunk
+                        log(
+                            f"test theta RMSE {record[TEST_KEY]:.3e} <= target "
+                            f"{target:.3e} at chunk {chunk}, "
+                            f"{record.get('job_seconds') or 0:.0f} s into the job"
+                        )
                 writer.write(chunk, record)
                 records.append({"step": chunk, **record})
                 if chunk % ckpt_every == 0 or last:
@@ -231,6 +263,12 @@ def train_policy(
                     break
         ckpt.wait_until_finished()
     return PolicyResult(runner, records, chunk, stopped_early)
+
+
+def _reaches(record: dict, target: float | None) -> bool:
+    """Whether ``record``'s test theta RMSE is at or below ``target``."""
+    value = record.get(TEST_KEY)
+    return target is not None and value is not None and value <= target
 
 
 def _postfix(record: dict, val_theta_rmse: float | None) -> dict:

@@ -10,7 +10,10 @@
     policy/            the deployable PolicyParams at the same steps (jaxcal.deploy)
     policy_best/       the policy of the chunk with the lowest validation tracking RMSE
     metrics.jsonl      one record per chunk (jaxcal.metrics_log)
-    final.json         test scores, wall time and throughput of the finished run
+    final.json         test scores, wall time, throughput and time to target of the
+                       finished run, and the 90 % band's test coverage
+    uncertainty.json   the kept policy's split-conformal theta band, fitted on the
+                       validation units (jaxcal.calibrators.uncertainty)
 
 Rerunning with the same name resumes: the stored config must match the new one except
 for the fields that do not change the training trajectory (:data:`RESUMABLE_FIELDS`).

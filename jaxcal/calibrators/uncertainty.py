@@ -1,0 +1,248 @@
+"""A calibrated uncertainty band for a trained policy: split conformal, per time bucket.
+
+A policy calibrator returns one theta-hat per sample and no spread. Its error is not
+stationary: the first samples of a unit carry the start-up transient (the policy
+starts from the prior and needs a few steps to lock on), later samples track. So the
+band is indexed by ``t``, the number of samples since the unit's first one, in
+buckets ``[edges[k], edges[k + 1])`` (the last open-ended), log-spaced by default so
+the transient gets its own, wider, half-width.
+
+Per bucket and parameter the half-width is the split-conformal quantile (Vovk et al.
+2005; Lei et al. 2018, "Distribution-free predictive inference", §2.2) of the
+absolute errors on held-out units: with ``n`` scores the ``ceil((n + 1) level)``-th
+smallest, which covers a fresh exchangeable sample with probability >= ``level``.
+Exchangeability holds across units only approximately (samples of one unit are
+correlated), so the guarantee is an approximation; the test units' coverage is
+measured and reported by the training job, not assumed. The half-width is stored as
+a Gaussian-equivalent std (half-width / z, z = 1.6449 for 90 %) so a consumer can
+emit ``theta_std`` and rebuild any symmetric interval it needs.
+
+Host-side fitting (numpy, once per run) and a jittable lookup :func:`band_std` for
+the deployed calibrator. Files are written through the one atomic writer.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from statistics import NormalDist
+
+import flax.struct
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.atomic import write_atomic
+from jaxcal.typedefs import Array
+
+UNCERTAINTY_FILE = "uncertainty.json"
+MIN_BUCKET_SAMPLES = 20  # a bucket with fewer scores merges into its neighbour
+
+
+@flax.struct.dataclass
+class ThetaBand:
+    """Per-bucket Gaussian-equivalent std of a calibrator's theta error.
+
+    Attributes:
+        edges: ``[K]`` int32, the sample index since a unit's first sample where
+            bucket ``k`` starts; ``edges[0] == 0``, strictly increasing.
+        std: ``[K, P]`` the bucket's ``level`` half-width of
+            ``|theta_hat - theta|`` divided by the Gaussian ``z`` of that level
+            (1.6449 for 90 %).
+    """
+
+    edges: Array
+    std: Array
+
+
+def z_value(level: float) -> float:
+    """Two-sided Gaussian quantile of ``level`` (1.6449 for 0.9)."""
+    return NormalDist().inv_cdf(0.5 + level / 2)
+
+
+def log_edges(length: int) -> np.ndarray:
+    """``[0, 1, 2, 4, 8, ...]``: the powers of two below ``length`` (the longest
+    unit's sample count) after 0."""
+    powers = [2**i for i in range(max(int(length), 1).bit_length()) if 2**i < length]
+    return np.asarray([0, *powers], np.int64)
+
+
+def merge_small_buckets(
+    edges: np.ndarray, counts: np.ndarray, min_count: int
+) -> np.ndarray:
+    """The bucket starts left after merging every bucket with fewer than
+    ``min_count`` samples into a neighbour: a short bucket absorbs the next one
+    until it is large enough, and a short last bucket joins the one before it.
+
+    Args:
+        edges: ``[K]`` bucket starts.
+        counts: ``[K]`` samples per bucket.
+        min_count: the smallest bucket kept on its own.
+
+    Returns:
+        ``[K']`` the kept bucket starts (``edges[0]`` always kept).
+    """
+    kept, kept_counts = [int(edges[0])], [int(counts[0])]
+    for start, count in zip(edges[1:].tolist(), counts[1:].tolist(), strict=True):
+        if kept_counts[-1] < min_count:
+            kept_counts[-1] += count
+        else:
+            kept.append(start)
+            kept_counts.append(count)
+    if len(kept) > 1 and kept_counts[-1] < min_count:
+        kept.pop()
+    return np.asarray(kept, np.int64)
+
+
+def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
+    """The split-conformal quantile of ``scores`` ``[n, P]`` along axis 0: the
+    ``ceil((n + 1) level)``-th smallest (the largest when that exceeds ``n``)."""
+    n = scores.shape[0]
+    rank = min(math.ceil((n + 1) * level), n)
+    return np.sort(scores, axis=0)[rank - 1]
+
+
+def fit_band(
+    theta_hat,
+    theta_true,
+    mask,
+    *,
+    level: float = 0.9,
+    edges=None,
+    min_count: int = MIN_BUCKET_SAMPLES,
+) -> ThetaBand:
+    """Fits the per-bucket band on held-out units' whole trajectories.
+
+    Args:
+        theta_hat, theta_true: ``[U, T, P]`` calibrator output and true values; index
+            ``t`` along axis 1 is the sample count since the unit's first sample.
+        mask: ``[U, T]`` samples to score (real and not flagged by the calibrator).
+        level: the interval's coverage target, in (0, 1).
+        edges: bucket starts (``edges[0] == 0``, increasing); ``None``:
+            :func:`log_edges` up to the longest unit.
+        min_count: buckets with fewer samples merge into a neighbour.
+
+    Returns:
+        :class:`ThetaBand` with ``K <= len(edges)`` buckets.
+
+    Raises:
+        ValueError: mismatched shapes, bad ``level`` or ``edges``, or fewer than
+            ``min_count`` samples in all.
+    """
+    theta_hat = np.asarray(theta_hat, np.float64)
+    theta_true = np.asarray(theta_true, np.float64)
+    mask = np.asarray(mask, bool)
+    if theta_hat.ndim != 3 or theta_hat.shape != theta_true.shape:
+        raise ValueError(
+            f"fit_band: theta_hat and theta_true must both be [U, T, P], got "
+            f"{theta_hat.shape} and {theta_true.shape}"
+        )
+    if mask.shape != theta_hat.shape[:2]:
+        raise ValueError(f"fit_band: mask must be [U, T] = {theta_hat.shape[:2]}, "
+                         f"got {mask.shape}")  # fmt: skip
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"fit_band: level must be in (0, 1), got {level}")
+    num = int(mask.sum())
+    if num < min_count:
+        raise ValueError(
+            f"fit_band: {num} valid samples, a band needs at least {min_count}"
+        )
+    t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
+    if edges is None:
+        edges = log_edges(int(t.max()) + 1)
+    edges = np.asarray(edges, np.int64)
+    if edges.ndim != 1 or edges[0] != 0 or np.any(np.diff(edges) <= 0):
+        raise ValueError(
+            f"fit_band: edges must start at 0 and increase, got {edges.tolist()}"
+        )
+    counts = np.bincount(np.searchsorted(edges, t, side="right") - 1,
+                         minlength=len(edges))  # fmt: skip
+    edges = merge_small_buckets(edges, counts, min_count)
+    bucket = np.searchsorted(edges, t, side="right") - 1
+    scores = np.abs(theta_hat - theta_true)[mask]  # [n, P]
+    std = np.stack(
+        [conformal_quantile(scores[bucket == k], level) for k in range(len(edges))]
+    ) / z_value(level)
+    return ThetaBand(
+        edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, jnp.float32)
+    )
+
+
+def band_std(band: ThetaBand, t) -> Array:
+    """The std of the bucket holding ``t`` (jittable).
+
+    Args:
+        band: the fitted band.
+        t: ``[]`` int32, samples since the unit's first sample (>= 0).
+
+    Returns:
+        ``[P]`` std of each parameter's error at ``t``.
+    """
+    k = jnp.searchsorted(band.edges, jnp.asarray(t, band.edges.dtype), side="right")
+    return band.std[jnp.clip(k - 1, 0, band.std.shape[0] - 1)]
+
+
+def band_coverage(
+    band: ThetaBand, theta_hat, theta_true, mask, *, level: float = 0.9
+) -> tuple[float, np.ndarray]:
+    """Share of ``mask``ed samples whose error lies inside the ``level`` interval
+    ``|theta_hat - theta| <= z std(t)``.
+
+    Args:
+        band: the fitted band.
+        theta_hat, theta_true: ``[U, T, P]``.
+        mask: ``[U, T]`` samples to score.
+        level: the interval's level (its ``z`` scales the std).
+
+    Returns:
+        ``(pooled over parameters, per parameter [P])``.
+    """
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        raise ValueError("band_coverage: the mask selects no sample")
+    edges, std = np.asarray(band.edges), np.asarray(band.std, np.float64)
+    t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
+    half = z_value(level) * std[np.searchsorted(edges, t, side="right") - 1]
+    err = np.abs(np.asarray(theta_hat, np.float64) - np.asarray(theta_true))[mask]
+    inside = err <= half
+    return float(inside.mean()), inside.mean(axis=0)
+
+
+def save_band(path: str | os.PathLike, band: ThetaBand, meta: dict) -> None:
+    """Writes ``band`` and ``meta`` (level, units, sample count, ...) as JSON,
+    atomically."""
+    doc = {
+        **meta,
+        "edges": np.asarray(band.edges).tolist(),
+        "std": np.asarray(band.std, np.float64).tolist(),
+    }
+    write_atomic(path, json.dumps(doc, indent=2) + "\n")
+
+
+def load_band(run_dir: str | os.PathLike) -> ThetaBand | None:
+    """The band of ``<run_dir>/uncertainty.json``; ``None`` when the file is absent.
+
+    Raises:
+        ValueError: the file is not a band (names the file and what is wrong).
+    """
+    path = Path(run_dir) / UNCERTAINTY_FILE
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+        edges = np.asarray(doc["edges"], np.int64)
+        std = np.asarray(doc["std"], np.float64)
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(
+            f"{path}: expected JSON with 'edges' [K] ints and 'std' [K, P] floats "
+            f"({err!r})"
+        ) from None
+    if edges.ndim != 1 or std.ndim != 2 or len(edges) != len(std) or edges[0] != 0:
+        raise ValueError(
+            f"{path}: 'edges' must be [K] starting at 0 and 'std' [K, P], got "
+            f"shapes {edges.shape} and {std.shape}"
+        )
+    return ThetaBand(
+        edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, jnp.float32)
+    )

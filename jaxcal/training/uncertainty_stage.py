@@ -1,0 +1,126 @@
+"""The last stage of a training run: the kept policy's uncertainty band, and the
+time-to-target summary of the run's records.
+
+The band (:mod:`jaxcal.calibrators.uncertainty`) is fitted by split conformal on the
+validation units, which never trained the policy and whose theta labels are used
+here only, after selection: the selected policy's theta trajectories over the whole
+validation units (the same jitted fleet run that scored them) give the per-bucket
+absolute errors. Its coverage is then measured on the test units' whole
+trajectories, the honest check of a band fitted elsewhere. A run without labelled
+validation units writes no band and says so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from jaxcal.calibrators.interface import OK, CalOutput
+from jaxcal.calibrators.uncertainty import (
+    UNCERTAINTY_FILE,
+    band_coverage,
+    fit_band,
+    save_band,
+)
+from jaxcal.training.data import UnitArrays
+from jaxcal.training.policy_stage import TEST_KEY
+
+BAND_LEVEL = 0.9  # the interval the band is fitted for and its coverage checked at
+
+
+def scored_mask(units: UnitArrays, out: CalOutput) -> np.ndarray:
+    """``[U, T]`` real samples the calibrator did not flag (the scored ones)."""
+    mask = np.asarray(units.mask, bool)
+    if out.reason is None:
+        return mask
+    return mask & (np.asarray(out.reason) == OK)
+
+
+def fit_policy_band(
+    val: UnitArrays | None,
+    val_out: CalOutput | None,
+    test: UnitArrays,
+    test_out: CalOutput,
+    run_dir: str | Path,
+    theta_names: tuple[str, ...],
+    *,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """Fits the band on the validation units, writes ``uncertainty.json`` and
+    measures its coverage on the test units.
+
+    Args:
+        val, val_out: the validation units and the selected policy's run over them
+            (``None``: the run has no validation units).
+        test, test_out: the test units and the same policy's run over them.
+        run_dir: the run folder.
+        theta_names: names of the P parameters.
+        log: where notes go.
+
+    Returns:
+        The ``final.json`` fields: ``test_coverage90`` (``None`` without a band or
+        without test labels), ``test_coverage90_per_param`` and ``uncertainty``
+        (a summary of the file, or the reason there is none).
+    """
+    none = {"test_coverage90": None, "test_coverage90_per_param": {}}
+    if val is None or val.theta is None:
+        why = "no validation units" if val is None else "no validation theta labels"
+        log(f"no uncertainty band: {why} to fit it on")
+        return {**none, "uncertainty": {"file": None, "reason": why}}
+    mask = scored_mask(val, val_out)
+    try:
+        band = fit_band(val_out.theta, val.theta, mask, level=BAND_LEVEL)
+    except ValueError as err:
+        log(f"no uncertainty band: {err}")
+        return {**none, "uncertainty": {"file": None, "reason": str(err)}}
+    meta = {
+        "level": BAND_LEVEL,
+        "method": "split conformal per bucket of samples since a unit's start",
+        "theta_names": list(theta_names),
+        "val_units": [int(u) for u in val.unit_ids],
+        "num_samples": int(mask.sum()),
+    }
+    save_band(Path(run_dir) / UNCERTAINTY_FILE, band, meta)
+    summary = {"file": UNCERTAINTY_FILE, **meta, "num_buckets": len(band.edges)}
+    if test.theta is None:
+        return {**none, "uncertainty": summary}
+    pooled, per = band_coverage(
+        band, test_out.theta, test.theta, scored_mask(test, test_out), level=BAND_LEVEL
+    )
+    return {
+        "test_coverage90": pooled,
+        "test_coverage90_per_param": dict(zip(theta_names, per.tolist(), strict=True)),
+        "uncertainty": summary,
+    }
+
+
+def time_to_target(records: list[dict], target: float | None) -> dict:
+    """The ``final.json`` time-to-target fields of a run's metrics records.
+
+    Args:
+        records: the run's metrics records (``step``, ``test_theta_rmse`` and
+            ``job_seconds`` on scored chunks).
+        target: ``budget.target_theta_rmse`` (``None``: off).
+
+    Returns:
+        ``{"target_theta_rmse", "time_to_target_s", "time_to_target_chunk",
+        "test_scorings", "test_scoring_seconds"}``; the two ``time_to_target``
+        fields are ``None`` when no scoring reached the target.
+    """
+    scored = sorted(
+        (r for r in records if r.get(TEST_KEY) is not None), key=lambda r: r["step"]
+    )
+    hit = next(
+        (r for r in scored if target is not None and r[TEST_KEY] <= target), None
+    )
+    return {
+        "target_theta_rmse": target,
+        "time_to_target_s": None if hit is None else hit.get("job_seconds"),
+        "time_to_target_chunk": None if hit is None else int(hit["step"]),
+        "test_scorings": len(scored),
+        "test_scoring_seconds": float(
+            sum(r.get("test_score_seconds", 0.0) for r in scored)
+        ),
+    }
