@@ -292,7 +292,7 @@ def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | 
             f"run {run_dir} uses outputs {list(outputs)}, the data give "
             f"{list(problem.output_names)}: pass outputs={list(outputs)}"
         )
-    cal = make_policy_calibrator(run.actor, run.dynamics, run.params)
+    cal = make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
     return cal, run_check(run)
 
 

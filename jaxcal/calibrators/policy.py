@@ -60,6 +60,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
+from jaxcal.calibrators.uncertainty import ThetaBand, band_std
 from jaxcal.envs.increment import apply_increment, increment_observation
 from jaxcal.envs.memory import StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
@@ -121,6 +122,7 @@ class PolicyState:
     started: Array
     z: Array | None = None
     theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
+    count: Array | None = None  # [] int32 samples taken (with an uncertainty band)
 
 
 def policy_params_from_env(
@@ -148,7 +150,10 @@ def policy_params_from_env(
 
 
 def make_policy_calibrator(
-    actor: nn.Module, dynamics: Dynamics | StatefulDynamics, params: PolicyParams
+    actor: nn.Module,
+    dynamics: Dynamics | StatefulDynamics,
+    params: PolicyParams,
+    band: ThetaBand | None = None,
 ) -> Calibrator:
     """The deterministic policy pi* and the dynamics as ``Calibrator(init, step)``.
 
@@ -157,9 +162,14 @@ def make_policy_calibrator(
         dynamics: ``dynamics(dyn_params, w [W], xhat [S], theta [P]) -> xhat [S]``,
             or a :class:`~jaxcal.envs.memory.StatefulDynamics`.
         params: :class:`PolicyParams` (may be traced).
+        band: the run's calibrated error band
+            (:mod:`jaxcal.calibrators.uncertainty`, fitted on its validation units);
+            ``None``: no uncertainty.
 
     Returns:
-        A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is ``None``.
+        A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is
+        ``{"theta_std": [P]}`` (the band's std at the sample's index in the stream)
+        with a band, else ``None``.
     """
     dyn = as_stateful(dynamics)
     incremental = isinstance(params, IncrementPolicyParams)
@@ -171,7 +181,10 @@ def make_policy_calibrator(
         theta0 = None
         if incremental:  # the box centre (the env's reset_at)
             theta0 = 0.5 * (params.theta_low + params.theta_high)
-        return PolicyState(xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0)
+        count = None if band is None else jnp.zeros((), jnp.int32)
+        return PolicyState(
+            xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count
+        )
 
     def absolute_step(state: PolicyState, w_t: Array, x_t: Array):
         xhat_prev = jnp.where(state.started, state.xhat, x_t)
@@ -231,7 +244,11 @@ def make_policy_calibrator(
     ) -> tuple[PolicyState, CalStepOutput]:
         run = increment_step if incremental else absolute_step
         new_state, theta, xhat = run(state, w_t, x_t)
-        return new_state, CalStepOutput(theta=theta, xhat=xhat)
+        if band is None:
+            return new_state, CalStepOutput(theta=theta, xhat=xhat)
+        aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
+        new_state = new_state.replace(count=state.count + 1)
+        return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
 
     return Calibrator(init, step)
 
@@ -259,7 +276,8 @@ def range_check(problem, margin: float = TRAINING_RANGE_MARGIN) -> SampleCheck |
 def make_fleet_runner(
     actor: nn.Module, dynamics: Dynamics, *, unroll: int = 1
 ) -> Callable[..., CalOutput]:
-    """A jitted ``run(params, w [U,T,W], x [U,T,S], mask [U,T], check=None)``.
+    """A jitted ``run(params, w [U,T,W], x [U,T,S], mask [U,T], check=None,
+    band=None)``.
 
     ``lax.scan`` over time, ``vmap`` over units
     (:func:`~jaxcal.calibrators.interface.run_fleet`); compiled once per array shape
@@ -273,8 +291,9 @@ def make_fleet_runner(
         x: Array,
         mask: Array,
         check: SampleCheck | None = None,
+        band: ThetaBand | None = None,
     ) -> CalOutput:
-        calibrator = make_policy_calibrator(actor, dynamics, params)
+        calibrator = make_policy_calibrator(actor, dynamics, params, band)
         return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
 
     return jax.jit(run)
@@ -299,7 +318,10 @@ def make_stream_step(
 
 
 def initial_guard_carry(
-    actor: nn.Module, dynamics: Dynamics, params: PolicyParams
+    actor: nn.Module,
+    dynamics: Dynamics,
+    params: PolicyParams,
+    band: ThetaBand | None = None,
 ) -> GuardCarry:
     """The carry of a guarded stream before its first sample.
 
@@ -314,8 +336,11 @@ def initial_guard_carry(
     theta = None
     if isinstance(params, IncrementPolicyParams):
         theta = 0.5 * (params.theta_low + params.theta_high)
-    state = PolicyState(xhat=x, started=jnp.zeros((), bool), z=z, theta=theta)
-    step = make_policy_calibrator(actor, dynamics, params).step
+    count = None if band is None else jnp.zeros((), jnp.int32)
+    state = PolicyState(
+        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count
+    )
+    step = make_policy_calibrator(actor, dynamics, params, band).step
     out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
     out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
     return GuardCarry(state=state, out=out, w=w, x=x)
@@ -324,13 +349,13 @@ def initial_guard_carry(
 def make_guarded_stream_step(
     actor: nn.Module, dynamics: Dynamics
 ) -> Callable[..., tuple[GuardCarry, CalStepOutput, Array]]:
-    """A jitted guarded step ``(params, carry, w [W], x [S], check) -> (carry, out,
-    reason [])``: the rule of ``run_calibrator`` for one sample
+    """A jitted guarded step ``(params, carry, w [W], x [S], check, band=None) ->
+    (carry, out, reason [])``: the rule of ``run_calibrator`` for one sample
     (:func:`~jaxcal.calibrators.interface.guarded_update`). ``check`` may be ``None``.
     """
 
-    def step(params, carry: GuardCarry, w: Array, x: Array, check):
-        calibrator = make_policy_calibrator(actor, dynamics, params)
+    def step(params, carry: GuardCarry, w: Array, x: Array, check, band=None):
+        calibrator = make_policy_calibrator(actor, dynamics, params, band)
         reason = sample_reason(check, w, x)
         return guarded_update(calibrator.step, carry, w, x, reason)
 

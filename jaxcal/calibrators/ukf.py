@@ -258,9 +258,12 @@ def make_joint_ukf(
         # the parameter prior, cross-covariance included, plus state_std.
         wm_p, wc_p, spread_p = unscented_weights(num_params, cfg)
         points = sigma_points(u0, cov_u, spread_p, cfg.jitter)  # [2P + 1, P]
-        z_points = jax.vmap(
-            lambda u: jnp.asarray(init_state(w0, admissible(scale * u)), u0.dtype)
-        )(points) / s_scale
+        z_points = (
+            jax.vmap(
+                lambda u: jnp.asarray(init_state(w0, admissible(scale * u)), u0.dtype)
+            )(points)
+            / s_scale
+        )
         z_mean = wm_p @ z_points
         dz, du = z_points - z_mean, points - u0
         cov_zz = dz.T @ (wc_p[:, None] * dz) + jnp.diag((s_std / s_scale) ** 2)

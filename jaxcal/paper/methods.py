@@ -302,6 +302,7 @@ def policy_method(run, name: str) -> Method:
                 run.actor,
                 perturbed_dynamics(run.dynamics, key, bias, noise_sigma, std),
                 params,
+                run.band,
             )
         )
 

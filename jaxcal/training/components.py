@@ -53,9 +53,7 @@ def make_agent(
     return factories[type(cfg)](cfg, observation_size, action_size)
 
 
-def env_config(
-    cfg, condition_dim: int, sensor_dim: int, param_dim: int
-) -> EnvConfig:
+def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvConfig:
     """The :class:`EnvConfig` of a run's :class:`~jaxcal.config.TrainConfig` and its
     data's dimensions (the one place the run-level ``env.*`` fields are mapped)."""
     return EnvConfig(

@@ -36,6 +36,7 @@ from jaxcal.calibrators.policy import (
     make_policy_calibrator,
     range_check,
 )
+from jaxcal.calibrators.uncertainty import ThetaBand, load_band
 from jaxcal.checkpoint import Checkpointer, load_config
 from jaxcal.config import TrainConfig
 from jaxcal.envs.memory import StatefulDynamics
@@ -62,6 +63,9 @@ class LoadedRun(NamedTuple):
         dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
             :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
         step: the checkpoint step (chunks trained) the policy comes from.
+        band: the calibrated error band of the kept policy (``uncertainty.json``,
+            fitted on the validation units at the end of training); ``None`` for a
+            run without one.
     """
 
     run_dir: Path
@@ -71,6 +75,7 @@ class LoadedRun(NamedTuple):
     actor: nn.Module
     dynamics: Dynamics | StatefulDynamics
     step: int
+    band: ThetaBand | None = None
 
     @property
     def meta(self) -> Problem:
@@ -191,6 +196,7 @@ def load_run(
                 f"{folder} holds no policy checkpoint; train the run "
                 "first (python -m jaxcal.train ...)"
             )
+        step_given = step
         step = ckpt.latest_step() if step is None else step
         params = ckpt.restore(step, target)
     return LoadedRun(
@@ -201,6 +207,8 @@ def load_run(
         actor=make_networks(cfg.agent, dims[2]).actor,
         dynamics=make_dynamics(cfg.dynamics, problem),
         step=int(step),
+        # the band belongs to the kept policy: none for another checkpoint
+        band=load_band(run_dir) if which == "selected" and step_given is None else None,
     )
 
 
@@ -219,4 +227,4 @@ def load_calibrator(run_dir: str | os.PathLike | LoadedRun) -> Calibrator:
     m)``, with ``check=run_check(run)`` to flag samples outside the training range.
     """
     run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
-    return make_policy_calibrator(run.actor, run.dynamics, run.params)
+    return make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)

@@ -33,6 +33,8 @@ class StepInfo(NamedTuple):
     theta: np.ndarray  # [P] this sample's theta, or the last valid one if skipped
     valid: bool  # the sample was used
     reason: str  # "ok" or why it was skipped (jaxcal.calibrators.interface.REASONS)
+    # [P] std of theta from the run's calibrated band (None: the run has none)
+    theta_std: np.ndarray | None = None
 
 
 class StreamingCalibrator:
@@ -64,7 +66,8 @@ class StreamingCalibrator:
         actor, dynamics = self.run_info.actor, self.run_info.dynamics
         self._step = make_guarded_stream_step(actor, dynamics)
         self._run = make_fleet_runner(actor, dynamics)
-        self._carry0 = initial_guard_carry(actor, dynamics, self._params)
+        self._band = self.run_info.band
+        self._carry0 = initial_guard_carry(actor, dynamics, self._params, self._band)
         self.reset()
 
     def reset(self) -> None:
@@ -100,11 +103,14 @@ class StreamingCalibrator:
         w = self._check("w", w, len(self.conditions), 1)
         x = self._check("x", x, len(self.sensors), 1)
         self._carry, out, reason = self._step(
-            self._params, self._carry, w, x, self._check_dev
+            self._params, self._carry, w, x, self._check_dev, self._band
         )
         self.last_reason = REASONS[int(reason)]
         self.last_valid = self.last_reason == "ok"
-        return StepInfo(np.asarray(out.theta), self.last_valid, self.last_reason)
+        std = None if out.aux is None else np.asarray(out.aux["theta_std"])
+        return StepInfo(
+            np.asarray(out.theta), self.last_valid, self.last_reason, theta_std=std
+        )
 
     def step(self, w, x) -> np.ndarray:
         """Calibrate on one sample: ``w [W]`` (``conditions``) and ``x [S]``.
@@ -139,7 +145,7 @@ class StreamingCalibrator:
             raise ValueError(
                 f"w {w.shape}, x {x.shape} and mask {mask.shape} must share [U, T]"
             )
-        out = self._run(self._params, w, x, mask, self._check_dev)
+        out = self._run(self._params, w, x, mask, self._check_dev, self._band)
         theta, xhat = np.asarray(out.theta), np.asarray(out.xhat)
         if return_flags:
             return theta, xhat, np.asarray(out.valid), np.asarray(out.reason)

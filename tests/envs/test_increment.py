@@ -49,7 +49,9 @@ def setup():
     dyn = as_stateful(physics)
     step_ref = increment_step_ref(dyn, params, np.zeros(P), MAX_INC)
     params = params.replace(step_ref=jnp.asarray(step_ref))
-    cfg = EnvConfig(S, W, P, episode_length=20, action="increment", max_increment=MAX_INC)
+    cfg = EnvConfig(
+        S, W, P, episode_length=20, action="increment", max_increment=MAX_INC
+    )
     return make_tracking_env(physics, cfg), params, w, x, truth
 
 
@@ -151,8 +153,10 @@ def test_closed_loop_with_the_ideal_feedback_reaches_the_truth(setup):
     # one-step predictions: x-hat_t = F(w_t, theta_{t-1})
     np.testing.assert_allclose(
         np.asarray(out.xhat)[:, 1:],
-        np.einsum("sp,utp->uts", A, theta[:, :-1]) + np.einsum("sw,utw->uts", B, w[:, 1:]),
-        rtol=1e-6, atol=1e-9,
+        np.einsum("sp,utp->uts", A, theta[:, :-1])
+        + np.einsum("sw,utw->uts", B, w[:, 1:]),
+        rtol=1e-6,
+        atol=1e-9,
     )
 
 
