@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxcal.paper.findings import identifiability_section, losses_to_baselines
+from jaxcal.paper.npe_steps import npe_table
 from jaxcal.paper.tables import (
     NAMES,
     Results,
@@ -237,6 +238,8 @@ def write_report(
         "",
         "### Dataset #2: the direction the sensors do not see",
         "", *identifiability_section(r), "",
+        "## Amortised inference peer (NPE, sbi; Dataset #1, clean)",
+        "", *npe_table(steps), "",
         "## Figures",
         "",
         *[f"![{name}](figures/{name})" for name in figures],
