@@ -56,7 +56,7 @@ FULL_ESTIMATES = {
     "eval-ds2-E2E": 30, "eval-ds2": 20, "eval-ds2-d1-UKF": 240, "eval-ds2-d2-UKF": 240,
     "eval-ds2-d": 20,
     "latency-ds1-UKF": 90, "latency-ds1-LS": 240, "latency": 10, "figures": 30,
-    "fit-ds1-NPE": 420, "eval-ds1-NPE": 900, "latency-ds1-NPE": 30,
+    "fit-ds1-NPE": 150, "eval-ds1-NPE": 300, "latency-ds1-NPE": 10,
 }
 QUICK_ESTIMATES = {
     "data": 5, "train": 6, "check": 1, "fit": 2, "eval": 1, "eval-ds1-UKF-clean": 30,

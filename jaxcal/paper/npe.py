@@ -25,6 +25,7 @@ many times faster than two fighting for the cores.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import io
 import time
 import warnings
@@ -129,6 +130,27 @@ def training_pairs(
     return theta.astype(np.float32), npe_features(w, x, norm)
 
 
+class _NoTracker:
+    """sbi's ``Tracker`` protocol, logging nothing: the step JSON keeps the losses."""
+
+    log_dir = ""
+
+    def log_metric(self, name, value, step=None):
+        del name, value, step
+
+    def log_metrics(self, metrics, step=None):
+        del metrics, step
+
+    def log_params(self, params):
+        del params
+
+    def add_figure(self, name, figure, step=None):
+        del name, figure, step
+
+    def flush(self):
+        pass
+
+
 def fit_npe(theta, features, low, high, cfg: NPEConfig, *, seed: int):
     """Fit q(theta | features) with sbi's NPE (APT) under a uniform prior on the box.
 
@@ -159,8 +181,11 @@ def fit_npe(theta, features, low, high, cfg: NPEConfig, *, seed: int):
         hidden_features=cfg.hidden_features,
         num_transforms=cfg.num_transforms,
     )
+    kwargs = {}
+    if "tracker" in inspect.signature(inference.NPE).parameters:  # sbi >= 0.26
+        kwargs["tracker"] = _NoTracker()  # else TensorBoard files in ./sbi-logs
     npe = inference.NPE(
-        prior=prior, density_estimator=estimator, show_progress_bars=False
+        prior=prior, density_estimator=estimator, show_progress_bars=False, **kwargs
     )
     tic = time.perf_counter()
     with warnings.catch_warnings():  # sbi's notes on z-scoring and shapes

@@ -180,11 +180,13 @@ def npe_table(steps: dict, *, available: bool | None = None) -> list[str]:
               "deploy s/sample batched", "fit s"]  # fmt: skip
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
+    num, total = fit.get("num_samples", 0), fit.get("num_simulated", 0)
+    used = "all of" if num == total else f"{num:,} pairs drawn from"
     return lines + [
         "",
-        f"NPE: sbi's NPE_C ({ev['info']['density_estimator']}) fitted on "
-        f"{fit.get('num_samples', 0):,} pairs drawn from E2E-sim's "
-        f"{fit.get('num_simulated', 0):,} simulated samples ({fit.get('epochs_run')} "
+        f"NPE: sbi's NPE_C ({ev['info']['density_estimator']}) fitted on {used} "
+        f"E2E-sim's {fit.get('num_simulated', 0):,} simulated samples "
+        f"({fit.get('epochs_run')} "
         f"epochs; the simulation, {fit.get('simulate_seconds', 0):.0f} s, is shared "
         "with E2E-sim and not in fit s), per-sample inputs [w, x] standardised, "
         f"{ev['info']['num_posterior_samples']} posterior draws per test sample; its "

@@ -39,10 +39,14 @@ def _toy(seed: int, num: int):
 
 
 @pytest.fixture(scope="module")
-def toy_posterior():
+def toy_posterior(tmp_path_factory):
     pytest.importorskip("sbi")
     theta, feats = _toy(0, TINY.max_samples)
-    posterior, info = npe.fit_npe(theta, feats, [0.0], [1.0], TINY, seed=0)
+    cwd = tmp_path_factory.mktemp("cwd")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(cwd)
+        posterior, info = npe.fit_npe(theta, feats, [0.0], [1.0], TINY, seed=0)
+    assert not (cwd / "sbi-logs").exists()  # no TensorBoard files in the cwd
     return posterior, info
 
 
