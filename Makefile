@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 
-.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper clean
+.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper npe-setup clean
 
 setup: $(STAMP)
 
@@ -48,6 +48,18 @@ bench-engine: $(STAMP)
 PRESET ?= full
 paper: $(STAMP)
 	$(BIN)/python experiments/paper.py preset=$(PRESET) $(if $(OUT),out=$(OUT)) $(if $(SKIP),skip=$(SKIP))
+
+# The NPE peer of the report (sbi, an optional extra): torch's CPU wheel first,
+# pinned (as for bench), then sbi with the core's jax/numpy/scipy pinned. `make paper`
+# runs the NPE steps when sbi imports and says how to install it when not.
+NPE_STAMP := $(VENV)/.npe-installed
+$(NPE_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip freeze | grep -iE '^(jax|jaxlib|numpy|scipy|flax|optax)==' > $(VENV)/.npe-constraints
+	$(BIN)/python -m pip install --quiet -c $(VENV)/.npe-constraints -e '.[npe]'
+	touch $(NPE_STAMP)
+
+npe-setup: $(NPE_STAMP)
 
 # CPU throughput against peers (experiments/bench_cpu.py -> results/bench/bench_cpu.json).
 # The peers are optional extras, installed here only: torch's CPU wheel first, pinned,

@@ -13,6 +13,7 @@ import dataclasses
 
 from jaxcal.calibrators.e2e import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
+from jaxcal.paper.npe import NPEConfig
 from jaxcal.paper.suite import SuiteConfig
 from jaxcal.paper.tables import POLICIES
 
@@ -72,6 +73,7 @@ FULL_ESTIMATES = {
     "eval-ds2-E2E": 30, "eval-ds2": 20, "eval-ds2-d1-UKF": 240, "eval-ds2-d2-UKF": 240,
     "eval-ds2-d": 20,
     "latency-ds1-UKF": 90, "latency-ds1-LS": 240, "latency": 10, "figures": 30,
+    "fit-ds1-NPE": 150, "eval-ds1-NPE": 300, "latency-ds1-NPE": 10,
 }
 QUICK_ESTIMATES = {
     "data": 5, "train": 6, "check": 1, "fit": 2, "eval": 1, "eval-ds1-UKF-clean": 30,
@@ -158,6 +160,11 @@ FULL = Preset(
 _QUICK_E2E = E2EConfig(
     fit=RegressorConfig(learning_rate=1e-3, batch_size=64, num_epochs=3)
 )
+# a few seconds: a two-transform MAF, three epochs, 50 posterior draws
+_QUICK_NPE = NPEConfig(
+    hidden_features=16, num_transforms=2, max_samples=2000, batch_size=256,
+    max_epochs=3, num_posterior_samples=50,
+)  # fmt: skip
 # Dataset #2's role in the smoke run: a tiny fault-scenario set of the cmapss engine, so
 # that generation and F share the compiled engine of Dataset #1 (an agtf30 engine and a
 # four-parameter UKF would add about a minute of tracing alone).
@@ -188,7 +195,11 @@ QUICK = Preset(
     },  # fmt: skip
     suites={
         "ds1": SuiteConfig(
-            max_steps=40, e2e=_QUICK_E2E, e2e_units=(1, 2), e2e_max_samples=2000
+            max_steps=40,
+            e2e=_QUICK_E2E,
+            e2e_units=(1, 2),
+            e2e_max_samples=2000,
+            npe=_QUICK_NPE,
         ),
         "ds2": SuiteConfig(max_steps=20, e2e=_QUICK_E2E, e2e_max_samples=2000),
         "ds2-d1": SuiteConfig(max_steps=20),

@@ -113,6 +113,16 @@ def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
             assert f"eval-ds1-CLAC-inc-{variant}" in steps
         assert "latency-ds1-CLAC-inc" in steps
         assert "time_to_target_s" in steps["train-ds1-clac-inc"]
+    # the NPE peer runs when its optional extra (sbi) is installed, else is absent
+    report = (out / "REPORT.md").read_text()
+    assert "## Amortised inference peer (NPE, sbi" in report
+    if importlib.util.find_spec("sbi") is None:
+        assert "eval-ds1-NPE-clean" not in steps and "pip install" in report
+    else:
+        npe = steps["eval-ds1-NPE-clean"]
+        assert npe["num_samples"] == 40 and 0.0 <= npe["coverage90"] <= 1.0
+        assert npe["theta_finite"] and steps["latency-ds1-NPE"]["median_s"] > 0
+        assert "| NPE (maf, sbi) |" in report
 
 
 def test_rerun_skips_every_step_and_bad_arguments_fail(quick, capsys):

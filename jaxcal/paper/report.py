@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxcal.paper.findings import identifiability_section, losses_to_baselines
+from jaxcal.paper.npe_steps import npe_table
 from jaxcal.paper.summary import summary_json, summary_section
 from jaxcal.paper.tables import (
     NAMES,
@@ -243,6 +244,8 @@ def write_report(
         "",
         "### Dataset #2: the direction the sensors do not see",
         "", *identifiability_section(r), "",
+        "## Amortised inference peer (NPE, sbi; Dataset #1, clean)",
+        "", *npe_table(steps), "",
         "## Figures",
         "",
         *[f"![{name}](figures/{name})" for name in figures],

@@ -44,6 +44,7 @@ from jaxcal.paper.methods import (
     policy_method,
     ukf_method,
 )
+from jaxcal.paper.npe import NPEConfig
 from jaxcal.paper.simulate import (
     evaluate_declared,
     gather_units,
@@ -70,6 +71,7 @@ class SuiteConfig:
     e2e_max_samples: int = 300_000  # labelled / simulated samples E2E fits on
     # samples per engine call of F (the generator's chunk size shares its program)
     chunk_size: int = 8192
+    npe: NPEConfig = NPEConfig()  # the NPE peer (sbi), fitted on E2E-sim's samples
 
 
 class Suite:
@@ -102,6 +104,7 @@ class Suite:
         self._engine = None
         self._methods: dict[str, Method] = {}
         self._test: dict[str, UnitArrays] = {}
+        self._simulated: dict[int, tuple[UnitArrays, float, float]] = {}
 
     @property
     def engine(self):
@@ -212,6 +215,26 @@ class Suite:
 
     # ------------------------------------------------------------------ steps
 
+    def simulated(self, seed: int) -> tuple[UnitArrays, float, float]:
+        """E2E-sim's training flights (:func:`simulated_units`), simulated once per
+        seed and kept, so that E2E-sim and the NPE peer learn from the same samples.
+
+        Returns:
+            ``(units, converged_share, seconds)``; the key is the one
+            :meth:`fit_e2e` has always used (the first half of ``key(seed)``).
+        """
+        if seed not in self._simulated:
+            key_sim, _ = jax.random.split(jax.random.key(seed))
+            tic = time.perf_counter()
+            with jax.enable_x64(True):
+                units, solved = simulated_units(
+                    key_sim, self.engine, self.problem, self.data.train,
+                    max_samples=self.cfg.e2e_max_samples,
+                    chunk_size=self.cfg.chunk_size,
+                )  # fmt: skip
+            self._simulated[seed] = (units, solved, time.perf_counter() - tic)
+        return self._simulated[seed]
+
     def fit_e2e(self, name: str, *, seed: int) -> dict:
         """Fit E2E (labelled units) or E2E-sim (simulated labels); store the weights.
 
@@ -223,12 +246,7 @@ class Suite:
         tic = time.perf_counter()
         extra = {}
         if name == "E2E-sim":
-            with jax.enable_x64(True):
-                units, solved = simulated_units(
-                    key_sim, self.engine, self.problem, self.data.train,
-                    max_samples=self.cfg.e2e_max_samples,
-                    chunk_size=self.cfg.chunk_size,
-                )  # fmt: skip
+            units, solved, _ = self.simulated(seed)
             extra["simulated_share_solved"] = solved
         elif self.cfg.e2e_units:
             splits = [self.data.train, self.data.val, self.data.test]
