@@ -50,6 +50,7 @@ from paper_presets import (  # noqa: E402
     AGENTS,
     ALL_METHODS,
     EVALUATIONS,
+    FEEDBACK,
     PRESETS,
     VARIANTS,
     Preset,
@@ -101,7 +102,12 @@ class Context:
         )
         if not default:
             argv.append(f"path={self.data_path(key)}")
-        argv += list(self.preset.train_args.get(key, ()))
+        extra = list(self.preset.train_args.get(key, ()))
+        if any(a.startswith("preset=") for a in extra):  # the quick run's smoke
+            argv += list(FEEDBACK) if agent == "clac-inc" else []
+        else:
+            argv.append("preset=default" if agent == "clac-inc" else "preset=absolute")
+        argv += extra
         if self.preset.in_out:
             argv.append(f"output.runs_dir={self.out / 'runs'}")
         if self.seed:

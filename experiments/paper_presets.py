@@ -25,15 +25,20 @@ ALL_METHODS = (
 )  # fmt: skip
 # Policies trained through `python -m jaxcal.train`: agent key (the step name
 # train-<data set>-<key>) -> (method name, the training overrides that make it).
+# The paper's formulation (absolute actions) trains with the CLI's `absolute` preset,
+# CLAC-inc with its `default` one (incremental actions through F); a preset of its
+# own (the quick run's smoke) gets FEEDBACK for CLAC-inc instead.
 AGENTS = {
     "clac": ("CLAC", ("agent=clac",)),
     "lac": ("LAC", ("agent=lac",)),
     "sac": ("SAC", ("agent=sac",)),
     "clac-f": ("CLAC-F", ("agent=clac", "dynamics=physics")),
-    "clac-inc": (
-        "CLAC-inc", ("agent=clac", "dynamics=physics", "env.action=increment")
-    ),
+    "clac-inc": ("CLAC-inc", ("agent=clac",)),
 }  # fmt: skip
+FEEDBACK = (
+    "dynamics=physics", "env.action=increment", "env.cost=log",
+    "agent.smoothness_threshold=0.1",
+)  # fmt: skip
 # the "best policy" configuration, whose numbers the report's summary shows
 BEST_POLICY = "CLAC-inc"
 # (data set, variant, methods): the paper's tables and our extra columns
