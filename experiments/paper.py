@@ -267,8 +267,8 @@ def make_plan(ctx: Context) -> list[Step]:
 def train_or_reuse(argv: list[str], *, log: Callable[[str], None] = print) -> dict:
     """A trained policy: the run of ``python -m jaxcal.train <argv>``, reused if done.
 
-    Training runs in-process through the CLI's own ``main`` in float32 (the CLI's
-    precision), whatever the caller's setting.
+    Training runs in-process through the CLI's own ``main`` in the CLI's precision
+    (float64 for a policy on the engines' F, else float32), whatever the caller's.
 
     Args:
         argv: the training command line (``key=value`` tokens).
@@ -297,7 +297,9 @@ def train_or_reuse(argv: list[str], *, log: Callable[[str], None] = print) -> di
         log(f"reusing {run_dir} (final.json present)")
     else:
         log("python -m jaxcal.train " + " ".join(argv))
-        with jax.enable_x64(False):
+        # the CLI's own precision: float64 around the engines' Newton solve when the
+        # policy trains on F (dynamics=physics), else float32
+        with jax.enable_x64(cfg.dynamics == "physics"):
             code = main(list(argv))
         if code != 0:
             raise RuntimeError(f"training failed (exit code {code}): {argv}")

@@ -9,7 +9,7 @@ turbofan or any other model::
 
     from jaxcal.deploy import StreamingCalibrator
 
-    cal = StreamingCalibrator("runs/cmapss-clac-surrogate-s0")
+    cal = StreamingCalibrator("runs/cmapss-clac-physics-inc-s0")
     for w_t, x_t in stream:                  # w_t [W]: cal.conditions, x_t [S]
         theta_t = cal.step(w_t, x_t)         # [P] numpy, one jitted call
     theta, xhat = cal.run(w, x, mask)        # batch: [U, T, W], [U, T, S], [U, T]

@@ -5,8 +5,8 @@ sample; CLAC test RMSE 3.30e-4).
 
 The training job takes about 12 minutes here, too long to re-run inside the bench, so
 its figures are read from the run folder that ``python -m jaxcal.train dataset=cmapss``
-wrote (``runs/cmapss-clac-surrogate-s0/final.json``), else from the committed copy
-``results/train/clac_final.json``; the JSON names the file it read. ``--train`` runs
+wrote (``runs/cmapss-clac-physics-inc-s0/final.json``), else from the committed copy
+``results/train/feedback_final.json``; the JSON names the file it read. ``--train`` runs
 the job afresh (under a new run name, so that no finished run is resumed) and reads
 its ``final.json``. Beside the whole job's wall time it reports ``train_to_target_s``,
 the job's own record of its wall time at the first scoring whose test theta RMSE
@@ -50,8 +50,8 @@ from jaxcal.surrogate.model import (
 PAPER = "Tian et al., Real-Time Model Calibration with Deep RL, Dataset #1"
 PAPER_TIME = f"{PAPER}, table tb:time"
 TRAIN_COMMAND = "python -m jaxcal.train dataset=cmapss"
-RUN_FINAL = "runs/cmapss-clac-surrogate-s0/final.json"
-COMMITTED_FINAL = "results/train/clac_final.json"
+RUN_FINAL = "runs/cmapss-clac-physics-inc-s0/final.json"
+COMMITTED_FINAL = "results/train/feedback_final.json"
 SENSORS, CONDITIONS, PARAMS = 14, 4, 1
 
 

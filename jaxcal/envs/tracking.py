@@ -5,7 +5,11 @@ observed trajectory x of one unit:
 
 * state s_t = [x-hat_t, x_{t+1}, w_{t+1}], each block normalised with training
   statistics;
-* action a_t in [-1, 1]^P, mapped affinely to theta_{t+1} in [theta_low, theta_high];
+* action a_t in [-1, 1]^P, mapped affinely to theta_{t+1} in [theta_low, theta_high]
+  (the paper's absolute actions), or, with ``EnvConfig.action = "increment"``, a
+  gated change of theta driven by the prediction error of the current sample
+  (:mod:`jaxcal.envs.increment`: the state then carries theta and x-hat is the
+  prediction of sample t with theta_{t-1});
 * transition x-hat_{t+1} = dynamics(dyn_params, w_{t+1}, x-hat_t, theta_{t+1}), where
   ``dynamics`` is any pure callable: the learned surrogate D uses x-hat_t, the physics
   F(w, theta) ignores it. A model with memory carries its hidden state z [Z] in the
@@ -38,9 +42,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxcal.envs.env_data import (  # noqa: F401 (re-exported: the env's data)
+    EnvParams,
+    compute_norm_stats,
+    make_env_params,
+)
 from jaxcal.envs.increment import apply_increment, increment_observation
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
-from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 Dynamics = Callable[[PyTree, Array, Array, Array], Array]
@@ -117,161 +125,6 @@ class EnvConfig:
     def min_unit_length(self) -> int:
         """Shortest unit a training window fits in: episode_length + 2 samples."""
         return self.episode_length + 2
-
-
-@struct.dataclass
-class EnvParams:
-    """Data to track and everything else a traced step reads.
-
-    Attributes:
-        w: [U, T, W] operating conditions (physical units), padded after ``lengths``.
-        x: [U, T, S] observed outputs (physical units), padded after ``lengths``.
-        lengths: [U] int32 valid rows per unit (rows t < lengths[u] are data).
-        w_mean, w_std: [W] normalisation of w (training statistics).
-        x_mean, x_std: [S] normalisation of x and x-hat; x_std is also the cost's sigma.
-        theta_low, theta_high: [P] action box.
-        dyn_params: pytree passed to ``dynamics`` (surrogate weights, engine constants).
-        z_ref: [U, T, Z] reference model state after each sample (where an episode
-            starting there takes its z from); ``None`` for a static model.
-        step_ref: [P] residual RMS at which an incremental step is half its
-            largest (:func:`jaxcal.envs.increment.apply_increment`); ``None`` for
-            absolute actions.
-    """
-
-    w: Array
-    x: Array
-    lengths: Array
-    w_mean: Array
-    w_std: Array
-    x_mean: Array
-    x_std: Array
-    theta_low: Array
-    theta_high: Array
-    dyn_params: PyTree
-    z_ref: Array | None = None
-    step_ref: Array | None = None
-
-
-def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
-    """Mean and std over the valid rows of all units (host-side, numpy).
-
-    A feature with std below 1e-12 relative to its scale (a constant channel) gets
-    std = 1 so that normalisation never divides by zero
-    (:meth:`Normalisation.of`). The statistics are computed in the data's own dtype:
-    a float32 run normalises with exactly the float32 statistics it always had.
-
-    Args:
-        w: [U, T, W]; x: [U, T, S]; lengths: [U].
-
-    Returns:
-        The problem's :class:`~jaxcal.problem.Normalisation`, arrays in the data's
-        dtype.
-    """
-    w, x, lengths = np.asarray(w), np.asarray(x), np.asarray(lengths)
-    valid = np.arange(x.shape[1])[None, :] < lengths[:, None]
-    stats = Normalisation.of(w[valid], x[valid], dtype=None)
-    return Normalisation(*(jnp.asarray(a) for a in stats))
-
-
-def make_env_params(
-    w: Array,
-    x: Array,
-    lengths: Array,
-    theta_low: Array,
-    theta_high: Array,
-    dyn_params: PyTree,
-    *,
-    stats: Normalisation | None = None,
-    z_ref: Array | None = None,
-    step_ref: Array | None = None,
-) -> EnvParams:
-    """Validates the data and assembles :class:`EnvParams` (host-side).
-
-    Args:
-        w: [U, T, W] operating conditions; x: [U, T, S] observations.
-        lengths: [U] valid rows per unit, 2 <= lengths[u] <= T.
-        theta_low, theta_high: [P] action box, theta_low < theta_high.
-        dyn_params: the dynamics' parameters.
-        stats: normalisation statistics (the problem's ``norm``); ``None`` computes
-            them from (w, x). Pass the training set's statistics when building
-            test/held-out parameters. They are cast to the data's dtype.
-        z_ref: ``[U, T, Z]`` reference model states, finite on valid rows;
-            ``None``: a static model (no state).
-        step_ref: ``[P]`` positive gate scale of incremental actions; ``None``:
-            absolute actions.
-
-    Returns:
-        :class:`EnvParams`.
-
-    Raises:
-        ValueError: naming the offending field and the expected form.
-    """
-    w_np, x_np = np.asarray(w), np.asarray(x)
-    lengths_np = np.asarray(lengths)
-    low, high = (
-        np.atleast_1d(np.asarray(theta_low)),
-        np.atleast_1d(np.asarray(theta_high)),
-    )
-    if w_np.ndim != 3 or x_np.ndim != 3 or w_np.shape[:2] != x_np.shape[:2]:
-        raise ValueError(
-            "w and x must be [U, T, W] and [U, T, S] with equal U, T; got "
-            f"{w_np.shape} and {x_np.shape}"
-        )
-    num_units, num_steps = x_np.shape[:2]
-    if lengths_np.shape != (num_units,) or not np.issubdtype(
-        lengths_np.dtype, np.integer
-    ):
-        raise ValueError(f"lengths must be an int array of shape ({num_units},)")
-    if lengths_np.min() < 2 or lengths_np.max() > num_steps:
-        raise ValueError(f"lengths must lie in [2, T={num_steps}], got {lengths_np}")
-    valid = np.arange(num_steps)[None, :] < lengths_np[:, None]
-    if not (np.isfinite(w_np[valid]).all() and np.isfinite(x_np[valid]).all()):
-        raise ValueError("w and x must be finite on valid rows (t < lengths[u])")
-    if low.shape != high.shape or low.ndim != 1 or not np.all(low < high):
-        raise ValueError(
-            f"theta_low and theta_high must be [P] arrays with theta_low < theta_high, "
-            f"got {low} and {high}"
-        )
-    if stats is None:
-        stats = compute_norm_stats(w_np, x_np, lengths_np)
-    for name, value, dim in (
-        ("w_std", stats.w_std, w_np.shape[-1]),
-        ("x_std", stats.x_std, x_np.shape[-1]),
-    ):
-        value = np.asarray(value)
-        if value.shape != (dim,) or not np.all(value > 0):
-            raise ValueError(f"stats.{name} must be a positive [{dim}] array")
-    z_ref_np = None
-    if z_ref is not None:
-        z_ref_np = np.asarray(z_ref, x_np.dtype)
-        if z_ref_np.ndim != 3 or z_ref_np.shape[:2] != (num_units, num_steps):
-            raise ValueError(
-                f"z_ref must be [U, T, Z] with [U, T] = ({num_units}, {num_steps}), "
-                f"got {z_ref_np.shape}"
-            )
-        if not np.isfinite(z_ref_np[valid]).all():
-            raise ValueError("z_ref must be finite on valid rows (t < lengths[u])")
-    if step_ref is not None:
-        step_ref = np.asarray(step_ref, x_np.dtype)
-        if step_ref.shape != low.shape or not np.all(step_ref > 0):
-            raise ValueError(
-                f"step_ref must be a positive [{low.shape[0]}] array, got {step_ref}"
-            )
-        step_ref = jnp.asarray(step_ref)
-    return EnvParams(
-        w=jnp.asarray(w_np),
-        x=jnp.asarray(x_np),
-        lengths=jnp.asarray(lengths_np, jnp.int32),
-        w_mean=jnp.asarray(stats.w_mean, w_np.dtype),
-        w_std=jnp.asarray(stats.w_std, w_np.dtype),
-        x_mean=jnp.asarray(stats.x_mean, x_np.dtype),
-        x_std=jnp.asarray(stats.x_std, x_np.dtype),
-        theta_low=jnp.asarray(low),
-        theta_high=jnp.asarray(high),
-        dyn_params=dyn_params,
-        z_ref=None if z_ref_np is None else jnp.asarray(z_ref_np),
-        step_ref=step_ref,
-    )
 
 
 def _check_dims(params: EnvParams, cfg: EnvConfig) -> None:

@@ -170,5 +170,7 @@ def summary_section(r: Results) -> list[str]:
         "Paper: CLAC / UKF theta RMSE on its Dataset #1 and under its model bias, its "
         "total CLAC training time and its UKF / CLAC seconds per sample; it reports "
         "no intervals. Training time to target: the training job's "
-        "`time_to_target_s` (`final.json`).",
+        "`time_to_target_s` (`final.json`). What each lever of the formulation gave, "
+        "and why the goals not met are not: "
+        "[results/train/feedback.md](../train/feedback.md).",
     ]

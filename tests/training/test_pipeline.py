@@ -98,7 +98,21 @@ def test_config_presets_aliases_and_errors(tmp_path):
     assert paper.agent.initial_entropy_temperature == 2.0
     tuned = resolve_config(["agent=sac", "agent.gamma=0.5", "seed=3"])
     assert tuned.agent_name == "sac" and tuned.agent.gamma == 0.5
-    assert tuned.run_name == "cmapss-sac-surrogate-s3"
+    assert tuned.run_name == "cmapss-sac-physics-inc-s3"
+    # the default: a feedback policy through F; absolute: the paper's formulation
+    default = resolve_config([])
+    assert default.dynamics == "physics" and default.env.action == "increment"
+    assert default.env.cost == "log" and default.agent.smoothness_threshold == 0.1
+    assert default.budget.target_theta_rmse == 2.5e-4
+    absolute = resolve_config(["preset=absolute"])
+    assert absolute.dynamics == "surrogate" and absolute.env.action == "absolute"
+    assert absolute.env.cost == "squared"
+    assert absolute.agent.smoothness_threshold == 0.002
+    assert absolute.run_name == "cmapss-clac-surrogate-s0-absolute"
+    smoke = resolve_config(["preset=smoke"])
+    assert smoke.dynamics == "surrogate" and smoke.env.action == "absolute"
+    with pytest.raises(ValueError, match="env.action"):
+        resolve_config(["env.action=relative"])
     cfg = resolve_config(["dataset=ncmapss", "path=x.h5", "theta=LPT_eff_mod"])
     assert cfg.dataset.path == "x.h5" and cfg.theta == ("LPT_eff_mod",)
     with pytest.raises(ValueError, match="valid keys.*budget.*dynamics"):
