@@ -75,6 +75,7 @@ from pathlib import Path
 from typing import Literal
 
 from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
+from jaxcal.envs.tracking import check_action_options
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.settings import parse_overrides
 from jaxcal.surrogate.model import SurrogateConfig
@@ -167,14 +168,9 @@ class TrackingConfig:
     cost_floor: float = 1e-4
 
     def __post_init__(self) -> None:
-        if self.action not in ("absolute", "increment"):
-            raise ValueError(
-                f"env.action must be 'absolute' or 'increment', got {self.action!r}"
-            )
-        if not 0.0 < self.max_increment <= 1.0:
-            raise ValueError(
-                f"env.max_increment must be in (0, 1], got {self.max_increment}"
-            )
+        check_action_options(
+            self.action, self.max_increment, self.cost, self.cost_floor
+        )
         if self.episode_length < 1:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"

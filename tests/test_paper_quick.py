@@ -48,14 +48,7 @@ def _load_paper():
 
 
 def _args(out) -> list[str]:
-    """The quick run's arguments; CLAC-inc is left out where the training CLI has
-    no incremental actions (``env.action``) yet."""
-    from jaxcal.train import parse_args
-
-    try:
-        parse_args(["dataset=tiny", "env.action=increment"])
-    except ValueError:
-        return ["preset=quick", f"out={out}", "skip=CLAC-inc"]
+    """The quick run's arguments."""
     return ["preset=quick", f"out={out}"]
 
 
@@ -106,13 +99,19 @@ def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
     assert summary["ds1_ukf_coverage90"] == clean["coverage90"]
     assert summary["ds1_clac_over_ukf"] > 0 and len(summary) == 6
     assert set(results["summary_goals"]) == set(summary)
-    inc = "eval-ds1-CLAC-inc-clean" in steps
-    assert results["summary_policy"] == ("CLAC-inc" if inc else "CLAC")
-    if inc:  # the training CLI knows incremental actions
-        for variant in ("bias", "noise", "snr70"):
-            assert f"eval-ds1-CLAC-inc-{variant}" in steps
-        assert "latency-ds1-CLAC-inc" in steps
-        assert "time_to_target_s" in steps["train-ds1-clac-inc"]
+    assert results["summary_policy"] == "CLAC-inc"
+    for variant in ("bias", "noise", "snr70"):
+        assert f"eval-ds1-CLAC-inc-{variant}" in steps
+    assert "latency-ds1-CLAC-inc" in steps
+    assert "time_to_target_s" in steps["train-ds1-clac-inc"]
+    # the run's calibrated band reaches the deployed policy's scores
+    inc = steps["eval-ds1-CLAC-inc-clean"]
+    assert 0.0 <= inc["coverage90"] <= 1.0 and inc["theta_std_median"] > 0
+    assert summary["ds1_policy_coverage90"] == inc["coverage90"]
+    train = steps["train-ds1-clac-inc"]
+    assert (
+        "dynamics=physics" in train["argv"] and "env.action=increment" in train["argv"]
+    )
     # the NPE peer runs when its optional extra (sbi) is installed, else is absent
     report = (out / "REPORT.md").read_text()
     assert "## Amortised inference peer (NPE, sbi" in report

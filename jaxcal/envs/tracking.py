@@ -55,6 +55,28 @@ Dynamics = Callable[[PyTree, Array, Array, Array], Array]
 """``dynamics(dyn_params, w_next [W], xhat [S], theta [P]) -> xhat_next [S]``."""
 
 
+def check_action_options(
+    action: str, max_increment: float, cost: str, cost_floor: float
+) -> None:
+    """Validates the action and cost options (:class:`EnvConfig`, and the training
+    config's ``env.*`` fields before any work).
+
+    Raises:
+        ValueError: naming the ``env.`` field and its allowed values.
+    """
+    if action not in ("absolute", "increment"):
+        raise ValueError(
+            f"env.action must be 'absolute' or 'increment', got {action!r}"
+        )
+    if not 0.0 < max_increment <= 1.0:
+        raise ValueError(f"env.max_increment must be in (0, 1], got {max_increment}")
+    if cost not in ("squared", "log") or not cost_floor > 0:
+        raise ValueError(
+            "env.cost must be 'squared' or 'log' and env.cost_floor > 0, got "
+            f"{cost!r}, {cost_floor}"
+        )
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
     """Static configuration of the tracking environment.
@@ -94,19 +116,9 @@ class EnvConfig:
                 raise ValueError(
                     f"EnvConfig.{name} must be a positive int, got {value!r}"
                 )
-        if self.action not in ("absolute", "increment"):
-            raise ValueError(
-                f"env.action must be 'absolute' or 'increment', got {self.action!r}"
-            )
-        if not 0.0 < self.max_increment <= 1.0:
-            raise ValueError(
-                f"env.max_increment must be in (0, 1], got {self.max_increment}"
-            )
-        if self.cost not in ("squared", "log") or not self.cost_floor > 0:
-            raise ValueError(
-                "env.cost must be 'squared' or 'log' and env.cost_floor > 0, got "
-                f"{self.cost!r}, {self.cost_floor}"
-            )
+        check_action_options(
+            self.action, self.max_increment, self.cost, self.cost_floor
+        )
 
     @property
     def incremental(self) -> bool:
