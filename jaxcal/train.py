@@ -3,7 +3,7 @@
 Usage::
 
     python -m jaxcal.train dataset=cmapss [agent=clac|lac|sac]
-        [dynamics=surrogate|physics] [preset=default|smoke|paper] [seed=0]
+        [dynamics=surrogate|physics] [preset=default|absolute|smoke|paper] [seed=0]
         [name=<run>] [key=value ...]
     python -m jaxcal.train dataset=ncmapss path=N-CMAPSS_DS02-006.h5 \
         theta=HPT_eff_mod,LPT_eff_mod,LPT_flow_mod
@@ -19,7 +19,8 @@ last ~20 % for test (``test_units=`` chooses), ~15 % of the rest for validation
 units; ``dynamics=physics`` runs the model itself (float64 only for a model that
 needs it, which this command enables).
 
-Generates the data set if its file is missing, fits the surrogate D, trains the policy
+Generates the data set if its file is missing, fits the surrogate D (``dynamics=
+surrogate``; the default preset trains on the model itself), trains the policy
 with progress (steps, updates/s, cost, validation theta RMSE), writes
 ``runs/<name>/`` (resolved ``config.json``, ``metrics.jsonl``, Orbax checkpoints,
 ``final.json``, the kept policy's 90 % theta band ``uncertainty.json``) and prints
@@ -51,7 +52,8 @@ from jaxcal.training.scoring import describe_units
 USAGE = (
     "usage: python -m jaxcal.train dataset=cmapss|agtf30|ncmapss|tiny | "
     "model=NAME|MODULE:ATTR|FILE.py:ATTR data=FILE [agent=clac|lac|sac] "
-    "[dynamics=surrogate|physics] [preset=default|smoke|paper] [seed=N] [name=RUN] "
+    "[dynamics=surrogate|physics] [preset=default|absolute|smoke|paper] "
+    "[seed=N] [name=RUN] "
     "[path=FILE.h5] [theta=A,B] [outputs=A,B] [test_units=1,2] [val_units=3] "
     "[key=value ...]"
 )
