@@ -24,7 +24,7 @@ from jaxcal.data.ncmapss_writer import NCMAPSSWriter
 from jaxcal.settings import check_output_path, config_to_dict
 from jaxcal.train import main as train_main
 from jaxcal.train import parse_args
-from jaxcal.training import pipeline
+from jaxcal.training import run_data
 from jaxcal.training.run_dir import check_run_dir
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -105,7 +105,7 @@ def test_failed_data_generation_leaves_no_run_folder(tmp_path, monkeypatch, caps
         calls.append(command)
         return SimpleNamespace(returncode=fake_run.code)
 
-    monkeypatch.setattr(pipeline.subprocess, "run", fake_run)
+    monkeypatch.setattr(run_data.subprocess, "run", fake_run)
     for code, exit_code in ((1, 1), (2, 2)):
         fake_run.code = code
         assert train_main(base + [f"path={tmp_path / 'data' / 'tiny.h5'}"]) == exit_code
