@@ -186,6 +186,13 @@ def make_policy_calibrator(
             xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count
         )
 
+    def or_first_state(state: PolicyState, z: Array | None, w_t: Array, x_t: Array):
+        # before any sample the model state is init(w_0) (the env's z_ref[0])
+        if not dyn.num_states:
+            return z
+        z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
+        return jnp.where(state.started, z, z_first.astype(z.dtype))
+
     def absolute_step(state: PolicyState, w_t: Array, x_t: Array):
         xhat_prev = jnp.where(state.started, state.xhat, x_t)
         obs = jnp.concatenate(
@@ -199,18 +206,13 @@ def make_policy_calibrator(
         theta = action_to_theta(jnp.tanh(mean), params)
         z, xhat = dyn.step(params.dyn_params, state.z, w_t, xhat_prev, theta)
         xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
-        if dyn.num_states:  # the first sample's state: init (as the env's reset)
-            z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
-            z = jnp.where(state.started, z, z_first.astype(z.dtype))
+        z = or_first_state(state, z, w_t, x_t)  # the first sample's: init
         return PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z), theta, xhat
 
     def increment_step(state: PolicyState, w_t: Array, x_t: Array):
         # predict sample t with theta_{t-1}, then correct theta on its error
         xhat_prev = jnp.where(state.started, state.xhat, x_t)
-        z_prev = state.z
-        if dyn.num_states:  # before the first sample: init (the env's z_ref[0])
-            z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
-            z_prev = jnp.where(state.started, z_prev, z_first.astype(z_prev.dtype))
+        z_prev = or_first_state(state, state.z, w_t, x_t)
         z, xhat = dyn.step(params.dyn_params, z_prev, w_t, xhat_prev, state.theta)
         xhat = xhat.astype(x_t.dtype)
         resid = (x_t - xhat) / params.x_std
