@@ -166,7 +166,8 @@ def estimate(preset: Preset, name: str) -> float:
 
 def make_plan(ctx: Context) -> list[Step]:
     """Every step of the experiment, in order."""
-    from jaxcal.paper import npe_steps
+    from jaxcal.calibrators.gated import DEFAULT_WINDOW
+    from jaxcal.paper import gate_steps, npe_steps
     from jaxcal.paper.npe import is_available as npe_available
     from jaxcal.paper.steps import ensure_dataset
 
@@ -210,6 +211,12 @@ def make_plan(ctx: Context) -> list[Step]:
                  "max_samples": cfg.e2e_max_samples},
                 lambda key=key, name=name: ctx.suite(key).fit_e2e(name, seed=ctx.seed),
             )  # fmt: skip
+    if not {("ds1", m) for m in ("CLAC-inc", "CLAC-gate")} & set(preset.skip):
+        add(
+            "fit-ds1-CLAC-gate",
+            {"window": DEFAULT_WINDOW, "units": "validation", "seed": ctx.seed},
+            lambda: gate_steps.fit_step(ctx.suite("ds1")),
+        )
     npe_cfg = preset.suites["ds1"].npe
     with_npe = ("ds1", "NPE") not in preset.skip and npe_available()
     if with_npe:  # without sbi the report says how to install it (npe_table)
@@ -360,6 +367,7 @@ SKIPPABLE = (
     "SAC",
     "CLAC-F",
     "CLAC-inc",
+    "CLAC-gate",
     "NPE",
 )
 
@@ -388,6 +396,8 @@ def parse_args(argv: list[str]) -> tuple[Preset, Path, int]:
     except ValueError:
         raise ValueError(f"seed must be an integer, got {args['seed']!r}") from None
     skip = [m for m in args.get("skip", "").split(",") if m]
+    if "CLAC-inc" in skip and "CLAC-gate" not in skip:  # the gate needs CLAC-inc
+        skip.append("CLAC-gate")
     unknown = [m for m in skip if m not in SKIPPABLE]
     if unknown:
         raise ValueError(f"skip: unknown method(s) {unknown}; choose from {SKIPPABLE}")

@@ -115,6 +115,11 @@ def make_figures(out: Path, scalability: tuple[str, ...]) -> dict:
         {m: load(f"eval-ds1-{m}-bias") for m in both},
         "Dataset #1 with model bias F x 1.02",
     )
+    draw(  # the feedback follows the biased F, the gate hands over to CLAC
+        "theta_ds1_bias_gate.png",
+        {m: load(f"eval-ds1-{m}-bias") for m in ("UKF", "CLAC-inc", "CLAC-gate")},
+        "Dataset #1 with model bias F x 1.02: CLAC-inc and CLAC-gate",
+    )
     draw(
         "theta_ds2.png",
         {m: load(f"eval-ds2-{m}-clean") for m in both},

@@ -21,8 +21,11 @@ from jaxcal.paper.tables import POLICIES
 # surrogate D (dynamics=physics), which isolates what D's model error costs;
 # CLAC-inc: the formulation, incremental actions deployed through F
 ALL_METHODS = (
-    "UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc"
+    "UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc",
+    "CLAC-gate",
 )  # fmt: skip
+# CLAC-gate trains nothing: CLAC-inc gated by CLAC where F misfits the data
+# (jaxcal.paper.gate_steps), fitted on the validation units by fit-ds1-CLAC-gate
 # Policies trained through `python -m jaxcal.train`: agent key (the step name
 # train-<data set>-<key>) -> (method name, the training overrides that make it).
 # The paper's formulation (absolute actions) trains with the CLI's `absolute` preset,
@@ -40,13 +43,13 @@ FEEDBACK = (
     "agent.smoothness_threshold=0.1",
 )  # fmt: skip
 # the "best policy" configuration, whose numbers the report's summary shows
-BEST_POLICY = "CLAC-inc"
+BEST_POLICY = "CLAC-gate"
 # (data set, variant, methods): the paper's tables and our extra columns
 EVALUATIONS = (
     ("ds1", "clean", ALL_METHODS),
-    ("ds1", "bias", ("UKF", *POLICIES)),
-    ("ds1", "noise", ("UKF", *POLICIES)),
-    ("ds1", "snr70", ("UKF", "E2E", "E2E-sim", *POLICIES)),
+    ("ds1", "bias", ("UKF", *POLICIES, "CLAC-gate")),
+    ("ds1", "noise", ("UKF", *POLICIES, "CLAC-gate")),
+    ("ds1", "snr70", ("UKF", "E2E", "E2E-sim", *POLICIES, "CLAC-gate")),
     ("ds2", "clean", ("UKF", "LS", "E2E", "E2E-sim", "CLAC")),
     ("ds2-d1", "clean", ("UKF", "CLAC")),
     ("ds2-d2", "clean", ("UKF", "CLAC")),
@@ -69,6 +72,7 @@ FULL_ESTIMATES = {
     "train-ds1-clac": 1650, "train-ds1-lac": 2100, "train-ds1-sac": 2300,
     "train-ds1-clac-f": 2700, "eval-ds1-CLAC-F": 120, "latency-ds1-CLAC-F": 60,
     "train-ds1-clac-inc": 2700, "eval-ds1-CLAC-inc": 120, "latency-ds1-CLAC-inc": 60,
+    "fit-ds1-CLAC-gate": 90, "eval-ds1-CLAC-gate": 150, "latency-ds1-CLAC-gate": 60,
     "train-ds2-clac": 1900, "train-ds2-d": 1500, "ident-ds2": 90,
     "check": 30,
     "fit-ds1-E2E": 180, "fit-ds1-E2E-sim": 240, "fit-ds2-E2E": 240,
@@ -85,6 +89,7 @@ QUICK_ESTIMATES = {
     "latency": 1, "latency-ds1-UKF": 7, "figures": 5,
     # a smoke training on F compiles the engine inside the environment (~1 min)
     "train-ds1-clac-inc": 70, "eval-ds1-CLAC-inc": 15, "latency-ds1-CLAC-inc": 5,
+    "fit-ds1-CLAC-gate": 20, "eval-ds1-CLAC-gate": 15, "latency-ds1-CLAC-gate": 5,
 }
 # fmt: on
 

@@ -73,6 +73,7 @@ def test_quick_preset_writes_every_table_and_figure(quick):
     assert "Smoke run, not results" in report
     assert "## The RL calibrator (issue 15)" in report
     assert "| CLAC-inc (increments through F) |" in report
+    assert "| CLAC-gate (CLAC-inc, CLAC where F misfits) |" in report
 
 
 def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
@@ -99,15 +100,20 @@ def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
     assert summary["ds1_ukf_coverage90"] == clean["coverage90"]
     assert summary["ds1_clac_over_ukf"] > 0 and len(summary) == 6
     assert set(results["summary_goals"]) == set(summary)
-    assert results["summary_policy"] == "CLAC-inc"
+    assert results["summary_policy"] == "CLAC-gate"
     for variant in ("bias", "noise", "snr70"):
         assert f"eval-ds1-CLAC-inc-{variant}" in steps
-    assert "latency-ds1-CLAC-inc" in steps
+        assert f"eval-ds1-CLAC-gate-{variant}" in steps
+    assert "latency-ds1-CLAC-inc" in steps and "latency-ds1-CLAC-gate" in steps
+    gate = steps["fit-ds1-CLAC-gate"]
+    assert gate["val_units"] and gate["sensitivity"][0] > 0
     assert "time_to_target_s" in steps["train-ds1-clac-inc"]
     # the run's calibrated band reaches the deployed policy's scores
     inc = steps["eval-ds1-CLAC-inc-clean"]
     assert 0.0 <= inc["coverage90"] <= 1.0 and inc["theta_std_median"] > 0
-    assert summary["ds1_policy_coverage90"] == inc["coverage90"]
+    gated = steps["eval-ds1-CLAC-gate-clean"]
+    assert 0.0 <= gated["coverage90"] <= 1.0 and gated["theta_finite"]
+    assert summary["ds1_policy_coverage90"] == gated["coverage90"]
     train = steps["train-ds1-clac-inc"]
     assert (
         "dynamics=physics" in train["argv"] and "env.action=increment" in train["argv"]

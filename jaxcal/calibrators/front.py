@@ -15,7 +15,9 @@ Methods (peers under the one ``Calibrator(init, step)`` interface):
 * ``"ls"``: sliding-window least squares on the model (Levenberg–Marquardt);
 * ``"e2e"``: a network ``theta_t = G(w_t, x_t, x_{t-1})`` trained on simulations of
   the model over the parameter box (or pass trained weights as ``e2e=``);
-* ``"policy"``: a trained tracking policy, ``run=<run folder>``.
+* ``"policy"``: a trained tracking policy, ``run=<run folder>``; an incremental
+  (feedback) policy's run with ``anchor=<absolute policy's run folder>`` is gated by
+  it where the model misfits the data (:mod:`jaxcal.calibrators.gated`).
 
 A model with hidden states (``Model.from_step``) takes the same call: the UKF
 filters the states jointly with the parameters, least squares fits the parameters

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.calibrators.gated import feedback_sensitivity, make_gated_calibrator
 from jaxcal.calibrators.interface import (
     Calibrator,
     SampleCheck,
@@ -264,15 +265,39 @@ def fit_e2e_sim(
 def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | None]:
     """A trained policy from ``run=<folder>`` and its sample check (the run's own
     training range, not the range of the data being calibrated); its names must
-    match the problem."""
+    match the problem. With ``anchor=<folder>`` (an absolute policy's run with its
+    band) the run, an incremental policy, is gated by it (:mod:`jaxcal.calibrators.
+    gated`): the feedback while the model fits the data, the anchor where not."""
     # The run loader belongs to the training layer: a trained policy is one of its
     # artefacts (imported here, when the method is asked for, not at import time).
     from jaxcal.training.runs import LoadedRun, load_run, run_check
 
     run_dir = options.pop("run", None)
+    anchor_dir = options.pop("anchor", None)
     if not run_dir:
         raise ValueError("method='policy' needs run=<trained run folder>")
     run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
+    cal = _checked_policy(problem, run)
+    if anchor_dir:  # the feedback gated by an absolute policy (calibrators.gated)
+        anchor = load_run(anchor_dir)
+        if anchor.band is None:
+            raise ValueError(
+                f"anchor run {anchor.run_dir} has no uncertainty.json (the error band "
+                "the training job fits at its end): the gate's threshold is the "
+                "anchor's 90 % half-width"
+            )
+        cal = make_gated_calibrator(
+            cal,
+            _checked_policy(problem, anchor),
+            x_std=run.params.x_std,
+            sensitivity=feedback_sensitivity(run.params),
+            anchor_band=anchor.band,
+        )
+    return cal, run_check(run)
+
+
+def _checked_policy(problem: Problem, run) -> Calibrator:
+    """The policy of a loaded run whose names match the problem's."""
     run_dir = run.run_dir
     names = run.problem.theta_names
     if tuple(names) != problem.theta_names:
@@ -292,8 +317,7 @@ def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | 
             f"run {run_dir} uses outputs {list(outputs)}, the data give "
             f"{list(problem.output_names)}: pass outputs={list(outputs)}"
         )
-    cal = make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
-    return cal, run_check(run)
+    return make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
 
 
 def build_calibrator(

@@ -175,10 +175,14 @@ class Suite:
     # ------------------------------------------------------------------ methods
 
     def method(self, name: str) -> Method:
-        """The method ``name``: UKF, LS, E2E, E2E-sim, CLAC, LAC or SAC."""
+        """The method ``name``: UKF, LS, E2E, E2E-sim, a policy run or CLAC-gate."""
         if name not in self._methods:
             self._methods[name] = self._build(name)
         return self._methods[name]
+
+    def forget(self, name: str) -> None:
+        """Drop the built method ``name`` (its stored fit changed)."""
+        self._methods.pop(name, None)
 
     def _build(self, name: str) -> Method:
         if name == "UKF":
@@ -204,6 +208,10 @@ class Suite:
             envelope = ENVELOPES.get(self.problem.model.name)
             check = None if envelope is None else SampleCheck.from_envelope(envelope)
             return e2e_method(params, name, info, check)
+        if name == "CLAC-gate":  # the two policies composed (gate_steps)
+            from jaxcal.paper.gate_steps import gated_method
+
+            return gated_method(self)
         if name in self.runs:
             from jaxcal.training.runs import load_run
 

@@ -33,9 +33,11 @@ PAPER = {
     },
     "ablation": {"LAC": 1.3e-3, "CLAC": 3.3e-4},
 }
-EXTRA = ("LAC", "SAC", "CLAC-F", "CLAC-inc", "LS", "E2E-sim")
+EXTRA = ("LAC", "SAC", "CLAC-F", "CLAC-inc", "CLAC-gate", "LS", "E2E-sim")
 # trained through python -m jaxcal.train
 POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc")
+# composed from trained policies (jaxcal.paper.gate_steps): CLAC-inc gated by CLAC
+COMPOSED = ("CLAC-gate",)
 NAMES = {
     "UKF": "UKF on F",
     "E2E": "E2E (labelled units)",
@@ -46,6 +48,7 @@ NAMES = {
     "E2E-sim": "E2E-sim (simulated labels)",
     "CLAC-F": "CLAC on F (dynamics=physics)",
     "CLAC-inc": "CLAC-inc (increments through F)",
+    "CLAC-gate": "CLAC-gate (CLAC-inc, CLAC where F misfits)",
 }
 
 
@@ -198,6 +201,8 @@ def timing_table(r: Results) -> list[str]:
                 if fit_d is None
                 else f"{fit_d + policy:.0f} (D {fit_d:.0f} + policy {policy:.0f})"
             )
+        elif method in COMPOSED:
+            train_s = "CLAC's + CLAC-inc's" if ev is not None else "–"
         elif fit is not None:
             train_s = f"{fit['train_seconds']:.0f}"
         else:  # UKF and least squares learn nothing
@@ -217,8 +222,9 @@ def timing_table(r: Results) -> list[str]:
          "batched samples/s (test units vmapped)", "training s", "paper training s"],
         rows,
     ) + [""]  # fmt: skip
-    lat = {m: r.steps.get(f"latency-ds1-{m}") for m in ("UKF", "CLAC", "CLAC-inc")}
-    for policy in ("CLAC", "CLAC-inc"):
+    shown = ("CLAC", "CLAC-inc", "CLAC-gate")
+    lat = {m: r.steps.get(f"latency-ds1-{m}") for m in ("UKF", *shown)}
+    for policy in shown:
         ours = None
         if lat["UKF"] is not None and lat[policy] is not None:
             ours = ratio(lat["UKF"]["median_s"], lat[policy]["median_s"])
@@ -262,16 +268,17 @@ def robustness_table(r: Results) -> list[str]:
              fmt(r.theta("ds1", "CLAC", variant)), fmt(paper.get("CLAC")),
              fmt(r.theta("ds1", "LAC", variant)), fmt(r.theta("ds1", "SAC", variant)),
              fmt(r.theta("ds1", "CLAC-F", variant)),
-             fmt(r.theta("ds1", "CLAC-inc", variant))]
+             fmt(r.theta("ds1", "CLAC-inc", variant)),
+             fmt(r.theta("ds1", "CLAC-gate", variant))]
         )  # fmt: skip
     out = table(
         ["model perturbation", "UKF ours", "paper", "CLAC ours", "paper", "LAC ours",
-         "SAC ours", "CLAC on F ours", "CLAC-inc ours"],
+         "SAC ours", "CLAC on F ours", "CLAC-inc ours", "CLAC-gate ours"],
         rows,
     ) + [""]  # fmt: skip
     for variant in ("bias", "noise"):
         paper = PAPER[variant]
-        for policy in ("CLAC", "CLAC-inc"):
+        for policy in ("CLAC", "CLAC-inc", "CLAC-gate"):
             ours = ratio(
                 r.theta("ds1", policy, variant), r.theta("ds1", "UKF", variant)
             )
@@ -282,12 +289,13 @@ def robustness_table(r: Results) -> list[str]:
                         ratio(paper["CLAC"], paper["UKF"]),
                     )
                 )  # fmt: skip
+    scored = ("UKF", *POLICIES, *COMPOSED)
     covered = [
         f"{'clean' if v == 'clean' else labels[v]}: "
-        + ", ".join(f"{m} {share(c)}" for m in ("UKF", *POLICIES)
+        + ", ".join(f"{m} {share(c)}" for m in scored
                     if (c := r.coverage("ds1", m, v)) is not None)
         for v in labels
-        if any(r.coverage("ds1", m, v) is not None for m in ("UKF", *POLICIES))
+        if any(r.coverage("ds1", m, v) is not None for m in scored)
     ]  # fmt: skip
     if covered:
         out += ["", "90 % coverage of the methods with a std: " + "; ".join(covered)]
@@ -297,7 +305,7 @@ def robustness_table(r: Results) -> list[str]:
 def sensor_noise_table(r: Results) -> list[str]:
     """Paper Table "sensor_noise": theta RMSE on the 70 dB copy of Dataset #1."""
     rows = []
-    for method in ("UKF", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc", "E2E", "E2E-sim"):
+    for method in ("UKF", *POLICIES, *COMPOSED, "E2E", "E2E-sim"):
         rows.append(
             [NAMES[method], fmt(r.theta("ds1", method)),
              fmt(r.theta("ds1", method, "snr70")), fmt(PAPER["snr70"].get(method))]

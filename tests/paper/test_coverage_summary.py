@@ -17,7 +17,7 @@ from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.paper.compare import evaluate_method, interval_coverage
 from jaxcal.paper.methods import make_method
 from jaxcal.paper.report import write_report
-from jaxcal.paper.summary import GOALS, issue_summary, summary_goals
+from jaxcal.paper.summary import GOALS, best_policy, issue_summary, summary_goals
 from jaxcal.paper.tables import Results
 from jaxcal.training.data import UnitArrays
 
@@ -188,6 +188,21 @@ def test_summary_takes_the_best_policy_and_checks_the_goals(tmp_path):
     assert goals["ds1_policy_coverage90"]["min"] == 0.85
 
 
+def test_the_gated_policy_is_summarised_with_its_feedbacks_training(tmp_path):
+    steps = _steps(tmp_path) | {
+        "eval-ds1-CLAC-gate-clean": _eval("CLAC-gate", 1e-4, coverage=0.9),
+        "eval-ds1-CLAC-gate-bias": _eval("CLAC-gate", 8e-4, "bias", coverage=0.9),
+        "latency-ds1-CLAC-gate": _latency(2e-4),
+    }
+    r = Results(steps)
+    assert best_policy(r) == "CLAC-gate"
+    summary = issue_summary(r)
+    assert summary["ds1_clac_over_ukf"] == pytest.approx(1.0)
+    assert summary["ds1_bias_clac_over_ukf"] == pytest.approx(0.1)
+    assert summary["train_to_target_s"] == 450.0  # CLAC-inc's training
+    assert summary["ds1_policy_deploy_speedup_vs_ukf"] == pytest.approx(6.0)
+
+
 def test_summary_falls_back_to_clac_and_is_null_where_inputs_are_missing(tmp_path):
     steps = _steps(tmp_path, with_inc=False)
     del steps["latency-ds1-UKF"], steps["eval-ds1-UKF-bias"]
@@ -236,6 +251,6 @@ def test_report_writes_the_summary_and_the_new_columns(tmp_path):
         description="toy", seed=0, command="test", wall_seconds=1.0,
     )  # fmt: skip
     text = (tmp_path / "REPORT.md").read_text()
-    assert "The policy is **CLAC** (CLAC-inc not run)" in text
+    assert "The policy is **CLAC** (CLAC-gate not run)" in text
     assert "| CLAC-inc (increments through F) | – |" in text
     assert "CLAC-inc / UKF" not in text

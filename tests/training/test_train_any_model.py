@@ -5,6 +5,7 @@ The model is defined here, as a user would: a plain JAX function through
 """
 
 import json
+import shutil
 
 import jax.numpy as jnp
 import numpy as np
@@ -179,3 +180,27 @@ def test_bad_model_data_or_theta_exit_2_and_leave_no_run(
     assert train_main(argv) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_feedback_run_gated_by_an_absolute_run(trained, csv, tmp_path):
+    """``calibrate(..., "policy", run=<feedback>, anchor=<absolute>)``: each row is
+    one of the two policies' estimates; the anchor needs its band, the run must be
+    incremental."""
+    runs = tmp_path / "runs"
+    inc = ("dynamics=physics", "env.action=increment", "env.cost=log", "name=inc")
+    assert train_main(_argv(csv, runs, *inc)) == 0
+    opts = dict(method="policy", theta=["p", "q"])
+    gated = jaxcal.calibrate(MODEL, csv, run=runs / "inc", anchor=trained, **opts)
+    feedback = jaxcal.calibrate(MODEL, csv, run=runs / "inc", **opts).theta
+    anchor = jaxcal.calibrate(MODEL, csv, run=trained, **opts).theta
+    assert gated.valid.all() and gated.theta_std is not None
+    from_feedback = np.isclose(gated.theta, feedback, rtol=1e-6).all(axis=1)
+    from_anchor = np.isclose(gated.theta, anchor, rtol=1e-6).all(axis=1)
+    assert (from_feedback | from_anchor).all()
+    with pytest.raises(ValueError, match="incremental"):
+        jaxcal.calibrate(MODEL, csv, run=trained, anchor=trained, **opts)
+    bare = tmp_path / "bare"
+    shutil.copytree(trained, bare)
+    (bare / "uncertainty.json").unlink()
+    with pytest.raises(ValueError, match="no uncertainty.json"):
+        jaxcal.calibrate(MODEL, csv, run=runs / "inc", anchor=bare, **opts)
