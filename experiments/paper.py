@@ -22,6 +22,7 @@ writes ``<out>/steps/<name>.json`` and is skipped when that file exists:
 4. every method over whole test trajectories: clean, model bias x 1.02, model noise
    N(0, 0.1), 70 dB sensor noise; the scalability runs; single-stream latency;
    on Dataset #2, each method's error along the direction the sensors barely see;
+   the UKF's std rescaled on Dataset #1's validation units (``calib-ds1-UKF``);
 5. figures (PNG), ``<out>/REPORT.md`` and ``<out>/results.json`` (the step results
    plus the issue's summary against its goals, :mod:`jaxcal.paper.summary`),
    rewritten on every run.
@@ -169,6 +170,7 @@ def make_plan(ctx: Context) -> list[Step]:
     from jaxcal.calibrators.gated import DEFAULT_WINDOW
     from jaxcal.paper import gate_steps, npe_steps
     from jaxcal.paper.npe import is_available as npe_available
+    from jaxcal.paper.std_steps import calib_std_step
     from jaxcal.paper.steps import ensure_dataset
 
     preset, steps = ctx.preset, []
@@ -241,6 +243,13 @@ def make_plan(ctx: Context) -> list[Step]:
             lambda key=key, variant=variant, method=method, name=name: evaluate(
                 ctx, key, variant, method, name
             ),
+        )  # fmt: skip
+    if ("ds1", "UKF") not in preset.skip:  # the UKF's std, rescaled on val units
+        add(
+            "calib-ds1-UKF",
+            {"method": "UKF", "level": 0.9, "fit_on": "validation units",
+             "seed": ctx.seed},
+            lambda: calib_std_step(ctx.suite("ds1"), "UKF", seed=ctx.seed),
         )  # fmt: skip
     if with_npe:
         add(

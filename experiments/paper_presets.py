@@ -83,6 +83,7 @@ FULL_ESTIMATES = {
     "eval-ds2-d": 20,
     "latency-ds1-UKF": 90, "latency-ds1-LS": 240, "latency": 10, "figures": 30,
     "fit-ds1-NPE": 150, "eval-ds1-NPE": 300, "latency-ds1-NPE": 10,
+    "calib-ds1-UKF": 660,  # the UKF over the validation and again the test units
 }
 QUICK_ESTIMATES = {
     "data": 5, "train": 6, "check": 1, "fit": 2, "eval": 1, "eval-ds1-UKF-clean": 30,
@@ -90,6 +91,7 @@ QUICK_ESTIMATES = {
     # a smoke training on F compiles the engine inside the environment (~1 min)
     "train-ds1-clac-inc": 70, "eval-ds1-CLAC-inc": 15, "latency-ds1-CLAC-inc": 5,
     "fit-ds1-CLAC-gate": 20, "eval-ds1-CLAC-gate": 15, "latency-ds1-CLAC-gate": 5,
+    "calib-ds1-UKF": 30,
 }
 # fmt: on
 

@@ -95,6 +95,29 @@ def merge_small_buckets(
     return np.asarray(kept, np.int64)
 
 
+def assign_buckets(
+    t: np.ndarray, edges, min_count: int, caller: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """The buckets of scored samples at stream indices ``t`` ``[n]``: ``edges``
+    (``None``: :func:`log_edges` up to the largest ``t``) checked, merged by
+    :func:`merge_small_buckets`, and each sample's bucket ``[n]``.
+
+    Raises:
+        ValueError: ``edges`` do not start at 0 or do not increase (names ``caller``).
+    """
+    if edges is None:
+        edges = log_edges(int(t.max()) + 1)
+    edges = np.asarray(edges, np.int64)
+    if edges.ndim != 1 or edges[0] != 0 or np.any(np.diff(edges) <= 0):
+        raise ValueError(
+            f"{caller}: edges must start at 0 and increase, got {edges.tolist()}"
+        )
+    counts = np.bincount(np.searchsorted(edges, t, side="right") - 1,
+                         minlength=len(edges))  # fmt: skip
+    edges = merge_small_buckets(edges, counts, min_count)
+    return edges, np.searchsorted(edges, t, side="right") - 1
+
+
 def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
     """The split-conformal quantile of ``scores`` ``[n, P]`` along axis 0: the
     ``ceil((n + 1) level)``-th smallest (the largest when that exceeds ``n``)."""
@@ -149,17 +172,7 @@ def fit_band(
             f"fit_band: {num} valid samples, a band needs at least {min_count}"
         )
     t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
-    if edges is None:
-        edges = log_edges(int(t.max()) + 1)
-    edges = np.asarray(edges, np.int64)
-    if edges.ndim != 1 or edges[0] != 0 or np.any(np.diff(edges) <= 0):
-        raise ValueError(
-            f"fit_band: edges must start at 0 and increase, got {edges.tolist()}"
-        )
-    counts = np.bincount(np.searchsorted(edges, t, side="right") - 1,
-                         minlength=len(edges))  # fmt: skip
-    edges = merge_small_buckets(edges, counts, min_count)
-    bucket = np.searchsorted(edges, t, side="right") - 1
+    edges, bucket = assign_buckets(t, edges, min_count, "fit_band")
     scores = np.abs(theta_hat - theta_true)[mask]  # [n, P]
     std = np.stack(
         [conformal_quantile(scores[bucket == k], level) for k in range(len(edges))]
