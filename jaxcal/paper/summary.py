@@ -104,7 +104,8 @@ def ukf_coverage(r: Results) -> dict:
     """The UKF's 90 % coverage on clean Dataset #1 and where it comes from.
 
     With :data:`UKF_CALIB_STEP`: the coverage of its std rescaled on the validation
-    units (the raw one beside it); without: the raw std's (``eval-ds1-UKF-clean``).
+    units (the raw one beside it); without (or without validation units): the raw
+    std's (``eval-ds1-UKF-clean``).
 
     Returns:
         ``{"value", "source", "raw", "calibrated"}`` plus the fitted ``scale`` when
@@ -112,7 +113,7 @@ def ukf_coverage(r: Results) -> dict:
     """
     raw = r.coverage("ds1", "UKF")
     calib = r.steps.get(UKF_CALIB_STEP)
-    if calib is None:
+    if calib is None or calib.get("coverage90") is None:  # no step, or no val units
         return {"value": raw, "source": "eval-ds1-UKF-clean (raw std)", "raw": raw,
                 "calibrated": None}  # fmt: skip
     return {

@@ -191,3 +191,47 @@ def test_result_helpers_index_rows_in_time_order_per_unit():
     )
     with pytest.raises(ValueError, match="theta_true"):
         fit_result_scale(result, truth[:10])
+
+
+def _gain(w, theta):
+    return jnp.stack([theta[0] * w[0], theta[0] + 0.5 * w[1]])
+
+
+def _frame(seed, num_units=30, length=40):
+    """Labelled rows of :func:`_gain`, one constant gain per unit, rows shuffled."""
+    import pandas as pd
+
+    rng = np.random.default_rng(seed)
+    n = num_units * length
+    w = rng.uniform([1.0, 0.0], [3.0, 1.0], (n, 2))
+    k = np.repeat(rng.uniform(0.8, 1.6, num_units), length)
+    x = np.asarray(jax.vmap(_gain)(w, k[:, None])) + 0.05 * rng.normal(size=(n, 2))
+    frame = pd.DataFrame({"a": w[:, 0], "b": w[:, 1], "y": x[:, 0], "z": x[:, 1]})
+    frame["unit"] = np.repeat(np.arange(num_units), length)
+    frame["time"] = np.tile(np.arange(length), num_units)
+    frame["k"] = k
+    return frame.sample(frac=1.0, random_state=seed).reset_index(drop=True)
+
+
+def test_a_calibrate_user_recalibrates_the_ukf_std_from_labelled_data():
+    import jaxcal
+
+    model = jaxcal.Model.from_function(
+        _gain, conditions={"a": "", "b": ""}, parameters={"k": (1.0, 0.5, 2.0)},
+        outputs={"y": "", "z": ""}, condition_range=([0.0, 0.0], [4.0, 1.0]),
+    )  # fmt: skip
+    # the noise overstated 5x, as the paper's r = 0.01 on noise-free data
+    options = {"noise": {"y": 0.25, "z": 0.25}}
+    val, test = _frame(0), _frame(1)
+    fitted = jaxcal.calibrate(model, val, method="ukf", **options)
+    scale = fit_result_scale(fitted, val[["k"]].to_numpy())
+    result = jaxcal.calibrate(model, test, method="ukf", **options)
+    rescaled = rescale_result(result, scale)
+    np.testing.assert_array_equal(rescaled.theta, result.theta)
+    err = np.abs(result.theta - test[["k"]].to_numpy())[:, 0]
+    z = z_value(0.9)
+    raw = np.mean(err <= z * result.theta_std[:, 0])
+    covered = np.mean(err <= z * rescaled.theta_std[:, 0])
+    assert raw > 0.99  # the overstated noise widens the std
+    # 30 units whose errors are correlated in time: the share varies by ~0.03
+    assert 0.84 <= covered <= 0.96, (raw, covered)

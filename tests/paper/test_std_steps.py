@@ -81,10 +81,11 @@ def test_calib_step_fits_on_validation_and_covers_the_test_units():
     assert raw_median == pytest.approx(INFLATE * np.median(SIGMA), rel=1e-5)
 
 
-def test_calib_step_needs_validation_units():
-    suite = _suite(None, _units(2, seed=2))
-    with pytest.raises(ValueError, match="validation units"):
-        calib_std_step(suite, "toy", seed=0)
+def test_calib_step_without_validation_units_says_so():
+    out = calib_std_step(_suite(None, _units(2, seed=2)), "toy", seed=0)
+    assert out["coverage90"] is None and "validation" in out["note"]
+    steps = {"eval-ds1-UKF-clean": _ukf_eval(0.9999), UKF_CALIB_STEP: out}
+    assert issue_summary(Results(steps))["ds1_ukf_coverage90"] == 0.9999
 
 
 def _ukf_eval(coverage):
