@@ -91,7 +91,7 @@ QUICK_ESTIMATES = {
     # a smoke training on F compiles the engine inside the environment (~1 min)
     "train-ds1-clac-inc": 70, "eval-ds1-CLAC-inc": 15, "latency-ds1-CLAC-inc": 5,
     "fit-ds1-CLAC-gate": 20, "eval-ds1-CLAC-gate": 15, "latency-ds1-CLAC-gate": 5,
-    "calib-ds1-UKF": 30,
+    "calib-ds1-UKF": 1,  # the eval step's compiled UKF, same shapes
 }
 # fmt: on
 

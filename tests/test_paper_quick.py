@@ -97,7 +97,13 @@ def test_quick_steps_hold_scores_and_the_perturbations_act(quick):
     assert 0.0 <= clean["coverage90"] <= 1.0
     results = json.loads((out / "results.json").read_text())
     summary = results["summary"]
-    assert summary["ds1_ukf_coverage90"] == clean["coverage90"]
+    # ... rescaled on the validation units (calib-ds1-UKF), the raw one kept beside
+    calib = steps["calib-ds1-UKF"]
+    assert calib["theta_rmse"] == pytest.approx(clean["theta_rmse"], rel=1e-9)
+    assert calib["coverage90_raw"] == pytest.approx(clean["coverage90"])
+    assert summary["ds1_ukf_coverage90"] == calib["coverage90"] is not None
+    details = results["summary_details"]["ds1_ukf_coverage90"]
+    assert details["raw"] == calib["coverage90_raw"]
     assert summary["ds1_clac_over_ukf"] > 0 and len(summary) == 6
     assert set(results["summary_goals"]) == set(summary)
     assert results["summary_policy"] == "CLAC-gate"

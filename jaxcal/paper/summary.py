@@ -230,7 +230,7 @@ def summary_section(r: Results) -> list[str]:
 def _ukf_coverage_note(r: Results) -> str:
     """Which UKF coverage the summary shows, with the other one beside it."""
     cov = ukf_coverage(r)
-    raw = _value("coverage", cov["raw"])
+    raw = "–" if cov["raw"] is None else f"{100 * cov['raw']:.2f} %"  # 99.99 %
     if cov["calibrated"] is None:
         return (f"UKF coverage: its raw std (q = r = 0.01), {raw}; no "
                 f"`{UKF_CALIB_STEP}` step recalibrated it.")  # fmt: skip

@@ -119,4 +119,4 @@ def test_summary_shows_the_recalibrated_ukf_coverage_and_keeps_the_raw(tmp_path)
     assert saved["summary_goals"]["ds1_ukf_coverage90"]["met"] is True
     text = (tmp_path / "REPORT.md").read_text()
     assert "| `ds1_ukf_coverage90` | 91.0 % |" in text
-    assert "the paper's raw std (q = r = 0.01) covers 100.0 %" in text
+    assert "the paper's raw std (q = r = 0.01) covers 99.99 %" in text
