@@ -106,11 +106,12 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
         "val_gate_open", "val_coverage90", "sensitivity", "threshold_median",
         "fit_seconds", "gate"}``.
     """
-    from jaxcal.training.runs import load_run
+    from jaxcal.training.runs import load_run, needs_x64
 
     tic = time.perf_counter()
     val = suite.data.val
-    params = load_run(suite.runs[FEEDBACK]).params
+    with jax.enable_x64(needs_x64(suite.runs[FEEDBACK])):
+        params = load_run(suite.runs[FEEDBACK]).params
     with jax.enable_x64(False):  # the anchor as it is scored everywhere (float32)
         anchor_run = evaluate_method(suite.method(ANCHOR), val, suite.problem)
     anchor_band = fit_band(anchor_run.theta, val.theta, val.mask)
@@ -121,7 +122,8 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
         "anchor_band": _band_doc(anchor_band),
         "band": None,
     }
-    gated = evaluate_method(gated_method(suite, gate), val, suite.problem)
+    with jax.enable_x64(True):  # the feedback runs on F in float64
+        gated = evaluate_method(gated_method(suite, gate), val, suite.problem)
     band = fit_band(gated.theta, val.theta, val.mask)
     gate["band"] = _band_doc(band)
     path = gate_path(suite)

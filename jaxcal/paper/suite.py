@@ -213,9 +213,12 @@ class Suite:
 
             return gated_method(self)
         if name in self.runs:
-            from jaxcal.training.runs import load_run
+            from jaxcal.training.runs import load_run, needs_x64
 
-            return policy_method(load_run(self.runs[name]), name)
+            # a policy on the engines' F loads its float64 params under x64 (the
+            # process may not have trained it: a reused run)
+            with jax.enable_x64(needs_x64(self.runs[name])):
+                return policy_method(load_run(self.runs[name]), name)
         raise ValueError(f"unknown method {name!r} (no run given for it?)")
 
     def _e2e_path(self, name: str) -> Path:
