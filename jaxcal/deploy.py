@@ -14,6 +14,9 @@ turbofan or any other model::
         theta_t = cal.step(w_t, x_t)         # [P] numpy, one jitted call
     theta, xhat = cal.run(w, x, mask)        # batch: [U, T, W], [U, T, S], [U, T]
 
+    # a feedback run gated by an absolute run where the model misfits the data
+    gated = StreamingCalibrator(feedback_run, anchor=absolute_run)
+
 Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
 training range (:func:`jaxcal.calibrators.policy.range_check`), is *skipped*: the
 carried state is left exactly as it was, ``step`` returns the last valid theta

@@ -4,6 +4,7 @@ Usage::
 
     python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=500]
     python -m jaxcal.evaluate run=runs/<name> data=<file>
+    python -m jaxcal.evaluate run=runs/<feedback run> anchor=runs/<absolute run>
 
 Runs the run's deterministic policy through every unit of the split (the held-out
 units the run recorded in ``data.json``; with ``data=``, every unit of that file, whose
@@ -22,7 +23,9 @@ Prints the results and writes them to ``runs/<name>/evaluate.json``
 (``evaluate_val.json`` for ``split=val``, ``evaluate_<file stem>.json`` for
 ``data=``). Without a true-parameter column the theta RMSE is not scored. Works for
 any model's run (the model is rebuilt from the spec in ``data.json``); x64 is enabled
-when the run's model needs it. The data file named in the run's config must
+when the run's model needs it. With ``anchor=`` the run (an incremental policy) is
+scored gated by that absolute policy's run (:mod:`jaxcal.calibrators.gated`; the
+report gets ``_gated`` in its name and the anchor's folder). The data file named in the run's config must
 be readable, and the run folder writable: a folder that cannot take the report is an
 error (exit code 2) before the evaluation starts.
 """
@@ -38,13 +41,13 @@ from jaxcal.settings import check_output_path
 
 USAGE = (
     "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [data=FILE] "
-    "[repeats=N]"
+    "[repeats=N] [anchor=runs/<absolute run>]"
 )
-KEYS = ("run", "split", "repeats", "data")
+KEYS = ("run", "split", "repeats", "data", "anchor")
 
 
 def parse_args(argv: list[str]) -> dict:
-    """``{"run", "split", "repeats", "data"}`` from ``key=value`` tokens.
+    """``{"run", "split", "repeats", "data", "anchor"}`` from ``key=value`` tokens.
 
     Raises:
         ValueError: malformed token, unknown key (lists the valid ones), missing run,
@@ -80,6 +83,7 @@ def parse_args(argv: list[str]) -> dict:
         "split": split,
         "repeats": repeats,
         "data": args.get("data") or None,
+        "anchor": args.get("anchor") or None,
     }
 
 
@@ -141,10 +145,14 @@ def _split_units(run, split: str, data: str | None):
 
 
 def evaluate_run(
-    run_dir: str, split: str = "test", repeats: int = 500, data: str | None = None
+    run_dir: str,
+    split: str = "test",
+    repeats: int = 500,
+    data: str | None = None,
+    anchor: str | None = None,
 ) -> dict:
     """Scores and deployment cost of a run on one split, or on every unit of the
-    file ``data`` (see the module docstring)."""
+    file ``data``, gated by the run ``anchor`` if given (see the module docstring)."""
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
@@ -152,7 +160,7 @@ def evaluate_run(
 
     run = load_run(run_dir)
     units = _split_units(run, split, data)
-    calibrator = StreamingCalibrator(run)
+    calibrator = StreamingCalibrator(run, anchor=anchor)
     theta, xhat, _, reason = calibrator.run(
         units.w, units.x, units.mask, return_flags=True
     )  # compiles
@@ -182,6 +190,7 @@ def evaluate_run(
         "split": split if data is None else str(data),
         "units": units.unit_ids.tolist(),
         "checkpoint_step": run.step,
+        "anchor": None if anchor is None else str(calibrator.anchor_info.run_dir),
         **scores,
         "deployment": {
             "single_stream_latency_s": latency,
@@ -251,12 +260,16 @@ def main(argv: list[str] | None = None) -> int:
         name = name.replace(".json", f"_{stem}.json")
     elif args["split"] != "test":
         name = name.replace(".json", f"_{args['split']}.json")
+    if args["anchor"] is not None:
+        name = name.replace(".json", "_gated.json")
     try:
         # The report goes into the run folder: refuse one it cannot go to up front.
         check_output_path(os.path.join(args["run"], name), "run")
         if needs_x64(args["run"]):
             enable_x64()  # before the model loads: its constants take the dtype
-        report = evaluate_run(args["run"], args["split"], args["repeats"], args["data"])
+        report = evaluate_run(
+            args["run"], args["split"], args["repeats"], args["data"], args["anchor"]
+        )
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -61,6 +61,17 @@ class GateState(NamedTuple):
     count: Array
 
 
+def gate_state(feedback_state, anchor_state, window: int, dtype) -> GateState:
+    """The gate's state before its first sample, around the two policies' states
+    (a guarded stream builds them without an ``init`` sample)."""
+    return GateState(
+        feedback=feedback_state,
+        anchor=anchor_state,
+        recent=jnp.full((window,), jnp.finfo(dtype).max, dtype),
+        count=jnp.zeros((), jnp.int32),
+    )
+
+
 def feedback_sensitivity(params) -> np.ndarray:
     """J_p of an incremental policy's params, inverting ``n_ref = 0.5 J M``.
 
@@ -130,12 +141,8 @@ def make_gated_calibrator(
     sens = jnp.asarray(sensitivity)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> GateState:
-        return GateState(
-            feedback=feedback.init(key, w0, x0),
-            anchor=anchor.init(key, w0, x0),
-            recent=jnp.full((window,), jnp.finfo(x0.dtype).max, x0.dtype),
-            count=jnp.zeros((), jnp.int32),
-        )
+        fb, an = feedback.init(key, w0, x0), anchor.init(key, w0, x0)
+        return gate_state(fb, an, window, x0.dtype)
 
     def step(state: GateState, w: Array, x: Array) -> tuple[GateState, CalStepOutput]:
         fb_state, fb = feedback.step(state.feedback, w, x)

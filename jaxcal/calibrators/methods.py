@@ -20,14 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.gated import feedback_sensitivity, make_gated_calibrator
 from jaxcal.calibrators.interface import (
     Calibrator,
     SampleCheck,
     SensorNorm,
     run_fleet,
 )
-from jaxcal.calibrators.policy import make_policy_calibrator, range_check
+from jaxcal.calibrators.policy import range_check
 from jaxcal.data.dataset import Padded
 from jaxcal.problem import Problem
 
@@ -270,34 +269,23 @@ def _policy(problem: Problem, options: dict) -> tuple[Calibrator, SampleCheck | 
     gated`): the feedback while the model fits the data, the anchor where not."""
     # The run loader belongs to the training layer: a trained policy is one of its
     # artefacts (imported here, when the method is asked for, not at import time).
-    from jaxcal.training.runs import LoadedRun, load_run, run_check
+    from jaxcal.training.runs import LoadedRun, load_calibrator, load_run, run_check
 
     run_dir = options.pop("run", None)
     anchor_dir = options.pop("anchor", None)
     if not run_dir:
         raise ValueError("method='policy' needs run=<trained run folder>")
     run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
-    cal = _checked_policy(problem, run)
+    _check_run(problem, run)
+    anchor = None
     if anchor_dir:  # the feedback gated by an absolute policy (calibrators.gated)
         anchor = load_run(anchor_dir)
-        if anchor.band is None:
-            raise ValueError(
-                f"anchor run {anchor.run_dir} has no uncertainty.json (the error band "
-                "the training job fits at its end): the gate's threshold is the "
-                "anchor's 90 % half-width"
-            )
-        cal = make_gated_calibrator(
-            cal,
-            _checked_policy(problem, anchor),
-            x_std=run.params.x_std,
-            sensitivity=feedback_sensitivity(run.params),
-            anchor_band=anchor.band,
-        )
-    return cal, run_check(run)
+        _check_run(problem, anchor)
+    return load_calibrator(run, anchor), run_check(run)
 
 
-def _checked_policy(problem: Problem, run) -> Calibrator:
-    """The policy of a loaded run whose names match the problem's."""
+def _check_run(problem: Problem, run) -> None:
+    """A loaded run's names must match the problem's (else a ValueError)."""
     run_dir = run.run_dir
     names = run.problem.theta_names
     if tuple(names) != problem.theta_names:
@@ -317,7 +305,6 @@ def _checked_policy(problem: Problem, run) -> Calibrator:
             f"run {run_dir} uses outputs {list(outputs)}, the data give "
             f"{list(problem.output_names)}: pass outputs={list(outputs)}"
         )
-    return make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
 
 
 def build_calibrator(

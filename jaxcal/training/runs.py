@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.agents.networks import make_networks
+from jaxcal.calibrators.gated import feedback_sensitivity, make_gated_calibrator
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
 from jaxcal.calibrators.policy import (
     IncrementPolicyParams,
@@ -220,11 +221,64 @@ def run_check(run: LoadedRun) -> SampleCheck | None:
     return range_check(run.problem)
 
 
-def load_calibrator(run_dir: str | os.PathLike | LoadedRun) -> Calibrator:
+def load_calibrator(
+    run_dir: str | os.PathLike | LoadedRun,
+    anchor: str | os.PathLike | LoadedRun | None = None,
+) -> Calibrator:
     """The run's policy as a ``Calibrator(init, step)`` (pure functions, not jitted).
 
     Use it like any other method: ``jax.jit(run_fleet, static_argnums=0)(cal, w, x,
     m)``, with ``check=run_check(run)`` to flag samples outside the training range.
+
+    Args:
+        run_dir: the run (folder or loaded).
+        anchor: an absolute policy's run with its band (``uncertainty.json``): the
+            run, an incremental policy, is then gated by it where the model misfits
+            the data (:mod:`jaxcal.calibrators.gated`).
+
+    Raises:
+        ValueError: the anchor has no band, its names differ from the run's, or the
+            run is not an incremental policy.
     """
-    run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
-    return make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
+    run = as_loaded(run_dir)
+    cal = make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
+    if anchor is None:
+        return cal
+    anchor = as_loaded(anchor)
+    check_anchor(run, anchor)
+    anchor_cal = make_policy_calibrator(
+        anchor.actor, anchor.dynamics, anchor.params, anchor.band
+    )
+    return make_gated_calibrator(
+        cal,
+        anchor_cal,
+        x_std=run.params.x_std,
+        sensitivity=feedback_sensitivity(run.params),
+        anchor_band=anchor.band,
+    )
+
+
+def as_loaded(run: str | os.PathLike | LoadedRun) -> LoadedRun:
+    """``run`` loaded (a :class:`LoadedRun` passes through)."""
+    return run if isinstance(run, LoadedRun) else load_run(run)
+
+
+def check_anchor(run: LoadedRun, anchor: LoadedRun) -> None:
+    """An anchor must calibrate the same problem and carry its band.
+
+    Raises:
+        ValueError: naming the anchor's folder and what differs.
+    """
+    if anchor.band is None:
+        raise ValueError(
+            f"anchor run {anchor.run_dir} has no uncertainty.json (the error band "
+            "the training job fits at its end): the gate's threshold is the "
+            "anchor's 90 % half-width"
+        )
+    for field in ("theta_names", "output_names"):
+        if tuple(getattr(anchor.problem, field)) != tuple(getattr(run.problem, field)):
+            raise ValueError(
+                f"anchor run {anchor.run_dir} has {field} "
+                f"{list(getattr(anchor.problem, field))}, the run {run.run_dir} "
+                f"{list(getattr(run.problem, field))}: both must calibrate one problem"
+            )

@@ -18,13 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.interface import REASONS
+from jaxcal.calibrators.gated import DEFAULT_WINDOW, gate_state
+from jaxcal.calibrators.guard import GuardCarry, guarded_update, sample_reason
+from jaxcal.calibrators.interface import REASONS, run_fleet
 from jaxcal.calibrators.policy import (
     initial_guard_carry,
     make_fleet_runner,
     make_guarded_stream_step,
 )
-from jaxcal.training.runs import LoadedRun, load_run, run_check
+from jaxcal.training.runs import LoadedRun, as_loaded, load_calibrator, run_check
 
 
 class StepInfo(NamedTuple):
@@ -35,6 +37,8 @@ class StepInfo(NamedTuple):
     reason: str  # "ok" or why it was skipped (jaxcal.calibrators.interface.REASONS)
     # [P] std of theta from the run's calibrated band (None: the run has none)
     theta_std: np.ndarray | None = None
+    # with an anchor: whether the model fit the data (the feedback's theta is used)
+    gate_open: bool | None = None
 
 
 class StreamingCalibrator:
@@ -42,6 +46,9 @@ class StreamingCalibrator:
 
     Args:
         run: a run folder or a :class:`LoadedRun`.
+        anchor: an absolute policy's run (with its ``uncertainty.json``) that takes
+            over where the model misfits the data; ``run`` must then be an
+            incremental policy (:mod:`jaxcal.calibrators.gated`).
 
     Attributes:
         conditions: the W condition names ``w`` must follow, in order.
@@ -52,8 +59,12 @@ class StreamingCalibrator:
             :meth:`reset`).
     """
 
-    def __init__(self, run: str | os.PathLike | LoadedRun):
-        self.run_info = run if isinstance(run, LoadedRun) else load_run(run)
+    def __init__(
+        self,
+        run: str | os.PathLike | LoadedRun,
+        anchor: str | os.PathLike | LoadedRun | None = None,
+    ):
+        self.run_info = as_loaded(run)
         problem = self.run_info.problem
         self.sensors = problem.output_names
         self.theta_names = problem.theta_names
@@ -68,7 +79,32 @@ class StreamingCalibrator:
         self._run = make_fleet_runner(actor, dynamics)
         self._band = self.run_info.band
         self._carry0 = initial_guard_carry(actor, dynamics, self._params, self._band)
+        self.anchor_info = None if anchor is None else as_loaded(anchor)
+        if self.anchor_info is not None:
+            self._gated(self._carry0)
         self.reset()
+
+    def _gated(self, carry: GuardCarry) -> None:
+        """Step and batch run of the gated calibrator (same call signatures; the
+        runs' params are constants of its one compiled program)."""
+        cal = load_calibrator(self.run_info, self.anchor_info)
+        an = self.anchor_info
+        an_state = initial_guard_carry(an.actor, an.dynamics, an.params, an.band).state
+        state = gate_state(carry.state, an_state, DEFAULT_WINDOW, carry.x.dtype)
+        shapes = jax.eval_shape(cal.step, state, carry.w, carry.x)[1]
+        out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+        self._carry0 = GuardCarry(state=state, out=out, w=carry.w, x=carry.x)
+
+        @jax.jit
+        def step(carry, w, x, check):
+            return guarded_update(cal.step, carry, w, x, sample_reason(check, w, x))
+
+        @jax.jit
+        def run(w, x, mask, check):
+            return run_fleet(cal, w, x, mask, check=check)
+
+        self._step = lambda _, carry, w, x, check, __: step(carry, w, x, check)
+        self._run = lambda _, w, x, mask, check, __: run(w, x, mask, check)
 
     def reset(self) -> None:
         """Forget the carried model output (start a new stream)."""
@@ -107,10 +143,14 @@ class StreamingCalibrator:
         )
         self.last_reason = REASONS[int(reason)]
         self.last_valid = self.last_reason == "ok"
-        std = None if out.aux is None else np.asarray(out.aux["theta_std"])
+        aux = out.aux if isinstance(out.aux, dict) else {}
+        std = aux.get("theta_std")
+        gate = aux.get("gate_open")
         return StepInfo(
-            np.asarray(out.theta), self.last_valid, self.last_reason, theta_std=std
-        )
+            np.asarray(out.theta), self.last_valid, self.last_reason,
+            theta_std=None if std is None else np.asarray(std),
+            gate_open=None if gate is None else bool(gate),
+        )  # fmt: skip
 
     def step(self, w, x) -> np.ndarray:
         """Calibrate on one sample: ``w [W]`` (``conditions``) and ``x [S]``.

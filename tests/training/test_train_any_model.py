@@ -197,6 +197,26 @@ def test_a_feedback_run_gated_by_an_absolute_run(trained, csv, tmp_path):
     from_feedback = np.isclose(gated.theta, feedback, rtol=1e-6).all(axis=1)
     from_anchor = np.isclose(gated.theta, anchor, rtol=1e-6).all(axis=1)
     assert (from_feedback | from_anchor).all()
+    # the real-time API streams the same gate: unit 1's rows, one at a time
+    stream = StreamingCalibrator(runs / "inc", anchor=trained)
+    frame = _frame()
+    rows = np.flatnonzero(frame["unit"].to_numpy() == 1)
+    infos = [
+        stream.step_info(frame.loc[i, ["a", "b"]], frame.loc[i, ["y1", "y2", "y3"]])
+        for i in rows
+    ]
+    np.testing.assert_allclose(
+        np.stack([i.theta for i in infos]), gated.theta[rows], rtol=1e-6
+    )
+    assert all(isinstance(i.gate_open, bool) and i.valid for i in infos)
+    theta, _ = stream.run(
+        frame.loc[rows, ["a", "b"]].to_numpy()[None],
+        frame.loc[rows, ["y1", "y2", "y3"]].to_numpy()[None],
+    )
+    np.testing.assert_allclose(theta[0], gated.theta[rows], rtol=1e-6)
+    assert evaluate_main([f"run={runs / 'inc'}", f"anchor={trained}", "repeats=2"]) == 0
+    report = json.loads((runs / "inc" / "evaluate_gated.json").read_text())
+    assert report["anchor"] == str(trained) and np.isfinite(report["theta_rmse"])
     with pytest.raises(ValueError, match="incremental"):
         jaxcal.calibrate(MODEL, csv, run=trained, anchor=trained, **opts)
     bare = tmp_path / "bare"
