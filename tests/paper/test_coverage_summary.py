@@ -17,7 +17,13 @@ from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.paper.compare import evaluate_method, interval_coverage
 from jaxcal.paper.methods import make_method
 from jaxcal.paper.report import write_report
-from jaxcal.paper.summary import GOALS, best_policy, issue_summary, summary_goals
+from jaxcal.paper.summary import (
+    GOALS,
+    best_policy,
+    issue_summary,
+    summary_goals,
+    summary_json,
+)
 from jaxcal.paper.tables import Results
 from jaxcal.training.data import UnitArrays
 
@@ -201,6 +207,14 @@ def test_the_gated_policy_is_summarised_with_its_feedbacks_training(tmp_path):
     assert summary["ds1_bias_clac_over_ukf"] == pytest.approx(0.1)
     assert summary["train_to_target_s"] == 450.0  # CLAC-inc's training
     assert summary["ds1_policy_deploy_speedup_vs_ukf"] == pytest.approx(6.0)
+    # the anchor's own training is reported beside the feedback's time to target
+    steps["train-ds1-clac"]["surrogate"] = {"fit_seconds": 20.0}
+    details = summary_json(Results(steps))["summary_details"]["train_to_target_s"]
+    assert details == {
+        "policy": "CLAC-gate",
+        "trained_as": "CLAC-inc",
+        "anchor_train_s": 120.0,
+    }
 
 
 def test_summary_falls_back_to_clac_and_is_null_where_inputs_are_missing(tmp_path):
