@@ -14,19 +14,21 @@ from pathlib import Path
 
 from jaxcal.paper.findings import identifiability_section, losses_to_baselines
 from jaxcal.paper.npe_steps import npe_table
+from jaxcal.paper.study_tables import (
+    ablation_table,
+    robustness_table,
+    scalability_table,
+    sensor_noise_table,
+    tracking_table,
+)
 from jaxcal.paper.summary import summary_json, summary_section
 from jaxcal.paper.tables import (
     NAMES,
     Results,
-    ablation_table,
     inference_table,
     num,
-    robustness_table,
-    scalability_table,
-    sensor_noise_table,
     table,
     timing_table,
-    tracking_table,
 )
 from jaxcal.training.run_dir import write_atomic, write_json
 
