@@ -142,6 +142,15 @@ class GuardCarry(NamedTuple):
     x: Array  # [S] last ok x
 
 
+def initial_carry(step: Callable, state: CalState, w: Array, x: Array) -> GuardCarry:
+    """A guarded stream's carry before its first ok sample: ``state``, zero outputs
+    of ``step``'s shapes and dtypes (what ``run_calibrator`` outputs on leading
+    padding) and the placeholder ``(w, x)`` a flagged first sample is fed."""
+    out_shape = jax.eval_shape(step, state, w, x)[1]
+    out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
+    return GuardCarry(state=state, out=out, w=w, x=x)
+
+
 def _all_finite(tree) -> Array:
     """``[]`` bool: every float leaf of ``tree`` is finite (keys, ints ignored)."""
     leaves = [

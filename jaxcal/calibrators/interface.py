@@ -68,6 +68,7 @@ from jaxcal.calibrators.guard import (  # noqa: F401 (re-exported: one import pa
     SampleCheck,
     count_reasons,
     guarded_update,
+    initial_carry,
     sample_reason,
 )
 from jaxcal.physics.constants import health_index, sensor_index

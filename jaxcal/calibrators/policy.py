@@ -57,6 +57,7 @@ from jaxcal.calibrators.interface import (
     GuardCarry,
     SampleCheck,
     guarded_update,
+    initial_carry,
     run_fleet,
     sample_reason,
 )
@@ -343,9 +344,7 @@ def initial_guard_carry(
         xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count
     )
     step = make_policy_calibrator(actor, dynamics, params, band).step
-    out_shape = jax.eval_shape(step, state, w, x)[1]  # zeros of the step's dtypes
-    out = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape)
-    return GuardCarry(state=state, out=out, w=w, x=x)
+    return initial_carry(step, state, w, x)
 
 
 def make_guarded_stream_step(

@@ -222,14 +222,41 @@ def band_coverage(
     return float(inside.mean()), inside.mean(axis=0)
 
 
-def save_band(path: str | os.PathLike, band: ThetaBand, meta: dict) -> None:
-    """Writes ``band`` and ``meta`` (level, units, sample count, ...) as JSON,
-    atomically."""
-    doc = {
-        **meta,
+def band_to_json(band: ThetaBand) -> dict:
+    """``{"edges": [K], "std": [K][P]}``: the band as JSON-ready lists."""
+    return {
         "edges": np.asarray(band.edges).tolist(),
         "std": np.asarray(band.std, np.float64).tolist(),
     }
+
+
+def band_from_json(doc: dict, source: str, dtype=jnp.float32) -> ThetaBand:
+    """The band of :func:`band_to_json`'s dict, checked (``source`` names where the
+    dict came from in the error), its std in ``dtype``.
+
+    Raises:
+        ValueError: not a band (names ``source`` and what is wrong).
+    """
+    try:
+        edges = np.asarray(doc["edges"], np.int64)
+        std = np.asarray(doc["std"], np.float64)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"{source}: expected JSON with 'edges' [K] ints and 'std' [K, P] floats "
+            f"({err!r})"
+        ) from None
+    if edges.ndim != 1 or std.ndim != 2 or len(edges) != len(std) or edges[0] != 0:
+        raise ValueError(
+            f"{source}: 'edges' must be [K] starting at 0 and 'std' [K, P], got "
+            f"shapes {edges.shape} and {std.shape}"
+        )
+    return ThetaBand(edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, dtype))
+
+
+def save_band(path: str | os.PathLike, band: ThetaBand, meta: dict) -> None:
+    """Writes ``band`` and ``meta`` (level, units, sample count, ...) as JSON,
+    atomically."""
+    doc = {**meta, **band_to_json(band)}
     write_atomic(path, json.dumps(doc, indent=2) + "\n")
 
 
@@ -244,18 +271,6 @@ def load_band(run_dir: str | os.PathLike) -> ThetaBand | None:
         return None
     try:
         doc = json.loads(path.read_text())
-        edges = np.asarray(doc["edges"], np.int64)
-        std = np.asarray(doc["std"], np.float64)
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(
-            f"{path}: expected JSON with 'edges' [K] ints and 'std' [K, P] floats "
-            f"({err!r})"
-        ) from None
-    if edges.ndim != 1 or std.ndim != 2 or len(edges) != len(std) or edges[0] != 0:
-        raise ValueError(
-            f"{path}: 'edges' must be [K] starting at 0 and 'std' [K, P], got "
-            f"shapes {edges.shape} and {std.shape}"
-        )
-    return ThetaBand(
-        edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, jnp.float32)
-    )
+    except ValueError as err:
+        raise ValueError(f"{path}: not JSON ({err})") from None
+    return band_from_json(doc, str(path))

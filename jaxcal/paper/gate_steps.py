@@ -28,10 +28,17 @@ import numpy as np
 from jaxcal.atomic import write_atomic
 from jaxcal.calibrators.gated import (
     DEFAULT_WINDOW,
+    Z90,
     feedback_sensitivity,
+    gate_threshold,
     make_gated_calibrator,
 )
-from jaxcal.calibrators.uncertainty import ThetaBand, band_coverage, fit_band
+from jaxcal.calibrators.uncertainty import (
+    band_coverage,
+    band_from_json,
+    band_to_json,
+    fit_band,
+)
 from jaxcal.paper.compare import evaluate_method
 from jaxcal.paper.methods import Method, make_method
 
@@ -41,20 +48,6 @@ GATE_FILE = "clac-gate.json"
 
 def gate_path(suite) -> Path:
     return Path(suite.model_dir) / GATE_FILE
-
-
-def _band_doc(band: ThetaBand) -> dict:
-    return {
-        "edges": np.asarray(band.edges).tolist(),
-        "std": np.asarray(band.std, np.float64).tolist(),
-    }
-
-
-def _band(doc: dict) -> ThetaBand:
-    return ThetaBand(
-        edges=jnp.asarray(doc["edges"], jnp.int32),
-        std=jnp.asarray(doc["std"], jnp.float64),
-    )
 
 
 def gated_method(suite, gate: dict | None = None) -> Method:
@@ -77,8 +70,9 @@ def gated_method(suite, gate: dict | None = None) -> Method:
             )
         gate = json.loads(path.read_text())
     feedback, anchor = suite.method(FEEDBACK), suite.method(ANCHOR)
-    anchor_band = _band(gate["anchor_band"])
-    band = _band(gate["band"]) if gate.get("band") else None
+    source = str(gate_path(suite))
+    anchor_band = band_from_json(gate["anchor_band"], source, jnp.float64)
+    band = band_from_json(gate["band"], source, jnp.float64) if gate["band"] else None
     x_std = jnp.asarray(gate["x_std"], jnp.float64)
     sens = jnp.asarray(gate["sensitivity"], jnp.float64)
     window = int(gate["window"])
@@ -103,7 +97,7 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
 
     Returns:
         ``{"method", "val_units", "anchor_val_theta_rmse", "val_theta_rmse",
-        "val_gate_open", "val_coverage90", "sensitivity", "threshold_median",
+        "val_coverage90", "sensitivity", "threshold_median", "window",
         "fit_seconds", "gate"}``.
     """
     from jaxcal.training.runs import load_run, needs_x64
@@ -119,22 +113,21 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
         "window": window,
         "sensitivity": feedback_sensitivity(params).tolist(),
         "x_std": np.asarray(params.x_std, np.float64).tolist(),
-        "anchor_band": _band_doc(anchor_band),
+        "anchor_band": band_to_json(anchor_band),
         "band": None,
     }
     with jax.enable_x64(True):  # the feedback runs on F in float64
         gated = evaluate_method(gated_method(suite, gate), val, suite.problem)
     band = fit_band(gated.theta, val.theta, val.mask)
-    gate["band"] = _band_doc(band)
+    gate["band"] = band_to_json(band)
     path = gate_path(suite)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, json.dumps(gate, indent=2) + "\n")
     suite.forget(NAME)  # rebuilt from the stored fit, with its band
     coverage, _ = band_coverage(band, gated.theta, val.theta, val.mask)
-    tau = np.sqrt(
-        np.sum((np.asarray(gate["sensitivity"]) * 1.6449 * np.asarray(
-            anchor_band.std, np.float64)) ** 2, axis=-1)
-    )  # fmt: skip
+    tau = gate_threshold(
+        jnp.asarray(gate["sensitivity"]), Z90 * jnp.asarray(anchor_band.std)
+    )
     return {
         "method": NAME,
         "val_units": val.unit_ids.tolist(),

@@ -19,8 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.gated import DEFAULT_WINDOW, gate_state
-from jaxcal.calibrators.guard import GuardCarry, guarded_update, sample_reason
-from jaxcal.calibrators.interface import REASONS, run_fleet
+from jaxcal.calibrators.interface import (
+    REASONS,
+    GuardCarry,
+    guarded_update,
+    initial_carry,
+    run_fleet,
+    sample_reason,
+)
 from jaxcal.calibrators.policy import (
     initial_guard_carry,
     make_fleet_runner,
@@ -91,9 +97,7 @@ class StreamingCalibrator:
         an = self.anchor_info
         an_state = initial_guard_carry(an.actor, an.dynamics, an.params, an.band).state
         state = gate_state(carry.state, an_state, DEFAULT_WINDOW, carry.x.dtype)
-        shapes = jax.eval_shape(cal.step, state, carry.w, carry.x)[1]
-        out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
-        self._carry0 = GuardCarry(state=state, out=out, w=carry.w, x=carry.x)
+        self._carry0 = initial_carry(cal.step, state, carry.w, carry.x)
 
         @jax.jit
         def step(carry, w, x, check):
