@@ -209,6 +209,11 @@ class Model:
             out of a residual) for the diagnosis; all optional.
         x64: the model needs float64 (an iterative solver inside).
         native: the object the model wraps (e.g. the turbofan ``Engine``), or None.
+        hinted_fn: optional warm-started form of a static model's function,
+            ``hinted_fn(w, theta, hint) -> (x, valid, next_hint)``: the same x to
+            the model's own solver tolerance (not bit for bit), cheaper when
+            ``hint`` is the previous call's along a stream of nearby inputs.
+        initial_hint: ``initial_hint() -> hint``, the hint before any call.
     """
 
     name: str
@@ -225,6 +230,8 @@ class Model:
     x64: bool = False
     native: Any = None
     diagnosis: DiagnosisHints = DiagnosisHints()
+    hinted_fn: Callable[[Array, Array, Any], Any] | None = None
+    initial_hint_fn: Callable[[], Any] | None = None
 
     # ---------------------------------------------------------------- builders
 
@@ -244,13 +251,21 @@ class Model:
         x64: bool = False,
         native: Any = None,
         diagnosis: DiagnosisHints | None = None,
+        hinted_fn: Callable[[Array, Array, Any], Any] | None = None,
+        initial_hint: Callable[[], Any] | None = None,
     ) -> Model:
         """A static model from a pure JAX function ``fn(w [W], theta [P]) -> x [S]``.
 
         ``fn`` may also return ``(x, valid)`` with ``valid`` a ``[]`` bool or a
         :class:`ModelInfo`. ``conditions`` / ``outputs``: names, ``{name: unit}`` or
         :class:`Variable` s; ``parameters``: ``{name: (nominal, low, high[, unit])}``.
+        ``hinted_fn`` / ``initial_hint``: an optional warm-started ``fn`` (both or
+        neither; see the class attributes).
         """
+        if (hinted_fn is None) != (initial_hint is None):
+            raise ValueError(
+                "hinted_fn and initial_hint go together: give both or none"
+            )
 
         def step(state, w, theta):
             out = fn(w, theta)
@@ -264,7 +279,7 @@ class Model:
         return cls._build(
             name, conditions, parameters, outputs, step, init_state, (),
             condition_range, input_check, effects, effect_fn, x64, native,
-            diagnosis=diagnosis,
+            diagnosis=diagnosis, hinted_fn=hinted_fn, initial_hint_fn=initial_hint,
         )  # fmt: skip
 
     @classmethod
@@ -313,7 +328,7 @@ class Model:
     def _build(
         cls, name, conditions, parameters, outputs, step, init_state, states,
         condition_range, input_check, effects, effect_fn, x64, native,
-        diagnosis=None,
+        diagnosis=None, hinted_fn=None, initial_hint_fn=None,
     ) -> Model:  # fmt: skip
         conditions = _variables(conditions, "conditions")
         if condition_range is not None:
@@ -344,6 +359,8 @@ class Model:
             x64=bool(x64),
             native=native,
             diagnosis=DiagnosisHints() if diagnosis is None else diagnosis,
+            hinted_fn=hinted_fn,
+            initial_hint_fn=initial_hint_fn,
         )
 
     # ---------------------------------------------------------------- names
@@ -444,6 +461,30 @@ class Model:
         _, x, info = self.step(empty, w, theta)
         return x, info
 
+    @property
+    def has_hint(self) -> bool:
+        """True when the model has a warm-started form (:meth:`evaluate_hinted`)."""
+        return self.hinted_fn is not None
+
+    def initial_hint(self) -> Any:
+        """The hint before a stream's first call (``None`` without a warm start)."""
+        return None if self.initial_hint_fn is None else self.initial_hint_fn()
+
+    def evaluate_hinted(
+        self, w: Array, theta: Array, hint: Any
+    ) -> tuple[Array, ModelInfo, Any]:
+        """``(x [S_all], ModelInfo, next_hint)`` of one sample, warm-started.
+
+        ``hint`` is the previous call's (:meth:`initial_hint` first). A model
+        without a warm start evaluates as :meth:`evaluate` and passes the hint
+        through unchanged, so a caller can always carry it.
+        """
+        if self.hinted_fn is None:
+            x, info = self.evaluate(w, theta)
+            return x, info, hint
+        x, valid, next_hint = self.hinted_fn(w, theta, hint)
+        return x, self._info(w, theta, x, valid), next_hint
+
     def evaluate_effects(
         self, w: Array, theta: Array, e: Array
     ) -> tuple[Array, ModelInfo]:
@@ -483,6 +524,29 @@ class Model:
             full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
             x, _ = self.evaluate(w, full)
             return x if used is None else x[used]
+
+        return measure
+
+    def restrict_hinted(
+        self,
+        theta_names: Sequence[str],
+        output_names: Sequence[str] | None = None,
+        theta_base: Array | None = None,
+    ) -> Callable[[Array, Array, Any], tuple[Array, Any]]:
+        """:meth:`restrict` with the warm start: ``F(w, theta [P], hint) -> (x_used
+        [S], next_hint)`` (see :meth:`evaluate_hinted`)."""
+        declared = np.asarray(self.parameter_index(theta_names))
+        used = (
+            None
+            if output_names is None
+            else np.asarray(self.output_index(output_names))
+        )
+        base = np.asarray(self.nominal if theta_base is None else theta_base)
+
+        def measure(w: Array, theta: Array, hint: Any) -> tuple[Array, Any]:
+            full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
+            x, _, hint = self.evaluate_hinted(w, full, hint)
+            return (x if used is None else x[used]), hint
 
         return measure
 

@@ -30,6 +30,11 @@ sample sets z_0 = init(w_0), the state after w_0 with the prior theta (the train
 environment's reference state at t = 0 is the same, so on whole trajectories the two
 still agree). A static model carries ``z = None``.
 
+A static model with a warm start (:class:`~jaxcal.envs.memory.HintedDynamics`, e.g.
+the turbofan's Newton solve) also carries its solver hint from sample to sample
+(``PolicyState.hint``): x-hat is then the model's output to its solver tolerance, at a
+fraction of the cold solve's cost; the first sample starts without one.
+
 Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner
 (:func:`make_fleet_runner`) serves any trained policy of the same architecture
 without retracing.
@@ -63,7 +68,7 @@ from jaxcal.calibrators.interface import (
 )
 from jaxcal.calibrators.uncertainty import ThetaBand, band_std
 from jaxcal.envs.increment import apply_increment, increment_observation
-from jaxcal.envs.memory import StatefulDynamics, as_stateful
+from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, EnvParams, action_to_theta
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
@@ -124,6 +129,7 @@ class PolicyState:
     z: Array | None = None
     theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
     count: Array | None = None  # [] int32 samples taken (with an uncertainty band)
+    hint: PyTree | None = None  # the model's solver warm start (HintedDynamics)
 
 
 def policy_params_from_env(
@@ -174,6 +180,14 @@ def make_policy_calibrator(
     """
     dyn = as_stateful(dynamics)
     incremental = isinstance(params, IncrementPolicyParams)
+    hinted = isinstance(dynamics, HintedDynamics)
+
+    def transition(state: PolicyState, z, w_t, xhat_prev, theta):
+        """(z, x-hat, hint) of one model step, warm-started when the model can."""
+        if not hinted:
+            return (*dyn.step(params.dyn_params, z, w_t, xhat_prev, theta), None)
+        hint, xhat = dynamics.step(params.dyn_params, state.hint, w_t, xhat_prev, theta)
+        return z, xhat, hint
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
         del key  # deterministic; x-hat starts at the first measurement
@@ -183,9 +197,11 @@ def make_policy_calibrator(
         if incremental:  # the box centre (the env's reset_at)
             theta0 = 0.5 * (params.theta_low + params.theta_high)
         count = None if band is None else jnp.zeros((), jnp.int32)
+        hint = dynamics.init_hint() if hinted else None
         return PolicyState(
-            xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count
-        )
+            xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
+            hint=hint,
+        )  # fmt: skip
 
     def or_first_state(state: PolicyState, z: Array | None, w_t: Array, x_t: Array):
         # before any sample the model state is init(w_0) (the env's z_ref[0])
@@ -205,16 +221,17 @@ def make_policy_calibrator(
         ).astype(jnp.float32)
         mean, _ = actor.apply(params.actor, obs)
         theta = action_to_theta(jnp.tanh(mean), params)
-        z, xhat = dyn.step(params.dyn_params, state.z, w_t, xhat_prev, theta)
+        z, xhat, hint = transition(state, state.z, w_t, xhat_prev, theta)
         xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
         z = or_first_state(state, z, w_t, x_t)  # the first sample's: init
-        return PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z), theta, xhat
+        new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z, hint=hint)
+        return new_state, theta, xhat
 
     def increment_step(state: PolicyState, w_t: Array, x_t: Array):
         # predict sample t with theta_{t-1}, then correct theta on its error
         xhat_prev = jnp.where(state.started, state.xhat, x_t)
         z_prev = or_first_state(state, state.z, w_t, x_t)
-        z, xhat = dyn.step(params.dyn_params, z_prev, w_t, xhat_prev, state.theta)
+        z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
         xhat = xhat.astype(x_t.dtype)
         resid = (x_t - xhat) / params.x_std
         obs = increment_observation(
@@ -239,6 +256,7 @@ def make_policy_calibrator(
             started=jnp.ones((), bool),
             z=None if z is None else z.astype(z_prev.dtype),
             theta=theta.astype(state.theta.dtype),
+            hint=hint,
         )
         return new_state, theta, xhat
 
@@ -340,8 +358,9 @@ def initial_guard_carry(
     if isinstance(params, IncrementPolicyParams):
         theta = 0.5 * (params.theta_low + params.theta_high)
     count = None if band is None else jnp.zeros((), jnp.int32)
+    hint = dynamics.init_hint() if isinstance(dynamics, HintedDynamics) else None
     state = PolicyState(
-        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count
+        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count, hint=hint
     )
     step = make_policy_calibrator(actor, dynamics, params, band).step
     return initial_carry(step, state, w, x)

@@ -163,3 +163,39 @@ def reference_states(
 
     z = jax.jit(jax.vmap(unit))(w.astype(x.dtype), x, jnp.asarray(lengths))
     return np.asarray(z)
+
+
+class HintedDynamics(NamedTuple):
+    """A static transition with a warm start (a model's ``hinted_fn``).
+
+    Called like the plain transition (``dynamics(dyn_params, w_next, xhat, theta)``,
+    what training uses); a deployed stream may instead carry the model's solver hint
+    (:meth:`jaxcal.model.Model.evaluate_hinted`) from sample to sample. The hint
+    changes x-hat only within the model's solver tolerance; it is not a model
+    state (nothing about the model's memory), so the training environment ignores it.
+
+    Attributes:
+        plain: ``plain(dyn_params, w_next, xhat, theta) -> xhat_next``.
+        step: ``step(dyn_params, hint, w_next, xhat, theta) -> (hint, xhat_next)``.
+        init_hint: ``init_hint() -> hint`` before a stream's first sample.
+    """
+
+    plain: Callable
+    step: Callable
+    init_hint: Callable
+
+    def __call__(self, dyn_params, w_next, xhat, theta):
+        return self.plain(dyn_params, w_next, xhat, theta)
+
+    def map_output(self, fn: Callable) -> HintedDynamics:
+        """The same transition with ``fn(xhat_next) -> xhat_next`` applied to its
+        output on both paths (e.g. a perturbation of the model's output)."""
+
+        def plain(dyn_params, w_next, xhat, theta):
+            return fn(self.plain(dyn_params, w_next, xhat, theta))
+
+        def step(dyn_params, hint, w_next, xhat, theta):
+            hint, out = self.step(dyn_params, hint, w_next, xhat, theta)
+            return hint, fn(out)
+
+        return HintedDynamics(plain, step, self.init_hint)

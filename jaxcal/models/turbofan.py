@@ -126,6 +126,10 @@ def turbofan_model(engine: Engine) -> Model:
         x, info = engine.evaluate(w, theta, effects=e)
         return x, ModelInfo(valid=info.converged, native=info)
 
+    def hinted(w, theta, hint):
+        x, info, hint = evaluate_engine_hinted(engine, w, theta, hint)
+        return x, ModelInfo(valid=info.converged, native=info), hint
+
     return Model.from_function(
         fn,
         conditions=dict(zip(CONDITION_NAMES, CONDITION_UNITS, strict=True)),
@@ -139,6 +143,8 @@ def turbofan_model(engine: Engine) -> Model:
         x64=True,
         native=engine,
         diagnosis=diagnosis_hints(),
+        hinted_fn=hinted,
+        initial_hint=engine.initial_hint,
     )
 
 
@@ -151,6 +157,15 @@ def _evaluate(engine: Engine, w, theta):
 # pattern, not once per calibrator, pass and data set (tens of seconds each). The
 # engine is a pytree argument, so every configuration shares the one trace.
 evaluate_engine = jax.jit(_evaluate)
+
+
+def _evaluate_hinted(engine: Engine, w, theta, hint):
+    return engine.evaluate_hinted(w, theta, hint)
+
+
+# The warm-started evaluation along a stream (Engine.evaluate_hinted), jitted for
+# the same reason as evaluate_engine.
+evaluate_engine_hinted = jax.jit(_evaluate_hinted)
 
 
 def load_turbofan(name: str = "cmapss") -> Model:

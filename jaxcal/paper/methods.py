@@ -51,6 +51,7 @@ from jaxcal.calibrators.interface import (
 from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
 from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
+from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
 from jaxcal.training.runs import run_check
@@ -192,6 +193,10 @@ def perturbed_dynamics(
         out = dynamics(dyn_params, w, xhat, theta)
         return perturb_output(out, key, bias, noise_sigma, std)
 
+    if isinstance(dynamics, HintedDynamics):  # keep the model's warm start
+        return dynamics.map_output(
+            lambda out: perturb_output(out, key, bias, noise_sigma, std)
+        )
     return perturbed
 
 

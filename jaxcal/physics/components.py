@@ -21,7 +21,7 @@ class Burner(NamedTuple):
     w4: jnp.ndarray  # exit flow W3b + Wf [lbm/s]
 
 
-def burner_exit(w3b, t30, wf, eta_b, lhv):
+def burner_exit(w3b, t30, wf, eta_b, lhv, unroll: bool = False):
     """Burner energy balance (physics_facts.md 2.4) with variable-cp products.
 
     W3b h_air(T30) + Wf (h_ref + eta_b LHV) = (W3b + Wf) h_gas(T4, FAR), FAR = Wf/W3b.
@@ -31,7 +31,7 @@ def burner_exit(w3b, t30, wf, eta_b, lhv):
     h4 = (w3b * thermo.enthalpy(t30, 0.0) + wf * (h_ref + eta_b * lhv)) / (w3b + wf)
     # secant-quality guess: temperature rise at a mean cp of about 0.29 BTU/(lbm R)
     t_guess = t30 + (h4 - thermo.enthalpy(t30, 0.0)) / 0.29
-    t4 = thermo.temperature_from_enthalpy(h4, far, t_guess)
+    t4 = thermo.temperature_from_enthalpy(h4, far, t_guess, unroll)
     return Burner(t4=t4, far=far, w4=w3b + wf)
 
 
@@ -59,7 +59,7 @@ class TurbineExit(NamedTuple):
     dh: jnp.ndarray  # rotor specific work [BTU/lbm]
 
 
-def mix_cooling(w, t, far, w_cool, h_cool):
+def mix_cooling(w, t, far, w_cool, h_cool, unroll: bool = False):
     """Mix cooling air (FAR 0, enthalpy h_cool) into a gas stream.
 
     Returns:
@@ -69,11 +69,11 @@ def mix_cooling(w, t, far, w_cool, h_cool):
     w_mix = w + w_cool
     far_mix = fuel / (w_mix - fuel)
     h_mix = (w * thermo.enthalpy(t, far) + w_cool * h_cool) / w_mix
-    t_mix = thermo.temperature_from_enthalpy(h_mix, far_mix, t)
+    t_mix = thermo.temperature_from_enthalpy(h_mix, far_mix, t, unroll)
     return w_mix, far_mix, h_mix, t_mix
 
 
-def turbine_rotor(w_r, t_r, far_r, pr, eta, w_cool_exit, h_cool):
+def turbine_rotor(w_r, t_r, far_r, pr, eta, w_cool_exit, h_cool, unroll: bool = False):
     """Expansion through the rotor by PR = Pt_in/Pt_out, then the exit cooling mix.
 
     Args:
@@ -81,9 +81,10 @@ def turbine_rotor(w_r, t_r, far_r, pr, eta, w_cool_exit, h_cool):
             :func:`mix_cooling` of the ahead-of-rotor cooling air).
         pr, eta: pressure ratio and isentropic efficiency.
         w_cool_exit, h_cool: cooling air mixed at the exit and its enthalpy.
+        unroll: unrolled thermo inversions (:func:`jaxcal.physics.thermo._iterate`).
     """
-    t_exp, dh = thermo.expand(t_r, pr, eta, far_r)
-    w_o, far_o, _, t_o = mix_cooling(w_r, t_exp, far_r, w_cool_exit, h_cool)
+    t_exp, dh = thermo.expand(t_r, pr, eta, far_r, unroll)
+    w_o, far_o, _, t_o = mix_cooling(w_r, t_exp, far_r, w_cool_exit, h_cool, unroll)
     return TurbineExit(t_r, t_o, w_r, w_o, far_r, far_o, w_r * dh, dh)
 
 

@@ -115,7 +115,7 @@ def unpack_theta(theta):
     }
 
 
-def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
+def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z, unroll=False):
     """Residuals and stations of the off-design balance for one sample.
 
     Args:
@@ -124,6 +124,9 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
         theta: [10] health modifiers (N-CMAPSS order).
         effects: [NUM_EFFECTS] extension parameters (zeros = plain model).
         z: [9] unknowns (module docstring).
+        unroll: unroll the thermo inversions (static): the same bits, faster when
+            the balance is evaluated but not differentiated
+            (:func:`jaxcal.physics.thermo._iterate`).
 
     Returns:
         (residuals [9], Stations).
@@ -151,7 +154,7 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
     bpr = d.bpr_d * jnp.exp(z[1])
     w_core = w2 / (1.0 + bpr)
     w_byp = w2 - w_core
-    t21, dh_fan = thermo.compress(t2, pr_fan, eta_fan)
+    t21, dh_fan = thermo.compress(t2, pr_fan, eta_fan, unroll=unroll)
     p21 = p2 * pr_fan
     # LPC (booster) on the LP shaft
     p21c = p21 * (1.0 - d.dp_fan_duct)
@@ -163,7 +166,7 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
     wc_lpc = wc_lpc * (1.0 + h["lpc"][1])
     eta_lpc = maps.apply_efficiency_modifier(eta_lpc, h["lpc"][0], mode)
     w21c = w_core * jnp.sqrt(t21 / T_STD_R) / (p21c / P_STD_PSIA)
-    t24, dh_lpc = thermo.compress(t21, pr_lpc, eta_lpc)
+    t24, dh_lpc = thermo.compress(t21, pr_lpc, eta_lpc, unroll=unroll)
     p24 = p21c * pr_lpc
     # HPC
     t25, p25 = t24, p24 * (1.0 - d.dp_lpc_duct)
@@ -176,7 +179,7 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
     wc_hpc = wc_hpc * (1.0 + h["hpc"][1])
     eta_hpc = maps.apply_efficiency_modifier(eta_hpc, h["hpc"][0], mode)
     w25c = w_core * jnp.sqrt(t25 / T_STD_R) / (p25 / P_STD_PSIA)
-    t30, dh_hpc = thermo.compress(t25, pr_hpc, eta_hpc)
+    t30, dh_hpc = thermo.compress(t25, pr_hpc, eta_hpc, unroll=unroll)
     p30 = p25 * pr_hpc
     w31, w32 = d.bleed_hpt * w_core, d.bleed_lpt * w_core
     w_cust = effects[1] * w_core
@@ -186,19 +189,21 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
     h32 = thermo.enthalpy(t25) + d.lpt_bleed_work * dh_hpc
     # burner
     wf = dp.wf_corr * jnp.exp(z[8]) * delta2 * jnp.sqrt(theta2)
-    burner = components.burner_exit(w3b, t30, wf, d.eta_burner, d.lhv)
+    burner = components.burner_exit(w3b, t30, wf, d.eta_burner, d.lhv, unroll)
     p40 = p30 * (1.0 - d.dp_burner)
     # HPT
     pr_hpt = 1.0 + (dp.pr_hpt - 1.0) * jnp.exp(z[5])
     w31r = d.hpt_cool_rotor_frac * w31
     w41, far41, _, t41 = components.mix_cooling(
-        burner.w4, burner.t4, burner.far, w31r, h30
+        burner.w4, burner.t4, burner.far, w31r, h30, unroll
     )
     eta_hpt = maps.turbine_efficiency(
         d.hpt, d.eta_hpt_d, nc / jnp.sqrt(t41) / dp.ntc_hpt
     )
     eta_hpt = maps.apply_efficiency_modifier(eta_hpt, h["hpt"][0], mode)
-    hpt = components.turbine_rotor(w41, t41, far41, pr_hpt, eta_hpt, w31 - w31r, h30)
+    hpt = components.turbine_rotor(
+        w41, t41, far41, pr_hpt, eta_hpt, w31 - w31r, h30, unroll
+    )
     phi_hpt_map = maps.turbine_capacity(d.hpt, dp.phi_hpt, dp.pr_hpt, pr_hpt)
     phi_hpt_map = phi_hpt_map * (1.0 + h["hpt"][1])
     p45 = p40 / pr_hpt
@@ -208,13 +213,15 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z):
     w32r = d.lpt_cool_rotor_frac * w32
     n_lp = nf * d.gear_ratio
     w46, far46, _, t46 = components.mix_cooling(
-        hpt.w_out, hpt.t_out, hpt.far_out, w32r, h32
+        hpt.w_out, hpt.t_out, hpt.far_out, w32r, h32, unroll
     )
     eta_lpt = maps.turbine_efficiency(
         d.lpt, d.eta_lpt_d, n_lp / jnp.sqrt(t46) / dp.ntc_lpt
     )
     eta_lpt = maps.apply_efficiency_modifier(eta_lpt, h["lpt"][0], mode)
-    lpt = components.turbine_rotor(w46, t46, far46, pr_lpt, eta_lpt, w32 - w32r, h32)
+    lpt = components.turbine_rotor(
+        w46, t46, far46, pr_lpt, eta_lpt, w32 - w32r, h32, unroll
+    )
     phi_lpt_map = maps.turbine_capacity(d.lpt, dp.phi_lpt, dp.pr_lpt, pr_lpt)
     phi_lpt_map = phi_lpt_map * (1.0 + h["lpt"][1])
     p50 = p45l / pr_lpt

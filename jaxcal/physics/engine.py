@@ -189,6 +189,8 @@ def evaluate_design(
 
     def one(w1, th1, ef1, z01):
         z, sinfo = solver.solve(_residual_fn, z01, (d, dp, w1, th1, ef1), solver_cfg)
+        # rolled thermo loops: unrolled is ~20 us faster here but moves x by ~1e-12
+        # (not bit for bit), and F's bits are the paper's (the hinted path unrolls)
         _, st = cycle.balance(d, dp, w1, th1, ef1, z)
         x = _sensor_vector(d, st, w1)
         inside = _in_envelope(envelope, w1, th1)
@@ -204,6 +206,110 @@ def evaluate_design(
     return x, info
 
 
+# Broyden updates per warm-started sample before falling back to the full solve: a
+# flight's next sample closes in ~4-6 (experiments/cpubench/engine_latency.py).
+HINT_MAX_ITER = 10
+
+
+def evaluate_hinted(
+    d: EngineDesign,
+    w,
+    theta,
+    hint: solver.Hint,
+    *,
+    guess: GuessTable | None = None,
+    envelope: Envelope = Envelope(),
+    solver_cfg: solver.SolverConfig | None = None,
+    dp: DesignPoint | None = None,
+    max_iter: int = HINT_MAX_ITER,
+):
+    """One sample of :func:`evaluate_design`, warm-started along a stream.
+
+    Why: a deployed calibrator calls F once per sample along a flight, and the cold
+    solve (4 Newton iterations, each a forward-mode Jacobian) is its whole cost. From
+    ``hint`` (the previous sample's solution, inverse Jacobian and sensitivity to
+    (w, theta)) the start is the first-order prediction and Broyden's method
+    (:func:`jaxcal.physics.solver.quasi_newton`) closes the balance to the solver's
+    ``tol`` with ~6 residual evaluations and no Jacobian (the residual with unrolled
+    thermo loops, cheap when not differentiated). When it does not (no hint yet, a
+    jump in the conditions, a NaN hint) the sample is solved as
+    :func:`evaluate_design` does from the guess table (``lax.cond``: the cold path
+    runs only then; under ``vmap`` both branches run, so a batched fleet pays both),
+    and the next hint carries the exact inverse Jacobian and sensitivity there. The
+    outputs agree with the cold path's to the solve's tolerance (~3e-10 relative on
+    Dataset #1), not bit for bit; ``info.converged`` is checked the same way (closed,
+    finite, physical, inside the envelope). Not differentiable.
+
+    Args:
+        d, guess, envelope, solver_cfg, dp: as :func:`evaluate_design`.
+        w: [4] one operating point; theta: [10].
+        hint: :class:`jaxcal.physics.solver.Hint` (``Engine.initial_hint()`` first).
+        max_iter: Broyden updates before the fallback.
+
+    Returns:
+        (x [S], EngineInfo, next hint).
+    """
+    dtype = float_dtype()
+    cfg = solver_cfg or (
+        solver.SolverConfig()
+        if dtype == jnp.float64
+        else solver.SolverConfig(tol=2e-5, max_iter=30)
+    )
+    w, theta = jnp.asarray(w, dtype), jnp.asarray(theta, dtype)
+    if w.shape != (len(CONDITION_NAMES),) or theta.shape != (len(HEALTH_NAMES),):
+        raise ValueError(
+            f"evaluate_hinted takes one sample: w [4], theta [10], got "
+            f"{tuple(w.shape)}, {tuple(theta.shape)} (vmap it for a batch)"
+        )
+    dp = design_point(d) if dp is None else dp
+    effects = jnp.zeros((cycle.NUM_EFFECTS,), dtype)
+    hint = solver.Hint(
+        *(jnp.asarray(a, bool if i == 2 else dtype) for i, a in enumerate(hint))
+    )
+    p = jnp.concatenate([w, theta])
+    usable = hint.ok
+    for a in (hint.z, hint.jinv, hint.p, hint.dz_dp):
+        usable = usable & jnp.all(jnp.isfinite(a))
+
+    def balance(z):
+        return cycle.balance(d, dp, w, theta, effects, z, unroll=True)
+
+    def residual(z, _):
+        # as a batch of one: XLA:CPU fuses [1]-shaped chains into fewer kernels than
+        # 0-d scalars (measured once: 13 vs 38 us per unrolled residual)
+        return jax.vmap(lambda zz: balance(zz)[0])(z[None])[0]
+
+    z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
+    start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
+    z, rmax, iters, jinv = solver.quasi_newton(residual, start, None, cfg.tol, max_iter)
+    x, physical = jax.vmap(
+        lambda zz: (lambda st: (_sensor_vector(d, st, w), _physical(st)))(
+            balance(zz)[1]
+        )
+    )(z[None])
+    x, physical = x[0], physical[0]
+    inside = _in_envelope(envelope, w, theta)
+    fast_ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & physical
+
+    def fast(_):
+        info = EngineInfo(inside, rmax, iters, inside, z)
+        return x, info, jinv, solver.secant_sensitivity(hint, p, z)
+
+    def cold(_):
+        xc, info = evaluate_design(
+            d, w, theta, guess=guess, envelope=envelope, solver_cfg=cfg, dp=dp
+        )
+        jac = jax.jacfwd(_residual_fn)(info.z, (d, dp, w, theta, effects))
+        dr_dp = jax.jacfwd(
+            lambda q: _residual_fn(info.z, (d, dp, q[:4], q[4:], effects))
+        )(p)
+        jinv = jnp.linalg.inv(jac)
+        return xc, info, jinv, -jinv @ dr_dp
+
+    x, info, jinv, dz_dp = jax.lax.cond(fast_ok, fast, cold, None)
+    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
+
+
 def _check_last_dim(name, a, n):
     if a.ndim == 0 or a.shape[-1] != n:
         raise ValueError(f"{name} must have shape [..., {n}], got {tuple(a.shape)}")
@@ -216,6 +322,11 @@ class Engine:
     design: EngineDesign
     guess: GuessTable
     envelope: Envelope = struct.field(pytree_node=False, default=Envelope())
+    # design_point(design) computed once, for the warm-started path only
+    # (evaluate_hinted; None: computed per call). evaluate keeps computing it in its
+    # own graph: a precomputed point differs in the last bits (z by ~5e-14) and F's
+    # bits are the paper's. Stale if ``design`` is replaced without it (make_engine).
+    point: DesignPoint | None = None
 
     condition_names = CONDITION_NAMES
     condition_units = CONDITION_UNITS
@@ -240,8 +351,25 @@ class Engine:
             (x [..., len(sensor_names)], EngineInfo).
         """
         return evaluate_design(
-            self.design, w, theta, effects, z0, guess=self.guess, envelope=self.envelope
-        )
+            self.design, w, theta, effects, z0, guess=self.guess,
+            envelope=self.envelope,
+        )  # fmt: skip
+
+    def initial_hint(self) -> solver.Hint:
+        """The warm start of a stream before its first sample (none: a full solve)."""
+        size = len(CONDITION_NAMES) + len(HEALTH_NAMES)
+        return solver.empty_hint(cycle.NUM_UNKNOWNS, size, float_dtype())
+
+    def evaluate_hinted(self, w, theta, hint: solver.Hint):
+        """:meth:`evaluate` of one sample, warm-started from ``hint``.
+
+        ``hint`` is the previous call's (:meth:`initial_hint` at first); see
+        :func:`evaluate_hinted`. Returns ``(x [S], EngineInfo, next hint)``.
+        """
+        return evaluate_hinted(
+            self.design, w, theta, hint, guess=self.guess, envelope=self.envelope,
+            dp=self.point,
+        )  # fmt: skip
 
     def evaluate_checked(self, w, theta, *, effects=None):
         """Host-side evaluate that raises ``ValueError`` on bad input or no convergence.
@@ -308,9 +436,13 @@ ENVELOPES = {
 
 def make_engine(design: EngineDesign, envelope: Envelope | None = None) -> Engine:
     """An engine for arbitrary design constants (builds its Newton start table)."""
-    table = jax.jit(build_guess_table)(design, design_point(design))
+    point = _design_point(design)
+    table = jax.jit(build_guess_table)(design, point)
     envelope = envelope or ENVELOPES.get(design.name, Envelope())
-    return Engine(design=design, guess=table, envelope=envelope)
+    return Engine(design=design, guess=table, envelope=envelope, point=point)
+
+
+_design_point = jax.jit(design_point)
 
 
 def load_engine(name: str, *, fitted: bool = True) -> Engine:
@@ -323,4 +455,7 @@ def load_engine(name: str, *, fitted: bool = True) -> Engine:
     table = stored_guess_table(name) if fitted else None
     if table is None:
         return make_engine(design, ENVELOPES[name])
-    return Engine(design=design, guess=table, envelope=ENVELOPES[name])
+    return Engine(
+        design=design, guess=table, envelope=ENVELOPES[name],
+        point=_design_point(design),
+    )  # fmt: skip

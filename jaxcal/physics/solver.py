@@ -113,3 +113,101 @@ def solve(
         iterations=jax.lax.stop_gradient(iters).astype(jnp.int32),
     )
     return z, info
+
+
+# ------------------------------------------------------------------ warm starts
+
+
+class Hint(NamedTuple):
+    """A warm start for :func:`quasi_newton`: a nearby solution and its derivatives.
+
+    Attributes:
+        z: ``[n]`` the solution of a nearby problem (e.g. the previous sample's).
+        jinv: ``[n, n]`` an approximate inverse Jacobian dr/dz at ``z``.
+        ok: ``[]`` bool, False when the hint carries nothing (use the cold solve).
+        p: ``[m]`` the problem's inputs ``z`` solves (e.g. conditions and theta).
+        dz_dp: ``[n, m]`` approximate sensitivity of the solution to ``p``: the
+            next start is the first-order prediction ``z + dz_dp (p_next - p)``.
+    """
+
+    z: jnp.ndarray
+    jinv: jnp.ndarray
+    ok: jnp.ndarray
+    p: jnp.ndarray
+    dz_dp: jnp.ndarray
+
+
+def empty_hint(n: int, m: int, dtype=jnp.float64) -> Hint:
+    """A hint that says "no warm start" (``ok`` False) for n unknowns, m inputs."""
+    zeros = functools.partial(jnp.zeros, dtype=dtype)
+    return Hint(
+        zeros((n,)), zeros((n, n)), jnp.zeros((), bool), zeros((m,)), zeros((n, m))
+    )
+
+
+def predicted_start(hint: Hint, p) -> jnp.ndarray:
+    """``z + dz_dp (p - hint.p)``: the hint's first-order start for inputs ``p``."""
+    return hint.z + hint.dz_dp @ (p - hint.p)
+
+
+def secant_sensitivity(hint: Hint, p, z) -> jnp.ndarray:
+    """dz_dp updated so that it maps ``p - hint.p`` onto ``z - hint.z`` (Broyden's
+    rank-one update, unchanged when p did not move)."""
+    dp = p - hint.p
+    miss = (z - hint.z) - hint.dz_dp @ dp
+    den = dp @ dp
+    update = jnp.outer(miss, dp) / jnp.where(den > 0.0, den, 1.0)
+    return hint.dz_dp + jnp.where(den > 0.0, update, 0.0)
+
+
+def quasi_newton(residual_fn: Callable, hint: Hint, params, tol: float, max_iter: int):
+    """Broyden's ("good") method from a warm start, no Jacobian evaluation at all.
+
+    Along a stream of nearby problems (a flight's consecutive samples) the previous
+    solution and inverse Jacobian are a start from which a few residual evaluations
+    close the balance: each iteration costs one residual (no forward-mode sweep),
+    and the rank-one update of the inverse keeps it tracking the drifting Jacobian
+    (a chord iteration with the stale Jacobian needed ~7 evaluations per sample,
+    experiments/cpubench/engine_latency.py). It does not clip or backtrack: a start
+    it cannot handle simply does not reach ``tol`` in ``max_iter`` and the caller
+    falls back to :func:`solve`. Not differentiable (deployment only).
+
+    Args:
+        residual_fn: ``(z [n], params) -> r [n]``.
+        hint: :class:`Hint` (``ok`` is not read here).
+        params: pytree passed to ``residual_fn``.
+        tol: stop when max |r| <= tol.
+        max_iter: cap on the updates (residual evaluations = iterations + 1).
+
+    Returns:
+        ``(z [n], rmax [], iterations [] int32, jinv [n, n])`` at the last iterate;
+        ``rmax`` is its max |r| (a non-finite r gives inf).
+    """
+    hint = jax.tree.map(jax.lax.stop_gradient, hint)
+
+    def rmax_of(r):
+        m = jnp.max(jnp.abs(r))
+        return jnp.where(jnp.isfinite(m), m, jnp.inf)
+
+    def cond(carry):
+        it, _, r, _ = carry
+        rm = rmax_of(r)
+        return (it < max_iter) & (rm > tol) & jnp.isfinite(rm)
+
+    def body(carry):
+        it, z, r, jinv = carry
+        s = -jinv @ r
+        z_new = z + s
+        r_new = residual_fn(z_new, params)
+        hy = jinv @ (r_new - r)
+        den = s @ hy
+        update = jnp.outer(s - hy, s @ jinv) / den
+        keep = (jnp.abs(den) > 1e-300) & jnp.all(jnp.isfinite(update))
+        jinv = jnp.where(keep, jinv + update, jinv)
+        return it + 1, z_new, r_new, jinv
+
+    r0 = residual_fn(hint.z, params)
+    it, z, r, jinv = jax.lax.while_loop(
+        cond, body, (jnp.int32(0), hint.z, r0, hint.jinv)
+    )
+    return z, rmax_of(r), it, jinv

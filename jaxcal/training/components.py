@@ -31,7 +31,7 @@ from jaxcal.agents.lac import make_lac
 from jaxcal.agents.networks import make_networks
 from jaxcal.agents.sac import make_sac
 from jaxcal.calibrators.policy import make_fleet_runner
-from jaxcal.envs.memory import StatefulDynamics, transition_dynamics
+from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, transition_dynamics
 from jaxcal.envs.tracking import Dynamics, Env, EnvConfig, make_tracking_env
 from jaxcal.model import Model
 from jaxcal.problem import Problem
@@ -142,15 +142,27 @@ def _dynamics(kind, model, theta_names, output_names, theta_base, theta_prior):
         return transition_dynamics(problem.transition(), theta_prior, x64=model.x64)
     measure = model.restrict(theta_names, output_names, np.asarray(theta_base))
 
+    def cast(w_next, xhat, theta):
+        dtype = jnp.float64 if model.x64 else xhat.dtype
+        return w_next.astype(dtype), theta.astype(dtype)
+
     def physics(dyn_params: PyTree, w_next: Array, xhat: Array, theta: Array):
         del dyn_params  # the model's constants are closed over
-        if model.x64:
-            w_next, theta = w_next.astype(jnp.float64), theta.astype(jnp.float64)
-        else:
-            w_next, theta = w_next.astype(xhat.dtype), theta.astype(xhat.dtype)
-        return measure(w_next, theta).astype(xhat.dtype)
+        return measure(*cast(w_next, xhat, theta)).astype(xhat.dtype)
 
-    return physics
+    if not model.has_hint:
+        return physics
+    measure_hinted = model.restrict_hinted(
+        theta_names, output_names, np.asarray(theta_base)
+    )
+
+    def physics_hinted(dyn_params, hint, w_next, xhat, theta):
+        del dyn_params
+        x, hint = measure_hinted(*cast(w_next, xhat, theta), hint)
+        return hint, x.astype(xhat.dtype)
+
+    # deployment may carry the model's solver warm start (training calls `physics`)
+    return HintedDynamics(physics, physics_hinted, model.initial_hint)
 
 
 class Components(NamedTuple):

@@ -173,3 +173,32 @@ def test_calibrator_reproduces_the_environment_rollout(setup):
         obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
         thetas.append(np.asarray(state.theta))
     np.testing.assert_allclose(np.asarray(out.theta)[1, :10], thetas, atol=1e-6)
+
+
+def test_calibrator_carries_a_hinted_models_warm_start(setup):
+    # a static model with a warm start: the calibrator threads the hint from sample
+    # to sample (here a call counter) and its thetas are the plain model's
+    from jaxcal.envs.memory import HintedDynamics
+
+    env, params, w, x, _ = setup
+    actor = _gauss_newton_actor(params)
+    pp = policy_params_from_env(params, None, max_increment=MAX_INC)
+
+    def step(dyn_params, hint, w_next, xhat, theta):
+        return hint + 1, physics(dyn_params, w_next, xhat, theta)
+
+    hinted = HintedDynamics(physics, step, lambda: jnp.zeros((), jnp.int32))
+    mask = jnp.ones((U, T), bool)
+    plain = run_fleet(make_policy_calibrator(actor, physics, pp), w, x, mask)
+    cal = make_policy_calibrator(actor, hinted, pp)
+    out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), mask)
+    np.testing.assert_array_equal(np.asarray(out.theta), np.asarray(plain.theta))
+    state = cal.init(None, jnp.asarray(w[0, 0]), jnp.asarray(x[0, 0]))
+    for t in range(3):
+        state, _ = cal.step(state, jnp.asarray(w[0, t]), jnp.asarray(x[0, t]))
+    assert int(state.hint) == 3
+    # map_output (the paper's perturbation of the model output) keeps the hint path
+    doubled = hinted.map_output(lambda out: 2.0 * out)
+    hint, out2 = doubled.step(None, jnp.int32(5), w[0, 0], x[0, 0], jnp.zeros(P))
+    assert int(hint) == 6
+    np.testing.assert_allclose(out2, 2.0 * physics(None, w[0, 0], None, jnp.zeros(P)))

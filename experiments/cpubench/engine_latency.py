@@ -1,0 +1,135 @@
+"""Single-stream latency of the engine F and of the two F-based deployments (JSON).
+
+Issue 15 ("deploy speed-up over the UKF >= 5"): the paper measures seconds per sample
+of one jitted calibrator ``step`` per sample (:func:`jaxcal.paper.compare.
+measure_latency`). This prints, from ONE process so that the ratio is fair:
+
+* ``F_single_cold_us``: one jitted ``model.evaluate(w, theta)`` (Newton from the
+  guess table), median of ``repeats`` calls;
+* ``F_single_warm_z0_us``: the same with the previous sample's solution as the
+  Newton start (``Engine.evaluate(..., z0=)``), along consecutive samples of one unit;
+* ``F_single_hinted_us``: the warm-started stream (``Engine.evaluate_hinted``, the
+  previous sample's hint), its mean Broyden iterations and its largest relative
+  difference to the cold F (when the engine has it);
+* ``F_vmap3_us``: three thetas at once (the UKF's sigma points of a one-parameter
+  problem);
+* ``UKF`` / ``CLAC-inc``: :func:`measure_latency` on Dataset #1's first test unit,
+  and ``ratio_ukf_over_policy``.
+
+Usage::
+
+    python experiments/cpubench/engine_latency.py [data=data/cmapss.h5] \
+        [feedback=runs/cmapss-clac-physics-inc-s0] \
+        [absolute=runs/cmapss-clac-surrogate-s0-absolute] [repeats=300] [out=FILE]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)  # the engine's Newton solve is float64
+
+import numpy as np  # noqa: E402
+
+from jaxcal.paper.compare import measure_latency  # noqa: E402
+from jaxcal.paper.suite import Suite, SuiteConfig  # noqa: E402
+
+
+def _median_us(fn, args_list, repeats: int) -> float:
+    """Median wall time of ``fn(*args)`` over ``repeats`` calls (cycling args)."""
+    jax.block_until_ready(fn(*args_list[0]))
+    times = np.empty(repeats)
+    for i in range(repeats):
+        args = args_list[(i + 1) % len(args_list)]
+        tic = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times[i] = time.perf_counter() - tic
+    return float(np.median(times) * 1e6)
+
+
+def engine_numbers(suite: Suite, units, repeats: int) -> dict:
+    """F alone: cold, warm along the unit, vmap over three thetas."""
+    engine = suite.engine
+    length = int(units.lengths[0])
+    w = np.asarray(units.w[0, :length], np.float64)
+    theta_full = np.tile(np.asarray(suite.problem.theta_base, np.float64), (length, 1))
+    index = [
+        list(suite.problem.model.parameter_names).index(n)
+        for n in suite.problem.theta_names
+    ]
+    theta_full[:, index] = units.theta[0, :length]
+    cold = jax.jit(lambda w, th: engine.evaluate(w, th)[0])
+    warm = jax.jit(lambda w, th, z: engine.evaluate(w, th, z0=z))
+    _, info = jax.jit(engine.evaluate)(w, theta_full)  # the previous sample's z
+    z_prev = np.roll(np.asarray(info.z), 1, axis=0)
+    three = np.stack([theta_full[0]] * 3)
+    three[:, index[0]] += np.array([-0.002, 0.0, 0.002])
+    vmap3 = jax.jit(lambda w, th: jax.vmap(lambda t: engine.evaluate(w, t)[0])(th))
+    rows = [(w[t], theta_full[t]) for t in range(length)]
+    out = {
+        "F_single_cold_us": _median_us(cold, rows, repeats),
+        "F_single_warm_z0_us": _median_us(
+            warm, [(w[t], theta_full[t], z_prev[t]) for t in range(1, length)], repeats
+        ),
+        "F_vmap3_us": _median_us(
+            vmap3, [(w[t], three) for t in range(length)], repeats
+        ),
+        "cold_iterations_mean": float(np.mean(info.iterations)),
+        "warm_z0_iterations_mean": float(
+            np.mean(warm(w[1:], theta_full[1:], z_prev[1:])[1].iterations)
+        ),
+    }
+    if hasattr(engine, "evaluate_hinted"):  # the warm-started stream (new code)
+        hinted = jax.jit(engine.evaluate_hinted)
+        hint = engine.initial_hint()
+        times, iters, err = [], [], 0.0
+        x_cold = np.asarray(jax.jit(engine.evaluate)(w, theta_full)[0])
+        for i in range(repeats + 1):
+            t = i % length
+            tic = time.perf_counter()
+            x, info_t, hint = hinted(w[t], theta_full[t], hint)
+            x = np.asarray(x)
+            if i:  # the first call compiles
+                times.append(time.perf_counter() - tic)
+            iters.append(int(info_t.iterations))
+            err = max(err, float(np.max(np.abs(x / x_cold[t] - 1.0))))
+        out.update(
+            F_single_hinted_us=float(np.median(times) * 1e6),
+            hinted_iterations_mean=float(np.mean(iters[1:])),
+            hinted_max_rel_diff_vs_cold=err,
+        )
+    return out
+
+
+def main(argv: list[str]) -> int:
+    args = dict(a.split("=", 1) for a in argv)
+    data = args.get("data", "data/cmapss.h5")
+    runs = {
+        "CLAC": args.get("absolute", "runs/cmapss-clac-surrogate-s0-absolute"),
+        "CLAC-inc": args.get("feedback", "runs/cmapss-clac-physics-inc-s0"),
+    }
+    repeats = int(args.get("repeats", 300))
+    suite = Suite(data, runs, SuiteConfig(), Path("/tmp/engine-latency-models"))
+    units = suite.test_units()
+    out = {"data": data, "runs": runs, "repeats": repeats}
+    out.update(engine_numbers(suite, units, repeats))
+    for name in ("UKF", "CLAC-inc"):
+        out[name] = measure_latency(suite.method(name), units, repeats=repeats)
+    out["ratio_ukf_over_policy"] = out["UKF"]["median_s"] / out["CLAC-inc"]["median_s"]
+    text = json.dumps(out, indent=1)
+    print(text)
+    if "out" in args:
+        Path(args["out"]).write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
