@@ -13,14 +13,24 @@ measure_latency`). This prints, from ONE process so that the ratio is fair:
   difference to the cold F (when the engine has it);
 * ``F_vmap3_us``: three thetas at once (the UKF's sigma points of a one-parameter
   problem);
-* ``UKF`` / ``CLAC-inc``: :func:`measure_latency` on Dataset #1's first test unit,
-  and ``ratio_ukf_over_policy``.
+* ``residual_us`` / ``residual_unrolled_us`` / ``jacobian_us`` /
+  ``design_point_us``: F's parts (one balance residual as F's Newton loop evaluates
+  it, the warm path's unrolled one, its forward-mode Jacobian, the design point F
+  recomputes per call): where a cold F's time goes;
+* ``UKF`` / ``CLAC`` / ``CLAC-inc`` / ``CLAC-gate``: :func:`measure_latency` on
+  Dataset #1's first test unit (the policies' single-stream form: F warm-started),
+  with ``stream_max_abs_theta_diff`` against the scored (cold) form along that unit,
+  and ``ratio_ukf_over_<name>``.
 
 Usage::
 
     python experiments/cpubench/engine_latency.py [data=data/cmapss.h5] \
         [feedback=runs/cmapss-clac-physics-inc-s0] \
-        [absolute=runs/cmapss-clac-surrogate-s0-absolute] [repeats=300] [out=FILE]
+        [absolute=runs/cmapss-clac-surrogate-s0-absolute] \
+        [models=results/paper/models/ds1] [repeats=300] [out=FILE]
+
+``models`` holds CLAC-gate's fit (``clac-gate.json``, the paper's
+``fit-ds1-CLAC-gate`` step); without it the gate is skipped.
 """
 
 from __future__ import annotations
@@ -39,7 +49,6 @@ jax.config.update("jax_enable_x64", True)  # the engine's Newton solve is float6
 
 import numpy as np  # noqa: E402
 
-from jaxcal.paper.compare import measure_latency  # noqa: E402
 from jaxcal.paper.suite import Suite, SuiteConfig  # noqa: E402
 
 
@@ -87,6 +96,7 @@ def engine_numbers(suite: Suite, units, repeats: int) -> dict:
             np.mean(warm(w[1:], theta_full[1:], z_prev[1:])[1].iterations)
         ),
     }
+    out.update(_parts_us(engine, w[0], theta_full[0], np.asarray(info.z[0]), repeats))
     if hasattr(engine, "evaluate_hinted"):  # the warm-started stream (new code)
         hinted = jax.jit(engine.evaluate_hinted)
         hint = engine.initial_hint()
@@ -109,6 +119,50 @@ def engine_numbers(suite: Suite, units, repeats: int) -> dict:
     return out
 
 
+def _stream_vs_scored(method, units, count: int = 400) -> float:
+    """max |theta| difference between a method's single-stream form and its scored
+    form along the first ``count`` samples of the first test unit."""
+    length = min(int(units.lengths[0]), count)
+    w, x = units.w[0, :length], units.x[0, :length]
+    thetas = []
+    with jax.enable_x64(method.dtype == np.float64):
+        for build in (method.stream_build, method.build):
+            cal = build(np.asarray(1.0, method.dtype), np.asarray(0.0, method.dtype))
+            step = jax.jit(cal.step)
+            state = cal.init(jax.random.key(0), w[0], x[0])
+            rows = []
+            for t in range(length):
+                state, out = step(state, w[t], x[t])
+                rows.append(np.asarray(out.theta))
+            thetas.append(np.stack(rows))
+    return float(np.max(np.abs(thetas[0] - thetas[1])))
+
+
+def _parts_us(engine, w, theta, z, repeats: int) -> dict:
+    """F's parts at one sample (see the module docstring)."""
+    from jaxcal.physics import cycle
+    from jaxcal.physics.design import design_point
+    from jaxcal.physics.engine import _residual_fn
+
+    d, dp = engine.design, engine.point
+    effects = np.zeros(cycle.NUM_EFFECTS)
+
+    def residual(z, w, th):
+        return _residual_fn(z, (d, dp, w, th, effects))
+
+    def unrolled(z, w, th):
+        one = lambda zz: cycle.balance(d, dp, w, th, effects, zz, unroll=True)[0]  # noqa: E731
+        return jax.vmap(one)(z[None])[0]
+
+    args = [(z, w, theta)]
+    return {
+        "residual_us": _median_us(jax.jit(residual), args, repeats),
+        "residual_unrolled_us": _median_us(jax.jit(unrolled), args, repeats),
+        "jacobian_us": _median_us(jax.jit(jax.jacfwd(residual)), args, repeats),
+        "design_point_us": _median_us(jax.jit(lambda: design_point(d)), [()], repeats),
+    }
+
+
 def main(argv: list[str]) -> int:
     args = dict(a.split("=", 1) for a in argv)
     data = args.get("data", "data/cmapss.h5")
@@ -117,13 +171,21 @@ def main(argv: list[str]) -> int:
         "CLAC-inc": args.get("feedback", "runs/cmapss-clac-physics-inc-s0"),
     }
     repeats = int(args.get("repeats", 300))
-    suite = Suite(data, runs, SuiteConfig(), Path("/tmp/engine-latency-models"))
+    models = Path(args.get("models", "results/paper/models/ds1"))
+    suite = Suite(data, runs, SuiteConfig(), models)
     units = suite.test_units()
     out = {"data": data, "runs": runs, "repeats": repeats}
     out.update(engine_numbers(suite, units, repeats))
-    for name in ("UKF", "CLAC-inc"):
-        out[name] = measure_latency(suite.method(name), units, repeats=repeats)
-    out["ratio_ukf_over_policy"] = out["UKF"]["median_s"] / out["CLAC-inc"]["median_s"]
+    names = ["UKF", "CLAC", "CLAC-inc"]
+    if (models / "clac-gate.json").is_file():
+        names.append("CLAC-gate")
+    for name in names:  # as the paper's latency steps measure them
+        out[name] = suite.latency(name, repeats=repeats, seed=0)
+        method = suite.method(name)
+        if method.stream is not None:
+            out[name]["stream_max_abs_theta_diff"] = _stream_vs_scored(method, units)
+    for name in names[1:]:
+        out[f"ratio_ukf_over_{name}"] = out["UKF"]["median_s"] / out[name]["median_s"]
     text = json.dumps(out, indent=1)
     print(text)
     if "out" in args:

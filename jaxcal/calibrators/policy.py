@@ -31,9 +31,12 @@ environment's reference state at t = 0 is the same, so on whole trajectories the
 still agree). A static model carries ``z = None``.
 
 A static model with a warm start (:class:`~jaxcal.envs.memory.HintedDynamics`, e.g.
-the turbofan's Newton solve) also carries its solver hint from sample to sample
-(``PolicyState.hint``): x-hat is then the model's output to its solver tolerance, at a
-fraction of the cold solve's cost; the first sample starts without one.
+the turbofan's Newton solve) may also carry its solver hint from sample to sample
+(``warm_start=True``, ``PolicyState.hint``): x-hat is then the model's output to its
+solver tolerance, at a fraction of the cold solve's cost; the first sample starts
+without one. Only a single stream does (deployment, one sample per call): batched over
+units, the hinted solve's ``lax.cond`` fall-back runs for every unit, so whole
+trajectories and fleets keep the cold solve (and the paper's bits).
 
 Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner
 (:func:`make_fleet_runner`) serves any trained policy of the same architecture
@@ -161,6 +164,8 @@ def make_policy_calibrator(
     dynamics: Dynamics | StatefulDynamics,
     params: PolicyParams,
     band: ThetaBand | None = None,
+    *,
+    warm_start: bool = False,
 ) -> Calibrator:
     """The deterministic policy pi* and the dynamics as ``Calibrator(init, step)``.
 
@@ -172,6 +177,10 @@ def make_policy_calibrator(
         band: the run's calibrated error band
             (:mod:`jaxcal.calibrators.uncertainty`, fitted on its validation units);
             ``None``: no uncertainty.
+        warm_start: carry the model's solver hint from sample to sample (a
+            :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise). For one
+            stream, one sample per call: under ``vmap`` the hinted solve's fall-back
+            runs for every unit and costs more than the cold solve.
 
     Returns:
         A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is
@@ -180,7 +189,7 @@ def make_policy_calibrator(
     """
     dyn = as_stateful(dynamics)
     incremental = isinstance(params, IncrementPolicyParams)
-    hinted = isinstance(dynamics, HintedDynamics)
+    hinted = warm_start and isinstance(dynamics, HintedDynamics)
 
     def transition(state: PolicyState, z, w_t, xhat_prev, theta):
         """(z, x-hat, hint) of one model step, warm-started when the model can."""
@@ -343,12 +352,15 @@ def initial_guard_carry(
     dynamics: Dynamics,
     params: PolicyParams,
     band: ThetaBand | None = None,
+    *,
+    warm_start: bool = False,
 ) -> GuardCarry:
     """The carry of a guarded stream before its first sample.
 
     Before any ok sample the outputs are zeros (theta = 0: healthy modifiers, as
     ``run_calibrator`` outputs on leading padding) and the step, if fed a flagged
-    first sample, sees zeros (its result is discarded).
+    first sample, sees zeros (its result is discarded). ``warm_start``: as
+    :func:`make_policy_calibrator` (the carry then holds the model's first hint).
     """
     w = jnp.zeros_like(params.w_mean)
     x = jnp.zeros_like(params.x_mean)
@@ -358,24 +370,31 @@ def initial_guard_carry(
     if isinstance(params, IncrementPolicyParams):
         theta = 0.5 * (params.theta_low + params.theta_high)
     count = None if band is None else jnp.zeros((), jnp.int32)
-    hint = dynamics.init_hint() if isinstance(dynamics, HintedDynamics) else None
+    hinted = warm_start and isinstance(dynamics, HintedDynamics)
+    hint = dynamics.init_hint() if hinted else None
     state = PolicyState(
         xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count, hint=hint
     )
-    step = make_policy_calibrator(actor, dynamics, params, band).step
+    step = make_policy_calibrator(
+        actor, dynamics, params, band, warm_start=warm_start
+    ).step
     return initial_carry(step, state, w, x)
 
 
 def make_guarded_stream_step(
-    actor: nn.Module, dynamics: Dynamics
+    actor: nn.Module, dynamics: Dynamics, *, warm_start: bool = False
 ) -> Callable[..., tuple[GuardCarry, CalStepOutput, Array]]:
     """A jitted guarded step ``(params, carry, w [W], x [S], check, band=None) ->
     (carry, out, reason [])``: the rule of ``run_calibrator`` for one sample
-    (:func:`~jaxcal.calibrators.interface.guarded_update`). ``check`` may be ``None``.
+    (:func:`~jaxcal.calibrators.interface.guarded_update`). ``check`` may be ``None``;
+    ``warm_start``: as :func:`make_policy_calibrator` (with its carry from
+    :func:`initial_guard_carry`).
     """
 
     def step(params, carry: GuardCarry, w: Array, x: Array, check, band=None):
-        calibrator = make_policy_calibrator(actor, dynamics, params, band)
+        calibrator = make_policy_calibrator(
+            actor, dynamics, params, band, warm_start=warm_start
+        )
         reason = sample_reason(check, w, x)
         return guarded_update(calibrator.step, carry, w, x, reason)
 

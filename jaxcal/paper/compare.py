@@ -219,13 +219,20 @@ def measure_latency(
 ) -> dict:
     """Single-stream seconds per sample of ``method`` (clean model).
 
-    The method's ``step`` is jitted alone and called on consecutive samples of the
-    first unit (cycled), numpy in and out, after a compiling warm-up call.
+    The method's single-stream form (:attr:`Method.stream_build`: e.g. a policy whose
+    model solve starts from the previous sample's solution, the form
+    ``StreamingCalibrator.step`` runs) is jitted alone and called on consecutive
+    samples of the first unit (cycled), numpy in and out, after a compiling warm-up
+    call. Its agreement with the scored form is tested
+    (``tests/paper/test_stream_form.py``) and measured by
+    ``experiments/cpubench/engine_latency.py``; compiling both here would cost a
+    second engine program per step.
 
     Returns:
-        ``{"median_s", "min_s", "repeats"}``.
+        ``{"median_s", "min_s", "repeats", "stream_form"}`` (``stream_form``: the
+        method has a single-stream form of its own).
     """
-    calibrator = method.build(
+    calibrator = method.stream_build(
         jnp.asarray(1.0, method.dtype), jnp.asarray(0.0, method.dtype)
     )
     length = int(units.lengths[0])
@@ -246,6 +253,7 @@ def measure_latency(
         "median_s": float(np.median(times)),
         "min_s": float(times.min()),
         "repeats": repeats,
+        "stream_form": method.stream is not None,
     }
 
 

@@ -77,19 +77,30 @@ def gated_method(suite, gate: dict | None = None) -> Method:
     sens = jnp.asarray(gate["sensitivity"], jnp.float64)
     window = int(gate["window"])
 
-    def build(bias, noise_sigma):
-        return make_gated_calibrator(
-            feedback.build(bias, noise_sigma),
-            anchor.build(bias, noise_sigma),
-            x_std=x_std,
-            sensitivity=sens,
-            anchor_band=anchor_band,
-            window=window,
-            band=band,
-        )
+    def builder(stream: bool):
+        def build(bias, noise_sigma):
+            fb, an = (
+                (feedback.stream_build, anchor.stream_build)
+                if stream
+                else (feedback.build, anchor.build)
+            )
+            return make_gated_calibrator(
+                fb(bias, noise_sigma),
+                an(bias, noise_sigma),
+                x_std=x_std,
+                sensitivity=sens,
+                anchor_band=anchor_band,
+                window=window,
+                band=band,
+            )
+
+        return build
 
     info = {"feedback": feedback.info, "anchor": anchor.info, "window": window}
-    return make_method(NAME, build, jnp.float64, info, check=feedback.check)
+    return make_method(
+        NAME, builder(False), jnp.float64, info, check=feedback.check,
+        stream=None if feedback.stream is None else builder(True),
+    )  # fmt: skip
 
 
 def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:

@@ -84,6 +84,9 @@ class Method(NamedTuple):
         info: JSON-ready settings for the report.
         check: the valid input box the runner flags samples against (``None``:
             finiteness only).
+        stream: the same method for one stream, one sample per call (e.g. with the
+            model's solver warm-started from the previous sample): what a deployment
+            runs and the latency measures; ``None``: ``build``.
     """
 
     name: str
@@ -93,6 +96,12 @@ class Method(NamedTuple):
     model_free: bool
     info: dict
     check: SampleCheck | None = None
+    stream: BuildFn | None = None
+
+    @property
+    def stream_build(self) -> BuildFn:
+        """``stream`` when the method has one, else ``build``."""
+        return self.build if self.stream is None else self.stream
 
 
 def make_method(
@@ -103,14 +112,18 @@ def make_method(
     *,
     model_free: bool = False,
     check: SampleCheck | None = None,
+    stream: BuildFn | None = None,
 ) -> Method:
     """Wrap a calibrator factory with its jitted fleet runner (guarded by
-    ``check``; the returned ``CalOutput`` carries ``valid`` and ``reason``)."""
+    ``check``; the returned ``CalOutput`` carries ``valid`` and ``reason``).
+    ``stream``: its single-stream form (:class:`Method`)."""
 
     def run(w, x, mask, keys, bias, noise_sigma):
         return run_fleet(build(bias, noise_sigma), w, x, mask, keys=keys, check=check)
 
-    return Method(name, build, jax.jit(run), np.dtype(dtype), model_free, info, check)
+    return Method(
+        name, build, jax.jit(run), np.dtype(dtype), model_free, info, check, stream
+    )
 
 
 # ------------------------------------------------------------------ perturbations
@@ -301,15 +314,19 @@ def policy_method(run, name: str) -> Method:
     params = run.params
     std = jnp.asarray(params.x_std)
 
-    def build(bias, noise_sigma):
-        return with_step_key(
-            lambda key: make_policy_calibrator(
-                run.actor,
-                perturbed_dynamics(run.dynamics, key, bias, noise_sigma, std),
-                params,
-                run.band,
+    def builder(warm_start: bool) -> BuildFn:
+        def build(bias, noise_sigma):
+            return with_step_key(
+                lambda key: make_policy_calibrator(
+                    run.actor,
+                    perturbed_dynamics(run.dynamics, key, bias, noise_sigma, std),
+                    params,
+                    run.band,
+                    warm_start=warm_start,
+                )
             )
-        )
+
+        return build
 
     info = {
         "run": str(run.run_dir),
@@ -320,4 +337,8 @@ def policy_method(run, name: str) -> Method:
     }
     dtype = jnp.float64 if run.config.dynamics == "physics" else jnp.float32
     # flags samples far outside the run's training range
-    return make_method(name, build, dtype, info, check=run_check(run))
+    # a model with a warm-startable solve deploys, one sample per call, warm
+    stream = builder(True) if isinstance(run.dynamics, HintedDynamics) else None
+    return make_method(
+        name, builder(False), dtype, info, check=run_check(run), stream=stream
+    )

@@ -183,6 +183,29 @@ def inference_table(r: Results) -> list[str]:
     return out
 
 
+def _warm_stream_lines(r: Results) -> list[str]:
+    """Which single-stream latencies are of a method's own stream form (the model's
+    solve warm-started from the previous sample)."""
+    warm = [
+        NAMES[m]
+        for m in ("UKF", "E2E", "CLAC", *EXTRA)
+        if (r.steps.get(f"latency-ds1-{m}") or {}).get("stream_form")
+    ]
+    if not warm:
+        return []
+    return [
+        "",
+        f"Single-stream forms ({', '.join(warm)}): a policy on F carries the engine's "
+        "Newton solution from sample to sample and closes the next balance with Broyden "
+        "updates (the cold solve when they do not), as `StreamingCalibrator.step` runs; "
+        "scores and batched runs keep the cold solve. Its outputs agree with the cold "
+        "solve's to the solver's tolerance (`tests/paper/test_stream_form.py`; "
+        "`experiments/cpubench/engine_latency.py` measures the theta difference). A "
+        "policy latency step without `stream_form` was measured before the warm start "
+        "(CLAC on F's).",
+    ]
+
+
 def timing_table(r: Results) -> list[str]:
     """Paper Table "time": seconds per sample (single stream), batched throughput and
     training time on Dataset #1."""
@@ -253,7 +276,7 @@ def timing_table(r: Results) -> list[str]:
         "the run's sessions; compilation and the evaluations between chunks are "
         "outside it, see the wall times under Set-up). E2E: its fit.",
     ]
-    return out
+    return out + _warm_stream_lines(r)
 
 
 def num(value) -> str:

@@ -173,15 +173,17 @@ def quasi_newton(residual_fn: Callable, hint: Hint, params, tol: float, max_iter
     falls back to :func:`solve`. Not differentiable (deployment only).
 
     Args:
-        residual_fn: ``(z [n], params) -> r [n]``.
+        residual_fn: ``(z [n], params) -> (r [n], aux)``; ``aux`` (any pytree, e.g.
+            the outputs computed on the way) is returned for the last iterate, so
+            the caller need not evaluate the problem once more there.
         hint: :class:`Hint` (``ok`` is not read here).
         params: pytree passed to ``residual_fn``.
         tol: stop when max |r| <= tol.
         max_iter: cap on the updates (residual evaluations = iterations + 1).
 
     Returns:
-        ``(z [n], rmax [], iterations [] int32, jinv [n, n])`` at the last iterate;
-        ``rmax`` is its max |r| (a non-finite r gives inf).
+        ``(z [n], rmax [], iterations [] int32, jinv [n, n], aux)`` at the last
+        iterate; ``rmax`` is its max |r| (a non-finite r gives inf).
     """
     hint = jax.tree.map(jax.lax.stop_gradient, hint)
 
@@ -190,24 +192,24 @@ def quasi_newton(residual_fn: Callable, hint: Hint, params, tol: float, max_iter
         return jnp.where(jnp.isfinite(m), m, jnp.inf)
 
     def cond(carry):
-        it, _, r, _ = carry
+        it, _, r, _, _ = carry
         rm = rmax_of(r)
         return (it < max_iter) & (rm > tol) & jnp.isfinite(rm)
 
     def body(carry):
-        it, z, r, jinv = carry
+        it, z, r, jinv, _ = carry
         s = -jinv @ r
         z_new = z + s
-        r_new = residual_fn(z_new, params)
+        r_new, aux = residual_fn(z_new, params)
         hy = jinv @ (r_new - r)
         den = s @ hy
         update = jnp.outer(s - hy, s @ jinv) / den
         keep = (jnp.abs(den) > 1e-300) & jnp.all(jnp.isfinite(update))
         jinv = jnp.where(keep, jinv + update, jinv)
-        return it + 1, z_new, r_new, jinv
+        return it + 1, z_new, r_new, jinv, aux
 
-    r0 = residual_fn(hint.z, params)
-    it, z, r, jinv = jax.lax.while_loop(
-        cond, body, (jnp.int32(0), hint.z, r0, hint.jinv)
+    r0, aux0 = residual_fn(hint.z, params)
+    it, z, r, jinv, aux = jax.lax.while_loop(
+        cond, body, (jnp.int32(0), hint.z, r0, hint.jinv, aux0)
     )
-    return z, rmax_of(r), it, jinv
+    return z, rmax_of(r), it, jinv, aux

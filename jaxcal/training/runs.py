@@ -224,6 +224,8 @@ def run_check(run: LoadedRun) -> SampleCheck | None:
 def load_calibrator(
     run_dir: str | os.PathLike | LoadedRun,
     anchor: str | os.PathLike | LoadedRun | None = None,
+    *,
+    warm_start: bool = False,
 ) -> Calibrator:
     """The run's policy as a ``Calibrator(init, step)`` (pure functions, not jitted).
 
@@ -235,20 +237,27 @@ def load_calibrator(
         anchor: an absolute policy's run with its band (``uncertainty.json``): the
             run, an incremental policy, is then gated by it where the model misfits
             the data (:mod:`jaxcal.calibrators.gated`).
+        warm_start: for one stream, one sample per call: the model's solver is
+            warm-started from the previous sample when it can be
+            (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); keep the
+            default for ``run_fleet`` over many units.
 
     Raises:
         ValueError: the anchor has no band, its names differ from the run's, or the
             run is not an incremental policy.
     """
     run = as_loaded(run_dir)
-    cal = make_policy_calibrator(run.actor, run.dynamics, run.params, run.band)
+    cal = make_policy_calibrator(
+        run.actor, run.dynamics, run.params, run.band, warm_start=warm_start
+    )
     if anchor is None:
         return cal
     anchor = as_loaded(anchor)
     check_anchor(run, anchor)
     anchor_cal = make_policy_calibrator(
-        anchor.actor, anchor.dynamics, anchor.params, anchor.band
-    )
+        anchor.actor, anchor.dynamics, anchor.params, anchor.band,
+        warm_start=warm_start,
+    )  # fmt: skip
     return make_gated_calibrator(
         cal,
         anchor_cal,

@@ -81,10 +81,14 @@ class StreamingCalibrator:
         # placed once: a numpy box would be copied to the device on every step
         self._check_dev = jax.tree.map(jnp.asarray, self.check)
         actor, dynamics = self.run_info.actor, self.run_info.dynamics
-        self._step = make_guarded_stream_step(actor, dynamics)
+        # one sample per call: the model's solver starts from the previous sample's
+        # solution (a turbofan's Newton solve); whole trajectories keep the cold solve
+        self._step = make_guarded_stream_step(actor, dynamics, warm_start=True)
         self._run = make_fleet_runner(actor, dynamics)
         self._band = self.run_info.band
-        self._carry0 = initial_guard_carry(actor, dynamics, self._params, self._band)
+        self._carry0 = initial_guard_carry(
+            actor, dynamics, self._params, self._band, warm_start=True
+        )
         self.anchor_info = None if anchor is None else as_loaded(anchor)
         if self.anchor_info is not None:
             self._gated(self._carry0)
@@ -93,15 +97,19 @@ class StreamingCalibrator:
     def _gated(self, carry: GuardCarry) -> None:
         """Step and batch run of the gated calibrator (same call signatures; the
         runs' params are constants of its one compiled program)."""
+        stream = load_calibrator(self.run_info, self.anchor_info, warm_start=True)
         cal = load_calibrator(self.run_info, self.anchor_info)
         an = self.anchor_info
-        an_state = initial_guard_carry(an.actor, an.dynamics, an.params, an.band).state
+        an_state = initial_guard_carry(
+            an.actor, an.dynamics, an.params, an.band, warm_start=True
+        ).state
         state = gate_state(carry.state, an_state, DEFAULT_WINDOW, carry.x.dtype)
-        self._carry0 = initial_carry(cal.step, state, carry.w, carry.x)
+        self._carry0 = initial_carry(stream.step, state, carry.w, carry.x)
 
         @jax.jit
         def step(carry, w, x, check):
-            return guarded_update(cal.step, carry, w, x, sample_reason(check, w, x))
+            reason = sample_reason(check, w, x)
+            return guarded_update(stream.step, carry, w, x, reason)
 
         @jax.jit
         def run(w, x, mask, check):

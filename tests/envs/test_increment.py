@@ -190,13 +190,18 @@ def test_calibrator_carries_a_hinted_models_warm_start(setup):
     hinted = HintedDynamics(physics, step, lambda: jnp.zeros((), jnp.int32))
     mask = jnp.ones((U, T), bool)
     plain = run_fleet(make_policy_calibrator(actor, physics, pp), w, x, mask)
-    cal = make_policy_calibrator(actor, hinted, pp)
+    cal = make_policy_calibrator(actor, hinted, pp, warm_start=True)
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), mask)
     np.testing.assert_array_equal(np.asarray(out.theta), np.asarray(plain.theta))
     state = cal.init(None, jnp.asarray(w[0, 0]), jnp.asarray(x[0, 0]))
     for t in range(3):
         state, _ = cal.step(state, jnp.asarray(w[0, t]), jnp.asarray(x[0, t]))
     assert int(state.hint) == 3
+    # without warm_start (batched paths) the hint is neither carried nor called
+    cold = make_policy_calibrator(actor, hinted, pp)
+    state = cold.init(None, jnp.asarray(w[0, 0]), jnp.asarray(x[0, 0]))
+    state, _ = cold.step(state, jnp.asarray(w[0, 0]), jnp.asarray(x[0, 0]))
+    assert state.hint is None
     # map_output (the paper's perturbation of the model output) keeps the hint path
     doubled = hinted.map_output(lambda out: 2.0 * out)
     hint, out2 = doubled.step(None, jnp.int32(5), w[0, 0], x[0, 0], jnp.zeros(P))

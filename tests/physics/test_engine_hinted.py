@@ -130,3 +130,27 @@ def test_turbofan_model_restrict_hinted(engine, fns):
             full[6] = -0.004
             x_cold = np.asarray(cold(w[t], full)[0])[used]
             np.testing.assert_allclose(np.asarray(x), x_cold, rtol=1e-9)
+
+
+def test_physics_dynamics_of_the_turbofan_carry_the_hint(engine, fns):
+    # the training pipeline's physics transition is hinted for deployment streams and
+    # plain (the cold F) when called as the training environment calls it
+    from jaxcal.envs.memory import HintedDynamics
+    from jaxcal.models.turbofan import load_turbofan
+    from jaxcal.training.components import _dynamics
+
+    w, theta = _stream(4)
+    names = ["HPT_eff_mod"]
+    with jax.enable_x64(True):
+        model = load_turbofan("cmapss")
+        dyn = _dynamics("physics", model, names, ["T50", "Nc"], model.nominal, None)
+        assert isinstance(dyn, HintedDynamics)
+        step, plain = jax.jit(dyn.step), jax.jit(dyn.plain)
+        hint, xhat = dyn.init_hint(), jnp.zeros(2)
+        for t in range(4):
+            th = jnp.asarray(theta[t, 6:7])
+            hint, x = step(None, hint, w[t], xhat, th)
+            np.testing.assert_allclose(
+                np.asarray(x), np.asarray(plain(None, w[t], xhat, th)), rtol=1e-9
+            )
+            assert bool(hint.ok)

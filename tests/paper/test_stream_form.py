@@ -1,0 +1,79 @@
+"""The single-stream form of a policy on F (its solve warm-started from the previous
+sample) gives the scored (cold) form's theta to the solver's tolerance."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcal.calibrators.policy import IncrementPolicyParams, make_policy_calibrator
+from jaxcal.envs.memory import HintedDynamics
+from jaxcal.physics.atmosphere import isa_total_temperature
+
+THETA = ["HPT_eff_mod", "LPT_flow_mod"]
+OUTPUTS = ["T30", "T50", "Nc", "Ps30"]
+
+
+class _Feedback:
+    """A fixed feedback law on the observation (its first P entries: the residual
+    features), deterministic and sensitive to the prediction error."""
+
+    def apply(self, params, obs):
+        del params
+        return 0.5 * jnp.tanh(obs[: len(THETA)]), jnp.zeros(len(THETA))
+
+
+def _flight(n=10):
+    alt = np.linspace(12000.0, 15000.0, n)
+    mach = np.linspace(0.42, 0.5, n)
+    tra = 78.0 + 0.5 * np.sin(np.arange(n))
+    return np.stack([alt, mach, tra, np.asarray(isa_total_temperature(alt, mach))], 1)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    from jaxcal.models.turbofan import load_turbofan
+    from jaxcal.training.components import _dynamics
+
+    with jax.enable_x64(True):
+        model = load_turbofan("cmapss")
+        dyn = _dynamics("physics", model, THETA, OUTPUTS, model.nominal, None)
+        w = _flight()
+        truth = np.asarray(model.nominal, np.float64).copy()
+        index = model.parameter_index(THETA)
+        truth[index] = [-0.006, -0.004]
+        measure = jax.jit(model.restrict(model.parameter_names, OUTPUTS))
+        x = np.stack([np.asarray(measure(w[t], truth)) for t in range(len(w))])
+        params = IncrementPolicyParams(
+            actor=jnp.zeros(()), dyn_params=None,
+            w_mean=jnp.asarray(w.mean(0)), w_std=jnp.asarray(w.std(0) + 1.0),
+            x_mean=jnp.asarray(x.mean(0)), x_std=jnp.asarray(x.std(0) + 1.0),
+            theta_low=jnp.full(2, -0.02), theta_high=jnp.full(2, 0.0),
+            step_ref=jnp.full(2, 1e-3), max_increment=0.1,
+        )  # fmt: skip
+    return dyn, params, w, x
+
+
+def _stream(dyn, params, w, x, warm_start):
+    cal = make_policy_calibrator(_Feedback(), dyn, params, warm_start=warm_start)
+    step = jax.jit(cal.step)
+    with jax.enable_x64(True):
+        state = cal.init(None, jnp.asarray(w[0]), jnp.asarray(x[0]))
+        thetas, xhats = [], []
+        for t in range(len(w)):
+            state, out = step(state, jnp.asarray(w[t]), jnp.asarray(x[t]))
+            thetas.append(np.asarray(out.theta))
+            xhats.append(np.asarray(out.xhat))
+    return np.stack(thetas), np.stack(xhats), state
+
+
+def test_warm_stream_matches_the_scored_form(setup):
+    dyn, params, w, x = setup
+    assert isinstance(dyn, HintedDynamics)
+    theta_w, xhat_w, state_w = _stream(dyn, params, w, x, warm_start=True)
+    theta_c, xhat_c, state_c = _stream(dyn, params, w, x, warm_start=False)
+    assert state_c.hint is None and bool(state_w.hint.ok)
+    # the feedback moved theta: the comparison exercises the closed loop
+    assert np.ptp(theta_c, axis=0).max() > 1e-4
+    np.testing.assert_allclose(xhat_w, xhat_c, rtol=1e-9)
+    np.testing.assert_allclose(theta_w, theta_c, rtol=0, atol=1e-9)
