@@ -508,17 +508,7 @@ class Model:
         Because the declared vector is scattered into the full one, ``jax.jacfwd``
         of the result costs ``P`` tangent sweeps, not one per model parameter.
         """
-        declared = np.asarray(self.parameter_index(theta_names))
-        used = (
-            None
-            if output_names is None
-            else np.asarray(self.output_index(output_names))
-        )
-        base = np.asarray(self.nominal if theta_base is None else theta_base)
-        if base.shape != (len(self.parameters),):
-            raise ValueError(
-                f"theta_base must be [{len(self.parameters)}], got {base.shape}"
-            )
+        declared, used, base = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array) -> Array:
             full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
@@ -535,13 +525,7 @@ class Model:
     ) -> Callable[[Array, Array, Any], tuple[Array, Any]]:
         """:meth:`restrict` with the warm start: ``F(w, theta [P], hint) -> (x_used
         [S], next_hint)`` (see :meth:`evaluate_hinted`)."""
-        declared = np.asarray(self.parameter_index(theta_names))
-        used = (
-            None
-            if output_names is None
-            else np.asarray(self.output_index(output_names))
-        )
-        base = np.asarray(self.nominal if theta_base is None else theta_base)
+        declared, used, base = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array, hint: Any) -> tuple[Array, Any]:
             full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
@@ -549,6 +533,22 @@ class Model:
             return (x if used is None else x[used]), hint
 
         return measure
+
+    def _restriction(self, theta_names, output_names, theta_base):
+        """(declared indices, used output indices or None, full base theta) of a
+        restriction (:meth:`restrict`, :meth:`restrict_hinted`)."""
+        declared = np.asarray(self.parameter_index(theta_names))
+        used = (
+            None
+            if output_names is None
+            else np.asarray(self.output_index(output_names))
+        )
+        base = np.asarray(self.nominal if theta_base is None else theta_base)
+        if base.shape != (len(self.parameters),):
+            raise ValueError(
+                f"theta_base must be [{len(self.parameters)}], got {base.shape}"
+            )
+        return declared, used, base
 
     def __repr__(self) -> str:
         kind = f"stateful, Z={len(self.states)}" if self.states else "static"
