@@ -16,6 +16,7 @@ from jaxcal.paper.tables import (
     PAPER,
     POLICIES,
     Results,
+    clac_over_ukf_lines,
     fmt,
     num,
     ratio,
@@ -104,16 +105,7 @@ def tracking_table(r: Results) -> list[str]:
     out = table(
         ["method", "Dataset #1 ours", "paper", "Dataset #2 ours", "paper"], rows
     ) + [""]
-    for ds, label in (("ds1", "Dataset #1"), ("ds2", "Dataset #2")):
-        paper = PAPER["tracking"][ds]
-        out.append(
-            ratio_line(
-                f"{label} tracking CLAC / UKF",
-                ratio(r.tracking(ds, "CLAC"), r.tracking(ds, "UKF")),
-                ratio(paper["CLAC"], paper["UKF"]),
-            )
-        )
-    return out
+    return out + clac_over_ukf_lines(r.tracking, PAPER["tracking"], "tracking ")
 
 
 def ablation_table(r: Results) -> list[str]:

@@ -138,15 +138,7 @@ def inference_table(r: Results) -> list[str]:
     ) + ["", "90 % coverage: share of scored samples whose true theta lies within "
          "+-1.6449 times the method's reported std (methods without a std: –); an "
          "honest band covers about 90 %.", ""]  # fmt: skip
-    for ds, label in (("ds1", "Dataset #1"), ("ds2", "Dataset #2")):
-        paper = PAPER["inference"][ds]
-        out.append(
-            ratio_line(
-                f"{label} CLAC / UKF",
-                ratio(r.theta(ds, "CLAC"), r.theta(ds, "UKF")),
-                ratio(paper["CLAC"], paper["UKF"]),
-            )
-        )
+    out += clac_over_ukf_lines(r.theta, PAPER["inference"], "")
     out.append(
         ratio_line(
             "Dataset #1 E2E / CLAC",
@@ -195,14 +187,28 @@ def _warm_stream_lines(r: Results) -> list[str]:
         return []
     return [
         "",
-        f"Single-stream forms ({', '.join(warm)}): a policy on F carries the engine's "
-        "Newton solution from sample to sample and closes the next balance with Broyden "
-        "updates (the cold solve when they do not), as `StreamingCalibrator.step` runs; "
-        "scores and batched runs keep the cold solve. Its outputs agree with the cold "
-        "solve's to the solver's tolerance (`tests/paper/test_stream_form.py`; "
+        f"Single-stream forms ({', '.join(warm)}): a policy on F carries the "
+        "engine's Newton solution from sample to sample and closes the next balance "
+        "with Broyden updates (the cold solve when they do not), as "
+        "`StreamingCalibrator.step` runs; scores and batched runs keep the cold solve. "
+        "Its outputs agree with the cold solve's to the solver's tolerance "
+        "(`tests/paper/test_stream_form.py`; "
         "`experiments/cpubench/engine_latency.py` measures the theta difference). A "
         "policy latency step without `stream_form` was measured before the warm start "
         "(CLAC on F's).",
+    ]
+
+
+def clac_over_ukf_lines(score, paper: dict, what: str) -> list[str]:
+    """CLAC / UKF ratio of ``score(ds, method)`` on both data sets, beside the
+    paper's (``paper[ds][method]``); ``what`` names the score in the label."""
+    return [
+        ratio_line(
+            f"{label} {what}CLAC / UKF",
+            ratio(score(ds, "CLAC"), score(ds, "UKF")),
+            ratio(paper[ds]["CLAC"], paper[ds]["UKF"]),
+        )
+        for ds, label in (("ds1", "Dataset #1"), ("ds2", "Dataset #2"))
     ]
 
 
