@@ -18,9 +18,13 @@ measure_latency`). This prints, from ONE process so that the ratio is fair:
   it, the warm path's unrolled one, its forward-mode Jacobian, the design point F
   recomputes per call): where a cold F's time goes;
 * ``UKF`` / ``CLAC`` / ``CLAC-inc`` / ``CLAC-gate``: :func:`measure_latency` on
-  Dataset #1's first test unit (the policies' single-stream form: F warm-started),
-  with ``stream_max_abs_theta_diff`` against the scored (cold) form along that unit,
-  and ``ratio_ukf_over_<name>``.
+  Dataset #1's first test unit in the deployed form (:meth:`Method.deploy`: clean
+  model, no noise key; the policies on F warm-started), with
+  ``deployed_vs_scored_max_abs_theta_diff`` against the scored form along that unit,
+  ``ratio_ukf_over_<name>``, and the same timing of the form the scores run
+  (``build(1, 0)``: a PRNG key for the model's noise in its state, and for a policy
+  on F the cold solve: ``perturbable_form_median_s``,
+  ``perturbable_form_ratio_ukf_over_<name>``).
 
 Usage::
 
@@ -49,6 +53,7 @@ jax.config.update("jax_enable_x64", True)  # the engine's Newton solve is float6
 
 import numpy as np  # noqa: E402
 
+from jaxcal.paper.compare import measure_latency  # noqa: E402
 from jaxcal.paper.suite import Suite, SuiteConfig  # noqa: E402
 
 
@@ -120,14 +125,13 @@ def engine_numbers(suite: Suite, units, repeats: int) -> dict:
 
 
 def _stream_vs_scored(method, units, count: int = 400) -> float:
-    """max |theta| difference between a method's single-stream form and its scored
+    """max |theta| difference between a method's deployed form and its scored
     form along the first ``count`` samples of the first test unit."""
     length = min(int(units.lengths[0]), count)
     w, x = units.w[0, :length], units.x[0, :length]
     thetas = []
     with jax.enable_x64(method.dtype == np.float64):
-        for build in (method.stream_build, method.build):
-            cal = build(np.asarray(1.0, method.dtype), np.asarray(0.0, method.dtype))
+        for cal in (method.deploy(), _perturbable(method)):
             step = jax.jit(cal.step)
             state = cal.init(jax.random.key(0), w[0], x[0])
             rows = []
@@ -136,6 +140,11 @@ def _stream_vs_scored(method, units, count: int = 400) -> float:
                 rows.append(np.asarray(out.theta))
             thetas.append(np.stack(rows))
     return float(np.max(np.abs(thetas[0] - thetas[1])))
+
+
+def _perturbable(method):
+    """The method as the paper's scores run it, unperturbed (its noise key kept)."""
+    return method.build(np.asarray(1.0, method.dtype), np.asarray(0.0, method.dtype))
 
 
 def _parts_us(engine, w, theta, z, repeats: int) -> dict:
@@ -182,10 +191,19 @@ def main(argv: list[str]) -> int:
     for name in names:  # as the paper's latency steps measure them
         out[name] = suite.latency(name, repeats=repeats, seed=0)
         method = suite.method(name)
-        if method.stream is not None:
-            out[name]["stream_max_abs_theta_diff"] = _stream_vs_scored(method, units)
+        keyed = measure_latency(
+            method, units, repeats=repeats, calibrator=_perturbable(method)
+        )
+        out[name]["perturbable_form_median_s"] = keyed["median_s"]
+        out[name]["deployed_vs_scored_max_abs_theta_diff"] = _stream_vs_scored(
+            method, units
+        )
     for name in names[1:]:
         out[f"ratio_ukf_over_{name}"] = out["UKF"]["median_s"] / out[name]["median_s"]
+        out[f"perturbable_form_ratio_ukf_over_{name}"] = (
+            out["UKF"]["perturbable_form_median_s"]
+            / out[name]["perturbable_form_median_s"]
+        )
     text = json.dumps(out, indent=1)
     print(text)
     if "out" in args:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.interface import count_reasons
+from jaxcal.calibrators.interface import Calibrator, count_reasons
 from jaxcal.paper.methods import Method
 from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
@@ -215,26 +215,34 @@ def evaluate_method(
 
 
 def measure_latency(
-    method: Method, units: UnitArrays, *, repeats: int, seed: int = 0
+    method: Method,
+    units: UnitArrays,
+    *,
+    repeats: int,
+    seed: int = 0,
+    calibrator: Calibrator | None = None,
 ) -> dict:
-    """Single-stream seconds per sample of ``method`` (clean model).
+    """Single-stream seconds per sample of ``method`` as deployed (clean model).
 
-    The method's single-stream form (:attr:`Method.stream_build`: e.g. a policy whose
-    model solve starts from the previous sample's solution, the form
-    ``StreamingCalibrator.step`` runs) is jitted alone and called on consecutive
-    samples of the first unit (cycled), numpy in and out, after a compiling warm-up
-    call. Its agreement with the scored form is tested
-    (``tests/paper/test_stream_form.py``) and measured by
-    ``experiments/cpubench/engine_latency.py``; compiling both here would cost a
-    second engine program per step.
+    The method's deployed form (:meth:`Method.deploy`: the unperturbed model, so no
+    noise key in its state, and for a policy on F the solve warm-started from the
+    previous sample, the form ``StreamingCalibrator.step`` runs) is jitted alone and
+    called on consecutive samples of the first unit (cycled), numpy in and out, after
+    a compiling warm-up call. Its agreement with the scored form is tested
+    (``tests/paper/test_stream_form.py``, ``tests/paper/test_evaluation.py``) and
+    measured by ``experiments/cpubench/engine_latency.py``; compiling both here
+    would cost a second engine program per step.
+
+    ``calibrator``: another form of the method to time the same way (e.g. its
+    perturbable ``build(1, 0)``); ``None``: the deployed one.
 
     Returns:
-        ``{"median_s", "min_s", "repeats", "stream_form"}`` (``stream_form``: the
-        method has a single-stream form of its own).
+        ``{"median_s", "min_s", "repeats", "stream_form", "deploy_form"}``
+        (``stream_form``: the model's solve is warm-started; ``deploy_form``: timed
+        in the deployed form, not the perturbable one with its noise key).
     """
-    calibrator = method.stream_build(
-        jnp.asarray(1.0, method.dtype), jnp.asarray(0.0, method.dtype)
-    )
+    deployed = calibrator is None
+    calibrator = method.deploy() if deployed else calibrator
     length = int(units.lengths[0])
     w = units.w[0, :length].astype(method.dtype)
     x = units.x[0, :length].astype(method.dtype)
@@ -253,7 +261,8 @@ def measure_latency(
         "median_s": float(np.median(times)),
         "min_s": float(times.min()),
         "repeats": repeats,
-        "stream_form": method.stream is not None,
+        "stream_form": method.warm and deployed,
+        "deploy_form": deployed,
     }
 
 

@@ -33,6 +33,7 @@ from jaxcal.calibrators.gated import (
     gate_threshold,
     make_gated_calibrator,
 )
+from jaxcal.calibrators.interface import Calibrator
 from jaxcal.calibrators.uncertainty import (
     band_coverage,
     band_from_json,
@@ -77,29 +78,20 @@ def gated_method(suite, gate: dict | None = None) -> Method:
     sens = jnp.asarray(gate["sensitivity"], jnp.float64)
     window = int(gate["window"])
 
-    def builder(stream: bool):
-        def build(bias, noise_sigma):
-            fb, an = (
-                (feedback.stream_build, anchor.stream_build)
-                if stream
-                else (feedback.build, anchor.build)
-            )
-            return make_gated_calibrator(
-                fb(bias, noise_sigma),
-                an(bias, noise_sigma),
-                x_std=x_std,
-                sensitivity=sens,
-                anchor_band=anchor_band,
-                window=window,
-                band=band,
-            )
+    def gated(fb: Calibrator, an: Calibrator) -> Calibrator:
+        return make_gated_calibrator(
+            fb, an, x_std=x_std, sensitivity=sens, anchor_band=anchor_band,
+            window=window, band=band,
+        )  # fmt: skip
 
-        return build
+    def build(bias, noise_sigma):
+        return gated(feedback.build(bias, noise_sigma), anchor.build(bias, noise_sigma))
 
     info = {"feedback": feedback.info, "anchor": anchor.info, "window": window}
     return make_method(
-        NAME, builder(False), jnp.float64, info, check=feedback.check,
-        stream=None if feedback.stream is None else builder(True),
+        NAME, build, jnp.float64, info, check=feedback.check,
+        deploy_fn=lambda: gated(feedback.deploy(), anchor.deploy()),
+        warm=feedback.warm,
     )  # fmt: skip
 
 

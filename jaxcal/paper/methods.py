@@ -84,9 +84,12 @@ class Method(NamedTuple):
         info: JSON-ready settings for the report.
         check: the valid input box the runner flags samples against (``None``:
             finiteness only).
-        stream: the same method for one stream, one sample per call (e.g. with the
-            model's solver warm-started from the previous sample): what a deployment
-            runs and the latency measures; ``None``: ``build``.
+        deploy_fn: ``deploy_fn() -> Calibrator``, the method as a user deploys it on
+            one stream, one sample per call: the clean model (no perturbation, so no
+            noise key in its state) and, where the model can, its solver
+            warm-started from the previous sample (``warm``); what the latency
+            measures. ``None``: ``build(1, 0)``, key and all.
+        warm: ``deploy_fn``'s model solve is warm-started along the stream.
     """
 
     name: str
@@ -96,12 +99,16 @@ class Method(NamedTuple):
     model_free: bool
     info: dict
     check: SampleCheck | None = None
-    stream: BuildFn | None = None
+    deploy_fn: Callable[[], Calibrator] | None = None
+    warm: bool = False
 
-    @property
-    def stream_build(self) -> BuildFn:
-        """``stream`` when the method has one, else ``build``."""
-        return self.build if self.stream is None else self.stream
+    def deploy(self) -> Calibrator:
+        """The deployed single-stream form (``deploy_fn``, else ``build(1, 0)``)."""
+        if self.deploy_fn is None:
+            return self.build(
+                jnp.asarray(1.0, self.dtype), jnp.asarray(0.0, self.dtype)
+            )
+        return self.deploy_fn()
 
 
 def make_method(
@@ -112,18 +119,20 @@ def make_method(
     *,
     model_free: bool = False,
     check: SampleCheck | None = None,
-    stream: BuildFn | None = None,
+    deploy_fn: Callable[[], Calibrator] | None = None,
+    warm: bool = False,
 ) -> Method:
     """Wrap a calibrator factory with its jitted fleet runner (guarded by
     ``check``; the returned ``CalOutput`` carries ``valid`` and ``reason``).
-    ``stream``: its single-stream form (:class:`Method`)."""
+    ``deploy_fn``, ``warm``: its deployed single-stream form (:class:`Method`)."""
 
     def run(w, x, mask, keys, bias, noise_sigma):
         return run_fleet(build(bias, noise_sigma), w, x, mask, keys=keys, check=check)
 
     return Method(
-        name, build, jax.jit(run), np.dtype(dtype), model_free, info, check, stream
-    )
+        name, build, jax.jit(run), np.dtype(dtype), model_free, info, check,
+        deploy_fn, warm,
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------ perturbations
@@ -226,21 +235,32 @@ def _engine_outputs(engine, w: Array, theta_full: Array) -> Array:
 engine_outputs = jax.jit(_engine_outputs)
 
 
-def make_model(
-    engine, problem: Problem, bias: Array, noise_sigma: Array, key: PRNGKey
-) -> Callable[[Array, Array], Array]:
-    """``F(w [W], theta [P]) -> x [S]`` in float64, perturbed as the module says."""
+def declared_model(engine, problem: Problem) -> Callable[[Array, Array], Array]:
+    """``F(w [W], theta [P]) -> x [S]`` in float64 on the problem's declared
+    parameters and outputs, unperturbed."""
     measure = measure_declared(
         lambda w, theta: engine_outputs(engine, w, theta),
         problem.theta_base,
         problem.theta_names,
         problem.output_names,
     )
+
+    def model(w: Array, theta: Array) -> Array:
+        return measure(w.astype(jnp.float64), theta.astype(jnp.float64))
+
+    return model
+
+
+def make_model(
+    engine, problem: Problem, bias: Array, noise_sigma: Array, key: PRNGKey
+) -> Callable[[Array, Array], Array]:
+    """:func:`declared_model` perturbed as the module says."""
+    clean = declared_model(engine, problem)
     std = jnp.asarray(problem.norm.x_std)
 
     def model(w: Array, theta: Array) -> Array:
         w, theta = w.astype(jnp.float64), theta.astype(jnp.float64)
-        x = measure(w, theta)
+        x = clean(w, theta)
         return perturb_output(x, evaluation_key(key, w, theta), bias, noise_sigma, std)
 
     return model
@@ -250,22 +270,28 @@ def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Metho
     """A calibrator ``make(model, cfg, norm, theta0=, theta_scale=)`` on the perturbable
     F, with its prior at the box centre and parameters scaled by the half-width."""
 
+    def on(model) -> Calibrator:
+        return make(
+            model,
+            cfg,
+            output_norm(problem),
+            theta0=problem.theta_centre,
+            theta_scale=problem.theta_half_width,
+        )
+
     def build(bias, noise_sigma):
         return with_step_key(
-            lambda key: make(
-                make_model(engine, problem, bias, noise_sigma, key),
-                cfg,
-                output_norm(problem),
-                theta0=problem.theta_centre,
-                theta_scale=problem.theta_half_width,
-            )
+            lambda key: on(make_model(engine, problem, bias, noise_sigma, key))
         )
 
     info = {"model": f"F ({problem.model.name})", **dataclasses.asdict(cfg)}
     # the engine's valid inputs; a model without an envelope checks finiteness only
     envelope = getattr(engine, "envelope", None)
     check = None if envelope is None else SampleCheck.from_envelope(envelope)
-    return make_method(name, build, jnp.float64, info, check=check)
+    return make_method(
+        name, build, jnp.float64, info, check=check,
+        deploy_fn=lambda: on(declared_model(engine, problem)),
+    )  # fmt: skip
 
 
 def ukf_method(
@@ -301,7 +327,10 @@ def e2e_method(
         del bias, noise_sigma  # G has no model to perturb
         return make_e2e_calibrator(params)
 
-    return make_method(name, build, jnp.float32, info, model_free=True, check=check)
+    return make_method(
+        name, build, jnp.float32, info, model_free=True, check=check,
+        deploy_fn=lambda: make_e2e_calibrator(params),
+    )  # fmt: skip
 
 
 def policy_method(run, name: str) -> Method:
@@ -314,19 +343,24 @@ def policy_method(run, name: str) -> Method:
     params = run.params
     std = jnp.asarray(params.x_std)
 
-    def builder(warm_start: bool) -> BuildFn:
-        def build(bias, noise_sigma):
-            return with_step_key(
-                lambda key: make_policy_calibrator(
-                    run.actor,
-                    perturbed_dynamics(run.dynamics, key, bias, noise_sigma, std),
-                    params,
-                    run.band,
-                    warm_start=warm_start,
-                )
+    def build(bias, noise_sigma):
+        return with_step_key(
+            lambda key: make_policy_calibrator(
+                run.actor,
+                perturbed_dynamics(run.dynamics, key, bias, noise_sigma, std),
+                params,
+                run.band,
             )
+        )
 
-        return build
+    # deployed: the run's own D or F, one sample per call, so a model with a
+    # warm-startable solve carries it from sample to sample
+    warm = isinstance(run.dynamics, HintedDynamics)
+
+    def deploy() -> Calibrator:
+        return make_policy_calibrator(
+            run.actor, run.dynamics, params, run.band, warm_start=warm
+        )
 
     info = {
         "run": str(run.run_dir),
@@ -337,8 +371,6 @@ def policy_method(run, name: str) -> Method:
     }
     dtype = jnp.float64 if run.config.dynamics == "physics" else jnp.float32
     # flags samples far outside the run's training range
-    # a model with a warm-startable solve deploys, one sample per call, warm
-    stream = builder(True) if isinstance(run.dynamics, HintedDynamics) else None
     return make_method(
-        name, builder(False), dtype, info, check=run_check(run), stream=stream
+        name, build, dtype, info, check=run_check(run), deploy_fn=deploy, warm=warm
     )

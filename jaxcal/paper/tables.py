@@ -176,27 +176,45 @@ def inference_table(r: Results) -> list[str]:
 
 
 def _warm_stream_lines(r: Results) -> list[str]:
-    """Which single-stream latencies are of a method's own stream form (the model's
-    solve warm-started from the previous sample)."""
-    warm = [
-        NAMES[m]
-        for m in ("UKF", "E2E", "CLAC", *EXTRA)
-        if (r.steps.get(f"latency-ds1-{m}") or {}).get("stream_form")
+    """How the single-stream latencies were taken: the deployed form (no noise key)
+    and, for a policy on F, the model's solve warm-started from the previous sample."""
+    names = ("UKF", "E2E", "CLAC", *EXTRA)
+    steps = {m: r.steps.get(f"latency-ds1-{m}") or {} for m in names}
+    warm = [NAMES.get(m, m) for m in names if steps[m].get("stream_form")]
+    keyed = [
+        NAMES.get(m, m)
+        for m in names
+        if steps[m] and not steps[m].get("deploy_form") and m not in ("E2E", "E2E-sim")
     ]
-    if not warm:
-        return []
-    return [
-        "",
-        f"Single-stream forms ({', '.join(warm)}): a policy on F carries the "
-        "engine's Newton solution from sample to sample and closes the next balance "
-        "with Broyden updates (the cold solve when they do not), as "
-        "`StreamingCalibrator.step` runs; scores and batched runs keep the cold solve. "
-        "Its outputs agree with the cold solve's to the solver's tolerance "
-        "(`tests/paper/test_stream_form.py`; "
-        "`experiments/cpubench/engine_latency.py` measures the theta difference). A "
-        "policy latency step without `stream_form` was measured before the warm start "
-        "(CLAC on F's).",
-    ]
+    out = []
+    if any(s.get("deploy_form") for s in steps.values()):
+        out += [
+            "",
+            "Latency: each method as deployed, one sample per call on the clean "
+            "model: the calibrator alone, without the noise key the robustness runs "
+            "carry in its state (a PRNG key in a jitted call's arguments takes JAX's "
+            "slower dispatch path; `experiments/cpubench/engine_latency.py` times "
+            "both forms; the E2E network never had one)."
+            + (
+                f" Measured before that change, with the key: {', '.join(keyed)}."
+                if keyed
+                else ""
+            ),
+        ]
+    if warm:
+        out += [
+            "",
+            f"Single-stream forms ({', '.join(warm)}): a policy on F carries the "
+            "engine's Newton solution from sample to sample and closes the next "
+            "balance with Broyden updates (the cold solve when they do not), as "
+            "`StreamingCalibrator.step` runs; scores and batched runs keep the cold "
+            "solve. Its outputs agree with the cold solve's to the solver's tolerance "
+            "(`tests/paper/test_stream_form.py`; "
+            "`experiments/cpubench/engine_latency.py` measures the theta difference). "
+            "A policy latency step without `stream_form` was measured before the warm "
+            "start (CLAC on F's).",
+        ]
+    return out
 
 
 def clac_over_ukf_lines(score, paper: dict, what: str) -> list[str]:

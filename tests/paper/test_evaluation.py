@@ -15,7 +15,12 @@ from support.paper_problem import paper_problem
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.calibrators.least_squares import LeastSquaresConfig
-from jaxcal.paper.compare import evaluate_method, limit_units, stacked
+from jaxcal.paper.compare import (
+    evaluate_method,
+    limit_units,
+    measure_latency,
+    stacked,
+)
 from jaxcal.paper.methods import (
     evaluation_key,
     least_squares_method,
@@ -151,13 +156,18 @@ def test_with_step_key_needs_a_key_and_draws_fresh_noise_every_step():
     assert again.theta == first.theta
 
 
+def _model_based(engine, problem):
+    """The UKF and least squares on the toy model (small window: fast)."""
+    return (
+        ukf_method(engine, problem),
+        least_squares_method(engine, problem, LeastSquaresConfig(window=4)),
+    )
+
+
 def test_ukf_and_least_squares_recover_theta_and_suffer_from_model_bias(toy):
     engine, units, problem = toy
     with jax.enable_x64(True):
-        for method in (
-            ukf_method(engine, problem),
-            least_squares_method(engine, problem, LeastSquaresConfig(window=4)),
-        ):
+        for method in _model_based(engine, problem):
             clean = evaluate_method(method, units, problem)
             biased = evaluate_method(method, units, problem, bias=1.02)
             noisy = evaluate_method(method, units, problem, noise_sigma=0.1, seed=1)
@@ -234,3 +244,40 @@ def test_report_shows_losses_and_dashes_for_missing_results(tmp_path):
     assert "UKF on F 2.00e-04 < CLAC 4.00e-04 (x2)" in text
     assert "Dataset #1 tracking RMSE: UKF on F" in text
     assert (tmp_path / "results.json").is_file()
+
+
+def _stream_thetas(cal, units):
+    step = jax.jit(cal.step)
+    w, x = units.w[0, : units.lengths[0]], units.x[0, : units.lengths[0]]
+    state = cal.init(jax.random.key(0), jnp.asarray(w[0]), jnp.asarray(x[0]))
+    rows = []
+    for t in range(len(w)):
+        state, out = step(state, jnp.asarray(w[t]), jnp.asarray(x[t]))
+        rows.append(np.asarray(out.theta))
+    return np.stack(rows), state
+
+
+def _has_key(tree) -> bool:
+    return any(
+        jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+        for leaf in jax.tree.leaves(tree)
+    )
+
+
+def test_deployed_form_is_the_clean_method_without_its_noise_key(toy):
+    engine, units, problem = toy
+    with jax.enable_x64(True):
+        for method in _model_based(engine, problem):
+            one, zero = jnp.ones((), jnp.float64), jnp.zeros((), jnp.float64)
+            scored, scored_state = _stream_thetas(method.build(one, zero), units)
+            deployed, deployed_state = _stream_thetas(method.deploy(), units)
+            assert _has_key(scored_state) and not _has_key(deployed_state)
+            # the unperturbed model is the same function bit for bit
+            np.testing.assert_array_equal(deployed, scored)
+            assert np.ptp(deployed, axis=0).max() > 1e-4  # theta moved
+            record = measure_latency(method, units, repeats=3)
+            assert record["deploy_form"] and not record["stream_form"]
+            other = measure_latency(
+                method, units, repeats=3, calibrator=method.build(one, zero)
+            )
+            assert not other["deploy_form"]

@@ -77,3 +77,42 @@ def test_warm_stream_matches_the_scored_form(setup):
     assert np.ptp(theta_c, axis=0).max() > 1e-4
     np.testing.assert_allclose(xhat_w, xhat_c, rtol=1e-9)
     np.testing.assert_allclose(theta_w, theta_c, rtol=0, atol=1e-9)
+
+
+def test_policy_method_deploys_warm_without_a_noise_key(setup):
+    from types import SimpleNamespace
+
+    from jaxcal.paper.compare import measure_latency
+    from jaxcal.paper.methods import policy_method
+    from jaxcal.training.data import UnitArrays
+
+    dyn, params, w, x = setup
+    run = SimpleNamespace(
+        params=params, actor=_Feedback(), dynamics=dyn, band=None, run_dir="toy",
+        step=0, problem=SimpleNamespace(),
+        config=SimpleNamespace(dynamics="physics", seed=0, preset="toy"),
+    )  # fmt: skip
+    method = policy_method(run, "toy")
+    assert method.warm
+    with jax.enable_x64(True):
+        cal = method.deploy()
+        state = cal.init(jax.random.key(0), jnp.asarray(w[0]), jnp.asarray(x[0]))
+        keys = [
+            a for a in jax.tree.leaves(state)
+            if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)
+        ]  # fmt: skip
+        assert not keys
+        assert state.hint is not None  # the solver's warm start is carried
+        theta_d, _, _ = _stream(dyn, params, w, x, warm_start=True)
+        step = jax.jit(cal.step)
+        rows = []
+        for t in range(len(w)):
+            state, out = step(state, jnp.asarray(w[t]), jnp.asarray(x[t]))
+            rows.append(np.asarray(out.theta))
+        np.testing.assert_array_equal(np.stack(rows), theta_d)
+        units = UnitArrays(
+            w=w[None], x=x[None], theta=np.zeros((1, len(w), 2)),
+            lengths=np.array([len(w)], np.int32), unit_ids=np.array([1]),
+        )  # fmt: skip
+        record = measure_latency(method, units, repeats=3)
+    assert record["stream_form"] and record["deploy_form"]
