@@ -151,13 +151,13 @@ def _parts_us(engine, w, theta, z, repeats: int) -> dict:
     """F's parts at one sample (see the module docstring)."""
     from jaxcal.physics import cycle
     from jaxcal.physics.design import design_point
-    from jaxcal.physics.engine import _residual_fn
+    from jaxcal.physics.evaluation import residual_fn
 
     d, dp = engine.design, engine.point
     effects = np.zeros(cycle.NUM_EFFECTS)
 
     def residual(z, w, th):
-        return _residual_fn(z, (d, dp, w, th, effects))
+        return residual_fn(z, (d, dp, w, th, effects))
 
     def unrolled(z, w, th):
         one = lambda zz: cycle.balance(d, dp, w, th, effects, zz, unroll=True)[0]  # noqa: E731

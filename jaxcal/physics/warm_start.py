@@ -1,0 +1,135 @@
+"""The engine's F along one stream, warm-started from the previous sample.
+
+A deployed calibrator evaluates F once per sample along a flight; the cold solve
+(:func:`jaxcal.physics.evaluation.evaluate_design`: Newton from the guess table, each
+iteration a forward-mode Jacobian) is then its whole cost. Consecutive samples are
+nearby problems, so the previous sample's solution, inverse Jacobian and sensitivity
+to (w, theta) start Broyden's method (:func:`jaxcal.physics.solver.quasi_newton`),
+which closes the balance with a few residuals and no Jacobian; the cold solve remains
+the fall-back. Only single streams use it: under ``vmap`` the fall-back's ``lax.cond``
+runs both branches (``results/train/feedback.md``, "the warm-started stream").
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxcal.physics import cycle, solver
+from jaxcal.physics.constants import CONDITION_NAMES, HEALTH_NAMES
+from jaxcal.physics.design import DesignPoint, EngineDesign, design_point
+from jaxcal.physics.evaluation import (
+    EngineInfo,
+    Envelope,
+    evaluate_design,
+    in_envelope,
+    physical,
+    residual_fn,
+    sensor_vector,
+)
+from jaxcal.physics.guess import GuessTable
+from jaxcal.precision import float_dtype
+
+# Broyden updates per warm-started sample before falling back to the full solve: a
+# flight's next sample closes in ~4-6 (experiments/cpubench/engine_latency.py).
+HINT_MAX_ITER = 10
+
+
+def evaluate_hinted(
+    d: EngineDesign,
+    w,
+    theta,
+    hint: solver.Hint,
+    *,
+    guess: GuessTable | None = None,
+    envelope: Envelope = Envelope(),
+    solver_cfg: solver.SolverConfig | None = None,
+    dp: DesignPoint | None = None,
+    max_iter: int = HINT_MAX_ITER,
+):
+    """One sample of :func:`evaluate_design`, warm-started along a stream.
+
+    Why: a deployed calibrator calls F once per sample along a flight, and the cold
+    solve (4 Newton iterations, each a forward-mode Jacobian) is its whole cost. From
+    ``hint`` (the previous sample's solution, inverse Jacobian and sensitivity to
+    (w, theta)) the start is the first-order prediction and Broyden's method
+    (:func:`jaxcal.physics.solver.quasi_newton`) closes the balance to the solver's
+    ``tol`` with ~6 residual evaluations and no Jacobian (the residual with unrolled
+    thermo loops, cheap when not differentiated). When it does not (no hint yet, a
+    jump in the conditions, a NaN hint) the sample is solved as
+    :func:`evaluate_design` does from the guess table (``lax.cond``: the cold path
+    runs only then; under ``vmap`` both branches run, so a batched fleet pays both),
+    and the next hint carries the exact inverse Jacobian and sensitivity there. The
+    outputs agree with the cold path's to the solve's tolerance (~3e-10 relative on
+    Dataset #1), not bit for bit; ``info.converged`` is checked the same way (closed,
+    finite, physical, inside the envelope). Not differentiable.
+
+    Args:
+        d, guess, envelope, solver_cfg, dp: as :func:`evaluate_design`.
+        w: [4] one operating point; theta: [10].
+        hint: :class:`jaxcal.physics.solver.Hint` (``Engine.initial_hint()`` first).
+        max_iter: Broyden updates before the fallback.
+
+    Returns:
+        (x [S], EngineInfo, next hint).
+    """
+    dtype = float_dtype()
+    cfg = solver_cfg or (
+        solver.SolverConfig()
+        if dtype == jnp.float64
+        else solver.SolverConfig(tol=2e-5, max_iter=30)
+    )
+    w, theta = jnp.asarray(w, dtype), jnp.asarray(theta, dtype)
+    if w.shape != (len(CONDITION_NAMES),) or theta.shape != (len(HEALTH_NAMES),):
+        raise ValueError(
+            f"evaluate_hinted takes one sample: w [4], theta [10], got "
+            f"{tuple(w.shape)}, {tuple(theta.shape)} (vmap it for a batch)"
+        )
+    dp = design_point(d) if dp is None else dp
+    effects = jnp.zeros((cycle.NUM_EFFECTS,), dtype)
+    hint = solver.Hint(
+        *(jnp.asarray(a, bool if i == 2 else dtype) for i, a in enumerate(hint))
+    )
+    p = jnp.concatenate([w, theta])
+    usable = hint.ok
+    for a in (hint.z, hint.jinv, hint.p, hint.dz_dp):
+        usable = usable & jnp.all(jnp.isfinite(a))
+
+    def balance(z):
+        return cycle.balance(d, dp, w, theta, effects, z, unroll=True)
+
+    def one(z):
+        r, st = balance(z)
+        return r, (sensor_vector(d, st, w), physical(st))
+
+    def residual(z, _):
+        # as a batch of one: XLA:CPU fuses [1]-shaped chains into fewer kernels than
+        # 0-d scalars; the outputs come with every residual, so the last iterate's
+        # are returned without one more balance
+        return jax.tree.map(lambda a: a[0], jax.vmap(one)(z[None]))
+
+    z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
+    start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
+    z, rmax, iters, jinv, (x, is_physical) = solver.quasi_newton(
+        residual, start, None, cfg.tol, max_iter
+    )
+    inside = in_envelope(envelope, w, theta)
+    fast_ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & is_physical
+
+    def fast(_):
+        info = EngineInfo(inside, rmax, iters, inside, z)
+        return x, info, jinv, solver.secant_sensitivity(hint, p, z)
+
+    def cold(_):
+        xc, info = evaluate_design(
+            d, w, theta, guess=guess, envelope=envelope, solver_cfg=cfg, dp=dp
+        )
+        jac = jax.jacfwd(residual_fn)(info.z, (d, dp, w, theta, effects))
+        dr_dp = jax.jacfwd(
+            lambda q: residual_fn(info.z, (d, dp, q[:4], q[4:], effects))
+        )(p)
+        jinv = jnp.linalg.inv(jac)
+        return xc, info, jinv, -jinv @ dr_dp
+
+    x, info, jinv, dz_dp = jax.lax.cond(fast_ok, fast, cold, None)
+    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
