@@ -24,7 +24,7 @@ from jaxcal.physics import reference as ref
 from jaxcal.physics.configs import NOMINAL, design_to_flat
 from jaxcal.physics.design import design_point
 from jaxcal.physics.design_fit import FitParam, Target, ThetaParam, fit_design
-from jaxcal.physics.engine import evaluate_design
+from jaxcal.physics.evaluation import evaluate_design
 from jaxcal.physics.guess import build_guess_table, tra_for_pcn
 from jaxcal.precision import enable_x64
 

@@ -124,7 +124,7 @@ def engine_numbers(suite: Suite, units, repeats: int) -> dict:
     return out
 
 
-def _stream_vs_scored(method, units, count: int = 400) -> float:
+def _deployed_vs_scored(method, units, count: int = 400) -> float:
     """max |theta| difference between a method's deployed form and its scored
     form along the first ``count`` samples of the first test unit."""
     length = min(int(units.lengths[0]), count)
@@ -195,7 +195,7 @@ def main(argv: list[str]) -> int:
             method, units, repeats=repeats, calibrator=_perturbable(method)
         )
         out[name]["perturbable_form_median_s"] = keyed["median_s"]
-        out[name]["deployed_vs_scored_max_abs_theta_diff"] = _stream_vs_scored(
+        out[name]["deployed_vs_scored_max_abs_theta_diff"] = _deployed_vs_scored(
             method, units
         )
     for name in names[1:]:

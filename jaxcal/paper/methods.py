@@ -327,10 +327,8 @@ def e2e_method(
         del bias, noise_sigma  # G has no model to perturb
         return make_e2e_calibrator(params)
 
-    return make_method(
-        name, build, jnp.float32, info, model_free=True, check=check,
-        deploy_fn=lambda: make_e2e_calibrator(params),
-    )  # fmt: skip
+    # deployed as scored: no model, so no noise key (``Method.deploy``'s fallback)
+    return make_method(name, build, jnp.float32, info, model_free=True, check=check)
 
 
 def policy_method(run, name: str) -> Method:

@@ -175,14 +175,14 @@ def inference_table(r: Results) -> list[str]:
     return out
 
 
-def _warm_stream_lines(r: Results) -> list[str]:
+def _latency_form_lines(r: Results) -> list[str]:
     """How the single-stream latencies were taken: the deployed form (no noise key)
     and, for a policy on F, the model's solve warm-started from the previous sample."""
     names = ("UKF", "E2E", "CLAC", *EXTRA)
     steps = {m: r.steps.get(f"latency-ds1-{m}") or {} for m in names}
-    warm = [NAMES.get(m, m) for m in names if steps[m].get("stream_form")]
+    warm = [NAMES[m] for m in names if steps[m].get("stream_form")]
     keyed = [
-        NAMES.get(m, m)
+        NAMES[m]
         for m in names
         if steps[m] and not steps[m].get("deploy_form") and m not in ("E2E", "E2E-sim")
     ]
@@ -300,7 +300,7 @@ def timing_table(r: Results) -> list[str]:
         "the run's sessions; compilation and the evaluations between chunks are "
         "outside it, see the wall times under Set-up). E2E: its fit.",
     ]
-    return out + _warm_stream_lines(r)
+    return out + _latency_form_lines(r)
 
 
 def num(value) -> str:

@@ -24,7 +24,7 @@ from jaxcal.physics.design import (
     corrected_fan_speed_demand,
     design_point,
 )
-from jaxcal.physics.engine import evaluate_design
+from jaxcal.physics.evaluation import evaluate_design
 from jaxcal.physics.guess import build_guess_table, initial_guess
 
 

@@ -28,14 +28,9 @@ from jaxcal.physics.constants import (
     SENSOR_NAMES,
 )
 from jaxcal.physics.design import DesignPoint, EngineDesign, design_point
-from jaxcal.physics.evaluation import (  # noqa: F401  (EngineInfo: re-exported)
-    EngineInfo,
-    Envelope,
-    check_inputs,
-    evaluate_design,
-)
+from jaxcal.physics.evaluation import Envelope, check_inputs, evaluate_design
 from jaxcal.physics.guess import GuessTable, build_guess_table
-from jaxcal.physics.warm_start import HINT_MAX_ITER, evaluate_hinted  # noqa: F401
+from jaxcal.physics.warm_start import evaluate_hinted
 from jaxcal.precision import float_dtype
 
 

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import struct
+from support.keys import has_prng_key
 from support.paper_problem import paper_problem
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
@@ -257,13 +258,6 @@ def _stream_thetas(cal, units):
     return np.stack(rows), state
 
 
-def _has_key(tree) -> bool:
-    return any(
-        jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
-        for leaf in jax.tree.leaves(tree)
-    )
-
-
 def test_deployed_form_is_the_clean_method_without_its_noise_key(toy):
     engine, units, problem = toy
     with jax.enable_x64(True):
@@ -271,7 +265,7 @@ def test_deployed_form_is_the_clean_method_without_its_noise_key(toy):
             one, zero = jnp.ones((), jnp.float64), jnp.zeros((), jnp.float64)
             scored, scored_state = _stream_thetas(method.build(one, zero), units)
             deployed, deployed_state = _stream_thetas(method.deploy(), units)
-            assert _has_key(scored_state) and not _has_key(deployed_state)
+            assert has_prng_key(scored_state) and not has_prng_key(deployed_state)
             # the unperturbed model is the same function bit for bit
             np.testing.assert_array_equal(deployed, scored)
             assert np.ptp(deployed, axis=0).max() > 1e-4  # theta moved

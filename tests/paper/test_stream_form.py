@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.keys import has_prng_key
 
 from jaxcal.calibrators.policy import IncrementPolicyParams, make_policy_calibrator
 from jaxcal.envs.memory import HintedDynamics
@@ -56,6 +57,11 @@ def setup():
 
 def _stream(dyn, params, w, x, warm_start):
     cal = make_policy_calibrator(_Feedback(), dyn, params, warm_start=warm_start)
+    return _run(cal, w, x)
+
+
+def _run(cal, w, x):
+    """theta [T, P], x-hat [T, S] and the last state of ``cal`` along (w, x)."""
     step = jax.jit(cal.step)
     with jax.enable_x64(True):
         state = cal.init(None, jnp.asarray(w[0]), jnp.asarray(x[0]))
@@ -97,19 +103,10 @@ def test_policy_method_deploys_warm_without_a_noise_key(setup):
     with jax.enable_x64(True):
         cal = method.deploy()
         state = cal.init(jax.random.key(0), jnp.asarray(w[0]), jnp.asarray(x[0]))
-        keys = [
-            a for a in jax.tree.leaves(state)
-            if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)
-        ]  # fmt: skip
-        assert not keys
+        assert not has_prng_key(state)
         assert state.hint is not None  # the solver's warm start is carried
         theta_d, _, _ = _stream(dyn, params, w, x, warm_start=True)
-        step = jax.jit(cal.step)
-        rows = []
-        for t in range(len(w)):
-            state, out = step(state, jnp.asarray(w[t]), jnp.asarray(x[t]))
-            rows.append(np.asarray(out.theta))
-        np.testing.assert_array_equal(np.stack(rows), theta_d)
+        np.testing.assert_array_equal(_run(cal, w, x)[0], theta_d)
         units = UnitArrays(
             w=w[None], x=x[None], theta=np.zeros((1, len(w), 2)),
             lengths=np.array([len(w)], np.int32), unit_ids=np.array([1]),
