@@ -116,6 +116,14 @@ def residual_fn(z, params):
     return cycle.balance(d, dp, w, theta, effects, z)[0]
 
 
+def default_solver_config(dtype) -> solver.SolverConfig:
+    """F's Newton settings at a float precision: float32 cannot reach float64's
+    tolerance, so it stops at 2e-5 and may take more iterations."""
+    if dtype == jnp.float64:
+        return solver.SolverConfig()
+    return solver.SolverConfig(tol=2e-5, max_iter=30)
+
+
 def evaluate_design(
     d: EngineDesign,
     w,
@@ -148,12 +156,7 @@ def evaluate_design(
         (x [..., S], EngineInfo) with S = len(SENSOR_NAMES).
     """
     dtype = float_dtype()
-    if solver_cfg is None:
-        solver_cfg = (
-            solver.SolverConfig()
-            if dtype == jnp.float64
-            else solver.SolverConfig(tol=2e-5, max_iter=30)
-        )
+    solver_cfg = default_solver_config(dtype) if solver_cfg is None else solver_cfg
     accept = max(100.0 * solver_cfg.tol, 1e-9) if dtype == jnp.float64 else 1e-4
     w = jnp.asarray(w, dtype)
     theta = jnp.asarray(theta, dtype)

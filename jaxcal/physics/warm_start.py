@@ -21,6 +21,7 @@ from jaxcal.physics.design import DesignPoint, EngineDesign, design_point
 from jaxcal.physics.evaluation import (
     EngineInfo,
     Envelope,
+    default_solver_config,
     evaluate_design,
     in_envelope,
     physical,
@@ -74,11 +75,7 @@ def evaluate_hinted(
         (x [S], EngineInfo, next hint).
     """
     dtype = float_dtype()
-    cfg = solver_cfg or (
-        solver.SolverConfig()
-        if dtype == jnp.float64
-        else solver.SolverConfig(tol=2e-5, max_iter=30)
-    )
+    cfg = default_solver_config(dtype) if solver_cfg is None else solver_cfg
     w, theta = jnp.asarray(w, dtype), jnp.asarray(theta, dtype)
     if w.shape != (len(CONDITION_NAMES),) or theta.shape != (len(HEALTH_NAMES),):
         raise ValueError(
