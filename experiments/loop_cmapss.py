@@ -206,8 +206,11 @@ def main(argv: list[str]) -> int:
         "",
         f"Command: `{command.strip()}`. Engine `{cfg.engine}` with its current design "
         f"constants; declared {', '.join(cfg.declared)} per unit ({cfg.knots} cubic "
-        "B-spline functions in cycle); noise std estimated from the residual "
-        "(nearest-neighbour differences in (w, cycle)).",
+        "B-spline functions in cycle); noise estimated from the residual: an AR(p) "
+        "colour per output and its level (nearest-neighbour differences of the "
+        "prewhitened residual in (w, cycle)), every test on the prewhitened "
+        "residual; effects fleet-wide or in the units that carry them, steps with "
+        "their onsets.",
         "",
     ]
     for fd, path in paths.items():
@@ -228,6 +231,7 @@ def main(argv: list[str]) -> int:
             source=path,
             model=cfg.engine,
             config=config,
+            base_spec=cfg.engine,
         )
         d = res.data
         length = dict(

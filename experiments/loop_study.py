@@ -1,8 +1,9 @@
 """Identification study of the closing-the-loop diagnosis over seeds and effect kinds.
 
 For every effect kind of :func:`jaxcal.diagnosis.synthetic.kinds` of the turbofan (the
-clean record, one undeclared health modifier -- kind ``parameter`` --, the six engine
-effects, a sensor bias / gain / drift and an effect outside the library) and every
+clean record, one undeclared health modifier -- kinds ``parameter`` (drifting) and
+``parameter_step`` (jumping mid-life) --, the six engine effects, a sensor bias / gain
+/ drift / step and an effect outside the library) and every
 seed, a synthetic N-CMAPSS-like record (:mod:`jaxcal.models.turbofan_scenario`) with
 exactly that effect is generated and diagnosed with the noise levels known. Measured:
 
@@ -54,7 +55,7 @@ KINDS = (
     "none", "parameter", "t2_offset", "customer_bleed", "power_offtake",
     "core_nozzle_area", "bypass_nozzle_area", "inlet_recovery", "sensor_bias",
     "sensor_gain", "sensor_drift", "discrepancy", "sensor_gain_drift",
-    "condition_offset",
+    "condition_offset", "parameter_step", "sensor_step",
 )  # fmt: skip
 
 

@@ -79,6 +79,7 @@ from jaxcal.envs.tracking import check_action_options
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.settings import parse_overrides
 from jaxcal.surrogate.model import SurrogateConfig
+from jaxcal.training.run_guard import check_run_name
 from jaxcal.training.runner import RunnerConfig
 
 AgentConfig = SACConfig | LACConfig | CLACConfig
@@ -236,7 +237,9 @@ class OutputConfig:
     """Where and what a run writes."""
 
     runs_dir: str = "runs"  # parent folder of run folders
-    name: str = ""  # run folder name; "": <dataset>-<agent>-<dynamics>-s<seed>[-preset]
+    # run folder name, one folder inside runs_dir (no '/', '\\', '..', leading '.');
+    # "": <dataset>-<agent>-<dynamics>-s<seed>[-preset]
+    name: str = ""
     # save the replay buffer in checkpoints: exact resumes, but the checkpoint grows by
     # buffer_size x (2 O + A + 2) x 4 bytes; without it a resume refills the buffer
     save_buffer: bool = True
@@ -275,6 +278,13 @@ class TrainConfig:
                 f"agent must be one of {[c.__name__ for c in AGENT_NAMES]}, got "
                 f"{type(self.agent).__name__}"
             )
+        # confined to runs_dir: refused here, before any file is read or written
+        check_run_name(
+            self.run_name,
+            "name"
+            if self.output.name
+            else "name (derived from the data's name; set name=)",
+        )
 
     @property
     def agent_name(self) -> str:

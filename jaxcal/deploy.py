@@ -35,19 +35,35 @@ z_0 = the state after the first sample with the prior theta
 methods through ``run_calibrator`` / ``run_fleet``; ``jaxcal.calibrate(model, data,
 method="policy", run=<folder>)`` does the same on a data file.
 
+A run folder is self-contained: ``data.json`` records its model, and a model file
+(``model=file.py:attr``) is copied into ``model/`` with its sha256; loading the run
+runs that copy (an edited copy is refused), never a path outside the folder, so a
+run loads after its model file moved and does not follow later edits of it
+(:mod:`jaxcal.training.model_source`). Loading a run folder runs its model's code,
+as loading a pickle does: load only run folders you trust. A run of the older
+layout, whose model is a file outside it, is refused; :func:`adopt_model_file`
+copies a file you trust into it.
+
 This module is the public import path only: the code lives below the command lines,
 in :mod:`jaxcal.training.runs` (loading) and :mod:`jaxcal.training.streaming`. A run
 whose model needs float64 with ``dynamics=physics`` needs x64 enabled first
 (``jaxcal.precision.enable_x64()``).
 """
 
-from jaxcal.training.runs import LoadedRun, load_calibrator, load_run, run_check
+from jaxcal.training.runs import (
+    LoadedRun,
+    adopt_model_file,
+    load_calibrator,
+    load_run,
+    run_check,
+)
 from jaxcal.training.streaming import StepInfo, StreamingCalibrator
 
 __all__ = [
     "LoadedRun",
     "StepInfo",
     "StreamingCalibrator",
+    "adopt_model_file",
     "load_calibrator",
     "load_run",
     "run_check",

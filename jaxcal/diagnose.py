@@ -4,13 +4,17 @@
         data=<file .csv | .parquet | .h5 | .txt> calibrate=<declared parameters> \\
         [out=<dir>] [units=1,2] [outputs=T24,T30] [max_rows=20000]
 
-Any static :class:`jaxcal.Model` (``jaxcal.models.load`` spec); ``engine=`` is the
+Any :class:`jaxcal.Model`, static or with hidden states (``jaxcal.models.load``
+spec; a model with memory is diagnosed in output-error form); ``engine=`` is the
 old name of ``model=`` and ``cmapss`` the default, so turbofan commands of before
 still work. Writes ``report.md``, ``report.json`` and PNG figures to ``out`` (default
 ``results/diagnose/<file stem>/``), naming effects in the model's vocabulary and units,
 per unit (report.json ``identified[i].units``: ``unit``, ``carries``, ``size``,
 ``size_std``, ``onset``; ``units.png``) and with the plausibility flags of the verdict
-(``flags``; :mod:`jaxcal.diagnosis.plausibility`), which the console line repeats.
+(``flags``; :mod:`jaxcal.diagnosis.plausibility`), which the console line repeats,
+and, when effects were added, the extended model ``extended_model.json`` that
+``model=`` accepts on every command line (the loop closed: the twin tracks the effect
+in real time with any method).
 Arguments are ``key=value`` (``jaxcal.settings.parse_overrides``); an unknown key, a
 missing required one or bad data exits with code 2 and a message that names the field
 and the valid choices. CSV / Parquet columns are named as the model's conditions and
@@ -50,7 +54,8 @@ class DiagnoseConfig:
     split: str = "dev"  # N-CMAPSS split: dev or test
     stride: int = 0  # N-CMAPSS load stride (0: from max_rows)
     knots: int = 6  # B-spline functions per unit and declared parameter
-    families: tuple[str, ...] = ()  # effect families (default all)
+    kinds: tuple[str, ...] = ()  # effect kinds (default all; jaxcal.diagnosis.kinds)
+    families: tuple[str, ...] = ()  # old name of kinds=
     bic_margin: float = 10.0  # delta BIC for "found" and for confounding
     alpha: float = 0.01  # family-wise level of the likelihood-ratio tests
     # column names to map, <file name>:<model name> (e.g. T_24:T24)
@@ -144,7 +149,7 @@ def run(cfg: DiagnoseConfig) -> dict:
     data = load_data(cfg, model)
     loop_cfg = LoopConfig(
         knots=cfg.knots,
-        families=cfg.families,
+        kinds=cfg.kinds or cfg.families,
         identify=IdentifyConfig(alpha=cfg.alpha, bic_margin=cfg.bic_margin),
         discrepancy=DiscrepancyConfig(margin=cfg.bic_margin),
     )
@@ -162,11 +167,17 @@ def run(cfg: DiagnoseConfig) -> dict:
         "loop": config_to_dict(loop_cfg),
         "seconds": time.time() - start,
     }
-    rep = write_report(out, res, source=cfg.data, model=model.name, config=config)
+    rep = write_report(
+        out, res, source=cfg.data, model=model.name, config=config,
+        base_spec=cfg.model_spec,
+    )  # fmt: skip
     rep["out"] = out
     dropped = rep["data"]["dropped"]
     if dropped["rows"] or dropped["columns"]:  # said here, in report.md and .json
         print(f"jaxcal.diagnose: {cfg.data}: {dropped_rows_line(dropped)}")
+    for note in rep["data"]["notes"]:  # wild readings and missing outputs, too
+        if "outlier" in note or "outputs missing" in note:
+            print(f"jaxcal.diagnose: {cfg.data}: {note}")
     return rep
 
 

@@ -138,7 +138,9 @@ def _split_units(run, split: str, data: str | None):
         theta=problem.theta_names,
         sensors=problem.output_names,
     )
-    units = getattr(read_run_data(cfg, units=stored["units"], log=print), split)
+    # the run's own model (its copy), never the path its model_spec names
+    splits = read_run_data(cfg, units=stored["units"], log=print, model=problem.model)
+    units = getattr(splits, split)
     if units is None:
         raise ValueError(f"run {run.run_dir} has no {split} units")
     return units

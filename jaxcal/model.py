@@ -36,6 +36,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.model_contract import (
+    ModelContractError,
+    checked_output,
+    checked_state,
+    split_output,
+    split_step,
+)
 from jaxcal.model_spec import (
     DiagnosisHints,
     ModelInfo,
@@ -44,6 +51,7 @@ from jaxcal.model_spec import (
     Variable,
     as_parameters,
     as_variables,
+    check_vocabulary,
     names_to_index,
 )
 from jaxcal.typedefs import Array
@@ -51,6 +59,7 @@ from jaxcal.typedefs import Array
 __all__ = [
     "DiagnosisHints",
     "Model",
+    "ModelContractError",
     "ModelInfo",
     "Parameter",
     "StepFn",
@@ -143,9 +152,11 @@ class Model:
                 "hinted_fn and initial_hint go together: give both or none"
             )
 
+        declared = [v.name for v in as_variables(outputs, "outputs")]
+
         def step(state, w, theta):
-            out = fn(w, theta)
-            x, valid = out if isinstance(out, tuple) else (out, None)
+            out, call = fn(w, theta), "fn(w, theta)"
+            x, valid = split_output(out, declared, model=str(name), call=call)
             return state, x, valid
 
         def init_state(w0, theta):
@@ -183,16 +194,20 @@ class Model:
             init_fn = init_state
         else:
             init = np.asarray(init_state, dtype=np.float64)
+            names = [v.name for v in as_variables(states, "states")]
+            if init.shape != (len(names),):
+                raise ModelContractError(
+                    f"model {name!r}: init_state has shape {init.shape}; expected "
+                    f"[{len(names)}], one value per declared state {names}"
+                )
 
             def init_fn(w0, theta):
                 del w0
                 return jnp.asarray(init, dtype=jnp.result_type(theta))
 
         def step_fn(state, w, theta):
-            out = step(state, w, theta)
-            if len(out) == 3:
-                return out
-            return out[0], out[1], None
+            call = "step(state, w, theta)"
+            return split_step(step(state, w, theta), model=str(name), call=call)
 
         return cls._build(
             name, conditions, parameters, outputs, step_fn, init_fn,
@@ -217,14 +232,20 @@ class Model:
             if np.any(low > high) or np.isnan(low).any() or np.isnan(high).any():
                 raise ValueError("condition_range: need low <= high, no NaN")
             condition_range = (low, high)
-        effects = as_parameters(effects) if effects else ()
+        effects = as_parameters(effects, "effects") if effects else ()
         if effects and effect_fn is None:
             raise ValueError("effects need an effect_fn(w, theta, e) -> x")
+        parameters = as_parameters(parameters)
+        outputs = as_variables(outputs, "outputs")
+        check_vocabulary(
+            condition=conditions, parameter=parameters, output=outputs, state=states,
+            effect=effects,
+        )  # fmt: skip
         return cls(
             name=str(name),
             conditions=conditions,
-            parameters=as_parameters(parameters),
-            outputs=as_variables(outputs, "outputs"),
+            parameters=parameters,
+            outputs=outputs,
             step_fn=step,
             init_state_fn=init_state,
             states=tuple(states),
@@ -315,11 +336,20 @@ class Model:
 
     def init_state(self, w0: Array, theta: Array) -> Array:
         """``[Z]`` initial hidden state (``[0]`` for a static model)."""
-        return self.init_state_fn(w0, theta)
+        state = self.init_state_fn(w0, theta)
+        return checked_state(self, state, "init_state(w0, theta)")
 
     def step(self, state: Array, w: Array, theta: Array):
-        """``(next_state [Z], x [S_all], ModelInfo)`` of one sample (pure, jittable)."""
+        """``(next_state [Z], x [S_all], ModelInfo)`` of one sample (pure, jittable).
+
+        Raises:
+            ModelContractError: the model's function returned another shape or
+                dtype than its declared outputs / states (checked at trace time).
+        """
         next_state, x, valid = self.step_fn(state, w, theta)
+        call = "step(state, w, theta)" if self.is_stateful else "fn(w, theta)"
+        next_state = checked_state(self, next_state, call)
+        x, valid = checked_output(self, x, valid, call)
         return next_state, x, self._info(w, theta, x, valid)
 
     def evaluate(self, w: Array, theta: Array) -> tuple[Array, ModelInfo]:
@@ -359,6 +389,7 @@ class Model:
             x, info = self.evaluate(w, theta)
             return x, info, hint
         x, valid, next_hint = self.hinted_fn(w, theta, hint)
+        x, valid = checked_output(self, x, valid, "hinted_fn(w, theta, hint)")
         return x, self._info(w, theta, x, valid), next_hint
 
     def evaluate_effects(
@@ -368,8 +399,11 @@ class Model:
         (validity as in :meth:`evaluate`)."""
         if self.effect_fn is None:
             raise ValueError(f"model {self.name!r} registers no effects")
-        out = self.effect_fn(w, theta, e)
-        x, valid = out if isinstance(out, tuple) else (out, None)
+        call = "effect_fn(w, theta, e)"
+        x, valid = split_output(
+            self.effect_fn(w, theta, e), self.output_names, model=self.name, call=call
+        )
+        x, valid = checked_output(self, x, valid, call)
         return x, self._info(w, theta, x, valid)
 
     def restrict(

@@ -107,25 +107,62 @@ def as_variables(spec, field: str) -> tuple[Variable, ...]:
     return tuple(items)
 
 
-def as_parameters(spec) -> tuple[Parameter, ...]:
-    """``{name: (nominal, low, high[, unit])}`` or Parameters -> Parameters."""
+PARAMETER_FORMS = (
+    "{name: (nominal, low, high)}, {name: (nominal, low, high, unit)}, {name: "
+    "Parameter(...)} or a sequence of Parameter / (name, nominal, low, high[, unit])"
+)
+
+
+def _parameter(name, value, field: str) -> Parameter:
+    """One parameter spec -> Parameter (``name`` None: a ``(name, nominal, low,
+    high[, unit])`` row); any other form is an error listing the accepted ones. A
+    bare nominal is refused: the calibrators search inside the bounds, and a
+    guessed box would be a silent choice."""
+    if isinstance(value, Parameter):
+        return value if name is None else value._replace(name=str(name))
+    is_row = isinstance(value, Sequence) and not isinstance(value, (str, bytes))
+    if name is None and is_row and len(value) in (4, 5) and isinstance(value[0], str):
+        name, value = value[0], tuple(value[1:])
+    elif name is None or not is_row:
+        want = (
+            "(name, nominal, low, high[, unit]) or a Parameter"
+            if name is None
+            else "(nominal, low, high) or (nominal, low, high, unit): a parameter "
+            "needs bounds (the calibrators search inside them)"
+        )
+        raise ValueError(
+            f"{field}: got {value!r}; expected {want}. Accepted forms: "
+            f"{PARAMETER_FORMS}"
+        )
+    value = tuple(value)
+    if len(value) not in (3, 4):
+        raise ValueError(
+            f"{field} must be (nominal, low, high) or (nominal, low, high, unit), "
+            f"got {value!r}"
+        )
+    try:
+        numbers = [float(v) for v in value[:3]]
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{field}: nominal, low and high must be numbers, got {value[:3]!r}"
+        ) from None
+    unit = str(value[3]) if len(value) == 4 else "-"
+    return Parameter(str(name), *numbers, unit)
+
+
+def as_parameters(spec, field: str = "parameters") -> tuple[Parameter, ...]:
+    """``{name: (nominal, low, high[, unit])}`` or Parameters -> Parameters (see
+    :data:`PARAMETER_FORMS`)."""
     if isinstance(spec, Mapping):
-        items = []
-        for name, value in spec.items():
-            if isinstance(value, Parameter):
-                items.append(value._replace(name=str(name)))
-                continue
-            value = tuple(value)
-            if len(value) not in (3, 4):
-                raise ValueError(
-                    f"parameters[{name!r}] must be (nominal, low, high) or "
-                    f"(nominal, low, high, unit), got {value!r}"
-                )
-            unit = str(value[3]) if len(value) == 4 else "-"
-            items.append(Parameter(str(name), *map(float, value[:3]), unit))
+        items = [
+            _parameter(name, value, f"{field}[{name!r}]")
+            for name, value in spec.items()
+        ]
+    elif isinstance(spec, (str, bytes)) or not isinstance(spec, Sequence):
+        raise ValueError(f"{field}: got {spec!r}; expected {PARAMETER_FORMS}")
     else:
-        items = [p if isinstance(p, Parameter) else Parameter(*p) for p in spec]
-    check_names([p.name for p in items], "parameters")
+        items = [_parameter(None, p, f"{field}[{i}]") for i, p in enumerate(spec)]
+    check_names([p.name for p in items], field)
     for p in items:
         if not (np.isfinite([p.nominal, p.low, p.high]).all() and p.low < p.high):
             raise ValueError(
@@ -137,6 +174,46 @@ def as_parameters(spec) -> tuple[Parameter, ...]:
                 f"[{p.low}, {p.high}]"
             )
     return tuple(items)
+
+
+# Column names that tables and results give their own meaning: ``unit``, ``time``
+# and ``split`` in the data (:mod:`jaxcal.data.readers`), ``valid`` and ``reason`` in
+# a calibration's per-row results. A model variable of one of these names would be
+# read as that column, or overwrite it, so it is refused at construction.
+TABLE_COLUMNS = ("unit", "time", "split")
+RESULT_COLUMNS = ("valid", "reason")
+RESERVED_NAMES = TABLE_COLUMNS + RESULT_COLUMNS
+
+
+def check_vocabulary(**groups: Sequence[Variable | Parameter]) -> None:
+    """Each name of a model names one thing: a data column is a condition, an output
+    or a true parameter, and a result column a parameter, a state or an output, so a
+    name in two groups (a parameter named like a condition) or a reserved name
+    (:data:`RESERVED_NAMES`) is an error naming both uses.
+
+    Args:
+        groups: kind (``condition=``, ``parameter=``, ...) -> its variables.
+    """
+    owner: dict[str, str] = {}
+    for kind, variables in groups.items():
+        for name in (v.name for v in variables):
+            if name in RESERVED_NAMES:
+                raise ValueError(
+                    f"{kind} {name!r}: the name is reserved ({', '.join(TABLE_COLUMNS)}"
+                    f" are data columns, {', '.join(RESULT_COLUMNS)} result columns); "
+                    f"give the {kind} another name, e.g. {name + '_' + kind!r}"
+                )
+            if name in owner:
+                raise ValueError(
+                    f"{name!r} is both {_a(owner[name])} and {_a(kind)}: the names of "
+                    "conditions, parameters, outputs, states and effects must differ "
+                    "(each names one data or result column)"
+                )
+            owner[name] = kind
+
+
+def _a(word: str) -> str:
+    return ("an " if word[0] in "aeiou" else "a ") + word
 
 
 def check_names(names: Sequence[str], field: str) -> None:

@@ -67,11 +67,15 @@ class Normalisation(NamedTuple):
     def of(cls, w: np.ndarray, x: np.ndarray, dtype=np.float64) -> Normalisation:
         """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1),
         computed in ``dtype`` (``None``: the arrays' own, so a float32 run keeps the
-        exact float32 statistics it always had)."""
+        exact float32 statistics it always had). A NaN (a missing output of a partial
+        row) is left out of its column's statistics."""
 
         def stats(a):
             a = np.asarray(a, dtype)
-            mean, std = a.mean(axis=0), a.std(axis=0)
+            if np.isnan(a).any():  # host branch: complete data keep their exact bits
+                mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
+            else:
+                mean, std = a.mean(axis=0), a.std(axis=0)
             tiny = std <= _CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
             return mean, np.where(tiny, 1.0, std).astype(a.dtype)
 
@@ -170,6 +174,13 @@ class Problem:
                 base[model.parameter_names.index(name)] = data.theta[:, j].mean()
         elif box != "bounds":
             raise ValueError(f"box must be 'bounds' or 'data', got {box!r}")
+        seen = ~np.isnan(data.x).all(axis=0)  # a partial row misses some outputs
+        if not seen.all():
+            unseen = [n for n, s in zip(data.output_names, seen, strict=True) if not s]
+            raise ValueError(
+                f"{data.source}: output column(s) {unseen} hold no value (every row "
+                "missing); leave them out with outputs=[...]"
+            )
         norm = Normalisation.of(data.w, data.x)
         noise_std, source = _noise_vector(noise, data.output_names, norm)
         return cls(
@@ -181,8 +192,11 @@ class Problem:
             theta_high=np.asarray(high, np.float64),
             norm=norm,
             noise_std=noise_std,
-            input_range=InputRange(
-                data.w.min(0), data.w.max(0), data.x.min(0), data.x.max(0)
+            input_range=InputRange(  # missing outputs (NaN) left out
+                data.w.min(0),
+                data.w.max(0),
+                np.nanmin(data.x, 0),
+                np.nanmax(data.x, 0),
             ),
             noise_source=source,
         )

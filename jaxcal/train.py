@@ -31,11 +31,15 @@ the same command resumes from the last checkpoint; a run folder made with a diff
 config is an error. Every check of the config and the data (path given, file readable,
 theta and sensor names, unit splits, run folder writable) runs before the run folder is
 created: a start that fails (exit code 2) leaves nothing behind, and the corrected
-command runs. Every field of :class:`jaxcal.config.TrainConfig` can be set with
-``key=value`` (dotted for nested fields: ``agent.actor_lr=1e-4``,
-``runner.num_envs=32``, ``budget.num_chunks=100``, ``surrogate.fit.num_epochs=20``);
-``name=`` is ``output.name=``. An unknown key is an error that lists the valid keys
-(exit code 2).
+command runs. ``name=`` is one folder name inside ``output.runs_dir``
+(``name=../x``, an absolute name or one with a path separator: exit code 2). A second
+training of a run in use exits 2 with who holds it (the lock dies with its process).
+The run folder keeps a copy of a ``model=file.py:attr`` file, which loading the run
+uses (a resume refuses a model file changed since the run started). Every field of
+:class:`jaxcal.config.TrainConfig` can be set with ``key=value`` (dotted for nested
+fields: ``agent.actor_lr=1e-4``, ``runner.num_envs=32``, ``budget.num_chunks=100``,
+``surrogate.fit.num_epochs=20``); ``name=`` is ``output.name=``. An unknown key is an
+error that lists the valid keys (exit code 2).
 """
 
 from __future__ import annotations
@@ -163,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from jaxcal.precision import enable_compilation_cache, enable_x64
     from jaxcal.training.pipeline import GenerationError, run_training
-    from jaxcal.training.run_dir import FINAL_FILE, write_json
+    from jaxcal.training.run_dir import FINAL_FILE
 
     # a missing data file is generated with the engine, whose solve compiles in ~45 s
     enable_compilation_cache()
@@ -175,20 +179,23 @@ def main(argv: list[str] | None = None) -> int:
         os.path.join(cfg.output.runs_dir, cfg.run_name, FINAL_FILE)
     )
     before = previous.get("wall_seconds_total", previous.get("wall_seconds", 0.0))
+
+    def finish(final: dict) -> dict:  # written once, under the run's lock
+        final["wall_seconds"] = time.perf_counter() - start
+        final["sessions"] = previous.get("sessions", 1 if previous else 0) + 1
+        final["wall_seconds_total"] = final["wall_seconds"] + before
+        return final
+
     try:
-        final = run_training(cfg, clock=lambda: before + time.perf_counter() - start)
+        final = run_training(
+            cfg, clock=lambda: before + time.perf_counter() - start, finish=finish
+        )
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except GenerationError as err:  # the generator crashed (it printed why): exit 1
         print(f"error: {err}", file=sys.stderr)
         return 1
-    final["wall_seconds"] = time.perf_counter() - start
-    final["sessions"] = previous.get("sessions", 1 if previous else 0) + 1
-    final["wall_seconds_total"] = final["wall_seconds"] + previous.get(
-        "wall_seconds_total", previous.get("wall_seconds", 0.0)
-    )
-    write_json(f"{final['run']}/{FINAL_FILE}", final)
     print(format_final(final))
     return 0
 

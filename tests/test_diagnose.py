@@ -12,7 +12,7 @@ from jaxcal.data.cmapss_text import SENSOR_MAP
 from jaxcal.data.ncmapss_io import write_ncmapss
 from jaxcal.data.record import Record
 from jaxcal.diagnose import main
-from jaxcal.diagnosis.effects import LAYER_NAMES, linearize
+from jaxcal.diagnosis.signatures import linearize
 from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
 from jaxcal.models import load
 from jaxcal.models.turbofan_scenario import EFFECT_SIZES, FleetConfig, make_scenario
@@ -89,14 +89,7 @@ def _write_cmapss(path, engine, rng, t30_bias):
         theta = np.zeros((cond.size, 10))
         theta[:, 4] = -0.01 * cycle / cycle.size
         theta[:, 5] = -0.02 * cycle / cycle.size
-        y = linearize(
-            engine,
-            w,
-            theta,
-            np.zeros(6),
-            np.zeros((len(LAYER_NAMES), 35)),
-            np.zeros(cond.size),
-        ).y
+        y = linearize(engine, w, theta).x
         names = list(engine.output_names)
         cols = {s: y[:, names.index(n)] for s, n in SENSOR_MAP.items()}
         cols[3] = cols[3] + t30_bias

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
-from jaxcal.calibrators.interface import run_fleet
+from jaxcal.calibrators.interface import REASONS, run_fleet
 from jaxcal.config import resolve_config
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env
@@ -138,7 +138,7 @@ def test_streaming_skips_a_poisoned_sample_and_flags_it(trained):
     assert cal.check is not None  # the run stored its training range
     clean = [cal.step(w[t], x[t]) for t in range(length) if t != bad]
     for t_bad, value, reason in [
-        (bad, np.nan, "x_nonfinite"),
+        (bad, np.nan, "x_partial"),  # one output missing: a policy needs them all
         (bad, np.inf, "x_nonfinite"),
         (bad, 1e6, "x_out_of_range"),
     ]:
@@ -174,7 +174,7 @@ def test_batch_run_flags_and_scores_only_valid_samples(trained):
     x_bad[0, 3, 1] = np.nan
     theta, xhat, valid, reason = cal.run(units.w, x_bad, units.mask, return_flags=True)
     assert np.isfinite(theta).all()
-    assert not valid[0, 3] and reason[0, 3] == 3  # x_nonfinite
+    assert not valid[0, 3] and REASONS[reason[0, 3]] == "x_partial"  # one missing
     assert valid[units.mask].sum() == units.mask.sum() - 1
     np.testing.assert_array_equal(theta[0, 3], theta[0, 2])
     theta_ok, _ = cal.run(units.w, units.x, units.mask)

@@ -122,9 +122,10 @@ def test_nonfinite_rows_named_or_dropped(tmp_path):
     frame = _frame()
     frame.loc[[3, 5], "y2"] = np.nan
     frame.to_csv(tmp_path / "d.csv", index=False)
+    # partial rows (y1 still there) are kept by default; partial=False: as any NaN
     with pytest.raises(ValueError, match=r"d.csv.*column y2: 2 lines \(lines 5, 7\)"):
-        read_dataset(tmp_path / "d.csv", _model())
-    data = read_dataset(tmp_path / "d.csv", _model(), nonfinite="drop")
+        read_dataset(tmp_path / "d.csv", _model(), partial=False)
+    data = read_dataset(tmp_path / "d.csv", _model(), nonfinite="drop", partial=False)
     assert data.num_rows == 10 and data.dropped == {"y2": 2}
 
 

@@ -11,6 +11,13 @@ training data, chosen by the caller.
 Inputs are [w_t, x_t, x_{t−1}] standardised with training statistics; at a unit's first
 valid sample x_{t−1} is taken equal to x_t. :func:`make_e2e_calibrator` wraps a trained
 network in the common :class:`~jaxcal.calibrators.interface.Calibrator` interface.
+
+A row with some outputs missing (NaN: a sensor channel dropped out) cannot enter G,
+and is skipped with reason ``x_partial`` (the calibrator does not accept partial
+rows): the estimate holds, the row is flagged ``partial``. Imputing the missing
+output with the model at the current θ was not chosen: G would read back the value
+its own last estimate implies, which pulls θ_t towards θ_{t−1} by an amount nobody
+controls, and G was trained on complete rows only.
 """
 
 from __future__ import annotations
@@ -215,6 +222,25 @@ def fit_e2e(
     Returns:
         ``(params, history)`` as in :func:`jaxcal.nets.mlp.fit_regressor`.
     """
+    inputs, targets = e2e_training_rows(w, x, theta, mask, window)
+    return fit_e2e_rows(
+        key, inputs, targets, cfg, condition_dim=np.shape(w)[-1],
+        sensor_dim=np.shape(x)[-1], window=window, log_fn=log_fn, progress=progress,
+    )  # fmt: skip
+
+
+def e2e_training_rows(
+    w: Array, x: Array, theta: Array, mask: Array, window: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """G's inputs and labels of the valid samples of labelled trajectories.
+
+    Args:
+        w, x, theta, mask: as in :func:`fit_e2e` (``[U, T, ·]``, ``[U, T]``).
+        window: as in :func:`fit_e2e`.
+
+    Returns:
+        ``(inputs [M, F], targets [M, P])`` of the ``M`` valid samples, unit-major.
+    """
     w, x, theta = (np.asarray(v) for v in (w, x, theta))
     mask = np.asarray(mask, bool)
     for name, v in (("w", w), ("x", x), ("theta", theta)):
@@ -227,8 +253,24 @@ def fit_e2e(
     features = np.asarray(feats)
     keep = mask.reshape(-1)
     inputs = features.reshape(-1, features.shape[-1])[keep]
-    targets = theta.reshape(-1, theta.shape[-1])[keep]
-    net = MLP(tuple(cfg.hidden_sizes), theta.shape[-1], cfg.activation)
+    return inputs, theta.reshape(-1, theta.shape[-1])[keep]
+
+
+def fit_e2e_rows(
+    key: PRNGKey,
+    inputs: np.ndarray,
+    targets: np.ndarray,
+    cfg: E2EConfig,
+    *,
+    condition_dim: int,
+    sensor_dim: int,
+    window: int = 0,
+    log_fn: Callable[[int, dict[str, float]], None] | None = None,
+    progress: bool = False,
+) -> tuple[E2EParams, dict]:
+    """Fit G on rows of :func:`e2e_training_rows` (``W``, ``S`` and ``window`` name
+    its input layout); returns as :func:`fit_e2e`."""
+    net = MLP(tuple(cfg.hidden_sizes), targets.shape[-1], cfg.activation)
     regressor, history = fit_regressor(
         key, net, inputs, targets, cfg.fit, log_fn=log_fn, progress=progress
     )
@@ -236,9 +278,9 @@ def fit_e2e(
         regressor=regressor,
         hidden_sizes=tuple(cfg.hidden_sizes),
         activation=cfg.activation,
-        condition_dim=w.shape[-1],
-        sensor_dim=x.shape[-1],
-        theta_dim=theta.shape[-1],
+        condition_dim=int(condition_dim),
+        sensor_dim=int(sensor_dim),
+        theta_dim=targets.shape[-1],
         window=int(window),
     )
     return params, history

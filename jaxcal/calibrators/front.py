@@ -8,6 +8,7 @@ jitted), and returns per-row results in the input's row order::
     result.theta        # [N, P] numpy, result.theta_names
     result.theta_std    # [N, P] (UKF; None where a method has no uncertainty)
     result.valid        # [N] bool: False where a sample was skipped, result.reason
+    result.partial      # [N] bool: some outputs of the row were missing (NaN)
 
 Methods (peers under the one ``Calibrator(init, step)`` interface):
 
@@ -25,18 +26,49 @@ and the window's initial state by simulating the model over a sliding window, E2
 reads a window of past samples, a policy carries the model state;
 ``result.states [N, Z]`` holds the estimated states where a method has them.
 
-Noise: ``noise={output: std}``; when omitted it is estimated from the data as the
-residual of a sliding-window least-squares pass (``result.noise_source`` says so).
+Partial rows: a row with some outputs missing (NaN or an empty cell; conditions
+finite, at least one output finite) is read and kept. The UKF and least squares
+update on its observed outputs (``valid`` True, ``reason`` ``ok``); E2E and a policy
+cannot take a NaN input and skip it (``valid`` False, ``reason`` ``x_partial``).
+Either way ``result.partial`` marks it. The flag is a field of its own, not a reason,
+so that ``reason != "ok"`` still means "skipped" everywhere: a used partial row is
+not a skipped one. Its ``xhat`` holds the model's prediction of the missing outputs.
+
+Noise: ``noise={output: std}``; when omitted it is estimated from the data, robustly,
+from the post-fit residual of UKF passes (:mod:`jaxcal.calibrators.screen`;
+``result.noise_source`` says so).
+
+No single bad row decides anything for the other rows:
+
+* **Outliers.** The same UKF passes flag wild readings (an innovation beyond
+  ``outlier_z`` = 6 robust stds, :mod:`jaxcal.calibrators.screen`): they are skipped
+  by every method, left out of the noise, and reported as ``reason == "outlier"``.
+  With a given noise they are still flagged, judged against that noise (or the
+  data's own spread where wider). ``outlier_z=None`` turns the flags off; the policy
+  without ``noise=`` is not screened (nothing to judge by).
+* **Skipped rows** (flagged for any reason) report the estimate carried from the
+  unit's last used row, or before its first one the prior (``theta`` the nominal
+  values, ``theta_std`` the UKF's prior std or a uniform's over the box, ``xhat``
+  ``nan``), with ``valid`` False. Every flag is counted on one console line (a
+  ``UserWarning``, also in ``result.notes``); a calibration that keeps no row is an
+  error that says why (:mod:`jaxcal.calibrators.skipped`).
+* **Memory** grows with the rows: units are padded in groups of similar length
+  (:mod:`jaxcal.data.buckets`), one compiled program per group.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Mapping, Sequence
 
 import jax
 import numpy as np
 
+from jaxcal.calibrators.guard import MASKED, OK, REASON_CODE, REASONS
+from jaxcal.calibrators.outliers import OUTLIER_Z, describe_outliers
+from jaxcal.calibrators.skipped import model_nonfinite_note, nothing_valid_error
+from jaxcal.data.buckets import bucket_units
 from jaxcal.data.dataset import Dataset, clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
@@ -44,6 +76,7 @@ from jaxcal.problem import Problem
 
 METHODS = ("ukf", "ls", "e2e", "policy")
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
+MANY_OUTLIERS = 0.01  # a share of outlier rows worth a word about the model
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -57,14 +90,22 @@ class CalibrationResult:
             filtered state, the window fit's simulated one), or ``None``.
         state_names: ``Z`` names (empty for a static model).
         xhat: ``[N, S]`` the model output that goes with ``theta``.
-        valid: ``[N]`` bool; False where the sample was skipped (``reason``).
-        reason: ``[N]`` str: ``ok`` or why the sample was skipped.
+        valid: ``[N]`` bool; False where the sample was skipped (``reason``): its
+            row repeats the unit's last used row, or the prior before the first
+            (module docstring).
+        reason: ``[N]`` str: ``ok`` or why the sample was skipped (the guard's
+            :data:`~jaxcal.calibrators.guard.REASONS`, ``outlier`` among them).
+        partial: ``[N]`` bool: some outputs of the row were missing (NaN); used on
+            the observed outputs where ``valid`` (UKF, LS), else skipped as
+            ``x_partial`` (E2E, policy). ``None``: not recorded.
         theta_names, output_names: column names.
         unit, time: ``[N]`` the rows' unit and time (as read).
         method: the method's name.
         problem: the :class:`~jaxcal.problem.Problem` that was solved.
         notes: what data cleaning did (conditions within 1 % of their range outside
-            it, logging jitter, set onto the bound; farther ones are flagged).
+            it, logging jitter, set onto the bound; farther ones are flagged) and
+            the console lines: skipped rows per reason, the outliers, the model's
+            non-finite outputs, a given noise far narrower than the data.
     """
 
     theta: np.ndarray
@@ -81,6 +122,16 @@ class CalibrationResult:
     method: str
     problem: Problem
     notes: tuple[str, ...] = ()
+    partial: np.ndarray | None = None
+
+    @property
+    def num_partial(self) -> dict:
+        """``{"used": rows, "skipped": rows}`` of the rows with missing outputs."""
+        partial = np.zeros_like(self.valid) if self.partial is None else self.partial
+        return {
+            "used": int(np.sum(partial & self.valid)),
+            "skipped": int(np.sum(partial & ~self.valid)),
+        }
 
     @property
     def num_flagged(self) -> dict:
@@ -90,7 +141,7 @@ class CalibrationResult:
 
     def to_frame(self):
         """A pandas DataFrame: unit, time, theta (and ``<name>_std``), x-hat
-        (``<name>_hat``), valid, reason."""
+        (``<name>_hat``), valid, reason, partial."""
         import pandas as pd
 
         cols = {"unit": self.unit, "time": self.time}
@@ -104,6 +155,8 @@ class CalibrationResult:
         for j, name in enumerate(self.output_names):
             cols[f"{name}_hat"] = self.xhat[:, j]
         cols["valid"], cols["reason"] = self.valid, self.reason
+        if self.partial is not None:
+            cols["partial"] = self.partial
         return pd.DataFrame(cols)
 
 
@@ -146,16 +199,20 @@ def calibrate(
             std: scalar, ``[Z]`` or ``{state: std}``; default 1 % of the state's
             size) and ``state_q`` (UKF process noise on the states per step,
             default 1e-6 of the state's size: the model is trusted);
-            and the readers' ``rename``, ``ignore``, ``nonfinite``.
+            ``outlier_z`` (the outlier gate in robust stds, default 6; ``None``:
+            no outlier flags); and the readers' ``rename``, ``ignore``,
+            ``nonfinite``.
 
     Returns:
         :class:`CalibrationResult`.
 
     Raises:
         ValueError: unknown method or option, names that do not match the model,
-            bad data (naming file, column and rows).
+            bad data (naming file, column and rows), no row that could be used
+            (with the cause: the input checks, the model's non-finite outputs, a
+            noise too small for the arithmetic).
     """
-    from jaxcal.calibrators.methods import build_calibrator, estimate_noise
+    from jaxcal.calibrators.methods import build_calibrator
     from jaxcal.models import load
 
     if method not in METHODS:
@@ -163,6 +220,7 @@ def calibrate(
     model = load(model)
     dtype = _dtype(model)
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
+    threshold = _threshold(options.pop("outlier_z", OUTLIER_Z))
     if method == "policy" and options.get("run"):
         # a trained policy fixes its parameters and outputs: default to the run's
         from jaxcal.training.runs import load_run
@@ -174,41 +232,127 @@ def calibrate(
     clipped, notes = clip_jitter(data.w, model)
     data = dataclasses.replace(data, w=clipped)
     problem = Problem.build(model, data, theta=theta, noise=noise)
-    padded = data.padded(dtype)
-    if noise is None and method != "policy":
-        state_opts = {k: options[k] for k in ("state_std", "state_q") if k in options}
-        problem = estimate_noise(problem, padded, state_opts)
-    calibrator, run = build_calibrator(method, problem, padded, seed, options)
-    out = run(calibrator, padded)
-    return _to_rows(out, padded, data, problem, method, notes)
+    buckets = bucket_units(data, dtype)
+    screened = _screen(method, problem, data, buckets, noise, threshold, options)
+    if screened is not None:
+        problem = screened.problem
+    built = build_calibrator(method, problem, buckets, seed, options)
+    skip = np.zeros(data.num_rows, bool) if screened is None else screened.outlier
+    parts = zip(buckets.parts, buckets.from_rows(skip, False), strict=True)
+    outs = [built.run(built.calibrator, part, cells) for part, cells in parts]
+    result = _to_rows(outs, buckets, data, problem, method, built.prior_std, skip)
+    if not result.valid.any():
+        codes = np.asarray([REASON_CODE[r] for r in result.reason])
+        raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
+    flagged = _flag_notes(result, problem, data, screened, dtype)
+    flagged += [] if screened is None else list(screened.notes)
+    for line in flagged:  # the console line (a warning: shown once per message)
+        warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
+    return dataclasses.replace(result, notes=(*notes, *flagged))
 
 
-def _to_rows(out, padded, data: Dataset, problem: Problem, method: str, notes):
-    from jaxcal.calibrators.interface import REASONS
+def _threshold(value) -> float:
+    """``outlier_z``: a positive number (``None`` or ``inf``: flag no outliers)."""
+    value = np.inf if value is None else value
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        value = np.nan
+    if not value > 0:
+        raise ValueError(
+            f"outlier_z must be a number > 0 (or None: no outlier flags), got {value!r}"
+        )
+    return value
 
-    n = data.num_rows
-    rows = lambda v, fill=np.nan: padded.to_rows(np.asarray(v), n, fill)  # noqa: E731
-    std = None
-    if isinstance(out.aux, dict) and "theta_std" in out.aux:
-        std = rows(out.aux["theta_std"]).astype(np.float64)
-    states = None
-    if isinstance(out.aux, dict) and "state" in out.aux:
-        states = rows(out.aux["state"]).astype(np.float64)
-    valid = rows(out.valid, False).astype(bool)
-    reason = np.asarray(REASONS)[rows(out.reason, 0).astype(np.int64)]
+
+def _screen(method, problem, data, buckets, noise, threshold, options):
+    """The noise (estimated when not given) and the outlier rows (:mod:`.screen`),
+    or ``None`` where there is nothing to screen by: a policy without a noise
+    level, or a given noise with outlier flags off."""
+    from jaxcal.calibrators.methods import ukf_options
+    from jaxcal.calibrators.screen import screen
+
+    if noise is None and method == "policy":
+        return None
+    if noise is not None and threshold == np.inf:
+        return None
+    return screen(
+        problem, data, buckets, ukf_options(method, options),
+        estimate=noise is None, threshold=threshold,
+    )  # fmt: skip
+
+
+def _flag_notes(result, problem, data, screened, dtype) -> list[str]:
+    """The console line counting skipped rows per reason (and what the outliers
+    and non-finite model outputs were), or nothing when every row was used."""
+    counts = result.num_flagged
+    if not counts:
+        return []
+    listed = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    line = (
+        f"{sum(counts.values())} of {len(result.valid)} rows flagged and skipped "
+        f"({listed}; see result.valid / result.reason)"
+    )
+    if screened is not None and "outlier" in counts:
+        line += "; " + describe_outliers(
+            screened.found._replace(mask=result.reason == "outlier"),
+            data.unit, problem.output_names,
+        )  # fmt: skip
+        share = counts["outlier"] / len(result.valid)
+        if share > MANY_OUTLIERS:
+            line += (
+                f"; {share:.1%} of the rows, more than wild readings usually are: "
+                "the model may misfit there (outlier_z=None keeps every row)"
+            )
+    if "state_nonfinite" in counts:
+        note = model_nonfinite_note(problem, data, result.reason, dtype)
+        line += "" if note is None else f"; {note}"
+    return [line]
+
+
+def _to_rows(outs, buckets, data: Dataset, problem: Problem, method, prior_std, skip):
+    """Per-group outputs -> a :class:`CalibrationResult` in the data's row order.
+
+    Rows the method skipped repeat the last used row's estimate; rows before a
+    unit's first used row report the prior (mean, and std where the method has
+    one) and no model output (``nan``); outlier rows get their own reason."""
+    rows = lambda values, fill=np.nan: buckets.to_rows(  # noqa: E731
+        [np.asarray(v) for v in values], fill
+    )
+    aux = [o.aux if isinstance(o.aux, dict) else {} for o in outs]
+    reason = rows([o.reason for o in outs], MASKED).astype(np.int64)
+    reason[skip & (reason == MASKED)] = REASON_CODE["outlier"]
+    valid = reason == OK
+    before = rows(
+        [np.cumsum(np.asarray(o.valid), axis=1) == 0 for o in outs], True
+    ).astype(bool)
+    theta = rows([o.theta for o in outs]).astype(np.float64)
+    theta[before] = problem.theta_prior
+    std = states = None
+    if "theta_std" in aux[0]:
+        std = rows([a["theta_std"] for a in aux]).astype(np.float64)
+        std[before] = prior_std
+    if "state" in aux[0]:
+        states = rows([a["state"] for a in aux]).astype(np.float64)
+        states[before] = np.nan
+    xhat = rows([o.xhat for o in outs]).astype(np.float64)
+    xhat[before] = np.nan
+    partial = None
+    if all(o.partial is not None for o in outs):
+        partial = rows([o.partial for o in outs], False).astype(bool)
     return CalibrationResult(
-        theta=rows(out.theta).astype(np.float64),
+        theta=theta,
         theta_std=std,
         states=states,
         state_names=problem.model.state_names,
-        xhat=rows(out.xhat).astype(np.float64),
+        xhat=xhat,
         valid=valid,
-        reason=reason,
+        reason=np.asarray(REASONS)[reason],
         theta_names=problem.theta_names,
         output_names=problem.output_names,
         unit=data.unit,
         time=data.time,
         method=method,
         problem=problem,
-        notes=tuple(notes),
+        partial=partial,
     )

@@ -28,8 +28,9 @@ CalState = Any  # a calibrator's state pytree (see :mod:`jaxcal.calibrators.inte
 CalStepOutput = Any  # its per-step outputs: ``theta``, ``xhat``, ``aux``
 
 
-# Why a row was or was not used; the int32 code of a reason is its index. The order of
-# the input checks is the order of precedence (a NaN w hides a NaN x on the same row).
+# Why a row was or was not used; the int32 code of a reason is its index (codes are
+# stored in result files: new reasons go at the end). The input checks take precedence
+# in the order of sample_reason (a NaN w hides a NaN x on the same row).
 REASONS = (
     "ok",
     "masked",  # padding (mask False)
@@ -38,6 +39,8 @@ REASONS = (
     "w_out_of_range",  # outside SampleCheck.w_low .. w_high
     "x_out_of_range",  # outside SampleCheck.x_low .. x_high
     "state_nonfinite",  # the step itself gave a non-finite theta or state
+    "x_partial",  # some outputs missing (NaN) and the calibrator needs them all
+    "outlier",  # a wild reading, flagged by the front door's screening (outliers.py)
 )
 REASON_CODE = {name: code for code, name in enumerate(REASONS)}
 OK, MASKED, STATE_NONFINITE = 0, 1, REASON_CODE["state_nonfinite"]
@@ -109,23 +112,43 @@ class SampleCheck(NamedTuple):
         return cls(w_low=low, w_high=high)
 
 
-def sample_reason(check: SampleCheck | None, w: Array, x: Array) -> Array:
+def is_partial(x: Array) -> Array:
+    """``[]`` bool: ``x [S]`` has some outputs missing (NaN) and the others finite.
+
+    A row with an Inf, or with no finite output, is not partial: it is
+    ``x_nonfinite``. Jittable, vmappable.
+    """
+    missing = jnp.isnan(x)
+    return jnp.any(missing) & jnp.all(jnp.isfinite(x) | missing) & ~jnp.all(missing)
+
+
+def sample_reason(
+    check: SampleCheck | None, w: Array, x: Array, *, partial_ok: bool = False
+) -> Array:
     """The reason code of one sample before any step (jittable, vmappable).
 
     Args:
         check: the valid box, or ``None`` (finiteness only).
         w: ``[Wd]``. x: ``[S]``.
+        partial_ok: static; the calibrator updates on the observed outputs of a
+            partial row (``Calibrator.accepts_partial``): such a row is ``ok``
+            (its observed outputs are range-checked), else ``x_partial``.
 
     Returns:
         ``[]`` int32: ``OK`` or the first failing input check of :data:`REASONS`.
     """
+    partial = is_partial(x)
     codes = [REASON_CODE["w_nonfinite"], REASON_CODE["x_nonfinite"]]
-    bad = [~jnp.all(jnp.isfinite(w)), ~jnp.all(jnp.isfinite(x))]
+    bad = [~jnp.all(jnp.isfinite(w)), ~jnp.all(jnp.isfinite(x)) & ~partial]
+    if not partial_ok:
+        codes.append(REASON_CODE["x_partial"])
+        bad.append(partial)
     if check is not None:
         codes.append(REASON_CODE["w_out_of_range"])
         bad.append(jnp.any((w < check.w_low) | (w > check.w_high)))
         if check.x_low is not None:
             codes.append(REASON_CODE["x_out_of_range"])
+            # a missing (NaN) output compares False: only observed ones are checked
             bad.append(jnp.any((x < check.x_low) | (x > check.x_high)))
     reason = jnp.asarray(OK, jnp.int32)
     for code, flag in reversed(list(zip(codes, bad, strict=True))):
@@ -177,7 +200,9 @@ def guarded_update(
         ``carry.out`` unchanged; ``reason`` adds ``state_nonfinite`` to ``reason_t``.
     """
     ok = reason_t == OK
-    w_in = jnp.where(ok, w_t, carry.w)  # never feed a flagged value to the model
+    # never feed a flagged value to the model (the NaNs of a partial row reach only
+    # a calibrator that accepts them: its reason is ok only then)
+    w_in = jnp.where(ok, w_t, carry.w)
     x_in = jnp.where(ok, x_t, carry.x)
     new_state, new_out = step(carry.state, w_in, x_in)
     finite = _all_finite((new_state, new_out.theta))

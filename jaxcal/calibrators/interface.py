@@ -38,7 +38,9 @@ Contract for implementers:
 
 Guarded samples: no single sample may poison a stream; the rule lives in
 :mod:`jaxcal.calibrators.guard` and both runners apply it (``CalOutput.valid`` and
-``CalOutput.reason`` report it per row).
+``CalOutput.reason`` report it per row). A row with some outputs missing (NaN) is
+used by a calibrator with ``accepts_partial`` and skipped as ``x_partial`` by the
+others; ``CalOutput.partial`` marks it either way.
 
 :func:`measure_declared` adapts a full-parameter model ``F(w, theta_full) -> x_full``
 to the declared parameters and selected sensors that model-based calibrators work on.
@@ -69,6 +71,7 @@ from jaxcal.calibrators.guard import (  # noqa: F401 (re-exported: one import pa
     count_reasons,
     guarded_update,
     initial_carry,
+    is_partial,
     sample_reason,
 )
 from jaxcal.physics.constants import health_index, sensor_index
@@ -101,13 +104,23 @@ class CalOutput(NamedTuple):
     aux: Metrics | None = None  # each entry [T, ...]
     valid: Array | None = None  # [T] bool: the row was used (reason "ok")
     reason: Array | None = None  # [T] int32 code into REASONS
+    # [T] bool: some outputs of the row were missing (NaN); used if valid (the
+    # calibrator updated on the observed ones), else skipped as "x_partial"
+    partial: Array | None = None
 
 
 class Calibrator(NamedTuple):
-    """A calibration method as a pair of pure functions (see the module docstring)."""
+    """A calibration method as a pair of pure functions (see the module docstring).
+
+    ``accepts_partial``: ``step`` takes an ``x_t`` with NaN in some outputs (missing)
+    and updates on the observed ones only, with fixed shapes (the UKF, least
+    squares). When False (the default) the runners skip such rows with reason
+    ``x_partial``, so ``step`` never sees a NaN.
+    """
 
     init: Callable[[PRNGKey | None, Array, Array], CalState]
     step: Callable[[CalState, Array, Array], tuple[CalState, CalStepOutput]]
+    accepts_partial: bool = False
 
 
 def run_calibrator(
@@ -123,11 +136,12 @@ def run_calibrator(
     """Run a calibrator over one padded record with ``lax.scan``, guarded.
 
     Every row gets a reason up front (:func:`sample_reason`, vmapped; masked rows are
-    ``masked``). A row that is not ok does not advance the state and repeats the
-    previous outputs; the step is fed the last ok ``(w, x)`` instead, so a model is
-    never evaluated at padding or at a bad sample. Rows before the first ok one output
-    zeros. ``init`` receives the first ok sample. Not jitted: jit the caller,
-    e.g. ``jax.jit(run_calibrator, static_argnums=0)``.
+    ``masked``; a partial row is ``ok`` only for a calibrator that accepts it). A row
+    that is not ok does not advance the state and repeats the previous outputs; the
+    step is fed the last ok ``(w, x)`` instead, so a model is never evaluated at
+    padding or at a bad sample. Rows before the first ok one output zeros. ``init``
+    receives the first ok sample. Not jitted: jit the caller, e.g.
+    ``jax.jit(run_calibrator, static_argnums=0)``.
 
     Args:
         calibrator: the method.
@@ -140,11 +154,14 @@ def run_calibrator(
 
     Returns:
         ``CalOutput`` with ``theta [T, P]``, ``xhat [T, S]``, ``aux`` entries
-        ``[T, ...]``, ``valid [T]`` and ``reason [T]``. Sums over time must use
-        ``valid`` (held rows repeat).
+        ``[T, ...]``, ``valid [T]``, ``reason [T]`` and ``partial [T]``. Sums over
+        time must use ``valid`` (held rows repeat).
     """
     w, x, mask = _check_record(w, x, mask)
-    reason = jax.vmap(lambda w_t, x_t: sample_reason(check, w_t, x_t))(w, x)
+    partial_ok = calibrator.accepts_partial
+    reason = jax.vmap(
+        lambda w_t, x_t: sample_reason(check, w_t, x_t, partial_ok=partial_ok)
+    )(w, x)
     reason = jnp.where(mask, reason, jnp.int32(MASKED))
     first = jnp.argmax(reason == OK)  # the first ok row (0 if none is)
     # nan_to_num is the identity on an ok row; it only matters when no row is ok.
@@ -161,7 +178,7 @@ def run_calibrator(
     _, (outs, reason) = lax.scan(body, carry0, (w, x, reason), unroll=unroll)
     return CalOutput(
         theta=outs.theta, xhat=outs.xhat, aux=outs.aux, valid=reason == OK,
-        reason=reason,
+        reason=reason, partial=jax.vmap(is_partial)(x) & mask,
     )  # fmt: skip
 
 
@@ -188,7 +205,7 @@ def run_fleet(
 
     Returns:
         ``CalOutput`` with ``theta [U, T, P]``, ``xhat [U, T, S]``, ``aux [U, T, ...]``,
-        ``valid [U, T]``, ``reason [U, T]``.
+        ``valid [U, T]``, ``reason [U, T]``, ``partial [U, T]``.
     """
     w, x = jnp.asarray(w), jnp.asarray(x)
     if w.ndim != 3 or x.ndim != 3 or w.shape[:2] != x.shape[:2]:

@@ -22,6 +22,10 @@ an implicit-function model like the engine). A streaming step costs
 ``window * (num_iters + 1)`` such evaluations. Damping is Marquardt's
 ``lambda diag(J^T J)`` (floored), adapted by factors on acceptance / rejection; a trial
 point with a non-finite cost is rejected, so a failed model evaluation never enters θ.
+
+Missing outputs: a NaN in ``x`` (a sensor channel dropped out) is left out of the
+sum of squares (a masked residual, fixed shapes), so both take partial rows
+(``Calibrator.accepts_partial``).
 """
 
 from __future__ import annotations
@@ -101,7 +105,8 @@ class LSState:
 
     z: Array  # [P] scaled estimate theta / theta_scale
     w_buf: Array  # [N, Wd]
-    x_buf: Array  # [N, S]
+    x_buf: Array  # [N, S] (0 where an output was missing: the state stays finite)
+    observed: Array  # [N, S] bool, False where an output was missing (NaN)
     valid: Array  # [N] bool, False until a slot has been filled
     pos: Array  # [] int32, next slot to overwrite
 
@@ -199,8 +204,10 @@ def make_least_squares(
         theta_scale: ``[P]`` positive scales of theta, or ``None``.
 
     Returns:
-        ``Calibrator(init, step)`` with :class:`LSState`; ``step`` reports ``theta``,
-        ``xhat = F(w_t, theta_t)`` (from the cached residual, no extra evaluation) and
+        ``Calibrator(init, step)`` with :class:`LSState`; ``step`` takes ``x_t`` with
+        NaN on missing outputs (left out of the residual) and reports ``theta``,
+        ``xhat = F(w_t, theta_t)`` (from the cached residual, no extra evaluation
+        unless an output is missing) and
         ``aux`` with ``theta_std [P]`` (Laplace: ``(J^T J)^-1`` with noise ``r``) and
         ``cost []``.
     """
@@ -217,20 +224,24 @@ def make_least_squares(
         return LSState(
             z=theta0 / scale,
             w_buf=jnp.tile(w0, (cfg.window, 1)),
-            x_buf=jnp.tile(x0, (cfg.window, 1)),
+            x_buf=jnp.tile(jnp.nan_to_num(x0), (cfg.window, 1)),
+            observed=jnp.ones((cfg.window, x0.shape[0]), bool),
             valid=jnp.zeros((cfg.window,), bool),
             pos=jnp.zeros((), jnp.int32),
         )
 
     def step(state: LSState, w_t: Array, x_t: Array) -> tuple[LSState, CalStepOutput]:
+        observed_t = ~jnp.isnan(x_t)  # a missing output leaves the residual
         w_buf = state.w_buf.at[state.pos].set(w_t)
-        x_buf = state.x_buf.at[state.pos].set(x_t)
+        x_buf = state.x_buf.at[state.pos].set(jnp.where(observed_t, x_t, 0.0))
+        observed = state.observed.at[state.pos].set(observed_t)
         valid = state.valid.at[state.pos].set(True)
         z_prev = state.z
+        used = valid[:, None] & observed  # [N, S] the residuals of the cost
 
         def residual(z):
             pred = jax.vmap(lambda w: measure_fn(w, scale * z))(w_buf)
-            r = jnp.where(valid[:, None], (pred - x_buf) / sigma, 0.0).ravel()
+            r = jnp.where(used, (pred - x_buf) / sigma, 0.0).ravel()
             if cfg.prior_std is not None:
                 r = jnp.concatenate([r, (z - z_prev) / cfg.prior_std])
             return r
@@ -248,13 +259,21 @@ def make_least_squares(
         cov = _inverse_psd(carry.jac.T @ carry.jac)
         aux = {"theta_std": scale * jnp.sqrt(jnp.diagonal(cov)), "cost": carry.cost}
         new_state = LSState(
-            z=carry.z, w_buf=w_buf, x_buf=x_buf, valid=valid,
+            z=carry.z, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
             pos=(state.pos + 1) % cfg.window,
         )  # fmt: skip
-        out = CalStepOutput(theta=scale * carry.z, xhat=x_t + sigma * r_now, aux=aux)
+        # F(w_t, theta) from the cached residual; a missing output has none there
+        # (masked to 0), so a partial row costs one model evaluation more.
+        from_resid = x_t + sigma * r_now
+        xhat = lax.cond(
+            jnp.all(observed_t),
+            lambda: from_resid,
+            lambda: measure_fn(w_t, scale * carry.z).astype(from_resid.dtype),
+        )
+        out = CalStepOutput(theta=scale * carry.z, xhat=xhat, aux=aux)
         return new_state, out
 
-    return Calibrator(init=init, step=step)
+    return Calibrator(init=init, step=step, accepts_partial=True)
 
 
 def fit_least_squares(
@@ -270,7 +289,8 @@ def fit_least_squares(
 ) -> tuple[Array, FitInfo]:
     """Fit one constant ``theta`` to a whole record (jitted; vmappable over records).
 
-    Minimises ``0.5 * sum_t,s ((F(w_t, theta) - x_t) / std)_s^2`` over valid rows with
+    Minimises ``0.5 * sum_t,s ((F(w_t, theta) - x_t) / std)_s^2`` over valid rows and
+    observed outputs (a NaN in ``x`` is missing and left out) with
     Levenberg–Marquardt in ``lax.while_loop``. ``measure_fn`` and ``cfg`` are static:
     reuse the same function object to avoid recompiling.
 
@@ -310,10 +330,12 @@ def fit_least_squares(
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _fit_jit(measure_fn, cfg, w, x, theta0, mask, std, scale):
     w = jnp.where(mask[:, None], w, w[jnp.argmax(mask)])  # never evaluate padding
+    used = mask[:, None] & ~jnp.isnan(x)  # [T, S] missing outputs leave the sum
+    x = jnp.where(used, x, 0.0)
 
     def residual(z):
         pred = jax.vmap(lambda w_t: measure_fn(w_t, scale * z))(w)
-        return jnp.where(mask[:, None], (pred - x) / std, 0.0).ravel()
+        return jnp.where(used, (pred - x) / std, 0.0).ravel()
 
     resid_jac = _residual_jacobian(residual)
 
@@ -335,7 +357,7 @@ def _fit_jit(measure_fn, cfg, w, x, theta0, mask, std, scale):
         lambda loop: (loop[2] == 0) & (loop[1] < cfg.max_iters),
         body, (carry0, jnp.zeros((), jnp.int32), status0),
     )  # fmt: skip
-    num_resid = jnp.sum(mask) * x.shape[1]
+    num_resid = jnp.sum(used)
     num_params = theta0.shape[0]
     s2 = 2.0 * carry.cost / jnp.maximum(num_resid - num_params, 1)
     cov = s2 * _inverse_psd(carry.jac.T @ carry.jac) * scale[:, None] * scale[None, :]

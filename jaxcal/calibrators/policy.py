@@ -185,7 +185,11 @@ def make_policy_calibrator(
     Returns:
         A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is
         ``{"theta_std": [P]}`` (the band's std at the sample's index in the stream)
-        with a band, else ``None``.
+        with a band, else ``None``. It does not accept partial rows: a row with some
+        outputs missing (NaN) is skipped by the runners with reason ``x_partial``
+        (the network's input is the whole normalised ``x_t``; imputing the missing
+        output with x-hat would feed back the policy's own prediction as if
+        measured).
     """
     dyn = as_stateful(dynamics)
     incremental = isinstance(params, IncrementPolicyParams)

@@ -225,7 +225,7 @@ def with_std_scale(calibrator: Calibrator, scale: StdScale) -> Calibrator:
         out = out._replace(aux={**out.aux, "theta_std": std})
         return ScaledState(inner, state.count + 1), out
 
-    return Calibrator(init=init, step=step)
+    return Calibrator(init=init, step=step, accepts_partial=calibrator.accepts_partial)
 
 
 def result_index(result) -> np.ndarray:

@@ -34,6 +34,11 @@ parameter block keeps its exact identity prediction, process noise ``state_q`` i
 added to ``z_t`` after the transform. A static model is the case ``Z = 0``
 (:func:`make_ukf`): the same code, the same numbers.
 
+Missing outputs: a NaN in ``x_t`` (a sensor channel dropped out) is a missing
+measurement; the update uses the observed outputs only (:func:`_observed_only`), so
+the filter takes partial rows (``Calibrator.accepts_partial``). ``xhat`` still holds
+every output (the model's prediction of the missing ones).
+
 Float64 is recommended (covariance updates lose positive definiteness in float32 at
 ``q = r = 0.01``); the Cholesky factorisation adds ``jitter`` to the diagonal.
 """
@@ -164,9 +169,11 @@ def make_ukf(
     Returns:
         ``Calibrator(init, step)``; the state is :class:`UKFState`; ``step`` reports
         ``theta`` (posterior mean), ``xhat`` and ``aux`` with ``theta_std [P]``,
-        ``innovation [S]`` (normalised ``x_n - E[x_n]`` before the update),
-        ``log_likelihood []`` (of the normalised ``x_t`` given the past) and, if asked,
-        ``theta_cov [P, P]``.
+        ``innovation [S]`` (normalised ``x_n - E[x_n]`` before the update; 0 on a
+        missing output), ``innovation_std [S]`` (its predicted std, the root of
+        ``diag S``), ``log_likelihood []`` (of the normalised observed outputs of
+        ``x_t`` given the past) and, if asked, ``theta_cov [P, P]``. ``x_t`` may
+        hold NaN in some outputs (missing): the update uses the observed ones.
     """
 
     def init_state(w0, theta):
@@ -296,13 +303,14 @@ def make_joint_ukf(
             )
         else:
             cov_pred = cov_prior
-        s_cov = dy.T @ (wc[:, None] * dy) + cfg.r**2 * jnp.eye(
-            dy.shape[1], dtype=dy.dtype
-        )
+        eye_s = jnp.eye(dy.shape[1], dtype=dy.dtype)
+        s_cov = dy.T @ (wc[:, None] * dy) + cfg.r**2 * eye_s
         cross = da.T @ (wc[:, None] * dy)  # [n, S]
+        s_cov, cross, innovation = _observed_only(
+            x_t, s_cov, cross, (x_t - norm.mean) / norm.std - y_mean, eye_s
+        )
         s_chol = cho_factor(s_cov, lower=True)
         gain = cho_solve(s_chol, cross.T).T  # C S^-1
-        innovation = (x_t - norm.mean) / norm.std - y_mean
         mean = mean_pred + gain @ innovation
         cov = cov_pred - gain @ s_cov @ gain.T
         cov = 0.5 * (cov + cov.T)  # keep symmetric against round-off
@@ -310,6 +318,7 @@ def make_joint_ukf(
             innovation @ cho_solve(s_chol, innovation)
             + 2.0 * jnp.sum(jnp.log(jnp.diag(s_chol[0])))
             + innovation.shape[0] * math.log(2.0 * math.pi)
+            - jnp.sum(jnp.isnan(x_t)) * math.log(2.0 * math.pi)  # observed only
         )
         z_post, theta_post = unpack(mean)
         if cfg.posterior_xhat:  # x_t of the previous posterior state, new theta
@@ -320,6 +329,7 @@ def make_joint_ukf(
         aux = {
             "theta_std": scale * std[num_states:],
             "innovation": innovation,
+            "innovation_std": jnp.sqrt(jnp.diag(s_cov)),  # its predicted std
             "log_likelihood": log_likelihood,
         }
         if num_states:
@@ -331,7 +341,25 @@ def make_joint_ukf(
         new_state = UKFState(mean=mean, cov=cov)
         return new_state, CalStepOutput(theta=theta_post, xhat=xhat, aux=aux)
 
-    return Calibrator(init=init, step=step)
+    return Calibrator(init=init, step=step, accepts_partial=True)
+
+
+def _observed_only(
+    x_t: Array, s_cov: Array, cross: Array, innovation: Array, eye_s: Array
+) -> tuple[Array, Array, Array]:
+    """The update on the observed outputs of ``x_t [S]`` (NaN: missing), in fixed
+    shapes: the innovation is zeroed and the innovation covariance ``s_cov [S, S]``
+    gets an identity block with zero cross-covariance (in ``s_cov`` and in ``cross
+    [n, S]``) on the missing outputs. ``S`` is then block diagonal, the gain's
+    columns of the missing outputs are zero, and mean, covariance and the log-det
+    part of the likelihood are exactly those of the update on the observed subset
+    (the standard treatment of missing measurements, e.g. Shumway & Stoffer 2017,
+    sec. 6.4). A complete row is returned unchanged."""
+    observed = ~jnp.isnan(x_t)
+    both = observed[:, None] & observed[None, :]
+    s_cov = jnp.where(both, s_cov, eye_s)
+    cross = jnp.where(observed[None, :], cross, 0.0)
+    return s_cov, cross, jnp.where(observed, innovation, 0.0)
 
 
 def _state_vector(value, num_states: int, default: Array, field: str) -> Array:

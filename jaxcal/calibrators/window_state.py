@@ -16,6 +16,10 @@ the window and an arrival-cost prior on ``z_s``). Each step
    the previous estimate. The damped Gauss–Newton step is the one of
    :mod:`jaxcal.calibrators.least_squares` (one solver core).
 
+A NaN in ``x_t`` is a missing output: it is left out of the residual (the sample's
+other outputs still count), so the calibrator takes partial rows
+(``Calibrator.accepts_partial``).
+
 A static model is better served by :func:`~jaxcal.calibrators.least_squares.
 make_least_squares` (no scan, samples evaluated in parallel); the front picks it when
 ``Z = 0``.
@@ -53,7 +57,8 @@ class WindowState:
     u: Array  # [P] scaled parameters theta / theta_scale
     zs: Array  # [Z] state before the window's first sample (state units)
     w_buf: Array  # [N, Wd]
-    x_buf: Array  # [N, S]
+    x_buf: Array  # [N, S] (0 where an output was missing: the state stays finite)
+    observed: Array  # [N, S] bool, False where an output was missing (NaN)
     valid: Array  # [N] bool, False until a slot holds a sample
 
 
@@ -123,7 +128,8 @@ def make_window_least_squares(
             u=theta0 / scale,
             zs=jnp.asarray(init_state(w0, theta0), theta0.dtype),
             w_buf=jnp.tile(w0, (cfg.window, 1)),
-            x_buf=jnp.tile(x0, (cfg.window, 1)),
+            x_buf=jnp.tile(jnp.nan_to_num(x0), (cfg.window, 1)),
+            observed=jnp.ones((cfg.window, x0.shape[0]), bool),
             valid=jnp.zeros((cfg.window,), bool),
         )
 
@@ -134,15 +140,20 @@ def make_window_least_squares(
         zs_prior = jnp.where(state.valid[0], z_left, state.zs)
         # 2. shift the new sample in (oldest first).
         w_buf = jnp.concatenate([state.w_buf[1:], w_t[None]])
-        x_buf = jnp.concatenate([state.x_buf[1:], x_t[None]])
+        observed_t = ~jnp.isnan(x_t)  # a missing output leaves the residual
+        x_buf = jnp.concatenate(
+            [state.x_buf[1:], jnp.where(observed_t, x_t, 0.0)[None]]
+        )
+        observed = jnp.concatenate([state.observed[1:], observed_t[None]])
         valid = jnp.concatenate([state.valid[1:], jnp.ones((1,), bool)])
+        used = valid[:, None] & observed  # [N, S] the residuals of the cost
         u_prev = state.u
 
         def residual(v):
             u, dz = v[:num_params], v[num_params:]
             zs = zs_prior + s_std * dz
             pred, _ = simulate(scale * u, zs, w_buf, valid)
-            r = jnp.where(valid[:, None], (pred - x_buf) / sigma, 0.0).ravel()
+            r = jnp.where(used, (pred - x_buf) / sigma, 0.0).ravel()
             r = jnp.concatenate([r, dz])  # arrival cost: z_s ~ N(z_prior, std^2)
             if cfg.prior_std is not None:
                 r = jnp.concatenate([r, (u - u_prev) / cfg.prior_std])
@@ -174,7 +185,9 @@ def make_window_least_squares(
             "state": z_end,
             "state_std": s_std * std[num_params:],
         }
-        new_state = WindowState(u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, valid=valid)
+        new_state = WindowState(
+            u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid
+        )
         return new_state, CalStepOutput(theta=theta, xhat=pred[-1], aux=aux)
 
-    return Calibrator(init=init, step=step)
+    return Calibrator(init=init, step=step, accepts_partial=True)

@@ -109,6 +109,11 @@ class Dataset:
         return int(self.w.shape[0])
 
     @property
+    def partial(self) -> np.ndarray:
+        """``[N]`` bool: rows with some outputs missing (:func:`partial_rows`)."""
+        return partial_rows(self.x)
+
+    @property
     def units(self) -> np.ndarray:
         """Unit ids in order of first appearance."""
         _, first = np.unique(self.unit, return_index=True)
@@ -225,6 +230,17 @@ class Dataset:
             unit_ids=np.asarray(units, np.int64),
             theta=theta,
         )
+
+
+def partial_rows(x: np.ndarray) -> np.ndarray:
+    """``[N]`` bool: rows of ``x [N, S]`` with some outputs missing (NaN) and the
+    others finite — a sensor channel that dropped out. A row with an Inf or with no
+    finite output is not partial (it is bad, not incomplete). The host twin of
+    :func:`jaxcal.calibrators.guard.is_partial`."""
+    x = np.asarray(x)
+    missing = np.isnan(x)
+    finite = np.isfinite(x)
+    return missing.any(1) & (finite | missing).all(1) & finite.any(1)
 
 
 def clip_jitter(

@@ -6,13 +6,25 @@ N-CMAPSS layout, NASA C-MAPSS ``.txt``), a pandas DataFrame, numpy arrays throug
 
 Tables (CSV, Parquet, DataFrame) name their columns as the model names its
 conditions and outputs; optional columns are ``unit`` (one stream per unit; default:
-one unit), ``time`` (row order within a unit; default: the file's order), ``split``
-(``train``/``val``/``test``) and true-parameter columns named as the model's
-parameters (for scoring only). Every other column is an error that lists what was
-expected and what was found, unless it is renamed (``rename={"T_in": "T_hot_in"}``)
-or ignored (``ignore=("comment",)``). Non-finite values follow ``nonfinite``:
+one unit), ``time`` (row order within a unit, unique in it; default: the file's
+order), ``split`` (``train``/``val``/``test``, one per unit) and true-parameter
+columns named as the model's parameters (for scoring only). Every other column is an
+error that lists what was expected and what was found, unless it is renamed
+(``rename={"T_in": "T_hot_in"}``) or ignored (``ignore=("comment",)``; an ignored
+output, parameter, unit, time or split column is not read, a condition cannot be
+ignored). A DataFrame's index levels named like these columns (``set_index(["unit",
+"time"])``) are read as columns; a MultiIndex with other levels is an error. A column
+name given twice (or made so by ``rename``), a table without rows, a time repeated
+within a unit and a unit in two splits are errors naming them. Non-finite values
+follow ``nonfinite``:
 ``"error"`` (default) names the file, each column, its first rows and the count;
 ``"drop"`` drops the rows and records ``{column: rows}`` in ``Dataset.dropped``.
+
+Partial rows: a row with some outputs missing (NaN or an empty cell) while its
+conditions, its other outputs and its true parameters are finite is kept with its
+NaNs whatever ``nonfinite`` says (``Dataset.partial`` marks it; the calibrators use
+or skip it, :mod:`jaxcal.calibrators.guard`). ``partial=False`` treats it as any
+other non-finite row (training a policy needs complete rows).
 """
 
 from __future__ import annotations
@@ -22,11 +34,17 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from jaxcal.data.dataset import Dataset
+from jaxcal.data.dataset import Dataset, partial_rows
 from jaxcal.data.record import apply_nonfinite_policy
+from jaxcal.data.table_checks import (
+    check_ignore,
+    check_unique_times,
+    check_units_in_one_split,
+    index_as_columns,
+    renamed_columns,
+)
 from jaxcal.model import Model
-
-SPECIAL_COLUMNS = ("unit", "time", "split")
+from jaxcal.model_spec import TABLE_COLUMNS as SPECIAL_COLUMNS
 
 
 def dataset_from_frame(
@@ -38,15 +56,20 @@ def dataset_from_frame(
     ignore: Sequence[str] = (),
     nonfinite: str = "error",
     row_offset: int = 0,
+    partial: bool = True,
 ) -> Dataset:
     """A DataFrame whose columns are named as ``model``'s variables -> Dataset."""
-    frame = frame.rename(columns=dict(rename or {}))
-    columns = [str(c) for c in frame.columns]
     known = {
         *model.condition_names, *model.output_names, *model.parameter_names,
         *SPECIAL_COLUMNS,
     }  # fmt: skip
-    unknown = [c for c in columns if c not in known and c not in ignore]
+    rename = dict(rename or {})
+    frame = index_as_columns(frame, known | set(rename), source)
+    frame = renamed_columns(frame, rename, source)
+    check_ignore(ignore, model, source)
+    frame = frame.drop(columns=[c for c in frame.columns if str(c) in ignore])
+    columns = [str(c) for c in frame.columns]
+    unknown = [c for c in columns if c not in known]
     missing = [n for n in model.condition_names if n not in columns]
     outputs = [n for n in model.output_names if n in columns]
     if unknown or missing or not outputs:
@@ -60,6 +83,8 @@ def dataset_from_frame(
             f"true parameters {list(model.parameter_names)}; found {columns}. Map "
             "other names with rename={...} or skip columns with ignore=(...)"
         )
+    if not len(frame):
+        raise ValueError(f"no rows in {source} (columns {columns})")
     thetas = [n for n in model.parameter_names if n in columns]
     numeric = {}
     for name in [*model.condition_names, *outputs, *thetas]:
@@ -70,7 +95,8 @@ def dataset_from_frame(
                 f"{source}: column {name!r} is not numeric ({err})"
             ) from None
     keep, dropped = apply_nonfinite_policy(
-        numeric, nonfinite, source=source, row_of=lambda pos: pos + row_offset,
+        _partial_rows_exempt(numeric, outputs) if partial else numeric, nonfinite,
+        source=source, row_of=lambda pos: pos + row_offset,
         row_word="line" if row_offset else "row",
     )  # fmt: skip
     n = len(frame)
@@ -84,6 +110,7 @@ def dataset_from_frame(
         if not finite.all():
             row = int(np.flatnonzero(~finite)[0]) + row_offset
             raise ValueError(f"{source}: column {name!r} is empty or NaN at row {row}")
+    split = frame["split"].to_numpy().astype(str) if "split" in columns else None
     data = Dataset(
         w=np.stack([numeric[n] for n in model.condition_names], axis=1),
         x=np.stack([numeric[n] for n in outputs], axis=1),
@@ -93,13 +120,31 @@ def dataset_from_frame(
         time=time,
         theta=np.stack([numeric[n] for n in thetas], axis=1) if thetas else None,
         theta_names=tuple(thetas),
-        split=frame["split"].to_numpy().astype(str) if "split" in columns else None,
+        split=split,
         source=source,
     )
     if dropped:
         data = data.take(keep)
         object.__setattr__(data, "dropped", dropped)
+        if not data.num_rows:
+            raise ValueError(f"{source}: every row has a non-finite value {dropped}")
+    if "time" in columns:  # the default time (the row number) cannot repeat
+        check_unique_times(data.unit, data.time, source)
+    if split is not None:
+        check_units_in_one_split(data.unit, data.split, source)
     return data
+
+
+def _partial_rows_exempt(numeric: dict, outputs: Sequence[str]) -> dict:
+    """``numeric`` with the missing outputs of partial rows filled (the non-finite
+    policy then leaves those rows alone; the Dataset keeps their NaNs)."""
+    x = np.stack([numeric[n] for n in outputs], axis=1)
+    others = [v for n, v in numeric.items() if n not in outputs]
+    others_finite = np.all([np.isfinite(v) for v in others], axis=0) if others else True
+    exempt = partial_rows(x) & others_finite
+    return {
+        n: np.where(exempt, 0.0, v) if n in outputs else v for n, v in numeric.items()
+    }
 
 
 def dataset_from_arrays(
@@ -111,7 +156,9 @@ def dataset_from_arrays(
     outputs = tuple(outputs) if outputs else model.output_names
     w = np.asarray(w, np.float64)
     n = w.shape[0] if w.ndim == 2 else 0
-    return Dataset(
+    if w.ndim == 2 and n == 0:
+        raise ValueError("no rows in arrays (w has shape (0, ...))")
+    data = Dataset(
         w=w,
         x=x,
         condition_names=model.condition_names,
@@ -122,6 +169,11 @@ def dataset_from_arrays(
         theta_names=model.parameter_names if theta is not None else (),
         split=split,
     )
+    if time is not None:
+        check_unique_times(data.unit, data.time, data.source)
+    if split is not None:
+        check_units_in_one_split(data.unit, data.split, data.source)
+    return data
 
 
 def dataset_from_record(record, split: str | None = None) -> Dataset:
@@ -169,6 +221,7 @@ def read_dataset(
     rename: Mapping[str, str] | None = None,
     ignore: Sequence[str] = (),
     nonfinite: str = "error",
+    partial: bool = True,
     **reader_options,
 ) -> Dataset:
     """Any supported source -> :class:`Dataset` (see the module docstring).
@@ -177,6 +230,8 @@ def read_dataset(
         source: a path, a pandas DataFrame or a Dataset.
         model: the model whose names the columns follow (needed for tables).
         rename, ignore, nonfinite: see the module docstring.
+        partial: keep the partial rows of a table (module docstring); the
+            N-CMAPSS and C-MAPSS readers apply ``nonfinite`` to every row.
         reader_options: passed to the N-CMAPSS reader (``units``, ``sensors``,
             ``stride``) or the C-MAPSS text reader.
 
@@ -190,7 +245,16 @@ def read_dataset(
         if model is None:
             raise ValueError("reading a DataFrame needs the model its columns follow")
         return dataset_from_frame(
-            source, model, rename=rename, ignore=ignore, nonfinite=nonfinite
+            source, model, rename=rename, ignore=ignore, nonfinite=nonfinite,
+            partial=partial,
+        )  # fmt: skip
+    if not isinstance(source, (str, os.PathLike)):
+        raise ValueError(
+            f"data: got a value of type {type(source).__name__}; expected a file "
+            "path (str or "
+            "pathlib.Path: .csv, .parquet, .h5/.hdf5, .txt), a pandas DataFrame or a "
+            "jaxcal.Dataset (numpy arrays: "
+            "jaxcal.data.readers.dataset_from_arrays(w, x, model))"
         )
     path = os.fspath(source)
     if not os.path.isfile(path):
@@ -208,6 +272,7 @@ def read_dataset(
         return dataset_from_frame(
             frame, model, source=path, rename=rename, ignore=ignore,
             nonfinite=nonfinite, row_offset=2 if ext == ".csv" else 0,
+            partial=partial,
         )  # fmt: skip
     if ext in (".h5", ".hdf5"):
         from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info

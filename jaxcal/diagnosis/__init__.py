@@ -1,39 +1,37 @@
 """The diagnosis: find the residual, trace it to an effect the model lacks, add it.
 
 ``diagnose(data, model, declared, cfg)`` calibrates the declared parameters of any
-static :class:`jaxcal.Model` on a :class:`~jaxcal.data.dataset.Dataset`, ranks a
-library of candidate effects built from the model (its undeclared parameters, its
-registered effects, generic condition offsets and output bias / gain / drift) against
-the residual (BIC and likelihood-ratio evidence, confounding flags), falls back to a
-discrepancy delta(w) when nothing in the library explains it, adds the winner and
-reports the error before and after. ``jaxcal.diagnosis.report.write_report`` writes
-the result (matplotlib: imported only there); ``python -m jaxcal.diagnose`` is the
-command line.
+:class:`jaxcal.Model` (static, or with hidden states: output-error form, the states
+simulated with every candidate in the model) on a
+:class:`~jaxcal.data.dataset.Dataset`, ranks the effect kinds of :mod:`.kinds` built
+from the model (its undeclared parameters, drifting or stepping; its registered
+effects; condition offsets; output bias, gain, drift and step), each fleet-wide or in
+the units that carry it, against the prewhitened residual (an AR(p) noise model per
+output, :mod:`.noise`), falls back to a discrepancy delta(w) when nothing in the
+library explains it, adds the winner and reports the error before and after, and the
+extended model (:mod:`.extended`). ``jaxcal.diagnosis.report.write_report`` writes
+the result; ``python -m jaxcal.diagnose`` is the command line. Submodules are imported
+on first use.
 """
 
-from jaxcal.diagnosis.effects import FAMILIES, Candidate, build_library, linearize
-from jaxcal.diagnosis.pipeline import (
-    DiagnosisResult,
-    LoopConfig,
-    diagnose,
-    diagnose_record,
-)
-from jaxcal.diagnosis.synthetic import (
-    SyntheticConfig,
-    kinds,
-    make_synthetic_data,
-)
+import importlib
 
-__all__ = [
-    "FAMILIES",
-    "Candidate",
-    "DiagnosisResult",
-    "LoopConfig",
-    "SyntheticConfig",
-    "build_library",
-    "diagnose",
-    "diagnose_record",
-    "kinds",
-    "linearize",
-    "make_synthetic_data",
-]
+_EXPORTS = {
+    "KINDS": "jaxcal.diagnosis.kinds",
+    "Candidate": "jaxcal.diagnosis.kinds",
+    "EffectKind": "jaxcal.diagnosis.kinds",
+    "build_library": "jaxcal.diagnosis.kinds",
+    "DiagnosisResult": "jaxcal.diagnosis.pipeline",
+    "LoopConfig": "jaxcal.diagnosis.pipeline",
+    "diagnose": "jaxcal.diagnosis.pipeline",
+    "SyntheticConfig": "jaxcal.diagnosis.synthetic",
+    "make_synthetic_data": "jaxcal.diagnosis.synthetic",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'jaxcal.diagnosis' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)

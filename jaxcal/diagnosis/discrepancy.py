@@ -22,6 +22,11 @@ is the gain of an offset alone, ``dependence[input]`` what delta fitted on that 
 that input is dropped from the full delta (ablation). With discrete operating conditions
 (C-MAPSS FD002) the inputs are redundant, so ``unique`` is near zero for all of them and
 ``dependence`` is the informative one.
+
+Coloured noise: when the residual's noise is serially correlated (an AR(p) model per
+output, :mod:`.noise`), the regression is generalised least squares, the response and
+the design whitened per output (``whiten``), so the cross-validated gain and its
+threshold are those of independent rows.
 """
 
 from __future__ import annotations
@@ -89,14 +94,16 @@ def _monomials(z: np.ndarray, degree: int) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _ridge(phi, y, ridge):
-    """Ridge solution (intercept unpenalised) for all columns of ``y`` and its df."""
+def _ridge(phi, y, ridge, *, with_df: bool = True):
+    """Ridge solution (intercept unpenalised) for all columns of ``y`` and its df
+    (``None`` without ``with_df``: cross-validation needs only the solution)."""
     n = phi.shape[0]
     pen = ridge * n * np.eye(phi.shape[1])
     pen[0, 0] = 0.0
     gram = phi.T @ phi + pen
-    coef = np.linalg.lstsq(gram, phi.T @ y, rcond=None)[0]
-    df = float(np.trace(np.linalg.lstsq(gram, phi.T @ phi, rcond=None)[0]))
+    gram_inv = np.linalg.pinv(gram, hermitian=True)
+    coef = gram_inv @ (phi.T @ y)
+    df = float(np.sum(gram_inv * (phi.T @ phi))) if with_df else None
     return coef, df
 
 
@@ -110,14 +117,29 @@ def _folds(groups: np.ndarray, num_folds: int) -> np.ndarray:
     )
 
 
-def _cv_sse(z, y, folds, degree, ridge) -> np.ndarray:
-    """``[S]`` cross-validated sum of squared errors."""
+def _cv_sse(z, y, folds, degree, ridge, whiten=None, designs=None) -> np.ndarray:
+    """``[S]`` cross-validated sum of squared errors (of the whitened rows when
+    ``whiten`` is given: per-output designs, generalised least squares)."""
     sse = np.zeros(y.shape[1])
+    design = designs if designs is not None else _designs(z, degree, y.shape[1], whiten)
+    yw = y if whiten is None else whiten(y)
     for f in np.unique(folds):
         train, test = folds != f, folds == f
-        coef, _ = _ridge(_monomials(z[train], degree), y[train], ridge)
-        sse += np.sum((y[test] - _monomials(z[test], degree) @ coef) ** 2, axis=0)
+        for s, phi in design:
+            cols = slice(None) if s is None else [s]
+            coef, _ = _ridge(phi[train], yw[train][:, cols], ridge, with_df=False)
+            sse[cols] += np.sum((yw[test][:, cols] - phi[test] @ coef) ** 2, axis=0)
     return sse
+
+
+def _designs(z, degree, num_s, whiten):
+    """``[(output or None, design [N, F])]``: one shared design, or one whitened
+    design per output."""
+    phi = _monomials(z, degree)
+    if whiten is None:
+        return [(None, phi)]
+    white = whiten(np.repeat(phi[:, None, :], num_s, axis=1))  # [N, S, F]
+    return [(s, white[:, s]) for s in range(num_s)]
 
 
 def fit_discrepancy(
@@ -127,6 +149,7 @@ def fit_discrepancy(
     sensor_names: Sequence[str],
     cfg: DiscrepancyConfig,
     condition_names: Sequence[str] | None = None,
+    whiten=None,
 ) -> Discrepancy:
     """Fit and test ``delta_s(w)`` to a normalised residual.
 
@@ -138,6 +161,8 @@ def fit_discrepancy(
         cfg: settings.
         condition_names: ``W`` names of the conditions in ``dependence`` / ``unique``
             (default ``w[0]``, ``w[1]``, ...).
+        whiten: ``[N, S, ...] -> [N, S, ...]`` prewhitening of normalised arrays
+            along rows (``None``: the noise is white).
 
     Returns:
         :class:`Discrepancy`, one entry per sensor.
@@ -156,29 +181,41 @@ def fit_discrepancy(
     folds = _folds(groups, cfg.folds)
     degrees = cfg.degrees if inputs else (0,)
     grid = [(d, r) for d in degrees for r in cfg.ridges]
-    cv = np.stack([_cv_sse(z, resid, folds, d, r) for d, r in grid])  # [G, S]
-    base = np.sum(resid**2, axis=0)
+    designs = {d: _designs(z, d, resid.shape[1], whiten) for d in degrees}
+    cv = np.stack([_cv_sse(z, resid, folds, d, r, whiten, designs[d]) for d, r in grid])
+    white = resid if whiten is None else whiten(resid)
+    base = np.sum(white**2, axis=0)
     sensors, coefs = [], []
     for s, name in enumerate(sensor_names):
         d, r = grid[int(np.argmin(cv[:, s]))]
-        coef, df = _ridge(_monomials(z, d), resid[:, s], r)
+        phi = dict(designs[d])[s if whiten else None]
+        coef, df = _ridge(phi, white[:, s], r)
         gain = float(base[s] - cv[:, s].min())
         threshold = cfg.margin + 3.0 * np.sqrt(2.0 * df)
         delta = _monomials(z, d) @ coef
         dependence, unique = {}, {}
         if gain > threshold:
-            full, y = cv[:, s].min(), resid[:, [s]]
-            const = _cv_sse(z[:, :0], y, folds, 0, r)[0]
+            full = cv[:, s].min()
+
+            def sub(cols, degree, s=s, r=r):  # CV SSE of output s on some inputs
+                part = (
+                    None
+                    if whiten is None
+                    else _one_output(whiten, s, len(sensor_names))
+                )
+                return _cv_sse(z[:, cols], resid[:, [s]], folds, degree, r, part)[0]
+
+            const = sub([], 0)
             # shares in [0, 1]: a sub-model's CV gain can exceed the selected full
             # model's by the noise of cross-validation, which is no share above 1
             dependence["constant"] = min(max(float(base[s] - const), 0.0) / gain, 1.0)
             for k, j in enumerate(inputs):
-                alone = _cv_sse(z[:, [k]], y, folds, d, r)[0]
+                alone = sub([k], d)
                 dependence[condition_names[j]] = min(
                     max(float(const - alone), 0.0) / gain, 1.0
                 )
                 keep = [i for i in range(len(inputs)) if i != k]
-                loss = _cv_sse(z[:, keep], y, folds, d, r)[0] - full
+                loss = sub(keep, d) - full
                 unique[condition_names[j]] = min(max(float(loss), 0.0) / gain, 1.0)
         sensors.append(
             SensorDiscrepancy(
@@ -197,6 +234,17 @@ def fit_discrepancy(
         )
         coefs.append(coef)
     return Discrepancy(tuple(sensors), tuple(coefs), inputs, w_mean, w_std)
+
+
+def _one_output(whiten, s: int, num_s: int):
+    """``whiten`` of output ``s`` (of ``num_s``) for arrays ``[N, 1, ...]``."""
+
+    def apply(arr):
+        full = np.zeros((arr.shape[0], num_s) + arr.shape[2:])
+        full[:, s] = arr[:, 0]
+        return whiten(full)[:, [s]]
+
+    return apply
 
 
 def predict_discrepancy(

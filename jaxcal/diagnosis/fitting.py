@@ -1,97 +1,64 @@
-"""Joint Gauss–Newton fit of per-unit declared parameters and constant effects.
+"""Joint Gauss–Newton fit of per-unit declared parameters and candidate effects.
 
-The model of a data set is ``y_t = G(w_t, theta_u(c_t), phi) (+ offset_t)``: the
-extended model of :mod:`jaxcal.diagnosis.effects` with, per unit ``u``, the fitted
-parameters ``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
-:mod:`.problem`; ``scale`` the parameter's natural step, :func:`.effects.natural_scale`)
-and a few constant effects ``phi = scale * b`` shared by all units. The normalised
-residual
-``r = (x - y) / sigma`` is minimised by Levenberg–Marquardt (Nocedal & Wright 2006, sec.
-10.3) with Marquardt damping ``lambda diag(J^T J)``.
+The model of a data set is the extended model of :mod:`.signatures` with the terms of
+a :class:`~.terms.ModelSpec`: per unit ``u`` the declared parameters
+``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time, :mod:`.prepare`;
+``scale`` the natural step), for a model with memory an offset of each unit's initial
+state, and the candidate effects (:mod:`.kinds`), each coefficient a column
+(:mod:`.terms`).
+
+The fit minimises the sum of squares of the **prewhitened** residual (the noise
+model's AR filter per output, :mod:`.noise`: generalised least squares), so its SSR is
+``-2 log L`` up to a constant and every likelihood-ratio statistic and standard error
+below accounts for the serial correlation of the noise. Levenberg–Marquardt (Nocedal &
+Wright 2006, sec. 10.3) with Marquardt damping ``lambda diag(J^T J)``.
 
 The normal equations have arrow structure: each unit's coefficients couple only to its
-own rows and to the shared ``b``. :func:`schur_solve` eliminates the unit blocks
-(Schur complement; Triggs et al. 2000, bundle adjustment, sec. 6.1), so a fit of 260
-units costs 260 small solves plus one of the size of ``b``. The Jacobian blocks are
-stored per unit as Gram matrices (:class:`GramStats`), which also gives the linearised
-likelihood-ratio of *any* subset of candidate columns at once (used by
-:mod:`.identify`). Model evaluations are jitted (:func:`.effects.linearize`); the
-block algebra runs in numpy on the host because the number of units and rows varies
-from data set to data set.
+own rows and to the shared ones. :func:`schur_solve` eliminates the unit blocks
+(Schur complement; Triggs et al. 2000, sec. 6.1), so a fit of 260 units costs 260 small
+solves plus one of the size of the shared part. The Jacobian blocks are stored per unit
+as Gram matrices (:class:`GramStats`), which also give the linearised likelihood ratio
+of any subset of columns at once (:mod:`.screen`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 
-from jaxcal.diagnosis.effects import (
-    LAYER_NAMES,
-    Candidate,
-    Linearization,
-    linearize,
-    natural_scale,
-    offset_conditions,
-)
+from jaxcal.diagnosis.kinds import Candidate
 from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.signatures import RowInputs, Signatures, signatures
+from jaxcal.diagnosis.terms import (
+    Layout,
+    ModelParams,
+    ModelSpec,
+    layout,
+    model_inputs,
+    num_params,
+    selection_penalty,
+    zero_params,
+)
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
 
 
-@dataclasses.dataclass(frozen=True)
-class ModelSpec:
-    """Which parameters a fit moves.
-
-    Attributes:
-        unit_params: model parameters fitted per unit as splines (declared first).
-        global_effects: constant effects shared by all units.
-        num_declared: the first ``num_declared`` unit parameters use the declared
-            basis ``data.basis``, the others ``data.basis_candidate`` (``None``: all
-            use the declared basis).
-    """
-
-    unit_params: tuple[str, ...]
-    global_effects: tuple[Candidate, ...] = ()
-    num_declared: int | None = None
-
-    def unit_blocks(self, data: LoopData) -> list[tuple[str, np.ndarray]]:
-        """``(modifier, basis [N, K_j])`` per unit parameter, in coefficient order."""
-        n = len(self.unit_params) if self.num_declared is None else self.num_declared
-        return [
-            (name, data.basis if j < n else data.basis_candidate)
-            for j, name in enumerate(self.unit_params)
-        ]
-
-    def local_size(self, data: LoopData) -> int:
-        """Coefficients per unit ``sum_j K_j``."""
-        return sum(b.shape[1] for _, b in self.unit_blocks(data))
-
-    def num_params(self, data: LoopData) -> int:
-        """Number of fitted coefficients ``U sum_j K_j + m``."""
-        return data.num_units * self.local_size(data) + len(self.global_effects)
-
-
-class ModelParams(NamedTuple):
-    """Fitted coefficients in natural steps (``theta = nominal + scale a``,
-    ``phi = scale b``)."""
-
-    unit_coef: np.ndarray  # [U, sum_j K_j], parameter-major
-    global_coef: np.ndarray  # [m]
-
-
 class Evaluation(NamedTuple):
     """The model at one parameter point."""
 
-    yhat: np.ndarray  # [N, S] model output (sensor units, offset included)
-    resid: np.ndarray  # [N, S] normalised residual, 0 on invalid rows
-    valid: np.ndarray  # [N] bool
-    ssr: float  # sum of squared normalised residuals over valid rows
+    yhat: np.ndarray  # [N, S] model output (output units, offset included)
+    resid: np.ndarray  # [N, S] residual / marginal noise std, 0 where not used
+    white: np.ndarray  # [N, S] prewhitened, standardised residual
+    used: np.ndarray  # [N, S] bool: observed and the model valid
+    valid: np.ndarray  # [N] bool: the model valid
+    ssr: float  # sum of squares of the prewhitened residual
     theta: np.ndarray  # [N, P_all] model parameters used
-    lin: Linearization
+    inputs: RowInputs
+    sig: Signatures
+    cols: np.ndarray | None  # [N, S, L + G] prewhitened signatures (or None)
 
 
 class FitResult(NamedTuple):
@@ -100,120 +67,62 @@ class FitResult(NamedTuple):
     spec: ModelSpec
     params: ModelParams
     evaluation: Evaluation
+    layout: Layout
     ssr: float
     num_params: int
-    num_resid: int  # valid rows x sensors
-    global_cov: np.ndarray  # [m, m] covariance of phi (physical units, sigma known)
+    num_resid: int  # used entries (rows x outputs)
+    selection: float  # extended-BIC price of the units terms' carriers
+    global_cov: np.ndarray  # [G, G] covariance of the shared terms, physical units
     iterations: int
     converged: bool
 
     @property
     def bic(self) -> float:
-        """Schwarz criterion ``-2 log L + k ln n`` (known sigma, constants dropped)."""
-        return self.ssr + self.num_params * np.log(max(self.num_resid, 2))
+        """``-2 log L + k ln n`` (+ the carriers' price; sigma known)."""
+        return (
+            self.ssr + self.num_params * np.log(max(self.num_resid, 2)) + self.selection
+        )
 
-    def global_values(self) -> np.ndarray:
-        """``[m]`` fitted effect sizes in physical units."""
-        scale = np.array([c.scale for c in self.spec.global_effects])
-        return scale * self.params.global_coef
-
-
-def zero_params(data: LoopData, spec: ModelSpec) -> ModelParams:
-    """All coefficients zero (nominal parameters, no effect)."""
-    return ModelParams(
-        np.zeros((data.num_units, spec.local_size(data))),
-        np.zeros(len(spec.global_effects)),
-    )
-
-
-def model_inputs(model: Model, data: LoopData, spec: ModelSpec, params: ModelParams):
-    """``(theta [N, P_all], effects [n_eff], layer [3, E], w_offset [W])`` of the
-    extended model."""
-    names = model.parameter_names
-    theta = np.tile(model.nominal, (data.num_rows, 1))
-    start = 0
-    for name, basis in spec.unit_blocks(data):
-        coef = params.unit_coef[data.unit, start : start + basis.shape[1]]  # [N, K_j]
-        step = natural_scale(model, name)
-        theta[:, names.index(name)] += step * np.sum(coef * basis, axis=1)
-        start += basis.shape[1]
-    effects = np.zeros(len(model.effects))
-    effect_names = [e.name for e in model.effects]
-    layer = np.zeros((len(LAYER_NAMES), len(model.outputs)))
-    w_offset = np.zeros(len(model.conditions))
-    for cand, b in zip(spec.global_effects, params.global_coef, strict=True):
-        value = cand.scale * b
-        if cand.family == "effect":
-            effects[effect_names.index(cand.target)] += value
-        elif cand.family == "condition_offset":
-            w_offset[model.condition_names.index(cand.target)] += value
-        elif cand.family in LAYER_NAMES:
-            s = model.output_names.index(cand.target)
-            layer[LAYER_NAMES.index(cand.family), s] += value
-        else:
-            raise ValueError(f"{cand.name}: a per-unit candidate cannot be global")
-    return theta, effects, layer, w_offset
+    def term_values(self, cand: Candidate) -> np.ndarray:
+        """A term's fitted value(s) in physical units: ``[1]`` for a fleet term,
+        ``[U, k]`` for a units term (zeros off its carriers)."""
+        block = next(b for b in self.layout.blocks if b.name == cand.key)
+        if block.local:
+            return cand.scale * self.params.unit_coef[:, block.columns]
+        return cand.scale * self.params.global_coef[block.columns]
 
 
 def evaluate_model(
     model: Model,
     data: LoopData,
-    spec: ModelSpec,
+    lay: Layout,
     params: ModelParams,
     *,
     offset: np.ndarray | None = None,
     valid: np.ndarray | None = None,
+    columns: bool = True,
 ) -> Evaluation:
-    """Run the extended model at ``params`` (rows outside ``valid`` get r = 0)."""
-    theta, effects, layer, w_offset = model_inputs(model, data, spec, params)
-    lin = linearize(model, data.w, theta, effects, layer, data.tau, w_offset)
-    yhat = lin.y[:, data.sensor_idx]
-    if offset is not None:
-        yhat = yhat + offset
-    ok = lin.ok if valid is None else valid & lin.ok
-    resid = np.where(ok[:, None], (data.x - yhat) / data.noise_std, 0.0)
-    ssr = float(np.sum(resid**2))
-    if valid is not None and np.any(valid & ~lin.ok):
-        ssr = np.inf  # a row that was fine before failed: reject this point
-    return Evaluation(yhat, resid, ok, ssr, theta, lin)
-
-
-def signature_columns(
-    data: LoopData,
-    lin: Linearization,
-    spec: ModelSpec,
-    model: Model,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised Jacobian columns ``dr/dcoef`` (with a minus sign dropped).
-
-    Returns:
-        ``(local [N, S, sum_j K_j], glob [N, S, m])``: per-unit spline columns
-        (parameter major, knot minor) and the columns of the constant effects.
-    """
-    sig = data.noise_std
-    global_effects = spec.global_effects
-    local = []
-    for name, basis in spec.unit_blocks(data):
-        jac = lin.jac_theta[:, data.sensor_idx, model.parameter_names.index(name)]
-        step = natural_scale(model, name)
-        local.append((step * jac / sig)[:, :, None] * basis[:, None, :])
-    local = np.concatenate(local, axis=2) if local else np.zeros(data.x.shape + (0,))
-    glob = np.zeros(data.x.shape + (len(global_effects),))
-    names = list(data.sensor_names)
-    effect_names = [e.name for e in model.effects]
-    for c, cand in enumerate(global_effects):
-        if cand.family == "effect":
-            e = effect_names.index(cand.target)
-            glob[:, :, c] = cand.scale * lin.jac_effects[:, data.sensor_idx, e] / sig
-        elif cand.family == "condition_offset":
-            j = offset_conditions(model).index(cand.target)
-            glob[:, :, c] = cand.scale * lin.jac_w[:, data.sensor_idx, j] / sig
-        else:
-            s = names.index(cand.target)
-            f = LAYER_NAMES.index(cand.family)
-            col = lin.jac_layer[:, f, data.sensor_idx[s]]
-            glob[:, s, c] = cand.scale * col / sig[s]
-    return local, glob
+    """The extended model at ``params``: residuals, prewhitened residual and (with
+    ``columns``) the prewhitened signatures. Rows outside ``valid`` get r = 0, and a
+    row that was valid and fails makes the SSR infinite (the point is rejected)."""
+    inputs = model_inputs(model, data, lay, params)
+    # a static model's signatures come with its evaluation; a model with memory
+    # costs one forward pass per tangent, taken only when asked for
+    want = columns or not model.is_stateful
+    sig = signatures(model, data, inputs, lay.tangents if want else ())
+    yhat = sig.y if offset is None else sig.y + offset
+    ok = sig.ok if valid is None else valid & sig.ok
+    used = data.observed & ok[:, None]
+    raw = np.where(used, data.x - yhat, 0.0)
+    white = data.whiten(raw)
+    ssr = float(np.sum(white**2))
+    if valid is not None and np.any(valid & ~sig.ok):
+        ssr = np.inf
+    cols = data.whiten(np.where(used[:, :, None], sig.cols, 0.0)) if want else None
+    return Evaluation(
+        yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
+        cols,
+    )  # fmt: skip
 
 
 class GramStats(NamedTuple):
@@ -226,19 +135,19 @@ class GramStats(NamedTuple):
 
 
 def gram_stats(
-    data: LoopData, resid: np.ndarray, valid: np.ndarray, local, glob
+    data: LoopData, white: np.ndarray, cols: np.ndarray, num_local: int
 ) -> GramStats:
-    """Accumulate :class:`GramStats` unit by unit (bounded memory)."""
-    z = np.concatenate([local, glob], axis=2) * valid[:, None, None]
-    q = z.shape[2]
+    """Accumulate :class:`GramStats` of prewhitened ``cols [N, S, Q]`` and residual
+    ``white [N, S]`` unit by unit (bounded memory)."""
+    q = cols.shape[2]
     gram = np.zeros((data.num_units, q, q))
     score = np.zeros((data.num_units, q))
     for u in range(data.num_units):
         sl = slice(data.starts[u], data.starts[u + 1])
-        zu = z[sl].reshape(-1, q)
+        zu = cols[sl].reshape(-1, q)
         gram[u] = zu.T @ zu
-        score[u] = zu.T @ resid[sl].reshape(-1)
-    return GramStats(gram, score, float(np.sum(resid**2)), local.shape[2])
+        score[u] = zu.T @ white[sl].reshape(-1)
+    return GramStats(gram, score, float(np.sum(white**2)), num_local)
 
 
 class SchurSolution(NamedTuple):
@@ -294,10 +203,6 @@ def schur_solve(
     return SchurSolution(du, dg, schur, reduction)
 
 
-def _columns(data, model, spec, lin):
-    return signature_columns(data, lin, spec, model)
-
-
 def fit_model(
     model: Model,
     data: LoopData,
@@ -308,49 +213,52 @@ def fit_model(
     max_iters: int = 20,
     rtol: float = 1e-7,
 ) -> FitResult:
-    """Levenberg–Marquardt fit of ``spec`` to the data.
+    """Levenberg–Marquardt fit of ``spec`` to the data (module docstring).
 
     Rows on which the model fails at the start point are left out for the whole fit;
     a trial point that makes another row fail is rejected like one that raises the cost.
 
     Args:
         model: the model.
-        data: the rows.
-        spec: parameters to fit.
+        data: the rows (with their noise model).
+        spec: what to fit.
         init: start point (default zeros).
-        offset: ``[N, S]`` fixed additive term (a discrepancy, sensor units).
+        offset: ``[N, S]`` fixed additive term (a discrepancy, output units).
         max_iters: upper bound on accepted + rejected steps.
         rtol: stop when an accepted step lowers the SSR by less than ``rtol * SSR``.
 
     Returns:
-        :class:`FitResult`; ``global_cov`` is ``(J^T J)^-1`` of the shared effects in
-        physical units (sigma known), from the Schur complement at the solution.
+        :class:`FitResult`; ``global_cov`` is ``(J^T J)^-1`` of the shared terms in
+        physical units, from the Schur complement at the solution.
     """
-    params = zero_params(data, spec) if init is None else init
-    ev = evaluate_model(model, data, spec, params, offset=offset)
+    lay = layout(model, data, spec)
+    params = zero_params(data, lay) if init is None else init
+    ev = evaluate_model(model, data, lay, params, offset=offset)
     valid = ev.valid
     if not valid.any():
         raise ValueError(
             f"model {model.name!r} is invalid (non-finite or outside its valid "
             "input range) on every row of the data"
         )
-    local_idx = np.arange(spec.local_size(data))
-    global_idx = np.arange(len(spec.global_effects))
+    local_idx, global_idx = np.arange(lay.num_local), np.arange(lay.num_global)
     damping, converged, it = 1e-3, False, 0
-    stats = gram_stats(data, ev.resid, valid, *_columns(data, model, spec, ev.lin))
+    stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
     while it < max_iters:
         it += 1
         step = schur_solve(stats, local_idx, global_idx, damping=damping)
         trial = ModelParams(
             params.unit_coef + step.local_step, params.global_coef + step.global_step
         )
-        ev_t = evaluate_model(model, data, spec, trial, offset=offset, valid=valid)
+        ev_t = evaluate_model(
+            model, data, lay, trial, offset=offset, valid=valid, columns=False
+        )
         if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr:
             gain = ev.ssr - ev_t.ssr
+            if ev_t.cols is None:
+                ev_t = evaluate_model(model, data, lay, trial, offset=offset,
+                                      valid=valid)  # fmt: skip
             params, ev = trial, ev_t
-            stats = gram_stats(
-                data, ev.resid, valid, *_columns(data, model, spec, ev.lin)
-            )
+            stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
             damping = max(damping / 10.0, 1e-9)
             if gain <= rtol * max(ev.ssr, 1.0):
                 converged = True
@@ -360,20 +268,13 @@ def fit_model(
             if damping > 1e8:
                 break
     final = schur_solve(stats, local_idx, global_idx)
-    scale = np.array([c.scale for c in spec.global_effects])
+    scale = np.array([c.scale for c in spec.global_terms])
     cov = (
         np.linalg.pinv(final.schur, rcond=1e-12) * np.outer(scale, scale)
         if global_idx.size
         else np.zeros((0, 0))
     )
     return FitResult(
-        spec,
-        params,
-        ev,
-        ev.ssr,
-        spec.num_params(data),
-        int(valid.sum()) * data.num_sensors,
-        cov,
-        it,
-        converged,
-    )
+        spec, params, ev, lay, ev.ssr, num_params(data, spec, model),
+        int(ev.used.sum()), selection_penalty(data, spec), cov, it, converged,
+    )  # fmt: skip

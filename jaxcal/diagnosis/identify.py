@@ -1,26 +1,27 @@
-"""Trace a residual to the library: screen, refit the finalists, rank, flag confounding.
+"""Trace a residual to the library: screen every form, refit the finalists, rank.
 
-1. **Screen.** At the declared-only fit, every candidate (and every pair of the best
-   ``pair_top`` whose members do not reproduce each other's signature, see 4) is
-   scored by the likelihood-ratio statistic of the *linearised* joint
-   fit ``LR = SSR_0 - SSR_c`` (sigma known, so ``-2 log L = SSR``), computed for all
-   candidates at once from the per-unit Gram blocks (:mod:`.fitting`): this is the
-   score test of Rao (1948) in Gauss–Newton form.
-2. **Refit.** The ``top_k`` singles and the pairs among the best ``pair_top`` are fitted
-   jointly with the declared parameters by Levenberg–Marquardt, which replaces their
-   linearised numbers.
-3. **Rank** by BIC = SSR + k ln n (Schwarz 1978); the evidence for a candidate is
-   ``delta_bic = BIC_0 - BIC_c`` and the LR test ``chi2(df = k_c)`` against the
-   declared-only model. A winner is *found* when ``delta_bic >= bic_margin`` (10 is
-   "very strong" on the scale of Kass & Raftery 1995) and its p-value is below
-   ``alpha`` divided by the number of tests (Bonferroni). A pair must beat the best
-   single by the margin too (parsimony).
-4. **Confounding.** Candidates within ``bic_margin`` of the winner whose signature,
-   after projecting out the declared parameters' signatures, reproduces at least
-   ``confound_r2`` of the winner's fitted signal are reported as confounded with it.
-   Candidates whose projected signature keeps less than ``absorbed_frac`` of its norm
-   are flagged *absorbed*: the declared parameters can mimic them, so they smear into
-   theta instead of showing in the residual.
+1. **Screen** (:mod:`.screen`): at the declared-only fit, every candidate in each of
+   its forms — fleet-wide (one value) and in the units that carry it (the carriers and,
+   for a step, the onsets chosen by the screen) — and every pair of the best
+   ``pair_top`` whose members do not reproduce each other's signature is scored by the
+   linearised likelihood-ratio statistic of the prewhitened residual.
+2. **Refit.** The ``top_k`` singles and the pairs are fitted jointly with the declared
+   parameters by Levenberg–Marquardt, which replaces their linearised numbers.
+3. **Rank** by the extended BIC, ``SSR + k ln n + 2 ln C(U, |C|)`` per units term
+   (Schwarz 1978; Chen & Chen 2008): one criterion for every kind and form, so a step
+   is told from a drift, a bias and a gain by how well each explains the data, never
+   by the order they are tried in, and a fleet-wide form from a per-unit one by the
+   same rule. The evidence for a candidate is ``delta_bic = BIC_0 - BIC_c`` and the LR
+   test ``chi2(df = k_c)`` against the declared-only model. A winner is *found* when
+   ``delta_bic >= bic_margin`` (10 is "very strong" on the scale of Kass & Raftery
+   1995) and its p-value is below ``alpha`` over the number of tests (Bonferroni). A
+   pair must beat the best single by the margin too (parsimony).
+4. **Confounding.** Candidates (another kind or target) within ``bic_margin`` of the
+   winner whose signature, after projecting out the declared parameters' signatures,
+   reproduces at least ``confound_r2`` of the winner's fitted signal are reported as
+   confounded with it. Candidates whose projected signature keeps less than
+   ``absorbed_frac`` of its norm are flagged *absorbed*: the declared parameters can
+   mimic them, so they smear into theta instead of showing in the residual.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ import numpy as np
 from scipy import stats as sps
 from scipy.special import gammaln
 
-from jaxcal.diagnosis.effects import Candidate
 from jaxcal.diagnosis.fitting import FitResult, fit_model
+from jaxcal.diagnosis.kinds import Candidate, nests
 from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.screen import Screen, init_from, spec_for
 from jaxcal.model import Model
@@ -45,39 +46,45 @@ from jaxcal.model import Model
 class IdentifyConfig:
     """Static settings of :func:`identify`."""
 
-    top_k: int = 3  # singles refitted nonlinearly
+    top_k: int = 4  # singles refitted nonlinearly
     pair_top: int = 3  # pairs among this many best singles are scored and refitted
     alpha: float = 0.01  # family-wise level of the likelihood-ratio tests
-    bic_margin: float = (
-        10.0  # delta BIC needed for "found" (and for a pair over a single)
-    )
-    confound_r2: float = (
-        0.9  # share of the winner's signal another candidate reproduces
-    )
+    bic_margin: float = 10.0  # delta BIC needed for "found" (and a pair over a single)
+    confound_r2: float = 0.9  # share of the winner's signal another reproduces
     absorbed_frac: float = 0.1  # projected / raw signature norm below this: absorbed
     max_iters: int = 20  # Levenberg–Marquardt iterations per refit
+    # forms tried: without "units" every effect is fleet-wide or on every unit (the
+    # diagnosis before issue 24; steps need the per-unit form and are left out)
+    forms: tuple[str, ...] = ("fleet", "units")
 
     def __post_init__(self):
         if self.top_k < 1 or self.pair_top < 0 or not 0 < self.alpha < 1:
             raise ValueError(
                 "IdentifyConfig: need top_k >= 1, pair_top >= 0, 0 < alpha < 1"
             )
+        if not self.forms or not set(self.forms) <= {"fleet", "units"}:
+            raise ValueError("IdentifyConfig.forms: a subset of ('fleet', 'units')")
 
 
 class RankEntry(NamedTuple):
-    """One candidate model (a single effect or a pair) with its evidence."""
+    """One candidate model (a single effect in one form, or a pair) and its evidence."""
 
-    name: str  # members joined by " + "
-    members: tuple[str, ...]
+    name: str  # members' labels joined by " + "
+    members: tuple[Candidate, ...]
     df: int  # parameters added to the declared-only model
     lr_stat: float  # SSR_0 - SSR_c (= 2 delta log-likelihood)
     log10_p: float  # log10 of the chi2(df) tail probability of lr_stat
-    bic: float
+    bic: float  # extended BIC (carriers' price included)
     delta_bic: float  # BIC_0 - BIC_c, > 0 favours the candidate
-    sizes: tuple[float, ...]  # per member, physical units (parameter: mean end value)
+    sizes: tuple[float, ...]  # per member, physical units (mean over its carriers)
     stds: tuple[float, ...]  # per member
     refit: bool  # True: nonlinear joint refit; False: linearised screening
     detectability: float  # projected / raw signature norm (singles; 1 for pairs)
+
+    @property
+    def member_names(self) -> tuple[str, ...]:
+        """The members' effect names (without their form)."""
+        return tuple(c.name for c in self.members)
 
 
 class Identification(NamedTuple):
@@ -87,10 +94,11 @@ class Identification(NamedTuple):
     ranking: list[RankEntry]  # best first
     winner: RankEntry | None  # significant best model, or None
     winner_fit: FitResult | None
-    confounded: list[str]  # candidates confounded with the winner (winner first)
-    absorbed: list[str]  # candidates the declared parameters can mimic
+    confounded: list[str]  # effects confounded with the winner (winner first)
+    absorbed: list[str]  # effects the declared parameters can mimic
     num_tests: int
-    fits: dict  # name -> FitResult of every refitted model
+    fits: dict  # entry name -> FitResult of every refitted model
+    onset_ci: dict  # candidate key -> [U, 2] rows of a step's onset interval
 
 
 def log10_chi2_sf(x: float, df: int) -> float:
@@ -108,52 +116,96 @@ def log10_chi2_sf(x: float, df: int) -> float:
     return value / np.log(10.0)
 
 
-def _entry(members, df, lr, null, n_resid, sizes, stds, refit, detect) -> RankEntry:
-    bic0 = null.bic
-    bic = null.ssr - lr + (null.num_params + df) * np.log(max(n_resid, 2))
-    log10_p = log10_chi2_sf(lr, df)
+def _price(members: Sequence[Candidate], data: LoopData) -> tuple[int, float]:
+    """``(df, selection)`` of adding ``members``: coefficients (and onsets) and the
+    extended BIC's price of the units terms' carriers."""
+    df, sel, u = 0, 0.0, data.num_units
+    for c in members:
+        per = data.num_candidate_knots if c.kind.profile == "spline" else 1
+        per += 1 if c.kind.profile == "step" else 0
+        if c.per_unit:
+            m = len(c.carriers)
+            df += per * m
+            sel += 2.0 * float(gammaln(u + 1) - gammaln(m + 1) - gammaln(u - m + 1))
+        else:
+            df += per
+    return df, sel
+
+
+def _entry(members, lr, null, data, sizes, stds, refit, detect) -> RankEntry:
+    df, sel = _price(members, data)
+    log_n = np.log(max(null.num_resid, 2))
+    bic = null.bic - lr + df * log_n + sel
     return RankEntry(
-        " + ".join(c.name for c in members),
-        tuple(c.name for c in members),
-        df,
-        float(lr),
-        log10_p,
-        float(bic),
-        float(bic0 - bic),
-        tuple(sizes),
-        tuple(stds),
-        refit,
-        float(detect),
-    )
+        " + ".join(c.label for c in members), tuple(members), df, float(lr),
+        log10_chi2_sf(lr, df), float(bic), float(null.bic - bic), tuple(sizes),
+        tuple(stds), refit, float(detect),
+    )  # fmt: skip
 
 
-def effect_sizes(fit: FitResult, members, data: LoopData):
+def effect_sizes(fit: FitResult, members: Sequence[Candidate], data: LoopData):
     """Physical sizes of the members of a fitted model and their standard errors.
 
-    Constant effects: the fitted value and its standard error (inflated by the
-    residual variance factor when that exceeds 1). Per-unit parameters: the mean over
-    units of the departure from nominal at each unit's last row and its standard
-    error across units.
+    A fleet term: its value and standard error (inflated by the residual variance
+    factor when that exceeds 1). A units term: the mean over its carriers (a spline:
+    of the departure from nominal at each carrier's last row) and the standard error
+    of that mean across them (NaN with one carrier).
     """
     s2 = max(1.0, fit.ssr / max(fit.num_resid - fit.num_params, 1))
-    glob_vals, glob_std = fit.global_values(), np.sqrt(np.diag(fit.global_cov) * s2)
+    glob = fit.spec.global_terms
     sizes, stds = [], []
     last = data.starts[1:] - 1
-    # the fit orders its constant effects as the library does, members may not
-    order = [c.name for c in fit.spec.global_effects]
     for c in members:
-        if c.per_unit:  # mean over units of the value at each unit's last row
+        if not c.per_unit:
+            g = [t.key for t in glob].index(c.key)
+            sizes.append(float(fit.term_values(c)[0]))
+            stds.append(float(np.sqrt(fit.global_cov[g, g] * s2)))
+            continue
+        carriers = np.asarray(c.carriers, int)
+        if c.kind.channel == "parameter" and c.kind.profile == "spline":
             j = data.parameter_names.index(c.target)
-            eol = fit.evaluation.theta[last, j] - data.parameter_nominal[j]
-            sizes.append(float(eol.mean()))
-            # one unit has no spread to estimate from: NaN (reported as n/a), not 0
-            spread = eol.std() / np.sqrt(eol.size) if eol.size > 1 else np.nan
-            stds.append(float(spread))
+            vals = fit.evaluation.theta[last[carriers], j] - data.parameter_nominal[j]
         else:
-            gi = order.index(c.name)
-            sizes.append(float(glob_vals[gi]))
-            stds.append(float(glob_std[gi]))
+            vals = fit.term_values(c)[carriers, 0]
+        sizes.append(float(np.mean(vals)))
+        spread = np.std(vals) / np.sqrt(vals.size) if vals.size > 1 else np.nan
+        stds.append(float(spread))
     return sizes, stds
+
+
+def _singles(screen: Screen, library, null, data, forms=("fleet", "units")):
+    """Every library candidate in each of its forms, screened."""
+    out, onset_ci = [], {}
+    for cand in library:
+        if "units" not in forms and not cand.kind.fleet:
+            if cand.kind.profile == "step":
+                continue
+            every = cand.with_form("units", range(data.num_units))
+            lr = float(screen.unit_scores(cand).lr.sum())
+            det = screen.detectability(every)
+            out.append(_entry([every], lr, null, data, [np.nan], [np.nan], False, det))
+            continue
+        detect = screen.detectability(
+            cand.with_form("units", range(data.num_units))
+            if cand.kind.profile == "step" or not cand.kind.fleet
+            else cand
+        )
+        if cand.kind.fleet:
+            lr, coef, var = screen.fleet_score(cand)
+            fleet = cand.with_form("fleet")
+            out.append(_entry([fleet], lr, null, data, [cand.scale * coef],
+                              [cand.scale * np.sqrt(var)], False, detect))  # fmt: skip
+        if "units" not in forms:
+            continue
+        units, scores = screen.units_form(cand)
+        if cand.kind.profile == "step":
+            onset_ci[cand.name] = scores.onset_ci
+        if units is not None:
+            carriers = list(units.carriers)
+            lr = float(scores.lr[carriers].sum())
+            size = cand.scale * float(np.nanmean(scores.estimate[carriers]))
+            out.append(_entry([units], lr, null, data, [size], [np.nan], False, detect))
+    return out, onset_ci
 
 
 def identify(
@@ -170,133 +222,98 @@ def identify(
 
     Args:
         model: the model.
-        data: the rows.
+        data: the rows (with their noise model).
         declared: the calibrated parameters.
-        library: candidate effects (:func:`.effects.build_library`).
+        library: candidate effects (:func:`.kinds.build_library`).
         cfg: settings.
         null: the declared-only fit (the "before" calibration).
-        offset: a fixed discrepancy term included in every refit (sensor units).
+        offset: a fixed discrepancy term included in every refit (output units).
 
     Returns:
         :class:`Identification`.
     """
-    screen = Screen(model, data, declared, library, null)
-    n_resid = null.num_resid
-    singles = []
-    for cand in library:
-        lr, sol = screen.score([cand])
-        df = data.num_units * data.num_candidate_knots if cand.per_unit else 1
-        if cand.per_unit:
-            sizes, stds = [np.nan], [np.nan]
-        else:
-            var = np.linalg.pinv(sol.schur)[0, 0] if sol.schur.size else np.nan
-            sizes, stds = [cand.scale * sol.global_step[0]], [cand.scale * np.sqrt(var)]
-        singles.append(
-            (
-                cand,
-                _entry(
-                    [cand],
-                    df,
-                    lr,
-                    null,
-                    n_resid,
-                    sizes,
-                    stds,
-                    False,
-                    screen.detectability(cand),
-                ),
-            )
-        )
-    singles.sort(key=lambda t: t[1].bic)
-    by_name = {c.name: c for c in library}
-    entries = {e.name: e for _, e in singles}
-    # two forms of one effect (an additive and a multiplicative drift of a sensor at
-    # one operating point) are near collinear: as a pair they fit large cancelling
-    # sizes, so a pair whose members reproduce each other is not formed
+    screen = Screen(model, data, library, null)
+    singles, onset_ci = _singles(screen, library, null, data, cfg.forms)
+    singles.sort(key=lambda e: e.bic)
+    entries = {e.name: e for e in singles}
+    top = []
+    for e in singles:  # the best form of each of the best effects
+        if all(e.members[0].name != t.members[0].name for t in top):
+            top.append(e)
+        if len(top) >= cfg.pair_top:
+            break
     pairs = [
-        p
-        for p in itertools.combinations([c for c, _ in singles[: cfg.pair_top]], 2)
-        if max(screen.overlap(p[0], p[1]), screen.overlap(p[1], p[0])) < cfg.confound_r2
-    ]
+        (a.members[0], b.members[0])
+        for a, b in itertools.combinations(top, 2)
+        if max(screen.overlap(a.members[0], b.members[0]),
+               screen.overlap(b.members[0], a.members[0])) < cfg.confound_r2
+    ]  # fmt: skip
     for pair in pairs:
-        lr, _ = screen.score(list(pair))
-        df = sum(
-            data.num_units * data.num_candidate_knots if c.per_unit else 1 for c in pair
-        )
-        e = _entry(pair, df, lr, null, n_resid, [np.nan] * 2, [np.nan] * 2, False, 1.0)
+        lr = screen.joint(pair)[0]
+        e = _entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
     fits = {}
+    initial_state = null.spec.initial_state
 
     def refit(members):
-        spec = spec_for(declared, members)
+        spec = spec_for(declared, members, initial_state)
         fit = fit_model(
-            model,
-            data,
-            spec,
-            init_from(null, spec, data),
-            offset=offset,
+            model, data, spec, init_from(null, model, data, spec), offset=offset,
             max_iters=cfg.max_iters,
-        )
-        name = " + ".join(c.name for c in members)
+        )  # fmt: skip
+        name = " + ".join(c.label for c in members)
         fits[name] = fit
         sizes, stds = effect_sizes(fit, members, data)
         old = entries[name]
-        entries[name] = _entry(
-            members,
-            old.df,
-            null.ssr - fit.ssr,
-            null,
-            n_resid,
-            sizes,
-            stds,
-            True,
-            old.detectability,
-        )
+        entries[name] = _entry(members, null.ssr - fit.ssr, null, data, sizes, stds,
+                               True, old.detectability)  # fmt: skip
 
-    for members in [[c] for c, _ in singles[: cfg.top_k]] + [list(p) for p in pairs]:
-        refit(members)
+    for e in singles[: cfg.top_k]:
+        refit(list(e.members))
+    for pair in pairs:
+        refit(list(pair))
     ranking = sorted(entries.values(), key=lambda e: e.bic)
     for _ in range(cfg.top_k):  # a linearised score may have ranked a model too low
         if ranking[0].refit:
             break
-        refit([by_name[m] for m in ranking[0].members])
+        refit(list(ranking[0].members))
         ranking = sorted(entries.values(), key=lambda e: e.bic)
     num_tests = len(singles) + len(pairs)
-    threshold = np.log10(cfg.alpha / num_tests)
+    threshold = np.log10(cfg.alpha / max(num_tests, 1))
 
     def significant(e):
         return e.delta_bic >= cfg.bic_margin and e.log10_p < threshold
 
-    best_single = min(
-        (e for e in entries.values() if len(e.members) == 1), key=lambda e: e.bic
-    )
     winner = ranking[0]
-    if len(winner.members) > 1 and winner.bic > best_single.bic - cfg.bic_margin:
-        winner = best_single
+    best_single = min(
+        (e for e in entries.values() if len(e.members) == 1 and e.refit),
+        key=lambda e: e.bic,
+        default=None,
+    )
+    if len(winner.members) > 1 and best_single is not None:
+        if winner.bic > best_single.bic - cfg.bic_margin:
+            winner = best_single
     if not significant(winner) or winner.name not in fits:
         winner = None
-    confounded, absorbed = [], []
-    for cand, e in singles:
-        if e.detectability < cfg.absorbed_frac:
-            absorbed.append(cand.name)
+    absorbed = sorted({e.members[0].name for e in singles
+                       if e.detectability < cfg.absorbed_frac})  # fmt: skip
+    confounded = []
     if winner is not None:
         for m in winner.members:
-            group = [m]
-            for cand, _ in singles:
-                e = entries[cand.name]
-                if cand.name in winner.members or e.bic > winner.bic + cfg.bic_margin:
+            group = [m.name]
+            for e in singles:
+                other = e.members[0]
+                if other.name in winner.member_names or other.name in group:
                     continue
-                if screen.overlap(by_name[m], cand) >= cfg.confound_r2:
-                    group.append(cand.name)
+                if nests(other, m) or nests(m, other):
+                    continue
+                if e.bic > winner.bic + cfg.bic_margin:
+                    continue
+                if screen.overlap(m, other) >= cfg.confound_r2:
+                    group.append(other.name)
             if len(group) > 1:
                 confounded.extend(g for g in group if g not in confounded)
     return Identification(
-        null,
-        ranking,
-        winner,
-        None if winner is None else fits[winner.name],
-        confounded,
-        absorbed,
-        num_tests,
-        fits,
-    )
+        null, ranking, winner, None if winner is None else fits[winner.name],
+        confounded, absorbed, num_tests, fits, onset_ci,
+    )  # fmt: skip

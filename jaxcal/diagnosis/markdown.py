@@ -54,7 +54,8 @@ def fmt_p(p) -> str:
 
 def effect_line(e: dict, num_units: int | None = None) -> str:
     """``name = size ± std unit`` (with the carriers when known), for one-line use."""
-    text = f"{e['name']} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
+    form = " (per unit)" if e.get("form") == "units" else ""
+    text = f"{e['name']}{form} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
     if num_units is not None and "carriers" in e:
         text += f" (carried by {e['carriers']} of {num_units} units)"
     return text
@@ -91,12 +92,17 @@ def _unit_table(e: dict) -> list[str]:
             carriers, key=lambda u: -abs(u["size"] / (u["size_std"] or math.inf))
         )[:MAX_UNIT_ROWS]
         shown.sort(key=lambda u: u["unit"])
-        lines += ["| unit | size | std | size / std | onset |", "|---|---|---|---|---|"]
+        lines += [
+            "| unit | size | std | size / std | onset | onset 95 % interval |",
+            "|---|---|---|---|---|---|",
+        ]
         for u in shown:
             z = u["size"] / u["size_std"] if u["size_std"] else None
+            ci = u.get("onset_ci")
+            ci = f"{_fmt(ci[0])} – {_fmt(ci[1])}" if ci else "–"
             lines.append(
                 f"| {u['unit']} | {_fmt(u['size'])} | {fmt_std(u['size_std'])} | "
-                f"{_fmt(z, 3)} | {_fmt(u['onset'])} |"
+                f"{_fmt(z, 3)} | {_fmt(u['onset'])} | {ci} |"
             )
         if len(carriers) > len(shown):
             lines.append(
@@ -106,6 +112,7 @@ def _unit_table(e: dict) -> list[str]:
         lines.append("")
     if rest:
         sizes = np.array([u["size"] for u in rest if u["size"] is not None])
+        sizes = sizes[np.isfinite(sizes)]
         spread = (
             f"; their sizes: median {np.median(sizes):.4g}, range "
             f"[{sizes.min():.4g}, {sizes.max():.4g}] {e['unit']}"
@@ -114,6 +121,30 @@ def _unit_table(e: dict) -> list[str]:
         )
         lines += [f"{len(rest)} units do not carry it{spread}.", ""]
     return lines
+
+
+def _noise_lines(noise: dict, units: dict) -> list[str]:
+    """The noise model: level, AR colour and whiteness after prewhitening."""
+    lines = [
+        "## Noise model",
+        "",
+        "Every likelihood, test and standard error is computed on the residual "
+        "prewhitened by an AR(p) model per output (order by BIC, fitted to the "
+        "declared-only fit's residual and corrected for what that fit absorbs); "
+        "where AR(p) does not whiten it (Ljung–Box p < 0.01), the output's variance is "
+        "inflated by its long-run variance ratio (HAC).",
+        "",
+        "| output | std | AR coefficients | HAC inflation | Ljung–Box p "
+        "(prewhitened) |",
+        "|---|---|---|---|---|",
+    ]
+    for s, std in noise["std"].items():
+        ar = ", ".join(f"{v:.2f}" for v in noise["ar"][s]) or "white"
+        lines.append(
+            f"| {s} [{units.get(s, '-')}] | {_fmt(std)} | {ar} | "
+            f"{noise['inflation'][s]:.2f} | {fmt_p(noise['whiteness_p'][s])} |"
+        )
+    return lines + [""]
 
 
 def render_markdown(rep: dict) -> str:
@@ -132,6 +163,8 @@ def render_markdown(rep: dict) -> str:
         verdict_line(rep),
         "",
     ]
+    if d.get("noise"):
+        lines += _noise_lines(d["noise"], units)
     dropped = d.get("dropped") or {}
     if dropped.get("rows") or dropped.get("columns"):
         lines += [dropped_rows_line(dropped) + ".", ""]
@@ -241,21 +274,36 @@ def render_markdown(rep: dict) -> str:
         "",
         f"Added: {', '.join(rep['added']) or 'nothing'}. Mean tracking RMSE "
         f"{b['mean_tracking_rmse_norm']:.3f} -> {a['mean_tracking_rmse_norm']:.3f} "
-        f"noise std; white sensors (Ljung–Box p > 0.01) {b['whiteness']:.2f} -> "
-        f"{a['whiteness']:.2f}; BIC {b['bic']:.1f} -> {a['bic']:.1f}.",
+        f"noise std; white outputs after prewhitening (Ljung–Box p > 0.01) "
+        f"{b['whiteness']:.2f} -> {a['whiteness']:.2f}; BIC {b['bic']:.1f} -> "
+        f"{a['bic']:.1f}.",
         "",
         "| output | unit | RMSE before | after | before / std | after / std "
-        "| LB p before | after |",
+        "| LB p before (prewhitened) | after |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for j, s in enumerate(d["sensors"]):
-        rb, ra = b["residuals"][j], a["residuals"][j]
+    for s in d["sensors"]:
         lines.append(
             f"| {s} | {units.get(s, '-')} | {_fmt(b['tracking_rmse'][s])} | "
             f"{_fmt(a['tracking_rmse'][s])} | "
             f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
-            f"{fmt_p(rb['ljung_box_p'])} | {fmt_p(ra['ljung_box_p'])} |"
+            f"{fmt_p(b['whiteness_p'][s])} | {fmt_p(a['whiteness_p'][s])} |"
         )
+    ext = rep.get("extended_model")
+    if ext:
+        where = (
+            f"`{ext['file']}` (`model={ext['file']}` on any command line)"
+            if ext.get("file")
+            else "`result.extended_model` (Python)"
+        )
+        lines += [
+            "",
+            "## The extended model",
+            "",
+            f"Parameters {', '.join(f'`{n}`' for n in ext['parameters'])}: the "
+            f"declared ones and each added effect, tracked in real time by any "
+            f"method. In {where}.",
+        ]
     if b["theta_rmse"]:
         lines += ["", "| theta RMSE vs truth | before | after |", "|---|---|---|"]
         for k in a["theta_rmse"]:

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats as sps
 
-from jaxcal.diagnosis.effects import natural_scale
+from jaxcal.diagnosis.kinds import Candidate, natural_scale
 from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories
 from jaxcal.model import Model
@@ -91,6 +91,7 @@ def plausibility_flags(
     data: LoopData,
     declared,
     unit_effects: list[UnitEffect],
+    members: list[Candidate],
     effect_values: dict,
     after: UnitTrajectories,
     before: UnitTrajectories,
@@ -104,7 +105,9 @@ def plausibility_flags(
         model, data: as in the diagnosis.
         declared: the declared parameters.
         unit_effects: the per-unit verdicts of the added effects (:mod:`.units`).
-        effect_values: added constant effect name -> ``(target, family, value)``.
+        members: the added effects (their kinds say which rules apply).
+        effect_values: added effect name -> its fitted value(s) (physical units:
+            one for a fleet-wide term, one per carrier for a per-unit one).
         after, before: per-unit parameter trajectories of the final and the
             declared-only fit.
         rmse_before, rmse_after: ``[S]`` tracking RMSE per output.
@@ -152,11 +155,11 @@ def plausibility_flags(
                     f"of {data.num_units} units (before the extension: {was.sum()})",
                     _ids(data, moved),
                 ))  # fmt: skip
+    by_name = {c.name: c for c in members}
     for eff in unit_effects:
-        target = eff.name
-        if target.startswith("parameter["):
-            pname = target[len("parameter[") : -1]
-            step = natural_scale(model, pname)
+        target, cand = eff.name, by_name[eff.name]
+        if "constant_from_start" in cand.kind.rules:
+            step = natural_scale(model, cand.target)
             start, end = eff.start_value, eff.start_value + eff.size
             const = (
                 (np.abs(start) > z_band * eff.start_std)
@@ -171,15 +174,18 @@ def plausibility_flags(
                     "departure present from day one, not wear",
                     _ids(data, const),
                 ))  # fmt: skip
-    for name, (target, family, value) in effect_values.items():
-        if family == "effect" and target in bounds:
-            p = bounds[target]
-            if not p.low <= value <= p.high:
-                flags.append(_flag(
-                    "outside_bounds", name,
-                    f"{name} = {value:.4g} lies outside its range "
-                    f"[{p.low:g}, {p.high:g}]",
-                ))  # fmt: skip
+    for cand in members:
+        if cand.kind.channel != "effect" or cand.target not in bounds:
+            continue
+        p = bounds[cand.target]
+        values = np.atleast_1d(effect_values[cand.name])
+        bad = values[(values < p.low) | (values > p.high)]
+        if bad.size:
+            flags.append(_flag(
+                "outside_bounds", cand.name,
+                f"{cand.name} = {bad[np.argmax(np.abs(bad))]:.4g} lies outside its "
+                f"range [{p.low:g}, {p.high:g}]",
+            ))  # fmt: skip
     margin = max(WORSE_FRACTION, 3.0 / np.sqrt(2.0 * max(data.num_rows, 1)))
     worse = rmse_after > rmse_before * (1.0 + margin)
     for s in np.flatnonzero(worse):

@@ -15,9 +15,16 @@ outside the model's valid range (by less than
 :data:`jaxcal.data.dataset.JITTER_FRACTION` of the range, e.g. Mach -0.0005 of a
 static point) is clipped onto the bound, and the note says so.
 
-Noise levels: known per-output std when given (synthetic data), else the model's
-reference level (``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
-:func:`.noise.estimate_noise_std` replaces it after a first calibration.
+Noise: a :class:`~jaxcal.diagnosis.noise.NoiseModel` per output, white at the known
+std when given (synthetic data) or at the model's reference level
+(``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
+:func:`.noise.fit_noise` replaces it (level and AR colour) after a first calibration.
+
+Rows: a row with a non-finite condition is dropped and counted; a row with some
+outputs missing (NaN) is kept, its missing entries marked in ``observed`` and left out
+of the residual and the signatures (a sensor channel that dropped out); a row with
+no output at all is dropped. A model with memory is never subsampled: its states are
+simulated along every row (``max_rows`` is ignored, and a note says so).
 """
 
 from __future__ import annotations
@@ -29,7 +36,8 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from jaxcal.data.dataset import Dataset, clip_jitter
-from jaxcal.diagnosis.effects import TAU_CYCLES
+from jaxcal.diagnosis.kinds import TAU_CYCLES
+from jaxcal.diagnosis.noise import NoiseModel, positions
 from jaxcal.model import Model
 
 MIN_DISTINCT = 20  # fewer distinct values: a setting or a heavily rounded output
@@ -55,8 +63,9 @@ class LoopData:
             declared parameters).
         basis_candidate: ``[N, Kc]`` the smaller basis of candidate (undeclared)
             parameters: fewer functions, fewer degrees of freedom to pay for in BIC.
-        noise_std: ``[S]`` output noise std (output units).
-        noise_source: ``"given"``, ``"reference"`` or ``"estimated"``.
+        noise: the :class:`~jaxcal.diagnosis.noise.NoiseModel` (``noise_std`` is
+            its marginal std ``[S]``, ``noise_source`` how it was obtained).
+        observed: ``[N, S]`` bool, False where an output is missing in a row.
         theta_true: ``[N, len(theta_names)]`` ground truth or ``None``.
         row_index: ``[N]`` row of the data set (``Dataset.take`` order).
         excluded: output -> reason it is not in the residual.
@@ -82,8 +91,8 @@ class LoopData:
     tau: np.ndarray
     basis: np.ndarray
     basis_candidate: np.ndarray
-    noise_std: np.ndarray
-    noise_source: str
+    noise: NoiseModel
+    observed: np.ndarray
     theta_true: np.ndarray | None
     row_index: np.ndarray
     excluded: dict[str, str]
@@ -96,6 +105,29 @@ class LoopData:
     parameter_names: tuple[str, ...] = ()
     parameter_nominal: np.ndarray | None = None
     theta_names: tuple[str, ...] = ()
+
+    @property
+    def noise_std(self) -> np.ndarray:
+        """``[S]`` marginal noise std (output units)."""
+        return self.noise.sigma
+
+    @property
+    def noise_source(self) -> str:
+        """``given``, ``reference`` or ``estimated``."""
+        return self.noise.source
+
+    @property
+    def position(self) -> np.ndarray:
+        """``[N]`` rows since the unit's first row."""
+        return positions(self.starts, self.num_rows)
+
+    def whiten(self, arr: np.ndarray) -> np.ndarray:
+        """Prewhiten and standardise ``arr [N, S, ...]`` (output units) with the
+        noise model (:meth:`~jaxcal.diagnosis.noise.NoiseModel.whiten`); missing
+        outputs count as zero."""
+        arr = np.asarray(arr, np.float64)
+        mask = self.observed.reshape(self.observed.shape + (1,) * (arr.ndim - 2))
+        return self.noise.whiten(np.where(mask, arr, 0.0), self.position)
 
     @property
     def num_rows(self) -> int:
@@ -122,12 +154,11 @@ class LoopData:
         """Spline functions ``Kc`` per candidate parameter."""
         return int(self.basis_candidate.shape[1])
 
-    def with_noise(self, noise_std: np.ndarray, source: str) -> LoopData:
-        """A copy with other noise levels (``[S]``, all > 0)."""
-        noise_std = np.asarray(noise_std, np.float64)
-        if noise_std.shape != (self.num_sensors,) or not np.all(noise_std > 0):
-            raise ValueError(f"noise_std must be [S={self.num_sensors}] and > 0")
-        return dataclasses.replace(self, noise_std=noise_std, noise_source=source)
+    def with_noise(self, noise: NoiseModel) -> LoopData:
+        """A copy with another noise model (levels ``[S]``, all > 0)."""
+        if noise.sigma.shape != (self.num_sensors,) or not np.all(noise.sigma > 0):
+            raise ValueError(f"noise std must be [S={self.num_sensors}] and > 0")
+        return dataclasses.replace(self, noise=noise)
 
     def take_rows(self, keep: np.ndarray, note: str) -> LoopData:
         """A copy with the rows ``keep`` (bool ``[N]``); units left empty disappear."""
@@ -141,6 +172,7 @@ class LoopData:
             self,
             w=self.w[keep],
             x=self.x[keep],
+            observed=self.observed[keep],
             unit=unit.astype(np.int64),
             unit_ids=unit_ids,
             starts=np.append(first, int(keep.sum())),
@@ -153,6 +185,15 @@ class LoopData:
             notes=self.notes + (note,),
         )
 
+    def mask_rows(self, keep: np.ndarray, note: str) -> LoopData:
+        """A copy whose rows outside ``keep`` are left out of the residual but kept
+        in time (a model with memory is simulated through them)."""
+        keep = np.asarray(keep, bool)
+        if not keep.any():
+            raise ValueError(f"no row left: {note}")
+        observed = self.observed & keep[:, None]
+        return dataclasses.replace(self, observed=observed, notes=self.notes + (note,))
+
     def drop_sensors(self, reasons: Mapping[str, str]) -> LoopData:
         """A copy without the sensors in ``reasons`` (recorded in ``excluded``)."""
         keep = [j for j, s in enumerate(self.sensor_names) if s not in reasons]
@@ -163,9 +204,10 @@ class LoopData:
         return dataclasses.replace(
             self,
             x=self.x[:, keep],
+            observed=self.observed[:, keep],
             sensor_names=tuple(self.sensor_names[j] for j in keep),
             sensor_idx=self.sensor_idx[keep],
-            noise_std=self.noise_std[keep],
+            noise=self.noise.take(keep),
             sensor_units=tuple(self.sensor_units[j] for j in keep),
             excluded={**self.excluded, **dict(reasons)},
         )
@@ -293,15 +335,16 @@ def prepare_data(
         raise ValueError(f"no usable output in the data; excluded: {excluded}")
     x_all = x_all[:, keep]
     finite_w, finite_x = np.isfinite(data.w), np.isfinite(x_all)
-    finite = finite_w.all(1) & finite_x.all(1)
+    # a row is kept when its conditions and at least one output are finite; its
+    # missing outputs are marked in `observed` (a sensor channel that dropped out)
+    finite = finite_w.all(1) & finite_x.any(1)
     dropped = dict(data.dropped or {})
-    for name, ok in zip(
-        model.condition_names + tuple(chosen),
-        np.concatenate([finite_w, finite_x], axis=1).T,
-        strict=True,
-    ):
+    for name, ok in zip(model.condition_names, finite_w.T, strict=True):
         if not ok.all():
             dropped[name] = dropped.get(name, 0) + int(ok.size - ok.sum())
+    for name, ok in zip(chosen, finite_x.T, strict=True):  # a dropped row counts
+        if np.any(~finite & ~ok):  # in every column it is bad in
+            dropped[name] = dropped.get(name, 0) + int(np.sum(~finite & ~ok))
     order = np.lexsort((np.arange(data.num_rows), data.time, data.unit))
     order = order[finite[order]]
     if order.size == 0:
@@ -309,7 +352,14 @@ def prepare_data(
     unit_raw = data.unit[order]
     unit_ids, first = np.unique(unit_raw, return_index=True)
     starts = np.append(first, order.size)
-    order = order[_subsample(unit_raw, starts, max_rows)]
+    notes = []
+    if model.is_stateful and max_rows is not None and order.size > max_rows:
+        notes.append(
+            f"all {order.size} rows used (max_rows={max_rows} ignored): the states of "
+            f"model {model.name!r} are simulated along every row"
+        )
+    elif max_rows is not None:
+        order = order[_subsample(unit_raw, starts, max_rows)]
     unit_raw = data.unit[order]
     unit_ids, first, unit = np.unique(unit_raw, return_index=True, return_inverse=True)
     starts = np.append(first, order.size)
@@ -323,21 +373,32 @@ def prepare_data(
         basis[sl] = spline_basis(cycle[sl], knots)
         basis_c[sl] = spline_basis(cycle[sl], candidate_knots)
     x = x_all[order]
-    w, notes = clip_jitter(data.w[order], model)
+    observed = np.isfinite(x)
+    partial = int(np.sum(~observed.all(1)))
+    if partial:
+        missing = {s: int(np.sum(~observed[:, j])) for j, s in enumerate(chosen)}
+        notes.append(
+            f"{partial} rows with some outputs missing are used with the outputs they "
+            "have (missing: "
+            + ", ".join(f"{s} {n}" for s, n in missing.items() if n)
+            + ")"
+        )
+    w, clip_notes = clip_jitter(data.w[order], model)
+    notes = list(clip_notes) + notes
     if noise_std is None:
         rel = model.diagnosis.noise_rel or {}
         std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in chosen])
-        std = std * np.abs(x).mean(0)
-        source = "reference"
+        std = std * np.nanmean(np.abs(x), axis=0)
+        noise = NoiseModel.white(std, "reference")
     else:
-        std, source = _given_noise(noise_std, chosen), "given"
+        noise = NoiseModel.white(_given_noise(noise_std, chosen), "given")
     if dropped_rows is None and not data.dropped:
         dropped_rows = 0  # the reader dropped nothing, so the count is known
     if dropped_rows is not None:
         dropped_rows = dropped_rows + int(finite.size - finite.sum())
     return LoopData(
         w=w,
-        x=x,
+        x=np.where(observed, x, 0.0),
         sensor_names=tuple(chosen),
         sensor_idx=np.array(model.output_index(chosen)),
         unit=unit.astype(np.int64),
@@ -347,8 +408,8 @@ def prepare_data(
         tau=tau,
         basis=basis,
         basis_candidate=basis_c,
-        noise_std=std,
-        noise_source=source,
+        noise=noise,
+        observed=observed,
         theta_true=None if data.theta is None else data.theta[order],
         row_index=data.row[order],
         excluded=excluded,

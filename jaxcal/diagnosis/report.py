@@ -22,6 +22,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from jaxcal.atomic import write_atomic
+from jaxcal.diagnosis.extended import added_parameters, write_extended
 from jaxcal.diagnosis.identify import Identification
 from jaxcal.diagnosis.markdown import render_markdown
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
@@ -58,22 +59,45 @@ def _ranking(ident: Identification) -> list[dict]:
     out = []
     for e in ident.ranking[:MAX_RANKING]:
         row = e._asdict()
+        row["members"] = [c.name for c in e.members]
+        row["forms"] = [c.form for c in e.members]
         row["screen_sizes"], row["screen_stds"] = row.pop("sizes"), row.pop("stds")
         out.append(row)
     return out
 
 
+def _noise(d) -> dict:
+    """The noise model per output (level, AR colour, HAC inflation, whiteness)."""
+    n = d.noise
+    names = d.sensor_names
+    return {
+        "source": n.source,
+        "std": dict(zip(names, n.sigma.tolist(), strict=True)),
+        "ar_order": dict(zip(names, n.order.tolist(), strict=True)),
+        "ar": {s: n.ar[j, : n.order[j]].tolist() for j, s in enumerate(names)},
+        "inflation": dict(zip(names, n.inflation.tolist(), strict=True)),
+        "whiteness_p": dict(zip(names, n.whiteness_p.tolist(), strict=True)),
+    }
+
+
 UNIT_TEST = (
-    "one-sided minimum-effect z-test of H0: |size| <= {delta:.3g} (half the effect's "
-    "natural step) per unit, Holm step-down across the units at family-wise level "
-    "{alpha:g}; a parameter's size is its change over the unit's record (last minus "
-    "first cycle)"
+    "{form}; one-sided minimum-effect z-test of H0: |size| <= {delta:.3g} (half the "
+    "effect's natural step) per unit, Holm step-down across the units at family-wise "
+    "level {alpha:g}; a smoothly changing parameter's size is its change over the "
+    "unit's record (last minus first cycle)"
 )
+FORM_TEXT = {
+    "fleet": "fitted fleet-wide (one value), each unit tested on its own data",
+    "units": "fitted in the units whose own data show it (chosen by the extended "
+    "BIC), only those tested",
+}
 ONSET_RULE = (
-    "parameter: first cycle from which its change since the first cycle stays "
-    "beyond {delta:.3g} + {z:.2f} std (Bonferroni at {alpha:g} / units) to the unit's "
-    "last cycle; drift: first cycle at which the accumulated change reaches one "
-    "noise std of the sensor; constant form: the unit's first cycle"
+    "step: the onset maximising the unit's likelihood, with its 95 % "
+    "profile-likelihood interval; smooth parameter: first cycle from which its change "
+    "since the first cycle stays beyond {delta:.3g} + {z:.2f} std (Bonferroni at "
+    "{alpha:g} / units) to the unit's last cycle; drift: first cycle at which the "
+    "accumulated change reaches one noise std of the sensor; constant form: the "
+    "unit's first cycle"
 )
 
 
@@ -89,7 +113,9 @@ def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
         out.append(
             {
                 **entry,
-                "unit_test": UNIT_TEST.format(alpha=alpha, delta=eff.min_size),
+                "unit_test": UNIT_TEST.format(
+                    alpha=alpha, delta=eff.min_size, form=FORM_TEXT[eff.form]
+                ),
                 "onset_rule": ONSET_RULE.format(z=z, alpha=alpha, delta=eff.min_size),
                 "min_size": eff.min_size,
                 "units": units_json(eff, res.data.unit_ids),
@@ -100,6 +126,7 @@ def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
 
 def _stage(stage: Stage, names, condition_names) -> dict:
     return {
+        "whiteness_p": dict(zip(names, stage.whiteness_p.tolist(), strict=True)),
         "tracking_rmse": dict(zip(names, stage.tracking_rmse.tolist(), strict=True)),
         "tracking_rmse_norm": dict(
             zip(names, stage.tracking_rmse_norm.tolist(), strict=True)
@@ -152,6 +179,7 @@ def report_dict(
             "excluded": d.excluded,
             "noise_std": dict(zip(d.sensor_names, d.noise_std.tolist(), strict=True)),
             "noise_source": d.noise_source,
+            "noise": _noise(d),
             "knots_per_unit": d.num_knots,
             "notes": list(d.notes),
             # rows with NaN / Inf, dropped before the fit: in total and per column
@@ -279,7 +307,7 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
         layout="constrained",
     )
     axes = np.atleast_1d(fig.subplots(n, 1, squeeze=False)).ravel()
-    by_name = {c.name: c for c in res.library}
+    by_name = {c.name: c for c in res.members}
     for ax, eff in zip(axes, res.unit_effects, strict=True):
         grid = np.full((d.num_units, cols), np.nan)
         grid[d.unit, col] = eff.trajectory
@@ -308,7 +336,7 @@ def _unit_map(path, res: DiagnosisResult) -> str | None:
         )
         cand = by_name[eff.name]
         label = cand.unit  # a drift is drawn as its accumulated change
-        if cand.family in ("sensor_drift", "sensor_gain_drift"):
+        if cand.kind.profile == "drift":
             label = "accumulated change " + cand.unit.split(" per ")[0]
         fig.colorbar(im, ax=ax, label=label, shrink=0.8)
         ax.legend(fontsize=6, loc="lower right")
@@ -324,14 +352,24 @@ def write_report(
     model: str = "",
     truth: dict | None = None,
     config: dict | None = None,
+    base_spec: str | None = None,
 ) -> dict:
-    """Write report.json, report.md and the figures into ``out_dir``.
+    """Write report.json, report.md, the figures and, when effects were added and
+    ``base_spec`` (the model's ``jaxcal.models.load`` spec) is given, the extended
+    model ``extended_model.json`` into ``out_dir``.
 
     Returns:
         The report dict (as written to report.json, with the figure paths).
     """
     os.makedirs(out_dir, exist_ok=True)
     rep = report_dict(res, source=source, model=model, truth=truth, config=config)
+    rep["extended_model"] = None
+    if res.members:
+        names = [a.name for a in added_parameters(res)]
+        rep["extended_model"] = {"parameters": list(res.declared) + names, "file": None}
+        if base_spec:
+            write_extended(out_dir, res, base_spec)
+            rep["extended_model"]["file"] = "extended_model.json"
     figures = {
         "residuals": _stacked_residuals(os.path.join(out_dir, "residuals.png"), res),
         "signature": _explained(os.path.join(out_dir, "signature.png"), res),

@@ -1,140 +1,317 @@
-"""Linearised screening of candidate effects at the declared-only solution.
+"""Linearised screening of candidate effects, in every form, at the declared-only fit.
 
-At the declared-only fit, the normalised Jacobian columns of the declared spline
-coefficients and of every candidate are accumulated per unit as Gram blocks
-(:func:`.fitting.gram_stats`). The Gauss–Newton step of *any* subset of columns is then
-a Schur-complement solve on those blocks, and its SSR reduction is the linearised
-likelihood-ratio statistic of that subset (the score test of Rao 1948 in Gauss–Newton
-form), so every single candidate and every pair is scored without another model
-evaluation. The same blocks give each candidate's *detectability* (the share of its
+At the declared-only fit (the "null"), the prewhitened residual ``r`` and the
+prewhitened signatures ``D`` of the declared coefficients are known per unit. Adding
+columns ``Z`` to that linear model lowers the SSR by the score statistic of Rao (1948)
+in Gauss–Newton form, ``LR = s^T M^-1 s`` with ``s = Z^T P r``, ``M = Z^T P Z`` and
+``P`` the projection off ``D`` (Frisch–Waugh–Lovell), computed unit by unit. Because
+the declared coefficients are per unit, a per-unit effect's statistic is a sum of
+independent per-unit terms ``LR_u``, so every form is scored without a model
+evaluation:
+
+* **fleet** form (one value shared by all units): ``LR = (sum_u s_u)^2 / sum_u M_u``;
+* **units** form: the carriers are the units with the largest ``LR_u``, as many as
+  maximise ``sum_{u in C} LR_u - |C| k ln n - 2 ln C(U, |C|)`` (BIC with the extended
+  BIC's price of choosing the subset, Chen & Chen 2008): an effect carried by a
+  minority of units is fitted where it is, and not diluted fleet-wide;
+* **steps** (a sensor step, a parameter step): each unit's ``LR_u(t0)`` is scanned over
+  a grid of onsets (the columns are the step's signature from ``t0`` on, whitened); the
+  unit's estimate is the maximiser and its 95 % interval the onsets whose profile
+  statistic is within ``chi2_1(0.95) = 3.84`` of the maximum (a profile-likelihood
+  interval); the onset counts as a parameter.
+
+The same projected blocks give each candidate's *detectability* (the share of its
 signature's norm left after projecting out the declared parameters' signatures) and
-the *overlap* of two candidates (the share of one's fitted signal that the other's
-projected signature reproduces), used to flag confounding.
+the *overlap* of two candidates (the share of one's fitted signal the other's columns
+reproduce), used to flag confounding.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
+from scipy.special import gammaln
 
-from jaxcal.diagnosis.effects import Candidate
-from jaxcal.diagnosis.fitting import (
-    FitResult,
-    GramStats,
-    ModelParams,
-    ModelSpec,
-    gram_stats,
-    schur_solve,
-    signature_columns,
-)
+from jaxcal.diagnosis.fitting import FitResult, GramStats, schur_solve
+from jaxcal.diagnosis.kinds import Candidate
 from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.signatures import Tangent, signatures
+from jaxcal.diagnosis.terms import ModelParams, ModelSpec, layout, term_profile
+from jaxcal.model import Model
+
+ONSET_GRID = 128  # onsets scanned per unit (every row of a shorter unit)
+# a step through a model's states costs one simulation per onset: a coarser grid
+ONSET_GRID_DYNAMIC = 48
+ONSET_CI = 3.84  # chi2_1 95 % quantile: the onset's profile-likelihood interval
+_RIDGE = 1e-9
 
 
-def _split(members: Sequence[Candidate]):
-    return [c for c in members if c.per_unit], [c for c in members if not c.per_unit]
+class UnitScores(NamedTuple):
+    """Per-unit screening statistics of one candidate (``U`` units)."""
+
+    lr: np.ndarray  # [U] LR_u (a step: at its best onset)
+    estimate: np.ndarray  # [U] coefficient (natural steps) of a one-column effect
+    variance: np.ndarray  # [U] its variance
+    onset: np.ndarray  # [U] best onset row (steps), -1 otherwise
+    onset_ci: np.ndarray  # [U, 2] rows of the onset's 95 % interval (steps)
 
 
-def spec_for(declared: Sequence[str], members: Sequence[Candidate]) -> ModelSpec:
-    """The model: declared + per-unit parameter members, global members as effects."""
-    local, glob = _split(members)
-    return ModelSpec(
-        tuple(declared) + tuple(c.target for c in local), tuple(glob), len(declared)
-    )
+def choose_carriers(lr: np.ndarray, per_carrier: float) -> tuple[np.ndarray, float]:
+    """``(carriers, criterion)``: the units with the largest ``lr``, as many as
+    maximise ``sum lr - |C| per_carrier - 2 ln C(U, |C|)``; empty when no subset
+    has a positive criterion."""
+    u = lr.size
+    order = np.argsort(-lr, kind="stable")
+    m = np.arange(1, u + 1)
+    log_binom = gammaln(u + 1) - gammaln(m + 1) - gammaln(u - m + 1)
+    crit = np.cumsum(lr[order]) - m * per_carrier - 2.0 * log_binom
+    best = int(np.argmax(crit))
+    if crit[best] <= 0:
+        return np.zeros(0, int), 0.0
+    return np.sort(order[: best + 1]), float(crit[best])
 
 
-def init_from(null: FitResult, spec: ModelSpec, data: LoopData) -> ModelParams:
+def spec_for(declared, members: Sequence[Candidate], initial_state=False) -> ModelSpec:
+    """The model: declared + the members in their forms."""
+    return ModelSpec(tuple(declared), tuple(members), initial_state)
+
+
+def init_from(null: FitResult, model: Model, data: LoopData, spec: ModelSpec):
     """Start a candidate fit at the declared-only solution, the effects at zero."""
+    lay = layout(model, data, spec)
     u, q0 = null.params.unit_coef.shape
-    extra = spec.local_size(data) - q0
-    unit_coef = np.concatenate([null.params.unit_coef, np.zeros((u, extra))], axis=1)
-    return ModelParams(unit_coef, np.zeros(len(spec.global_effects)))
+    unit_coef = np.zeros((u, lay.num_local))
+    unit_coef[:, :q0] = null.params.unit_coef
+    return ModelParams(unit_coef, np.zeros(lay.num_global))
 
 
 class Screen:
-    """Linearised scores of candidate sets at the declared-only solution ``null``.
+    """Linearised scores of candidate sets at the declared-only fit ``null``."""
 
-    Column layout of the Gram blocks: the declared spline coefficients, then ``Kc``
-    per parameter candidate (per unit), then one column per constant candidate.
-    """
+    def __init__(self, model: Model, data: LoopData, library, null: FitResult):
+        self.model, self.data, self.null = model, data, null
+        ev = null.evaluation
+        self.r = ev.white
+        self.decl = ev.cols[:, :, : null.layout.num_local]
+        self.used = ev.used
+        self.log_n = float(np.log(max(null.num_resid, 2)))
+        self.library = list(library)
+        self._a_inv, self._d = [], []
+        for u in range(data.num_units):
+            sl = self._rows(u)
+            dm = self.decl[sl].reshape(-1, self.decl.shape[2])
+            a = dm.T @ dm + 1e-6 * np.eye(dm.shape[1])
+            self._a_inv.append(np.linalg.inv(a))
+            self._d.append(dm.T @ self.r[sl].reshape(-1))
+        self._base = {}  # key -> whitened columns on every unit [N, S, k]
+        smooth = [c for c in self.library if c.kind.profile != "step"]
+        if smooth:
+            cols = self._columns([c.with_form("units", range(data.num_units))
+                                  for c in smooth])  # fmt: skip
+            start = 0
+            for cand in smooth:
+                k = term_profile(data, cand).shape[1]
+                self._base[cand.name] = cols[:, :, start : start + k]
+                start += k
+        self._steps = {}  # key -> (UnitScores, whitened column at the best onsets)
 
-    def __init__(self, model, data: LoopData, declared, library, null: FitResult):
-        self.data, self.library = data, list(library)
-        per_unit = [c for c in library if c.per_unit]
-        self.glob = [c for c in library if not c.per_unit]
-        spec = spec_for(declared, per_unit + self.glob)
-        local, glob = signature_columns(data, null.evaluation.lin, spec, model)
-        self.stats: GramStats = gram_stats(
-            data, null.evaluation.resid, null.evaluation.valid, local, glob
-        )
-        k, kc = data.num_knots, data.num_candidate_knots
-        d0 = len(declared) * k
-        self.decl = list(range(d0))
-        self.local_pos = {
-            c.name: list(range(d0 + i * kc, d0 + (i + 1) * kc))
-            for i, c in enumerate(per_unit)
-        }
-        self.global_pos = {c.name: i for i, c in enumerate(self.glob)}
-        self.base = schur_solve(self.stats, self.decl, []).reduction
+    # ------------------------------------------------------------- helpers
 
-    def cols(self, members) -> tuple[list[int], list[int]]:
-        """(local, global) column indices of the declared columns plus ``members``."""
-        local = self.decl + [
-            j for c in members if c.per_unit for j in self.local_pos[c.name]
-        ]
-        glob = [self.global_pos[c.name] for c in members if not c.per_unit]
-        return local, glob
+    def _rows(self, u: int) -> slice:
+        return slice(self.data.starts[u], self.data.starts[u + 1])
 
-    def score(self, members):
-        """``(LR, SchurSolution)``: linearised SSR reduction of adding ``members``."""
-        local, glob = self.cols(members)
-        sol = schur_solve(self.stats, local, glob)
-        return max(sol.reduction - self.base, 0.0), sol
+    def _columns(self, members: Sequence[Candidate], tangents=None) -> np.ndarray:
+        """Prewhitened signatures ``[N, S, q]`` of the members' coefficients (or of
+        ``tangents``) at the null point."""
+        if tangents is None:
+            spec = ModelSpec((), tuple(members))
+            tangents = layout(self.model, self.data, spec).tangents
+        ev = self.null.evaluation
+        sig = signatures(self.model, self.data, ev.inputs, tangents, like=ev.sig)
+        return self.data.whiten(np.where(self.used[:, :, None], sig.cols, 0.0))
+
+    def project(self, cols: np.ndarray):
+        """Per unit ``(M_u [U, q, q], s_u [U, q], raw_u [U, q, q])``: Gram and score
+        of ``cols [N, S, q]`` after projecting out the declared columns, and the raw
+        Gram."""
+        q = cols.shape[2]
+        m, s, raw = (np.zeros((self.data.num_units, q, q)),
+                     np.zeros((self.data.num_units, q)),
+                     np.zeros((self.data.num_units, q, q)))  # fmt: skip
+        for u in range(self.data.num_units):
+            sl = self._rows(u)
+            z = cols[sl].reshape(-1, q)
+            dm = self.decl[sl].reshape(-1, self.decl.shape[2])
+            b = dm.T @ z
+            raw[u] = z.T @ z
+            m[u] = raw[u] - b.T @ self._a_inv[u] @ b
+            s[u] = z.T @ self.r[sl].reshape(-1) - b.T @ self._a_inv[u] @ self._d[u]
+        return m, s, raw
+
+    # --------------------------------------------------------------- scores
+
+    def unit_scores(self, cand: Candidate) -> UnitScores:
+        """Per-unit statistics of ``cand`` (a step: scanned over onsets)."""
+        if cand.kind.profile == "step":
+            return self._step(cand)[0]
+        m, s, _ = self.project(self._base[cand.name])
+        u = self.data.num_units
+        lr = np.array([s[i] @ np.linalg.pinv(m[i]) @ s[i] for i in range(u)])
+        with np.errstate(all="ignore"):
+            est = np.where(m[:, 0, 0] > 0, s[:, 0] / m[:, 0, 0], np.nan)
+            var = np.where(m[:, 0, 0] > 0, 1.0 / m[:, 0, 0], np.nan)
+        none = np.full(u, -1)
+        return UnitScores(np.maximum(lr, 0.0), est, var, none, np.stack([none] * 2, 1))
+
+    def fleet_score(self, cand: Candidate) -> tuple[float, float, float]:
+        """``(LR, coefficient, variance)`` of ``cand`` in the fleet form."""
+        m, s, _ = self.project(self._base[cand.name])
+        mm, ss = float(m[:, 0, 0].sum()), float(s[:, 0].sum())
+        if mm <= 0:
+            return 0.0, np.nan, np.nan
+        return ss**2 / mm, ss / mm, 1.0 / mm
+
+    def per_carrier_penalty(self, cand: Candidate) -> float:
+        """BIC price of one carrier of a units term: its coefficients (and onset)."""
+        k = self.data.num_candidate_knots if cand.kind.profile == "spline" else 1
+        k += 1 if cand.kind.profile == "step" else 0
+        return k * self.log_n
+
+    def units_form(self, cand: Candidate) -> tuple[Candidate | None, UnitScores]:
+        """``cand`` in the units form on its chosen carriers (``None``: no unit)."""
+        scores = self.unit_scores(cand)
+        carriers, _ = choose_carriers(scores.lr, self.per_carrier_penalty(cand))
+        if carriers.size == 0:
+            return None, scores
+        onsets = scores.onset[carriers] if cand.kind.profile == "step" else ()
+        return cand.with_form("units", carriers, onsets), scores
+
+    def form_columns(self, cand: Candidate) -> np.ndarray:
+        """Prewhitened columns ``[N, S, k]`` of ``cand`` in its form."""
+        if cand.kind.profile == "step":
+            cols = self._step(cand)[1]
+        else:
+            cols = self._base[cand.name]
+        if cand.per_unit:
+            carries = np.zeros(self.data.num_units, bool)
+            carries[list(cand.carriers)] = True
+            cols = cols * carries[self.data.unit][:, None, None]
+        return cols
+
+    def joint(self, members: Sequence[Candidate]):
+        """``(LR, local step [U, l], global step [g])`` of adding ``members`` (in their
+        forms) jointly: units terms per unit, fleet terms shared."""
+        local = [c for c in members if c.per_unit]
+        glob = [c for c in members if not c.per_unit]
+        cols = np.concatenate([self.form_columns(c) for c in local + glob], axis=2)
+        m, s, _ = self.project(cols)
+        nl = sum(self.form_columns(c).shape[2] for c in local)
+        stats = GramStats(m, s, 0.0, nl)
+        sol = schur_solve(stats, range(nl), range(cols.shape[2] - nl))
+        return max(sol.reduction, 0.0), sol.local_step, sol.global_step
 
     def detectability(self, cand: Candidate) -> float:
         """Norm of the candidate's signature kept after projecting out the declared."""
-        local, glob = self.cols([cand])
-        new = local[len(self.decl) :] if cand.per_unit else []
-        raw_cols = new if cand.per_unit else [self.stats.num_local + glob[0]]
-        raw = sum(
-            np.trace(self.stats.gram[:, raw_cols][:, :, raw_cols], axis1=1, axis2=2)
-        )
-        proj = self.projected(local=new, glob=[] if cand.per_unit else glob)
-        return float(np.sqrt(max(np.trace(proj.sum(0)), 0.0) / max(raw, 1e-300)))
-
-    def projected(self, local, glob):
-        """Per-unit Gram ``[U, q, q]`` of columns after projecting out the declared."""
-        cols = np.asarray(list(local) + [self.stats.num_local + g for g in glob], int)
-        d = np.asarray(self.decl, int)
-        g = self.stats.gram
-        a = g[:, d[:, None], d[None, :]] + 1e-6 * np.eye(d.size)
-        b = g[:, d[:, None], cols[None, :]]
-        return g[:, cols[:, None], cols[None, :]] - np.einsum(
-            "uij,uik->ujk", b, np.linalg.solve(a, b)
-        )
+        cols = self.form_columns(cand)
+        m, _, raw = self.project(cols)
+        tr = np.trace(raw.sum(0))
+        return float(np.sqrt(max(np.trace(m.sum(0)), 0.0) / max(tr, 1e-300)))
 
     def overlap(self, cand_i: Candidate, cand_j: Candidate) -> float:
-        """Share of i's fitted projected signal ``y_i`` that j's columns reproduce.
-
-        ``R^2 = ||P_j y_i||^2 / ||y_i||^2`` with ``y_i = P_D Z_i c_i`` (``P_D``
-        projects out the declared columns, ``c_i`` is i's linearised fit) and ``P_j``
-        the projection onto ``P_D Z_j``; per-unit columns project unit by unit.
-        """
-        _, sol = self.score([cand_i])
-        nd = len(self.decl)
-        coef_i = sol.local_step[:, nd:] if cand_i.per_unit else sol.global_step
-        li, gi = self.cols([cand_i])
-        lj, gj = self.cols([cand_j])
-        m = self.projected(local=li[nd:] + lj[nd:], glob=gi + gj)
-        ni = len(li) - nd + len(gi)
-        m_ii, m_ji, m_jj = m[:, :ni, :ni], m[:, ni:, :ni], m[:, ni:, ni:]
-        c_u = coef_i if cand_i.per_unit else np.broadcast_to(coef_i, (m.shape[0], ni))
-        energy = np.einsum("ui,uij,uj->", c_u, m_ii, c_u)
-        v = np.einsum("uji,ui->uj", m_ji, c_u)  # <P_D Z_j, y_i> per unit
+        """Share of i's fitted projected signal ``y_i`` that j's columns reproduce:
+        ``R^2 = ||P_j y_i||^2 / ||y_i||^2`` (units terms project unit by unit)."""
+        ci, cj = self.form_columns(cand_i), self.form_columns(cand_j)
+        ki = ci.shape[2]
+        m, s, _ = self.project(np.concatenate([ci, cj], axis=2))
+        m_ii, m_ji, m_jj = m[:, :ki, :ki], m[:, ki:, :ki], m[:, ki:, ki:]
+        if cand_i.per_unit:
+            coef = np.stack([np.linalg.pinv(m_ii[u]) @ s[u, :ki]
+                             for u in range(m.shape[0])])  # fmt: skip
+        else:
+            coef = np.linalg.pinv(m_ii.sum(0)) @ s[:, :ki].sum(0)
+            coef = np.broadcast_to(coef, (m.shape[0], ki))
+        energy = np.einsum("ui,uij,uj->", coef, m_ii, coef)
+        v = np.einsum("uji,ui->uj", m_ji, coef)
         if cand_j.per_unit:
-            ridge = 1e-9 * np.eye(m_jj.shape[1])
-            proj = np.sum(v * np.linalg.solve(m_jj + ridge, v[:, :, None])[:, :, 0])
+            proj = sum(v[u] @ np.linalg.pinv(m_jj[u]) @ v[u] for u in range(m.shape[0]))
         else:
             vs = v.sum(0)
             proj = float(vs @ np.linalg.pinv(m_jj.sum(0)) @ vs)
         return float(proj / energy) if energy > 0 else 0.0
+
+    # ---------------------------------------------------------------- steps
+
+    def _grid(self, size: int = ONSET_GRID) -> np.ndarray:
+        """``[U, size]`` onset positions (rows since the unit's first) scanned."""
+        out = []
+        for u in range(self.data.num_units):
+            n = self.data.starts[u + 1] - self.data.starts[u]
+            lo, hi = 1, max(n - 2, 1)
+            g = np.unique(np.linspace(lo, hi, min(size, hi - lo + 1)).round())
+            out.append(np.resize(g.astype(int), size))
+        return np.stack(out)
+
+    def _step(self, cand: Candidate):
+        """Scan a step's onset in every unit (module docstring); cached."""
+        if cand.name in self._steps:
+            return self._steps[cand.name]
+        data = self.data
+        pos, first = data.position, data.starts[:-1]
+        channel = cand.kind.channel
+        idx = (
+            self.model.parameter_names.index(cand.target)
+            if channel == "parameter"
+            else self.model.output_index([cand.target])[0]
+        )
+        dynamic = self.model.is_stateful and not cand.kind.is_sensor
+        grid = self._grid(ONSET_GRID_DYNAMIC if dynamic else ONSET_GRID)
+        if dynamic:  # the step response through the states: one tangent per onset
+            tangents = [
+                Tangent(channel, idx, cand.scale * (pos >= grid[data.unit, g]))
+                for g in range(grid.shape[1])
+            ]
+            raw = self._raw(tangents)
+        else:
+            raw = self._raw([Tangent(channel, idx, np.full(data.num_rows, cand.scale))])
+        num_u = data.num_units
+        lr = np.zeros(num_u)
+        est, var = np.full(num_u, np.nan), np.full(num_u, np.nan)
+        onset, ci = np.full(num_u, -1), np.full((num_u, 2), -1)
+        best_cols = np.zeros(data.x.shape + (1,))
+        for u in range(num_u):
+            sl = self._rows(u)
+            p = pos[sl]
+            if dynamic:
+                steps = raw[sl]  # [n, S, G]
+            else:
+                on = p[:, None] >= grid[u][None, :]  # [n, G]
+                steps = raw[sl, :, :1] * on[:, None, :]
+            white = self.data.noise.whiten(
+                np.where(self.used[sl][:, :, None], steps, 0.0), p - p[0]
+            )
+            n, s_dim, g = white.shape
+            z = white.reshape(n * s_dim, g)
+            dm = self.decl[sl].reshape(-1, self.decl.shape[2])
+            b = dm.T @ z
+            mm = np.sum(z * z, 0) - np.einsum("ig,ij,jg->g", b, self._a_inv[u], b)
+            ss = z.T @ self.r[sl].reshape(-1) - b.T @ self._a_inv[u] @ self._d[u]
+            with np.errstate(all="ignore"):
+                stat = np.where(mm > _RIDGE, ss**2 / mm, 0.0)
+            k = int(np.argmax(stat))
+            lr[u] = stat[k]
+            est[u], var[u] = ss[k] / mm[k], 1.0 / mm[k]
+            onset[u] = first[u] + grid[u, k]
+            near = grid[u][stat >= stat[k] - ONSET_CI]
+            ci[u] = first[u] + np.array([near.min(), near.max()])
+            best_cols[sl, :, 0] = white[:, :, k]
+        out = (UnitScores(lr, est, var, onset, ci), best_cols)
+        self._steps[cand.name] = out
+        return out
+
+    def _raw(self, tangents) -> np.ndarray:
+        """Signatures ``[N, S, q]`` (not whitened) along ``tangents`` at the null."""
+        ev = self.null.evaluation
+        sig = signatures(self.model, self.data, ev.inputs, tangents, like=ev.sig)
+        return np.where(self.used[:, :, None], sig.cols, 0.0)

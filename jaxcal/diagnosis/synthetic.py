@@ -3,27 +3,32 @@
 A *scenario* supplies the clean rows: conditions, all parameters (the declared ones
 drifting with a per-row health index), unit and cycle (e.g.
 :func:`jaxcal.models.turbofan_scenario.make_scenario` flies N-CMAPSS-like lives). This
-module switches one effect on in the extended model of :mod:`.effects`, adds white
-Gaussian noise at the model's reference relative level per output
-(``DiagnosisHints.noise_rel``, times ``noise_scale``) and returns a
-:class:`~jaxcal.data.dataset.Dataset` with the truth.
+module switches one effect on in the extended model of :mod:`.signatures`, on every
+unit or only on some (``carriers``), adds Gaussian noise at the model's reference
+relative level per output (``DiagnosisHints.noise_rel``, times ``noise_scale``), white
+or AR(1)-coloured along each unit's rows (``noise_ar``), and returns a
+:class:`~jaxcal.data.dataset.Dataset` with the truth. A model with memory is simulated
+unit by unit from its initial state, the effect acting through the states.
 
-Effect kinds (:func:`kinds`), drawn from ``SyntheticConfig.sizes`` (magnitude uniform
-in the range, sign as noted; defaults :func:`default_sizes`):
+Effect kinds (:func:`kinds`; how each enters the model and is sized comes from the
+table of :mod:`.kinds`), drawn from ``SyntheticConfig.sizes`` (magnitude uniform in the
+range, sign as noted; defaults :func:`default_sizes`):
 
 * ``none``: the clean data (false-alarm runs);
 * ``parameter``: an undeclared parameter drifting from nominal with the unit's health
-  index to an end value in the range;
+  index to an end value in the range; ``parameter_step``: the same parameter jumping
+  at an onset (sudden damage);
 * each registered effect of the model (``model.effects``), constant over the data;
-* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` / ``sensor_gain_drift`` on a
-  random output, sized in multiples of its noise std (a gain relative to the output's
-  mean level, a drift per 100 cycles since the unit's first cycle; the gain drift is
-  the multiplicative one);
-* ``discrepancy``: an effect outside the library, a smooth bump in one condition
-  added to one output, ``A sigma exp(-((w_c - c0) / width)^2)``
-  (``SyntheticConfig.bump``);
+* ``sensor_bias`` / ``sensor_gain`` / ``sensor_drift`` / ``sensor_gain_drift`` /
+  ``sensor_step`` on a random output, sized in multiples of its noise std (a gain
+  relative to the output's mean level, a drift per 100 cycles since the unit's first
+  cycle, a step from an onset);
+* ``discrepancy``: an effect outside the library, a smooth bump in one condition added
+  to one output, ``A sigma exp(-((w_c - c0) / width)^2)`` (``SyntheticConfig.bump``);
 * ``condition_offset`` (only if the model allows condition offsets): a logged
-  condition off by a constant, in multiples of the condition's spread.
+  condition off by a constant, in % of the condition's spread.
+
+A step's onset is drawn per carrying unit uniformly in ``onset_range`` of its life.
 """
 
 from __future__ import annotations
@@ -33,59 +38,62 @@ from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.effects import (
-    LAYER_NAMES,
-    TAU_CYCLES,
-    candidate_name,
-    linearize,
-    natural_scale,
-    offset_conditions,
-)
+from jaxcal.diagnosis.kinds import KINDS, TAU_CYCLES, natural_scale, offset_conditions
 from jaxcal.diagnosis.prepare import DEFAULT_NOISE_REL
+from jaxcal.diagnosis.signatures import signatures, zero_inputs
 from jaxcal.model import Model
 from jaxcal.typedefs import PRNGKey
+
+_SENSOR_KINDS = ("sensor_bias", "sensor_gain", "sensor_drift")
 
 
 def kinds(model: Model) -> tuple[str, ...]:
     """The effect kinds a synthetic data set of ``model`` can hold (module doc)."""
     extra = ("condition_offset",) if offset_conditions(model) else ()
+    effects = () if model.is_stateful else tuple(e.name for e in model.effects)
     # later additions go last, so that the position of the older kinds (which seeds
     # the study's records) does not move
     return (
-        "none", "parameter", *(e.name for e in model.effects), *LAYER_NAMES[:3],
-        "discrepancy", *LAYER_NAMES[3:], *extra,
+        "none", "parameter", *effects, *_SENSOR_KINDS, "discrepancy",
+        "sensor_gain_drift", *extra, "parameter_step", "sensor_step",
     )  # fmt: skip
+
+
+def kind_of(model: Model, label: str):
+    """The :data:`~jaxcal.diagnosis.kinds.KINDS` entry of a study label."""
+    if label in KINDS:
+        return KINDS[label]
+    if label in [e.name for e in model.effects]:
+        return KINDS["effect"]
+    raise ValueError(f"no effect kind {label!r}")
 
 
 def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
     """kind -> ((low, high) magnitude, sign); sign +1, -1 or 0 (random).
 
-    Parameters and registered effects: 0.5 to 2 natural steps
-    (:func:`.effects.natural_scale`; the parameter's drift is taken by its natural
-    step for every undeclared parameter alike); output layers: 2 to 5 noise std (3 to
-    6 for a drift); the discrepancy bump: 3 to 6 noise std; a condition offset: 0.5 to
-    2 % of the condition's spread (x100 below).
+    From the kinds table (:mod:`.kinds`: natural steps, noise std, noise std relative
+    to the level, % of a condition's spread); registered effects in their own units
+    (0.5 to 2 natural steps); the discrepancy bump 3 to 6 noise std.
     """
-    sizes = {e.name: ((0.5 * s, 2.0 * s), 0) for e in model.effects
-             for s in [natural_scale(model, e.name)]}  # fmt: skip
-    return {
-        "parameter": ((0.5, 2.0), 0),  # natural steps of the chosen parameter
-        **sizes,
-        "sensor_bias": ((2.0, 5.0), 0),
-        "sensor_gain": ((2.0, 5.0), 0),
-        "sensor_drift": ((3.0, 6.0), 0),
-        "sensor_gain_drift": ((3.0, 6.0), 0),
-        "discrepancy": ((3.0, 6.0), 0),
-        "condition_offset": ((0.5, 2.0), 0),  # % of the condition's std
-    }
+    out = {}
+    for label in kinds(model)[1:]:
+        if label == "discrepancy":
+            out[label] = ((3.0, 6.0), 0)
+            continue
+        kind = kind_of(model, label)
+        lo, hi = kind.size_range
+        if kind.channel == "effect":
+            step = natural_scale(model, label)
+            lo, hi = lo * step, hi * step
+        out[label] = ((lo, hi), 0)
+    return out
 
 
 class Scenario(NamedTuple):
-    """Clean rows of a synthetic data set (``N`` rows)."""
+    """Clean rows of a synthetic data set (``N`` rows, sorted by unit then cycle)."""
 
     w: np.ndarray  # [N, W]
     theta: np.ndarray  # [N, P_all] (the declared parameters drifting)
@@ -102,6 +110,8 @@ class SyntheticConfig:
         sensors: outputs recorded (default all of the model's).
         declared: parameters that drift in the scenario (the calibrated ones).
         noise_scale: multiplies the reference noise levels.
+        noise_ar: AR(1) coefficient of the noise along each unit's rows (0: white;
+            the marginal std is kept).
         sizes: kind -> ((low, high), sign) (default :func:`default_sizes`); the
             units of ``parameter`` are the parameter's own when ``parameter_physical``.
         parameter_physical: ``sizes["parameter"]`` is in the parameter's units
@@ -109,18 +119,21 @@ class SyntheticConfig:
         bump: ``(condition, (c0_low, c0_high), width)`` of the discrepancy bump
             (default: the first condition that varies, centre between its 45th and
             65th percentile, width 20 % of its spread).
+        onset_range: a step's onset, as a share of the carrier's life.
     """
 
     sensors: tuple[str, ...] = ()
     declared: tuple[str, ...] = ()
     noise_scale: float = 1.0
+    noise_ar: float = 0.0
     sizes: Mapping[str, Any] | None = None
     parameter_physical: bool = False
     bump: tuple[str, tuple[float, float], float] | None = None
+    onset_range: tuple[float, float] = (0.3, 0.7)
 
     def __post_init__(self):
-        if not self.noise_scale > 0:
-            raise ValueError("SyntheticConfig.noise_scale must be > 0")
+        if not self.noise_scale > 0 or not 0 <= self.noise_ar < 1:
+            raise ValueError("SyntheticConfig: noise_scale > 0, 0 <= noise_ar < 1")
 
 
 class EffectTruth(NamedTuple):
@@ -133,23 +146,59 @@ class EffectTruth(NamedTuple):
     unit: str
     condition: str = ""  # the bump's condition (discrepancy only)
     carriers: tuple[int, ...] = ()  # unit ids that carry it (empty: every unit)
+    onsets: tuple[float, ...] = ()  # a step's onset cycle per carrier
 
 
 class SyntheticData(NamedTuple):
     """A generated data set, the noise it got and the effect it contains."""
 
     data: Dataset
-    noise_std: dict  # output -> std used for the noise
+    noise_std: dict  # output -> marginal std used for the noise
     truth: EffectTruth
+
+
+class _Rows(NamedTuple):
+    """The minimum :func:`~.signatures.signatures` needs of a data set."""
+
+    w: np.ndarray
+    sensor_idx: np.ndarray
+    starts: np.ndarray
+    num_units: int
+    num_rows: int
+
+
+def rows_of(w: np.ndarray, unit: np.ndarray, sensor_idx) -> _Rows:
+    """Rows sorted by unit for the signatures (``unit`` must be sorted)."""
+    if np.any(np.diff(unit) < 0):
+        raise ValueError("rows must be sorted by unit")
+    _, first = np.unique(unit, return_index=True)
+    return _Rows(w, np.asarray(sensor_idx), np.append(first, unit.size),
+                 first.size, unit.size)  # fmt: skip
+
+
+def ar1_noise(rng: np.random.Generator, shape, unit: np.ndarray, phi: float):
+    """Unit-variance noise ``[N, S]``, AR(1) with coefficient ``phi`` along each
+    unit's rows (stationary from each unit's first row)."""
+    eps = rng.standard_normal(shape)
+    if phi == 0:
+        return eps
+    out = eps.copy()
+    new = np.r_[True, unit[1:] != unit[:-1]]
+    scale = np.sqrt(1.0 - phi**2)
+    for t in range(1, shape[0]):
+        if not new[t]:
+            out[t] = phi * out[t - 1] + scale * eps[t]
+    return out
 
 
 def _pick(rng, kind, sensors, declared, model, sizes) -> tuple[str, float]:
     (lo, hi), sign = sizes[kind]
     size = rng.uniform(lo, hi) * (sign if sign else rng.choice([-1.0, 1.0]))
-    if kind == "parameter":
-        free = [p for p in model.parameter_names if p not in declared]
-        target = str(rng.choice(free))
-    elif kind in LAYER_NAMES or kind == "discrepancy":
+    if kind in ("parameter", "parameter_step"):
+        target = str(
+            rng.choice([p for p in model.parameter_names if p not in declared])
+        )
+    elif kind in KINDS and KINDS[kind].is_sensor or kind == "discrepancy":
         target = str(rng.choice(list(sensors)))
     elif kind == "condition_offset":
         target = str(rng.choice(list(offset_conditions(model))))
@@ -174,14 +223,14 @@ def make_synthetic_data(
     Args:
         key: PRNG key (the same key gives the same data). It is split in six: the
             first four go to ``scenario``, then the effect and the noise.
-        model: a static model (float64 enabled by the caller).
+        model: the model (float64 enabled by the caller).
         kind: one of :func:`kinds`.
         cfg: static settings.
         scenario: ``scenario(keys [4]) -> Scenario`` (the clean rows).
         target: force the output / parameter / condition the effect acts on.
         size: force the size, in the units of ``cfg.sizes`` (default: drawn).
         carriers: unit ids that carry the effect (default every unit): a fleet in
-            which only some engines have it; the others get the clean rows.
+            which only some units have it; the others get the clean rows.
 
     Returns:
         :class:`SyntheticData`; rows where the model is invalid are left out.
@@ -193,78 +242,56 @@ def make_synthetic_data(
         )
     sensors = tuple(cfg.sensors) or model.output_names
     sizes = {**default_sizes(model), **dict(cfg.sizes or {})}
+    free = [p for p in model.parameter_names if p not in cfg.declared]
     valid_targets = {
-        "parameter": [p for p in model.parameter_names if p not in cfg.declared],
-        "discrepancy": sensors,
+        "parameter": free, "parameter_step": free, "discrepancy": sensors,
         "condition_offset": offset_conditions(model),
-        **{f: sensors for f in LAYER_NAMES},
-    }
+        **{k: sensors for k, v in KINDS.items() if v.is_sensor},
+    }  # fmt: skip
     if target is not None and target not in valid_targets.get(kind, ()):
         raise ValueError(
             f"target={target!r} is not valid for kind {kind!r}; valid: "
             f"{list(valid_targets.get(kind, ()))}"
         )
     keys = jax.random.split(key, 6)
-    key_effect, key_noise = keys[4], keys[5]
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(key_effect)).ravel())
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(keys[4])).ravel())
     tgt, size_drawn = (
-        ("", 0.0) if kind == "none" else _pick(
-            rng, kind, sensors, cfg.declared, model, sizes
-        )
+        ("", 0.0) if kind == "none"
+        else _pick(rng, kind, sensors, cfg.declared, model, sizes)
     )  # fmt: skip
     tgt = target or tgt
     size = size if size is not None else size_drawn
     scn = scenario(keys[:4])
-    w, theta, cycle = scn.w, np.array(scn.theta, np.float64), scn.cycle
-    if kind == "parameter":  # drifts with the unit's health index, like the declared
-        j = model.parameter_names.index(tgt)
-        step = 1.0 if cfg.parameter_physical else natural_scale(model, tgt)
-        size = size * step
-        theta[:, j] = model.nominal[j] + size * (1.0 - scn.health)
-    effects = np.zeros(len(model.effects))
-    layer = np.zeros((len(LAYER_NAMES), len(model.outputs)))
-    w_offset = np.zeros(len(model.conditions))
+    order = np.lexsort((scn.cycle, scn.unit))
+    w, unit, cycle = scn.w[order], scn.unit[order], scn.cycle[order]
+    theta, health = np.array(scn.theta, np.float64)[order], scn.health[order]
     sidx = model.output_index(sensors)
-    tau = (cycle - 1) / TAU_CYCLES  # every life starts at cycle 1
-    clean_lin = linearize(model, w, theta, effects, layer, tau)
-    clean = clean_lin.y[:, sidx]
-    level = np.abs(clean).mean(0)
+    rows = rows_of(w, unit, sidx)
+    inputs = zero_inputs(model, w.shape[0], rows.num_units)._replace(theta=theta)
+    level = np.abs(signatures(model, rows, inputs).x).mean(0)
     rel = model.diagnosis.noise_rel or {}
-    std = (
-        np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors])
-        * level
-        * cfg.noise_scale
-    )
-    unit = "-"
-    effect_names = [e.name for e in model.effects]
-    if kind in effect_names:
-        effects[effect_names.index(kind)] = size
-        unit = model.effects[effect_names.index(kind)].unit
-    elif kind == "parameter":
-        unit = model.unit_of(tgt)
-    elif kind == "condition_offset":
-        c = model.condition_names.index(tgt)
-        size = size * 0.01 * float(np.std(w[:, c]) or 1.0)
-        w_offset[c] = size
-        unit = model.conditions[c].unit
-    elif kind in LAYER_NAMES:
-        s = list(sensors).index(tgt)
-        relative = kind in ("sensor_gain", "sensor_gain_drift")
-        size = size * (std[s] / level[s] if relative else std[s])
-        layer[LAYER_NAMES.index(kind), sidx[s]] = size
-        unit = "-" if relative else model.unit_of(tgt)
+    std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors]) * level
+    std = std * cfg.noise_scale
     on = np.ones(w.shape[0], bool)
     if carriers is not None:
-        on = np.isin(scn.unit, np.asarray(carriers))
-        bad = sorted(set(np.asarray(carriers).tolist()) - set(scn.unit.tolist()))
+        bad = sorted(set(np.asarray(carriers).tolist()) - set(unit.tolist()))
         if bad:
             raise ValueError(f"carriers {bad} are not units of the scenario")
-        if kind == "parameter":
-            theta[~on, j] = model.nominal[j]
-    y = linearize(model, w, theta, effects, layer, tau, w_offset)
-    x = y.y[:, sidx]
-    if not on.all() and kind != "parameter":  # the other units stay clean
-        x = np.where(on[:, None], x, clean)
+        on = np.isin(unit, np.asarray(carriers))
+    ids = np.unique(unit[on]) if kind != "none" else np.zeros(0)
+    onsets = {}
+    if kind in ("parameter_step", "sensor_step"):
+        for u in ids:
+            cyc = cycle[unit == u]
+            share = rng.uniform(*cfg.onset_range)
+            onsets[int(u)] = float(cyc[int(round(share * (cyc.size - 1)))])
+    step_on = np.array([cycle[i] >= onsets.get(int(unit[i]), np.inf)
+                        for i in range(w.shape[0])])  # fmt: skip
+    tau = (cycle - 1) / TAU_CYCLES  # every life starts at cycle 1
+    size, unit_str = _apply(model, kind, tgt, size, cfg, inputs, on, step_on, tau,
+                            health, std, level, sensors, w)  # fmt: skip
+    sig = signatures(model, rows, inputs)
+    x = sig.y.copy()
     bump_on = ""
     if kind == "discrepancy":
         s = list(sensors).index(tgt)
@@ -273,30 +300,65 @@ def make_synthetic_data(
         c0 = rng.uniform(c_lo, c_hi)
         size = size * std[s]
         x[:, s] += on * size * np.exp(-(((w[:, c] - c0) / width) ** 2))
-        unit = model.unit_of(tgt)
-    noise = np.asarray(jax.random.normal(key_noise, x.shape, dtype=jnp.float64))
-    x = x + std * noise
-    ok = y.ok if on.all() or kind == "parameter" else np.where(on, y.ok, clean_lin.ok)
+        unit_str = model.unit_of(tgt)
+    noise_rng = np.random.default_rng(np.asarray(jax.random.key_data(keys[5])).ravel())
+    x = x + std * ar1_noise(noise_rng, x.shape, unit, cfg.noise_ar)
+    ok = sig.ok
     data = Dataset(
-        w=w[ok],
-        x=x[ok],
-        condition_names=model.condition_names,
-        output_names=sensors,
-        unit=scn.unit[ok],
-        time=cycle[ok],
-        theta=theta[ok],
-        theta_names=model.parameter_names,
-        source=f"synthetic:{kind}",
-    )
-    family = "effect" if kind in effect_names else kind
-    name = {"none": "", "discrepancy": f"discrepancy[{tgt}]"}.get(
-        kind, candidate_name(family, tgt)
-    )
+        w=w[ok], x=x[ok], condition_names=model.condition_names, output_names=sensors,
+        unit=unit[ok], time=cycle[ok], theta=inputs.theta[ok],
+        theta_names=model.parameter_names, source=f"synthetic:{kind}",
+    )  # fmt: skip
+    if kind in ("none", "discrepancy"):
+        name = "" if kind == "none" else f"discrepancy[{tgt}]"
+    else:
+        name = kind_of(model, kind).candidate_name(tgt)
     truth = EffectTruth(
-        kind, name, tgt, float(size), unit, bump_on,
+        kind, name, tgt, float(size), unit_str, bump_on,
         () if carriers is None else tuple(int(u) for u in carriers),
+        tuple(onsets[int(u)] for u in ids) if onsets else (),
     )  # fmt: skip
     return SyntheticData(data, dict(zip(sensors, std.tolist(), strict=True)), truth)
+
+
+def _apply(model, kind, tgt, size, cfg, inputs, on, step_on, tau, health, std,
+           level, sensors, w):  # fmt: skip
+    """Switch the effect on in ``inputs`` (in place); ``(size, unit)`` physical."""
+    if kind in ("none", "discrepancy"):
+        return size, "-"
+    spec = kind_of(model, kind)
+    channel = spec.channel
+    profile = {
+        "constant": np.ones_like(tau),
+        "drift": tau,
+        "step": step_on.astype(float),
+        "spline": 1.0 - health,
+    }[spec.profile]
+    profile = profile * on
+    if channel == "parameter":
+        j = model.parameter_names.index(tgt)
+        step = 1.0 if cfg.parameter_physical and kind == "parameter" else (
+            natural_scale(model, tgt)
+        )  # fmt: skip
+        size = size * step
+        inputs.theta[:, j] += size * profile
+        return size, model.unit_of(tgt)
+    if channel == "effect":
+        e = [x.name for x in model.effects].index(tgt)
+        inputs.effects[:, e] += size * profile
+        return size, model.effects[e].unit
+    if channel == "condition":
+        c = model.condition_names.index(tgt)
+        size = size * 0.01 * float(np.std(w[:, c]) or 1.0)
+        inputs.w_offset[:, c] += size * profile
+        return size, model.conditions[c].unit
+    s = list(sensors).index(tgt)
+    idx = model.output_index([tgt])[0]
+    relative = channel == "multiplicative"
+    size = size * (std[s] / level[s] if relative else std[s])
+    field = inputs.multiplicative if relative else inputs.additive
+    field[:, idx] += size * profile
+    return size, spec.physical_unit(model, tgt)
 
 
 def _default_bump(model: Model, w: np.ndarray):

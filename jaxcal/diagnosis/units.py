@@ -1,40 +1,33 @@
 """The verdict per unit: each added effect's size, who carries it and from when.
 
-The fleet fit (:mod:`.fitting`) gives a constant effect one value for all units and an
-undeclared parameter one trajectory per unit. A fleet where only some engines carry an
-effect needs the answer per unit, from the same (final) fit:
+From the final fit (:mod:`.fitting`, prewhitened residual):
 
-* **Size per unit.** A parameter: its fitted trajectory ``theta_u(t) - nominal``
-  with standard errors from the unit's own block of the Gauss–Newton covariance (all
-  spline coefficients of that unit, the shared effects held; sigma known); the size is
-  its *change over the unit's record*, last minus first cycle. A fault develops in
-  service; a departure already there at the first cycle in every unit (a model's
-  design mismatch, FD001's fan) is not carried by any one unit and is reported apart
-  (the value at the first cycle; the ``constant_from_start`` flag). A constant effect
-  (sensor layer, registered effect, condition offset): one Gauss–Newton step from the
-  fleet value on that unit's rows alone, jointly with the unit's spline coefficients,
-  ``b_u = b + (A_u^-1 Z_u^T r_u)_b`` with standard error ``sqrt((A_u^-1)_bb)``; the
-  model is nearly linear in these effects, so the step is the unit's own estimate.
-  Both standard errors are inflated by the unit's residual variance factor
-  ``SSR_u / (n_u - k_u)`` when it exceeds 1 (a unit the model tracks less well gets
-  wider bands rather than false carriers).
-* **Carries** (the stated test): a minimum-effect z-test, ``H0: |size_u| <= delta``
-  against ``|size_u| > delta`` with ``z_u = (|size_u| - delta) / std_u`` one-sided,
-  ``delta`` half the effect's natural step (:func:`.effects.natural_scale`: 0.5 % of a
-  turbofan health modifier, half a noise std of a sensor bias), Holm's step-down
-  correction across the units at family-wise level ``alpha`` (Holm 1979). With a
-  zero ``delta`` a large data set makes any departure "significant"; ``delta`` states
-  what counts as an effect of consequence. Family-wise rather than false-discovery
-  control because a listed unit is a claim about one engine: with probability at
-  least ``1 - alpha`` no unit without an effect beyond ``delta`` is listed.
-* **Onset.** A parameter: the first cycle from which its change since the first cycle
-  stays beyond ``delta + z_band std(t)`` up to the unit's last cycle (``z_band`` the
-  Bonferroni one-sided critical value at ``alpha / U``): the start of the persistent
-  exceedance of the band; the spline is already the trajectory's smooth model, so no
-  separate change-point fit is needed. A drift (additive or multiplicative): zero at the
-  unit's first cycle and growing linearly, so the first cycle at which its
-  accumulated change reaches one noise std of the sensor. A constant form (bias, gain,
-  registered effect, offset): present from the unit's first cycle.
+* **Size per unit.** A parameter that changes smoothly: its fitted trajectory
+  ``theta_u(t) - nominal`` with standard errors from the unit's own block of the
+  Gauss–Newton covariance (all its local coefficients, the shared terms held); the
+  size is its *change over the unit's record*, last minus first cycle (a departure
+  already there at the first cycle in every unit, a design mismatch, is reported apart:
+  the value at the first cycle, the ``constant_from_start`` flag). Any other term
+  (constant, drift, step): one Gauss–Newton step from its fitted value on that unit's
+  rows alone, jointly with the unit's local coefficients, with standard error
+  ``sqrt((A_u^-1)_bb)``; the model is nearly linear in these effects, so the step is
+  the unit's own estimate (a step's, at its own onset; a unit without an onset has
+  none). Standard errors are inflated by the unit's residual variance factor
+  ``SSR_u / (n_u - k_u)`` when it exceeds 1.
+* **Carries**: a unit the form allows (every unit for a fleet-wide term; the carriers
+  the screen chose for a per-unit one, each on its own data) whose effect passes the
+  minimum-effect z-test ``H0: |size_u| <= delta`` against ``|size_u| > delta``,
+  ``z_u = (|size_u| - delta) / std_u`` one-sided, ``delta`` half the effect's natural
+  step (:mod:`.kinds`), with Holm's step-down correction across the units at
+  family-wise level ``alpha`` (Holm 1979). A listed unit is a claim about one
+  engine: with probability at least ``1 - alpha`` no unit without an effect beyond
+  ``delta`` is listed, and no unit whose own data do not show the effect is.
+* **Onset.** A step: the scanned onset and its 95 % profile-likelihood interval
+  (:mod:`.screen`). A smooth parameter: the first cycle from which its change since
+  the first cycle stays beyond ``delta + z_band std(t)`` up to the unit's last cycle
+  (``z_band`` the Bonferroni one-sided critical value at ``alpha / U``). A drift: the
+  first cycle at which its accumulated change reaches one noise std of the sensor. A
+  constant form: the unit's first cycle.
 """
 
 from __future__ import annotations
@@ -45,13 +38,14 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats as sps
 
-from jaxcal.diagnosis.effects import Candidate, natural_scale
-from jaxcal.diagnosis.fitting import FitResult, gram_stats, signature_columns
+from jaxcal.diagnosis.fitting import FitResult, gram_stats
+from jaxcal.diagnosis.kinds import Candidate
 from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.signatures import Tangent, signatures
+from jaxcal.diagnosis.terms import term_profile
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # as fitting._RIDGE: keeps a unit's empty knots finite
-DRIFTS = ("sensor_drift", "sensor_gain_drift")
 
 
 class UnitTrajectories(NamedTuple):
@@ -66,12 +60,14 @@ class UnitTrajectories(NamedTuple):
 class UnitEffect(NamedTuple):
     """The per-unit verdict of one added effect (``U`` units)."""
 
-    name: str
-    size: np.ndarray  # [U] physical units (a parameter: change over the record)
+    name: str  # the effect's name
+    form: str  # fleet or units
+    size: np.ndarray  # [U] physical units (a smooth parameter: change over the record)
     size_std: np.ndarray  # [U]
-    p_value: np.ndarray  # [U] two-sided, uncorrected
+    p_value: np.ndarray  # [U] one-sided minimum-effect, uncorrected (1: not allowed)
     carries: np.ndarray  # [U] bool, Holm at alpha
     onset: np.ndarray  # [U] cycle, NaN where the unit does not carry it
+    onset_ci: np.ndarray  # [U, 2] cycles of a step's onset interval (else NaN)
     min_size: float  # delta of the test: half the effect's natural step
     trajectory: np.ndarray  # [N] the effect per row (parameter value, drift * tau, ...)
     start_value: np.ndarray  # [U] value at the unit's first cycle (parameters)
@@ -91,53 +87,108 @@ def holm(p: np.ndarray, alpha: float) -> np.ndarray:
     return reject
 
 
-def _unit_stats(model: Model, data: LoopData, fit: FitResult):
-    """Gram blocks at the fit and each unit's residual variance factor (>= 1)."""
-    local, glob = signature_columns(data, fit.evaluation.lin, fit.spec, model)
-    stats = gram_stats(data, fit.evaluation.resid, fit.evaluation.valid, local, glob)
-    ssr = np.add.reduceat(np.sum(fit.evaluation.resid**2, axis=1), data.starts[:-1])
-    n_u = np.add.reduceat(fit.evaluation.valid.astype(float), data.starts[:-1])
-    dof = np.maximum(n_u * data.num_sensors - stats.num_local, 1.0)
+def _unit_stats(data: LoopData, fit: FitResult, cols=None):
+    """Gram blocks at the fit (of ``cols`` when given) and each unit's residual
+    variance factor (>= 1)."""
+    ev = fit.evaluation
+    cols = ev.cols if cols is None else cols
+    stats = gram_stats(data, ev.white, cols, fit.layout.num_local)
+    ssr = np.add.reduceat(np.sum(ev.white**2, axis=1), data.starts[:-1])
+    n_u = np.add.reduceat(ev.used.sum(1).astype(float), data.starts[:-1])
+    dof = np.maximum(n_u - fit.layout.num_local, 1.0)
     return stats, np.maximum(ssr / dof, 1.0)
 
 
 def unit_trajectories(model: Model, data: LoopData, fit: FitResult) -> UnitTrajectories:
     """``theta_u(t) - nominal`` and its pointwise std for every per-unit parameter."""
-    stats, s2 = _unit_stats(model, data, fit)
-    nl = stats.num_local
+    stats, s2 = _unit_stats(data, fit)
+    nl = fit.layout.num_local
     a_mat = stats.gram[:, :nl, :nl] + _RIDGE * np.eye(nl)
     cov = np.linalg.inv(a_mat) * s2[:, None, None]  # [U, l, l]
-    value, std, change, change_std, start = {}, {}, {}, {}, 0
     first = data.starts[:-1][data.unit]
-    for name, basis in fit.spec.unit_blocks(data):
-        k = basis.shape[1]
-        step = natural_scale(model, name)
-        coef = fit.params.unit_coef[data.unit, start : start + k]
-        c_rows = cov[data.unit, start : start + k, start : start + k]
-        value[name] = step * np.sum(coef * basis, axis=1)
+    value, std, change, change_std = {}, {}, {}, {}
+    for name in fit.spec.unit_params:
+        j = model.parameter_names.index(name)
+        cols = [c for c, t in enumerate(fit.layout.tangents[:nl])
+                if t.channel == "parameter" and t.index == j]  # fmt: skip
+        prof = np.stack([fit.layout.tangents[c].profile for c in cols], axis=1)
+        coef = fit.params.unit_coef[data.unit][:, cols]
+        c_rows = cov[data.unit][:, cols][:, :, cols]
+        value[name] = np.sum(coef * prof, axis=1)
         change[name] = value[name] - value[name][first]
-        for out, b in ((std, basis), (change_std, basis - basis[first])):
+        for out, b in ((std, prof), (change_std, prof - prof[first])):
             var = np.einsum("ni,nij,nj->n", b, c_rows, b)
-            out[name] = step * np.sqrt(np.maximum(var, 0.0))
-        start += k
+            out[name] = np.sqrt(np.maximum(var, 0.0))
     return UnitTrajectories(value, std, change, change_std)
 
 
-def _constant_per_unit(stats, s2, fit: FitResult, g: int):
-    """Per-unit estimate and std of the shared effect ``g`` (module docstring)."""
-    nl = stats.num_local
-    sel = np.concatenate([np.arange(nl), [nl + g]])
-    a_mat = stats.gram[:, sel[:, None], sel[None, :]]
-    a_mat = a_mat + np.diag(np.r_[np.full(nl, _RIDGE), 0.0])
-    rhs = stats.score[:, sel]
-    # a unit on which the effect has no signature gets NaN, not a number from noise
+def _everywhere(cand: Candidate, num_units: int) -> Candidate:
+    """The term on every unit (a step keeps its carriers: only they have an onset)."""
+    if not cand.per_unit or cand.kind.profile == "step":
+        return cand
+    return cand.with_form("units", range(num_units))
+
+
+def _term_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
+    """Per-unit estimate and std of a non-spline term (module docstring)."""
+    nl = fit.layout.num_local
+    block = next(b for b in fit.layout.blocks if b.name == cand.key)
+    tan = fit.layout.tangents[(0 if block.local else nl) + block.columns.start]
+    prof = term_profile(data, _everywhere(cand, data.num_units))[:, 0]
+    ev = fit.evaluation
+    sig = signatures(model, data, ev.inputs, [Tangent(tan.channel, tan.index, prof)],
+                     like=ev.sig)  # fmt: skip
+    col = data.whiten(np.where(ev.used[:, :, None], sig.cols, 0.0))
+    others = np.ones(nl, bool)  # the unit's local columns but the term's own
+    if block.local:
+        others[block.columns] = False
+    cols = np.concatenate([ev.cols[:, :, :nl][:, :, others], col], axis=2)
+    k = int(others.sum())
+    st = gram_stats(data, ev.white, cols, k + 1)
+    # a unit on which the term has no signature (a step's non-carrier) gets a tiny
+    # ridge, and NaN below, not a number from noise
+    a_mat = st.gram + np.diag(np.r_[np.full(k, _RIDGE), 1e-12])
     with np.errstate(all="ignore"):
-        step = np.linalg.solve(a_mat, rhs[:, :, None])[:, -1, 0]
+        step = np.linalg.solve(a_mat, st.score[:, :, None])[:, -1, 0]
         var = np.linalg.inv(a_mat)[:, -1, -1] * s2
-    scale = fit.spec.global_effects[g].scale
-    value = fit.global_values()[g] + scale * step
-    std = scale * np.sqrt(np.where(var > 0, var, np.nan))
+    values = fit.term_values(cand)
+    current = values[:, 0] if block.local else np.full(data.num_units, values[0])
+    value = current + cand.scale * step
+    std = cand.scale * np.sqrt(np.where(var > 0, var, np.nan))
+    if cand.kind.profile == "step":  # a unit without an onset has no step size
+        off = np.ones(data.num_units, bool)
+        off[list(cand.carriers)] = False
+        value[off], std[off] = np.nan, np.nan
     return value, std
+
+
+def _spline_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
+    """``(change over the record, std)`` per unit of a smoothly changing parameter
+    fitted in some units, for the others: one Gauss–Newton step of its spline
+    coefficients on each unit's rows alone (NaN where it was fitted)."""
+    nl = fit.layout.num_local
+    block = next(b for b in fit.layout.blocks if b.name == cand.key)
+    tan = fit.layout.tangents[block.columns.start]
+    prof = term_profile(data, cand.with_form("units", range(data.num_units)))
+    ev = fit.evaluation
+    tangents = [Tangent(tan.channel, tan.index, p) for p in prof.T]
+    sig = signatures(model, data, ev.inputs, tangents, like=ev.sig)
+    cols = data.whiten(np.where(ev.used[:, :, None], sig.cols, 0.0))
+    others = np.ones(nl, bool)
+    others[block.columns] = False
+    k = prof.shape[1]
+    z = np.concatenate([ev.cols[:, :, :nl][:, :, others], cols], axis=2)
+    st = gram_stats(data, ev.white, z, z.shape[2])
+    a_mat = st.gram + _RIDGE * np.eye(z.shape[2])
+    step = np.linalg.solve(a_mat, st.score[:, :, None])[:, -k:, 0]
+    cov = np.linalg.inv(a_mat)[:, -k:, -k:] * s2[:, None, None]
+    first, last = data.starts[:-1], data.starts[1:] - 1
+    d = prof[last] - prof[first]  # [U, k]: change of each coefficient's profile
+    size = np.einsum("uk,uk->u", d, step)
+    std = np.sqrt(np.maximum(np.einsum("uk,ukj,uj->u", d, cov, d), 0.0))
+    fitted = np.zeros(data.num_units, bool)
+    fitted[list(cand.carriers)] = True
+    return np.where(fitted, np.nan, size), np.where(fitted, np.nan, std)
 
 
 def _first_persistent(above: np.ndarray, cycle: np.ndarray) -> float:
@@ -155,46 +206,60 @@ def unit_effects(
     members: Sequence[Candidate],
     alpha: float,
     trajectories: UnitTrajectories | None = None,
+    onset_ci: dict | None = None,
 ) -> list[UnitEffect]:
     """The per-unit verdict of each added effect ``members`` of the final ``fit``."""
     units = data.num_units
     first, last = data.starts[:-1], data.starts[1:] - 1
     z_band = float(sps.norm.isf(alpha / max(units, 1)))
     traj = trajectories or unit_trajectories(model, data, fit)
-    need_stats = any(not c.per_unit for c in members)
-    stats, s2 = _unit_stats(model, data, fit) if need_stats else (None, None)
+    _, s2 = _unit_stats(data, fit)
     out = []
     for cand in members:
         onset = np.full(units, np.nan)
+        ci = np.full((units, 2), np.nan)
         delta = 0.5 * cand.scale
-        if cand.per_unit:
+        spline = cand.kind.channel == "parameter" and cand.kind.profile == "spline"
+        if spline:
             value, std = traj.value[cand.target], traj.std[cand.target]
             change = traj.change[cand.target]
             size, size_std = change[last], traj.change_std[cand.target][last]
+            if cand.per_unit and len(cand.carriers) < units:  # the others' own
+                own, own_std = _spline_per_unit(model, data, fit, cand, s2)
+                size = np.where(np.isnan(own), size, own)
+                size_std = np.where(np.isnan(own_std), size_std, own_std)
             row_traj = value
             start_value, start_std = value[first], std[first]
-        else:
-            g = [c.name for c in fit.spec.global_effects].index(cand.name)
-            size, size_std = _constant_per_unit(stats, s2, fit, g)
-            row_traj = size[data.unit]
-            if cand.family in DRIFTS:  # a (relative, for the gain) change per tau
-                row_traj = row_traj * data.tau
+        allowed = np.ones(units, bool)
+        if cand.per_unit:
+            allowed[:] = False
+            allowed[list(cand.carriers)] = True
+        if not spline:
+            size, size_std = _term_per_unit(model, data, fit, cand, s2)
+            shape = term_profile(data, _everywhere(cand, units))[:, 0] / cand.scale
+            fitted = np.where(allowed, np.nan_to_num(size), 0.0)
+            row_traj = fitted[data.unit] * shape
             start_value, start_std = np.zeros(units), np.zeros(units)
         with np.errstate(invalid="ignore", divide="ignore"):
             z = (np.abs(size) - delta) / size_std
-        p = np.where(np.isfinite(z), sps.norm.sf(z), 1.0)
-        carries = holm(p, alpha)
+        p = np.where(np.isfinite(z) & allowed, sps.norm.sf(z), 1.0)
+        carries = holm(p, alpha) & allowed
         for u in np.flatnonzero(carries):
             sl = slice(data.starts[u], data.starts[u + 1])
             cyc = data.cycle[sl]
-            if cand.per_unit:
+            if spline:
                 band = delta + z_band * traj.change_std[cand.target][sl]
                 above = np.abs(traj.change[cand.target][sl]) > band
                 onset[u] = _first_persistent(above, cyc)
-            elif cand.family in DRIFTS:
+            elif cand.kind.profile == "step":
+                row = cand.onsets[list(cand.carriers).index(u)]
+                onset[u] = data.cycle[row]
+                if onset_ci and cand.name in onset_ci:
+                    ci[u] = data.cycle[np.asarray(onset_ci[cand.name][u], int)]
+            elif cand.kind.profile == "drift":
                 s = data.sensor_names.index(cand.target)
                 change = np.abs(row_traj[sl])
-                if cand.family == "sensor_gain_drift":
+                if cand.kind.channel == "multiplicative":
                     change = change * np.abs(data.x[sl, s])
                 onset[u] = _first_persistent(change >= data.noise_std[s], cyc)
             else:
@@ -202,11 +267,13 @@ def unit_effects(
         out.append(
             UnitEffect(
                 cand.name,
+                cand.form,
                 size,
                 size_std,
                 p,
                 carries,
                 onset,
+                ci,
                 delta,
                 row_traj,
                 start_value,
@@ -217,21 +284,28 @@ def unit_effects(
 
 
 def units_json(effect: UnitEffect, unit_ids: np.ndarray) -> list[dict]:
-    """``[{unit, carries, size, size_std, onset}]`` (onset null when not carried)."""
+    """``[{unit, carries, size, size_std, onset, onset_ci}]`` (onset null when not
+    carried)."""
+
+    def num(v):
+        return float(v) if np.isfinite(v) else None
+
     return [
         {
             "unit": int(uid),
             "carries": bool(c),
-            "size": float(s),
-            "size_std": float(e) if np.isfinite(e) else None,
-            "onset": float(o) if c and np.isfinite(o) else None,
+            "size": num(s),
+            "size_std": num(e),
+            "onset": num(o) if c else None,
+            "onset_ci": [num(v) for v in ci] if c and np.all(np.isfinite(ci)) else None,
         }
-        for uid, c, s, e, o in zip(
+        for uid, c, s, e, o, ci in zip(
             unit_ids,
             effect.carries,
             effect.size,
             effect.size_std,
             effect.onset,
+            effect.onset_ci,
             strict=True,
         )  # fmt: skip
     ]

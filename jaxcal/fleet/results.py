@@ -10,6 +10,9 @@ order, time order within a unit):
   flags: a row that is not valid was skipped (NaN, out of range; its theta repeats
   the unit's last valid one); ``reason`` indexes the ``reasons`` root attribute and
   the ``flagged`` root attribute counts the rows per reason;
+* ``partial [N]`` bool when the caller passes it: some outputs of the row were missing
+  (NaN; used on the observed ones if ``valid``, else skipped as ``x_partial``); the
+  ``num_partial`` root attribute counts them;
 * ``aux_<name> [N, ...]`` every per-step diagnostic of the calibrator (e.g.
   ``aux_theta_std``), and any per-step extra the caller passes (e.g. ``theta_true``);
 * ``unit_id [U]``, ``unit_length [U]``, ``unit_theta_last [U, P]`` one row per unit;
@@ -78,6 +81,7 @@ class FleetResultWriter:
         self.num_rows = 0
         self.num_units = 0
         self.flagged: dict[str, int] = count_reasons(np.zeros(0, np.int32))
+        self.num_partial = 0  # rows with missing outputs (``partial=`` of append)
 
     def __enter__(self) -> FleetResultWriter:
         directory = os.path.dirname(os.path.abspath(self.path))
@@ -95,6 +99,7 @@ class FleetResultWriter:
             if self._file is not None:
                 if exc_type is None:
                     self._file.attrs["flagged"] = json.dumps(self.flagged)
+                    self._file.attrs["num_partial"] = self.num_partial
                 self._file.close()
             if exc_type is None:
                 os.chmod(self._tmp, 0o644)  # mkstemp makes 0600; results are shared
@@ -135,6 +140,7 @@ class FleetResultWriter:
         extras: Mapping[str, np.ndarray] | None = None,
         valid: np.ndarray | None = None,
         reason: np.ndarray | None = None,
+        partial: np.ndarray | None = None,
     ) -> None:
         """Append the real (unmasked) rows of ``u`` units.
 
@@ -146,6 +152,8 @@ class FleetResultWriter:
             extras: more per-step arrays ``[u, T, ...]`` written under their names.
             valid, reason: ``[u, T]`` flags of the calibrator (``CalOutput.valid``,
                 ``.reason``), written as columns and counted in ``self.flagged``.
+            partial: ``[u, T]`` rows with missing outputs (``CalOutput.partial``),
+                written as a column and counted in ``self.num_partial``.
         """
         if self._file is None:
             raise ValueError("FleetResultWriter.append outside its `with` block")
@@ -173,6 +181,9 @@ class FleetResultWriter:
             per_step["reason"] = np.asarray(reason, np.int32)
             for name, count in count_reasons(reason, mask).items():
                 self.flagged[name] += count
+        if partial is not None:
+            per_step["partial"] = np.asarray(partial, bool)
+            self.num_partial += int(np.sum(per_step["partial"] & mask))
         steps = np.broadcast_to(np.arange(num_steps), mask.shape)
         per_step["unit"] = np.broadcast_to(unit_ids[:, None], mask.shape)
         per_step["step"] = steps

@@ -18,6 +18,9 @@ any iterable of :class:`UnitChunk`: :func:`iter_array_chunks` cuts in-memory arr
 Units are independent, so chunked results equal one-shot results unit for unit.
 A ``check`` (:class:`~jaxcal.calibrators.interface.SampleCheck`) flags and skips bad
 samples; their flags go to the file and their counts per reason to the summary.
+Rows with some outputs missing (NaN) are used by a calibrator that accepts them (UKF,
+least squares) and skipped as ``x_partial`` by others; the file's ``partial`` column
+and the summary's ``num_partial`` count them.
 """
 
 from __future__ import annotations
@@ -172,11 +175,12 @@ def calibrate_stream(
 
     Returns:
         ``{"num_chunks", "num_units", "num_rows", "num_flagged", "flagged",
-        "seconds", "rows_per_s"}`` over all processes (rows = unpadded time steps;
-        ``flagged``: rows skipped per reason, ``num_flagged`` their total).
+        "num_partial", "seconds", "rows_per_s"}`` over all processes (rows =
+        unpadded time steps; ``flagged``: rows skipped per reason, ``num_flagged``
+        their total; ``num_partial``: rows with missing outputs, used or not).
     """
     start = time.perf_counter()
-    stats = {"num_chunks": 0, "num_units": 0, "num_rows": 0}
+    stats = {"num_chunks": 0, "num_units": 0, "num_rows": 0, "num_partial": 0}
     flagged = count_reasons([])
     iterator = iter(chunks)
     chunk = next(iterator, None)
@@ -206,11 +210,12 @@ def calibrate_stream(
         stats["num_rows"] += int(rows["mask"].sum())
         for name, count in count_reasons(out.reason, rows["mask"]).items():
             flagged[name] += count
+        stats["num_partial"] += int(np.sum(out.partial & rows["mask"]))
         if writer is not None:
             writer.append(
                 rows["unit_ids"], rows["mask"], out.theta, out.xhat, aux=out.aux,
                 cycle=rows["cycle"], extras=rows["extras"], valid=out.valid,
-                reason=out.reason,
+                reason=out.reason, partial=out.partial,
             )  # fmt: skip
     seconds = time.perf_counter() - start
     return {

@@ -1,9 +1,16 @@
 """The model registry: ``jaxcal.models.load(spec) -> Model``.
 
 ``spec`` is a registered name (``"cmapss"``, ``"agtf30"``: the turbofans;
-``"heat_exchanger"``: a small static example), ``"package.module:attr"`` or
+``"heat_exchanger"``: a small static example; ``"thermal"``: a small example with
+memory), ``"package.module:attr"`` or
 ``"path/to/file.py:attr"``, where ``attr`` is a :class:`~jaxcal.model.Model` or a
-callable returning one. The command lines take the same spec as ``model=``.
+callable returning one, or an ``extended_model.json`` written by the diagnosis
+(:mod:`jaxcal.models.extended`). The command lines take the same spec as ``model=``.
+
+Loading a module or a file runs its code, as unpickling does: load only models you
+trust. Whatever goes wrong in it (a syntax error, an exception at import or in the
+factory, a missing attribute, something that is not a model) is a ``ValueError``
+naming the spec, the file and the line, so a command line exits 2 with one line.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import importlib
 import importlib.util
 import os
 import sys
+import traceback
 from collections.abc import Callable
 
 from jaxcal.model import Model
@@ -29,16 +37,40 @@ def available() -> tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
-def _from_attr(obj, spec: str) -> Model:
+def _failure(err: BaseException, spec: str, path: str | None, doing: str) -> str:
+    """One line saying what failed in the user's code: file and line of a syntax
+    error, else the exception and the deepest line of ``path`` it passed through."""
+    if isinstance(err, SyntaxError):
+        where = f"{err.filename or path}, line {err.lineno}"
+        return f"model={spec!r}: {where}: syntax error: {err.msg}"
+
+    def users(frame) -> bool:  # a line of the user's file, not of this loader
+        name = os.path.abspath(frame.filename)
+        if path is not None:
+            return name == os.path.abspath(path)
+        return name != os.path.abspath(__file__)
+
+    frames = [f for f in traceback.extract_tb(err.__traceback__) if users(f)]
+    where = f" ({frames[-1].filename}, line {frames[-1].lineno})" if frames else ""
+    return f"model={spec!r}: {doing} raised {type(err).__name__}: {err}{where}"
+
+
+def _from_attr(obj, spec: str, path: str | None) -> Model:
     if isinstance(obj, Model):
         return obj
+    got = f"it is a {type(obj).__name__}"
     if callable(obj):
-        model = obj()
+        doing = f"calling {spec.rpartition(':')[2]}()"
+        try:
+            model = obj()
+        except (Exception, SystemExit) as err:  # noqa: BLE001 - the user's code
+            raise ValueError(_failure(err, spec, path, doing)) from err
         if isinstance(model, Model):
             return model
+        got = f"{doing} returned a {type(model).__name__}"
     raise ValueError(
         f"model={spec!r}: the attribute is neither a jaxcal.Model nor a callable "
-        "returning one"
+        f"returning one ({got})"
     )
 
 
@@ -49,7 +81,11 @@ def _load_file(path: str, spec: str):
     module_spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(module_spec)
     sys.modules[name] = module  # dataclasses and pickling look the module up
-    module_spec.loader.exec_module(module)
+    try:
+        module_spec.loader.exec_module(module)
+    except (Exception, SystemExit) as err:  # noqa: BLE001 - the user's code
+        del sys.modules[name]  # a half-run module is not kept
+        raise ValueError(_failure(err, spec, path, f"running {path}")) from err
     return module
 
 
@@ -57,14 +93,21 @@ def load(spec: str | Model) -> Model:
     """The model named by ``spec`` (see the module docstring).
 
     Raises:
-        ValueError: an unknown name, a missing file or attribute, or an attribute
-            that is not a model; the message lists the registered names.
+        ValueError: an unknown name, a missing file or attribute, an attribute
+            that is not a model (the message lists the registered names), or a
+            file or module that fails to run (naming its file and line).
     """
     if isinstance(spec, Model):
         return spec
     spec = str(spec)
     if spec in _REGISTRY:
         return _REGISTRY[spec]()
+    if spec.endswith(".json"):  # a diagnosis's extended model (models/extended.py)
+        from jaxcal.models.extended import load_extended
+
+        if not os.path.isfile(spec):
+            raise ValueError(f"model={spec!r}: file not found")
+        return load_extended(spec)
     if ":" not in spec:
         raise ValueError(
             f"model={spec!r}: unknown model; registered: {list(available())}, or "
@@ -78,9 +121,11 @@ def load(spec: str | Model) -> Model:
             module = importlib.import_module(where)
         except ImportError as err:
             raise ValueError(f"model={spec!r}: cannot import {where}: {err}") from err
+        except (Exception, SystemExit) as err:  # noqa: BLE001 - the user's code
+            raise ValueError(_failure(err, spec, None, f"importing {where}")) from err
     if not hasattr(module, attr):
         raise ValueError(f"model={spec!r}: {where} has no attribute {attr!r}")
-    return _from_attr(getattr(module, attr), spec)
+    return _from_attr(getattr(module, attr), spec, getattr(module, "__file__", None))
 
 
 def _turbofan(name: str) -> Callable[[], Model]:
@@ -98,8 +143,15 @@ def _heat_exchanger() -> Model:
     return heat_exchanger_model()
 
 
+def _thermal() -> Model:
+    from jaxcal.models.thermal import thermal_model
+
+    return thermal_model()
+
+
 register("cmapss", _turbofan("cmapss"))
 register("agtf30", _turbofan("agtf30"))
 register("heat_exchanger", _heat_exchanger)
+register("thermal", _thermal)
 
 __all__ = ["available", "load", "register"]

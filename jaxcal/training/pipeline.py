@@ -78,8 +78,11 @@ from jaxcal.training.components import (
     make_components,
     make_dynamics,
 )
-from jaxcal.training.data import (
-    UnitArrays,
+from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.training.model_source import (
+    check_source_unchanged,
+    model_source,
+    store_model_source,
 )
 from jaxcal.training.policy_stage import train_policy
 from jaxcal.training.run_data import (  # noqa: F401 (re-exported)
@@ -97,6 +100,7 @@ from jaxcal.training.run_dir import (
     prepare_run_dir,
     write_json,
 )
+from jaxcal.training.run_guard import hold_run, run_folder
 from jaxcal.training.scoring import describe_units, score_units, theta_rmse
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
 from jaxcal.training.uncertainty_stage import (
@@ -162,6 +166,7 @@ def run_training(
     *,
     log: Callable[[str], None] = print,
     clock: Callable[[], float] | None = None,
+    finish: Callable[[dict], dict] | None = None,
 ) -> dict:
     """Runs (or resumes) the training job of ``cfg``; returns the ``final.json`` dict.
 
@@ -170,17 +175,26 @@ def run_training(
 
     ``clock()`` gives the seconds since the job's start (earlier sessions included;
     the command line starts it before its imports), which time to target reads;
-    ``None``: from this call's start.
+    ``None``: from this call's start. ``finish(final)`` completes the ``final.json``
+    dict before its one write (the command line adds its wall times), still under
+    the run's lock.
+
+    The run folder is locked (:func:`jaxcal.training.run_guard.hold_run`) from its
+    first write to its last: a second training of the name fails at once. It keeps a
+    copy of a model file (:mod:`jaxcal.training.model_source`), which a resume
+    checks is unchanged.
 
     Raises:
         ValueError: bad data selection, an unwritable run folder or one made by
-            another config.
+            another config, a model no run could load again, or a model file
+            changed since the run started.
+        RunInUseError: another training holds the run (a ``ValueError``).
     """
     wall_start = time.perf_counter()
     if clock is None:
         clock = lambda: time.perf_counter() - wall_start  # noqa: E731
-    run_dir = Path(cfg.output.runs_dir) / cfg.run_name
-    status = check_run_dir(run_dir, cfg)  # writes nothing
+    run_dir = run_folder(cfg.output.runs_dir, cfg.run_name)
+    status = check_run_dir(run_dir, cfg)  # writes nothing; fails if in use
     state = {
         "new": "new",
         "resume": "resuming",
@@ -209,7 +223,33 @@ def run_training(
         f"{describe_units(data.info['units']['val'])}, test "
         f"{describe_units(data.info['units']['test'])}"
     )
-    prepare_run_dir(run_dir, cfg)  # the first write: every check above has passed
+    source = model_source(model_spec(cfg, model))  # a model a run can load again
+    with hold_run(run_dir):  # one training of the name at a time, to its last write
+        check_source_unchanged(run_dir, source)  # a resume: the model it started on
+        prepare_run_dir(run_dir, cfg)  # the first write: every check above has passed
+        stored = store_model_source(run_dir, source)
+        final = _train(cfg, run_dir, data, path, dtype, stored, log, clock, wall_start)
+        if finish is not None:
+            final = finish(final)
+        write_json(run_dir / FINAL_FILE, final)
+    return final
+
+
+def _train(
+    cfg: TrainConfig,
+    run_dir: Path,
+    data: CalibrationData,
+    path: Path,
+    dtype,
+    model_record: dict,
+    log: Callable[[str], None],
+    clock: Callable[[], float],
+    wall_start: float,
+) -> dict:
+    """The job of :func:`run_training` once its checks passed and it holds the run:
+    surrogate, policy, test scores, band; returns the ``final.json`` dict."""
+    problem = data.problem
+    model = problem.model
     key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
     surrogate_report = None
     dyn_params = None
@@ -240,7 +280,8 @@ def run_training(
     )
     write_json(
         run_dir / DATA_FILE,
-        {"model_spec": model_spec(cfg, model), "x64": model.x64,
+        {"model_spec": model_spec(cfg, model), "model_source": model_record,
+         "x64": model.x64,
          "problem": problem.to_json(), **data.info,
          # kept at the top for readers of the older layout (the paper suite)
          "sensors": problem.output_names, "theta_names": problem.theta_names},
@@ -389,5 +430,4 @@ def run_training(
     final.update(
         fit_policy_band(data.val, val_out, data.test, test_out, run_dir, names, log=log)
     )
-    write_json(run_dir / FINAL_FILE, final)
     return final

@@ -104,6 +104,7 @@ def read_run_data(
     path: str | os.PathLike | None = None,
     units: dict | None = None,
     log: Callable[[str], None] | None = None,
+    model: Model | None = None,
 ) -> CalibrationData:
     """The splits and problem of ``cfg``'s data (no writes).
 
@@ -113,6 +114,8 @@ def read_run_data(
         units: ``{"val": [...], "test": [...]}`` to reproduce a run's split
             (``data.json``); ``None``: the config's.
         log: where reader notes go.
+        model: the model (default: ``jaxcal.models.load(cfg.model)``; a run's own
+            when its data are read again).
 
     Raises:
         ValueError: a bad ``model=`` spec, a table without ``model=``, or bad data.
@@ -120,7 +123,8 @@ def read_run_data(
     from jaxcal.models import load
 
     path = str(path or cfg.dataset.path)
-    model = load(cfg.model) if cfg.model else None
+    if model is None and cfg.model:
+        model = load(cfg.model)
     units = units or {}
     is_h5 = Path(path).suffix.lower() in (".h5", ".hdf5")
     if is_h5 and (model is None or model.native is not None):

@@ -14,6 +14,12 @@
                        finished run, and the 90 % band's test coverage
     uncertainty.json   the kept policy's split-conformal theta band, fitted on the
                        validation units (jaxcal.calibrators.uncertainty)
+    model/             the copy of a model file the run was trained on, which
+                       loading the run uses (jaxcal.training.model_source)
+    .lock              held by the one training of the run (jaxcal.training.run_guard)
+
+The name is one folder inside ``runs_dir`` (``name=../x`` or an absolute name is
+refused, :func:`jaxcal.training.run_guard.check_run_name`).
 
 Rerunning with the same name resumes: the stored config must match the new one except
 for the fields that do not change the training trajectory (:data:`RESUMABLE_FIELDS`).
@@ -42,6 +48,7 @@ from jaxcal.atomic import (  # noqa: F401 (re-exported: one import path)
 from jaxcal.checkpoint import CONFIG_FILE
 from jaxcal.metrics_log import read_metrics, to_json_value
 from jaxcal.settings import check_output_path, config_to_dict
+from jaxcal.training.run_guard import check_not_in_use
 
 DATA_FILE = "data.json"
 SURROGATE_DIR = "surrogate"
@@ -119,9 +126,11 @@ def check_run_dir(run_dir: str | os.PathLike, cfg: Any) -> str:
         ValueError: ``run_dir`` cannot be created or written, or it holds a run whose
             stored config differs from ``cfg`` in a field that changes training (the
             message lists the differences).
+        RunInUseError: another process trains the run now (a ``ValueError``).
     """
     run_dir = Path(run_dir)
     check_output_path(os.fspath(run_dir), "output.runs_dir/name", folder=True)
+    check_not_in_use(run_dir)  # a hint only: hold_run is the lock
     stored_path = run_dir / CONFIG_FILE
     if not stored_path.is_file():
         return "new"

@@ -4,9 +4,10 @@ A run folder written by :func:`jaxcal.training.pipeline.run_training` holds
 everything a policy needs: ``config.json`` (architecture, dynamics), ``data.json``
 (the model spec and ``Problem.to_json()``: names, units, action box, normalisation,
 training input range) and ``policy/`` (actor weights, surrogate weights,
-normalisation and action box, saved at every checkpoint). No data file and no
-training code path is needed. :func:`load_run` rebuilds the model with
-:func:`jaxcal.models.load`; ``data.json`` files of the older layout (the turbofan's
+normalisation and action box, saved at every checkpoint) and ``model/`` (the copy of
+a model file). No data file and no training code path is needed. :func:`load_run`
+rebuilds the run's own model (:mod:`jaxcal.training.model_source`), never importing
+a path outside the folder; ``data.json`` files of the older layout (the turbofan's
 ``RunMeta`` fields) are read too.
 
 This module sits below the command lines: :mod:`jaxcal.deploy` re-exports it for
@@ -45,6 +46,12 @@ from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
 from jaxcal.surrogate.model import init_surrogate_params
 from jaxcal.training.components import env_config, make_agent, make_dynamics
+from jaxcal.training.model_check import check_run_model  # noqa: F401 (re-exported)
+from jaxcal.training.model_source import (  # noqa: F401 (re-exported)
+    adopt_model_file,
+    load_run_model,
+    recorded_source,
+)
 from jaxcal.training.run_dir import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
 
 # Runs of the older data.json layout are the turbofan's, which needs float64.
@@ -67,6 +74,9 @@ class LoadedRun(NamedTuple):
         band: the calibrated error band of the kept policy (``uncertainty.json``,
             fitted on the validation units at the end of training); ``None`` for a
             run without one.
+        model_source: what the run stores of its model (``data.json``
+            ``"model_source"``, :mod:`jaxcal.training.model_source`); ``None`` for a
+            run of the older layout (its registered model's name, if it had one).
     """
 
     run_dir: Path
@@ -77,6 +87,7 @@ class LoadedRun(NamedTuple):
     dynamics: Dynamics | StatefulDynamics
     step: int
     band: ThetaBand | None = None
+    model_source: dict | None = None
 
     @property
     def meta(self) -> Problem:
@@ -94,17 +105,17 @@ def needs_x64(run_dir: str | os.PathLike) -> bool:
     return bool(data.get("x64", _LEGACY_X64))
 
 
-def run_problem(data: dict, model=None) -> Problem:
+def run_problem(data: dict, model=None, run_dir: str | os.PathLike = ".") -> Problem:
     """The :class:`Problem` of a ``data.json`` dict (either layout).
 
     Args:
         data: the parsed ``data.json``.
-        model: the model (``None``: ``jaxcal.models.load`` of the stored spec).
+        model: the model (``None``: the run's own,
+            :func:`~jaxcal.training.model_source.load_run_model`).
+        run_dir: the run folder ``data`` comes from (where its model copy lies).
     """
-    from jaxcal.models import load
-
+    model = model or load_run_model(run_dir, data)
     if "problem" in data:
-        model = model or load(data["model_spec"])
         return Problem.from_json(data["problem"], model)
     # the older layout: RunMeta fields + the box and normalisation beside them,
     # mapped onto the current one
@@ -122,7 +133,7 @@ def run_problem(data: dict, model=None) -> Problem:
         if data.get("w_low") is not None
         else None,
     }
-    return Problem.from_json(current, model or load(data["engine"]))
+    return Problem.from_json(current, model)
 
 
 def load_run(
@@ -137,10 +148,16 @@ def load_run(
             checkpoint.
         step: a specific checkpoint step of ``which`` (``None``: the newest).
 
+    The model is the run's own (:mod:`jaxcal.training.model_source`: the copy of a
+    model file kept in the folder, or a registered or installed module's by name),
+    never a path outside the folder. Loading a run runs its model's code: load only
+    run folders you trust.
+
     Raises:
         FileNotFoundError: the folder is not a run, or it has no policy checkpoint.
         ValueError: the checkpoint does not match the run's config, the model
-            cannot be loaded, or it needs x64 and x64 is off.
+            cannot be loaded (its copy edited, or a file outside the folder), or it
+            needs x64 and x64 is off.
     """
     if which not in ("selected", "last"):
         raise ValueError(f"which must be 'selected' or 'last', got {which!r}")
@@ -152,7 +169,8 @@ def load_run(
             "call jax.config.update('jax_enable_x64', True) (or "
             "jaxcal.precision.enable_x64()) before loading it"
         )
-    problem = run_problem(read_json(run_dir / DATA_FILE))
+    data = read_json(run_dir / DATA_FILE)
+    problem = run_problem(data, run_dir=run_dir)  # its own model: never a path outside
     physics64 = cfg.dynamics == "physics" and problem.model.x64
     dtype = jnp.float64 if physics64 else jnp.float32
     dims = (
@@ -210,6 +228,7 @@ def load_run(
         step=int(step),
         # the band belongs to the kept policy: none for another checkpoint
         band=load_band(run_dir) if which == "selected" and step_given is None else None,
+        model_source=recorded_source(data),
     )
 
 

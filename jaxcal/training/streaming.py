@@ -6,7 +6,11 @@ outside the run's training range (:func:`jaxcal.calibrators.policy.range_check` 
 the run's problem), is *skipped*: the carried state is left exactly as it was,
 ``step`` returns the last valid theta (zeros before any valid sample) and the flag is
 readable (``last_valid``, ``last_reason``, :meth:`StreamingCalibrator.step_info`;
-``run(..., return_flags=True)``). Users import it from :mod:`jaxcal.deploy`.
+``run(..., return_flags=True)``). A sample with some outputs missing (NaN in some of
+``x``, the others finite) is skipped the same way with reason ``x_partial``: a policy
+needs every output (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); the
+UKF and least squares of :func:`jaxcal.calibrate` and :mod:`jaxcal.fleet` use such
+samples. Users import it from :mod:`jaxcal.deploy`.
 """
 
 from __future__ import annotations

@@ -207,7 +207,10 @@ def load_table_data(
         ValueError: unreadable data, names that do not match the model, a bad
             split, or units too short for one step (the message says which).
     """
-    data = read_dataset(source, model, rename=rename, nonfinite=nonfinite)
+    # a policy trains on complete rows: a partial one is non-finite here as before
+    data = read_dataset(
+        source, model, rename=rename, nonfinite=nonfinite, partial=False
+    )
     data = data.for_model(model, tuple(outputs) or None)
     if data.split is not None:
         if test_units is not None:

@@ -110,7 +110,7 @@ def assert_same_tree(a, b):
 @pytest.mark.parametrize(
     ("where", "value", "reason"),
     [
-        ("x", np.nan, "x_nonfinite"),
+        ("x", np.inf, "x_nonfinite"),  # a NaN in one output is missing data
         ("w", np.inf, "w_nonfinite"),
         ("w", 40.0, "w_out_of_range"),
         ("x", -1e6, "x_out_of_range"),
@@ -144,7 +144,7 @@ def test_poisoned_stream_equals_the_stream_without_the_sample(
 def test_bad_first_sample_outputs_zeros_and_init_takes_the_first_ok_one(method):
     cal = make_method(method)
     w, x = record(seed=3)
-    w_bad, x_bad = poison(w, x, "x", np.nan, row=0)
+    w_bad, x_bad = poison(w, x, "x", np.inf, row=0)
     out = RUN(cal, w_bad, x_bad)  # no box: finiteness only
     ref = RUN(cal, w[1:], x[1:])
     np.testing.assert_array_equal(out.theta[0], np.zeros(NUM_PARAMS))
@@ -154,10 +154,10 @@ def test_bad_first_sample_outputs_zeros_and_init_takes_the_first_ok_one(method):
 
 
 def test_old_code_would_poison_every_later_sample():
-    """The unguarded step: one NaN in x reaches the UKF state for ever."""
+    """The unguarded step: one Inf in x reaches the UKF state for ever."""
     cal = make_method("ukf")
     w, x = record()
-    w_bad, x_bad = poison(w, x, "x", np.nan)
+    w_bad, x_bad = poison(w, x, "x", np.inf)
     state = cal.init(None, w_bad[0], x_bad[0])
     thetas = []
     for t in range(NUM_STEPS):
@@ -225,7 +225,7 @@ def test_envelope_box_holds_the_envelope_corners():
 def test_run_fleet_flags_masked_and_bad_rows_and_counts_them():
     cal = make_method("ukf")
     w, x = record()
-    w_bad, x_bad = poison(w, x, "x", np.nan)
+    w_bad, x_bad = poison(w, x, "x", np.inf)
     ws, xs = np.stack([w, w_bad]), np.stack([x, x_bad])
     mask = np.ones((2, NUM_STEPS), bool)
     mask[0, -2:] = False
@@ -256,3 +256,45 @@ def test_scores_use_valid_samples_only_and_count_the_flagged():
             theta_hat, x, theta, x, mask, np.ones(1), ("s",), ("p",),
             reason=np.full((1, 4), REASON_CODE["w_nonfinite"]),
         )  # fmt: skip
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_missing_output_is_used_or_skipped_as_x_partial_by_the_method(method):
+    """Issue 25: NaN in one output (a channel dropped out) is missing data. The UKF
+    and least squares update on the other outputs; a network (E2E, a policy) cannot
+    take a NaN and skips the row as ``x_partial``, exactly as if it never came."""
+    cal = make_method(method)
+    w, x = record()
+    _, x_part = poison(w, x, "x", np.nan)
+    out = RUN(cal, w, x_part, check=CHECK)
+    keep = np.arange(NUM_STEPS) != BAD
+    skipped = RUN(cal, w[keep], x[keep], check=CHECK)
+    np.testing.assert_array_equal(out.partial, ~keep)
+    assert np.isfinite(np.asarray(out.theta)).all()
+    if method in ("ukf", "least_squares"):
+        assert cal.accepts_partial and out.valid.all() and (out.reason == 0).all()
+        # the row moved the estimate: it was used, not skipped
+        assert not np.array_equal(out.theta[BAD], out.theta[BAD - 1])
+        assert np.isfinite(np.asarray(out.xhat[BAD])).all()  # incl. the missing one
+    else:
+        assert not cal.accepts_partial
+        assert REASONS[int(out.reason[BAD])] == "x_partial" and not out.valid[BAD]
+        take = lambda a: np.asarray(a)[keep]  # noqa: E731
+        assert_same_tree(
+            jax.tree.map(take, (out.theta, out.xhat, out.aux)),
+            jax.tree.map(np.asarray, (skipped.theta, skipped.xhat, skipped.aux)),
+        )
+
+
+def test_sample_reason_of_partial_rows():
+    w, x = jnp.zeros(2), jnp.zeros(NUM_SENSORS)
+    part = x.at[1].set(jnp.nan)
+    code = lambda *a, **k: REASONS[int(sample_reason(*a, **k))]  # noqa: E731
+    assert code(CHECK, w, part) == "x_partial"
+    assert code(CHECK, w, part, partial_ok=True) == "ok"
+    # an Inf is broken, not missing; a row with no output is not partial
+    assert code(CHECK, w, part.at[0].set(jnp.inf), partial_ok=True) == "x_nonfinite"
+    assert code(CHECK, w, x * jnp.nan, partial_ok=True) == "x_nonfinite"
+    # the observed outputs of a used partial row are range-checked
+    far = part.at[0].set(1e6)
+    assert code(CHECK, w, far, partial_ok=True) == "x_out_of_range"

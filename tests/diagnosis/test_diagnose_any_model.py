@@ -80,7 +80,7 @@ def _diagnose(tmp_path, bias):
 
 
 def test_the_library_is_built_from_the_model():
-    from jaxcal.diagnosis.effects import build_library
+    from jaxcal.diagnosis.kinds import build_library
 
     lib = build_library(PUMP, ("wear",), ("head", "t_out"), np.ones(2), np.ones(2))
     names = {c.name: c.unit for c in lib}
@@ -104,7 +104,18 @@ def test_cli_finds_an_output_bias_and_names_it_in_the_model_units(tmp_path, caps
         < 0.5 * rep["before"]["tracking_rmse"]["t_out"]
     )
     assert set(rep["before"]["theta_rmse"]) == {"wear"}
-    assert "verdict: identified (sensor_bias[t_out] = " in capsys.readouterr().out
+    assert "verdict: identified (sensor_bias[t_out]" in capsys.readouterr().out
+    # the loop closed: the extended model, a file model= accepts, tracks the bias
+    assert rep["extended_model"] == {
+        "parameters": ["wear", "t_out_offset"],
+        "file": "extended_model.json",
+    }
+    ext = jaxcal.models.load(str(tmp_path / "out" / "extended_model.json"))
+    assert ext.parameter_names == ("wear", "t_out_offset")
+    assert ext.output_names == PUMP.output_names
+    x0 = np.asarray(pump(jnp.array([1.0, 1.0, 300.0]), jnp.array([0.05, 0, 0])))
+    x1, _ = ext.evaluate(jnp.array([1.0, 1.0, 300.0]), jnp.array([0.05, 0.5]))
+    np.testing.assert_allclose(np.asarray(x1) - x0, [0.0, 0.0, 0.5], atol=1e-9)
 
 
 def test_cli_on_clean_data_reports_no_effect(tmp_path):

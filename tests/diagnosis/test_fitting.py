@@ -10,7 +10,7 @@ from jaxcal.data.readers import dataset_from_record
 from jaxcal.data.record import Record
 from jaxcal.diagnosis.fitting import GramStats, schur_solve
 from jaxcal.diagnosis.identify import log10_chi2_sf
-from jaxcal.diagnosis.noise import estimate_noise_std
+from jaxcal.diagnosis.noise_fit import fit_noise, quantised
 from jaxcal.diagnosis.prepare import prepare_data as _prepare
 from jaxcal.diagnosis.prepare import spline_basis
 from jaxcal.models import load
@@ -150,12 +150,12 @@ def test_noise_estimate_recovers_sigma_and_flags_rounding():
     data = prepare_data(rec, sensors=["T30"], noise_std={"T30": 1.0})
     smooth = 30.0 * np.sin(6.0 * data.w[:, 1])  # model misfit that varies with w
     resid = (smooth + 2.0 * rng.normal(size=data.num_rows))[:, None]
-    std, reasons = estimate_noise_std(data, resid)
-    assert std[0] == pytest.approx(2.0, rel=0.15) and not reasons
+    noise = fit_noise(resid, data)
+    assert noise.sigma[0] == pytest.approx(2.0, rel=0.15)
+    assert noise.order[0] == 0 and not quantised(data, noise.sigma)
     rounded = data.drop_sensors({})
     object.__setattr__(rounded, "x", np.round(data.x / 20.0) * 20.0)
-    _, reasons = estimate_noise_std(rounded, resid)
-    assert "quantised" in reasons["T30"]
+    assert "quantised" in quantised(rounded, noise.sigma)["T30"]
 
 
 def test_log10_chi2_tail_matches_scipy_and_stays_finite():

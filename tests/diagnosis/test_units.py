@@ -16,13 +16,14 @@ import pytest
 
 import jaxcal
 from jaxcal.data.dataset import Dataset
+from jaxcal.diagnosis.kinds import KINDS, Candidate
 from jaxcal.diagnosis.markdown import fmt_p, fmt_std
 from jaxcal.diagnosis.pipeline import diagnose
 from jaxcal.diagnosis.plausibility import degradation_sign, plausibility_flags
 from jaxcal.diagnosis.report import write_report
 from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories, holm
 
-UNIT_KEYS = {"unit", "carries", "size", "size_std", "onset"}
+UNIT_KEYS = {"unit", "carries", "size", "size_std", "onset", "onset_ci"}
 
 
 def pump(w, theta):
@@ -114,18 +115,15 @@ def test_only_the_carrying_units_are_marked(tmp_path, name, carriers, kwargs):
     assert not re.search(r"\| 0 \|", md) and not re.search(r"e-3\d\d", md)
 
 
-def test_a_drift_in_a_few_units_is_marked_and_the_compensation_flagged():
-    """A constant effect of the library is fleet-wide: with a t_out drift in 3 of 8
-    units the fleet fit adds a per-unit leak beside it that compensates in the
-    others. The per-unit verdict still marks exactly the drifting units, and the leak
-    is flagged (a pump better than new, worse head and power)."""
+def test_a_drift_in_a_few_units_is_fitted_where_it_is():
+    """A t_out drift in 3 of 8 units: fitted in those units (the per-unit form, chosen
+    by the same criterion as the fleet-wide one), not diluted fleet-wide and
+    compensated by a leak in the others (what the fleet-only diagnosis did)."""
     res = diagnose(_fleet([2, 5, 7], drift=1.5), PUMP, ["wear"], noise_std=NOISE)
-    drift = [e for e in res.unit_effects if e.name.endswith("drift[t_out]")]
-    assert len(drift) == 1
-    assert (np.flatnonzero(drift[0].carries) + 1).tolist() == [2, 5, 7]
-    if "parameter[leak]" in res.added:
-        kinds = {(f["flag"], f["subject"]) for f in res.flags}
-        assert ("better_than_new", "leak") in kinds
+    assert res.added == ["sensor_drift[t_out]"], res.identification.ranking[:3]
+    assert res.members[0].form == "units" and res.flags == ()
+    drift = res.unit_effects[0]
+    assert (np.flatnonzero(drift.carries) + 1).tolist() == [2, 5, 7]
 
 
 def test_a_loss_from_the_first_cycle_is_flagged_end_to_end():
@@ -157,8 +155,12 @@ def _fake_data(units=4, rows=10):
 def _flags(data, after, before=None, effects=(), values=None, rmse=(1.0, 1.0)):
     zeros = {k: np.zeros_like(v) for k, v in after.value.items()}
     before = before or UnitTrajectories(zeros, dict(after.std), {}, {})
+    members = [
+        Candidate(KINDS["parameter"], "leak", 0.003, "-", "units", (0, 1, 2, 3))
+        for _ in effects
+    ]
     return plausibility_flags(
-        PUMP, data, ("wear",), list(effects), values or {}, after, before,
+        PUMP, data, ("wear",), list(effects), members, values or {}, after, before,
         np.ones(2), np.asarray(rmse), 0.01,
     )  # fmt: skip
 
@@ -186,9 +188,9 @@ def test_each_plausibility_rule_is_triggered_by_a_constructed_case():
     # an added parameter already at its end value at the first cycle (no change
     # over the record, so no unit carries a developing effect)
     eff = UnitEffect(
-        "parameter[leak]", np.zeros(4), np.full(4, 1e-3), np.ones(4),
-        np.zeros(4, bool), np.full(4, np.nan), 0.0015, np.zeros(n),
-        np.array([0.05, 0.05, 0.0, 0.0]), np.full(4, 1e-3),
+        "parameter[leak]", "units", np.zeros(4), np.full(4, 1e-3), np.ones(4),
+        np.zeros(4, bool), np.full(4, np.nan), np.full((4, 2), np.nan), 0.0015,
+        np.zeros(n), np.array([0.05, 0.05, 0.0, 0.0]), np.full(4, 1e-3),
     )  # fmt: skip
     flags = _flags(data, clean, effects=[eff])
     assert [f["flag"] for f in flags] == ["constant_from_start"]
@@ -207,8 +209,9 @@ def test_effect_outside_its_stated_range_is_flagged():
         name="pump+",
     )
     clean = UnitTrajectories({}, {}, {}, {})
+    bleed = Candidate(KINDS["effect"], "bleed", 0.002, "-")
     flags = plausibility_flags(
-        model, data, ("wear",), [], {"bleed": ("bleed", "effect", 0.3)}, clean,
+        model, data, ("wear",), [], [bleed], {"bleed": np.array([0.3])}, clean,
         clean, np.ones(2), np.ones(2), 0.01,
     )  # fmt: skip
     assert [(f["flag"], f["subject"]) for f in flags] == [("outside_bounds", "bleed")]
@@ -234,9 +237,10 @@ def test_holm_and_the_printed_numbers():
 
 def test_the_fallback_keeps_a_library_effect_that_explains_better():
     """A t_out bias and a bump in head outside the library: delta(w) on t_out can
-    absorb the bias (its constant), so the screen against delta finds nothing; the
-    bias (or its confounded twin, an inlet-temperature offset) explains it with one
-    number and is kept beside delta instead of being discarded."""
+    absorb the bias (its constant), and the screen against delta chases what delta
+    leaves of the bump; the bias (or its confounded twin, an inlet-temperature offset)
+    explains it with one number and is kept beside delta: one BIC, delta's degrees of
+    freedom counted, decides between delta alone and either screen's winner."""
     d = _fleet([], seed=2)
     x = d.x.copy()
     x[:, 2] += 0.5
@@ -246,7 +250,7 @@ def test_the_fallback_keeps_a_library_effect_that_explains_better():
         unit=d.unit, time=d.time,
     )  # fmt: skip
     res = diagnose(d, PUMP, ["wear"], noise_std=NOISE)
-    assert res.rescreen is not None and res.rescreen.winner is None
+    assert res.rescreen is not None
     first = res.identification.winner.name
     assert first in res.added and "discrepancy" in res.added
     assert {first, "sensor_bias[t_out]"} <= {first, *res.confounded}

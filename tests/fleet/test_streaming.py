@@ -129,7 +129,7 @@ def test_stream_skips_and_flags_poisoned_samples(tmp_path):
         w[mask].min(0), w[mask].max(0), x[mask].min(0), x[mask].max(0), margin=0.5
     )
     w, x = w.copy(), x.copy()
-    x[1, 2, 0] = np.nan
+    x[1, 2, 0] = np.inf  # (a NaN in one output is a partial row, used by the UKF)
     w[2, 3, 0] = 1e6
     calibrator = ukf(measure)
     path = tmp_path / "flags.h5"
@@ -154,6 +154,34 @@ def test_stream_skips_and_flags_poisoned_samples(tmp_path):
     ref = reference(calibrator, w, x, mask)
     n0 = int(mask[0].sum())
     np.testing.assert_allclose(arrays["theta"][:n0], ref.theta[0][mask[0]], rtol=1e-12)
+
+
+def test_stream_uses_partial_rows_and_marks_them(tmp_path):
+    """Issue 25: a row with some outputs missing is used by the UKF (on the observed
+    ones), marked in the file's ``partial`` column and counted, and the results are
+    those of ``run_fleet`` on the same rows."""
+    w, x, mask, _, measure = problem(num_units=3)
+    x = x.copy()
+    x[0, 1, 2] = np.nan
+    x[2, 3, :2] = np.nan
+    calibrator = ukf(measure)
+    path = tmp_path / "partial.h5"
+    mesh = make_unit_mesh([jax.devices()[0]])
+    with FleetResultWriter(path, **NAMES) as writer:
+        stats = calibrate_stream(
+            calibrator, iter_array_chunks(w, x, mask, 2), mesh,
+            size=units_per_chunk(2, 1, mesh), writer=writer,
+        )  # fmt: skip
+    assert stats["num_partial"] == 2 and stats["num_flagged"] == 0
+    arrays, attrs = read_results(path)
+    assert attrs["num_partial"] == 2 and arrays["valid"].all()
+    row = np.flatnonzero((arrays["unit"] == 2) & (arrays["step"] == 3))[0]
+    assert arrays["partial"][row] and arrays["partial"].sum() == 2
+    ref = reference(calibrator, w, x, mask)
+    assert np.isfinite(ref.theta).all()
+    np.testing.assert_allclose(arrays["theta"], ref.theta[mask], rtol=1e-12)
+    # the row moved the estimate (used), unlike a skipped one
+    assert not np.array_equal(arrays["theta"][row], arrays["theta"][row - 1])
 
 
 def make_record(units, lengths, seed) -> Record:

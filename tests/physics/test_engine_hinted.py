@@ -38,12 +38,15 @@ def _stream(n=12):
 
 def test_f_bits_unchanged(engine):
     # written by the engine before the speed work (jitted, the engine closed over):
-    # the paper's numbers depend on F, so any change of its bits must be deliberate
+    # the paper's numbers depend on F, so any change of F must be deliberate. Equal
+    # to a few ulps, not bit for bit: another CPU or XLA release may fuse and
+    # vectorise the same program differently (seen: 4.6e-14 relative on a new
+    # machine), while any change of F's equations moves it by far more.
     ref = np.load(FIXTURE)
     with jax.enable_x64(True):
         x, info = jax.jit(lambda w, th: engine.evaluate(w, th))(ref["w"], ref["theta"])
-    np.testing.assert_array_equal(np.asarray(x), ref["x"])
-    np.testing.assert_array_equal(np.asarray(info.z), ref["z"])
+    np.testing.assert_allclose(np.asarray(x), ref["x"], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(np.asarray(info.z), ref["z"], rtol=1e-12, atol=1e-14)
 
 
 def test_hinted_stream_matches_cold(engine, fns):

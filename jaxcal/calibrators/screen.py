@@ -1,0 +1,313 @@
+"""Screening before calibration: the noise level and the outlier rows, by UKF passes.
+
+:func:`jaxcal.calibrate` runs the unscented Kalman filter over every unit before the
+chosen method (it costs ``2P + 1`` model evaluations a row, where least squares'
+Jacobians cost far more on a model with an iterative solver) and reads two things
+off its passes:
+
+* **Outliers.** A reading the filter did not expect: its innovation ``x_t -
+  E[x_t | past]`` (the prediction before the row is used, so the row cannot explain
+  itself away) beyond :data:`~jaxcal.calibrators.outliers.OUTLIER_Z` times its
+  predicted std, on any output — the Kalman filter's validation gate (Bar-Shalom,
+  Li & Kirubarajan 2001, "Estimation with Applications to Tracking and Navigation",
+  sec. 5.4), per output. A wild row drags the filter, so the rows after it look
+  wild too: the first pass proposes candidates, the second pass skips them and judges
+  every row again from the filter state carried past the skipped ones (the UKF step
+  evaluated at each row from the state before it, :func:`_innovations`), and only
+  candidates still beyond the gate are flagged (never a new row: skipping the start
+  of a real change would make the rest of it look wild, one pass after another).
+  The innovations are taken about their robust centre and over their robust scale
+  (:func:`~jaxcal.calibrators.outliers.robust_scale`), so a model misfit, which
+  shifts and widens all of them, is not an outlier. With a given noise
+  (``noise=``) that scale is at least 1: a row is judged against the given noise,
+  or against the data's own spread where that is wider (and a note says so).
+* **The noise** (when not given): the post-fit residual ``x_t - F(w_t, theta_t)`` of
+  each unit's settled rows (each unit's first :data:`SETTLE` share left out) pooled
+  over units with the hard-rejection estimator of
+  :func:`~jaxcal.calibrators.outliers.robust_noise`, outlier rows left out; the
+  posterior fit absorbs about ``P / S`` of the residual variance, which is added
+  back. Schedule: a first level from a pass on a provisional noise (1 % of each
+  output's robust spread), rejecting with Hampel's X84 rule (:data:`X84`) so that
+  a wild row's wake is not averaged in; the outlier passes on that level; where
+  outliers were found, the first level again with them skipped, as if they had not
+  come; the noise from the post-fit residual of the pass on that level.
+
+The UKF is compiled once for all passes (the noise is an argument of the compiled
+program), group by group of the :class:`~jaxcal.data.buckets.Buckets`.
+
+So a few wild rows change neither the noise of the other units nor their results,
+and their own unit's stream skips them (reason ``outlier``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.calibrators.guard import MASKED, OK
+from jaxcal.calibrators.interface import Calibrator, SensorNorm, run_fleet
+from jaxcal.calibrators.methods import model_based_factory, model_check
+from jaxcal.calibrators.outliers import (
+    OutlierRows,
+    outlier_rows,
+    robust_centre,
+    robust_noise,
+    robust_scale,
+)
+from jaxcal.calibrators.skipped import nothing_valid_error
+from jaxcal.data.buckets import Buckets
+from jaxcal.data.dataset import Dataset
+from jaxcal.problem import Problem
+
+SETTLE = 0.1  # share of each unit's rows left out of the noise while the filter settles
+NOISE_FLOOR_REL = 1e-6  # noise floor relative to the output's robust spread (or 1)
+PROVISIONAL_REL = 0.01  # first pass's noise relative to the output's robust spread
+X84 = 3.5  # Hampel's X84 rejection rule: 5.2 MADs, i.e. 3.5 Gaussian std
+WIDE_INNOVATIONS = 3.0  # typical |innovation| / predicted std worth a note
+
+
+class Screen(NamedTuple):
+    """What :func:`screen` found.
+
+    Attributes:
+        problem: the problem with its noise (given, or estimated).
+        outlier: ``[N]`` bool rows flagged as outliers.
+        found: the :class:`~jaxcal.calibrators.outliers.OutlierRows` behind it.
+        notes: what the screening noticed (a given noise far too small).
+    """
+
+    problem: Problem
+    outlier: np.ndarray
+    found: OutlierRows
+    notes: tuple[str, ...]
+
+
+class _Pass(NamedTuple):
+    """One UKF pass, per row (``N``)."""
+
+    z: np.ndarray  # [N, S] innovation / its predicted std
+    resid: np.ndarray  # [N, S] post-fit residual x - xhat
+    valid: np.ndarray  # [N] used by the pass
+    judged: np.ndarray  # [N] used, or skipped as a candidate outlier
+    reason: np.ndarray  # [N] int codes (a skipped candidate: masked)
+    skip: np.ndarray  # [N] the rows this pass skipped as candidates
+
+
+def screen(
+    problem: Problem,
+    data: Dataset,
+    buckets: Buckets,
+    ukf_options: Mapping,
+    *,
+    estimate: bool,
+    threshold: float,
+) -> Screen:
+    """The noise (estimated when ``estimate``) and the outlier rows (module doc).
+
+    Args:
+        problem: the problem; its noise is the given one unless ``estimate``.
+        data: the rows, as calibrated (``buckets`` index them).
+        buckets: the rows as padded unit groups.
+        ukf_options: settings of the UKF passes (``UKFConfig`` fields, ``state_std``,
+            ``state_q``); not modified.
+        estimate: estimate the noise (else judge against ``problem.noise_std``).
+        threshold: the gate in standard deviations (``inf``: flag nothing).
+
+    Returns:
+        :class:`Screen`.
+
+    Raises:
+        ValueError: no row could be used (with the cause), or fewer than two rows
+            to estimate the noise from.
+    """
+    none = np.zeros(data.num_rows, bool)
+    check = model_check(problem)
+    ukf = _pass_function(problem, data, dict(ukf_options), check, buckets.dtype)
+    run = functools.partial(_pass, ukf, data=data, buckets=buckets)
+    settled = _settled(buckets)
+    if estimate:
+        spread = np.nan_to_num(robust_scale(data.x))
+        # more than half the readings equal (a quantised or stuck output): its std
+        spread = np.where(spread > 0, spread, problem.norm.x_std)
+        floor = NOISE_FLOOR_REL * np.maximum(spread, 1.0)
+        provisional = np.maximum(PROVISIONAL_REL * spread, floor)
+
+        def level(skip):
+            """A first noise level from a pass on the provisional one (the X84
+            rule rejects a wild row's wake: the rows its dragged filter misses),
+            and the pass on that level."""
+            first = run(provisional, skip)
+            if not first.valid.any():
+                raise nothing_valid_error(
+                    problem, data, first.reason, buckets.dtype, "noise estimation"
+                )
+            noise = _noise(problem, first, skip, settled, floor, X84)
+            return noise, run(noise, skip)
+
+        noise, first = level(none)
+    else:
+        noise, first = problem.noise_std, run(problem.noise_std, none)
+        if not first.valid.any():  # the method's own run reports it (or copes)
+            return Screen(problem, none, _flag(first, np.inf, True), ())
+    candidates = _flag(first, threshold, not estimate)
+    last, found = first, candidates
+    if candidates.mask.any():  # judged again with the candidates skipped
+        last = run(noise, candidates.mask)
+        again = _flag(last, threshold, not estimate)
+        # only candidates: a row that looks wild only once its neighbours are
+        # skipped belongs to a change the filter must follow, not to a reading
+        found = again._replace(mask=again.mask & candidates.mask)
+    if not estimate:
+        notes = _given_noise_note(problem, last)
+    else:
+        notes = ()
+        if found.mask.any():  # the level again, as if the outliers had not come
+            noise, last = level(found.mask)
+        noise = _noise(problem, last, found.mask, settled, floor, threshold)
+        source = "estimated (post-fit residual of a UKF pass, outliers left out)"
+        problem = problem.with_noise(noise, source)
+    if found.mask.any():  # the outputs' centre of the rows used, as without them
+        x_mean = data.x[~found.mask].mean(axis=0).astype(problem.norm.x_mean.dtype)
+        norm = problem.norm._replace(x_mean=x_mean)
+        problem = dataclasses.replace(problem, norm=norm)
+    return Screen(problem, found.mask, found, notes)
+
+
+def _pass_function(problem: Problem, data: Dataset, options: dict, check, dtype):
+    """``(noise [S], w, x, mask) -> (reason, xhat, innovation, its std)`` of the
+    UKF on ``problem`` with that noise, ``[U, T, ...]``, jitted once for all passes
+    (the noise is an argument, not a constant of the compiled program)."""
+    make = model_based_factory("ukf", problem, dtype, options)
+    # the outputs' median: a mean a wild reading moved (1e6 in one row) would cost
+    # every unit digits in float32
+    centre = jnp.asarray(np.nan_to_num(robust_centre(data.x)), dtype)
+
+    def one(noise, w, x, mask):
+        cal = _exposing_state(make(SensorNorm(mean=centre, std=noise)))
+        out = run_fleet(cal, w, x, mask, check=check)
+        innovation, std = _innovations(cal, w, x, out.reason, out.aux["filter"])
+        return out.reason, out.xhat, innovation, std
+
+    return jax.jit(one)
+
+
+def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _Pass:
+    """The UKF with ``noise`` over every group skipping ``skip [N]``, judged at
+    every row."""
+    groups = []  # (reason, xhat, innovation, its std) of each group
+    noise = jnp.asarray(noise, buckets.dtype)
+    for part, skip_part in zip(
+        buckets.parts, buckets.from_rows(skip, False), strict=True
+    ):
+        mask = part.mask & ~skip_part
+        out = ukf(noise, jnp.asarray(part.w), jnp.asarray(part.x), mask)
+        groups.append([np.asarray(v) for v in out])
+    reason, xhat, innovation, spread = (
+        buckets.to_rows(values, MASKED if k == 0 else np.nan)
+        for k, values in enumerate(zip(*groups, strict=True))
+    )
+    valid = reason == OK
+    with np.errstate(all="ignore"):
+        z = innovation / spread
+    return _Pass(
+        z=z, resid=data.x - xhat, valid=valid,
+        judged=valid | (skip & (reason == MASKED)), reason=reason, skip=skip,
+    )  # fmt: skip
+
+
+def _exposing_state(cal: Calibrator) -> Calibrator:
+    """``cal`` with its state after each row in ``aux["filter"]`` (held on skipped
+    rows: the state carried past them)."""
+
+    def step(state, w, x):
+        new, out = cal.step(state, w, x)
+        return new, out._replace(aux={**out.aux, "filter": new})
+
+    return Calibrator(init=cal.init, step=step)
+
+
+def _innovations(cal: Calibrator, w, x, reason, filt):
+    """``[U, T, S]`` innovation and its predicted std at every cell, from the state
+    before the row: the carried state of the previous row, the prior up to the
+    stream's first used row (where ``run_calibrator`` starts it)."""
+
+    def unit(w_u, x_u, reason_u, filt_u):
+        ok = reason_u == OK
+        first = jnp.argmax(ok)
+        state0 = cal.init(None, jnp.nan_to_num(w_u[first]), jnp.nan_to_num(x_u[first]))
+        at_prior = (jnp.arange(w_u.shape[0]) <= first) | ~jnp.any(ok)
+
+        def before(carried, s0):
+            shifted = jnp.concatenate([s0[None], carried[:-1]])
+            pick = at_prior.reshape((-1,) + (1,) * s0.ndim)
+            return jnp.where(pick, s0[None], shifted)
+
+        prev = jax.tree.map(before, filt_u, state0)
+        aux = jax.vmap(cal.step)(prev, w_u, x_u)[1].aux
+        return aux["innovation"], aux["innovation_std"]
+
+    return jax.vmap(unit)(w, x, reason, filt)
+
+
+def _flag(run: _Pass, threshold: float, given: bool) -> OutlierRows:
+    """The rows beyond the gate: the standardised innovations over their robust
+    centre and scale (a model misfit shifts and widens them all: that is not an
+    outlier); with a ``given`` noise the scale is at least 1, so a row is judged
+    against that noise or the data's own spread, whichever is wider."""
+    centre = np.nan_to_num(robust_centre(run.z, run.judged))
+    scale = np.nan_to_num(robust_scale(run.z, run.judged))
+    scale = np.maximum(scale, 1.0) if given else np.where(scale > 0, scale, 1.0)
+    return outlier_rows((run.z - centre) / scale, 1.0, run.judged, threshold)
+
+
+def _noise(problem: Problem, run: _Pass, flagged, settled, floor, threshold):
+    """``[S]`` noise std from a pass's post-fit residual, rows beyond ``threshold``
+    robust scales rejected (module docstring)."""
+    keep = run.valid & ~flagged & settled
+    if keep.sum() < 2:
+        keep = run.valid & ~flagged
+    if keep.sum() < 2:
+        raise ValueError(
+            f"cannot estimate the noise: only {int(keep.sum())} of "
+            f"{len(keep)} rows could be used (result.reason of a run with noise= "
+            "says why the others were skipped); give noise="
+        )
+    num_s, num_p = len(problem.output_names), len(problem.theta_names)
+    dof = num_s / max(num_s - num_p, 1)
+    std = robust_noise(run.resid, keep, threshold) * np.sqrt(dof)
+    return np.maximum(np.nan_to_num(std), floor)
+
+
+def _settled(buckets: Buckets) -> np.ndarray:
+    """``[N]`` rows past each unit's first :data:`SETTLE` share."""
+    parts = [
+        np.arange(p.mask.shape[1])[None] >= SETTLE * p.lengths[:, None]
+        for p in buckets.parts
+    ]
+    return buckets.to_rows(parts, False)
+
+
+def _given_noise_note(problem: Problem, run: _Pass) -> tuple[str, ...]:
+    """A note when the innovations are far wider than the given noise predicts."""
+    typical = np.nan_to_num(robust_scale(run.z, run.judged))
+    wide = typical > WIDE_INNOVATIONS
+    if not wide.any():
+        return ()
+    listed = ", ".join(
+        f"{name} (noise {s:.3g}: {t:.3g} x)"
+        for name, s, t, w in zip(
+            problem.output_names, problem.noise_std, typical, wide, strict=True
+        )
+        if w
+    )
+    return (
+        f"the innovations are typically wider than the noise given predicts on "
+        f"{listed}: the noise is too small or the model misfits; outliers were "
+        "judged against the innovations' own spread there",
+    )

@@ -1,0 +1,126 @@
+"""The checks a table passes before it becomes a :class:`~jaxcal.data.dataset.Dataset`
+(:mod:`jaxcal.data.readers`): how its index, column names and ``ignore=`` are read,
+and the two facts about units that padding relies on (a time is not repeated within
+a unit; a unit lies in one split). Each failure is a ``ValueError`` naming the file
+or frame, the columns, units or times, and what to do.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from jaxcal.model import Model
+from jaxcal.model_spec import TABLE_COLUMNS
+
+
+def index_as_columns(frame, names: set, source: str):
+    """Index levels named like a column the reader knows (``unit``, ``time``, a
+    condition, ... or a ``rename`` key) moved into the columns; a MultiIndex
+    groups rows in a way the reader cannot guess otherwise, so one with another
+    level is an error. A single unnamed or otherwise named index is not read (the
+    rows' order is the frame's)."""
+    levels = list(frame.index.names)
+    used = [n for n in levels if n is not None and str(n) in names]
+    if frame.index.nlevels > 1 and len(used) < len(levels):
+        raise ValueError(
+            f"{source}: the DataFrame's index has levels {levels}; only levels "
+            f"named like the columns it reads ({sorted(TABLE_COLUMNS)}, the model's "
+            "conditions, outputs and parameters, or a rename= key) can be read: name "
+            "the levels (e.g. unit, time) or reset_index() and map them with rename="
+        )
+    # set_index(..., drop=False) keeps the column: the same values twice are fine
+    same = [
+        n
+        for n in used
+        if n in frame.columns
+        and np.array_equal(frame.index.get_level_values(n), frame[n].to_numpy())
+    ]
+    used = [n for n in used if n not in same]
+    clash = [n for n in used if n in frame.columns]
+    if clash:
+        raise ValueError(
+            f"{source}: {clash} is both an index level and a column of the "
+            "DataFrame; drop one of them"
+        )
+    return frame.reset_index(level=used) if used else frame
+
+
+def renamed_columns(frame, rename: Mapping[str, str], source: str):
+    """``frame`` with its columns renamed; two columns of one name (given so, or
+    made so by ``rename``) are an error naming them."""
+    before = [str(c) for c in frame.columns]
+    after = [rename.get(c, c) for c in before]
+    repeated = sorted({c for c in after if after.count(c) > 1})
+    if repeated:
+        name = repeated[0]
+        sources = [b for b, a in zip(before, after, strict=True) if a == name]
+        how = (
+            f"columns {sources} are all renamed to {name!r} by rename="
+            if any(b != name for b in sources)
+            else f"{len(sources)} columns are named {name!r}"
+        )
+        raise ValueError(
+            f"{source}: {how}; a column name must appear once (repeated: "
+            f"{repeated}): drop or rename the extra column"
+        )
+    return frame.rename(columns=dict(zip(frame.columns, after, strict=True)))
+
+
+def check_ignore(ignore: Sequence[str], model: Model, source: str) -> None:
+    """``ignore=`` skips columns; a condition cannot be skipped (the model needs
+    every one), an output, true parameter or ``unit``/``time``/``split`` column can
+    (it is then not read)."""
+    if isinstance(ignore, str):
+        raise ValueError(f"ignore= takes a sequence of column names, got {ignore!r}")
+    needed = [c for c in ignore if c in model.condition_names]
+    if needed:
+        raise ValueError(
+            f"{source}: ignore={tuple(ignore)} names the condition(s) {needed}, which "
+            f"model {model.name!r} needs (conditions {list(model.condition_names)})"
+        )
+
+
+def check_unique_times(unit: np.ndarray, time: np.ndarray, source: str) -> None:
+    """A time given twice in one unit leaves its rows' order to chance (a row logged
+    twice, or several rows per cycle): an error naming the units and times.
+
+    Args:
+        unit, time: ``[N]`` the rows' unit ids and times.
+        source: the file or frame, for the message.
+    """
+    order = np.lexsort((time, unit))
+    u, t = unit[order], time[order]
+    twice = (u[1:] == u[:-1]) & (t[1:] == t[:-1])
+    if not twice.any():
+        return
+    units = np.unique(u[1:][twice])
+    shown = "; ".join(
+        f"unit {uu}: time {np.unique(t[1:][twice & (u[1:] == uu)])[:5].tolist()}"
+        for uu in units[:3].tolist()
+    )
+    raise ValueError(
+        f"{source}: time repeats within a unit ({shown}"
+        + ("; ..." if len(units) > 3 else "")
+        + "), so the rows' order is unknown. Remove the repeated rows, or, if several "
+        "rows per time step are meant, leave the time column out (ignore=('time',)) "
+        "and give the rows in order"
+    )
+
+
+def check_units_in_one_split(unit: np.ndarray, split: np.ndarray, source: str) -> None:
+    """A unit whose rows carry two split labels would put training rows into the
+    test score: an error naming the units and their labels."""
+    pairs = np.unique(np.stack([unit.astype(str), split.astype(str)], 1), axis=0)
+    names, counts = np.unique(pairs[:, 0], return_counts=True)
+    straddle = names[counts > 1]
+    if len(straddle):
+        labels = {u: sorted(pairs[pairs[:, 0] == u, 1].tolist()) for u in straddle[:3]}
+        shown = "; ".join(f"unit {u}: {v}" for u, v in labels.items())
+        raise ValueError(
+            f"{source}: the split column changes inside a unit ({shown}"
+            + ("; ..." if len(straddle) > 3 else "")
+            + "); each unit must lie in one split (train, val or test), or its "
+            "training rows would be scored as test rows"
+        )

@@ -1,0 +1,352 @@
+"""The extended model along a data set's rows and its signatures.
+
+Every candidate effect enters the model through one of the channels of
+:mod:`.kinds`. The extended model of a data set is, row by row,
+
+    y_t = x_t (1 + m_t) + a_t,   x_t = F(w_t + o_t, theta_t, e_t)      (static)
+    (z_t, x_t) = step(z_{t-1}, w_t + o_t, theta_t),  z_0 = init(...) + dz0   (memory)
+
+with per-row parameters ``theta``, registered-effect inputs ``e``, condition offsets
+``o``, the measurement layer ``a`` (additive) and ``m`` (multiplicative) per output,
+and, for a model with memory, an offset of each unit's initial state. A fitted
+coefficient moves one channel along a *profile* in time (constant, drift, step,
+spline function, on one unit or on all): a :class:`Tangent`. Its **signature** is
+``dy/dcoefficient``, the column of the fit's Jacobian.
+
+A static model's signatures are products of per-row Jacobians (``jax.jacfwd`` with
+respect to all parameters, effects and offset conditions, one jitted function with a
+fixed chunk of :data:`CHUNK_ROWS` rows per model) and the profiles. A model with
+memory is simulated (**output error**): each unit from its initial state, by
+``lax.scan``, vmapped over units, and the signatures are forward-mode derivatives
+(``jax.jvp``, vmapped over the tangents) *through the states*, so an effect acts on
+the outputs the way the dynamics propagate it and no filter stands between the model
+and the data (a filter's lag would otherwise be read as a fault). The measurement
+layer is outside the dynamics in both cases and is applied on the host.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.diagnosis.kinds import offset_conditions
+from jaxcal.model import Model
+
+CHUNK_ROWS = 256  # the one row-chunk shape a static model is compiled for
+TIME_BUCKET = 128  # a model with memory pads its units to a multiple of this
+TANGENT_BUCKET = 8  # ... and its tangents
+CHANNELS = ("parameter", "effect", "condition", "state", "additive", "multiplicative")
+
+
+class RowInputs(NamedTuple):
+    """The extended model's inputs at every row (``N`` rows, ``U`` units)."""
+
+    theta: np.ndarray  # [N, P_all]
+    effects: np.ndarray  # [N, n_eff] registered-effect inputs
+    w_offset: np.ndarray  # [N, W] condition offsets
+    additive: np.ndarray  # [N, S_all] measurement layer, added
+    multiplicative: np.ndarray  # [N, S_all] measurement layer, relative gain
+    z0: np.ndarray  # [U, Z] offsets of the initial states (Z = 0: static)
+
+
+class Tangent(NamedTuple):
+    """A direction in the inputs: ``channel`` entry ``index`` (model order) moved by
+    ``profile [N]`` per unit of the coefficient (a ``state`` tangent reads each
+    unit's first row)."""
+
+    channel: str
+    index: int
+    profile: np.ndarray
+
+
+class Signatures(NamedTuple):
+    """The extended model and its signatures at ``N`` rows (``S`` used outputs)."""
+
+    y: np.ndarray  # [N, S] extended model output
+    x: np.ndarray  # [N, S] model output before the measurement layer
+    ok: np.ndarray  # [N] bool: finite, the model valid
+    cols: np.ndarray  # [N, S, T] dy / d(tangent)
+    lin: Linearization | None = None  # a static model's Jacobians (more columns)
+
+
+def zero_inputs(model: Model, num_rows: int, num_units: int) -> RowInputs:
+    """Nominal parameters, no effect."""
+    return RowInputs(
+        np.tile(model.nominal, (num_rows, 1)),
+        np.zeros((num_rows, len(model.effects))),
+        np.zeros((num_rows, len(model.conditions))),
+        np.zeros((num_rows, len(model.outputs))),
+        np.zeros((num_rows, len(model.outputs))),
+        np.zeros((num_units, len(model.states))),
+    )
+
+
+def _check_x64():
+    if not jnp.zeros(()).dtype == jnp.float64:
+        raise ValueError(
+            "the diagnosis needs float64: call jax.config.update('jax_enable_x64', "
+            "True) (or jaxcal.precision.enable_x64()) at the start of the program"
+        )
+
+
+# ---------------------------------------------------------------- static models
+
+
+def _linearize_row(model: Model, offset_idx, w, theta, effects, w_off):
+    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
+
+    def extended(th, ef, off_k):
+        w_in = w + w_off + select @ off_k
+        if model.effects:
+            x, info = model.evaluate_effects(w_in, th, ef)
+        else:
+            x, info = model.evaluate(w_in, th)
+        return x, (x, info.valid)
+
+    off_k = jnp.zeros(len(offset_idx), w.dtype)
+    jacs, (x, valid) = jax.jacfwd(extended, argnums=(0, 1, 2), has_aux=True)(
+        theta, effects, off_k
+    )
+    ok = valid & jnp.all(jnp.isfinite(x))
+    for jac in jacs:
+        ok = ok & jnp.all(jnp.isfinite(jac))
+    return x, jacs[0], jacs[1], jacs[2], ok
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _linearize_chunk(model, offset_idx, w, theta, effects, w_off):
+    """Jitted entry point: ``[C]`` rows, one shape for every data set of a model."""
+    return jax.vmap(functools.partial(_linearize_row, model, offset_idx))(
+        w, theta, effects, w_off
+    )
+
+
+class Linearization(NamedTuple):
+    """A static model and its per-row Jacobians (``E`` model outputs)."""
+
+    x: np.ndarray  # [N, E]
+    jac_theta: np.ndarray  # [N, E, P_all]
+    jac_effects: np.ndarray  # [N, E, n_eff]
+    jac_w: np.ndarray  # [N, E, K] offset conditions (offset_conditions order)
+    ok: np.ndarray  # [N]
+
+
+def linearize(
+    model: Model, w: np.ndarray, theta: np.ndarray, effects=None, w_offset=None
+) -> Linearization:
+    """Per-row output and Jacobians of a static model at ``N`` rows.
+
+    Args:
+        model: a static :class:`~jaxcal.model.Model` (float64 enabled).
+        w: ``[N, W]`` logged conditions. theta: ``[N, P_all]``.
+        effects: ``[N, n_eff]`` registered-effect inputs (default zeros).
+        w_offset: ``[N, W]`` condition offsets (default zeros); the Jacobian is taken
+            for the conditions the model allows offsets on
+            (:func:`~jaxcal.diagnosis.kinds.offset_conditions`).
+    """
+    _check_x64()
+    w = np.asarray(w, np.float64)
+    theta = np.asarray(theta, np.float64)
+    n = w.shape[0]
+    if w.ndim != 2 or w.shape[1] != len(model.conditions) or theta.shape != (
+        n, len(model.parameters)
+    ):  # fmt: skip
+        raise ValueError(
+            f"linearize: expected w [N, {len(model.conditions)}] and theta "
+            f"[N, {len(model.parameters)}], got {w.shape}, {theta.shape}"
+        )
+    if n == 0:
+        raise ValueError("linearize: no rows")
+    effects = np.zeros((n, len(model.effects))) if effects is None else effects
+    w_offset = np.zeros_like(w) if w_offset is None else w_offset
+    offset_idx = tuple(model.condition_names.index(c) for c in offset_conditions(model))
+    parts = []
+    for start in range(0, n, CHUNK_ROWS):
+        stop = min(start + CHUNK_ROWS, n)
+        take = np.concatenate(
+            [np.arange(start, stop), np.full(CHUNK_ROWS - (stop - start), stop - 1)]
+        )
+        out = _linearize_chunk(
+            model, offset_idx, jnp.asarray(w[take]), jnp.asarray(theta[take]),
+            jnp.asarray(np.asarray(effects, np.float64)[take]),
+            jnp.asarray(np.asarray(w_offset, np.float64)[take]),
+        )  # fmt: skip
+        parts.append([np.asarray(a)[: stop - start] for a in out])
+    x, j_th, j_ef, j_w, ok = (np.concatenate(p) for p in zip(*parts, strict=True))
+    return Linearization(x, j_th, j_ef, j_w, ok.astype(bool))
+
+
+def _static(model, data, inputs: RowInputs, tangents, lin=None) -> Signatures:
+    if lin is None:
+        lin = linearize(model, data.w, inputs.theta, inputs.effects, inputs.w_offset)
+    used = data.sensor_idx
+    x = lin.x[:, used]
+    gain = 1.0 + inputs.multiplicative[:, used]
+    y = x * gain + inputs.additive[:, used]
+    offset_names = offset_conditions(model)
+    cols = np.zeros(x.shape + (len(tangents),))
+    for t, tan in enumerate(tangents):
+        prof = np.asarray(tan.profile, np.float64)[:, None]
+        if tan.channel == "parameter":
+            cols[:, :, t] = prof * lin.jac_theta[:, used, tan.index] * gain
+        elif tan.channel == "effect":
+            cols[:, :, t] = prof * lin.jac_effects[:, used, tan.index] * gain
+        elif tan.channel == "condition":
+            name = model.condition_names[tan.index]
+            if name not in offset_names:
+                raise ValueError(f"model {model.name!r} allows no offset on {name}")
+            k = offset_names.index(name)
+            cols[:, :, t] = prof * lin.jac_w[:, used, k] * gain
+        else:
+            _layer_column(cols, t, tan, data, x)
+    return Signatures(y, x, lin.ok, cols, lin)
+
+
+def _layer_column(cols, t, tan: Tangent, data, x):
+    """The measurement layer's signature (outside the dynamics: no propagation)."""
+    if tan.channel not in ("additive", "multiplicative"):
+        raise ValueError(f"unknown channel {tan.channel!r}; valid: {CHANNELS}")
+    s = list(data.sensor_idx).index(tan.index)
+    prof = np.asarray(tan.profile, np.float64)
+    cols[:, s, t] = prof if tan.channel == "additive" else prof * x[:, s]
+
+
+# ---------------------------------------------------------- models with memory
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _simulate(model, w, theta, w_off, z0, mask, d_theta, d_w, d_z0):
+    """Units ``[U, T]`` simulated from their initial states, and the outputs'
+    forward derivatives along ``Q`` tangents ``d_theta [Q, U, T, P]``,
+    ``d_w [Q, U, T, W]``, ``d_z0 [Q, U, Z]`` (padded rows hold the state)."""
+
+    def unit(w_u, th_u, off_u, z0_u, m_u, dth_u, dw_u, dz_u):
+        def run(th, off, dz):
+            z = model.init_state(w_u[0] + off[0], th[0])
+            z = jnp.asarray(z, w_u.dtype).reshape(dz.shape) + dz
+
+            def body(z, inputs):
+                w_t, th_t, off_t, ok_t = inputs
+                z_next, x, info = model.step(z, w_t + off_t, th_t)
+                z_next = jnp.asarray(z_next, z.dtype).reshape(z.shape)
+                return jnp.where(ok_t, z_next, z), (x, info.valid)
+
+            return jax.lax.scan(body, z, (w_u, th, off, m_u))[1]
+
+        x, valid = run(th_u, off_u, z0_u)
+
+        def tangent(dth, dw, dz):
+            primals = (th_u, off_u, z0_u)
+            return jax.jvp(lambda *a: run(*a)[0], primals, (dth, dw, dz))[1]
+
+        return x, valid, jax.vmap(tangent)(dth_u, dw_u, dz_u)
+
+    return jax.vmap(unit, in_axes=(0, 0, 0, 0, 0, 1, 1, 1))(
+        w, theta, w_off, z0, mask, d_theta, d_w, d_z0
+    )
+
+
+def _pad(data, arr: np.ndarray, length: int) -> np.ndarray:
+    """Rows ``[N, ...]`` -> ``[U, length, ...]``, each unit repeating its last row."""
+    out = []
+    for u in range(data.num_units):
+        a, b = data.starts[u], data.starts[u + 1]
+        idx = np.minimum(np.arange(length), b - a - 1) + a
+        out.append(arr[idx])
+    return np.stack(out)
+
+
+def _unpad(data, arr: np.ndarray) -> np.ndarray:
+    """``[U, T, ...]`` -> rows ``[N, ...]``."""
+    return np.concatenate(
+        [arr[u, : data.starts[u + 1] - data.starts[u]] for u in range(data.num_units)]
+    )
+
+
+def _stateful(model, data, inputs: RowInputs, tangents) -> Signatures:
+    if model.effects and np.any(inputs.effects):
+        raise ValueError("registered effects of a model with memory are not supported")
+    lengths = np.diff(data.starts)
+    length = int(np.ceil(lengths.max() / TIME_BUCKET) * TIME_BUCKET)
+    mask = np.arange(length)[None, :] < lengths[:, None]
+    dyn = [t for t in tangents if t.channel in ("parameter", "condition", "state")]
+    # tangent counts rounded up to a bucket: a few compiled shapes serve every fit
+    num_q = int(np.ceil(max(len(dyn), 1) / TANGENT_BUCKET) * TANGENT_BUCKET)
+    p_all, num_w, num_z = (
+        len(model.parameters),
+        len(model.conditions),
+        len(model.states),
+    )
+    d_theta = np.zeros((num_q, data.num_rows, p_all))
+    d_w = np.zeros((num_q, data.num_rows, num_w))
+    d_z0 = np.zeros((num_q, data.num_units, num_z))
+    first = data.starts[:-1]
+    for q, tan in enumerate(dyn):
+        if tan.channel == "parameter":
+            d_theta[q, :, tan.index] = tan.profile
+        elif tan.channel == "condition":
+            d_w[q, :, tan.index] = tan.profile
+        else:
+            d_z0[q, :, tan.index] = np.asarray(tan.profile)[first]
+    pad = functools.partial(_pad, data, length=length)
+    x, valid, dx = _simulate(
+        model, jnp.asarray(pad(data.w)), jnp.asarray(pad(inputs.theta)),
+        jnp.asarray(pad(inputs.w_offset)), jnp.asarray(inputs.z0),
+        jnp.asarray(mask), jnp.asarray(np.stack([pad(d) for d in d_theta])),
+        jnp.asarray(np.stack([pad(d) for d in d_w])), jnp.asarray(d_z0),
+    )  # fmt: skip
+    used = data.sensor_idx
+    x = _unpad(data, np.asarray(x))[:, used]
+    ok = _unpad(data, np.asarray(valid)).astype(bool) & np.all(np.isfinite(x), axis=1)
+    # [U, Q, T, E] -> [U, T, Q, E] -> rows [N, Q, S]
+    dx = _unpad(data, np.moveaxis(np.asarray(dx), 1, 2))[:, :, used]
+    gain = 1.0 + inputs.multiplicative[:, used]
+    y = x * gain + inputs.additive[:, used]
+    cols = np.zeros(x.shape + (len(tangents),))
+    q = 0
+    for t, tan in enumerate(tangents):
+        if tan.channel in ("parameter", "condition", "state"):
+            cols[:, :, t] = dx[:, q] * gain
+            q += 1
+        else:
+            _layer_column(cols, t, tan, data, x)
+    ok &= np.all(np.isfinite(cols.reshape(cols.shape[0], -1)), axis=1)
+    return Signatures(y, x, ok, cols)
+
+
+def signatures(
+    model: Model,
+    data,
+    inputs: RowInputs,
+    tangents: Sequence[Tangent] = (),
+    *,
+    like: Signatures | None = None,
+) -> Signatures:
+    """The extended model at ``inputs`` and its signatures along ``tangents``.
+
+    Args:
+        model: the model (float64 enabled by the caller).
+        data: the rows (:class:`~jaxcal.diagnosis.prepare.LoopData`).
+        inputs: :class:`RowInputs`.
+        tangents: the directions whose signatures are wanted.
+        like: an earlier result at the same ``inputs``: a static model's Jacobians
+            are reused (no model evaluation), a model with memory is simulated again.
+
+    Returns:
+        :class:`Signatures` (``cols [N, S, len(tangents)]``).
+    """
+    _check_x64()
+    for tan in tangents:
+        if tan.channel not in CHANNELS:
+            raise ValueError(f"unknown channel {tan.channel!r}; valid: {CHANNELS}")
+    if model.is_stateful:
+        return _stateful(model, data, inputs, list(tangents))
+    if any(t.channel == "state" for t in tangents):
+        raise ValueError("a static model has no states")
+    lin = None if like is None else like.lin
+    return _static(model, data, inputs, list(tangents), lin)

@@ -1,0 +1,89 @@
+"""The diagnosis's noise model: AR(p) colour, exact prewhitening, the fit's bias.
+
+Coloured noise along each unit's rows is the first thing measured data do that the
+old white-noise diagnosis did not expect (issue 24): these tests pin the pieces the
+likelihoods now stand on.
+"""
+
+import types
+
+import numpy as np
+import pytest
+from statsmodels.tsa.arima_process import arma_acf
+
+from jaxcal.diagnosis.noise import NoiseModel, ar_rows, ljung_box_p, positions
+from jaxcal.diagnosis.noise_fit import fit_noise
+from jaxcal.diagnosis.synthetic import ar1_noise
+
+
+def _rows(units, length, rng, num_w=2):
+    n = units * length
+    unit = np.repeat(np.arange(units), length)
+    return types.SimpleNamespace(
+        w=rng.uniform(size=(n, num_w)),
+        tau=np.tile(np.arange(length), units) / 100.0,
+        unit=unit,
+        starts=np.arange(units + 1) * length,
+        cycle=np.tile(np.arange(length), units).astype(float),
+        num_units=units,
+        num_rows=n,
+    )
+
+
+@pytest.mark.parametrize("phi", [[0.8], [0.6, 0.25], [0.5, -0.3, 0.2]])
+def test_whitening_is_the_inverse_cholesky_of_the_ar_covariance(phi):
+    """For every row position, the whitening rows turn the stationary AR(p)
+    covariance of a unit into the identity (exact first rows, no approximation)."""
+    phi = np.asarray(phi)
+    n = 12
+    acf = arma_acf(np.r_[1.0, -phi], [1.0], lags=n)
+    cov = acf[np.abs(np.subtract.outer(np.arange(n), np.arange(n)))]
+    model = NoiseModel.white(np.ones(1), "given")
+    ar = np.zeros((1, 3))
+    ar[0, : phi.size] = phi
+    model = model._replace(ar=ar, order=np.array([phi.size]))
+    eye = np.eye(n)[:, None, :]  # [n rows, 1 output, n columns]
+    w = model.whiten(eye, np.arange(n))[:, 0, :]
+    np.testing.assert_allclose(w @ cov @ w.T, np.eye(n), atol=1e-10)
+    assert ar_rows(phi).shape == (phi.size + 1, phi.size + 1)
+
+
+def test_colour_and_level_are_recovered_and_the_residual_is_white():
+    rng = np.random.default_rng(0)
+    data = _rows(4, 400, rng)
+    sigma = np.array([2.0, 0.5])
+    e = ar1_noise(rng, (data.num_rows, 2), data.unit, 0.7) * sigma
+    e[:, 1] = rng.standard_normal(data.num_rows) * sigma[1]  # the second is white
+    model = fit_noise(e, data)
+    assert model.order[0] == 1 and model.ar[0, 0] == pytest.approx(0.7, abs=0.06)
+    assert model.order[1] == 0
+    np.testing.assert_allclose(model.sigma, sigma, rtol=0.1)
+    white = model.whiten(e, positions(data.starts, data.num_rows))
+    assert np.all(ljung_box_p(white) > 0.01)
+    np.testing.assert_allclose(white.std(0), 1.0, atol=0.08)
+    # the raw coloured residual is not white: the test sees it
+    assert ljung_box_p(e / sigma)[0] < 1e-6
+
+
+def test_what_a_flexible_fit_absorbs_is_given_back():
+    """A per-unit spline fit on short units absorbs the low frequencies of coloured
+    noise; uncorrected, colour and level come out low (issue 24's false alarms)."""
+    rng = np.random.default_rng(1)
+    data = _rows(6, 100, rng)
+    t = np.linspace(0, 1, 100)
+    basis = np.stack([t**k for k in range(5)], 1)  # 5 smooth functions per unit
+    cols = np.zeros((data.num_rows, 1, 5))
+    estimates, raw_estimates = [], []
+    for _ in range(10):
+        e = ar1_noise(rng, (data.num_rows, 1), data.unit, 0.7)
+        resid = np.empty_like(e)
+        for u in range(data.num_units):
+            sl = slice(u * 100, (u + 1) * 100)
+            coef = np.linalg.lstsq(basis, e[sl, 0], rcond=None)[0]
+            resid[sl, 0] = e[sl, 0] - basis @ coef
+            cols[sl, 0] = basis
+        raw_estimates.append(fit_noise(resid, data).ar[0, 0])
+        estimates.append(fit_noise(resid, data, cols=cols).ar[0, 0])
+    raw_error = abs(np.mean(raw_estimates) - 0.7)
+    assert raw_error > 0.06  # the bias is real ...
+    assert abs(np.mean(estimates) - 0.7) < 0.5 * raw_error  # ... and mostly given back
