@@ -208,7 +208,9 @@ def calibrate(
 
     Raises:
         ValueError: unknown method or option, names that do not match the model,
-            bad data (naming file, column and rows), no row that could be used
+            a given noise std outside the float dtype's range (``1e-300`` in
+            float32), bad data (naming file, column and rows), no row that could be
+            used
             (with the cause: the input checks, the model's non-finite outputs, a
             noise too small for the arithmetic).
     """
@@ -232,6 +234,7 @@ def calibrate(
     clipped, notes = clip_jitter(data.w, model)
     data = dataclasses.replace(data, w=clipped)
     problem = Problem.build(model, data, theta=theta, noise=noise)
+    _check_noise_precision(problem, dtype)
     buckets = bucket_units(data, dtype)
     screened = _screen(method, problem, data, buckets, noise, threshold, options)
     if screened is not None:
@@ -249,6 +252,31 @@ def calibrate(
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))
+
+
+def _check_noise_precision(problem: Problem, dtype) -> None:
+    """A given noise std must be a normal positive number in the calibration's
+    float dtype: ``1e-300`` is 0 in float32 (x64 off), ``1e300`` is inf, and XLA
+    flushes subnormals to 0; the filter's normalisation would then fail with a
+    message naming nothing of the user's.
+
+    Raises:
+        ValueError: naming the outputs, their std and the dtype's range.
+    """
+    info = np.finfo(dtype)
+    with np.errstate(over="ignore"):  # 1e300 -> inf in float32: that is the check
+        cast = np.asarray(problem.noise_std, np.float64).astype(dtype)
+    bad = ~(np.isfinite(cast) & (cast >= info.tiny))
+    if not bad.any():
+        return
+    stds = zip(problem.output_names, problem.noise_std, bad, strict=True)
+    shown = ", ".join(f"{name}={std:.3g}" for name, std, b in stds if b)
+    raise ValueError(
+        f"noise: the std of {shown} is outside the range of {info.dtype.name}, the "
+        f"precision this calibration runs in (a std from {info.tiny:.3g} to "
+        f"{info.max:.3g}): give the std in the outputs' units, or enable float64 "
+        "(jaxcal.precision.enable_x64()) if so small or large a noise is meant"
+    )
 
 
 def _threshold(value) -> float:

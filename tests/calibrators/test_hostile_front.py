@@ -6,8 +6,10 @@ never zeros; a calibration that keeps no row says why; units are padded in group
 similar length, with the results of one padded array.
 """
 
+import re
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -164,6 +166,25 @@ def test_a_noise_so_small_that_every_row_is_skipped_is_an_error(frame):
         r"160\): the model is finite .* noise std of \(level=1e-300.* too small",
     ):
         jaxcal.calibrate(MODEL, frame, "ukf", noise=tiny)
+
+
+@pytest.mark.parametrize("std", [1e-300, 1e-40, 1e300])
+def test_a_noise_outside_float32_is_named_with_the_dtype(frame, std):
+    # main: "norm: mean must be finite and std > 0 everywhere" (1e-300 is 0 in
+    # float32, 1e-40 a subnormal XLA flushes to 0, 1e300 inf)
+    noise = {**GIVEN, "temp": std}
+    with jax.enable_x64(False):
+        with pytest.raises(
+            ValueError,
+            match=rf"noise: the std of temp={re.escape(f'{std:.3g}')} is outside the "
+            r"range of float32.*enable float64",
+        ):
+            jaxcal.calibrate(MODEL, frame, "ukf", noise=noise)
+
+
+def test_a_tiny_noise_that_float64_holds_is_left_to_the_filter(frame):
+    result = _calibrate(MODEL, frame, "ukf", noise={**GIVEN, "temp": 1e-40})
+    assert result.valid.any()
 
 
 def _nan_above(w, theta):
