@@ -6,10 +6,12 @@ sampling, wear shapes, noise level and AR(1) colour, number of units, which of t
 carry the effect and, for a step, from when), the noise levels and colour are
 *estimated* by the diagnosis, and the effect size is a multiple of the record's
 **detectability size** ``s1``: on the record's own noise-free data, with the effect at
-a probe size ``p`` on its carriers, the declared parameters are fitted alone under the
-record's true noise model (level and colour, prewhitened); the SSR left is the energy
-``E`` of the part of the effect's signature that the declared parameters cannot absorb,
-and ``s1 = p sqrt(LR* / E)`` with ``LR*`` what the diagnosis needs to call the true
+size ``s`` on its carriers, the declared parameters are fitted alone under the
+record's true noise model (level and colour, prewhitened); the SSR left, minus the SSR
+left without the effect, is the energy ``E(s)`` of the part of the effect's signature
+that the declared parameters cannot absorb, and ``s1`` solves ``E(s1) = LR*`` (secant
+steps in ``log s`` from a small probe; a linear effect needs one) with ``LR*`` what the
+diagnosis needs to call the true
 effect, in its true form, found (identify.py): ``max(bic_margin + k ln n + 2 ln C(U,
 m), chi2_k^-1(1 - alpha / tests))`` with ``k`` the parameters of the form (one for a
 fleet-wide constant or drift when every unit carries it; per carrier one, the
@@ -25,7 +27,8 @@ true effect, kind and target: it adds exactly that effect, or, where the data ca
 tell two effects apart, its verdict is ``confounded`` and the reported confounded
 set holds the truth and the effect it added; the strict rate, exactly the truth
 added, is kept beside it), **unit hit rate** (carrier units flagged for the
-true effect, 0 when the truth is not added), **onset error** (a step's estimated
+true effect, or for the effect the verdict added in its place when it named the two
+as confounded; 0 when the truth is not named), **onset error** (a step's estimated
 onset against the truth, over the carriers flagged, as a share of the carrier's
 record length); on clean records the **false-alarm** rate (any verdict but ``none``).
 
@@ -125,13 +128,13 @@ def threshold(spec, n: int, units: int, carriers: int, loop: LoopConfig,
                float(sps.chi2.isf(ident.alpha / tests, k)))  # fmt: skip
 
 
-def detectability(model, sm, setting, kind, target, seed, loop) -> float:
-    """The record's ``s1`` (module docstring), physical units, magnitude."""
-    clean, std, _ = rs.make_record(model, sm, setting, "none", "", 0.0, seed, False)
-    level = np.nanmean(np.abs(clean.x), axis=0)
-    probe = _probe(model, kind, target, std, level, sm.outputs)
-    data, std, _ = rs.make_record(model, sm, setting, kind, target, probe, seed,
-                                  False)  # fmt: skip
+SIZE_STEPS = 4  # secant steps of the detectability size (log-log, in size)
+
+
+def _null_ssr(model, sm, setting, kind, target, size, seed, loop) -> float:
+    """SSR of the declared-only fit of the noise-free record with the effect at
+    ``size``, prewhitened by the record's true noise model (level and colour)."""
+    data, std, _ = rs.make_record(model, sm, setting, kind, target, size, seed, False)
     noise = dict(zip(sm.outputs, std.tolist(), strict=True))
     ld = prepare_data(data, model, noise_std=noise, knots=loop.knots,
                       candidate_knots=loop.candidate_knots)  # fmt: skip
@@ -144,10 +147,40 @@ def detectability(model, sm, setting, kind, target, seed, loop) -> float:
     ld = ld.with_noise(true)
     spec = ModelSpec(sm.declared, initial_state=model.is_stateful)
     null = fit_model(model, ld, spec, max_iters=loop.max_iters)
+    return float(null.ssr), int(null.num_resid)
+
+
+def detectability(model, sm, setting, kind, target, sign, seed, loop) -> float:
+    """The record's ``s1`` (module docstring), physical units, magnitude.
+
+    ``E(s)``, the SSR the declared-only fit leaves on the noise-free record with the
+    effect at ``sign * s`` minus what it leaves without it (the declared splines do
+    not follow every wear shape exactly), is solved for ``E(s1) = LR*`` by secant
+    steps in ``log s`` from a small probe: the effect of a parameter is not linear in
+    its size (seen: a heat capacity's step left 13x, not 25x, the energy at 5x its
+    probe), and a linear extrapolation from the probe would size it too small.
+    """
+    clean, std, _ = rs.make_record(model, sm, setting, "none", "", 0.0, seed, False)
+    level = np.nanmean(np.abs(clean.x), axis=0)
+    probe = abs(_probe(model, kind, target, std, level, sm.outputs))
+    base, n = _null_ssr(model, sm, setting, "none", "", 0.0, seed, loop)
     tests = 2 * sum(len(targets(model, sm, k)) for k in sm.kinds) * 2
-    lr_star = threshold(kind_of(model, kind), null.num_resid, setting.units,
+    lr_star = threshold(kind_of(model, kind), n, setting.units,
                         len(setting.carriers), loop, tests)  # fmt: skip
-    return abs(probe) * float(np.sqrt(lr_star / max(null.ssr, 1e-300)))
+    size, prev = probe, None  # prev: (log size, log energy) of the last step
+    for _ in range(SIZE_STEPS):
+        ssr, _ = _null_ssr(model, sm, setting, kind, target, sign * size, seed, loop)
+        energy = max(ssr - base, 1e-12)
+        here = (np.log(size), np.log(energy))
+        slope = 2.0  # quadratic: a linear effect, or the first step
+        if prev is not None and here[0] != prev[0]:
+            slope = float(np.clip((here[1] - prev[1]) / (here[0] - prev[0]), 0.5, 4.0))
+        new = size * float(np.exp((np.log(lr_star) - here[1]) / slope))
+        prev = here
+        if abs(np.log(new / size)) < 0.05:
+            return new
+        size = new
+    return size
 
 
 def _room(model, target: str, sign: float) -> float:
@@ -166,7 +199,7 @@ def _target(model, sm, cfg, loop, kind, setting, record_seed, rng):
     rng.shuffle(options)
     if spec.channel != "parameter":
         target, sign = str(options[0]), float(rng.choice([-1.0, 1.0]))
-        return target, sign, detectability(model, sm, setting, kind, target,
+        return target, sign, detectability(model, sm, setting, kind, target, sign,
                                            record_seed, loop)  # fmt: skip
     best = None
     for target in options:
@@ -176,7 +209,7 @@ def _target(model, sm, cfg, loop, kind, setting, record_seed, rng):
             sign = (
                 1.0 if _room(model, target, 1.0) >= _room(model, target, -1.0) else -1.0
             )
-        s1 = detectability(model, sm, setting, kind, target, record_seed, loop)
+        s1 = detectability(model, sm, setting, kind, target, sign, record_seed, loop)
         share = max(cfg.multiples) * s1 / max(_room(model, target, sign), 1e-300)
         if best is None or share < best[3]:
             best = (str(target), sign, s1, share)
@@ -207,9 +240,16 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
     )
     res = diagnose(data, model, sm.declared, loop, noise_std=noise)
     added = [a for a in res.added if a != "discrepancy"]
+    # named: added exactly, or (signatures the data cannot tell apart) reported as
+    # the confounded set that holds the truth and the one added, which then stands
+    # for the truth in the per-unit verdict
+    named = bool(kind != "none" and (added == [name] or (
+        res.verdict.startswith("confounded") and name in res.confounded
+        and len(added) == 1 and added[0] in res.confounded)))  # fmt: skip
+    stand_in = added[0] if named else None
     flagged, onset_err = [], []
     for eff in res.unit_effects:
-        if eff.name != name:
+        if eff.name != stand_in:
             continue
         ids = res.data.unit_ids.tolist()
         flagged = [int(u) for u, c in zip(ids, eff.carries, strict=True) if c]
@@ -225,11 +265,7 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
         "forms": [c.form for c in res.members],
         "first": bool(kind != "none" and added == [name]),
         "in_confounded_set": name in res.confounded,
-        # named: added exactly, or (signatures the data cannot tell apart) reported
-        # as the confounded set that holds the truth and the one added
-        "named": bool(kind != "none" and (added == [name] or (
-            res.verdict.startswith("confounded") and name in res.confounded
-            and len(added) == 1 and added[0] in res.confounded))),
+        "named": named, "stand_in": stand_in,
         "units": list(res.data.unit_ids.tolist()),
         "carriers": list(setting.carriers), "flagged": flagged,
         "onsets": {str(k): v for k, v in onsets.items()}, "onset_error": onset_err,

@@ -17,9 +17,12 @@
    1995) and its p-value is below ``alpha`` over the number of tests (Bonferroni). A
    pair must beat the best single by the margin too (parsimony).
 4. **Confounding.** Candidates (another kind or target) within ``bic_margin`` of the
-   winner whose signature, after projecting out the declared parameters' signatures,
-   reproduces at least ``confound_r2`` of the winner's fitted signal are reported as
-   confounded with it. Candidates whose projected signature keeps less than
+   winner, or explaining as much of the residual (their likelihood-ratio statistic
+   within the margin: a rival cause whose signature spans the winner's, e.g. a
+   change of a pressure-loss coefficient and a gain drift of the one pressure sensor
+   it scales, loses on the BIC only by its freedom), whose signature, after
+   projecting out the declared parameters' signatures, reproduces at least
+   ``confound_r2`` of the winner's fitted signal are reported as confounded with it. Candidates whose projected signature keeps less than
    ``absorbed_frac`` of its norm are flagged *absorbed*: the declared parameters can
    mimic them, so they smear into theta instead of showing in the residual.
 """
@@ -38,8 +41,18 @@ from scipy.special import gammaln
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.kinds import Candidate, nests
 from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.screen import Screen, init_from, spec_for
+from jaxcal.diagnosis.onsets import polish_onsets, refine_onsets
+from jaxcal.diagnosis.screen import (
+    ONSET_GRID,
+    ONSET_GRID_DYNAMIC,
+    Screen,
+    init_from,
+    spec_for,
+)
 from jaxcal.model import Model
+
+
+ONSET_ROUNDS = 2  # profile a step's onsets at the fit, refit when one moved
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,6 +221,36 @@ def _singles(screen: Screen, library, null, data, forms=("fleet", "units")):
     return out, onset_ci
 
 
+def _profile_onsets(model, data, declared, members, fit, offset, cfg):
+    """``(members, fit, intervals)`` with every per-unit step's onsets profiled at
+    the fitted point (:mod:`.onsets`) and the model refitted when one moved."""
+    steps = [i for i, c in enumerate(members)
+             if c.kind.profile == "step" and c.per_unit]  # fmt: skip
+    intervals = {}
+    if not steps:
+        return members, fit, intervals
+    grid = ONSET_GRID_DYNAMIC if model.is_stateful else ONSET_GRID
+    window = int(np.ceil(np.diff(data.starts).max() / grid)) + 2
+    for _ in range(ONSET_ROUNDS):
+        moved, members = False, list(members)
+        for i in steps:
+            new, ci = refine_onsets(model, data, fit, members[i], window)
+            members_i = list(members)
+            members_i[i] = new
+            new = polish_onsets(model, data, fit, members_i, i, window)
+            for u, row in zip(new.carriers, new.onsets, strict=True):
+                ci[u] = [min(ci[u][0], row), max(ci[u][1], row)]
+            intervals[new.name] = ci
+            moved |= new.onsets != members[i].onsets
+            members[i] = new
+        if not moved:
+            break
+        spec = spec_for(declared, members, fit.spec.initial_state)
+        fit = fit_model(model, data, spec, fit.params, offset=offset,
+                        max_iters=cfg.max_iters)  # fmt: skip
+    return members, fit, intervals
+
+
 def identify(
     model: Model,
     data: LoopData,
@@ -255,6 +298,8 @@ def identify(
     fits = {}
     initial_state = null.spec.initial_state
 
+    refined_ci = {}  # entry name -> {step name: [U, 2] profiled onset interval}
+
     def refit(members):
         spec = spec_for(declared, members, initial_state)
         fit = fit_model(
@@ -262,6 +307,9 @@ def identify(
             max_iters=cfg.max_iters,
         )  # fmt: skip
         name = " + ".join(c.label for c in members)
+        members, fit, refined_ci[name] = _profile_onsets(
+            model, data, declared, members, fit, offset, cfg
+        )
         fits[name] = fit
         sizes, stds = effect_sizes(fit, members, data)
         old = entries[name]
@@ -274,7 +322,7 @@ def identify(
         refit(list(pair))
     ranking = sorted(entries.values(), key=lambda e: e.bic)
     for _ in range(cfg.top_k):  # a linearised score may have ranked a model too low
-        if ranking[0].refit:
+        if not ranking or ranking[0].refit:
             break
         refit(list(ranking[0].members))
         ranking = sorted(entries.values(), key=lambda e: e.bic)
@@ -284,16 +332,16 @@ def identify(
     def significant(e):
         return e.delta_bic >= cfg.bic_margin and e.log10_p < threshold
 
-    winner = ranking[0]
+    winner = ranking[0] if ranking else None  # empty: no unit shows any candidate
     best_single = min(
         (e for e in entries.values() if len(e.members) == 1 and e.refit),
         key=lambda e: e.bic,
         default=None,
     )
-    if len(winner.members) > 1 and best_single is not None:
+    if winner is not None and len(winner.members) > 1 and best_single is not None:
         if winner.bic > best_single.bic - cfg.bic_margin:
             winner = best_single
-    if not significant(winner) or winner.name not in fits:
+    if winner is None or not significant(winner) or winner.name not in fits:
         winner = None
     absorbed = sorted({e.members[0].name for e in singles
                        if e.detectability < cfg.absorbed_frac})  # fmt: skip
@@ -307,12 +355,18 @@ def identify(
                     continue
                 if nests(other, m) or nests(m, other):
                     continue
-                if e.bic > winner.bic + cfg.bic_margin:
-                    continue
+                e = entries.get(e.name, e)  # the refitted numbers where there are
+                if (
+                    e.bic > winner.bic + cfg.bic_margin
+                    and e.lr_stat < winner.lr_stat - cfg.bic_margin
+                ):
+                    continue  # worse by the margin, penalised and unpenalised
                 if screen.overlap(m, other) >= cfg.confound_r2:
                     group.append(other.name)
             if len(group) > 1:
                 confounded.extend(g for g in group if g not in confounded)
+    if winner is not None:  # the winner's onsets were profiled at its own fit
+        onset_ci.update(refined_ci.get(winner.name, {}))
     return Identification(
         null, ranking, winner, None if winner is None else fits[winner.name],
         confounded, absorbed, num_tests, fits, onset_ci,
