@@ -22,9 +22,10 @@
    change of a pressure-loss coefficient and a gain drift of the one pressure sensor
    it scales, loses on the BIC only by its freedom), whose signature, after
    projecting out the declared parameters' signatures, reproduces at least
-   ``confound_r2`` of the winner's fitted signal are reported as confounded with it. Candidates whose projected signature keeps less than
-   ``absorbed_frac`` of its norm are flagged *absorbed*: the declared parameters can
-   mimic them, so they smear into theta instead of showing in the residual.
+   ``confound_r2`` of the winner's fitted signal are reported as confounded with it.
+   Candidates whose projected signature keeps less than ``absorbed_frac`` of its norm
+   are flagged *absorbed*: the declared parameters can mimic them, so they smear into
+   theta instead of showing in the residual.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ from scipy.special import gammaln
 
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.kinds import Candidate, nests
-from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.onsets import polish_onsets, refine_onsets
+from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.screen import (
     ONSET_GRID,
     ONSET_GRID_DYNAMIC,
@@ -50,7 +51,6 @@ from jaxcal.diagnosis.screen import (
     spec_for,
 )
 from jaxcal.model import Model
-
 
 ONSET_ROUNDS = 2  # profile a step's onsets at the fit, refit when one moved
 
