@@ -129,6 +129,7 @@ def threshold(spec, n: int, units: int, carriers: int, loop: LoopConfig,
 
 
 SIZE_STEPS = 4  # secant steps of the detectability size (log-log, in size)
+GROW_STEPS = 8  # x4 steps from the probe until the energy is a quarter of LR*
 
 
 def _null_ssr(model, sm, setting, kind, target, size, seed, loop) -> float:
@@ -156,9 +157,11 @@ def detectability(model, sm, setting, kind, target, sign, seed, loop) -> float:
     ``E(s)``, the SSR the declared-only fit leaves on the noise-free record with the
     effect at ``sign * s`` minus what it leaves without it (the declared splines do
     not follow every wear shape exactly), is solved for ``E(s1) = LR*`` by secant
-    steps in ``log s`` from a small probe: the effect of a parameter is not linear in
-    its size (seen: a heat capacity's step left 13x, not 25x, the energy at 5x its
-    probe), and a linear extrapolation from the probe would size it too small.
+    steps in ``log s``, from a probe grown by 4x until its energy is a quarter of
+    ``LR*`` (below that, the fit's own jitter of a few tenths of SSR decides): the
+    effect of a parameter is not linear in its size (seen: a heat capacity's step
+    left 13x, not 25x, the energy at 5x its probe), and a linear extrapolation from
+    a small probe would size it too small.
     """
     clean, std, _ = rs.make_record(model, sm, setting, "none", "", 0.0, seed, False)
     level = np.nanmean(np.abs(clean.x), axis=0)
@@ -167,19 +170,31 @@ def detectability(model, sm, setting, kind, target, sign, seed, loop) -> float:
     tests = 2 * sum(len(targets(model, sm, k)) for k in sm.kinds) * 2
     lr_star = threshold(kind_of(model, kind), n, setting.units,
                         len(setting.carriers), loop, tests)  # fmt: skip
-    size, prev = probe, None  # prev: (log size, log energy) of the last step
-    for _ in range(SIZE_STEPS):
+
+    def energy(size):
         ssr, _ = _null_ssr(model, sm, setting, kind, target, sign * size, seed, loop)
-        energy = max(ssr - base, 1e-12)
-        here = (np.log(size), np.log(energy))
-        slope = 2.0  # quadratic: a linear effect, or the first step
-        if prev is not None and here[0] != prev[0]:
+        return ssr - base
+
+    # grow the size until the energy stands well above the fit's own jitter (the
+    # declared fit moves by a few tenths of SSR from one record to the next)
+    size, e, prev = probe, energy(probe), None
+    for _ in range(GROW_STEPS):
+        if e >= lr_star / 4.0:
+            break
+        # a point below LR* / 16 is mostly jitter: no slope from it
+        prev = (np.log(size), np.log(e)) if e > lr_star / 16.0 else None
+        size *= 4.0
+        e = energy(size)
+    for _ in range(SIZE_STEPS):
+        here = (np.log(size), np.log(max(e, 1e-12)))
+        slope = 2.0  # quadratic: a linear effect
+        if prev is not None and here[0] != prev[0] and e > 0:
             slope = float(np.clip((here[1] - prev[1]) / (here[0] - prev[0]), 0.5, 4.0))
         new = size * float(np.exp((np.log(lr_star) - here[1]) / slope))
-        prev = here
         if abs(np.log(new / size)) < 0.05:
             return new
-        size = new
+        prev, size = here, new
+        e = energy(size)
     return size
 
 
