@@ -48,7 +48,9 @@ _DESIGN_PRIORS = {
 def fit_params() -> list[FitParam]:
     params = [FitParam(k, v) for k, v in _DESIGN_PRIORS.items()]
     for comp in ("fan", "lpc", "hpc"):
-        params += [FitParam(f"{comp}.{k}", s, pos) for k, (s, pos) in _MAP_PRIORS.items()]
+        params += [
+            FitParam(f"{comp}.{k}", s, pos) for k, (s, pos) in _MAP_PRIORS.items()
+        ]
     for comp in ("hpt", "lpt"):
         params += [FitParam(f"{comp}.eff_speed_curv", 0.7, True),
                    FitParam(f"{comp}.capacity_exp", 0.25, True)]  # fmt: skip
@@ -69,7 +71,9 @@ def check_fd002_table() -> str:
         for name, c in cols.items():
             stored = ref.FD002_EARLY_MEANS[name][j]
             if abs(m[:, c].mean() - stored) > 1e-3 * abs(stored):
-                raise ValueError(f"FD002 {name} condition {j}: raw {m[:, c].mean()} != {stored}")
+                raise ValueError(
+                    f"FD002 {name} condition {j}: raw {m[:, c].mean()} != {stored}"
+                )
     return f"reference table matches {path}"
 
 
@@ -89,7 +93,14 @@ def cmapss_targets() -> tuple[np.ndarray, list[Target]]:
             targets.append(Target(k, s, v, rel * v))
         targets.append(Target(k, "epr", ref.FD002_EARLY_MEANS["epr"][k], 0.01))
         targets.append(Target(k, "P2", ref.FD002_EARLY_MEANS["P2"][k], 0.01))
-        targets.append(Target(k, "Wf", ref.FD002_EARLY_MEANS["Wf"][k], 0.04 * ref.FD002_EARLY_MEANS["Wf"][k]))
+        targets.append(
+            Target(
+                k,
+                "Wf",
+                ref.FD002_EARLY_MEANS["Wf"][k],
+                0.04 * ref.FD002_EARLY_MEANS["Wf"][k],
+            )
+        )
         targets.append(Target(k, "farB", ref.FD002_EARLY_MEANS["farB"][k], 0.004))
     for s, v in ref.FD001_HPC_SIGNATURE.items():
         targets.append(Target(7, s, v, 0.15 * abs(v), k_ref=6))
@@ -134,18 +145,26 @@ def run(name: str) -> dict:
         conds, targets = agtf30_targets(base)
         params = agtf30_params()
     thetas = np.zeros((len(conds), 10))
-    theta_params = [ThetaParam(7, 4, 0.02), ThetaParam(7, 5, 0.02)] if name == "cmapss" else []
+    theta_params = (
+        [ThetaParam(7, 4, 0.02), ThetaParam(7, 5, 0.02)] if name == "cmapss" else []
+    )
     t0 = time.time()
-    res = fit_design(base, params, conds, thetas, targets, theta_params=theta_params, verbose=True)
+    res = fit_design(
+        base, params, conds, thetas, targets, theta_params=theta_params, verbose=True
+    )
     for tp, v in zip(theta_params, res.theta):
         thetas[tp.k, tp.index] = v
     fit_s = time.time() - t0
     design = res.design
     table = jax.jit(build_guess_table)(design, design_point(design))
-    x, info = jax.jit(lambda d, t: evaluate_design(d, conds, thetas, guess=t))(design, table)
+    x, info = jax.jit(lambda d, t: evaluate_design(d, conds, thetas, guess=t))(
+        design, table
+    )
     x = np.asarray(x)
     if not np.all(np.asarray(info.converged)):
-        raise FloatingPointError(f"fitted {name} design does not converge at its targets")
+        raise FloatingPointError(
+            f"fitted {name} design does not converge at its targets"
+        )
     from jaxcal.physics.constants import SENSOR_NAMES
 
     rows = []
@@ -171,10 +190,14 @@ def run(name: str) -> dict:
         "fit_seconds": fit_s,
         "cost_history": res.cost_history,
         "converged": np.asarray(info.converged).tolist(),
-        "parameters": {p.name: {"value": flat[p.name], "u": float(u), "u_std": float(s)}
-                       for p, u, s in zip(params, res.u, res.u_std)},  # fmt: skip
+        "parameters": {
+            p.name: {"value": flat[p.name], "u": float(u), "u_std": float(s)}
+            for p, u, s in zip(params, res.u, res.u_std)
+        },  # fmt: skip
         "targets": rows,
-        "fitted_theta": {f"cond{tp.k}.{tp.index}": float(v) for tp, v in zip(theta_params, res.theta)},
+        "fitted_theta": {
+            f"cond{tp.k}.{tp.index}": float(v) for tp, v in zip(theta_params, res.theta)
+        },
     }
     _atomic_json(ROOT / "results" / "engine" / f"fit_{name}.json", report)
     errs = np.array([abs(r["error_pct"]) for r in rows])

@@ -253,7 +253,21 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
     noise = (
         dict(zip(sm.outputs, std.tolist(), strict=True)) if cfg.noise_known else None
     )
-    res = diagnose(data, model, sm.declared, loop, noise_std=noise)
+    row = {
+        "model": sm.name, "kind": kind, "multiple": multiple, "seed": seed,
+        "target": target, "name": name, "size": size, "s1": s1,
+        "setting": setting._asdict(), "rows": int(data.num_rows),
+        "carriers": list(setting.carriers),
+        "onsets": {str(k): v for k, v in onsets.items()},
+    }  # fmt: skip
+    try:
+        res = diagnose(data, model, sm.declared, loop, noise_std=noise)
+    except Exception as err:  # a failed diagnosis is a record too: a miss
+        return {**row, "verdict": "error", "error": repr(err), "added": [],
+                "confounded": [], "forms": [], "first": False,
+                "in_confounded_set": False, "named": False, "stand_in": None,
+                "units": [], "flagged": [], "onset_error": [], "noise_ar": [],
+                "seconds": time.time() - start}  # fmt: skip
     added = [a for a in res.added if a != "discrepancy"]
     # named: added exactly, or (signatures the data cannot tell apart) reported as
     # the confounded set that holds the truth and the one added, which then stands
@@ -273,17 +287,14 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
                 length = float(np.ptp(data.time[data.unit == u]) + 1)
                 onset_err.append(abs(eff.onset[ids.index(u)] - onsets[u]) / length)
     return {
-        "model": sm.name, "kind": kind, "multiple": multiple, "seed": seed,
-        "target": target, "name": name, "size": size, "s1": s1,
-        "setting": setting._asdict(), "rows": int(data.num_rows),
-        "verdict": res.verdict, "added": added, "confounded": list(res.confounded),
+        **row, "verdict": res.verdict, "added": added,
+        "confounded": list(res.confounded),
         "forms": [c.form for c in res.members],
         "first": bool(kind != "none" and added == [name]),
         "in_confounded_set": name in res.confounded,
         "named": named, "stand_in": stand_in,
-        "units": list(res.data.unit_ids.tolist()),
-        "carriers": list(setting.carriers), "flagged": flagged,
-        "onsets": {str(k): v for k, v in onsets.items()}, "onset_error": onset_err,
+        "units": list(res.data.unit_ids.tolist()), "flagged": flagged,
+        "onset_error": onset_err,
         "noise_ar": res.data.noise.ar[:, 0].tolist(),
         "seconds": time.time() - start,
     }  # fmt: skip

@@ -56,6 +56,7 @@ def four(rows: list[dict], multiples) -> tuple[dict, dict]:
         "onset_error": float(np.median(onset)) if onset else None,
     }
     n = {"clean": len(clean), "identification": counts, "carriers_5x": len(hits),
+         "errors": sum(r["verdict"] == "error" for r in rows),
          "onsets": len(onset), "identification_strict": strict}  # fmt: skip
     return out, n
 
@@ -223,7 +224,8 @@ def write(cfg, rows: list[dict], command: str, minutes: float | None) -> str:
         f"(n = {counts['clean']}), unit hit rate (>= 5x) "
         f"{_fmt(summary['unit_hit_rate'])} (n = {counts['carriers_5x']} carriers), "
         f"onset error {_fmt(summary['onset_error'])} of the record (median, n = "
-        f"{counts['onsets']}).",
+        f"{counts['onsets']}); diagnoses that raised an error (counted as misses): "
+        f"{counts['errors']}.",
         "",
         *_table(summary, counts, cfg.multiples),
         "",

@@ -252,11 +252,13 @@ def fit_model(
         ev_t = evaluate_model(
             model, data, lay, trial, offset=offset, valid=valid, columns=False
         )
+        if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr and ev_t.cols is None:
+            # the signatures too: a point where they overflow (a model with memory
+            # driven unstable along a tangent) is rejected like a worse one
+            ev_t = evaluate_model(model, data, lay, trial, offset=offset,
+                                  valid=valid)  # fmt: skip
         if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr:
             gain = ev.ssr - ev_t.ssr
-            if ev_t.cols is None:
-                ev_t = evaluate_model(model, data, lay, trial, offset=offset,
-                                      valid=valid)  # fmt: skip
             params, ev = trial, ev_t
             stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
             damping = max(damping / 10.0, 1e-9)
