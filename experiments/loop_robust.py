@@ -119,9 +119,7 @@ def threshold(spec, n: int, units: int, carriers: int, loop: LoopConfig,
     if spec.fleet and carriers == units:
         k, sel = 1, 0.0
     else:
-        per = loop.candidate_knots if spec.profile == "spline" else 1
-        per += 1 if spec.profile == "step" else 0
-        k = per * carriers
+        k = spec.num_free(loop.candidate_knots) * carriers
         sel = 2.0 * float(gammaln(units + 1) - gammaln(carriers + 1)
                           - gammaln(units - carriers + 1))  # fmt: skip
     return max(ident.bic_margin + k * np.log(n) + sel,

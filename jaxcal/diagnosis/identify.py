@@ -134,8 +134,7 @@ def _price(members: Sequence[Candidate], data: LoopData) -> tuple[int, float]:
     extended BIC's price of the units terms' carriers."""
     df, sel, u = 0, 0.0, data.num_units
     for c in members:
-        per = data.num_candidate_knots if c.kind.profile == "spline" else 1
-        per += 1 if c.kind.profile == "step" else 0
+        per = c.kind.num_free(data.num_candidate_knots)
         if c.per_unit:
             m = len(c.carriers)
             df += per * m

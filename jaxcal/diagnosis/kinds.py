@@ -80,6 +80,11 @@ class EffectKind:
         """True for the measurement layer (outside the model's dynamics)."""
         return self.channel in ("additive", "multiplicative")
 
+    def num_free(self, num_knots: int) -> int:
+        """Free parameters of one unit's (or the fleet's) term: its coefficients
+        (``num_knots`` for a spline, else one) and, for a step, the onset."""
+        return (num_knots if self.profile == "spline" else 1) + (self.profile == "step")
+
     def candidate_name(self, target: str) -> str:
         """Display name of the candidate on ``target``."""
         return target if self.channel == "effect" else f"{self.name}[{target}]"

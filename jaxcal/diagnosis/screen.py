@@ -175,9 +175,7 @@ class Screen:
 
     def per_carrier_penalty(self, cand: Candidate) -> float:
         """BIC price of one carrier of a units term: its coefficients (and onset)."""
-        k = self.data.num_candidate_knots if cand.kind.profile == "spline" else 1
-        k += 1 if cand.kind.profile == "step" else 0
-        return k * self.log_n
+        return cand.kind.num_free(self.data.num_candidate_knots) * self.log_n
 
     def units_form(self, cand: Candidate) -> tuple[Candidate | None, UnitScores]:
         """``cand`` in the units form on its chosen carriers (``None``: no unit)."""

@@ -191,20 +191,20 @@ def ar1_noise(rng: np.random.Generator, shape, unit: np.ndarray, phi: float):
     return out
 
 
+def _targets(model: Model, label: str, sensors, declared) -> tuple[str, ...]:
+    """What an effect of study label ``label`` can act on (a registered effect: on
+    itself; the discrepancy bump: an output)."""
+    if label == "discrepancy":
+        return tuple(sensors)
+    if label not in KINDS:
+        return (label,)
+    return KINDS[label].targets(model, sensors, declared)
+
+
 def _pick(rng, kind, sensors, declared, model, sizes) -> tuple[str, float]:
     (lo, hi), sign = sizes[kind]
     size = rng.uniform(lo, hi) * (sign if sign else rng.choice([-1.0, 1.0]))
-    if kind in ("parameter", "parameter_step"):
-        target = str(
-            rng.choice([p for p in model.parameter_names if p not in declared])
-        )
-    elif kind in KINDS and KINDS[kind].is_sensor or kind == "discrepancy":
-        target = str(rng.choice(list(sensors)))
-    elif kind == "condition_offset":
-        target = str(rng.choice(list(offset_conditions(model))))
-    else:
-        target = kind
-    return target, float(size)
+    return str(rng.choice(list(_targets(model, kind, sensors, declared)))), float(size)
 
 
 def make_synthetic_data(
@@ -242,17 +242,13 @@ def make_synthetic_data(
         )
     sensors = tuple(cfg.sensors) or model.output_names
     sizes = {**default_sizes(model), **dict(cfg.sizes or {})}
-    free = [p for p in model.parameter_names if p not in cfg.declared]
-    valid_targets = {
-        "parameter": free, "parameter_step": free, "discrepancy": sensors,
-        "condition_offset": offset_conditions(model),
-        **{k: sensors for k, v in KINDS.items() if v.is_sensor},
-    }  # fmt: skip
-    if target is not None and target not in valid_targets.get(kind, ()):
-        raise ValueError(
-            f"target={target!r} is not valid for kind {kind!r}; valid: "
-            f"{list(valid_targets.get(kind, ()))}"
-        )
+    if kind != "none" and target is not None:
+        valid_targets = _targets(model, kind, sensors, cfg.declared)
+        if target not in valid_targets:
+            raise ValueError(
+                f"target={target!r} is not valid for kind {kind!r}; valid: "
+                f"{list(valid_targets)}"
+            )
     keys = jax.random.split(key, 6)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(keys[4])).ravel())
     tgt, size_drawn = (
@@ -280,7 +276,7 @@ def make_synthetic_data(
         on = np.isin(unit, np.asarray(carriers))
     ids = np.unique(unit[on]) if kind != "none" else np.zeros(0)
     onsets = {}
-    if kind in ("parameter_step", "sensor_step"):
+    if kind in KINDS and KINDS[kind].profile == "step":
         for u in ids:
             cyc = cycle[unit == u]
             share = rng.uniform(*cfg.onset_range)

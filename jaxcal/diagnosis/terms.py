@@ -167,8 +167,7 @@ def num_params(data: LoopData, spec: ModelSpec, model: Model) -> int:
         k += len(model.states)
     total = data.num_units * k
     for cand in spec.terms:
-        per = data.num_candidate_knots if cand.kind.profile == "spline" else 1
-        per += 1 if cand.kind.profile == "step" else 0
+        per = cand.kind.num_free(data.num_candidate_knots)
         total += per * (len(cand.carriers) if cand.per_unit else 1)
     return total
 
