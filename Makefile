@@ -17,11 +17,18 @@ $(STAMP): pyproject.toml
 
 install: setup
 
+# The suite on $(TEST_WORKERS) pytest-xdist workers, one test file per worker at a time
+# (module-scoped fixtures built once; tests/conftest.py hands out the longest files
+# first). TEST_WORKERS=0 runs it in this process; `python -m pytest tests/<file>.py`
+# runs one file without workers.
+TEST_WORKERS ?= 2
+XDIST := -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+
 test: $(STAMP)
-	$(BIN)/python -m pytest tests
+	$(BIN)/python -m pytest tests $(XDIST)
 
 test-all: $(STAMP)
-	$(BIN)/python -m pytest tests -m ''
+	$(BIN)/python -m pytest tests -m '' $(XDIST)
 
 lint: $(STAMP)
 	$(BIN)/ruff check jaxcal tests experiments

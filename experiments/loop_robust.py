@@ -159,7 +159,8 @@ def detectability(model, sm, setting, kind, target, sign, seed, loop) -> float:
     ``LR*`` (below that, the fit's own jitter of a few tenths of SSR decides): the
     effect of a parameter is not linear in its size (seen: a heat capacity's step
     left 13x, not 25x, the energy at 5x its probe), and a linear extrapolation from
-    a small probe would size it too small.
+    a small probe would size it too small. An effect of the measurement layer
+    adds to the outputs, and its energy is quadratic in its size: one step.
     """
     clean, std, _ = rs.make_record(model, sm, setting, "none", "", 0.0, seed, False)
     level = np.nanmean(np.abs(clean.x), axis=0)
@@ -183,6 +184,8 @@ def detectability(model, sm, setting, kind, target, sign, seed, loop) -> float:
         prev = (np.log(size), np.log(e)) if e > lr_star / 16.0 else None
         size *= 4.0
         e = energy(size)
+    if kind_of(model, kind).is_sensor:  # the measurement layer: E is quadratic
+        return size * float(np.sqrt(lr_star / max(e, 1e-12)))
     for _ in range(SIZE_STEPS):
         here = (np.log(size), np.log(max(e, 1e-12)))
         slope = 2.0  # quadratic: a linear effect
