@@ -48,6 +48,9 @@ def four(rows: list[dict], multiples) -> tuple[dict, dict]:
             counts[kind][_mult_key(m)] = len(sel)
     hits = [u in r["flagged"] for r in eff if r["multiple"] >= 5.0
             for u in r["carriers"]]  # fmt: skip
+    # non-carriers flagged, in records where the truth was named (its stand-in)
+    false_flags = [u in r["flagged"] for r in eff if r.get("named")
+                   for u in r["units"] if u not in r["carriers"]]  # fmt: skip
     onset = [e for r in eff if r["kind"] in STEP_KINDS for e in r["onset_error"]]
     out = {
         "false_alarm_rate": _rate([r["verdict"] != "none" for r in clean]),
@@ -57,6 +60,7 @@ def four(rows: list[dict], multiples) -> tuple[dict, dict]:
     }
     n = {"clean": len(clean), "identification": counts, "carriers_5x": len(hits),
          "errors": sum(r["verdict"] == "error" for r in rows),
+         "unit_false_flag_rate": _rate(false_flags), "non_carriers": len(false_flags),
          "onsets": len(onset), "identification_strict": strict}  # fmt: skip
     return out, n
 
@@ -224,8 +228,9 @@ def write(cfg, rows: list[dict], command: str, minutes: float | None) -> str:
         f"(n = {counts['clean']}), unit hit rate (>= 5x) "
         f"{_fmt(summary['unit_hit_rate'])} (n = {counts['carriers_5x']} carriers), "
         f"onset error {_fmt(summary['onset_error'])} of the record (median, n = "
-        f"{counts['onsets']}); diagnoses that raised an error (counted as misses): "
-        f"{counts['errors']}.",
+        f"{counts['onsets']}); non-carrier units flagged where the truth was named "
+        f"{_fmt(counts['unit_false_flag_rate'])} (n = {counts['non_carriers']}); "
+        f"diagnoses that raised an error (counted as misses): {counts['errors']}.",
         "",
         *_table(summary, counts, cfg.multiples),
         "",
@@ -237,7 +242,8 @@ def write(cfg, rows: list[dict], command: str, minutes: float | None) -> str:
             "",
             f"False alarms {_fmt(per['false_alarm_rate'])} (n = {c['clean']}); unit "
             f"hit rate {_fmt(per['unit_hit_rate'])} (n = {c['carriers_5x']}); onset "
-            f"error {_fmt(per['onset_error'])} (n = {c['onsets']}).",
+            f"error {_fmt(per['onset_error'])} (n = {c['onsets']}); non-carriers "
+            f"flagged {_fmt(c['unit_false_flag_rate'])} (n = {c['non_carriers']}).",
             "",
             *_table(per, c, cfg.multiples),
             "",
