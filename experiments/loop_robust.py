@@ -58,6 +58,7 @@ from scipy.special import gammaln
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import robust_report  # noqa: E402
 import robust_scenario as rs  # noqa: E402
+from loop_before import verdict_facts  # noqa: E402
 
 from jaxcal.diagnosis.fitting import fit_model  # noqa: E402
 from jaxcal.diagnosis.identify import IdentifyConfig  # noqa: E402
@@ -234,8 +235,13 @@ def _target(model, sm, cfg, loop, kind, setting, record_seed, rng):
     return best[:3]
 
 
-def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
-    """Draw, size, generate and diagnose one record; the facts the summary needs."""
+def draw_record(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed):
+    """Draw, size and generate one record (no diagnosis).
+
+    Returns:
+        ``(data, std, onsets, meta)``: the Dataset, the true noise std per output,
+        the onset cycle per carrier and the record's facts (the row's first keys).
+    """
     models, kinds = list(rs.STUDY_MODELS), ["none", *sm.kinds]
     tag = [cfg.seed, models.index(sm.name), kinds.index(kind), m_idx, seed]
     rng = np.random.default_rng(tag)
@@ -243,7 +249,6 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
     multiple = 0.0 if kind == "none" else cfg.multiples[m_idx]
     target, size, name, s1 = "", 0.0, "", None
     record_seed = int(rng.integers(2**31))
-    start = time.time()
     if kind != "none":
         target, sign, s1 = _target(model, sm, cfg, loop, kind, setting, record_seed,
                                    rng)  # fmt: skip
@@ -251,16 +256,23 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
         name = kind_of(model, kind).candidate_name(target)
     data, std, onsets = rs.make_record(model, sm, setting, kind, target, size,
                                        record_seed)  # fmt: skip
-    noise = (
-        dict(zip(sm.outputs, std.tolist(), strict=True)) if cfg.noise_known else None
-    )
-    row = {
+    meta = {
         "model": sm.name, "kind": kind, "multiple": multiple, "seed": seed,
         "target": target, "name": name, "size": size, "s1": s1,
         "setting": setting._asdict(), "rows": int(data.num_rows),
         "carriers": list(setting.carriers),
         "onsets": {str(k): v for k, v in onsets.items()},
     }  # fmt: skip
+    return data, std, onsets, meta
+
+
+def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
+    """Draw, size, generate and diagnose one record; the facts the summary needs."""
+    start = time.time()
+    data, std, onsets, row = draw_record(model, sm, cfg, loop, kind, m_idx, seed)
+    noise = (
+        dict(zip(sm.outputs, std.tolist(), strict=True)) if cfg.noise_known else None
+    )
     try:
         res = diagnose(data, model, sm.declared, loop, noise_std=noise)
     except Exception as err:  # a failed diagnosis is a record too: a miss
@@ -269,33 +281,10 @@ def run_one(model, sm, cfg: RobustConfig, loop, kind, m_idx, seed) -> dict:
                 "in_confounded_set": False, "named": False, "stand_in": None,
                 "units": [], "flagged": [], "onset_error": [], "noise_ar": [],
                 "seconds": time.time() - start}  # fmt: skip
-    added = [a for a in res.added if a != "discrepancy"]
-    # named: added exactly, or (signatures the data cannot tell apart) reported as
-    # the confounded set that holds the truth and the one added, which then stands
-    # for the truth in the per-unit verdict
-    named = bool(kind != "none" and (added == [name] or (
-        res.verdict.startswith("confounded") and name in res.confounded
-        and len(added) == 1 and added[0] in res.confounded)))  # fmt: skip
-    stand_in = added[0] if named else None
-    flagged, onset_err = [], []
-    for eff in res.unit_effects:
-        if eff.name != stand_in:
-            continue
-        ids = res.data.unit_ids.tolist()
-        flagged = [int(u) for u, c in zip(ids, eff.carries, strict=True) if c]
-        for u in flagged:
-            if u in onsets and np.isfinite(eff.onset[ids.index(u)]):
-                length = float(np.ptp(data.time[data.unit == u]) + 1)
-                onset_err.append(abs(eff.onset[ids.index(u)] - onsets[u]) / length)
+    facts = verdict_facts(res, kind, row["name"], onsets, data)
     return {
-        **row, "verdict": res.verdict, "added": added,
-        "confounded": list(res.confounded),
+        **row, "verdict": res.verdict, **facts,
         "forms": [c.form for c in res.members],
-        "first": bool(kind != "none" and added == [name]),
-        "in_confounded_set": name in res.confounded,
-        "named": named, "stand_in": stand_in,
-        "units": list(res.data.unit_ids.tolist()), "flagged": flagged,
-        "onset_error": onset_err,
         "noise_ar": res.data.noise.ar[:, 0].tolist(),
         "seconds": time.time() - start,
     }  # fmt: skip
