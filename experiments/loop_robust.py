@@ -62,7 +62,7 @@ from loop_before import verdict_facts  # noqa: E402
 
 from jaxcal.diagnosis.fitting import fit_model  # noqa: E402
 from jaxcal.diagnosis.identify import IdentifyConfig  # noqa: E402
-from jaxcal.diagnosis.kinds import natural_scale  # noqa: E402
+from jaxcal.diagnosis.kinds import KINDS, natural_scale  # noqa: E402
 from jaxcal.diagnosis.noise import MAX_ORDER, NoiseModel  # noqa: E402
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose  # noqa: E402
 from jaxcal.diagnosis.prepare import prepare_data  # noqa: E402
@@ -85,6 +85,7 @@ class RobustConfig:
     noise_known: bool = False  # give the diagnosis the true marginal noise std
     noise_order: int = MAX_ORDER  # the diagnosis's AR order (0: white, a lever)
     forms: tuple[str, ...] = ("fleet", "units")  # the diagnosis's forms (a lever)
+    without: tuple[str, ...] = ()  # library kinds left out (a lever: the step kinds)
     max_units: int = rs.U_MAX  # record size bounds (smaller for tests)
     max_life: int = 0  # 0: each model's own
     out: str = "results/loop/robust"
@@ -92,9 +93,11 @@ class RobustConfig:
 
 
 def loop_config(cfg: RobustConfig) -> LoopConfig:
+    library = tuple(k for k in KINDS if k not in cfg.without) if cfg.without else ()
     return LoopConfig(
-        noise_order=cfg.noise_order, identify=IdentifyConfig(forms=cfg.forms)
-    )
+        noise_order=cfg.noise_order, identify=IdentifyConfig(forms=cfg.forms),
+        kinds=library,
+    )  # fmt: skip
 
 
 def targets(model, sm, kind) -> list[str]:

@@ -23,6 +23,7 @@ STEP_KINDS = ("sensor_step", "parameter_step")
 LEVERS = {  # lever -> what was switched off (levers/<name>/ beside the study)
     "white_noise": "the noise model (white noise, noise_order=0)",
     "fleet_only": "per-unit forms and steps (forms=fleet)",
+    "no_steps": "the step kinds (without=sensor_step,parameter_step)",
 }
 
 
@@ -161,32 +162,48 @@ def _before() -> list[str]:
     return lines
 
 
-def _levers(out: str) -> list[str]:
-    rows = []
+def _lever_row(label: str, s: dict) -> str:
+    ident5 = [v["5x"] for v in s["identification"].values() if v.get("5x")
+              is not None]  # fmt: skip
+    return (
+        f"| {label} | {_fmt(s['false_alarm_rate'])} | "
+        f"{_fmt(min(ident5) if ident5 else None)} | "
+        f"{_fmt(s['unit_hit_rate'])} | {_fmt(s['onset_error'])} |"
+    )
+
+
+def _levers(out: str, rows: list[dict], multiples) -> list[str]:
+    """One row per lever run found under ``<out>/levers/``, beside the full
+    diagnosis on the same records (the main run's rows of the lever's seeds)."""
+    lines = []
     for name, what in LEVERS.items():
-        path = os.path.join(out, "levers", name, "summary.json")
-        if os.path.exists(path):
-            with open(path) as f:
-                s = json.load(f)
-            ident5 = [v["5x"] for v in s["identification"].values() if v.get("5x")
-                      is not None]  # fmt: skip
-            rows.append(
-                f"| without {what} | {_fmt(s['false_alarm_rate'])} | "
-                f"{_fmt(min(ident5) if ident5 else None)} | "
-                f"{_fmt(s['unit_hit_rate'])} | {_fmt(s['onset_error'])} |"
-            )
-    if not rows:
+        path = os.path.join(out, "levers", name, "study.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            lever = json.load(f)
+        cfg = lever["config"]
+        same = [
+            r for r in rows if r["model"] in cfg["models"]
+            and r["seed"] < cfg["clean" if r["kind"] == "none" else "seeds"]
+        ]  # fmt: skip
+        lines += [
+            _lever_row(f"without {what}", lever["summary"]),
+            _lever_row("the full diagnosis, same records", four(same, multiples)[0]),
+        ]
+    if not lines:
         return []
     return [
         "## What each lever gives on its own",
         "",
         "The same records (same seeds) diagnosed with one lever switched off "
-        "(`levers/<name>/`, a smaller run: see its `study.json` for the command):",
+        "(`levers/<name>/`, a smaller run: its `study.json` has the command), each "
+        "beside the full diagnosis on those records:",
         "",
         "| diagnosis | false alarms | lowest identification at 5x | unit hits | "
         "onset error |",
         "|---|---|---|---|---|",
-        *rows,
+        *lines,
         "",
     ]
 
@@ -260,7 +277,7 @@ def write(cfg, rows: list[dict], command: str, minutes: float | None) -> str:
     if misses:
         lines += ["Records at >= 5x where the added effect is not the truth: "
                   + "; ".join(misses) + ".", ""]  # fmt: skip
-    lines += _levers(cfg.out) + _before()
+    lines += _levers(cfg.out, rows, cfg.multiples) + _before()
     text = "\n".join(lines) + "\n"
     write_atomic(os.path.join(cfg.out, "README.md"), text)
     return text
