@@ -44,6 +44,14 @@ from jaxcal.diagnosis.terms import (
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
+# The fit's box: each parameter's bounds widened by this share of their range on each
+# side; a positive quantity (a resistance, a capacity) keeps at least half its lower
+# bound and a negative one at most half its upper bound. An effect the declared
+# parameters cannot follow otherwise drives them to where the model has no meaning
+# (seen: a thermal resistance fitted to zero, and every step from there diverged),
+# while a departure beyond the stated range stays possible and is flagged.
+FIT_BOX_MARGIN = 0.5
+_TO_BOUNDARY = 0.95  # a step that would leave the box goes this share of the way
 
 
 class Evaluation(NamedTuple):
@@ -123,6 +131,36 @@ def evaluate_model(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
         cols,
     )  # fmt: skip
+
+
+def fit_box(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """``(low [P], high [P])``: the box the fit keeps every parameter in."""
+    low = np.array([p.low for p in model.parameters], np.float64)
+    high = np.array([p.high for p in model.parameters], np.float64)
+    margin = FIT_BOX_MARGIN * (high - low)
+    box_low = np.where(low > 0, np.maximum(low - margin, 0.5 * low), low - margin)
+    box_high = np.where(high < 0, np.minimum(high + margin, 0.5 * high), high + margin)
+    return box_low, box_high
+
+
+def _into_box(model, data, lay, params, trial, box) -> ModelParams:
+    """``trial`` moved back along the step so that no row's parameter leaves ``box``
+    (fraction to the boundary; the parameters are linear in the coefficients)."""
+    theta0 = model_inputs(model, data, lay, params).theta
+    theta1 = model_inputs(model, data, lay, trial).theta
+    delta = theta1 - theta0
+    low, high = box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        outward = np.where(delta > 0, high - theta0, low - theta0)
+        room = np.where(delta != 0, outward / delta, np.inf)
+    t = float(np.min(room, initial=np.inf))
+    if t >= 1.0:
+        return trial
+    t = max(_TO_BOUNDARY * t, 0.0)
+    return ModelParams(
+        params.unit_coef + t * (trial.unit_coef - params.unit_coef),
+        params.global_coef + t * (trial.global_coef - params.global_coef),
+    )
 
 
 class GramStats(NamedTuple):
@@ -217,6 +255,8 @@ def fit_model(
 
     Rows on which the model fails at the start point are left out for the whole fit;
     a trial point that makes another row fail is rejected like one that raises the cost.
+    No step takes a parameter out of :func:`fit_box` (a step that would is shortened
+    to the boundary).
 
     Args:
         model: the model.
@@ -241,6 +281,7 @@ def fit_model(
             "input range) on every row of the data"
         )
     local_idx, global_idx = np.arange(lay.num_local), np.arange(lay.num_global)
+    box = fit_box(model)
     damping, converged, it = 1e-3, False, 0
     stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
     while it < max_iters:
@@ -249,6 +290,7 @@ def fit_model(
         trial = ModelParams(
             params.unit_coef + step.local_step, params.global_coef + step.global_step
         )
+        trial = _into_box(model, data, lay, params, trial, box)
         ev_t = evaluate_model(
             model, data, lay, trial, offset=offset, valid=valid, columns=False
         )

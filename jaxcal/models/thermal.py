@@ -41,21 +41,41 @@ def _system_matrix(theta):
     )
 
 
-def _expm2(a):
-    """``exp(a)`` of a 2x2 matrix with real eigenvalues, in closed form.
+_SERIES = 1e-4  # |d^2| below which cosh and sinh / d are taken by their series
 
-    By Cayley–Hamilton, ``exp(A) = e^m (cosh(d) I + sinh(d) / d (A - m I))`` with
-    ``m = tr(A) / 2`` and ``d^2 = m^2 - det(A)`` (Moler & Van Loan 2003, polynomial
-    methods). The RC network's matrix is similar to a symmetric one, so ``d`` is
-    real; the closed form is exact and, evaluated at every step of a simulation,
-    about 25x cheaper than the scaled Padé approximation of
-    ``jax.scipy.linalg.expm``.
+
+def _expm2(a):
+    """``exp(a)`` of a real 2x2 matrix, in closed form.
+
+    By Cayley–Hamilton, ``exp(A) = c I + s (A - m I)`` with ``m = tr(A) / 2``,
+    ``d^2 = m^2 - det(A)`` and, for real eigenvalues ``m +- d``,
+    ``c = (e^(m+d) + e^(m-d)) / 2`` and ``s = e^(m+d) (1 - e^(-2d)) / (2d)``
+    (``= e^m sinh(d) / d``, written so that a stiff matrix, one eigenvalue far below
+    the other, neither overflows nor cancels); for complex ones (``d^2 < 0``, only
+    outside the physical box) ``c = e^m cos(w)``, ``s = e^m sin(w) / w`` with
+    ``w^2 = -d^2`` (Moler & Van Loan 2003, polynomial methods). The RC network's
+    matrix is similar to a symmetric one, so its eigenvalues are real. Exact, and
+    evaluated at every step of a simulation about 25x cheaper than the scaled Padé
+    approximation of ``jax.scipy.linalg.expm``.
     """
     m = 0.5 * (a[0, 0] + a[1, 1])
-    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-    d = jnp.sqrt(jnp.maximum(m * m - det, 1e-300))
+    d2 = m * m - (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0])
+    # three branches, each evaluated at safe values where it is not taken (a NaN in
+    # an untaken branch would poison the derivatives through jnp.where)
+    real, cplx = d2 >= _SERIES, d2 <= -_SERIES
+    d = jnp.sqrt(jnp.where(real, d2, 1.0))
+    w = jnp.sqrt(jnp.where(cplx, -d2, 1.0))
+    c_real = 0.5 * (jnp.exp(m + d) + jnp.exp(m - d))
+    s_real = jnp.exp(m + d) * (-jnp.expm1(-2.0 * d) / (2.0 * d))
+    c_cplx = jnp.exp(m) * jnp.cos(w)
+    s_cplx = jnp.exp(m) * jnp.sin(w) / w
+    # near a repeated eigenvalue, the series of cosh(d) and sinh(d) / d in d^2
+    c_near = jnp.exp(m) * (1.0 + d2 / 2.0 + d2 * d2 / 24.0)
+    s_near = jnp.exp(m) * (1.0 + d2 / 6.0 + d2 * d2 / 120.0)
+    c = jnp.where(real, c_real, jnp.where(cplx, c_cplx, c_near))
+    s = jnp.where(real, s_real, jnp.where(cplx, s_cplx, s_near))
     eye = jnp.eye(2, dtype=a.dtype)
-    return jnp.exp(m) * (jnp.cosh(d) * eye + (jnp.sinh(d) / d) * (a - m * eye))
+    return c * eye + s * (a - m * eye)
 
 
 def steady_state(w, theta):

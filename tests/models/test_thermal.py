@@ -35,3 +35,26 @@ def test_step_relaxes_to_the_steady_state():
         q = (z[1] - w[1]) / theta[0]
         np.testing.assert_allclose(float(x[2]), float(q), rtol=1e-12)
         np.testing.assert_allclose(float(q), 1500.0, rtol=1e-6)  # heat in = heat out
+
+
+def test_closed_form_is_stable_for_stiff_and_complex_matrices():
+    """Far outside the box the fit may try (a resistance near zero: one mode 1e4
+    times faster than the other; a negative capacity: complex eigenvalues), the
+    closed form stays finite and equal to expm, and so do its derivatives."""
+    with jax.enable_x64(True):
+        cases = [
+            jnp.array([[-0.03, 0.03], [0.12, -5000.0]]),  # stiff
+            jnp.array([[-0.5, 2.0], [-1.0, -0.4]]),  # complex pair
+            jnp.array([[-0.2, 0.0], [0.0, -0.2]]),  # repeated eigenvalue (d = 0)
+        ]
+        for a in cases:
+            np.testing.assert_allclose(
+                np.asarray(thermal._expm2(a)), np.asarray(jsl.expm(a)),
+                rtol=1e-9, atol=1e-12,
+            )  # fmt: skip
+            jac = jax.jacfwd(thermal._expm2)(a)
+            ref = jax.jacfwd(jsl.expm)(a)
+            assert np.all(np.isfinite(np.asarray(jac)))
+            np.testing.assert_allclose(
+                np.asarray(jac), np.asarray(ref), rtol=1e-6, atol=1e-9
+            )
