@@ -113,12 +113,19 @@ def main(argv: list[str]) -> int:
     fleet.to_csv(csv, index=False)
     report_dir = os.path.join(out, "diagnose")
     _cli("jaxcal.diagnose", "model=heat_exchanger", f"data={csv}",
-         f"calibrate={','.join(DECLARED)}", f"out={report_dir}")  # fmt: skip
+         f"calibrate={','.join(DECLARED)}", f"ignore={STEP[0]}_offset",
+         f"out={report_dir}")  # fmt: skip
     with open(os.path.join(report_dir, "report.json")) as f:
         report = json.load(f)
     ext_path = os.path.join(report_dir, "extended_model.json")
     ext = jaxcal.models.load(ext_path)
     noise = [report["data"]["noise_std"][s] for s in ext.output_names]
+    # the extended model's own columns (its true parameters; heat_loss is not one)
+    keep = ["unit", "time", *ext.condition_names, *ext.output_names,
+            *(p for p in ext.parameter_names if p in fleet.columns)]  # fmt: skip
+    fleet = fleet[keep]
+    csv = os.path.join(data_dir, "fleet_extended.csv")
+    fleet.to_csv(csv, index=False)
     seconds, tracks = {}, {}
     start = time.perf_counter()
     ukf = jaxcal.calibrate(ext_path, fleet, "ukf", noise=dict(

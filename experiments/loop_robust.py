@@ -40,7 +40,7 @@ Usage::
 
     python experiments/loop_robust.py [models=turbofan,heat_exchanger,thermal]
         [seeds=16] [clean=48] [multiples=2,5,10] [kinds=...] [out=results/loop/robust]
-        [noise_order=3] [forms=fleet,units] [rerender=true]
+        [noise_order=3] [forms=fleet,units] [rerender=true] [shards=2 shard=0]
 """
 
 from __future__ import annotations
@@ -90,6 +90,8 @@ class RobustConfig:
     max_life: int = 0  # 0: each model's own
     out: str = "results/loop/robust"
     rerender: bool = False  # only rewrite summary, figure and README from records
+    shards: int = 1  # split the cells over processes: this one runs every shards-th cell
+    shard: int = 0  # ... starting at this one (merge the records.jsonl files after)
 
 
 def loop_config(cfg: RobustConfig) -> LoopConfig:
@@ -308,6 +310,8 @@ def main(argv: list[str]) -> int:
     try:
         cfg = parse_overrides(argv, RobustConfig())
         bad = [m for m in cfg.models if m not in rs.STUDY_MODELS]
+        if not 0 <= cfg.shard < cfg.shards:
+            raise ValueError(f"shard: {cfg.shard} not in [0, shards={cfg.shards})")
         if bad:
             raise ValueError(f"models: unknown {bad}; valid: {list(rs.STUDY_MODELS)}")
     except ValueError as err:
@@ -334,7 +338,7 @@ def main(argv: list[str]) -> int:
         cells = _cells(cfg, sm)
         for n, (kind, m_idx, seed) in enumerate(cells):
             mult = 0.0 if kind == "none" else cfg.multiples[m_idx]
-            if (name, kind, mult, seed) in done:
+            if (name, kind, mult, seed) in done or n % cfg.shards != cfg.shard:
                 continue
             row = run_one(model, sm, cfg, loop, kind, m_idx, seed)
             rows.append(row)

@@ -25,7 +25,8 @@ only its measured sensors X_s unless ``outputs`` names others; a C-MAPSS file ha
 row per flight. Every data set is subsampled evenly within units down to ``max_rows``
 (0 keeps every row). Rows holding NaN or Inf are dropped, and the console,
 ``report.md`` and ``report.json`` say how many (per column); ``rename=T_24:T24`` maps
-column names. float64 is enabled here, at the entry point.
+column names, ``ignore=a,b`` leaves table columns out. float64 is enabled here, at
+the entry point.
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ class DiagnoseConfig:
     alpha: float = 0.01  # family-wise level of the likelihood-ratio tests
     # column names to map, <file name>:<model name> (e.g. T_24:T24)
     rename: tuple[str, ...] = ()
+    # table columns to leave out (e.g. a truth column the model does not know)
+    ignore: tuple[str, ...] = ()
 
     @property
     def model_spec(self) -> str:
@@ -111,7 +114,9 @@ def load_data(cfg: DiagnoseConfig, model):
         record = load_cmapss_text(cfg.data, nonfinite="drop")
         return record if units is None else record.select_units(units)
     if ext in (".csv", ".parquet", ".pq"):
-        data = read_dataset(cfg.data, model, rename=_rename(cfg), nonfinite="drop")
+        data = read_dataset(
+            cfg.data, model, rename=_rename(cfg), ignore=cfg.ignore, nonfinite="drop"
+        )
         return data if units is None else data.select_units(units)
     raise ValueError(
         f"data={cfg.data!r}: expected a .csv, .parquet, .h5 (N-CMAPSS) or .txt "

@@ -112,6 +112,9 @@ class Identification(NamedTuple):
     num_tests: int
     fits: dict  # entry name -> FitResult of every refitted model
     onset_ci: dict  # candidate key -> [U, 2] rows of a step's onset interval
+    # the candidate no unit showed on its own with the largest summed unit score, on
+    # every unit, and that sum: a basis for the noise model (pipeline), never a verdict
+    near_miss: tuple = ()  # (Candidate, LR) or ()
 
 
 def log10_chi2_sf(x: float, df: int) -> float:
@@ -186,8 +189,9 @@ def effect_sizes(fit: FitResult, members: Sequence[Candidate], data: LoopData):
 
 
 def _singles(screen: Screen, library, null, data, forms=("fleet", "units")):
-    """Every library candidate in each of its forms, screened."""
-    out, onset_ci = [], {}
+    """Every library candidate in each of its forms, screened; and the near miss
+    (:class:`Identification`)."""
+    out, onset_ci, near = [], {}, ()
     for cand in library:
         if "units" not in forms and not cand.kind.fleet:
             if cand.kind.profile == "step":
@@ -212,12 +216,17 @@ def _singles(screen: Screen, library, null, data, forms=("fleet", "units")):
         units, scores = screen.units_form(cand)
         if cand.kind.profile == "step":
             onset_ci[cand.name] = scores.onset_ci
+        total = float(np.sum(scores.lr))
+        if units is None and total > (near[1] if near else 0.0):
+            every = range(data.num_units)
+            onsets = scores.onset if cand.kind.profile == "step" else ()
+            near = (cand.with_form("units", every, onsets), total)
         if units is not None:
             carriers = list(units.carriers)
             lr = float(scores.lr[carriers].sum())
             size = cand.scale * float(np.nanmean(scores.estimate[carriers]))
             out.append(_entry([units], lr, null, data, [size], [np.nan], False, detect))
-    return out, onset_ci
+    return out, onset_ci, near
 
 
 def _profile_onsets(model, data, declared, members, fit, offset, cfg):
@@ -275,7 +284,7 @@ def identify(
         :class:`Identification`.
     """
     screen = Screen(model, data, library, null)
-    singles, onset_ci = _singles(screen, library, null, data, cfg.forms)
+    singles, onset_ci, near_miss = _singles(screen, library, null, data, cfg.forms)
     singles.sort(key=lambda e: e.bic)
     entries = {e.name: e for e in singles}
     top = []
@@ -368,5 +377,5 @@ def identify(
         onset_ci.update(refined_ci.get(winner.name, {}))
     return Identification(
         null, ranking, winner, None if winner is None else fits[winner.name],
-        confounded, absorbed, num_tests, fits, onset_ci,
+        confounded, absorbed, num_tests, fits, onset_ci, near_miss,
     )  # fmt: skip

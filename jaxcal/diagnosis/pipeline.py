@@ -63,6 +63,7 @@ from jaxcal.diagnosis.noise_fit import fit_noise, quantised
 from jaxcal.diagnosis.plausibility import plausibility_flags
 from jaxcal.diagnosis.prepare import LoopData, prepare_data
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
+from jaxcal.diagnosis.screen import init_from, spec_for
 from jaxcal.diagnosis.terms import ModelSpec
 from jaxcal.diagnosis.units import unit_effects, unit_trajectories
 from jaxcal.model import Model
@@ -290,7 +291,9 @@ def diagnose(
     library = _library(model, data, declared, cfg)
     ident = identify(model, data, declared, library, cfg.identify, null)
     for _ in range(cfg.noise_passes - 1):
-        basis = ident.winner_fit if ident.winner is not None else _best_fit(ident)
+        basis = ident.winner_fit
+        if ident.winner is None:
+            basis = _best_fit(model, data, declared, ident, null, cfg)
         if basis is None:
             break
         refit = _fit_noise(data, basis, given, cfg)
@@ -305,18 +308,27 @@ def diagnose(
     return _finish(model, data, declared, library, ident, null, cfg)
 
 
-def _best_fit(ident: Identification) -> FitResult | None:
-    """The fit of the best-ranked candidate, significant or not.
+def _best_fit(model, data, declared, ident: Identification, null, cfg):
+    """The fit of the best candidate, significant or not: the best-ranked one, or
+    the near miss (:class:`~jaxcal.diagnosis.identify.Identification`) on every unit
+    where its summed unit score is larger.
 
     An effect the declared parameters cannot follow leaves a misfit in the
     declared-only residual that the noise model reads as a high level and a strong
     colour (seen: 20x the true level of a heat-flow output under a bias in three of
     four units of a model with memory), and under that noise no candidate is
     significant. The best candidate's residual is the better basis for the noise.
+    Under so inflated a noise no unit may show the effect on its own (seen: a heat
+    capacity's change 5x its detectability, the heat-flow noise read 8.5x too high,
+    every unit below its carrier price): the near miss is then the best candidate.
     """
-    if not ident.ranking:
-        return None
-    return ident.fits.get(ident.ranking[0].name)
+    best = ident.ranking[0] if ident.ranking else None
+    if ident.near_miss and (best is None or ident.near_miss[1] > best.lr_stat):
+        cand = ident.near_miss[0]
+        spec = spec_for(declared, [cand], null.spec.initial_state)
+        init = init_from(null, model, data, spec)
+        return fit_model(model, data, spec, init, max_iters=cfg.max_iters)
+    return None if best is None else ident.fits.get(best.name)
 
 
 def _level_moved(old, new) -> bool:

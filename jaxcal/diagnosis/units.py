@@ -19,9 +19,10 @@ From the final fit (:mod:`.fitting`, prewhitened residual):
   minimum-effect z-test ``H0: |size_u| <= delta`` against ``|size_u| > delta``,
   ``z_u = (|size_u| - delta) / std_u`` one-sided, ``delta`` a tenth of the effect's
   natural step (:mod:`.kinds`; :data:`MIN_EFFECT`), with Holm's step-down
-  correction across the units at family-wise level ``alpha`` (Holm 1979). A listed unit is a claim about one
-  engine: with probability at least ``1 - alpha`` no unit without an effect beyond
-  ``delta`` is listed, and no unit whose own data do not show the effect is.
+  correction across the units at family-wise level ``alpha`` (Holm 1979). A listed
+  unit is a claim about one engine: with probability at least ``1 - alpha`` no unit
+  without an effect beyond ``delta`` is listed, and no unit whose own data do not
+  show the effect is.
 * **Onset.** A step: the scanned onset and its 95 % profile-likelihood interval
   (:mod:`.screen`). A smooth parameter: the first cycle from which its change since
   the first cycle stays beyond ``delta + z_band std(t)`` up to the unit's last cycle

@@ -47,16 +47,22 @@ MODEL = jaxcal.Model.from_step(
 NOISE = {"outlet": 0.05, "load": 0.002}
 
 
-def _dataset(bias: float, outlet_bias: float = 0.0, phi: float = 0.0, seed=1):
+def _dataset(
+    bias: float, outlet_bias: float = 0.0, phi: float = 0.0, seed=1,
+    c_end: float = 2e4, carriers=(0, 1, 2),
+):  # fmt: skip
+    """Three units of 120 rows; the capacity C grows linearly from 2e4 to ``c_end``
+    in the ``carriers`` (an undeclared parameter's change)."""
     rng = np.random.default_rng(seed)
     frames = []
     for unit in range(3):
         n = 120
         power = np.repeat(rng.uniform(0, 3000, n // 12), 12)
         r_true = 0.05 + 0.01 * unit
+        c = np.linspace(2e4, c_end if unit in carriers else 2e4, n)
         z, xs = jnp.array([AMBIENT + power[0] * r_true]), []
         for t in range(n):
-            z, x = wall_step(z, jnp.array([power[t]]), jnp.array([r_true, 2e4]))
+            z, x = wall_step(z, jnp.array([power[t]]), jnp.array([r_true, c[t]]))
             xs.append(np.asarray(x))
         x = np.array(xs)
         noise = ar1_noise(rng, (n, 2), np.zeros(n, int), phi)
@@ -107,3 +113,45 @@ def test_clean_data_give_no_effect(phi):
     filter's lag, or the colour, read as a fault before)."""
     result = diagnose(_dataset(bias=0.0, phi=phi), MODEL, ("R",))
     assert result.verdict == "none" and result.added == [], result.added
+
+
+def test_a_capacity_far_beyond_its_high_bound_is_named():
+    """C grows to 3.75x its high bound (4e4) in one unit: out of reach of a box
+    widened by half the range (5.5e4), where the fit named a step on C and a
+    discrepancy; the log-scale box (1.6e5) follows it (fitting.fit_box)."""
+    result = diagnose(_dataset(0.0, c_end=1.5e5, carriers=(0,)), MODEL, ("R",))
+    assert result.added == ["parameter[C]"], result.added
+    assert result.unit_effects[0].carries.tolist() == [True, False, False]
+
+
+def test_a_misfit_read_as_noise_gives_way_to_the_near_miss():
+    """Under a noise level 8x the truth (what a misfit read as noise looks like) a
+    5 % drift of C in every unit passes no unit's test: nothing ranks, yet C has the
+    largest summed unit score (the near miss). The noise refitted to the near
+    miss's fit is back at the truth, where the declared-only residual reads 10x
+    (pipeline._best_fit): the next pass can find C."""
+    from jaxcal.diagnosis.fitting import fit_model
+    from jaxcal.diagnosis.identify import identify
+    from jaxcal.diagnosis.pipeline import LoopConfig, _best_fit, _fit_noise, _library
+    from jaxcal.diagnosis.prepare import prepare_data
+    from jaxcal.diagnosis.terms import ModelSpec
+
+    cfg = LoopConfig()
+    noise = {k: 8.0 * v for k, v in NOISE.items()}
+    data = prepare_data(
+        _dataset(0.0, c_end=2.1e4), MODEL, knots=cfg.knots,
+        candidate_knots=cfg.candidate_knots, noise_std=noise,
+    )  # fmt: skip
+    null = fit_model(MODEL, data, ModelSpec(("R",), initial_state=True))
+    library = _library(MODEL, data, ("R",), cfg)
+    ident = identify(MODEL, data, ("R",), library, cfg.identify, null)
+    assert ident.winner is None
+    near, lr = ident.near_miss
+    assert near.name == "parameter[C]" and near.carriers == (0, 1, 2)
+    assert all(lr > e.lr_stat for e in ident.ranking)
+    before = _fit_noise(data, null, None, cfg).noise.sigma
+    after = _fit_noise(data, _best_fit(MODEL, data, ("R",), ident, null, cfg), None,
+                       cfg).noise.sigma  # fmt: skip
+    truth = np.array([NOISE["outlet"], NOISE["load"]])
+    assert before[0] > 5 * truth[0]
+    np.testing.assert_allclose(after, truth, rtol=0.15)

@@ -178,3 +178,27 @@ def test_prepare_data_counts_the_rows_it_drops_for_nan():
     assert data.num_rows == 57 and np.isfinite(data.x).all()
     assert data.dropped == {"T30": 6, "alt": 1, "Mach": 1}
     assert data.dropped_rows == 7
+
+
+def test_the_fit_box_widens_a_quantity_of_one_sign_on_the_log_scale():
+    """A resistance or a capacity (bounds of one sign) may leave its declared range
+    far away from zero (x4 for a bound ratio of 4) but only halve toward zero; a
+    quantity that may change sign gets half its range on each side."""
+    from jaxcal.diagnosis.fitting import fit_box
+
+    thermal = load("thermal")  # R_sa (0.01, 0.03), R_cs (0.005, 0.02), C_core (1e5,4e5)
+    low, high = fit_box(thermal)
+    j = thermal.parameter_names.index("R_cs")
+    np.testing.assert_allclose([low[j], high[j]], [0.0025, 0.08])
+    j = thermal.parameter_names.index("C_core")
+    np.testing.assert_allclose([low[j], high[j]], [5e4, 1.6e6])
+    j = thermal.parameter_names.index("R_sa")  # additive would reach 0: sqrt(3) kept
+    np.testing.assert_allclose([low[j], high[j]], [0.01 / np.sqrt(3.0), 0.09])
+    assert np.all(low[: len(thermal.parameters)] > 0)
+    hx = load("heat_exchanger")  # fouling (0, 0.6): from zero, additive both ways
+    low, high = fit_box(hx)
+    j = hx.parameter_names.index("fouling")
+    np.testing.assert_allclose([low[j], high[j]], [-0.3, 0.9])
+    engine = load("cmapss")  # health modifiers (-0.3, 0.03): across zero, additive
+    low, high = fit_box(engine)
+    np.testing.assert_allclose([low[0], high[0]], [-0.465, 0.195])
