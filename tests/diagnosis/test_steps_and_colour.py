@@ -100,3 +100,33 @@ def test_one_wild_reading_is_left_out_and_said():
     assert "1 outlier row (units 2 (1); outputs power (1)" in note
     assert res.data.num_rows == UNITS * STEPS - 1
     np.testing.assert_allclose(res.data.noise_std, list(NOISE.values()), rtol=0.25)
+
+
+def test_the_noise_is_refitted_to_the_rival_that_leaves_the_least_residual():
+    """Once a winner stands, the noise model's basis is the fit of the winner or of
+    a single effect within the BIC margin of it, whichever has the larger likelihood
+    ratio (pipeline._winner_basis): a winner's misfit read as noise kept a step from
+    separating from the drift that won. A pair, or a single beyond the margin, is
+    never the basis."""
+    from types import SimpleNamespace
+
+    from jaxcal.diagnosis.identify import Identification
+    from jaxcal.diagnosis.pipeline import _winner_basis
+
+    def entry(name, bic, lr, members=1):
+        return SimpleNamespace(name=name, bic=bic, lr_stat=lr, members=(0,) * members)
+
+    won = entry("sensor_gain_drift[p]", 100.0, 50.0)
+    rival = entry("parameter_step[c]", 100.7, 56.5)
+    far = entry("sensor_step[p]", 111.0, 80.0)
+    pair = entry("sensor_gain_drift[p] + parameter_step[c]", 98.0, 90.0, members=2)
+    fits = {e.name: f"fit of {e.name}" for e in (won, rival, far, pair)}
+
+    def ident(ranking, winner):
+        return Identification(None, ranking, winner, fits[winner.name], [], [], 4,
+                              fits, {})  # fmt: skip
+
+    assert _winner_basis(ident([pair, won, rival, far], won), 10.0) == fits[rival.name]
+    assert _winner_basis(ident([pair, won, rival, far], won), 0.5) == fits[won.name]
+    # a pair that won keeps its own fit: a rival single explains less
+    assert _winner_basis(ident([pair, won, rival], pair), 10.0) == fits[pair.name]
