@@ -162,6 +162,55 @@ def _before() -> list[str]:
     return lines
 
 
+GOALS = {  # the issue's bar: summary key -> (test, text)
+    "false_alarm_rate": (lambda v: v <= 0.05, "<= 0.05"),
+    "ident_5x": (lambda v: v >= 0.9, ">= 0.9"),
+    "ident_2x": (lambda v: v >= 0.6, ">= 0.6"),
+    "unit_hit_rate": (lambda v: v >= 0.9, ">= 0.9"),
+    "onset_error": (lambda v: v <= 0.10, "<= 0.10"),
+}
+
+
+def _goal_cells(s: dict) -> list[str]:
+    """Each goal's number for one summary (the lowest rate over kinds for the
+    identification), marked met or not (``–``: nothing to measure)."""
+    lowest = {}
+    for m in ("5x", "2x"):
+        rates = [v[m] for v in s["identification"].values() if v.get(m) is not None]
+        lowest[f"ident_{m}"] = min(rates) if rates else None
+    cells = []
+    for key, (ok, _) in GOALS.items():
+        v = lowest[key] if key in lowest else s.get(key)
+        cells.append(
+            "–" if v is None else f"{_fmt(v)} {'met' if ok(v) else '**not met**'}"
+        )
+    return cells
+
+
+def _goals(summary: dict, out: str) -> list[str]:
+    """The issue's goals, overall and per model (the lowest kind for identification)."""
+    head = "| | " + " | ".join(
+        ["false alarms", "identification 5x (lowest kind)",
+         "identification 2x (lowest kind)", "unit hit rate", "onset error"]
+    ) + " |"  # fmt: skip
+    lines = [
+        "## Against the goals",
+        "",
+        head,
+        "|---|" + "---|" * len(GOALS),
+        "| goal | " + " | ".join(text for _, text in GOALS.values()) + " |",
+        "| all models | " + " | ".join(_goal_cells(summary)) + " |",
+    ]
+    for model, per in summary["per_model"].items():
+        lines.append(f"| {model} | " + " | ".join(_goal_cells(per)) + " |")
+    before_after = "levers/before_after/README.md"
+    if not os.path.exists(os.path.join(out, before_after)):
+        return [*lines, ""]
+    lines += ["", f"Before and after issue 24 on the same records: [{before_after}]"
+              f"({before_after}).", ""]  # fmt: skip
+    return lines
+
+
 def _lever_row(label: str, s: dict) -> str:
     ident5 = [v["5x"] for v in s["identification"].values() if v.get("5x")
               is not None]  # fmt: skip
@@ -251,6 +300,7 @@ def write(cfg, rows: list[dict], command: str, minutes: float | None) -> str:
         "",
         *_table(summary, counts, cfg.multiples),
         "",
+        *_goals(summary, cfg.out),
     ]
     for model, per in summary["per_model"].items():
         c = counts["per_model"][model]

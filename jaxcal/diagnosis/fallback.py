@@ -126,6 +126,12 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
             )
             options.append((_bic_with(fit_w, disc_w), fit_w, off_w, disc_w, screen))
     _, best, offset, disc, chosen = min(options, key=lambda o: o[0])
-    final = chosen if chosen is not None else rescreen
+    # delta alone won: the rescreen's winner lost beside it and is not added (its
+    # members are not in the chosen fit, so nothing of it can be reported per unit)
+    final = (
+        chosen
+        if chosen is not None
+        else rescreen._replace(winner=None, winner_fit=None, confounded=[])
+    )
     note = _fallback_note(options, chosen, ident, rescreen)
     return best, offset, disc if disc.any_significant else None, final, rescreen, note

@@ -62,3 +62,43 @@ def test_folds_group_whole_units_or_contiguous_blocks():
         assert len(set(f[groups == g])) == 1
     f1 = _folds(np.zeros(10), 5)
     np.testing.assert_array_equal(f1, np.repeat(np.arange(5), 2))
+
+
+def test_delta_alone_winning_adds_no_library_effect(monkeypatch):
+    """When delta alone has the lowest BIC, the rescreen's winner (beside delta) lost
+    and is not reported: the final identification has no winner (on NASA FD001 it
+    kept a winner whose parameter was not in the chosen fit, and the per-unit
+    verdict failed with a KeyError)."""
+    from types import SimpleNamespace
+
+    from jaxcal.diagnosis import fallback as fb
+    from jaxcal.diagnosis.identify import Identification
+
+    winner = SimpleNamespace(name="parameter[fan_eff_mod]", members=())
+    fan_fit = SimpleNamespace(params=None)
+    rescreen = Identification(None, [winner], winner, fan_fit, ["x"], [], 1,
+                              {}, {})  # fmt: skip
+    ident = rescreen._replace(winner=None, winner_fit=None, confounded=[])
+    significant = SimpleNamespace(any_significant=True)
+    monkeypatch.setattr(fb, "_delta", lambda *a: significant)
+    monkeypatch.setattr(fb, "identify", lambda *a, **k: rescreen)
+    monkeypatch.setattr(fb, "spec_for", lambda *a: None)
+    declared = SimpleNamespace(initial_state=False)  # the declared-only spec
+    monkeypatch.setattr(
+        fb,
+        "_backfit",
+        lambda model, data, spec, *a: (
+            "delta alone" if spec is declared else "fan + delta",
+            None,
+            significant,
+        ),
+    )
+    monkeypatch.setattr(fb, "_bic_with", lambda fit, disc: 0.0 if fit == "delta alone"
+                        else 5.0)  # fmt: skip
+    null = SimpleNamespace(spec=declared, params=None,
+                           evaluation=SimpleNamespace(resid=None))  # fmt: skip
+    cfg = SimpleNamespace(identify=None)
+    best, _, disc, final, _, note = fb.fallback(None, None, (), (), ident, null, cfg)
+    assert best == "delta alone" and disc is significant
+    assert final.winner is None and final.winner_fit is None and final.confounded == []
+    assert "parameter[fan_eff_mod]" in note
