@@ -7,6 +7,7 @@ Three steps, each a command::
     PYTHONPATH=/tmp/before python experiments/loop_before.py run label=before \\
         [records=data/loop_before] [out=results/loop/robust/levers/before_after]
     python experiments/loop_before.py run label=after [records=...] [out=...]
+        [models=...] [shard=0/2]  (a part of the records: processes side by side)
     python experiments/loop_before.py compare [out=...]
 
 ``write`` draws exactly the records of the robust study (``loop_robust.py``: the
@@ -58,7 +59,7 @@ LABELS = ("before", "after")
 OPTIONS = {
     "write": {"models": ",".join(MODELS), "seeds": "4", "clean": "8", "kinds": "",
               "records": RECORDS},
-    "run": {"label": "", "records": RECORDS, "out": OUT},
+    "run": {"label": "", "records": RECORDS, "out": OUT, "models": "", "shard": "0/1"},
     "compare": {"out": OUT},
 }  # fmt: skip
 
@@ -335,6 +336,10 @@ def run(opts: dict) -> int:
           f"{', jaxcal/ modified' if code['jaxcal_modified'] else ''})")  # fmt: skip
     with open(os.path.join(opts["records"], "truth.json")) as f:
         truth = json.load(f)
+    if opts["models"]:  # a part of the records (processes side by side, one file)
+        truth = [t for t in truth if t["model"] in opts["models"].split(",")]
+    shard, shards = (int(v) for v in opts["shard"].split("/"))
+    truth = truth[shard::shards]  # shard=i/n: every n-th record from the i-th
     os.makedirs(opts["out"], exist_ok=True)
     path = os.path.join(opts["out"], f"{label}.jsonl")
     done = {_key(r) for r in _read_jsonl(path)}
