@@ -55,6 +55,14 @@ class EffectKind:
             ``noise`` (noise std of the output), ``relative`` (noise std relative to
             the output's mean level) or ``spread`` (% of the condition's std).
         size_range: the default magnitude range of a drawn size, in ``draw`` units.
+        min_effect: the smallest size a unit must show to be listed as carrying it,
+            in natural steps (:mod:`.units`). A parameter's is half a step: its
+            per-unit size is its change over the record, and a free parameter
+            absorbs the declared ones' mismatch as a slow change of a few tenths of
+            a step in every unit (NASA FD001, no fan fault: fan efficiency changed by
+            0.08-0.39 steps in all 100 units). The other kinds' is a tenth (half a
+            step listed a turbofan inlet offset at 5x its detectability, 11 standard
+            errors in every unit, in none).
     """
 
     name: str
@@ -65,6 +73,7 @@ class EffectKind:
     rules: tuple[str, ...] = ()
     draw: str = "noise"
     size_range: tuple[float, float] = (2.0, 5.0)
+    min_effect: float = 0.1
 
     def __post_init__(self):
         if self.channel not in CHANNELS or self.profile not in PROFILES:
@@ -124,12 +133,12 @@ KINDS: dict[str, EffectKind] = _kinds(
         "parameter", "parameter", "spline", False,
         "{target} changing over the units' lives",
         ("outside_bounds", "better_than_new", "constant_from_start"), "natural",
-        (0.5, 2.0),
+        (0.5, 2.0), min_effect=0.5,
     ),
     EffectKind(
         "parameter_step", "parameter", "step", False,
         "a sudden change of {target} (damage)",
-        ("outside_bounds", "better_than_new"), "natural", (0.5, 2.0),
+        ("outside_bounds", "better_than_new"), "natural", (0.5, 2.0), min_effect=0.5,
     ),
     EffectKind(
         "effect", "effect", "constant", True, "{target}", ("outside_bounds",),

@@ -81,10 +81,10 @@ def _noise(d) -> dict:
 
 
 UNIT_TEST = (
-    "{form}; one-sided minimum-effect z-test of H0: |size| <= {delta:.3g} (half the "
-    "effect's natural step) per unit, Holm step-down across the units at family-wise "
-    "level {alpha:g}; a smoothly changing parameter's size is its change over the "
-    "unit's record (last minus first cycle)"
+    "{form}; one-sided minimum-effect z-test of H0: |size| <= {delta:.3g} ({share:g} "
+    "of the effect's natural step) per unit, Holm step-down across the units at "
+    "family-wise level {alpha:g}; a smoothly changing parameter's size is its change "
+    "over the unit's record (last minus first cycle)"
 )
 FORM_TEXT = {
     "fleet": "fitted fleet-wide (one value), each unit tested on its own data",
@@ -114,7 +114,10 @@ def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
             {
                 **entry,
                 "unit_test": UNIT_TEST.format(
-                    alpha=alpha, delta=eff.min_size, form=FORM_TEXT[eff.form]
+                    alpha=alpha,
+                    delta=eff.min_size,
+                    form=FORM_TEXT[eff.form],
+                    share=eff.min_effect,
                 ),
                 "onset_rule": ONSET_RULE.format(z=z, alpha=alpha, delta=eff.min_size),
                 "min_size": eff.min_size,

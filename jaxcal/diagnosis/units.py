@@ -17,8 +17,8 @@ From the final fit (:mod:`.fitting`, prewhitened residual):
 * **Carries**: a unit the form allows (every unit for a fleet-wide term; the carriers
   the screen chose for a per-unit one, each on its own data) whose effect passes the
   minimum-effect z-test ``H0: |size_u| <= delta`` against ``|size_u| > delta``,
-  ``z_u = (|size_u| - delta) / std_u`` one-sided, ``delta`` a tenth of the effect's
-  natural step (:mod:`.kinds`; :data:`MIN_EFFECT`), with Holm's step-down
+  ``z_u = (|size_u| - delta) / std_u`` one-sided, ``delta`` the kind's minimum effect
+  in natural steps (:class:`.kinds.EffectKind` ``min_effect``), with Holm's step-down
   correction across the units at family-wise level ``alpha`` (Holm 1979). A listed
   unit is a claim about one engine: with probability at least ``1 - alpha`` no unit
   without an effect beyond ``delta`` is listed, and no unit whose own data do not
@@ -47,12 +47,6 @@ from jaxcal.diagnosis.terms import term_profile
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # as fitting._RIDGE: keeps a unit's empty knots finite
-# The minimum effect a unit must show, in natural steps: it keeps a unit from being
-# listed for a misfit of a few hundredths of a step, and no more. (Half a step
-# before, which left a turbofan inlet offset found at 5x its detectability, 11
-# standard errors in every unit, listed in none: the natural step is a unit of
-# size, not of evidence.)
-MIN_EFFECT = 0.1
 
 
 class UnitTrajectories(NamedTuple):
@@ -75,10 +69,11 @@ class UnitEffect(NamedTuple):
     carries: np.ndarray  # [U] bool, Holm at alpha
     onset: np.ndarray  # [U] cycle, NaN where the unit does not carry it
     onset_ci: np.ndarray  # [U, 2] cycles of a step's onset interval (else NaN)
-    min_size: float  # delta of the test: MIN_EFFECT natural steps
+    min_size: float  # delta of the test: the kind's min_effect natural steps
     trajectory: np.ndarray  # [N] the effect per row (parameter value, drift * tau, ...)
     start_value: np.ndarray  # [U] value at the unit's first cycle (parameters)
     start_std: np.ndarray  # [U]
+    min_effect: float = 0.1  # delta in natural steps (EffectKind.min_effect)
 
 
 def holm(p: np.ndarray, alpha: float) -> np.ndarray:
@@ -225,7 +220,7 @@ def unit_effects(
     for cand in members:
         onset = np.full(units, np.nan)
         ci = np.full((units, 2), np.nan)
-        delta = MIN_EFFECT * cand.scale
+        delta = cand.kind.min_effect * cand.scale
         spline = cand.kind.channel == "parameter" and cand.kind.profile == "spline"
         if spline:
             value, std = traj.value[cand.target], traj.std[cand.target]
@@ -285,6 +280,7 @@ def unit_effects(
                 row_traj,
                 start_value,
                 start_std,
+                cand.kind.min_effect,
             )  # fmt: skip
         )
     return out

@@ -148,6 +148,9 @@ def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine, study_co
     assert res.added == ["parameter[fan_eff_mod]"], res.identification.ranking[:3]
     eff = res.unit_effects[0]
     assert res.data.unit_ids[eff.carries].tolist() == [2, 4]
+    # a parameter is listed beyond half its natural step (0.01 for a modifier): a
+    # tenth let the slow mismatch a free modifier absorbs in every unit through
+    assert eff.min_effect == 0.5 and eff.min_size == pytest.approx(0.005)
     # fitted in the two carriers only (the per-unit form), each within 4 of its
     # standard errors of the truth
     assert res.members[0].form == "units" and len(res.members[0].carriers) == 2
