@@ -90,7 +90,7 @@ class RobustConfig:
     max_life: int = 0  # 0: each model's own
     out: str = "results/loop/robust"
     rerender: bool = False  # only rewrite summary, figure and README from records
-    shards: int = 1  # split the cells over processes: this one runs every shards-th cell
+    shards: int = 1  # the cells split over processes: this one runs every shards-th
     shard: int = 0  # ... starting at this one (merge the records.jsonl files after)
 
 
