@@ -78,8 +78,11 @@ $(BENCH_STAMP): $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	touch $(BENCH_STAMP)
 
+# ... and jaxcal.calibrate's first / repeat / new-process times (compile once:
+# experiments/bench_compile.py -> results/bench/compile.json, ~30 min with the turbofan).
 bench: $(BENCH_STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_cpu.py $(BENCH_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_compile.py out=results/bench/compile.json
 
 # The battery example (examples/battery): PyBaMM data, every calibrator, dynamax and
 # PyBOP beside -> results/examples/battery/README.md. The extras are installed with

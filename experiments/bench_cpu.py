@@ -47,7 +47,7 @@ from cpubench.policy import bench_policy  # noqa: E402
 from cpubench.training import QUICK_SIZES, TrainingSizes, bench_training  # noqa: E402
 from cpubench.ukf import bench_ukf  # noqa: E402
 
-from jaxcal.precision import enable_compilation_cache  # noqa: E402
+from jaxcal.cache import enable_compilation_cache  # noqa: E402
 from jaxcal.training.run_dir import write_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -155,12 +155,16 @@ def _key(r: dict) -> tuple:
 
 def _enable_x64() -> None:
     try:
-        from jaxcal.precision import enable_compilation_cache, enable_x64
+        from jaxcal.precision import enable_x64
     except ImportError:  # pragma: no cover - any checkout has it today
         import jax
 
         jax.config.update("jax_enable_x64", True)
         return
+    try:
+        from jaxcal.cache import enable_compilation_cache
+    except ImportError:  # a checkout before issue 26
+        from jaxcal.precision import enable_compilation_cache
     enable_x64()
     enable_compilation_cache()
 

@@ -31,12 +31,13 @@ import time
 
 import numpy as np
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.data.cmapss_text import load_cmapss_text
 from jaxcal.diagnosis.markdown import effect_line
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
 from jaxcal.diagnosis.report import write_report, write_text
 from jaxcal.models import load
-from jaxcal.precision import enable_compilation_cache, enable_x64
+from jaxcal.precision import enable_x64
 from jaxcal.settings import config_to_dict, parse_overrides
 
 DEFAULT_DIR = os.path.join(

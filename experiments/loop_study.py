@@ -35,6 +35,7 @@ import time
 import jax
 import numpy as np
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
 from jaxcal.diagnosis.report import json_safe, write_text
 from jaxcal.diagnosis.synthetic import SyntheticConfig, kinds, make_synthetic_data
@@ -46,7 +47,7 @@ from jaxcal.models.turbofan_scenario import (
     FleetConfig,
     make_scenario,
 )
-from jaxcal.precision import enable_compilation_cache, enable_x64
+from jaxcal.precision import enable_x64
 from jaxcal.settings import config_from_dict, config_to_dict, parse_overrides
 
 # The turbofan's kinds, as kinds(model) orders them (the order seeds the records;

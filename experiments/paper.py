@@ -428,9 +428,9 @@ def main(argv: list[str] | None = None) -> int:
     preset, out, seed = parsed
     from tqdm import tqdm
 
+    from jaxcal.cache import enable_compilation_cache
     from jaxcal.paper.report import write_report
     from jaxcal.paper.steps import StepStore, format_seconds
-    from jaxcal.precision import enable_compilation_cache
 
     enable_compilation_cache()
     start = time.perf_counter()

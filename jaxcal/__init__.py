@@ -5,7 +5,7 @@ The public front::
     import jaxcal
 
     model = jaxcal.Model.from_function(fn, conditions=..., parameters=..., outputs=...)
-    result = jaxcal.calibrate(model, "data.csv", method="ukf")  # "ls", "e2e", "policy"
+    result = jaxcal.calibrate(model, "data.csv", method="ukf")  # or "ls", "e2e"
     turbofan = jaxcal.models.load("cmapss")
     data = jaxcal.read_dataset("data.parquet", model)           # a jaxcal.Dataset
 
@@ -29,7 +29,7 @@ _EXPORTS = {
     "Dataset": ("jaxcal.data.dataset", "Dataset"),
     "read_dataset": ("jaxcal.data.readers", "read_dataset"),
     "calibrate": ("jaxcal.calibrators.front", "calibrate"),
-    "CalibrationResult": ("jaxcal.calibrators.front", "CalibrationResult"),
+    "CalibrationResult": ("jaxcal.calibrators.result", "CalibrationResult"),
     "models": ("jaxcal.models", None),
 }
 

@@ -18,9 +18,10 @@ import time
 import jax
 import numpy as np
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.physics import load_engine
 from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.precision import enable_compilation_cache, enable_x64, float_dtype
+from jaxcal.precision import enable_x64, float_dtype
 
 
 def envelope_points(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

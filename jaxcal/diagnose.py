@@ -134,13 +134,14 @@ def output_dir(cfg: DiagnoseConfig) -> str:
 
 def run(cfg: DiagnoseConfig) -> dict:
     """Diagnose ``cfg.data`` and write the report; returns the report dict."""
+    from jaxcal.cache import enable_compilation_cache
     from jaxcal.diagnosis.discrepancy import DiscrepancyConfig
     from jaxcal.diagnosis.identify import IdentifyConfig
     from jaxcal.diagnosis.markdown import dropped_rows_line
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
     from jaxcal.diagnosis.report import write_report
     from jaxcal.models import load
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.precision import enable_x64
 
     if not cfg.data:
         raise ValueError("data=<file .csv | .parquet | .h5 | .txt> is required")

@@ -250,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
     if code is not None:
         return code
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.precision import enable_x64
     from jaxcal.training.run_dir import EVALUATION_FILE, write_json
     from jaxcal.training.runs import needs_x64
 

@@ -80,8 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     # Heavy imports after argument checks: a typo fails fast, without loading JAX.
     from tqdm import tqdm
 
+    from jaxcal.cache import enable_compilation_cache
     from jaxcal.data.builders import build_dataset
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.precision import enable_x64
 
     enable_x64()
     enable_compilation_cache()  # the engine's solve compiles in ~45 s; reruns reuse it

@@ -1,9 +1,10 @@
 """Figures of the data sets and of calibration traces (host-only leaf, matplotlib Agg).
 
-Every function takes numpy-convertible arrays, draws on a fresh ``Figure`` with an Agg
-canvas (no pyplot: no global state, no display needed) and writes a PNG atomically: a
-temporary file in the target directory, then ``os.replace``. Nothing in the core imports
-this module.
+Every function takes numpy-convertible arrays and draws on a fresh ``Figure`` with an
+Agg canvas (no pyplot: no global state, no display needed); the ``plot_*`` ones write a
+PNG atomically (a temporary file in the target directory, then ``os.replace``), the
+``*_figure`` ones return the figure. Nothing in the core imports this module at import
+time.
 
 * :func:`plot_flight_profiles`: alt / Mach / TRA against time (paper Fig. 2, left).
 * :func:`plot_health_trajectories`: fleet health modifiers against cycle (Fig. 2,
@@ -254,3 +255,87 @@ def plot_stacked_traces(
     if title:
         fig.suptitle(title)
     return save_figure(fig, path, dpi=dpi)
+
+
+def unit_traces_figure(
+    time,
+    unit,
+    theta,
+    names: Sequence[str],
+    *,
+    theta_std=None,
+    valid=None,
+    units: Sequence | None = None,
+    max_units: int = 6,
+    ylabels: Sequence[str] | None = None,
+    title: str | None = None,
+) -> Figure:
+    """Calibrated parameters against time, one panel per parameter, a line per unit.
+
+    Rows are drawn in time order within their unit; where ``theta_std`` is given a
+    band of ±2 std surrounds the line, and skipped rows (``valid`` False, which
+    repeat the unit's last estimate) are marked with crosses.
+
+    Args:
+        time: [N] row time.
+        unit: [N] row unit id.
+        theta: [N, P] estimates, columns named by ``names``.
+        names: P parameter names.
+        theta_std: optional [N, P] standard deviation of ``theta``.
+        valid: optional [N] bool, False where the row was skipped.
+        units: the unit ids to draw (default: the first ``max_units`` in sorted order).
+        max_units: how many units to draw when ``units`` is not given.
+        ylabels: optional P y-axis labels (default: ``names``).
+        title: optional figure title.
+
+    Returns:
+        The ``Figure`` (Agg canvas attached: ``fig.savefig(path)`` works).
+    """
+    theta = _batched(theta, "theta", 2)
+    num_rows, num_params = theta.shape
+    if len(names) != num_params:
+        raise ValueError(f"names needs {num_params} entries, got {len(names)}")
+    time, unit = np.asarray(time), np.asarray(unit)
+    if time.shape != (num_rows,) or unit.shape != (num_rows,):
+        raise ValueError(
+            f"time and unit must be [{num_rows}]: {time.shape}, {unit.shape}"
+        )
+    std = None if theta_std is None else np.asarray(theta_std, dtype=float)
+    if std is not None and std.shape != theta.shape:
+        raise ValueError(f"theta_std must be {theta.shape}, got {std.shape}")
+    ok = np.ones(num_rows, bool) if valid is None else np.asarray(valid, bool)
+    present = np.unique(unit)
+    if units is None:
+        units = present[:max_units]
+    else:
+        units = np.asarray(units, dtype=unit.dtype).reshape(-1)
+        missing = [u for u in units.tolist() if u not in set(present.tolist())]
+        if missing:
+            raise ValueError(f"unit(s) {missing} not in the result: {present.tolist()}")
+    fig = Figure(figsize=(10, 2.4 * num_params + 0.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(num_params, 1, sharex=True, squeeze=False)[:, 0]
+    for k, u in enumerate(units):
+        rows = np.flatnonzero(unit == u)
+        rows = rows[np.argsort(time[rows], kind="stable")]
+        t, skipped, color = time[rows], ~ok[rows], f"C{k % 10}"
+        for j, ax in enumerate(axes):
+            y = theta[rows, j]
+            ax.plot(t, y, lw=1.0, color=color, label=f"unit {u}")
+            if std is not None:
+                s = std[rows, j]
+                ax.fill_between(t, y - 2 * s, y + 2 * s, color=color, alpha=0.2, lw=0)
+            if skipped.any():
+                ax.plot(t[skipped], y[skipped], "x", color=color, ms=5)
+    for j, ax in enumerate(axes):
+        ax.set_ylabel(names[j] if ylabels is None else ylabels[j])
+        ax.grid(alpha=0.3)
+    if not ok.all():  # one legend entry for the crosses of every unit
+        axes[0].plot([], [], "x", color="0.3", label="skipped")
+    shown = "" if len(units) == len(present) else f" ({len(units)} of {len(present)})"
+    band = "" if std is None else ", band ±2 std"
+    axes[0].legend(fontsize=8, ncol=2, loc="best", title=f"units{shown}{band}")
+    axes[-1].set_xlabel("time")
+    if title:
+        fig.suptitle(title)
+    return fig

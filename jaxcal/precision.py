@@ -25,20 +25,3 @@ def is_x64() -> bool:
 def float_dtype():
     """The widest float dtype JAX currently allows (float64 under x64, else float32)."""
     return jnp.zeros((), dtype=float).dtype
-
-
-def enable_compilation_cache(path: str | None = None) -> None:
-    """Persist compiled XLA programs on disk (entry points and tests only).
-
-    The engine's Newton solve takes 10-60 s to compile on a small CPU; the cache makes
-    every later process that builds the same program start in seconds. The directory
-    defaults to ``$JAXCAL_CACHE_DIR`` or ``~/.cache/jaxcal/xla``.
-    """
-    import os
-
-    path = path or os.environ.get("JAXCAL_CACHE_DIR") or os.path.join(
-        os.path.expanduser("~"), ".cache", "jaxcal", "xla"
-    )
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

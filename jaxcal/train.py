@@ -165,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
 
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.precision import enable_x64
     from jaxcal.training.pipeline import GenerationError, run_training
     from jaxcal.training.run_dir import FINAL_FILE
 

@@ -9,7 +9,8 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-from jaxcal.precision import enable_compilation_cache, enable_x64  # noqa: E402
+from jaxcal.cache import enable_compilation_cache  # noqa: E402
+from jaxcal.precision import enable_x64  # noqa: E402
 
 enable_x64()
 enable_compilation_cache()
@@ -43,6 +44,7 @@ LONGEST_FIRST = (
     "test_paper_quick.py",  # 190: experiments/paper.py preset=quick
     "diagnosis/test_identify.py",  # 160
     "physics/test_engine.py",  # 96
+    "test_readme.py",  # 73: each README block with ukf, ls and e2e
     "paper/test_stream_form.py",  # 68
     "physics/test_engine_hinted.py",  # 67
     "calibrators_peers/test_guard.py",  # 48

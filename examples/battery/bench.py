@@ -46,7 +46,8 @@ def _streams(frame, num: int, steps: int):
 
 
 def _jaxcal_seconds(sub) -> float:
-    from jaxcal.calibrators.methods import build_calibrator
+    from jaxcal.calibrators import methods
+    from jaxcal.data.buckets import bucket_units
     from jaxcal.data.readers import read_dataset
     from jaxcal.problem import Problem
     from model import MODEL
@@ -56,9 +57,9 @@ def _jaxcal_seconds(sub) -> float:
     cols = ["unit", "time", "current", "dt", "voltage"]  # the model's columns only
     data = read_dataset(sub[cols], MODEL).for_model(MODEL, None)
     problem = Problem.build(MODEL, data, theta=THETA, noise={"voltage": UKF["noise"]})
-    padded = data.padded(np.float64)
-    cal, run = build_calibrator("ukf", problem, padded, 0, _method_options("ukf", {}))
-    return _median_seconds(lambda: run(cal, padded).theta)
+    buckets = bucket_units(data, np.float64)
+    built = methods.build(problem, methods.config("ukf", _method_options("ukf", {})), buckets)
+    return _median_seconds(lambda: built.run(buckets.parts[0]).theta)
 
 
 def _dynamax_seconds(sub, num: int) -> float:

@@ -53,20 +53,28 @@ No single bad row decides anything for the other rows:
   ``UserWarning``, also in ``result.notes``); a calibration that keeps no row is an
   error that says why (:mod:`jaxcal.calibrators.skipped`).
 * **Memory** grows with the rows: units are padded in groups of similar length
-  (:mod:`jaxcal.data.buckets`), one compiled program per group.
+  (:mod:`jaxcal.data.buckets`), one compiled program per group shape.
+
+Compiled once: the UKF and least squares are compiled once per process and method
+settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
+compiled`), and once per machine through JAX's persistent compilation cache, on by
+default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import sys
 import warnings
 from collections.abc import Mapping, Sequence
 
 import jax
 import numpy as np
 
+from jaxcal.calibrators import methods
 from jaxcal.calibrators.guard import MASKED, OK, REASON_CODE, REASONS
 from jaxcal.calibrators.outliers import OUTLIER_Z, describe_outliers
+from jaxcal.calibrators.result import CalibrationResult
 from jaxcal.calibrators.skipped import model_nonfinite_note, nothing_valid_error
 from jaxcal.data.buckets import bucket_units
 from jaxcal.data.dataset import Dataset, clip_jitter
@@ -74,90 +82,10 @@ from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.problem import Problem
 
-METHODS = ("ukf", "ls", "e2e", "policy")
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
+METHODS = tuple(methods.METHODS)  # the method table's names
 MANY_OUTLIERS = 0.01  # a share of outlier rows worth a word about the model
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class CalibrationResult:
-    """Per-row results of :func:`calibrate`, in the data's row order.
-
-    Attributes:
-        theta: ``[N, P]`` calibrated parameters after each row.
-        theta_std: ``[N, P]`` their standard deviation, or ``None``.
-        states: ``[N, Z]`` the model's hidden state after each row (the joint UKF's
-            filtered state, the window fit's simulated one), or ``None``.
-        state_names: ``Z`` names (empty for a static model).
-        xhat: ``[N, S]`` the model output that goes with ``theta``.
-        valid: ``[N]`` bool; False where the sample was skipped (``reason``): its
-            row repeats the unit's last used row, or the prior before the first
-            (module docstring).
-        reason: ``[N]`` str: ``ok`` or why the sample was skipped (the guard's
-            :data:`~jaxcal.calibrators.guard.REASONS`, ``outlier`` among them).
-        partial: ``[N]`` bool: some outputs of the row were missing (NaN); used on
-            the observed outputs where ``valid`` (UKF, LS), else skipped as
-            ``x_partial`` (E2E, policy). ``None``: not recorded.
-        theta_names, output_names: column names.
-        unit, time: ``[N]`` the rows' unit and time (as read).
-        method: the method's name.
-        problem: the :class:`~jaxcal.problem.Problem` that was solved.
-        notes: what data cleaning did (conditions within 1 % of their range outside
-            it, logging jitter, set onto the bound; farther ones are flagged) and
-            the console lines: skipped rows per reason, the outliers, the model's
-            non-finite outputs, a given noise far narrower than the data.
-    """
-
-    theta: np.ndarray
-    theta_std: np.ndarray | None
-    states: np.ndarray | None
-    state_names: tuple[str, ...]
-    xhat: np.ndarray
-    valid: np.ndarray
-    reason: np.ndarray
-    theta_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    unit: np.ndarray
-    time: np.ndarray
-    method: str
-    problem: Problem
-    notes: tuple[str, ...] = ()
-    partial: np.ndarray | None = None
-
-    @property
-    def num_partial(self) -> dict:
-        """``{"used": rows, "skipped": rows}`` of the rows with missing outputs."""
-        partial = np.zeros_like(self.valid) if self.partial is None else self.partial
-        return {
-            "used": int(np.sum(partial & self.valid)),
-            "skipped": int(np.sum(partial & ~self.valid)),
-        }
-
-    @property
-    def num_flagged(self) -> dict:
-        """``{reason: rows}`` of the skipped rows."""
-        names, counts = np.unique(self.reason[~self.valid], return_counts=True)
-        return {str(n): int(c) for n, c in zip(names, counts, strict=True)}
-
-    def to_frame(self):
-        """A pandas DataFrame: unit, time, theta (and ``<name>_std``), x-hat
-        (``<name>_hat``), valid, reason, partial."""
-        import pandas as pd
-
-        cols = {"unit": self.unit, "time": self.time}
-        for j, name in enumerate(self.theta_names):
-            cols[name] = self.theta[:, j]
-            if self.theta_std is not None:
-                cols[f"{name}_std"] = self.theta_std[:, j]
-        if self.states is not None:
-            for j, name in enumerate(self.state_names):
-                cols[name] = self.states[:, j]
-        for j, name in enumerate(self.output_names):
-            cols[f"{name}_hat"] = self.xhat[:, j]
-        cols["valid"], cols["reason"] = self.valid, self.reason
-        if self.partial is not None:
-            cols["partial"] = self.partial
-        return pd.DataFrame(cols)
+PROGRESS_AFTER = 3.0  # seconds before a call shows its progress line
 
 
 def _dtype(model: Model):
@@ -180,6 +108,7 @@ def calibrate(
     *,
     outputs: Sequence[str] | None = None,
     seed: int = 0,
+    progress: bool = True,
     **options,
 ) -> CalibrationResult:
     """Calibrate ``model`` on ``data`` with ``method`` (see the module docstring).
@@ -193,6 +122,8 @@ def calibrate(
         noise: output name -> noise standard deviation (default: estimated).
         outputs: outputs to use (default: every model output in the data).
         seed: PRNG seed (E2E training).
+        progress: show a progress line on stderr when the call takes longer than
+            :data:`PROGRESS_AFTER` seconds (``False``: never).
         options: method settings — ``q``, ``prior_std`` (UKF), ``window``,
             ``num_iters`` (LS), ``e2e``/``e2e_config``/``e2e_window`` (E2E), ``run``
             (policy); for a model with hidden states ``state_std`` (initial-state
@@ -214,11 +145,13 @@ def calibrate(
             (with the cause: the input checks, the model's non-finite outputs, a
             noise too small for the arithmetic).
     """
-    from jaxcal.calibrators.methods import build_calibrator
+    from jaxcal import cache
     from jaxcal.models import load
 
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    cache.ensure_default()  # compile once per machine (jaxcal.cache)
+
     model = load(model)
     dtype = _dtype(model)
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
@@ -230,19 +163,30 @@ def calibrate(
         run = options["run"] = load_run(options["run"])
         theta = run.problem.theta_names if theta is None else theta
         outputs = run.problem.output_names if outputs is None else outputs
+    cfg = methods.config(method, options)
     data = read_dataset(data, model, **reader).for_model(model, outputs)
     clipped, notes = clip_jitter(data.w, model)
     data = dataclasses.replace(data, w=clipped)
     problem = Problem.build(model, data, theta=theta, noise=noise)
     _check_noise_precision(problem, dtype)
     buckets = bucket_units(data, dtype)
-    screened = _screen(method, problem, data, buckets, noise, threshold, options)
+    bar = _progress(len(buckets.parts) + 2, progress)
+    bar.set_description_str("jaxcal.calibrate: screening (UKF passes)", False)
+    screened = _screen(cfg, problem, data, buckets, noise, threshold)
     if screened is not None:
         problem = screened.problem
-    built = build_calibrator(method, problem, buckets, seed, options)
+    bar.update()
+    bar.set_description_str(f"jaxcal.calibrate: building {method}", False)
+    built = methods.build(problem, cfg, buckets, seed)
+    bar.update()
     skip = np.zeros(data.num_rows, bool) if screened is None else screened.outlier
     parts = zip(buckets.parts, buckets.from_rows(skip, False), strict=True)
-    outs = [built.run(built.calibrator, part, cells) for part, cells in parts]
+    outs = []
+    for k, (part, cells) in enumerate(parts):
+        bar.set_description_str(f"jaxcal.calibrate: {method}, unit group {k + 1}", 0)
+        outs.append(built.run(part, cells))
+        bar.update()
+    bar.close()
     result = _to_rows(outs, buckets, data, problem, method, built.prior_std, skip)
     if not result.valid.any():
         codes = np.asarray([REASON_CODE[r] for r in result.reason])
@@ -252,6 +196,18 @@ def calibrate(
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))
+
+
+def _progress(total: int, enabled: bool):
+    """A progress line on stderr, shown only once a call has taken
+    :data:`PROGRESS_AFTER` seconds (a first call compiles; E2E trains)."""
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total, desc="jaxcal.calibrate", delay=PROGRESS_AFTER, leave=False,
+        disable=not enabled, file=sys.stderr,
+        bar_format="{desc} ({n}/{total} steps, {elapsed}; a first call compiles)",
+    )  # fmt: skip
 
 
 def _check_noise_precision(problem: Problem, dtype) -> None:
@@ -293,21 +249,24 @@ def _threshold(value) -> float:
     return value
 
 
-def _screen(method, problem, data, buckets, noise, threshold, options):
+def _screen(cfg, problem, data, buckets, noise, threshold):
     """The noise (estimated when not given) and the outlier rows (:mod:`.screen`),
     or ``None`` where there is nothing to screen by: a policy without a noise
-    level, or a given noise with outlier flags off."""
-    from jaxcal.calibrators.methods import ukf_options
+    level, or a given noise with outlier flags off. The passes are the method's own
+    UKF, else a default one with the method's state settings."""
+    from jaxcal.calibrators.methods import UKF, LeastSquares, Policy
     from jaxcal.calibrators.screen import screen
 
-    if noise is None and method == "policy":
+    if noise is None and isinstance(cfg, Policy):
         return None
     if noise is not None and threshold == np.inf:
         return None
+    if not isinstance(cfg, UKF):
+        std = cfg.state_std if isinstance(cfg, LeastSquares) else None
+        cfg = UKF(state_std=std)
     return screen(
-        problem, data, buckets, ukf_options(method, options),
-        estimate=noise is None, threshold=threshold,
-    )  # fmt: skip
+        problem, data, buckets, cfg, estimate=noise is None, threshold=threshold
+    )
 
 
 def _flag_notes(result, problem, data, screened, dtype) -> list[str]:

@@ -359,6 +359,7 @@ def check_scale(theta_scale: Array | None, num_params: int, dtype: Any) -> Array
         raise ValueError(
             f"theta_scale must be [P] = ({num_params},), got {scale.shape}"
         )
-    if not isinstance(scale, jax.core.Tracer) and not bool(jnp.all(scale > 0)):
+    # numpy on concrete values: a jnp comparison under a trace would be traced
+    if not isinstance(scale, jax.core.Tracer) and not np.all(np.asarray(scale) > 0):
         raise ValueError("theta_scale must be > 0 everywhere")
     return scale

@@ -26,6 +26,9 @@ point with a non-finite cost is rejected, so a failed model evaluation never ent
 Missing outputs: a NaN in ``x`` (a sensor channel dropped out) is left out of the
 sum of squares (a masked residual, fixed shapes), so both take partial rows
 (``Calibrator.accepts_partial``).
+
+The streaming std is :func:`~jaxcal.calibrators.drift_std.drift_std`: honest when
+theta drifts within the window (``aux["laplace_std"]`` keeps the fit's own std).
 """
 
 from __future__ import annotations
@@ -39,6 +42,12 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
+from jaxcal.calibrators.drift_std import (
+    DriftHistory,
+    drift_std,
+    init_drift_history,
+    prior_age,
+)
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
@@ -109,6 +118,7 @@ class LSState:
     observed: Array  # [N, S] bool, False where an output was missing (NaN)
     valid: Array  # [N] bool, False until a slot has been filled
     pos: Array  # [] int32, next slot to overwrite
+    history: DriftHistory  # the past estimates the drift is measured from
 
 
 class FitInfo(NamedTuple):
@@ -208,8 +218,9 @@ def make_least_squares(
         NaN on missing outputs (left out of the residual) and reports ``theta``,
         ``xhat = F(w_t, theta_t)`` (from the cached residual, no extra evaluation
         unless an output is missing) and
-        ``aux`` with ``theta_std [P]`` (Laplace: ``(J^T J)^-1`` with noise ``r``) and
-        ``cost []``.
+        ``aux`` with ``theta_std [P]`` (the Laplace std ``(J^T J)^-1`` with noise
+        ``r``, widened by the window's lag behind a drifting theta: see
+        :func:`drift_std`), ``laplace_std [P]`` (the fit's alone) and ``cost []``.
     """
     norm = check_norm(norm)
     theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
@@ -228,6 +239,7 @@ def make_least_squares(
             observed=jnp.ones((cfg.window, x0.shape[0]), bool),
             valid=jnp.zeros((cfg.window,), bool),
             pos=jnp.zeros((), jnp.int32),
+            history=init_drift_history(theta0 / scale, cfg.window),
         )
 
     def step(state: LSState, w_t: Array, x_t: Array) -> tuple[LSState, CalStepOutput]:
@@ -257,10 +269,24 @@ def make_least_squares(
             carry.resid, (state.pos * num_sensors,), (num_sensors,)
         )
         cov = _inverse_psd(carry.jac.T @ carry.jac)
-        aux = {"theta_std": scale * jnp.sqrt(jnp.diagonal(cov)), "cost": carry.cost}
+        ages = (state.pos - jnp.arange(cfg.window)) % cfg.window  # slot -> age
+        ages = jnp.repeat(ages.astype(cov.dtype), num_sensors)
+        if cfg.prior_std is not None:
+            ages = jnp.concatenate([ages, prior_age(state.history)])
+        drift_jac = -ages[:, None] * carry.jac
+        if cfg.prior_std is not None:
+            ages = ages.at[-theta0.shape[0] :].set(-1.0)  # the prior: no sample
+        std, laplace_std, history = drift_std(
+            state.history, carry.z, cov, carry.jac, drift_jac, ages, cfg.window
+        )
+        aux = {
+            "theta_std": scale * std,
+            "laplace_std": scale * laplace_std,
+            "cost": carry.cost,
+        }
         new_state = LSState(
             z=carry.z, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
-            pos=(state.pos + 1) % cfg.window,
+            pos=(state.pos + 1) % cfg.window, history=history,
         )  # fmt: skip
         # F(w_t, theta) from the cached residual; a missing output has none there
         # (masked to 0), so a partial row costs one model evaluation more.

@@ -13,7 +13,8 @@ off its passes:
   sec. 5.4), per output. A wild row drags the filter, so the rows after it look
   wild too: the first pass proposes candidates, the second pass skips them and judges
   every row again from the filter state carried past the skipped ones (the UKF step
-  evaluated at each row from the state before it, :func:`_innovations`), and only
+  evaluated at each row from the state before it,
+  :func:`~jaxcal.calibrators.compiled.filter_program`), and only
   candidates still beyond the gate are flagged (never a new row: skipping the start
   of a real change would make the rest of it look wild, one pass after another).
   The innovations are taken about their robust centre and over their robust scale
@@ -32,8 +33,10 @@ off its passes:
   outliers were found, the first level again with them skipped, as if they had not
   come; the noise from the post-fit residual of the pass on that level.
 
-The UKF is compiled once for all passes (the noise is an argument of the compiled
-program), group by group of the :class:`~jaxcal.data.buckets.Buckets`.
+The UKF is compiled once per process for all passes and all calls (the noise and
+the outputs' centre are arguments of the compiled program,
+:mod:`jaxcal.calibrators.compiled`), group by group of the
+:class:`~jaxcal.data.buckets.Buckets`.
 
 So a few wild rows change neither the noise of the other units nor their results,
 and their own unit's stream skips them (reason ``outlier``).
@@ -43,16 +46,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Mapping
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.guard import MASKED, OK
-from jaxcal.calibrators.interface import Calibrator, SensorNorm, run_fleet
-from jaxcal.calibrators.methods import model_based_factory, model_check
+from jaxcal.calibrators.methods import UKF, model_inputs, ukf_program
 from jaxcal.calibrators.outliers import (
     OutlierRows,
     outlier_rows,
@@ -103,7 +103,7 @@ def screen(
     problem: Problem,
     data: Dataset,
     buckets: Buckets,
-    ukf_options: Mapping,
+    cfg: UKF,
     *,
     estimate: bool,
     threshold: float,
@@ -114,8 +114,7 @@ def screen(
         problem: the problem; its noise is the given one unless ``estimate``.
         data: the rows, as calibrated (``buckets`` index them).
         buckets: the rows as padded unit groups.
-        ukf_options: settings of the UKF passes (``UKFConfig`` fields, ``state_std``,
-            ``state_q``); not modified.
+        cfg: the UKF passes' settings (:class:`~jaxcal.calibrators.methods.UKF`).
         estimate: estimate the noise (else judge against ``problem.noise_std``).
         threshold: the gate in standard deviations (``inf``: flag nothing).
 
@@ -127,8 +126,7 @@ def screen(
             to estimate the noise from.
     """
     none = np.zeros(data.num_rows, bool)
-    check = model_check(problem)
-    ukf = _pass_function(problem, data, dict(ukf_options), check, buckets.dtype)
+    ukf = _pass_function(problem, data, cfg, buckets.dtype)
     run = functools.partial(_pass, ukf, data=data, buckets=buckets)
     settled = _settled(buckets)
     if estimate:
@@ -179,22 +177,22 @@ def screen(
     return Screen(problem, found.mask, found, notes)
 
 
-def _pass_function(problem: Problem, data: Dataset, options: dict, check, dtype):
+def _pass_function(problem: Problem, data: Dataset, cfg: UKF, dtype):
     """``(noise [S], w, x, mask) -> (reason, xhat, innovation, its std)`` of the
-    UKF on ``problem`` with that noise, ``[U, T, ...]``, jitted once for all passes
-    (the noise is an argument, not a constant of the compiled program)."""
-    make = model_based_factory("ukf", problem, dtype, options)
+    UKF on ``problem`` with that noise, ``[U, T, ...]``: the method table's UKF
+    program (:func:`~jaxcal.calibrators.methods.ukf_program`, compiled once per
+    process; the noise and the outputs' centre are arguments)."""
     # the outputs' median: a mean a wild reading moved (1e6 in one row) would cost
     # every unit digits in float32
-    centre = jnp.asarray(np.nan_to_num(robust_centre(data.x)), dtype)
+    centre = np.nan_to_num(robust_centre(data.x))
+    inputs = model_inputs(problem, cfg, dtype, x_mean=centre)
+    program = ukf_program(problem, cfg, dtype)
 
-    def one(noise, w, x, mask):
-        cal = _exposing_state(make(SensorNorm(mean=centre, std=noise)))
-        out = run_fleet(cal, w, x, mask, check=check)
-        innovation, std = _innovations(cal, w, x, out.reason, out.aux["filter"])
+    def run(noise, w, x, mask):
+        out, innovation, std = program(inputs._replace(noise_std=noise), w, x, mask)
         return out.reason, out.xhat, innovation, std
 
-    return jax.jit(one)
+    return run
 
 
 def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _Pass:
@@ -219,40 +217,6 @@ def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _
         z=z, resid=data.x - xhat, valid=valid,
         judged=valid | (skip & (reason == MASKED)), reason=reason, skip=skip,
     )  # fmt: skip
-
-
-def _exposing_state(cal: Calibrator) -> Calibrator:
-    """``cal`` with its state after each row in ``aux["filter"]`` (held on skipped
-    rows: the state carried past them)."""
-
-    def step(state, w, x):
-        new, out = cal.step(state, w, x)
-        return new, out._replace(aux={**out.aux, "filter": new})
-
-    return Calibrator(init=cal.init, step=step)
-
-
-def _innovations(cal: Calibrator, w, x, reason, filt):
-    """``[U, T, S]`` innovation and its predicted std at every cell, from the state
-    before the row: the carried state of the previous row, the prior up to the
-    stream's first used row (where ``run_calibrator`` starts it)."""
-
-    def unit(w_u, x_u, reason_u, filt_u):
-        ok = reason_u == OK
-        first = jnp.argmax(ok)
-        state0 = cal.init(None, jnp.nan_to_num(w_u[first]), jnp.nan_to_num(x_u[first]))
-        at_prior = (jnp.arange(w_u.shape[0]) <= first) | ~jnp.any(ok)
-
-        def before(carried, s0):
-            shifted = jnp.concatenate([s0[None], carried[:-1]])
-            pick = at_prior.reshape((-1,) + (1,) * s0.ndim)
-            return jnp.where(pick, s0[None], shifted)
-
-        prev = jax.tree.map(before, filt_u, state0)
-        aux = jax.vmap(cal.step)(prev, w_u, x_u)[1].aux
-        return aux["innovation"], aux["innovation_std"]
-
-    return jax.vmap(unit)(w, x, reason, filt)
 
 
 def _flag(run: _Pass, threshold: float, given: bool) -> OutlierRows:

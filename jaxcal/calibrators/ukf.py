@@ -51,6 +51,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 from jax.scipy.linalg import cho_factor, cho_solve
 
@@ -367,7 +368,7 @@ def _state_vector(value, num_states: int, default: Array, field: str) -> Array:
     if value is None:
         return default
     arr = jnp.broadcast_to(jnp.asarray(value, default.dtype), (num_states,))
-    if not isinstance(arr, jax.core.Tracer) and not bool(jnp.all(arr >= 0)):
+    if not isinstance(arr, jax.core.Tracer) and not np.all(np.asarray(arr) >= 0):
         raise ValueError(f"{field} must be >= 0 (scalar or [Z]), got {value}")
     return arr
 

@@ -27,10 +27,17 @@ make_least_squares` (no scan, samples evaluated in parallel); the front picks it
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
+from jaxcal.calibrators.drift_std import (
+    DriftHistory,
+    drift_std,
+    init_drift_history,
+    prior_age,
+)
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
@@ -60,6 +67,7 @@ class WindowState:
     x_buf: Array  # [N, S] (0 where an output was missing: the state stays finite)
     observed: Array  # [N, S] bool, False where an output was missing (NaN)
     valid: Array  # [N] bool, False until a slot holds a sample
+    history: DriftHistory  # the past estimates the drift is measured from
 
 
 def make_window_least_squares(
@@ -90,7 +98,9 @@ def make_window_least_squares(
             keeps the estimate where the model is defined).
 
     Returns:
-        ``Calibrator(init, step)``; ``aux`` holds ``theta_std [P]`` (Laplace),
+        ``Calibrator(init, step)``; ``aux`` holds ``theta_std [P]`` (Laplace,
+        widened by the window's lag behind a drifting theta:
+        :func:`~jaxcal.calibrators.drift_std.drift_std`), ``laplace_std [P]``,
         ``cost []``, ``state [Z]`` (the state after the sample, simulated over the
         window) and ``state_std [Z]`` (of the window start).
     """
@@ -111,14 +121,16 @@ def make_window_least_squares(
         u_low, u_high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
 
     def simulate(theta, zs, w_buf, valid):
-        """Outputs over the window and the final state; invalid slots hold z."""
+        """Outputs over the window and the final state; invalid slots hold z.
+        ``theta`` is ``[P]`` or one per sample, ``[N, P]``."""
+        thetas = jnp.broadcast_to(theta, w_buf.shape[:1] + theta.shape[-1:])
 
         def body(z, inputs):
-            w, ok = inputs
-            z_next, x = step_fn(z, w, theta)
+            w, ok, theta_k = inputs
+            z_next, x = step_fn(z, w, theta_k)
             return jnp.where(ok, z_next, z), x
 
-        z_end, x = lax.scan(body, zs, (w_buf, valid))
+        z_end, x = lax.scan(body, zs, (w_buf, valid, thetas))
         return x, z_end
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> WindowState:
@@ -131,6 +143,7 @@ def make_window_least_squares(
             x_buf=jnp.tile(jnp.nan_to_num(x0), (cfg.window, 1)),
             observed=jnp.ones((cfg.window, x0.shape[0]), bool),
             valid=jnp.zeros((cfg.window,), bool),
+            history=init_drift_history(theta0 / scale, cfg.window),
         )
 
     def step(state: WindowState, w_t: Array, x_t: Array):
@@ -179,15 +192,43 @@ def make_window_least_squares(
         pred, z_end = simulate(theta, zs, w_buf, valid)
         cov = _inverse_psd(carry.jac.T @ carry.jac)
         std = jnp.sqrt(jnp.diagonal(cov))
+        # the residual's response to theta drifting within the window (through the
+        # simulated state: the model's memory spreads a drift over later samples);
+        # the arrival cost has no theta in it; the prior on theta is pseudo-data of
+        # the previous estimate's age
+        age = jnp.arange(cfg.window - 1, -1, -1).astype(u.dtype)
+
+        def drifted(rate):
+            path = scale * (u[None] - age[:, None] * rate[None])  # [N, P]
+            pred_path, _ = simulate(path, zs, w_buf, valid)
+            return jnp.where(used, pred_path / sigma, 0.0).ravel()
+
+        drift_jac = [
+            jax.jacfwd(drifted)(jnp.zeros_like(u)),
+            jnp.zeros((num_states, num_params), u.dtype),
+        ]
+        if cfg.prior_std is not None:
+            prior_rows = jnp.diag(prior_age(state.history)) / cfg.prior_std
+            drift_jac.append(-prior_rows)
+        ages = jnp.concatenate([  # the rows' sample ages; -1: no sample
+            jnp.repeat(age, x_t.shape[0]),
+            jnp.full(carry.jac.shape[0] - age.size * x_t.shape[0], -1.0, u.dtype),
+        ])  # fmt: skip
+        theta_std, laplace_std, history = drift_std(
+            state.history, u, cov, carry.jac, jnp.concatenate(drift_jac), ages,
+            cfg.window,
+        )  # fmt: skip
         aux = {
-            "theta_std": scale * std[:num_params],
+            "theta_std": scale * theta_std,
+            "laplace_std": scale * laplace_std,
             "cost": carry.cost,
             "state": z_end,
             "state_std": s_std * std[num_params:],
         }
         new_state = WindowState(
-            u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid
-        )
+            u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
+            history=history,
+        )  # fmt: skip
         return new_state, CalStepOutput(theta=theta, xhat=pred[-1], aux=aux)
 
     return Calibrator(init=init, step=step, accepts_partial=True)

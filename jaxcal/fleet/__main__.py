@@ -1,29 +1,46 @@
-"""Command line: calibrate every unit of an N-CMAPSS file, sharded, streamed, optionally
-on several processes.
+"""Command line: calibrate every unit of a fleet, sharded, streamed, optionally on
+several processes.
 
 Usage::
 
     python -m jaxcal.fleet data=data/cmapss.h5 method=ukf out=results/fleet/ukf.h5
-    python -m jaxcal.fleet data=FILE method=least_squares theta=HPT_eff_mod \\
-        sensors=T24,T30,T48,T50 units=7,8 stride=10 chunk_units=4 \\
-        least_squares.window=16
+    python -m jaxcal.fleet model=heat_exchanger data=fleet.csv method=ukf \\
+        noise=T_hot_out:0.05,T_cold_out:0.05,dp_hot:0.2,duty:1 out=OUT.h5
+    python -m jaxcal.fleet model=my_model.py:model data=fleet.parquet method=ls \\
+        theta=leak noise=0.1 window=16 out=OUT.h5
+    python -m jaxcal.fleet data=FILE.h5 method=ls theta=HPT_eff_mod \\
+        outputs=T24,T30,T48,T50 units=7,8 stride=10 chunk_units=4 window=16 out=OUT.h5
     python -m jaxcal.fleet data=FILE method=policy run=runs/<id> out=OUT.h5
     # two processes (same command on each, its own id; or the JAXCAL_* variables):
     python -m jaxcal.fleet --coordinator 10.0.0.1:12355 --num-processes 2 \\
         --process-id 0 data=FILE method=ukf out=OUT.h5
 
-Every ``key=value`` is a field of :class:`FleetConfig` (nested ``ukf.*`` and
-``least_squares.*`` fields too), parsed by :func:`jaxcal.cli_args.parse_overrides`.
+``model=`` is any :func:`jaxcal.models.load` spec (a registered name such as
+``cmapss``, ``heat_exchanger``, ``thermal``; ``path/to/file.py:attr``; an
+``extended_model.json``), default ``cmapss`` (``engine=`` is its old name). ``data=``
+is an N-CMAPSS ``.h5`` file (the turbofan's layout, streamed: never read whole) or any
+table the front door reads (``.csv``, ``.parquet``, C-MAPSS ``.txt``; held in memory),
+its columns named as the model's (:mod:`jaxcal.fleet.sources`). The method is built
+from the front door's method table (:mod:`jaxcal.fleet.method`): ``method=ukf|ls|
+e2e|policy`` (``least_squares`` is the old name of ``ls``; ``e2e`` on tables only),
+and every key that is not a field of :class:`FleetConfig` is an option of the method
+(``q=``, ``prior_std=``, ``window=``, ``num_iters=``, ``state_std=``, ``anchor=``,
+...; the old ``ukf.q=`` / ``least_squares.window=`` forms still work): a misspelt one
+prints the valid ones and exits with code 2. ``noise=`` is the measurement noise
+std, ``name:std,...`` per output or one number for all; without it the turbofan
+keeps its default (1 % of each output's spread) and other models are refused.
+Fields are parsed by :func:`jaxcal.settings.parse_overrides`.
 The cluster flags fall back to ``JAXCAL_COORDINATOR`` / ``JAXCAL_NUM_PROCESSES`` /
 ``JAXCAL_PROCESS_ID``; ``--local-devices K`` splits each process's CPU into ``K``
 devices.
-Process 0 writes ``out`` (atomically) and prints a JSON summary; a bad argument prints
-the error and exits with code 2. See ``docs/fleet.md``.
+Process 0 writes ``out`` (atomically; columns named by the problem's parameters and
+outputs) and prints a JSON summary; a bad argument prints the error and exits with
+code 2. See ``docs/fleet.md``.
 
-Samples with NaN / Inf, or outside the model's valid inputs (the engine's envelope for
-``ukf`` / ``least_squares``, the run's training range for ``policy``), are skipped and
-flagged: the file's ``valid`` / ``reason`` columns, ``flagged`` counts per reason in the
-summary; ``theta_rmse`` is over valid rows only.
+Samples with NaN / Inf, or outside the method's valid inputs (the model's condition
+range for ``ukf`` / ``ls``, the run's training range for ``policy``, the data's for
+``e2e``), are skipped and flagged: the file's ``valid`` / ``reason`` columns,
+``flagged`` counts per reason in the summary; ``theta_rmse`` is over valid rows only.
 """
 
 from __future__ import annotations
@@ -32,49 +49,85 @@ import argparse
 import dataclasses
 import json
 import sys
-from typing import Literal
+from typing import Any, Literal
 
 import h5py
 import numpy as np
 
-from jaxcal.calibrators.least_squares import LeastSquaresConfig
-from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.cli_args import parse_command_line
-from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
+from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
 from jaxcal.settings import config_to_dict, parse_overrides
 
-DEFAULT_THETA_SCALE = 0.01  # of a health modifier (see FleetConfig.theta_scale)
 USAGE = (
-    "usage: python -m jaxcal.fleet data=FILE.h5 out=OUT.h5 "
-    "[method=ukf|least_squares|policy] [run=RUN_DIR] [field=value ...] "
+    "usage: python -m jaxcal.fleet data=FILE out=OUT.h5 [model=SPEC] "
+    "[method=ukf|ls|e2e|policy] [run=RUN_DIR] [noise=NAME:STD,...|STD] "
+    "[field=value ...] [option=value ...] "
     "[--coordinator HOST:PORT --num-processes N --process-id I] [--local-devices K]"
 )
 
 
 @dataclasses.dataclass(frozen=True)
 class FleetConfig:
-    """What ``python -m jaxcal.fleet`` runs (every field settable as ``key=value``)."""
+    """What ``python -m jaxcal.fleet`` runs (every field but ``options`` settable as
+    ``key=value``; any other key is an option of the method, kept in ``options``)."""
 
-    data: str = ""  # input file in the N-CMAPSS HDF5 layout (required)
+    data: str = ""  # N-CMAPSS .h5 (streamed) or a table: .csv, .parquet, .txt
     out: str = ""  # output results file (required; written atomically by process 0)
-    split: Literal["dev", "test"] = "test"  # which split of the file
-    method: Literal["ukf", "least_squares", "policy"] = "ukf"
+    model: str = ""  # jaxcal.models.load spec; "" = engine=
+    engine: str = "cmapss"  # old name of model=
+    split: str = ""  # N-CMAPSS: dev | test ("" = test); a table's split label ("" all)
+    method: Literal["ukf", "ls", "least_squares", "e2e", "policy"] = "ukf"
     run: str = ""  # method=policy: the training run directory (runs/<id>)
-    engine: Literal["cmapss", "agtf30"] = "cmapss"  # model F of ukf / least_squares
-    theta: tuple[str, ...] = ("HPT_eff_mod",)  # declared parameters (HEALTH_NAMES)
-    sensors: tuple[str, ...] = ()  # () = the file's observed_sensors, else X_s
-    units: tuple[int, ...] = ()  # () = every unit of the split
+    theta: tuple[str, ...] = ()  # () = a policy's, the turbofan's HPT_eff_mod, or all
+    outputs: tuple[str, ...] = ()  # () = a policy's, the file's observed_sensors
+    # else X_s (N-CMAPSS), or every model output of the table
+    sensors: tuple[str, ...] = ()  # old name of outputs=
+    noise: str = ""  # measurement noise std: name:std,... or one number
+    units: tuple[int, ...] = ()  # () = every unit (of the split)
     stride: int = 1  # keep file rows 0, stride, 2 stride, ...
     chunk_units: int = 0  # units per global chunk; 0 = one per device
     max_len: int = 0  # padded length T; 0 = the longest selected unit
-    theta0: tuple[float, ...] = ()  # prior mean / start per parameter; () = 0
-    # the filters work in theta / theta_scale; () = 0.01 each: health modifiers are
-    # O(1 %), so ukf.q, ukf.prior_std are in percent (raw units would put the UKF's
-    # sigma points at theta = +-1, far outside the engine's envelope)
-    theta_scale: tuple[float, ...] = ()
+    theta0: tuple[float, ...] = ()  # prior mean / start per parameter; () = nominal
     unroll: int = 1  # lax.scan unroll factor
-    ukf: UKFConfig = UKFConfig()  # method=ukf settings (q = r = 0.01 as the paper)
-    least_squares: LeastSquaresConfig = LeastSquaresConfig()  # method=least_squares
+    seed: int = 0  # method=e2e: training seed
+    options: tuple[tuple[str, Any], ...] = ()  # the method's (name, value) options
+
+
+FLEET_KEYS = tuple(
+    f.name for f in dataclasses.fields(FleetConfig) if f.name != "options"
+)
+
+
+def _split_tokens(tokens: list[str]) -> tuple[list[str], list[tuple]]:
+    """Fleet ``key=value`` tokens, and the method's ``(prefix, name, text)``."""
+    fleet, options = [], []
+    for token in tokens:
+        key, sep, text = token.partition("=")
+        key = key.strip()
+        head, dot, name = key.partition(".")
+        if key == "theta_scale":
+            raise ValueError(
+                "theta_scale= is gone: the parameters are scaled by half their box "
+                "(the model's bounds), as in jaxcal.calibrate; q and prior_std are "
+                "in those units"
+            )
+        if sep and dot and head in OPTION_PREFIXES:
+            options.append((head, name, text))
+        elif sep and key and not dot and key not in FLEET_KEYS:
+            options.append((None, key, text))
+        else:
+            fleet.append(token)
+    return fleet, options
+
+
+def method_config(cfg: FleetConfig, run=None):
+    """The method table's config of ``cfg`` (a policy's ``run``: loaded or a path)."""
+    from jaxcal.calibrators import methods
+
+    options = dict(cfg.options)
+    if cfg.method == "policy":
+        options["run"] = run if run is not None else cfg.run
+    return methods.config(cfg.method, options)
 
 
 def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
@@ -88,9 +141,10 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
         ``num_processes``, ``process_id``, ``local_device_count``.
 
     Raises:
-        ValueError: naming the bad key or flag and the expected form.
+        ValueError: naming the bad key, option or flag and the expected form.
     """
     from jaxcal.fleet.distributed import process_settings
+    from jaxcal.fleet.sources import is_ncmapss
 
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--coordinator", default=None)
@@ -107,20 +161,32 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
             f"unknown flag(s) {unknown}; flags are --coordinator, --num-processes, "
             "--process-id, --local-devices"
         )
-    cfg = parse_overrides(rest, FleetConfig())
+    fleet_tokens, option_tokens = _split_tokens(rest)
+    cfg = parse_overrides(fleet_tokens, FleetConfig())
+    method = canonical(cfg.method)
+    options = method_options(method, option_tokens, FLEET_KEYS)
+    cfg = dataclasses.replace(cfg, method=method, options=options)
     if not cfg.data or not cfg.out:
-        raise ValueError("data=<file.h5> and out=<results.h5> are required")
-    if cfg.method == "policy" and not cfg.run:
+        raise ValueError("data=<file> and out=<results.h5> are required")
+    if method == "policy" and not cfg.run:
         raise ValueError("method=policy needs run=<runs/...> (training run dir)")
+    if method == "e2e" and is_ncmapss(cfg.data):
+        raise ValueError(
+            "method=e2e trains on the whole data set: give the data as a table "
+            "(.csv, .parquet), or use jaxcal.calibrate"
+        )
+    method_config(cfg)  # a bad option value fails here, before any work
+    parse_noise(cfg.noise)
     if cfg.stride < 1 or cfg.chunk_units < 0 or cfg.max_len < 0 or cfg.unroll < 1:
         raise ValueError(
             "need stride >= 1, chunk_units >= 0, max_len >= 0 and unroll >= 1"
         )
-    for name in ("theta0", "theta_scale"):
-        if getattr(cfg, name) and len(getattr(cfg, name)) != len(cfg.theta):
-            raise ValueError(
-                f"{name} needs one value per theta name ({len(cfg.theta)} values)"
-            )
+    if cfg.outputs and cfg.sensors:
+        raise ValueError("outputs= and its old name sensors= are both given")
+    if cfg.theta and cfg.theta0 and len(cfg.theta0) != len(cfg.theta):
+        raise ValueError(
+            f"theta0 needs one value per theta name ({len(cfg.theta)} values)"
+        )
     coordinator, num_processes, process_id = process_settings(
         flags.coordinator, flags.num_processes, flags.process_id
     )
@@ -131,62 +197,6 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
         "local_device_count": flags.local_devices,
     }
     return cfg, cluster
-
-
-def file_sensors(path: str) -> tuple[str, ...]:
-    """The file's ``observed_sensors`` attribute, else its measured sensors ``X_s``."""
-    with h5py.File(path, "r") as f:
-        observed = f.attrs.get("observed_sensors")
-        names = [n.decode().strip() for n in f["X_s_var"][()]] if "X_s_var" in f else []
-    if isinstance(observed, bytes):
-        observed = observed.decode()
-    if isinstance(observed, str) and observed:
-        return tuple(json.loads(observed))
-    return tuple(n for n in names if n in MEASURED_SENSOR_NAMES)
-
-
-def build_calibrator(cfg: FleetConfig, sensors: tuple[str, ...], norm):
-    """The :class:`~jaxcal.calibrators.interface.Calibrator` of ``cfg.method``."""
-    import jax.numpy as jnp
-
-    from jaxcal.calibrators.interface import measure_declared
-
-    if cfg.method == "policy":
-        from jaxcal.deploy import load_calibrator
-
-        return load_calibrator(cfg.run)
-    from jaxcal.calibrators.least_squares import make_least_squares
-    from jaxcal.calibrators.ukf import make_ukf
-    from jaxcal.physics import load_engine
-
-    engine = load_engine(cfg.engine)
-    measure = measure_declared(
-        lambda w, th: engine.evaluate(w, th)[0],
-        jnp.zeros(len(engine.health_names)),  # undeclared parameters: healthy
-        cfg.theta,
-        sensors,
-    )
-    theta0 = jnp.asarray(cfg.theta0 or (0.0,) * len(cfg.theta))
-    scale = jnp.asarray(cfg.theta_scale or (DEFAULT_THETA_SCALE,) * len(cfg.theta))
-    if cfg.method == "ukf":
-        return make_ukf(measure, cfg.ukf, norm, theta0=theta0, theta_scale=scale)
-    return make_least_squares(
-        measure, cfg.least_squares, norm, theta0=theta0, theta_scale=scale
-    )
-
-
-def build_check(cfg: FleetConfig):
-    """The valid input box of ``cfg.method``: the engine's envelope, or the policy
-    run's training range (``None`` for a run that predates it: finiteness only)."""
-    from jaxcal.calibrators.interface import SampleCheck
-
-    if cfg.method == "policy":
-        from jaxcal.deploy import load_run, run_check
-
-        return run_check(load_run(cfg.run))
-    from jaxcal.physics.engine import ENVELOPES
-
-    return SampleCheck.from_envelope(ENVELOPES[cfg.engine])
 
 
 def theta_rmse(path: str, block_rows: int = 1 << 20) -> list[float] | None:
@@ -209,59 +219,78 @@ def run(cfg: FleetConfig) -> dict:
     """Calibrate the selected units of ``cfg.data``; process 0 writes ``cfg.out``."""
     import jax
 
-    from jaxcal.fleet.ncmapss_source import (
-        iter_ncmapss_chunks,
-        sensor_norm,
-        unit_lengths,
+    from jaxcal.fleet.method import (
+        build_problem,
+        default_theta,
+        make_method,
+        require_noise,
     )
     from jaxcal.fleet.results import FleetResultWriter
     from jaxcal.fleet.sharded import make_unit_mesh
+    from jaxcal.fleet.sources import open_source
     from jaxcal.fleet.streaming import calibrate_stream, units_per_chunk
+    from jaxcal.models import load
 
-    sensors = cfg.sensors or file_sensors(cfg.data)
-    units = cfg.units or None
-    unit_ids, lengths = unit_lengths(cfg.data, cfg.split, units, stride=cfg.stride)
-    max_len = cfg.max_len or int(lengths.max())
-    norm, norm_source = sensor_norm(
-        cfg.data, cfg.split, sensors, units, stride=cfg.stride
+    model = load(cfg.model or cfg.engine)
+    noise = parse_noise(cfg.noise)
+    require_noise(model, cfg.method, noise)
+    theta, outputs, loaded = cfg.theta, cfg.outputs or cfg.sensors, None
+    if cfg.method == "policy":  # a trained policy fixes its names: default to them
+        from jaxcal.training.runs import load_run
+
+        loaded = load_run(cfg.run)
+        theta = theta or loaded.problem.theta_names
+        outputs = outputs or loaded.problem.output_names
+    theta = tuple(theta) or default_theta(model)
+    if cfg.theta0 and len(cfg.theta0) != len(theta):
+        raise ValueError(f"theta0 needs one value per theta name {list(theta)}")
+    source = open_source(
+        cfg.data, model, outputs=outputs, split=cfg.split, units=cfg.units,
+        stride=cfg.stride, max_len=cfg.max_len,
+    )  # fmt: skip
+    problem = build_problem(
+        model, source, theta=theta, method=cfg.method, noise=noise, theta0=cfg.theta0
     )
-    calibrator = build_calibrator(cfg, sensors, norm)
-    check = build_check(cfg)
+    fleet = make_method(problem, method_config(cfg, loaded), source, cfg.seed)
     mesh = make_unit_mesh()
     num_processes, process_index = jax.process_count(), jax.process_index()
     chunk_units = cfg.chunk_units or mesh.size
     size = units_per_chunk(chunk_units, num_processes, mesh)
-    chunks = iter_ncmapss_chunks(
-        cfg.data, cfg.split, unit_ids, max_len=max_len, chunk_units=chunk_units,
-        sensors=sensors, theta_names=cfg.theta, stride=cfg.stride,
-        process_index=process_index, num_processes=num_processes,
-    )  # fmt: skip
+    chunks = source.chunks(
+        problem.theta_names, chunk_units, process_index, num_processes
+    )
     attrs = {
         "config": config_to_dict(cfg),
         "method": cfg.method,
-        "source": f"{cfg.data}[{cfg.split}]",
-        "norm_source": norm_source,
+        "model": model.name,
+        "source": source.description,
+        "norm_source": source.norm_source,
+        "noise_std": problem.noise_std.tolist(),
+        "noise_source": problem.noise_source,
         "num_processes": num_processes,
         "num_devices": mesh.size,
     }
+    stream = dict(size=size, unroll=cfg.unroll, check=fleet.check)
     if process_index == 0:
         with FleetResultWriter(
-            cfg.out, theta_names=cfg.theta, sensor_names=sensors, attrs=attrs
-        ) as writer:
+            cfg.out, theta_names=problem.theta_names,
+            sensor_names=problem.output_names, attrs=attrs,
+        ) as writer:  # fmt: skip
             stats = calibrate_stream(
-                calibrator, chunks, mesh, size=size, writer=writer,
-                unroll=cfg.unroll, check=check,
-            )  # fmt: skip
+                fleet.calibrator, chunks, mesh, writer=writer, **stream
+            )
         rmse = theta_rmse(cfg.out)
     else:
-        stats = calibrate_stream(
-            calibrator, chunks, mesh, size=size, unroll=cfg.unroll, check=check
-        )
+        stats = calibrate_stream(fleet.calibrator, chunks, mesh, **stream)
         rmse = None
     return {
         **stats,
         "out": cfg.out,
-        "max_len": max_len,
+        "model": model.name,
+        "method": cfg.method,
+        "theta_names": list(problem.theta_names),
+        "noise_source": problem.noise_source,
+        "max_len": source.max_len,
         "units_per_chunk_per_process": size,
         "num_devices": mesh.size,
         "num_processes": num_processes,
@@ -275,8 +304,9 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
     cfg, cluster = parsed
+    from jaxcal.cache import enable_compilation_cache
     from jaxcal.fleet.distributed import initialize
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.precision import enable_x64
 
     # Before any JAX computation: the cluster, then float64 (the engine's solver).
     try:

@@ -6,6 +6,9 @@ methods and ours as :class:`Method` objects, each a ``Calibrator`` factory plus 
 jitted fleet runner (``lax.scan`` over time, ``vmap`` over units,
 :func:`~jaxcal.calibrators.interface.run_fleet`):
 
+The UKF and least squares are the method table's (:mod:`jaxcal.calibrators.methods`)
+on the suite's perturbable F:
+
 * UKF on the physics F (Tian et al. §2.3, eq. ukf; q = r = 0.01 on normalised
   outputs and on parameters scaled by the half-width of the action box);
 * sliding-window least squares on F (ours, beyond the paper);
@@ -40,15 +43,16 @@ import numpy as np
 from flax import struct
 from jax import lax
 
+from jaxcal.calibrators.compiled import inputs_of
 from jaxcal.calibrators.e2e import E2EParams, make_e2e_calibrator
 from jaxcal.calibrators.interface import (
     Calibrator,
     SampleCheck,
-    SensorNorm,
     measure_declared,
     run_fleet,
 )
 from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.methods import UKF, LeastSquares, model_based_factory
 from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 from jaxcal.envs.memory import HintedDynamics
@@ -56,16 +60,6 @@ from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
 from jaxcal.training.runs import run_check
 from jaxcal.typedefs import Array, PRNGKey
-
-
-def output_norm(problem: Problem) -> SensorNorm:
-    """The outputs' training normalisation (``x_n = (x - mean) / std``) that the
-    paper's UKF and least squares use: q = r = 0.01 are in these units."""
-    return SensorNorm(
-        np.asarray(problem.norm.x_mean, np.float64),
-        np.asarray(problem.norm.x_std, np.float64),
-    )
-
 
 BuildFn = Callable[[Array, Array], Calibrator]  # (bias [], noise_sigma []) -> method
 
@@ -270,14 +264,17 @@ def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Metho
     """A calibrator ``make(model, cfg, norm, theta0=, theta_scale=)`` on the perturbable
     F, with its prior at the box centre and parameters scaled by the half-width."""
 
+    # the method table's calibrator on this F: the outputs in units of their training
+    # std with the paper's r, the prior at the box centre
+    table_cfg = UKF(filter=cfg) if make is make_ukf else LeastSquares(solver=cfg)
+    inputs = inputs_of(problem, np.float64)._replace(
+        x_mean=jnp.asarray(problem.norm.x_mean, jnp.float64),
+        noise_std=jnp.asarray(problem.norm.x_std, jnp.float64),
+        theta0=jnp.asarray(problem.theta_centre, jnp.float64),
+    )
+
     def on(model) -> Calibrator:
-        return make(
-            model,
-            cfg,
-            output_norm(problem),
-            theta0=problem.theta_centre,
-            theta_scale=problem.theta_half_width,
-        )
+        return model_based_factory(problem, table_cfg, measure=model)(inputs)
 
     def build(bias, noise_sigma):
         return with_step_key(

@@ -173,7 +173,8 @@ def run_distributed(out_dir: str, port: str, process_id: int) -> None:
 
 
 if __name__ == "__main__":
-    from jaxcal.precision import enable_compilation_cache, enable_x64
+    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.precision import enable_x64
 
     mode = sys.argv[1]
     enable_compilation_cache()

@@ -1,0 +1,76 @@
+"""JAX's persistent compilation cache, on by default for jaxcal.
+
+The programs jaxcal compiles — a filter over a fleet, the turbofan's Newton solve
+(35-100 s each on a small CPU) — are the same from one process to the next: the
+data, noise and prior are arguments, not constants (:mod:`jaxcal.calibrators.
+compiled`). JAX can keep compiled programs on disk, keyed by the program, the JAX
+version and the machine; with it on, a program compiles once per machine instead of
+once per process.
+
+On by default: the first :func:`jaxcal.calibrate` (and every jaxcal command line)
+turns it on in ``$JAXCAL_CACHE_DIR`` or ``~/.cache/jaxcal/xla``, unless
+
+* ``JAXCAL_CACHE=0`` (or ``off``/``false``) is set in the environment, or
+  :func:`disable` was called: nothing is written or read; or
+* the program already chose a cache directory (``jax_compilation_cache_dir``): that
+  one is kept.
+
+Importing jaxcal changes nothing (the switch happens at the first call).
+
+Trusting a cache: a cached entry is compiled machine code that the process loads and
+runs. Anyone who can write to the directory can make jaxcal run their code, so keep
+it private to your user (it is created with mode 0700) and never point
+``JAXCAL_CACHE_DIR`` at a shared or downloaded directory. Deleting it is always safe:
+the next call compiles again.
+"""
+
+from __future__ import annotations
+
+import os
+
+import jax
+
+MIN_COMPILE_SECS = 0.2  # programs that compile faster are not worth a disk entry
+_OFF = ("0", "off", "false", "no")
+_state = {"disabled": False, "done": False}
+
+
+def directory() -> str:
+    """The default directory: ``$JAXCAL_CACHE_DIR`` or ``~/.cache/jaxcal/xla``."""
+    return os.environ.get("JAXCAL_CACHE_DIR") or os.path.join(
+        os.path.expanduser("~"), ".cache", "jaxcal", "xla"
+    )
+
+
+def enable_compilation_cache(path: str | None = None) -> None:
+    """Persist compiled XLA programs in ``path`` (default :func:`directory`), unless
+    switched off (``JAXCAL_CACHE=0`` or :func:`disable`)."""
+    if _state["disabled"] or os.environ.get("JAXCAL_CACHE", "").lower() in _OFF:
+        return
+    path = path or directory()
+    os.makedirs(path, mode=0o700, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
+    _state["done"] = True
+
+
+def ensure_default() -> None:
+    """The library's default (module docstring): on, once per process, unless off
+    or the program chose its own directory."""
+    if _state["done"] or _state["disabled"]:
+        return
+    if jax.config.jax_compilation_cache_dir:  # the program's own choice
+        _state["done"] = True
+        return
+    enable_compilation_cache()
+
+
+def disable() -> None:
+    """Turn the persistent cache off for the rest of the process."""
+    _state["disabled"] = True
+    jax.config.update("jax_compilation_cache_dir", None)
+
+
+def is_enabled() -> bool:
+    """True when compiled programs are read from and written to disk."""
+    return bool(jax.config.jax_compilation_cache_dir) and not _state["disabled"]

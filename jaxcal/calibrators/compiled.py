@@ -1,0 +1,213 @@
+"""Model-based calibrators compiled once per process.
+
+``jaxcal.calibrate`` used to build new closures on every call, each capturing the
+call's numbers (noise, outputs' centre, prior) as constants of a new program, so
+every call compiled again: seconds for a toy model, a minute and more for the
+turbofan, whose compute is milliseconds. Here a program is built once per
+(model, calibrated parameters, outputs, their base values, method settings, float
+dtype, kind) and kept; everything that changes from call to call is an argument
+(:class:`Inputs`). A repeat call with data of the same padded shape reuses the
+compiled program, and because the program holds no call's numbers, JAX's
+persistent compilation cache (:mod:`jaxcal.cache`) finds it in a new process.
+
+The measurement noise is an explicit input, the filter's measurement covariance
+``R = diag(noise_std^2)`` (the outputs are centred on ``x_mean`` and expressed in
+units of ``noise_std``, where ``R`` is the identity; :mod:`jaxcal.calibrators.ukf`).
+"""
+
+from __future__ import annotations
+
+import collections
+from collections.abc import Callable, Hashable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.calibrators.guard import OK
+from jaxcal.calibrators.interface import Calibrator, SensorNorm, run_fleet
+from jaxcal.problem import Problem
+from jaxcal.typedefs import Array
+
+MAX_PROGRAMS = 64  # programs kept per process (least recently used dropped)
+
+
+class Inputs(NamedTuple):
+    """The numbers of one calibration, arguments of its compiled program."""
+
+    x_mean: Array  # [S] the outputs' centre
+    noise_std: Array  # [S] measurement noise std: R = diag(noise_std^2)
+    theta0: Array  # [P] prior mean / first estimate
+    theta_scale: Array  # [P] the parameters' natural scale (half the box)
+    theta_low: Array  # [P] the box
+    theta_high: Array  # [P]
+    state_std: Array  # [Z] initial-state std (empty for a static model)
+    state_q: Array  # [Z] process noise on the states per step
+    state_scale: Array  # [Z] natural size of each state
+
+
+def inputs_of(
+    problem: Problem, dtype, *, state_std=None, state_q=None, state_scale=None,
+    x_mean=None,
+) -> Inputs:  # fmt: skip
+    """:class:`Inputs` of ``problem`` in ``dtype`` (``state_*``: resolved ``[Z]``
+    arrays, empty for a static model; ``x_mean`` default the problem's)."""
+    empty = np.zeros((len(problem.model.state_names),))
+
+    def arr(v):
+        return jnp.asarray(np.asarray(empty if v is None else v, np.float64), dtype)
+
+    return Inputs(
+        x_mean=arr(problem.norm.x_mean if x_mean is None else x_mean),
+        noise_std=arr(problem.noise_std),
+        theta0=arr(problem.theta_prior),
+        theta_scale=arr(problem.theta_half_width),
+        theta_low=arr(problem.theta_low),
+        theta_high=arr(problem.theta_high),
+        state_std=arr(state_std),
+        state_q=arr(state_q),
+        state_scale=arr(state_scale),
+    )
+
+
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_COUNTS = collections.Counter()  # builds per kind (tests read it)
+
+
+def problem_key(problem: Problem, dtype) -> tuple:
+    """What a program depends on in ``problem`` beyond its :class:`Inputs`: the model
+    (by identity), the names and the undeclared parameters' values."""
+    return (
+        id(problem.model),
+        problem.theta_names,
+        problem.output_names,
+        np.asarray(problem.theta_base, np.float64).tobytes(),
+        np.dtype(dtype).name,
+    )
+
+
+def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callable):
+    """The program ``build()`` made once for (``kind``, ``problem``'s key,
+    ``settings``, ``dtype``) in this process; ``build`` returns a jitted function."""
+    key = (kind, problem_key(problem, dtype), settings)
+    if key in _PROGRAMS:
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key][1]
+    program = build()
+    _COUNTS[kind] += 1
+    # the model is kept with its program: its id in the key is never reused
+    _PROGRAMS[key] = (problem.model, program)
+    while len(_PROGRAMS) > MAX_PROGRAMS:
+        _PROGRAMS.popitem(last=False)
+    return program
+
+
+def cached_value(key: Hashable, build: Callable):
+    """``build()`` made once per ``key`` in this process (kept like a program)."""
+    key = ("value", key)
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = (None, build())
+        _COUNTS[key[1][0]] += 1
+    _PROGRAMS.move_to_end(key)
+    while len(_PROGRAMS) > MAX_PROGRAMS:
+        _PROGRAMS.popitem(last=False)
+    return _PROGRAMS[key][1]
+
+
+def builds() -> dict:
+    """``{kind: programs built}`` in this process (a repeat call builds none)."""
+    return dict(_COUNTS)
+
+
+def clear() -> None:
+    """Forget every program (the next call builds and compiles again)."""
+    _PROGRAMS.clear()
+
+
+def fleet_program(
+    problem: Problem, settings: Hashable, make: Callable[[Inputs], Calibrator], check,
+    dtype,
+):  # fmt: skip
+    """``run(inputs, w [U,T,W], x [U,T,S], mask [U,T]) -> CalOutput``: the fleet
+    scan of the calibrator ``make(inputs)`` with the sample ``check``, jitted once
+    per (problem key, ``settings``)."""
+
+    def build():
+        def run(inputs: Inputs, w, x, mask):
+            return run_fleet(_traced_once(make(inputs)), w, x, mask, check=check)
+
+        return jax.jit(run)
+
+    return cached("fleet", problem, settings, dtype, build)
+
+
+def filter_program(
+    problem: Problem, settings: Hashable, make: Callable[[Inputs], Calibrator], check,
+    dtype,
+):  # fmt: skip
+    """``run(inputs, w, x, mask) -> (CalOutput, innovation [U,T,S], its std)``: the
+    fleet scan of a filter ``make(inputs)`` whose ``aux`` holds ``innovation`` and
+    ``innovation_std``, with each row's innovation taken from the state before it
+    (also at skipped rows: how the row looks to the filter that did not use it).
+    One program serves the screening passes and the UKF's own run
+    (:mod:`jaxcal.calibrators.screen`)."""
+
+    def build():
+        def run(inputs: Inputs, w, x, mask):
+            cal = _traced_once(_exposing_state(make(inputs)))
+            out = run_fleet(cal, w, x, mask, check=check)
+            innovation, std = _innovations(cal, w, x, out.reason, out.aux["filter"])
+            aux = {k: v for k, v in out.aux.items() if k != "filter"}
+            return out._replace(aux=aux), innovation, std
+
+        return jax.jit(run)
+
+    return cached("filter", problem, settings, dtype, build)
+
+
+def _traced_once(cal: Calibrator) -> Calibrator:
+    """``cal`` with its step as a nested ``jax.jit``: the runner traces a step three
+    times (its output shapes, the scan body, the innovations) and a nested jit keeps
+    the first trace's jaxpr for the other two (a third of a small model's tracing, what
+    a new process pays on a warm cache)."""
+    return cal._replace(step=jax.jit(cal.step))
+
+
+def _exposing_state(cal: Calibrator) -> Calibrator:
+    """``cal`` with its state after each row in ``aux["filter"]`` (held on skipped
+    rows: the state carried past them)."""
+
+    def step(state, w, x):
+        new, out = cal.step(state, w, x)
+        return new, out._replace(aux={**out.aux, "filter": new})
+
+    return Calibrator(init=cal.init, step=step, accepts_partial=cal.accepts_partial)
+
+
+def _innovations(cal: Calibrator, w, x, reason, filt):
+    """``[U, T, S]`` innovation and its predicted std at every cell, from the state
+    before the row: the carried state of the previous row, the prior up to the
+    stream's first used row (where ``run_calibrator`` starts it)."""
+
+    def unit(w_u, x_u, reason_u, filt_u):
+        ok = reason_u == OK
+        first = jnp.argmax(ok)
+        state0 = cal.init(None, jnp.nan_to_num(w_u[first]), jnp.nan_to_num(x_u[first]))
+        at_prior = (jnp.arange(w_u.shape[0]) <= first) | ~jnp.any(ok)
+
+        def before(carried, s0):
+            shifted = jnp.concatenate([s0[None], carried[:-1]])
+            pick = at_prior.reshape((-1,) + (1,) * s0.ndim)
+            return jnp.where(pick, s0[None], shifted)
+
+        prev = jax.tree.map(before, filt_u, state0)
+        aux = jax.vmap(cal.step)(prev, w_u, x_u)[1].aux
+        return aux["innovation"], aux["innovation_std"]
+
+    return jax.vmap(unit)(w, x, reason, filt)
+
+
+def norm_of(inputs: Inputs) -> SensorNorm:
+    """The outputs centred and in units of their noise std (``R`` the identity)."""
+    return SensorNorm(mean=inputs.x_mean, std=inputs.noise_std)

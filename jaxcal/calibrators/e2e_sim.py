@@ -1,0 +1,75 @@
+"""E2E-sim: the E2E network trained on simulations of the problem's model.
+
+The data's own operating conditions, a constant parameter vector per simulated unit
+drawn uniformly in the box, and Gaussian output noise of the problem's std: the
+network learns the inverse of the model where the data will ask it ("E2E-sim").
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.data.buckets import Buckets
+from jaxcal.problem import Problem
+
+
+def simulate_fleet(problem: Problem, w: np.ndarray, theta: np.ndarray, mask):
+    """``x [U, T, S]`` of the problem's model along ``w [U, T, W]`` with ``theta
+    [U, T, P]``: evaluated in parallel for a static model, by ``lax.scan`` from
+    ``init(w_0, theta_0)`` for one with memory (invalid rows hold the state)."""
+    if not problem.model.is_stateful:
+        simulate = jax.jit(jax.vmap(jax.vmap(problem.measure())))
+        return np.asarray(simulate(jnp.asarray(w), jnp.asarray(theta)))
+    tr = problem.transition()
+
+    def unit(w_u, th_u, m_u):
+        def body(z, inputs):
+            w_t, th_t, ok = inputs
+            z_next, x = tr.step(z, w_t, th_t)
+            return jnp.where(ok, z_next, z), x
+
+        return jax.lax.scan(body, tr.init(w_u[0], th_u[0]), (w_u, th_u, m_u))[1]
+
+    run = jax.jit(jax.vmap(unit))
+    return np.asarray(run(jnp.asarray(w), jnp.asarray(theta), jnp.asarray(mask)))
+
+
+def fit_e2e_sim(
+    problem: Problem, buckets: Buckets, cfg, seed: int, copies: int, window: int = 0
+):
+    """Train G on ``copies`` simulated fleets: the data's conditions, a constant
+    parameter vector per simulated unit drawn uniformly in the box, and Gaussian
+    output noise of the problem's std (``window``: G's input, see ``fit_e2e``).
+    Simulated group by group of ``buckets`` (memory grows with the rows)."""
+    from jaxcal.calibrators.e2e import e2e_training_rows, fit_e2e_rows
+
+    key = jax.random.key(seed)
+    key_theta, key_noise, key_fit = jax.random.split(key, 3)
+    dtype = buckets.dtype
+    sizes = [part.w.shape[0] for part in buckets.parts]
+    low, high = problem.theta_low, problem.theta_high
+    shape = (copies * sum(sizes), len(low))
+    theta_all = np.asarray(
+        jax.random.uniform(key_theta, shape, minval=low, maxval=high)
+    ).astype(dtype)
+    theta_all = theta_all.reshape(copies, sum(sizes), len(low))  # copy-major
+    inputs, targets = [], []
+    for b, part in enumerate(buckets.parts):
+        start = sum(sizes[:b])
+        theta_u = theta_all[:, start : start + sizes[b]].reshape(-1, len(low))
+        w = np.concatenate([part.w] * copies)
+        mask = np.concatenate([part.mask] * copies)
+        theta = np.broadcast_to(theta_u[:, None, :], w.shape[:2] + theta_u.shape[-1:])
+        x = simulate_fleet(problem, w, theta, mask)
+        key_b = key_noise if b == 0 else jax.random.fold_in(key_noise, b)
+        x = x + problem.noise_std * np.asarray(jax.random.normal(key_b, x.shape))
+        ok = mask & np.all(np.isfinite(x), axis=-1)
+        rows = e2e_training_rows(w, np.nan_to_num(x), np.array(theta), ok, window)
+        inputs.append(rows[0]), targets.append(rows[1])
+    return fit_e2e_rows(
+        key_fit, np.concatenate(inputs), np.concatenate(targets), cfg,
+        condition_dim=len(problem.model.condition_names),
+        sensor_dim=len(problem.output_names), window=window,
+    )  # fmt: skip

@@ -1,0 +1,223 @@
+"""The data of a fleet run: a sample to build the problem on, and a stream of chunks.
+
+``python -m jaxcal.fleet`` reads two kinds of source (:func:`open_source`):
+
+* an **N-CMAPSS HDF5 file** (``.h5`` / ``.hdf5``; the turbofan's layout) is streamed:
+  the unit column is scanned for the units and their lengths, the output statistics
+  come from the file's reference attributes or one blocked pass
+  (:mod:`jaxcal.fleet.ncmapss_source`), and the problem is built on the rows of the
+  first selected unit with those statistics; nothing reads the whole split;
+* any other data source of the front door (CSV, Parquet, NASA C-MAPSS ``.txt``:
+  :func:`jaxcal.data.readers.read_dataset`) is a table held in memory: the problem is
+  built on all its rows and the chunks are cut from its padded units
+  (:func:`~jaxcal.fleet.streaming.iter_array_chunks`).
+
+Rows with NaN / Inf are kept in both (the runners skip and flag them one by one, so
+the output has one row per input row); the problem is built on the clean rows.
+Units come in ascending id, rows in time order within a unit.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterator, Sequence
+from typing import NamedTuple
+
+import h5py
+import numpy as np
+
+from jaxcal.calibrators.interface import SensorNorm
+from jaxcal.data.dataset import Dataset
+from jaxcal.fleet.streaming import UnitChunk, iter_array_chunks
+from jaxcal.model import Model
+
+NCMAPSS_EXTENSIONS = (".h5", ".hdf5")
+NCMAPSS_DEFAULT_SPLIT = "test"
+
+
+class FleetSource(NamedTuple):
+    """What a fleet run reads.
+
+    Attributes:
+        sample: the rows the problem is built on (the whole table, or the first unit
+            of an N-CMAPSS file), columns checked against the model.
+        outputs: the outputs used, the columns of the chunks' ``x``.
+        x_stats: the outputs' statistics over every selected row when ``sample`` is
+            only part of the data (N-CMAPSS), else ``None``.
+        unit_ids: ``[U]`` selected unit ids, ascending.
+        max_len: ``T``, the padded length.
+        description: ``path[split]`` for the output file.
+        norm_source: where the outputs' statistics come from.
+        chunks: ``chunks(theta_names, chunk_units, process_index, num_processes)``
+            -> this process's :class:`UnitChunk` s (with ``theta_true`` when the data
+            hold the true values of ``theta_names``).
+        complete: ``sample`` is all the data (a table).
+    """
+
+    sample: Dataset
+    outputs: tuple[str, ...]
+    x_stats: SensorNorm | None
+    unit_ids: np.ndarray
+    max_len: int
+    description: str
+    norm_source: str
+    chunks: Callable[..., Iterator[UnitChunk]]
+    complete: bool
+
+
+def is_ncmapss(path: str) -> bool:
+    """A file the fleet streams in the N-CMAPSS layout (by its extension)."""
+    return os.path.splitext(os.fspath(path))[1].lower() in NCMAPSS_EXTENSIONS
+
+
+def clean_rows(data: Dataset) -> Dataset:
+    """The rows a problem can be built on: finite conditions, outputs finite or
+    missing (a partial row)."""
+    ok = np.isfinite(data.w).all(axis=1)
+    ok &= np.isfinite(data.x).all(axis=1) | data.partial
+    if not ok.any():
+        raise ValueError(f"{data.source}: no row with finite values")
+    return data if ok.all() else data.take(ok)
+
+
+def file_sensors(path: str) -> tuple[str, ...]:
+    """An N-CMAPSS file's ``observed_sensors`` attribute, else its measured sensors
+    ``X_s``."""
+    from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
+
+    with h5py.File(path, "r") as f:
+        observed = f.attrs.get("observed_sensors")
+        names = [n.decode().strip() for n in f["X_s_var"][()]] if "X_s_var" in f else []
+    if isinstance(observed, bytes):
+        observed = observed.decode()
+    if isinstance(observed, str) and observed:
+        return tuple(json.loads(observed))
+    return tuple(n for n in names if n in MEASURED_SENSOR_NAMES)
+
+
+def open_source(
+    path: str,
+    model: Model,
+    *,
+    outputs: Sequence[str] = (),
+    split: str = "",
+    units: Sequence[int] = (),
+    stride: int = 1,
+    max_len: int = 0,
+) -> FleetSource:
+    """The :class:`FleetSource` of a file (module docstring).
+
+    Args:
+        path: ``.h5`` / ``.hdf5`` (N-CMAPSS layout), or any file
+            :func:`~jaxcal.data.readers.read_dataset` reads.
+        model: the model whose names the columns follow.
+        outputs: outputs to use (``()``: the file's ``observed_sensors`` else
+            ``X_s`` for an N-CMAPSS file, every model output of a table).
+        split: an N-CMAPSS split (``dev`` / ``test``, default ``test``), or the
+            label of a table's ``split`` column (default: every row).
+        units: unit ids to keep (``()``: all).
+        stride: keep file rows ``0, stride, 2 stride, ...``.
+        max_len: padded length ``T`` (0: the longest selected unit).
+
+    Raises:
+        ValueError: unreadable data, names that do not match the model, unknown
+            units, a unit longer than ``max_len``.
+    """
+    if not os.path.isfile(path):
+        raise ValueError(f"data file not found: {path}")
+    if is_ncmapss(path):
+        return _ncmapss(path, model, outputs, split, units, stride, max_len)
+    return _table(path, model, outputs, split, units, stride, max_len)
+
+
+def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource:
+    from jaxcal.data.ncmapss_io import load_ncmapss
+    from jaxcal.data.readers import dataset_from_record
+    from jaxcal.fleet.ncmapss_source import (
+        iter_ncmapss_chunks,
+        sensor_norm,
+        unit_lengths,
+    )
+    from jaxcal.physics.constants import CONDITION_NAMES
+
+    if tuple(model.condition_names) != tuple(CONDITION_NAMES):
+        raise ValueError(
+            f"{path}: an N-CMAPSS file holds the turbofan's conditions "
+            f"{list(CONDITION_NAMES)}; model {model.name!r} has "
+            f"{list(model.condition_names)}: give its data as a table (.csv, .parquet)"
+        )
+    split = split or NCMAPSS_DEFAULT_SPLIT
+    outputs = tuple(outputs) or file_sensors(path)
+    wanted = list(units) or None
+    unit_ids, lengths = unit_lengths(path, split, wanted, stride=stride)
+    length = max_len or int(lengths.max())
+    norm, norm_source = sensor_norm(path, split, outputs, wanted, stride=stride)
+    record = load_ncmapss(
+        path, split, units=unit_ids[:1], sensors=list(outputs), stride=stride,
+        nonfinite="keep",
+    )  # fmt: skip
+    sample = clean_rows(dataset_from_record(record, split).for_model(model, outputs))
+
+    def chunks(theta_names, chunk_units, process_index=0, num_processes=1):
+        truth = sample.theta is not None and set(theta_names) <= set(sample.theta_names)
+        return iter_ncmapss_chunks(
+            path, split, unit_ids, max_len=length, chunk_units=chunk_units,
+            sensors=outputs, theta_names=tuple(theta_names) if truth else None,
+            stride=stride, process_index=process_index, num_processes=num_processes,
+        )  # fmt: skip
+
+    return FleetSource(
+        sample=sample, outputs=outputs, x_stats=norm, unit_ids=unit_ids,
+        max_len=length, description=f"{path}[{split}]", norm_source=norm_source,
+        chunks=chunks, complete=False,
+    )  # fmt: skip
+
+
+def _table(path, model, outputs, split, units, stride, max_len) -> FleetSource:
+    from jaxcal.data.readers import read_dataset
+
+    data = read_dataset(path, model, nonfinite="keep").for_model(model, outputs)
+    if split:
+        data = data.select_split(split)
+    if units:
+        data = data.select_units(units)
+    if stride > 1:  # file rows 0, stride, ...: the grid whatever the selection
+        data = data.take(data.row % stride == 0)
+    padded = data.padded(np.float64)
+    order = np.argsort(padded.unit_ids, kind="stable")  # ascending unit ids
+    rows, mask = padded.rows[order], padded.mask[order]
+    longest = int(mask.sum(axis=1).max())
+    length = max_len or longest
+    if length < longest:
+        raise ValueError(
+            f"max_len={length} is shorter than a unit of {longest} rows; raise "
+            "max_len (0 = longest)"
+        )
+    pad = ((0, 0), (0, length - rows.shape[1]))
+    rows = np.pad(rows, pad, constant_values=-1)
+    mask = np.pad(mask, pad, constant_values=False)
+    last = rows[np.arange(rows.shape[0]), mask.sum(axis=1) - 1]
+    fill = np.where(mask, rows, last[:, None])  # padding repeats a unit's last row
+    unit_ids = padded.unit_ids[order]
+    per_step = {
+        "row": np.where(mask, data.row[fill], -1),  # the source's row of each step
+        "time": data.time[fill],
+    }
+
+    def chunks(theta_names, chunk_units, process_index=0, num_processes=1):
+        extras = dict(per_step)
+        if data.theta is not None and set(theta_names) <= set(data.theta_names):
+            cols = [data.theta_names.index(n) for n in theta_names]
+            extras["theta_true"] = data.theta[fill][..., cols]
+        return iter_array_chunks(
+            data.w[fill], data.x[fill], mask, chunk_units, unit_ids=unit_ids,
+            extras=extras, process_index=process_index, num_processes=num_processes,
+        )  # fmt: skip
+
+    label = f"[{split}]" if split else ""
+    return FleetSource(
+        sample=clean_rows(data), outputs=data.output_names, x_stats=None,
+        unit_ids=unit_ids, max_len=length, description=f"{path}{label}",
+        norm_source="data (every selected row)", chunks=chunks, complete=True,
+    )  # fmt: skip
