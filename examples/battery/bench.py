@@ -58,7 +58,8 @@ def _jaxcal_seconds(sub) -> float:
     data = read_dataset(sub[cols], MODEL).for_model(MODEL, None)
     problem = Problem.build(MODEL, data, theta=THETA, noise={"voltage": UKF["noise"]})
     buckets = bucket_units(data, np.float64)
-    built = methods.build(problem, methods.config("ukf", _method_options("ukf", {})), buckets)
+    cfg = methods.config("ukf", _method_options("ukf", {}))
+    built = methods.build(problem, cfg, buckets)
     return _median_seconds(lambda: built.run(buckets.parts[0]).theta)
 
 
