@@ -87,32 +87,30 @@ def problem_key(problem: Problem, dtype) -> tuple:
     )
 
 
-def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callable):
-    """The program ``build()`` made once for (``kind``, ``problem``'s key,
-    ``settings``, ``dtype``) in this process; ``build`` returns a jitted function."""
-    key = (kind, problem_key(problem, dtype), settings)
-    if key in _PROGRAMS:
-        _PROGRAMS.move_to_end(key)
-        return _PROGRAMS[key][1]
-    program = build()
-    _COUNTS[kind] += 1
-    # the model is kept with its program: its id in the key is never reused
-    _PROGRAMS[key] = (problem.model, program)
-    while len(_PROGRAMS) > MAX_PROGRAMS:
-        _PROGRAMS.popitem(last=False)
-    return program
-
-
-def cached_value(key: Hashable, build: Callable):
-    """``build()`` made once per ``key`` in this process (kept like a program)."""
-    key = ("value", key)
+def _remember(key: Hashable, kind: str, keep, build: Callable):
+    """``build()`` once per ``key`` (least recently used dropped past
+    :data:`MAX_PROGRAMS`); ``keep`` is held with it (a model whose id is in ``key``
+    must not be freed and its id reused)."""
     if key not in _PROGRAMS:
-        _PROGRAMS[key] = (None, build())
-        _COUNTS[key[1][0]] += 1
+        _PROGRAMS[key] = (keep, build())
+        _COUNTS[kind] += 1
     _PROGRAMS.move_to_end(key)
     while len(_PROGRAMS) > MAX_PROGRAMS:
         _PROGRAMS.popitem(last=False)
     return _PROGRAMS[key][1]
+
+
+def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callable):
+    """The program ``build()`` made once for (``kind``, ``problem``'s key,
+    ``settings``, ``dtype``) in this process; ``build`` returns a jitted function."""
+    key = (kind, problem_key(problem, dtype), settings)
+    return _remember(key, kind, problem.model, build)
+
+
+def cached_value(key: tuple, build: Callable):
+    """``build()`` made once per ``key`` in this process (kept like a program; its
+    first entry names its kind in :func:`builds`)."""
+    return _remember(("value", key), key[0], None, build)
 
 
 def builds() -> dict:
