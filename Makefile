@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 
-.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper npe-setup clean
+.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper npe-setup docs clean
 
 setup: $(STAMP)
 
@@ -95,6 +95,12 @@ $(EXAMPLES_STAMP): $(STAMP)
 
 battery: $(EXAMPLES_STAMP)
 	$(BIN)/python examples/battery/run.py $(BATTERY_ARGS)
+
+# The documentation site (mkdocs.yml, docs/: the guide pages and the API reference
+# generated from the docstrings) -> site/. Warnings are errors; offline; the suite runs
+# the same build (tests/test_docs.py).
+docs: $(STAMP)
+	$(BIN)/python -m mkdocs build --strict --site-dir site
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -122,6 +122,10 @@ class DataConfig:
     # rows with NaN / Inf in w, the sensors or theta: "error" refuses the file (the
     # message names file, columns, first rows, counts); "drop" drops and logs them
     nonfinite: Literal["error", "drop"] = "error"
+    # what a file's true-parameter columns are for: "use" (also the action box,
+    # their range widened by env.theta_margin, and the fixed parameters' values) or
+    # "score" (test scores only: the box is the model's bounds)
+    labels: Literal["use", "score"] = "use"
     # file column names the reader maps to jaxcal names, "<file name>:<jaxcal name>"
     # (e.g. T_24:T24); any other unknown or missing column name is an error
     rename: tuple[str, ...] = ()
@@ -129,6 +133,10 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.stride < 1:
             raise ValueError(f"dataset.stride must be >= 1, got {self.stride}")
+        if self.labels not in ("use", "score"):
+            raise ValueError(
+                f"dataset.labels must be 'use' or 'score', got {self.labels!r}"
+            )
         if self.nonfinite not in ("error", "drop"):
             raise ValueError(
                 f"dataset.nonfinite must be 'error' or 'drop', got {self.nonfinite!r}"
@@ -167,6 +175,9 @@ class TrackingConfig:
     # same weight for halving the error at every scale (jaxcal.envs.tracking.EnvConfig)
     cost: Literal["squared", "log"] = "squared"
     cost_floor: float = 1e-4
+    # where a deployed incremental policy starts theta: "centre" of the box, or the
+    # model's nominal values ("prior", what the UKF starts from)
+    start: Literal["centre", "prior"] = "centre"
 
     def __post_init__(self) -> None:
         check_action_options(
@@ -175,6 +186,10 @@ class TrackingConfig:
         if self.episode_length < 1:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"
+            )
+        if self.start not in ("centre", "prior"):
+            raise ValueError(
+                f"env.start must be 'centre' or 'prior', got {self.start!r}"
             )
         if self.theta_margin < 0:
             raise ValueError(f"env.theta_margin must be >= 0, got {self.theta_margin}")
@@ -200,7 +215,9 @@ class BudgetConfig:
     # The policy the run keeps (scored on test, loaded by jaxcal.deploy): "last", or
     # "val_tracking": the one with the lowest validation *tracking* RMSE among the
     # scored chunks (label-free early stopping: theta labels are never used).
-    select: Literal["last", "val_tracking"] = "val_tracking"
+    # "sim_theta": the lowest theta RMSE (in box widths) on units simulated along the
+    # validation units' conditions (jaxcal.training.simulated; no label either).
+    select: Literal["last", "val_tracking", "sim_theta"] = "val_tracking"
     # The actor that is deployed: "target", the Polyak-averaged policy of Algorithm 1
     # (theta-bar <- tau theta + (1 - tau) theta-bar; LAC and CLAC keep one, SAC has
     # none and falls back to its online actor), or "online", the last gradient iterate.
@@ -226,9 +243,57 @@ class BudgetConfig:
             raise ValueError(
                 f"budget.policy must be 'target' or 'online', got {self.policy!r}"
             )
-        if self.select not in ("last", "val_tracking"):
+        if self.select not in ("last", "val_tracking", "sim_theta"):
             raise ValueError(
-                f"budget.select must be 'last' or 'val_tracking', got {self.select!r}"
+                "budget.select must be 'last', 'val_tracking' or 'sim_theta', got "
+                f"{self.select!r}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationConfig:
+    """Units simulated from the model wherever a run needs true theta
+    (:mod:`jaxcal.training.simulated`): the user's labels are for scoring only."""
+
+    # what the policy trains on: "data" (the training units, cost on their noisy
+    # outputs), "simulated" (simulated copies of them, cost on the noise-free
+    # outputs) or "both"
+    train: Literal["data", "simulated", "both"] = "data"
+    copies: int = 1  # simulated copies of each training unit
+    # share of simulated units whose parameters stay constant
+    constant_share: float = 0.25
+    # the units the uncertainty band is fitted on: "simulated" (along the validation
+    # units' conditions), "labelled" (the validation units' own labels) or "auto"
+    # (labelled when the validation units carry labels, else simulated)
+    band: Literal["auto", "simulated", "labelled"] = "auto"
+    band_copies: int = 8  # simulated copies of each validation unit for the band
+    # the log cost's floor when training on simulated units: "noise" (the noise
+    # std's RMS in the cost's normalised units) or "env" (env.cost_floor as given)
+    cost_floor: Literal["noise", "env"] = "env"
+
+    def __post_init__(self) -> None:
+        if self.train not in ("data", "simulated", "both"):
+            raise ValueError(
+                "simulate.train must be 'data', 'simulated' or 'both', got "
+                f"{self.train!r}"
+            )
+        if self.band not in ("auto", "simulated", "labelled"):
+            raise ValueError(
+                "simulate.band must be 'auto', 'simulated' or 'labelled', got "
+                f"{self.band!r}"
+            )
+        if self.cost_floor not in ("noise", "env"):
+            raise ValueError(
+                f"simulate.cost_floor must be 'noise' or 'env', got {self.cost_floor!r}"
+            )
+        if self.copies < 1 or self.band_copies < 1:
+            raise ValueError(
+                "simulate.copies and simulate.band_copies must be >= 1, got "
+                f"{self.copies}, {self.band_copies}"
+            )
+        if not 0.0 <= self.constant_share <= 1.0:
+            raise ValueError(
+                f"simulate.constant_share must be in [0, 1], got {self.constant_share}"
             )
 
 
@@ -261,11 +326,15 @@ class TrainConfig:
     dataset: DataConfig = DataConfig()
     sensors: tuple[str, ...] = ()  # observed sensors; (): the data set's default
     theta: tuple[str, ...] = ()  # declared parameters; (): those varying in dev T
+    # output noise std, one per used output or name:std pairs; (): estimated when a
+    # simulation needs it (a UKF pass over the training units)
+    noise: tuple[str, ...] = ()
     surrogate: SurrogateConfig = SurrogateConfig()
     agent: AgentConfig = CLACConfig()
     runner: RunnerConfig = RunnerConfig()
     env: TrackingConfig = TrackingConfig()
     budget: BudgetConfig = BudgetConfig()
+    simulate: SimulationConfig = SimulationConfig()
     output: OutputConfig = OutputConfig()
 
     def __post_init__(self) -> None:
@@ -324,6 +393,13 @@ DATASET_PRESETS: dict[str, DataConfig] = {
 # budget.target_theta_rmse per dataset preset: Dataset #1's accuracy goal (the
 # paper's CLAC reached 3.30e-4 in 6,200 s); other presets have none yet.
 TARGET_THETA_RMSE: dict[str, float] = {"cmapss": 2.5e-4}
+
+# the default preset on any model's data (_any_model_defaults)
+ANY_MODEL_CHUNKS = 6
+# simulated copies of each training unit: with one copy (8 theta paths) the policy
+# learnt the paths, not the feedback (simulated theta RMSE rising from the first chunk
+# on the pump; 16 copies: falling)
+ANY_MODEL_COPIES = 16
 
 _TUNED_AGENT = dict(
     actor_lr=3e-4,
@@ -426,9 +502,47 @@ def make_train_config(dataset: str = "cmapss", preset: str = "default") -> Train
             if dataset == "file"
             else dataclasses.replace(cfg.dataset, stride=max(cfg.dataset.stride, 20)),
         )
+    if dataset == "file":
+        cfg = _any_model_defaults(cfg, preset)
     target = TARGET_THETA_RMSE.get(dataset)
     return dataclasses.replace(
         cfg, budget=dataclasses.replace(cfg.budget, target_theta_rmse=target)
+    )
+
+
+def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
+    """The ``default`` preset on any model's data (the ``file`` preset): the labels
+    only score and the model makes the labelled units the run needs
+    (:mod:`jaxcal.training.simulated`).
+
+    The box is the model's bounds and a deployed policy starts from the model's
+    nominal values, as the UKF does; the policy trains on simulated copies of the
+    training units, its log cost on their noise-free outputs with its floor at the
+    noise, for ``ANY_MODEL_CHUNKS`` chunks scored after each; the kept one has the
+    lowest theta RMSE on simulated validation units, and its band is fitted on
+    simulated units (measured: ``results/policy_any_model/README.md``). The other
+    presets keep their formulation; without labels they fit D and the band on
+    simulated units as well.
+    """
+    if preset != "default":
+        return cfg
+    return dataclasses.replace(
+        cfg,
+        dataset=dataclasses.replace(cfg.dataset, labels="score"),
+        env=dataclasses.replace(cfg.env, start="prior"),
+        simulate=SimulationConfig(
+            train="simulated",
+            band="simulated",
+            cost_floor="noise",
+            copies=ANY_MODEL_COPIES,
+        ),
+        budget=dataclasses.replace(
+            cfg.budget,
+            select="sim_theta",
+            num_chunks=ANY_MODEL_CHUNKS,
+            eval_every=1,
+            ckpt_every=1,
+        ),
     )
 
 

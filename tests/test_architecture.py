@@ -103,3 +103,15 @@ def test_no_library_module_enables_float64():
         and _enables_x64_globally(p)
     ]
     assert not offenders, offenders
+
+
+def test_the_numerical_cores_sit_at_the_bottom_of_the_graph(graph):
+    """``jaxcal.numerics`` (the one least-squares core) imports no jaxcal module but
+    the type aliases, so every layer may use it without an arrow running back up."""
+    allowed = {"jaxcal.typedefs"}
+    offenders = {
+        m: sorted(deps - allowed)
+        for m, deps in graph.items()
+        if m.startswith("jaxcal.numerics") and deps - allowed
+    }
+    assert not offenders, offenders

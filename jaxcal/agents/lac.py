@@ -1,7 +1,8 @@
 """Lyapunov actor-critic (Han et al. 2020), the paper's LAC ablation.
 
-:func:`make_lac` returns an :class:`~jaxcal.agents.common.Agent` whose ``update`` does,
-on one minibatch (paper Algorithm 1 without the CLAC term):
+:func:`make_lac` returns an :class:`~jaxcal.agents.common.Agent` built by
+:func:`~jaxcal.agents.actor_critic.make_actor_critic`, whose ``update`` does, on one
+minibatch (paper Algorithm 1 without the CLAC term):
 
 1. a Lyapunov critic step on J(L_c) with the target critic and target policy;
 2. a policy step on eq. LAC against the updated critic;
@@ -9,31 +10,22 @@ on one minibatch (paper Algorithm 1 without the CLAC term):
    log(Lyapunov multiplier) (paper eq. gamma update), the latter projected onto
    (0, ``max_lyapunov_multiplier``];
 4. the Polyak update of the target critic and target policy (tau).
+
+The Lyapunov critic loss and multiplier defined here are CLAC's too.
 """
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
-import optax
+import functools
+
 from flax import struct
 
 from jaxcal.agents import losses
+from jaxcal.agents.actor_critic import ActorCriticSpec, Multiplier, make_actor_critic
 from jaxcal.agents.buffer import Transition
-from jaxcal.agents.common import (
-    Agent,
-    Optimized,
-    check_sizes,
-    clip_log_multiplier,
-    copy_tree,
-    init_log_multiplier,
-    init_optimized,
-    make_act,
-    minimize,
-    polyak_update,
-)
+from jaxcal.agents.common import Agent, Optimized
 from jaxcal.agents.configs import LACConfig
-from jaxcal.agents.networks import make_networks
+from jaxcal.agents.networks import Networks
 from jaxcal.typedefs import Array, Metrics, PRNGKey, PyTree
 
 
@@ -60,6 +52,46 @@ class LACState:
     step: Array
 
 
+def lac_critic_loss(
+    critic_params: PyTree,
+    state: LACState,
+    batch: Transition,
+    key: PRNGKey,
+    networks: Networks,
+    *,
+    gamma: float,
+    **weights: Array,
+) -> tuple[Array, Metrics]:
+    """:func:`~jaxcal.agents.losses.lyapunov_critic_loss` with the target critic and
+    target policy of ``state`` (a LAC or CLAC state).
+
+    Returns:
+        ``(loss, {"critic_loss", "lyapunov_value", "lyapunov_target"})``.
+    """
+    del weights  # J(L_c) is weighted by no multiplier
+    return losses.lyapunov_critic_loss(
+        critic_params,
+        state.target_critic_params,
+        state.target_actor_params,
+        batch,
+        key,
+        networks,
+        gamma=gamma,
+    )
+
+
+def lyapunov_multiplier(cfg: LACConfig) -> Multiplier:
+    """The Lyapunov multiplier (paper lambda), driven by the decrease Delta."""
+    return Multiplier(
+        name="lyapunov_multiplier",
+        signal="lyapunov_decrease",
+        loss=losses.lyapunov_multiplier_loss,
+        initial_value=cfg.initial_lyapunov_multiplier,
+        learning_rate=cfg.lyapunov_multiplier_lr,
+        max_value=cfg.max_lyapunov_multiplier,
+    )
+
+
 def make_lac(cfg: LACConfig, observation_size: int, action_size: int) -> Agent:
     """Builds the LAC agent.
 
@@ -73,90 +105,11 @@ def make_lac(cfg: LACConfig, observation_size: int, action_size: int) -> Agent:
     """
     if type(cfg) is not LACConfig:
         raise ValueError(f"make_lac needs a LACConfig, got {type(cfg).__name__}")
-    check_sizes(observation_size, action_size)
-    networks = make_networks(cfg, action_size)
-    actor_optimizer = optax.adam(cfg.actor_lr)
-    critic_optimizer = optax.adam(cfg.critic_lr)
-    temperature_optimizer = optax.adam(cfg.entropy_temperature_lr)
-    multiplier_optimizer = optax.adam(cfg.lyapunov_multiplier_lr)
-    target_entropy = cfg.resolved_target_entropy(action_size)
-
-    def init(key: PRNGKey) -> LACState:
-        key_actor, key_critic = jax.random.split(key)
-        obs = jnp.zeros((1, observation_size), jnp.float32)
-        action = jnp.zeros((1, action_size), jnp.float32)
-        actor_params = networks.actor.init(key_actor, obs)
-        critic_params = networks.critic.init(key_critic, obs, action)
-        return LACState(
-            actor=init_optimized(actor_optimizer, actor_params),
-            critic=init_optimized(critic_optimizer, critic_params),
-            target_actor_params=copy_tree(actor_params),
-            target_critic_params=copy_tree(critic_params),
-            log_entropy_temperature=init_log_multiplier(
-                temperature_optimizer, cfg.initial_entropy_temperature
-            ),
-            log_lyapunov_multiplier=init_log_multiplier(
-                multiplier_optimizer, cfg.initial_lyapunov_multiplier
-            ),
-            step=jnp.zeros((), jnp.int32),
-        )
-
-    def update(
-        key: PRNGKey, state: LACState, batch: Transition
-    ) -> tuple[LACState, Metrics]:
-        key_critic, key_actor = jax.random.split(key)
-        critic, critic_aux = minimize(
-            critic_optimizer,
-            state.critic,
-            losses.lyapunov_critic_loss,
-            state.target_critic_params,
-            state.target_actor_params,
-            batch,
-            key_critic,
-            networks,
-            gamma=cfg.gamma,
-        )
-        actor, actor_aux = minimize(
-            actor_optimizer,
-            state.actor,
-            losses.lac_actor_loss,
-            critic.params,
-            batch,
-            key_actor,
-            networks,
-            entropy_temperature=jnp.exp(state.log_entropy_temperature.params),
-            lyapunov_multiplier=jnp.exp(state.log_lyapunov_multiplier.params),
-            alpha3=cfg.alpha3,
-        )
-        log_temperature, temperature_aux = minimize(
-            temperature_optimizer,
-            state.log_entropy_temperature,
-            losses.entropy_temperature_loss,
-            actor_aux["log_prob"],
-            target_entropy,
-        )
-        log_multiplier, multiplier_aux = minimize(
-            multiplier_optimizer,
-            state.log_lyapunov_multiplier,
-            losses.lyapunov_multiplier_loss,
-            actor_aux["lyapunov_decrease"],
-        )
-        new_state = LACState(
-            actor=actor,
-            critic=critic,
-            target_actor_params=polyak_update(
-                state.target_actor_params, actor.params, cfg.tau
-            ),
-            target_critic_params=polyak_update(
-                state.target_critic_params, critic.params, cfg.tau
-            ),
-            log_entropy_temperature=log_temperature,
-            log_lyapunov_multiplier=clip_log_multiplier(
-                log_multiplier, cfg.max_lyapunov_multiplier
-            ),
-            step=state.step + 1,
-        )
-        metrics = {**critic_aux, **actor_aux, **temperature_aux, **multiplier_aux}
-        return new_state, metrics
-
-    return Agent(init, make_act(networks.actor), update, observation_size, action_size)
+    spec = ActorCriticSpec(
+        state_type=LACState,
+        critic_loss=lac_critic_loss,
+        actor_loss=functools.partial(losses.lac_actor_loss, alpha3=cfg.alpha3),
+        multipliers=(lyapunov_multiplier(cfg),),
+        target_actor=True,
+    )
+    return make_actor_critic(cfg, spec, observation_size, action_size)

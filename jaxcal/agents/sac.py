@@ -2,33 +2,23 @@
 
 The comparison baseline of the paper's learning algorithms: the same policy network and
 entropy-temperature adaptation as LAC/CLAC, but a twin soft-Q critic instead of the
-Lyapunov critic. :func:`make_sac` returns an :class:`~jaxcal.agents.common.Agent`; its
-``update`` does, on one minibatch, a critic step, an actor step (against the updated
-critic), a temperature step and the Polyak update of the target critics.
+Lyapunov critic. :func:`make_sac` returns an :class:`~jaxcal.agents.common.Agent` built
+by :func:`~jaxcal.agents.actor_critic.make_actor_critic`; its ``update`` does, on one
+minibatch, a critic step, an actor step (against the updated critic), a temperature
+step and the Polyak update of the target critics. SAC keeps no target policy: the
+soft-Q target samples a' from the online one.
 """
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
-import optax
 from flax import struct
 
 from jaxcal.agents import losses
+from jaxcal.agents.actor_critic import ActorCriticSpec, make_actor_critic
 from jaxcal.agents.buffer import Transition
-from jaxcal.agents.common import (
-    Agent,
-    Optimized,
-    check_sizes,
-    copy_tree,
-    init_log_multiplier,
-    init_optimized,
-    make_act,
-    minimize,
-    polyak_update,
-)
+from jaxcal.agents.common import Agent, Optimized
 from jaxcal.agents.configs import SACConfig
-from jaxcal.agents.networks import make_networks
+from jaxcal.agents.networks import Networks
 from jaxcal.typedefs import Array, Metrics, PRNGKey, PyTree
 
 
@@ -51,6 +41,34 @@ class SACState:
     step: Array
 
 
+def sac_critic_loss(
+    critic_params: PyTree,
+    state: SACState,
+    batch: Transition,
+    key: PRNGKey,
+    networks: Networks,
+    *,
+    gamma: float,
+    entropy_temperature: Array,
+) -> tuple[Array, Metrics]:
+    """:func:`~jaxcal.agents.losses.soft_q_critic_loss` with the target critic and
+    the online policy of ``state``.
+
+    Returns:
+        ``(loss, {"critic_loss", "q_value", "q_target"})``.
+    """
+    return losses.soft_q_critic_loss(
+        critic_params,
+        state.target_critic_params,
+        state.actor.params,
+        batch,
+        key,
+        networks,
+        gamma=gamma,
+        entropy_temperature=entropy_temperature,
+    )
+
+
 def make_sac(cfg: SACConfig, observation_size: int, action_size: int) -> Agent:
     """Builds the SAC agent.
 
@@ -64,72 +82,9 @@ def make_sac(cfg: SACConfig, observation_size: int, action_size: int) -> Agent:
     """
     if not isinstance(cfg, SACConfig):
         raise ValueError(f"make_sac needs a SACConfig, got {type(cfg).__name__}")
-    check_sizes(observation_size, action_size)
-    networks = make_networks(cfg, action_size)
-    actor_optimizer = optax.adam(cfg.actor_lr)
-    critic_optimizer = optax.adam(cfg.critic_lr)
-    temperature_optimizer = optax.adam(cfg.entropy_temperature_lr)
-    target_entropy = cfg.resolved_target_entropy(action_size)
-
-    def init(key: PRNGKey) -> SACState:
-        key_actor, key_critic = jax.random.split(key)
-        obs = jnp.zeros((1, observation_size), jnp.float32)
-        action = jnp.zeros((1, action_size), jnp.float32)
-        actor_params = networks.actor.init(key_actor, obs)
-        critic_params = networks.critic.init(key_critic, obs, action)
-        return SACState(
-            actor=init_optimized(actor_optimizer, actor_params),
-            critic=init_optimized(critic_optimizer, critic_params),
-            target_critic_params=copy_tree(critic_params),
-            log_entropy_temperature=init_log_multiplier(
-                temperature_optimizer, cfg.initial_entropy_temperature
-            ),
-            step=jnp.zeros((), jnp.int32),
-        )
-
-    def update(
-        key: PRNGKey, state: SACState, batch: Transition
-    ) -> tuple[SACState, Metrics]:
-        key_critic, key_actor = jax.random.split(key)
-        temperature = jnp.exp(state.log_entropy_temperature.params)
-        critic, critic_aux = minimize(
-            critic_optimizer,
-            state.critic,
-            losses.soft_q_critic_loss,
-            state.target_critic_params,
-            state.actor.params,
-            batch,
-            key_critic,
-            networks,
-            gamma=cfg.gamma,
-            entropy_temperature=temperature,
-        )
-        actor, actor_aux = minimize(
-            actor_optimizer,
-            state.actor,
-            losses.sac_actor_loss,
-            critic.params,
-            batch,
-            key_actor,
-            networks,
-            entropy_temperature=temperature,
-        )
-        log_temperature, temperature_aux = minimize(
-            temperature_optimizer,
-            state.log_entropy_temperature,
-            losses.entropy_temperature_loss,
-            actor_aux["log_prob"],
-            target_entropy,
-        )
-        new_state = SACState(
-            actor=actor,
-            critic=critic,
-            target_critic_params=polyak_update(
-                state.target_critic_params, critic.params, cfg.tau
-            ),
-            log_entropy_temperature=log_temperature,
-            step=state.step + 1,
-        )
-        return new_state, {**critic_aux, **actor_aux, **temperature_aux}
-
-    return Agent(init, make_act(networks.actor), update, observation_size, action_size)
+    spec = ActorCriticSpec(
+        state_type=SACState,
+        critic_loss=sac_critic_loss,
+        actor_loss=losses.sac_actor_loss,
+    )
+    return make_actor_critic(cfg, spec, observation_size, action_size)

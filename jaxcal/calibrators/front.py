@@ -68,7 +68,6 @@ import sys
 import warnings
 from collections.abc import Mapping, Sequence
 
-import jax
 import numpy as np
 
 from jaxcal.calibrators import methods
@@ -80,6 +79,7 @@ from jaxcal.data.buckets import bucket_units
 from jaxcal.data.dataset import Dataset, clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
+from jaxcal.precision import is_x64, require_x64
 from jaxcal.problem import Problem
 
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
@@ -89,14 +89,9 @@ PROGRESS_AFTER = 3.0  # seconds before a call shows its progress line
 
 
 def _dtype(model: Model):
-    x64 = bool(jax.config.jax_enable_x64)
-    if model.x64 and not x64:
-        raise ValueError(
-            f"model {model.name!r} needs float64 (an iterative solver inside): call "
-            "jax.config.update('jax_enable_x64', True) (or "
-            "jaxcal.precision.enable_x64()) at the start of your program"
-        )
-    return np.float64 if x64 else np.float32
+    if model.x64:
+        require_x64(f"model {model.name!r} needs float64 (an iterative solver inside)")
+    return np.float64 if is_x64() else np.float32
 
 
 def calibrate(

@@ -16,12 +16,13 @@ Nocedal & Wright 2006, sec. 10.3), working in scaled parameters
   with ``lax.while_loop`` to a tolerance and reporting cost, gradient norm, iteration
   count, the covariance ``s^2 (J^T J)^-1`` and a ``converged`` flag.
 
-Jacobians come from ``jax.jacfwd`` over the ``P`` declared parameters, so an iteration
-costs one model evaluation per sample plus ``P`` tangent sweeps (cheap linear solves for
-an implicit-function model like the engine). A streaming step costs
-``window * (num_iters + 1)`` such evaluations. Damping is Marquardt's
-``lambda diag(J^T J)`` (floored), adapted by factors on acceptance / rejection; a trial
-point with a non-finite cost is rejected, so a failed model evaluation never enters θ.
+The iteration, its damping (Marquardt's ``lambda diag(J^T J)``, adapted by factors on
+acceptance / rejection; a trial point with a non-finite cost is rejected, so a failed
+model evaluation never enters θ) and the covariance are the one solver core's,
+:mod:`jaxcal.numerics.levenberg_marquardt`. Jacobians come from ``jax.jacfwd`` over
+the ``P`` declared parameters, so an iteration costs one model evaluation per sample
+plus ``P`` tangent sweeps (cheap linear solves for an implicit-function model like
+the engine). A streaming step costs ``window * (num_iters + 1)`` such evaluations.
 
 Missing outputs: a NaN in ``x`` (a sensor channel dropped out) is left out of the
 sum of squares (a masked residual, fixed shapes), so both take partial rows
@@ -56,9 +57,15 @@ from jaxcal.calibrators.interface import (
     check_norm,
     check_scale,
 )
+from jaxcal.numerics.levenberg_marquardt import (
+    Damping,
+    Tolerance,
+    gauss_newton_cov,
+    linearize,
+    lm_run,
+    lm_solve,
+)
 from jaxcal.typedefs import Array, PRNGKey
-
-_DAMPING_MIN, _DAMPING_MAX = 1e-12, 1e12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,67 +139,10 @@ class FitInfo(NamedTuple):
     converged: Array  # [] bool, a tolerance was met with a finite cost
 
 
-class _LMCarry(NamedTuple):
-    z: Array  # [P]
-    resid: Array  # [M]
-    jac: Array  # [M, P]
-    cost: Array  # []
-    damping: Array  # []
-
-
-def _lm_iteration(resid_jac, carry: _LMCarry, factor: float):
-    """One Levenberg–Marquardt trial step; returns the new carry and step facts."""
-    grad = carry.jac.T @ carry.resid
-    hess = carry.jac.T @ carry.jac
-    diag = jnp.diagonal(hess)
-    diag = jnp.maximum(diag, 1e-9 * jnp.max(diag) + jnp.finfo(diag.dtype).tiny)
-    dz = jnp.linalg.solve(hess + carry.damping * jnp.diag(diag), -grad)
-    resid_try, jac_try = resid_jac(carry.z + dz)
-    cost_try = 0.5 * resid_try @ resid_try
-    accept = (
-        jnp.isfinite(cost_try) & jnp.all(jnp.isfinite(dz)) & (cost_try <= carry.cost)
-    )
-    pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-    damping = jnp.where(accept, carry.damping / factor, carry.damping * factor)
-    new = _LMCarry(
-        z=pick(carry.z + dz, carry.z),
-        resid=pick(resid_try, carry.resid),
-        jac=pick(jac_try, carry.jac),
-        cost=pick(cost_try, carry.cost),
-        damping=jnp.clip(damping, _DAMPING_MIN, _DAMPING_MAX),
-    )
-    step_norm = jnp.where(jnp.all(jnp.isfinite(dz)), jnp.linalg.norm(dz), jnp.inf)
-    return new, accept, step_norm
-
-
-def _lm_start(resid_jac, z0: Array, damping: float) -> _LMCarry:
-    resid, jac = resid_jac(z0)
-    cost = 0.5 * resid @ resid
-    return _LMCarry(z0, resid, jac, cost, jnp.asarray(damping, z0.dtype))
-
-
-def _inverse_psd(mat: Array) -> Array:
-    """Inverse of a PSD matrix with eigenvalues floored at eps * max: huge, finite
-    variances flag unidentifiable directions instead of NaN."""
-    eigval, eigvec = jnp.linalg.eigh(mat)
-    floor = jnp.finfo(mat.dtype).eps * jnp.maximum(jnp.max(eigval), 1.0)
-    return (eigvec / jnp.maximum(eigval, floor)) @ eigvec.T
-
-
-def _residual_jacobian(residual):
-    """``z -> (r, dr/dz)`` with one primal evaluation (``jacfwd`` with aux)."""
-
-    def with_aux(z):
-        r = residual(z)  # evaluated once: the primal rides along as aux
-        return r, r
-
-    jac_fn = jax.jacfwd(with_aux, has_aux=True)
-
-    def resid_jac(z):
-        jac, resid = jac_fn(z)
-        return resid, jac
-
-    return resid_jac
+def damping_of(cfg: LeastSquaresConfig | FitConfig) -> Damping:
+    """The core's damping schedule of a config (lambda divided / multiplied by
+    ``damping_factor`` on acceptance / rejection)."""
+    return Damping(cfg.damping_init, cfg.damping_factor, cfg.damping_factor)
 
 
 def make_least_squares(
@@ -258,34 +208,27 @@ def make_least_squares(
                 r = jnp.concatenate([r, (z - z_prev) / cfg.prior_std])
             return r
 
-        resid_jac = _residual_jacobian(residual)
-        carry = _lm_start(resid_jac, z_prev, cfg.damping_init)
-        carry = lax.fori_loop(
-            0, cfg.num_iters,
-            lambda _, c: _lm_iteration(resid_jac, c, cfg.damping_factor)[0], carry,
-        )  # fmt: skip
+        fit = lm_run(linearize(residual), z_prev, cfg.num_iters, damping_of(cfg))
         num_sensors = x_t.shape[0]
-        r_now = lax.dynamic_slice(
-            carry.resid, (state.pos * num_sensors,), (num_sensors,)
-        )
-        cov = _inverse_psd(carry.jac.T @ carry.jac)
+        r_now = lax.dynamic_slice(fit.resid, (state.pos * num_sensors,), (num_sensors,))
+        cov = gauss_newton_cov(fit.jac)
         ages = (state.pos - jnp.arange(cfg.window)) % cfg.window  # slot -> age
         ages = jnp.repeat(ages.astype(cov.dtype), num_sensors)
         if cfg.prior_std is not None:
             ages = jnp.concatenate([ages, prior_age(state.history)])
-        drift_jac = -ages[:, None] * carry.jac
+        drift_jac = -ages[:, None] * fit.jac
         if cfg.prior_std is not None:
             ages = ages.at[-theta0.shape[0] :].set(-1.0)  # the prior: no sample
         std, laplace_std, history = drift_std(
-            state.history, carry.z, cov, carry.jac, drift_jac, ages, cfg.window
+            state.history, fit.y, cov, fit.jac, drift_jac, ages, cfg.window
         )
         aux = {
             "theta_std": scale * std,
             "laplace_std": scale * laplace_std,
-            "cost": carry.cost,
+            "cost": fit.cost,
         }
         new_state = LSState(
-            z=carry.z, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
+            z=fit.y, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
             pos=(state.pos + 1) % cfg.window, history=history,
         )  # fmt: skip
         # F(w_t, theta) from the cached residual; a missing output has none there
@@ -294,9 +237,9 @@ def make_least_squares(
         xhat = lax.cond(
             jnp.all(observed_t),
             lambda: from_resid,
-            lambda: measure_fn(w_t, scale * carry.z).astype(from_resid.dtype),
+            lambda: measure_fn(w_t, scale * fit.y).astype(from_resid.dtype),
         )
-        out = CalStepOutput(theta=scale * carry.z, xhat=xhat, aux=aux)
+        out = CalStepOutput(theta=scale * fit.y, xhat=xhat, aux=aux)
         return new_state, out
 
     return Calibrator(init=init, step=step, accepts_partial=True)
@@ -363,36 +306,18 @@ def _fit_jit(measure_fn, cfg, w, x, theta0, mask, std, scale):
         pred = jax.vmap(lambda w_t: measure_fn(w_t, scale * z))(w)
         return jnp.where(used, (pred - x) / std, 0.0).ravel()
 
-    resid_jac = _residual_jacobian(residual)
-
-    def status_of(carry, accepted, step_norm, cost_before):
-        grad_norm = jnp.max(jnp.abs(carry.jac.T @ carry.resid))
-        small_gain = accepted & (cost_before - carry.cost <= cfg.ftol * cost_before)
-        small_step = step_norm <= cfg.xtol * (cfg.xtol + jnp.linalg.norm(carry.z))
-        done = (grad_norm <= cfg.gtol) | small_gain | small_step
-        return jnp.where(jnp.isfinite(carry.cost), done.astype(jnp.int32), -1)
-
-    def body(loop):
-        carry, it, _ = loop
-        new, accepted, step_norm = _lm_iteration(resid_jac, carry, cfg.damping_factor)
-        return new, it + 1, status_of(new, accepted, step_norm, carry.cost)
-
-    carry0 = _lm_start(resid_jac, theta0 / scale, cfg.damping_init)
-    status0 = status_of(carry0, jnp.array(False), jnp.inf, carry0.cost)
-    carry, num_iters, status = lax.while_loop(
-        lambda loop: (loop[2] == 0) & (loop[1] < cfg.max_iters),
-        body, (carry0, jnp.zeros((), jnp.int32), status0),
-    )  # fmt: skip
+    tol = Tolerance(cfg.max_iters, cfg.gtol, cfg.ftol, cfg.xtol)
+    fit, stats = lm_solve(linearize(residual), theta0 / scale, tol, damping_of(cfg))
     num_resid = jnp.sum(used)
     num_params = theta0.shape[0]
-    s2 = 2.0 * carry.cost / jnp.maximum(num_resid - num_params, 1)
-    cov = s2 * _inverse_psd(carry.jac.T @ carry.jac) * scale[:, None] * scale[None, :]
+    s2 = 2.0 * fit.cost / jnp.maximum(num_resid - num_params, 1)
+    cov = gauss_newton_cov(fit.jac, s2=s2) * scale[:, None] * scale[None, :]
     info = FitInfo(
-        cost=carry.cost,
-        grad_norm=jnp.max(jnp.abs(carry.jac.T @ carry.resid)),
-        num_iters=num_iters,
+        cost=fit.cost,
+        grad_norm=jnp.max(jnp.abs(fit.jac.T @ fit.resid)),
+        num_iters=stats.num_iters,
         cov=cov,
         theta_std=jnp.sqrt(jnp.diagonal(cov)),
-        converged=status == 1,
+        converged=stats.status == 1,
     )
-    return scale * carry.z, info
+    return scale * fit.y, info

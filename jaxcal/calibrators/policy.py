@@ -110,10 +110,14 @@ class IncrementPolicyParams(PolicyParams):
 
     Attributes:
         step_ref: ``[P]`` residual RMS at which a step is half its largest.
+        theta_start: ``[P]`` theta before a stream's first sample; ``None``: the box
+            centre (runs before it was a field load with ``None``: no leaf, the same
+            checkpoint layout).
         max_increment: largest step as a share of the box width (static).
     """
 
     step_ref: Array
+    theta_start: Array | None = None
     max_increment: float = struct.field(pytree_node=False, default=0.5)
 
 
@@ -136,10 +140,15 @@ class PolicyState:
 
 
 def policy_params_from_env(
-    env_params: EnvParams, actor_params: PyTree, *, max_increment: float | None = None
+    env_params: EnvParams,
+    actor_params: PyTree,
+    *,
+    max_increment: float | None = None,
+    theta_start: Array | None = None,
 ) -> PolicyParams:
     """The deployment parameters of a policy trained on ``env_params``
-    (``max_increment``: the env's, for incremental actions)."""
+    (``max_increment``: the env's, for incremental actions; ``theta_start``: where
+    an incremental policy starts, ``None``: the box centre)."""
     fields = dict(
         actor=actor_params,
         dyn_params=env_params.dyn_params,
@@ -154,8 +163,13 @@ def policy_params_from_env(
         return PolicyParams(**fields)
     if max_increment is None:
         raise ValueError("an incremental policy needs the env's max_increment")
+    if theta_start is not None:
+        theta_start = jnp.asarray(theta_start, env_params.theta_low.dtype)
     return IncrementPolicyParams(
-        **fields, step_ref=env_params.step_ref, max_increment=max_increment
+        **fields,
+        step_ref=env_params.step_ref,
+        theta_start=theta_start,
+        max_increment=max_increment,
     )
 
 
@@ -207,8 +221,10 @@ def make_policy_calibrator(
         z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
         z0 = None if z0 is None else z0.astype(x0.dtype)
         theta0 = None
-        if incremental:  # the box centre (the env's reset_at)
-            theta0 = 0.5 * (params.theta_low + params.theta_high)
+        if incremental:  # the run's start, else the box centre (the env's reset_at)
+            theta0 = params.theta_start
+            if theta0 is None:
+                theta0 = 0.5 * (params.theta_low + params.theta_high)
         count = None if band is None else jnp.zeros((), jnp.int32)
         hint = dynamics.init_hint() if hinted else None
         return PolicyState(

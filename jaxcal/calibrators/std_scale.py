@@ -36,8 +36,7 @@ import numpy as np
 from jaxcal.calibrators.interface import Calibrator
 from jaxcal.calibrators.uncertainty import (
     MIN_BUCKET_SAMPLES,
-    assign_buckets,
-    conformal_quantile,
+    conformal_scale,
     z_value,
 )
 from jaxcal.typedefs import Array
@@ -74,25 +73,17 @@ def normalised_scores(err: np.ndarray, std: np.ndarray) -> np.ndarray:
 
 
 def _fit(scores, t, *, level, edges, min_count, caller) -> StdScale:
-    """The scale of normalised ``scores`` ``[n, P]`` at stream indices ``t`` ``[n]``."""
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"{caller}: level must be in (0, 1), got {level}")
-    if len(t) < min_count:
-        raise ValueError(
-            f"{caller}: {len(t)} scored samples, a scale needs at least {min_count}"
-        )
-    edges, bucket = assign_buckets(t, edges, min_count, caller)
-    q = np.stack(
-        [conformal_quantile(scores[bucket == k], level) for k in range(len(edges))]
-    )
-    if not np.isfinite(q).all():
+    """The scale of normalised ``scores`` ``[n, P]`` at stream indices ``t`` ``[n]``
+    (:func:`~jaxcal.calibrators.uncertainty.conformal_scale`), which must be finite."""
+    edges, scale = conformal_scale(scores, t, level=level, edges=edges,
+                                   min_count=min_count, caller=caller)  # fmt: skip
+    if not np.isfinite(scale).all():
         raise ValueError(
             f"{caller}: more than {1 - level:.0%} of a bucket's samples have a zero "
             "or non-finite std with a non-zero error: no finite scale covers them"
         )
     return StdScale(
-        edges=jnp.asarray(edges, jnp.int32),
-        scale=jnp.asarray(q / z_value(level), jnp.float32),
+        edges=jnp.asarray(edges, jnp.int32), scale=jnp.asarray(scale, jnp.float32)
     )
 
 
@@ -109,8 +100,9 @@ def fit_std_scale(
     """Fits the per-bucket scale on held-out units' whole trajectories.
 
     Args:
-        theta_hat, theta_true, theta_std: ``[U, T, P]`` a method's estimates, the
-            true values and the method's std.
+        theta_hat: ``[U, T, P]`` a method's estimates.
+        theta_true: ``[U, T, P]`` the true values.
+        theta_std: ``[U, T, P]`` the method's std.
         mask: ``[U, T]`` the scored samples (real and not flagged).
         level: the interval's coverage target, in (0, 1).
         edges: bucket starts (``edges[0] == 0``, increasing); ``[0]``: one scale per
@@ -175,7 +167,9 @@ def std_coverage(
 
     Args:
         scale: the fitted scale; ``None``: the raw std (``s = 1``).
-        theta_hat, theta_true, theta_std: ``[U, T, P]``.
+        theta_hat: ``[U, T, P]`` the estimates.
+        theta_true: ``[U, T, P]`` the true values.
+        theta_std: ``[U, T, P]`` the std.
         mask: ``[U, T]`` the scored samples.
         level: the interval's level (its ``z``).
 
@@ -259,7 +253,9 @@ def fit_result_scale(
         result: a :class:`~jaxcal.calibrators.front.CalibrationResult` with a
             ``theta_std`` (``"ukf"``, ``"ls"``); its valid rows are scored.
         theta_true: ``[N, P]`` the true parameters of its rows, in row order.
-        level, edges, min_count: as in :func:`fit_std_scale`.
+        level: as in :func:`fit_std_scale`.
+        edges: as in :func:`fit_std_scale`.
+        min_count: as in :func:`fit_std_scale`.
 
     Example::
 

@@ -17,6 +17,10 @@ measured and reported by the training job, not assumed. The half-width is stored
 a Gaussian-equivalent std (half-width / z, z = 1.6449 for 90 %) so a consumer can
 emit ``theta_std`` and rebuild any symmetric interval it needs.
 
+:func:`conformal_scale` is the one split-conformal scaling of jaxcal: this band's
+half-widths (scores ``|theta_hat - theta|``) and the rescaled std of
+:mod:`jaxcal.calibrators.std_scale` (scores ``|theta_hat - theta| / std``) are both it.
+
 Host-side fitting (numpy, once per run) and a jittable lookup :func:`band_std` for
 the deployed calibrator. Files are written through the one atomic writer.
 """
@@ -126,6 +130,51 @@ def conformal_quantile(scores: np.ndarray, level: float) -> np.ndarray:
     return np.sort(scores, axis=0)[rank - 1]
 
 
+def conformal_scale(
+    scores: np.ndarray,
+    t: np.ndarray,
+    *,
+    level: float,
+    edges,
+    min_count: int,
+    caller: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Split-conformal scale per time bucket: in each bucket of stream indices ``t``
+    (:func:`assign_buckets`), the :func:`conformal_quantile` of the scores divided
+    by the Gaussian ``z`` of ``level``, so that ``+-z * scale`` (times whatever the
+    scores were normalised by) holds ``level`` of them.
+
+    Args:
+        scores: ``[n, P]`` non-conformity scores (absolute errors, or absolute errors
+            over a method's std).
+        t: ``[n]`` each score's stream index (samples of its unit before it).
+        level: the interval's coverage target, in (0, 1).
+        edges: bucket starts (``edges[0] == 0``, increasing); ``None``:
+            :func:`log_edges` up to the largest ``t``.
+        min_count: buckets with fewer scores merge into a neighbour; fewer scores
+            in all is an error.
+        caller: the public function named in errors.
+
+    Returns:
+        ``(edges [K], scale [K, P])``, ``K <= len(edges)``; ``scale`` in float64 and
+        infinite where more than ``1 - level`` of a bucket's scores are.
+
+    Raises:
+        ValueError: bad ``level`` or ``edges``, or fewer than ``min_count`` scores.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"{caller}: level must be in (0, 1), got {level}")
+    if len(t) < min_count:
+        raise ValueError(
+            f"{caller}: {len(t)} scored samples, a fit needs at least {min_count}"
+        )
+    edges, bucket = assign_buckets(t, edges, min_count, caller)
+    q = np.stack(
+        [conformal_quantile(scores[bucket == k], level) for k in range(len(edges))]
+    )
+    return edges, q / z_value(level)
+
+
 def fit_band(
     theta_hat,
     theta_true,
@@ -164,19 +213,10 @@ def fit_band(
     if mask.shape != theta_hat.shape[:2]:
         raise ValueError(f"fit_band: mask must be [U, T] = {theta_hat.shape[:2]}, "
                          f"got {mask.shape}")  # fmt: skip
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"fit_band: level must be in (0, 1), got {level}")
-    num = int(mask.sum())
-    if num < min_count:
-        raise ValueError(
-            f"fit_band: {num} valid samples, a band needs at least {min_count}"
-        )
     t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
-    edges, bucket = assign_buckets(t, edges, min_count, "fit_band")
     scores = np.abs(theta_hat - theta_true)[mask]  # [n, P]
-    std = np.stack(
-        [conformal_quantile(scores[bucket == k], level) for k in range(len(edges))]
-    ) / z_value(level)
+    edges, std = conformal_scale(scores, t, level=level, edges=edges,
+                                 min_count=min_count, caller="fit_band")  # fmt: skip
     return ThetaBand(
         edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, jnp.float32)
     )

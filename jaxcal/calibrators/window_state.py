@@ -13,8 +13,8 @@ the window and an arrival-cost prior on ``z_s``). Each step
    ``sum_i ||(x_i(theta, z_s) - x_i) / (std r)||^2 + ||(z_s - z_prior) / state_std||^2
    [+ ||(u - u_prev) / prior_std||^2]``, ``x_i`` simulated by ``lax.scan`` and
    differentiated by ``jax.jacfwd`` over the ``P + Z`` unknowns; warm-started from
-   the previous estimate. The damped Gauss–Newton step is the one of
-   :mod:`jaxcal.calibrators.least_squares` (one solver core).
+   the previous estimate. The iteration, its box projection and the covariance are
+   the one solver core's (:mod:`jaxcal.numerics.levenberg_marquardt`).
 
 A NaN in ``x_t`` is a missing output: it is left out of the residual (the sample's
 other outputs still count), so the calibrator takes partial rows
@@ -46,13 +46,8 @@ from jaxcal.calibrators.interface import (
     check_prior,
     check_scale,
 )
-from jaxcal.calibrators.least_squares import (
-    LeastSquaresConfig,
-    _inverse_psd,
-    _lm_iteration,
-    _lm_start,
-    _residual_jacobian,
-)
+from jaxcal.calibrators.least_squares import LeastSquaresConfig, damping_of
+from jaxcal.numerics.levenberg_marquardt import gauss_newton_cov, linearize, lm_run
 from jaxcal.problem import Transition
 from jaxcal.typedefs import Array, PRNGKey
 
@@ -116,9 +111,11 @@ def make_window_least_squares(
     )
     sigma = norm.std * cfg.r  # residual unit: one noise std
     if theta_box is None:
-        u_low = u_high = None
-    else:
-        u_low, u_high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
+        box = None
+    else:  # on the parameters; the window-start state is free
+        free = jnp.full((num_states,), jnp.inf, theta0.dtype)
+        low, high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
+        box = (jnp.concatenate([low, -free]), jnp.concatenate([high, free]))
 
     def simulate(theta, zs, w_buf, valid):
         """Outputs over the window and the final state; invalid slots hold z.
@@ -172,25 +169,13 @@ def make_window_least_squares(
                 r = jnp.concatenate([r, (u - u_prev) / cfg.prior_std])
             return r
 
-        resid_jac = _residual_jacobian(residual)
-
-        def iterate(_, carry):
-            carry = _lm_iteration(resid_jac, carry, cfg.damping_factor)[0]
-            if u_low is None:
-                return carry
-            u = jnp.clip(carry.z[:num_params], u_low, u_high)
-            v = carry.z.at[:num_params].set(u)
-            resid, jac = resid_jac(v)  # the projected point's residual and Jacobian
-            return carry._replace(z=v, resid=resid, jac=jac, cost=0.5 * resid @ resid)
-
         v0 = jnp.concatenate([u_prev, jnp.zeros((num_states,), u_prev.dtype)])
-        carry = _lm_start(resid_jac, v0, cfg.damping_init)
-        carry = lax.fori_loop(0, cfg.num_iters, iterate, carry)
-        u, dz = carry.z[:num_params], carry.z[num_params:]
+        fit = lm_run(linearize(residual), v0, cfg.num_iters, damping_of(cfg), box=box)
+        u, dz = fit.y[:num_params], fit.y[num_params:]
         zs = zs_prior + s_std * dz
         theta = scale * u
         pred, z_end = simulate(theta, zs, w_buf, valid)
-        cov = _inverse_psd(carry.jac.T @ carry.jac)
+        cov = gauss_newton_cov(fit.jac)
         std = jnp.sqrt(jnp.diagonal(cov))
         # the residual's response to theta drifting within the window (through the
         # simulated state: the model's memory spreads a drift over later samples);
@@ -212,16 +197,16 @@ def make_window_least_squares(
             drift_jac.append(-prior_rows)
         ages = jnp.concatenate([  # the rows' sample ages; -1: no sample
             jnp.repeat(age, x_t.shape[0]),
-            jnp.full(carry.jac.shape[0] - age.size * x_t.shape[0], -1.0, u.dtype),
+            jnp.full(fit.jac.shape[0] - age.size * x_t.shape[0], -1.0, u.dtype),
         ])  # fmt: skip
         theta_std, laplace_std, history = drift_std(
-            state.history, u, cov, carry.jac, jnp.concatenate(drift_jac), ages,
+            state.history, u, cov, fit.jac, jnp.concatenate(drift_jac), ages,
             cfg.window,
         )  # fmt: skip
         aux = {
             "theta_std": scale * theta_std,
             "laplace_std": scale * laplace_std,
-            "cost": carry.cost,
+            "cost": fit.cost,
             "state": z_end,
             "state_std": s_std * std[num_params:],
         }

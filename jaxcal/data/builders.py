@@ -67,7 +67,7 @@ from jaxcal.data.ncmapss_io import SPLITS, NCMAPSSWriter
 from jaxcal.data.record import Record
 from jaxcal.physics import load_engine
 from jaxcal.physics.constants import SENSOR_NAMES
-from jaxcal.precision import is_x64
+from jaxcal.precision import require_x64
 from jaxcal.settings import config_to_dict
 
 
@@ -340,11 +340,7 @@ def build_dataset(
     Raises:
         ValueError: float64 is off, or engine samples do not converge.
     """
-    if not is_x64():
-        raise ValueError(
-            "build_dataset needs float64: call jaxcal.precision.enable_x64() at the "
-            "entry point first"
-        )
+    require_x64("build_dataset needs float64")
     evaluate = jit_evaluate_engine if evaluate is None else evaluate
     engine = load_engine(cfg.engine)
     solve = functools.partial(

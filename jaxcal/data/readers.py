@@ -229,7 +229,9 @@ def read_dataset(
     Args:
         source: a path, a pandas DataFrame or a Dataset.
         model: the model whose names the columns follow (needed for tables).
-        rename, ignore, nonfinite: see the module docstring.
+        rename: see the module docstring.
+        ignore: see the module docstring.
+        nonfinite: see the module docstring.
         partial: keep the partial rows of a table (module docstring); the
             N-CMAPSS and C-MAPSS readers apply ``nonfinite`` to every row.
         reader_options: passed to the N-CMAPSS reader (``units``, ``sensors``,

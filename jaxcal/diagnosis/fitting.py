@@ -11,7 +11,10 @@ The fit minimises the sum of squares of the **prewhitened** residual (the noise
 model's AR filter per output, :mod:`.noise`: generalised least squares), so its SSR is
 ``-2 log L`` up to a constant and every likelihood-ratio statistic and standard error
 below accounts for the serial correlation of the noise. Levenberg–Marquardt (Nocedal &
-Wright 2006, sec. 10.3) with Marquardt damping ``lambda diag(J^T J)``.
+Wright 2006, sec. 10.3) with Marquardt damping ``lambda diag(J^T J)``: the damping's
+moves, the acceptance rule and the covariance are the one solver core's
+(:mod:`jaxcal.numerics.levenberg_marquardt`); the loop runs on the host and solves its
+own normal equations, because their structure is what makes the fit affordable.
 
 The normal equations have arrow structure: each unit's coefficients couple only to its
 own rows and to the shared ones. :func:`schur_solve` eliminates the unit blocks
@@ -42,6 +45,12 @@ from jaxcal.diagnosis.terms import (
     zero_params,
 )
 from jaxcal.model import Model
+from jaxcal.numerics.levenberg_marquardt import (
+    Damping,
+    inverse_psd,
+    is_accepted,
+    next_damping,
+)
 
 _RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
 # The fit's box: each parameter's bounds widened by this share of their range on each
@@ -54,6 +63,8 @@ FIT_BOX_MARGIN = 0.5
 # a quantity of one sign: its log range times this, away from zero (fit_box)
 FIT_BOX_AWAY = 1.0
 _TO_BOUNDARY = 0.95  # a step that would leave the box goes this share of the way
+_DAMPING = Damping(init=1e-3, shrink=10.0, grow=10.0, low=1e-9)
+_GIVE_UP = 1e8  # the fit stops when a rejection takes the damping above this
 
 
 class Evaluation(NamedTuple):
@@ -308,7 +319,7 @@ def fit_model(
         )
     local_idx, global_idx = np.arange(lay.num_local), np.arange(lay.num_global)
     box = fit_box(model)
-    damping, converged, it = 1e-3, False, 0
+    damping, converged, it = _DAMPING.init, False, 0
     stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
     while it < max_iters:
         it += 1
@@ -320,27 +331,27 @@ def fit_model(
         ev_t = evaluate_model(
             model, data, lay, trial, offset=offset, valid=valid, columns=False
         )
-        if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr and ev_t.cols is None:
+        if is_accepted(ev_t.ssr, ev.ssr) and ev_t.cols is None:
             # the signatures too: a point where they overflow (a model with memory
             # driven unstable along a tangent) is rejected like a worse one
             ev_t = evaluate_model(model, data, lay, trial, offset=offset,
                                   valid=valid)  # fmt: skip
-        if np.isfinite(ev_t.ssr) and ev_t.ssr <= ev.ssr:
+        accepted = bool(is_accepted(ev_t.ssr, ev.ssr))
+        damping = float(next_damping(damping, accepted, _DAMPING))
+        if accepted:
             gain = ev.ssr - ev_t.ssr
             params, ev = trial, ev_t
             stats = gram_stats(data, ev.white, ev.cols, lay.num_local)
-            damping = max(damping / 10.0, 1e-9)
             if gain <= rtol * max(ev.ssr, 1.0):
                 converged = True
                 break
-        else:
-            damping *= 10.0
-            if damping > 1e8:
-                break
+        elif damping > _GIVE_UP:
+            break
     final = schur_solve(stats, local_idx, global_idx)
     scale = np.array([c.scale for c in spec.global_terms])
+    schur = 0.5 * (final.schur + final.schur.T)  # symmetric up to rounding
     cov = (
-        np.linalg.pinv(final.schur, rcond=1e-12) * np.outer(scale, scale)
+        np.asarray(inverse_psd(schur, rcond=1e-12)) * np.outer(scale, scale)
         if global_idx.size
         else np.zeros((0, 0))
     )

@@ -36,6 +36,7 @@ import numpy as np
 
 from jaxcal.diagnosis.kinds import offset_conditions
 from jaxcal.model import Model
+from jaxcal.precision import require_x64
 
 CHUNK_ROWS = 256  # the one row-chunk shape a static model is compiled for
 TIME_BUCKET = 128  # a model with memory pads its units to a multiple of this
@@ -84,14 +85,6 @@ def zero_inputs(model: Model, num_rows: int, num_units: int) -> RowInputs:
         np.zeros((num_rows, len(model.outputs))),
         np.zeros((num_units, len(model.states))),
     )
-
-
-def _check_x64():
-    if not jnp.zeros(()).dtype == jnp.float64:
-        raise ValueError(
-            "the diagnosis needs float64: call jax.config.update('jax_enable_x64', "
-            "True) (or jaxcal.precision.enable_x64()) at the start of the program"
-        )
 
 
 # ---------------------------------------------------------------- static models
@@ -149,7 +142,7 @@ def linearize(
             for the conditions the model allows offsets on
             (:func:`~jaxcal.diagnosis.kinds.offset_conditions`).
     """
-    _check_x64()
+    require_x64("the diagnosis needs float64")
     w = np.asarray(w, np.float64)
     theta = np.asarray(theta, np.float64)
     n = w.shape[0]
@@ -340,7 +333,7 @@ def signatures(
     Returns:
         :class:`Signatures` (``cols [N, S, len(tangents)]``).
     """
-    _check_x64()
+    require_x64("the diagnosis needs float64")
     for tan in tangents:
         if tan.channel not in CHANNELS:
             raise ValueError(f"unknown channel {tan.channel!r}; valid: {CHANNELS}")

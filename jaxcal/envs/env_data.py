@@ -33,6 +33,10 @@ class EnvParams:
         step_ref: [P] residual RMS at which an incremental step is half its
             largest (:func:`jaxcal.envs.increment.apply_increment`); ``None`` for
             absolute actions.
+        x_target: [U, T, S] what the cost compares the prediction with; ``None``:
+            the observations ``x``. Simulated units carry their noise-free outputs
+            here (:mod:`jaxcal.training.simulated`): the cost of a noisy target
+            stops rewarding precision at the noise level, the clean one does not.
     """
 
     w: Array
@@ -47,6 +51,7 @@ class EnvParams:
     dyn_params: PyTree
     z_ref: Array | None = None
     step_ref: Array | None = None
+    x_target: Array | None = None
 
 
 def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
@@ -81,6 +86,7 @@ def make_env_params(
     stats: Normalisation | None = None,
     z_ref: Array | None = None,
     step_ref: Array | None = None,
+    x_target: Array | None = None,
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
@@ -96,6 +102,8 @@ def make_env_params(
             ``None``: a static model (no state).
         step_ref: ``[P]`` positive gate scale of incremental actions; ``None``:
             absolute actions.
+        x_target: ``[U, T, S]`` the cost's target, finite on valid rows; ``None``:
+            ``x`` itself.
 
     Returns:
         :class:`EnvParams`.
@@ -155,6 +163,14 @@ def make_env_params(
                 f"step_ref must be a positive [{low.shape[0]}] array, got {step_ref}"
             )
         step_ref = jnp.asarray(step_ref)
+    if x_target is not None:
+        x_target = np.asarray(x_target, x_np.dtype)
+        if x_target.shape != x_np.shape or not np.isfinite(x_target[valid]).all():
+            raise ValueError(
+                f"x_target must be finite and shaped like x {x_np.shape}, got "
+                f"{x_target.shape}"
+            )
+        x_target = jnp.asarray(x_target)
     return EnvParams(
         w=jnp.asarray(w_np),
         x=jnp.asarray(x_np),
@@ -168,4 +184,5 @@ def make_env_params(
         dyn_params=dyn_params,
         z_ref=None if z_ref_np is None else jnp.asarray(z_ref_np),
         step_ref=step_ref,
+        x_target=x_target,
     )

@@ -407,9 +407,8 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         z, xhat = dyn.step(params.dyn_params, z, w_next, state.xhat, theta)
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
-        cost = tracking_cost(
-            _row(params.x, params, state.unit, time), xhat, params.x_std
-        )
+        target = params.x if params.x_target is None else params.x_target
+        cost = tracking_cost(_row(target, params, state.unit, time), xhat, params.x_std)
         if cfg.cost == "log":
             cost = jnp.log1p(cost / cfg.cost_floor**2)
         next_state = _env_state(

@@ -150,8 +150,10 @@ class FleetResultWriter:
             aux: per-step diagnostics ``[u, T, ...]`` (written as ``aux_<name>``).
             cycle: ``[u, T]`` flight numbers, or ``None``.
             extras: more per-step arrays ``[u, T, ...]`` written under their names.
-            valid, reason: ``[u, T]`` flags of the calibrator (``CalOutput.valid``,
-                ``.reason``), written as columns and counted in ``self.flagged``.
+            valid: ``[u, T]`` flags of the calibrator (``CalOutput.valid``), written
+                as a column and counted in ``self.flagged``.
+            reason: ``[u, T]`` their reasons (``CalOutput.reason``), written as a
+                column and counted in ``self.flagged``.
             partial: ``[u, T]`` rows with missing outputs (``CalOutput.partial``),
                 written as a column and counted in ``self.num_partial``.
         """

@@ -113,11 +113,15 @@ def iter_array_chunks(
     """Chunks of an in-memory fleet ``[U, T, ...]`` (this process's share of each).
 
     Args:
-        w, x, mask: the whole fleet (each process may hold it, or only its units).
+        w: ``[U, T, W]`` the whole fleet (each process may hold it, or only its units).
+        x: ``[U, T, S]`` its outputs.
+        mask: ``[U, T]`` its validity.
         chunk_units: units per global chunk.
         unit_ids: ``[U]`` ids (default ``0 .. U-1``).
-        cycle, extras: optional per-step arrays ``[U, T, ...]``.
-        process_index, num_processes: this process and how many share the chunks.
+        cycle: optional per-step array ``[U, T]``.
+        extras: optional per-step arrays ``[U, T, ...]``.
+        process_index: this process.
+        num_processes: how many processes share the chunks.
 
     Yields:
         :class:`UnitChunk` s, one per global chunk.

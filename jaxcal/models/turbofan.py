@@ -38,6 +38,7 @@ from jaxcal.physics.constants import (
 from jaxcal.physics.cycle import EFFECT_NAMES
 from jaxcal.physics.engine import Engine, load_engine
 from jaxcal.physics.reference import FD002_EARLY_MEANS, FD002_EARLY_STD
+from jaxcal.precision import is_x64
 
 # Natural size of one unit of each engine effect, and its unit (reporting scale).
 EFFECT_SCALE = {
@@ -172,7 +173,7 @@ def load_turbofan(name: str = "cmapss") -> Model:
     """The stored engine configuration ``name`` (``cmapss`` or ``agtf30``), cached so
     that every caller shares one model object (and so one compiled program); the
     cache is per precision, as the design constants load in the current float type."""
-    return _load_turbofan(name, bool(jax.config.jax_enable_x64))
+    return _load_turbofan(name, is_x64())
 
 
 @functools.lru_cache(maxsize=8)

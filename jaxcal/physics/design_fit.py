@@ -2,10 +2,15 @@
 
 The unknowns are a chosen subset of :class:`EngineDesign` fields, written as
 ``value = nominal + scale * u`` with a standard-normal prior on ``u`` (the prior keeps
-constants the data do not determine at their textbook values, physics_facts.md). The data
-residuals are ``(x(w_k; design) - target)/sigma``. Levenberg-Marquardt on the stacked
-residual vector uses the exact Jacobian ``jax.jacfwd`` through the implicit-function
-gradients of the Newton solve (no finite differences).
+constants the data do not determine at their textbook values, physics_facts.md). The
+data residuals are ``(x(w_k; design) - target)/sigma``. Levenberg-Marquardt on the
+stacked residual vector is the one solver core's
+(:mod:`jaxcal.numerics.levenberg_marquardt`, one jitted ``lax.while_loop``), with the
+exact Jacobian ``jax.jacfwd`` through the implicit-function gradients of the Newton
+solve (no finite differences). The engine's Newton starts ride along as the core's
+hint: every evaluation starts from the solutions at the last accepted design
+(continuation in design space, which keeps the balance on its physical branch while
+the design moves), and a point where a solve does not converge is rejected.
 """
 
 from __future__ import annotations
@@ -17,6 +22,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.numerics.levenberg_marquardt import (
+    Damping,
+    Tolerance,
+    gauss_newton_cov,
+    linearize,
+    lm_solve,
+)
 from jaxcal.physics.configs import design_from_flat, design_to_flat
 from jaxcal.physics.constants import SENSOR_NAMES
 from jaxcal.physics.design import (
@@ -102,7 +114,9 @@ def make_residual_fn(
     # (a start point needs no gradient, and the fitted design stays close to nominal)
     table = jax.jit(build_guess_table)(base, design_point(base))
     pcn, _ = corrected_fan_speed_demand(base, jnp.asarray(conditions)[:, 2])
-    z0 = jax.vmap(initial_guess, (None, 0, 0))(table, pcn, jnp.asarray(conditions)[:, 1])
+    z0 = jax.vmap(initial_guess, (None, 0, 0))(
+        table, pcn, jnp.asarray(conditions)[:, 1]
+    )
     idx_ref = np.array([max(t.k_ref, 0) for t in targets])
     is_delta = jnp.array([t.k_ref >= 0 for t in targets])
     w = jnp.asarray(conditions)
@@ -131,45 +145,28 @@ def make_residual_fn(
     return residual, design_of
 
 
-def levenberg_marquardt(residual, u0, z0, *, max_iter=60, tol=1e-10, verbose=False):
-    """Host-loop LM with jitted residual and Jacobian (a few dozen iterations).
+# The design fit's damping: a cautious start, slow to shrink (a design far from the
+# data moves the balance a long way), and its stopping rule (relative cost decrease).
+DESIGN_DAMPING = Damping(init=1e-2, shrink=3.0, grow=4.0, low=1e-9)
+DESIGN_FTOL = 1e-7
 
-    ``residual(u, z_start) -> (r, (converged, z))``; every evaluation starts the engine's
-    Newton solves from the solutions of the last accepted step, so the balance stays on
-    its physical branch while the design moves (continuation in design space).
-    """
-    r_fn = jax.jit(residual)
-    j_fn = jax.jit(jax.jacfwd(lambda u, z: residual(u, z)[0]))
-    u = jnp.asarray(u0)
-    r, (ok, z) = r_fn(u, z0)
-    if not bool(jnp.all(ok)):
-        raise FloatingPointError("the engine does not converge at the nominal design")
-    cost = float(jnp.sum(r**2))
-    lam = 1e-2
-    history = [cost]
-    for it in range(max_iter):
-        jac = j_fn(u, z)
-        jtj, g = jac.T @ jac, jac.T @ r
-        improved = False
-        for _ in range(12):
-            step = -jnp.linalg.solve(jtj + lam * jnp.diag(jnp.diag(jtj) + 1e-9), g)
-            r_new, (ok_new, z_new) = r_fn(u + step, z)
-            c_new = float(jnp.sum(r_new**2))
-            if bool(jnp.all(ok_new)) and np.isfinite(c_new) and c_new < cost:
-                u, r, z, cost, improved = u + step, r_new, z_new, c_new, True
-                lam = max(lam / 3.0, 1e-9)
-                break
-            lam *= 4.0
-        history.append(cost)
-        if verbose:
-            print(f"LM {it:3d} cost {cost:.6g} lambda {lam:.2g}", flush=True)
-        if not improved or (history[-2] - cost) < max(tol, 1e-7) * max(cost, 1.0):
-            break
-    jac = np.asarray(j_fn(u, z))
-    if not np.all(np.isfinite(jac)):
-        raise FloatingPointError("non-finite Jacobian at the LM solution")
-    cov = np.linalg.pinv(jac.T @ jac)
-    return u, history, np.sqrt(np.clip(np.diag(cov), 0.0, None)), z
+
+def _solve(residual, u0, z0, *, max_iter: int, verbose: bool):
+    """The core's Levenberg-Marquardt on ``residual(u, z_start) -> (r, (converged,
+    z))`` with the Newton starts ``z`` as its hint; a non-converged solve makes the
+    residual NaN (the trial is rejected)."""
+
+    def hinted(u, z_start):
+        r, (ok, z) = residual(u, z_start)
+        return jnp.where(jnp.all(ok), r, jnp.nan), z
+
+    tol = Tolerance(max_iters=max_iter, ftol=DESIGN_FTOL)
+
+    def solve(u0, z0):
+        return lm_solve(linearize(hinted, hinted=True), u0, tol, DESIGN_DAMPING,
+                        hint=z0, verbose=verbose)  # fmt: skip
+
+    return jax.jit(solve)(u0, z0)
 
 
 def fit_design(
@@ -184,22 +181,28 @@ def fit_design(
     max_iter: int = 60,
     verbose: bool = False,
 ) -> FitResult:
-    """Fit ``params`` of ``base`` to ``targets`` at ``conditions`` (see module docstring)."""
+    """Fit ``params`` of ``base`` to ``targets`` at ``conditions`` (see the module
+    docstring)."""
     residual, design_of = make_residual_fn(
         base, params, conditions, thetas, targets, prior_weight, theta_params
     )
     u0 = jnp.zeros(len(params) + len(theta_params))
-    u, history, u_std, z = levenberg_marquardt(
-        residual, u0, residual.z0, max_iter=max_iter, verbose=verbose
-    )
-    r, _ = jax.jit(residual)(u, z)
+    state, stats = _solve(residual, u0, residual.z0, max_iter=max_iter, verbose=verbose)
+    if int(stats.status) == -1:
+        raise FloatingPointError("the engine does not converge at the nominal design")
+    jac = np.asarray(state.jac)
+    if not np.all(np.isfinite(jac)):
+        raise FloatingPointError("non-finite Jacobian at the LM solution")
+    # numpy.linalg.pinv's cut-off: the prior keeps the design block well posed
+    cov = np.asarray(gauss_newton_cov(state.jac, rcond=1e-15))
+    u = state.y
     design = jax.tree.map(np.asarray, design_of(u[: len(params)]))
+    costs = np.asarray(stats.costs)[: int(stats.num_iters) + 1]
     return FitResult(
         design=design,
         u=np.asarray(u),
-        cost_history=history,
-        residuals=np.asarray(r[: len(targets)]),
-        u_std=u_std,
-        theta=np.asarray(u[len(params) :])
-        * np.array([t.scale for t in theta_params]),
+        cost_history=(2.0 * costs).tolist(),  # sum of squares, as reported
+        residuals=np.asarray(state.resid[: len(targets)]),
+        u_std=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
+        theta=np.asarray(u[len(params) :]) * np.array([t.scale for t in theta_params]),
     )

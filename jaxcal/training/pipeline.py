@@ -16,7 +16,10 @@
    (:func:`jaxcal.training.run_dir.prepare_run_dir`): a start that fails leaves
    nothing behind that would block the corrected command;
 3. the surrogate D is fitted on the training units' transitions or restored
-   (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it;
+   (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it; data
+   without true theta fit it on units simulated from the model
+   (:mod:`jaxcal.training.simulated`, which makes every labelled unit a run needs:
+   the user's labels only score);
 4. the policy learns on the training units' (w, x) only, no theta label
    (:mod:`jaxcal.training.policy_stage`); a model with memory trains on its own
    step (``dynamics=physics``), the environment carrying its state, and episodes
@@ -33,9 +36,16 @@
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
    time, updates/s and env steps/s, the time to target (plus, for transparency, the
    scores of the last policy and of the last online actor);
-6. the kept policy's run over the validation units fits its split-conformal theta
-   band, written to ``uncertainty.json``; ``final.json`` gets the band's 90 %
-   coverage on the test units (:mod:`jaxcal.training.uncertainty_stage`).
+6. the kept policy's run over simulated units (or the labelled validation units,
+   ``simulate.band``) fits its split-conformal theta band, written to
+   ``uncertainty.json``; ``final.json`` gets the band's 90 % coverage on the test
+   units (:mod:`jaxcal.training.uncertainty_stage`) and what was simulated with
+   which noise (``simulated``).
+
+``simulate.train=simulated`` (the default preset on any model's data) trains the
+policy on simulated copies of the training units, its cost on their noise-free
+outputs; ``budget.select=sim_theta`` keeps the policy with the lowest theta RMSE on
+simulated validation units.
 
 The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
 of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
@@ -68,6 +78,7 @@ from jaxcal.calibrators.policy import (
 )
 from jaxcal.checkpoint import Checkpointer
 from jaxcal.config import TrainConfig
+from jaxcal.envs.env_data import compute_norm_stats
 from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvParams, make_env_params
@@ -102,6 +113,7 @@ from jaxcal.training.run_dir import (
 )
 from jaxcal.training.run_guard import hold_run, run_folder
 from jaxcal.training.scoring import describe_units, score_units, theta_rmse
+from jaxcal.training.simulated import Simulations, parse_noise
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
 from jaxcal.training.uncertainty_stage import (
     fit_policy_band,
@@ -117,10 +129,19 @@ def _env_params(
     dtype,
     dynamics_kind: str,
     max_increment: float | None = None,
+    x_target: np.ndarray | None = None,
+    stats_of: UnitArrays | None = None,
 ) -> EnvParams:
     # The normalisation is computed here, in the run's dtype, as it always was: a
     # float32 run keeps bit for bit the statistics (and so the training) it had.
+    # Simulated units are normalised with the real training units' statistics
+    # (``stats_of``), what the deployed policy sees.
     w, x = units.w.astype(dtype), units.x.astype(dtype)
+    stats = None
+    if stats_of is not None:
+        stats = compute_norm_stats(
+            stats_of.w.astype(dtype), stats_of.x.astype(dtype), stats_of.lengths
+        )
     z_ref = None  # a static model: Z = 0
     dyn = as_stateful(make_dynamics(dynamics_kind, problem))
     if problem.model.is_stateful:
@@ -136,7 +157,9 @@ def _env_params(
         problem.theta_low.astype(dtype),
         problem.theta_high.astype(dtype),
         dyn_params,
+        stats=stats,
         z_ref=z_ref,
+        x_target=None if x_target is None else x_target.astype(dtype),
     )
     if max_increment is None:
         return params
@@ -207,12 +230,7 @@ def run_training(
     problem = data.problem
     model = problem.model
     check_dynamics(cfg.dynamics, model)  # a model with memory: physics only
-    if cfg.dynamics == "surrogate" and data.train.theta is None:
-        raise ValueError(
-            f"dynamics=surrogate fits D on labelled transitions, but {path} has no "
-            f"true values of {list(problem.theta_names)}: add those columns or use "
-            "dynamics=physics"
-        )
+    parse_noise(cfg.noise, problem.output_names)  # checked before any write
     # float64 only around a model that needs it; everything else in float32
     dtype = np.float64 if cfg.dynamics == "physics" and model.x64 else np.float32
     log(
@@ -251,21 +269,24 @@ def _train(
     problem = data.problem
     model = problem.model
     key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
+    sims = Simulations(cfg, data, log)
     surrogate_report = None
     dyn_params = None
     if cfg.dynamics == "surrogate":
         dyn_params, surrogate_report = fit_or_restore_surrogate(
             key_surrogate,
-            data,
+            data if data.train.theta is not None else sims.labelled_train(),
             cfg.surrogate,
             run_dir,
             progress=cfg.output.progress,
             log=log,
         )
     incremental = cfg.env.action == "increment"
+    fleet, target = sims.training_fleet()
     train_params = _env_params(
-        data.train, problem, dyn_params, dtype, cfg.dynamics,
+        fleet, problem, dyn_params, dtype, cfg.dynamics,
         cfg.env.max_increment if incremental else None,
+        x_target=target, stats_of=None if fleet is data.train else data.train,
     )  # fmt: skip
     if incremental:
         log(
@@ -286,8 +307,12 @@ def _train(
          # kept at the top for readers of the older layout (the paper suite)
          "sensors": problem.output_names, "theta_names": problem.theta_names},
     )  # fmt: skip
+    start = problem.theta_prior if cfg.env.start == "prior" else None
     env_cfg = env_config(
-        cfg, len(model.conditions), len(problem.output_names), len(problem.theta_names)
+        sims.with_noise_floor(cfg),
+        len(model.conditions),
+        len(problem.output_names),
+        len(problem.theta_names),
     )
     parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
     check = range_check(problem)  # samples far outside the training range: flagged
@@ -316,13 +341,28 @@ def _train(
         if which == "target":
             actor = getattr(agent_state, "target_actor_params", actor)
         return policy_params_from_env(
-            train_params, actor, max_increment=env_cfg.max_increment
-        )
+            train_params, actor, max_increment=env_cfg.max_increment,
+            theta_start=start,
+        )  # fmt: skip
+
+    select_units = sims.selection_units() if cfg.budget.select == "sim_theta" else None
 
     def val_scorer(agent_state) -> dict:
-        scores = score(data.val, deployable(agent_state))
-        keys = ("theta_rmse", "tracking_rmse_norm")
-        return {k: scores[k] for k in keys if scores[k] is not None}
+        params = deployable(agent_state)
+        scores = {}
+        if data.val is not None:
+            scores = score(data.val, params)
+            keys = ("theta_rmse", "tracking_rmse_norm")
+            scores = {k: scores[k] for k in keys if scores[k] is not None}
+        if select_units is not None:
+            out = run(select_units, params)
+            width = problem.theta_high - problem.theta_low
+            scores["sim_theta_rmse"], _ = theta_rmse(
+                out.theta / width,
+                select_units.theta / width,
+                scored_mask(select_units, out),
+            )
+        return scores
 
     def test_reporter(agent_state) -> dict:
         # Reporting only (time to target): train_policy logs it as test_*, and
@@ -336,7 +376,9 @@ def _train(
         log("budget.target_theta_rmse: the test units have no true theta, so the "
             "time to target is not measured")  # fmt: skip
         target = None
-    select = cfg.budget.select == "val_tracking" and data.val is not None
+    select = (cfg.budget.select == "val_tracking" and data.val is not None) or (
+        cfg.budget.select == "sim_theta"
+    )
     deadline = (
         None
         if cfg.budget.time_limit_s is None
@@ -372,7 +414,12 @@ def _train(
             deadline=deadline,
             save_buffer=cfg.output.save_buffer,
             max_to_keep=keep,
-            scorer=val_scorer if data.val is not None else None,
+            scorer=val_scorer
+            if data.val is not None or select_units is not None
+            else None,
+            best_key="val_sim_theta_rmse"
+            if cfg.budget.select == "sim_theta"
+            else "val_tracking_rmse_norm",
             on_checkpoint=save_latest,
             on_best=save_best if select else None,
             reporter=test_reporter if target is not None else None,
@@ -425,9 +472,14 @@ def _train(
         "surrogate": surrogate_report,
         **time_to_target(records, target),
     }
-    val_out = None if data.val is None else run(data.val, selected)
+    band_units, fitted_on = sims.band_units()
+    band_out = None if band_units is None else run(band_units, selected)
     names = tuple(data.theta_names)
     final.update(
-        fit_policy_band(data.val, val_out, data.test, test_out, run_dir, names, log=log)
-    )
+        fit_policy_band(
+            band_units, band_out, data.test, test_out, run_dir, names,
+            fitted_on=fitted_on, log=log,
+        )
+    )  # fmt: skip
+    final["simulated"] = sims.report()
     return final

@@ -129,6 +129,7 @@ def train_policy(
     scorer: Scorer | None = None,
     on_checkpoint: Callable[[int, RunnerState], None] | None = None,
     on_best: Callable[[int, RunnerState], None] | None = None,
+    best_key: str = BEST_KEY,
     reporter: Scorer | None = None,
     target: float | None = None,
     clock: Callable[[], float] | None = None,
@@ -157,7 +158,9 @@ def train_policy(
         on_checkpoint: called as ``on_checkpoint(chunk, runner)`` after each save
             (the pipeline saves the deployable policy there).
         on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
-            lowest ``val_tracking_rmse_norm`` so far (earlier sessions included).
+            lowest ``best_key`` so far (earlier sessions included).
+        best_key: the record field selection minimises (default: the validation
+            tracking RMSE; ``val_sim_theta_rmse``: theta RMSE on simulated units).
         reporter: test scores of an agent state, called at the same chunks as
             ``scorer`` and logged as ``test_*`` with ``test_score_seconds``. For
             reporting only (time to target): selection reads ``val_*`` keys alone.
@@ -189,7 +192,7 @@ def train_policy(
             return PolicyResult(runner, records, start, False)
         stopped_early = False
         best = min(
-            (r[BEST_KEY] for r in records if BEST_KEY in r), default=float("inf")
+            (r[best_key] for r in records if best_key in r), default=float("inf")
         )
         reached = any(_reaches(r, target) for r in records)
         last_val = next(
@@ -248,8 +251,8 @@ def train_policy(
                     ckpt.save(chunk, _checkpoint_item(runner, save_buffer))
                     if on_checkpoint is not None:
                         on_checkpoint(chunk, runner)
-                if record.get(BEST_KEY, float("inf")) < best:
-                    best = record[BEST_KEY]
+                if record.get(best_key, float("inf")) < best:
+                    best = record[best_key]
                     if on_best is not None:
                         on_best(chunk, runner)
                 if "val_theta_rmse" in record:

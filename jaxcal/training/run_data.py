@@ -157,5 +157,6 @@ def read_run_data(
         test_fraction=cfg.dataset.test_fraction,
         val_fraction=cfg.dataset.val_fraction,
         theta_margin=cfg.env.theta_margin,
+        use_labels=cfg.dataset.labels == "use",
         **read_options(cfg.dataset),
     )

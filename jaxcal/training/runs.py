@@ -198,9 +198,11 @@ def load_run(
         )
         if not env_cfg.incremental:
             return PolicyParams(**fields)
+        prior = getattr(cfg.env, "start", "centre") == "prior"
         return IncrementPolicyParams(
             **fields,
             step_ref=jnp.ones(dims[2], dtype),
+            theta_start=jnp.zeros(dims[2], dtype) if prior else None,
             max_increment=env_cfg.max_increment,
         )
 

@@ -148,10 +148,16 @@ def pad_units(data: Dataset, units: Sequence[int], theta_names) -> UnitArrays:
 
 
 def box_of(
-    model: Model, dev: Dataset, theta_names, theta_margin: float
+    model: Model, dev: Dataset, theta_names, theta_margin: float, use_labels=True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """``(low [P], high [P], theta_base [P_all], which)`` (see the module docstring)."""
+    """``(low [P], high [P], theta_base [P_all], which)`` (see the module docstring;
+    ``use_labels=False``: the model's bounds and nominal values, labels are for
+    scoring only)."""
     base = model.nominal.copy()
+    if not use_labels:
+        idx = model.parameter_index(theta_names)
+        low, high = (b[idx] for b in model.bounds)
+        return low, high, base, "model bounds (labels for scoring only)"
     for j, name in enumerate(dev.theta_names):
         base[model.parameter_names.index(name)] = dev.theta[:, j].mean()
     if dev.theta is not None and set(theta_names) <= set(dev.theta_names):
@@ -188,6 +194,7 @@ def load_table_data(
     test_fraction: float = 0.2,
     val_fraction: float = 0.15,
     theta_margin: float = 0.1,
+    use_labels: bool = True,
     nonfinite: str = "error",
     rename: dict[str, str] | None = None,
 ) -> CalibrationData:
@@ -201,6 +208,9 @@ def load_table_data(
         test_units, val_units, test_fraction, val_fraction: the hold-out (module
             docstring).
         theta_margin: widening of a labelled box.
+        use_labels: take the box, the fixed parameters' values and the default
+            ``theta`` from the labels (``False``: the model's bounds and nominal
+            values; the labels only score).
         nonfinite, rename: the reader's (``"error"`` / ``"drop"``; column renames).
 
     Raises:
@@ -225,9 +235,11 @@ def load_table_data(
             data.source,
         )  # fmt: skip
     dev = data.select_units(train + val)
-    theta = tuple(theta) or default_theta(model, dev)
+    theta = tuple(theta) or (
+        default_theta(model, dev) if use_labels else model.parameter_names
+    )
     model.parameter_index(theta)  # unknown names: an error listing the valid ones
-    low, high, base, which = box_of(model, dev, theta, theta_margin)
+    low, high, base, which = box_of(model, dev, theta, theta_margin, use_labels)
     splits = {
         name: pad_units(data, ids, theta) if ids else None
         for name, ids in (("train", train), ("val", val), ("test", test))

@@ -1,13 +1,14 @@
 """The last stage of a training run: the kept policy's uncertainty band, and the
 time-to-target summary of the run's records.
 
-The band (:mod:`jaxcal.calibrators.uncertainty`) is fitted by split conformal on the
-validation units, which never trained the policy and whose theta labels are used
-here only, after selection: the selected policy's theta trajectories over the whole
-validation units (the same jitted fleet run that scored them) give the per-bucket
-absolute errors. Its coverage is then measured on the test units' whole
-trajectories, the honest check of a band fitted elsewhere. A run without labelled
-validation units writes no band and says so.
+The band (:mod:`jaxcal.calibrators.uncertainty`) is fitted by split conformal on
+units the policy never trained on, after selection: the selected policy's theta
+trajectories over them (the same jitted fleet run that scores units) give the
+per-bucket absolute errors. Those units are units simulated from the model along the
+validation units' conditions (:mod:`jaxcal.training.simulated`; no label needed) or,
+for a turbofan file by default, the labelled validation units themselves
+(``simulate.band``). Its coverage is then measured on the test units' whole
+trajectories when they carry labels, the honest check of a band fitted elsewhere.
 """
 
 from __future__ import annotations
@@ -46,17 +47,21 @@ def fit_policy_band(
     run_dir: str | Path,
     theta_names: tuple[str, ...],
     *,
+    fitted_on: str = "labelled validation units",
     log: Callable[[str], None] = print,
 ) -> dict:
     """Fits the band on the validation units, writes ``uncertainty.json`` and
     measures its coverage on the test units.
 
     Args:
-        val, val_out: the validation units and the selected policy's run over them
-            (``None``: the run has no validation units).
+        val, val_out: the units the band is fitted on (the labelled validation
+            units, or units simulated from the model:
+            :mod:`jaxcal.training.simulated`) and the selected policy's run over
+            them (``None``: there are none).
         test, test_out: the test units and the same policy's run over them.
         run_dir: the run folder.
         theta_names: names of the P parameters.
+        fitted_on: what ``val`` is (written to the band's metadata).
         log: where notes go.
 
     Returns:
@@ -78,6 +83,7 @@ def fit_policy_band(
     meta = {
         "level": BAND_LEVEL,
         "method": "split conformal per bucket of samples since a unit's start",
+        "fitted_on": fitted_on,
         "theta_names": list(theta_names),
         "val_units": [int(u) for u in val.unit_ids],
         "num_samples": int(mask.sum()),

@@ -188,3 +188,30 @@ def test_check_env_params_rejects_mismatch_and_short_units(tiny):
         check_env_params(params, EnvConfig(S + 1, W, P, episode_length=2))
     with pytest.raises(ValueError, match="episode_length"):
         EnvConfig(S, W, P, episode_length=0)
+
+
+def test_cost_compares_with_x_target_when_given(tiny):
+    """Simulated units: the cost's target is their noise-free outputs, the
+    observation still the noisy ones."""
+    env, params, w, x = tiny
+    target = np.where(np.isfinite(x), x + 0.25, np.nan)
+    with_target = make_env_params(
+        w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
+        params.dyn_params, x_target=target,
+    )  # fmt: skip
+    action = jnp.asarray([0.3, -0.2])
+    costs, observations = [], []
+    for p in (params, with_target):
+        _, state = env.reset_at(p, 1, 2)
+        obs, nxt, cost, _, _ = env.step(jax.random.key(0), state, action, p)
+        costs.append(float(cost)), observations.append(np.asarray(obs))
+        xhat = np.asarray(nxt.xhat)
+    np.testing.assert_array_equal(observations[0], observations[1])
+    x_std = np.asarray(params.x_std)
+    expect = np.mean(((target[1, 3] - xhat) / x_std) ** 2)
+    assert costs[1] == pytest.approx(expect, 1e-5) and costs[1] != costs[0]
+    with pytest.raises(ValueError, match="x_target"):
+        make_env_params(
+            w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
+            params.dyn_params, x_target=target[:, :5],
+        )  # fmt: skip

@@ -155,10 +155,21 @@ def test_physics_dynamics_on_unlabelled_data(tmp_path):
     final = json.loads((tmp_path / "runs" / "phys" / "final.json").read_text())
     assert final["test"]["theta_rmse"] is None
     assert np.isfinite(final["test"]["tracking_rmse_norm"])
-    # the surrogate needs labelled transitions: refused before any folder exists
-    argv = _argv(path, tmp_path / "runs", "name=sur")
+    # no labels needed: the surrogate D is fitted on units simulated from the model
+    # with the given noise, the band on simulated units too
+    argv = _argv(path, tmp_path / "runs", "name=sur", "noise=1e-3,1e-3,1e-3")
+    assert train_main(argv) == 0
+    final = json.loads((tmp_path / "runs" / "sur" / "final.json").read_text())
+    assert final["simulated"]["used_for"]["surrogate"] == "simulated training units"
+    assert final["simulated"]["noise_source"] == "given"
+    assert final["uncertainty"]["file"] == "uncertainty.json"
+    assert "simulated" in final["uncertainty"]["fitted_on"]
+    result = jaxcal.calibrate(MODEL, path, method="policy", run=tmp_path / "runs/sur")
+    assert result.theta_std is not None and np.isfinite(result.theta_std).all()
+    # a malformed noise is refused before any folder exists
+    argv = _argv(path, tmp_path / "runs", "name=bad", "noise=y1:1e-3")
     assert train_main(argv) == 2
-    assert not (tmp_path / "runs" / "sur").exists()
+    assert not (tmp_path / "runs" / "bad").exists()
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,180 @@
+"""The RL calibrator on any model, from unlabelled data (issue 27's table).
+
+    python experiments/policy_any_model.py [cases=heat_exchanger,pump,motor]
+        [out=results/policy_any_model] [data=data/policy_any_model] [runs=runs]
+        [args="budget.num_chunks=8 ..."]
+
+Per case: a fleet of 12 units (the heat-exchanger example's, or one of
+``experiments/unseen_models.py``: a pump, static, and a DC motor, with memory; both
+written for this study), test units 10-12. The training file has no parameter
+columns (the labels are kept in a second file, for scoring only). Then:
+
+1. the UKF and least squares through ``jaxcal.calibrate`` on the test units, with the
+   noise the data were made with (``noise=``);
+2. ``python -m jaxcal.train model=... data=<unlabelled csv> noise=...`` with the
+   default preset, timed (job time: the command's wall time on this machine);
+3. the kept policy through ``jaxcal.calibrate(method="policy")`` on the test units:
+   theta RMSE per parameter against the labels, the 90 % coverage of its band, and
+   the ratio to the UKF's RMSE.
+
+Writes ``<out>/README.md`` and ``<out>/results.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.join(HERE, "..", "examples", "heat_exchanger"))
+
+TEST_UNITS = (10, 11, 12)
+Z90 = 1.6448536269514722
+
+
+def _case(name: str):
+    """``(model spec, labelled frame, theta names, noise)`` of a case."""
+    if name == "heat_exchanger":
+        from make_data import NOISE, make_fleet
+
+        return "heat_exchanger", make_fleet(), ["fouling", "dp_coeff"], NOISE
+    from unseen_models import MODELS, NOISE, make_fleet
+
+    spec = f"{os.path.join(HERE, 'unseen_models.py')}:{name}_model"
+    model = MODELS[name]()
+    return spec, make_fleet(name), list(model.parameter_names), NOISE[name]
+
+
+def _scores(res, truth: pd.DataFrame, theta) -> dict:
+    err = res.theta - truth[theta].to_numpy()
+    ok = np.asarray(res.valid, bool)
+    rmse = np.sqrt(np.mean(err[ok] ** 2, axis=0))
+    out = {"rmse": dict(zip(theta, rmse.tolist(), strict=True))}
+    if res.theta_std is not None:
+        inside = np.abs(err[ok]) <= Z90 * res.theta_std[ok]
+        out["coverage90"] = dict(zip(theta, inside.mean(axis=0).tolist(), strict=True))
+    return out
+
+
+def run_case(name: str, opts: dict) -> dict:
+    import jaxcal
+
+    spec, fleet, theta, noise = _case(name)
+    folder = os.path.join(opts["data"], name)
+    os.makedirs(folder, exist_ok=True)
+    unlabelled = os.path.join(folder, "fleet_unlabelled.csv")
+    fleet.drop(columns=[c for c in fleet.columns if c in _params(spec)]).to_csv(
+        unlabelled, index=False
+    )
+    test = fleet[fleet.unit.isin(TEST_UNITS)].reset_index(drop=True)
+    result = {"model": spec, "theta": theta, "noise": noise, "methods": {}}
+    for method in ("ukf", "ls"):
+        tic = time.perf_counter()
+        res = jaxcal.calibrate(
+            spec, test, method=method, theta=theta, noise=noise, progress=False
+        )
+        result["methods"][method] = {
+            **_scores(res, test, theta),
+            "seconds": time.perf_counter() - tic,
+        }
+    name_run = f"any-{name}"
+    noise_arg = ",".join(f"{k}:{v}" for k, v in noise.items())
+    cmd = [
+        sys.executable, "-m", "jaxcal.train", f"model={spec}", f"data={unlabelled}",
+        f"theta={','.join(theta)}", f"test_units={','.join(map(str, TEST_UNITS))}",
+        f"noise={noise_arg}", f"name={name_run}", f"output.runs_dir={opts['runs']}",
+        "output.progress=false", *shlex.split(opts.get("args", "")),
+    ]  # fmt: skip
+    tic = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    job = time.perf_counter() - tic
+    run_dir = os.path.join(opts["runs"], name_run)
+    with open(os.path.join(run_dir, "final.json")) as f:
+        final = json.load(f)
+    res = jaxcal.calibrate(
+        spec, test, method="policy", theta=theta, run=run_dir, progress=False
+    )
+    policy = _scores(res, test, theta)
+    ukf = result["methods"]["ukf"]["rmse"]
+    policy["ratio_to_ukf"] = {n: policy["rmse"][n] / ukf[n] for n in theta}
+    policy["job_seconds"] = job
+    policy["train_seconds"] = final["train_seconds"]
+    policy["chunks"] = final["chunks"]
+    policy["selected_chunk"] = final["selected_chunk"]
+    policy["band_fitted_on"] = final["uncertainty"].get("fitted_on")
+    result["methods"]["policy"] = policy
+    return result
+
+
+def _params(spec: str) -> set[str]:
+    import jaxcal
+
+    return set(jaxcal.models.load(spec).parameter_names)
+
+
+def _page(results: dict, opts: dict) -> str:
+    lines = [
+        "# The RL calibrator on any model, from unlabelled data",
+        "",
+        "`python experiments/policy_any_model.py` (this machine, 2 CPU cores). Each "
+        "case: 12 units, test units 10-12; the policy is trained by "
+        "`python -m jaxcal.train model=... data=<file without parameter columns> "
+        "noise=...` with the default preset"
+        + (f" and `{opts['args']}`" if opts.get("args") else "")
+        + "; the labels score only. Job time: the training command's wall time.",
+        "",
+        "| model | parameter | UKF RMSE | LS RMSE | policy RMSE | policy / UKF | "
+        "policy band 90 % coverage | UKF coverage | job s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in results.items():
+        m = r["methods"]
+        for n in r["theta"]:
+            ukf, ls, pol = m["ukf"], m["ls"], m["policy"]
+            lines.append(
+                f"| {name} | {n} | {ukf['rmse'][n]:.4g} | {ls['rmse'][n]:.4g} "
+                f"| {pol['rmse'][n]:.4g} | {pol['ratio_to_ukf'][n]:.2f} "
+                f"| {m['policy'].get('coverage90', {}).get(n, float('nan')):.3f} "
+                f"| {m['ukf'].get('coverage90', {}).get(n, float('nan')):.3f} "
+                f"| {m['policy']['job_seconds']:.0f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str]) -> int:
+    opts = {
+        "cases": "heat_exchanger,pump,motor",
+        "out": "results/policy_any_model",
+        "data": "data/policy_any_model",
+        "runs": "runs",
+    }
+    for token in argv:
+        key, sep, value = token.partition("=")
+        if not sep or key not in (*opts, "args"):
+            print(f"usage: {__doc__.splitlines()[2].strip()}; got {token!r}")
+            return 2
+        opts[key] = value
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # entry point: the UKF wants float64
+    results = {c: run_case(c, opts) for c in opts["cases"].split(",")}
+    os.makedirs(opts["out"], exist_ok=True)
+    with open(os.path.join(opts["out"], "results.json"), "w") as f:
+        json.dump({"options": opts, "results": results}, f, indent=1)
+    page = _page(results, opts)
+    with open(os.path.join(opts["out"], "README.md"), "w") as f:
+        f.write(page)
+    print(page)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

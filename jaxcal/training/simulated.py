@@ -1,0 +1,325 @@
+"""Labelled units simulated from the model: what a run needs true theta for.
+
+The model is known, so a run never needs the user's labels: wherever training, the
+surrogate D or the uncertainty band needs true theta, units are simulated along the
+user's own operating conditions (issue 27). A simulated unit keeps a real unit's
+conditions ``w`` and length, draws a theta trajectory inside the action box, runs the
+model along it (a model with memory from its own initial state) and adds Gaussian
+output noise of the problem's std. Its noise-free outputs are kept as well: the
+tracking cost of a simulated unit compares the prediction with them
+(:class:`~jaxcal.envs.env_data.EnvParams` ``x_target``), so the policy is rewarded
+for precision below the noise level, which the cost of a noisy target cannot see
+(``log(e + n)^2`` is flat in ``e`` for ``|e| << |n|``).
+
+Theta trajectories, per unit and parameter (degradation-like: monotone, smooth, the
+whole box reachable within a unit's life): ``theta(t) = a + (b - a) s^k`` with
+``s = t / (L - 1)``, ``a, b`` uniform in the box and ``k`` uniform in [1, 2]; a share
+``constant_share`` of the units keeps ``b = a`` (a constant parameter, the case a
+band must not be too wide for).
+
+The noise is the problem's: given (``noise=`` of the command line), else estimated
+by the front door's screening (a UKF pass over the training units,
+:func:`jaxcal.calibrators.front.calibrate`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+
+from jaxcal.calibrators.e2e_sim import simulate_fleet
+from jaxcal.problem import Problem
+from jaxcal.training.data import UnitArrays
+
+
+def theta_paths(
+    key: jax.Array,
+    low: np.ndarray,
+    high: np.ndarray,
+    lengths: np.ndarray,
+    num_steps: int,
+    constant_share: float = 0.25,
+) -> np.ndarray:
+    """``[U, T, P]`` theta trajectories in ``[low, high]`` (module doc); rows past a
+    unit's length hold its last value."""
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    num_units, num_params = len(lengths), len(low)
+    k_a, k_b, k_k, k_c = jax.random.split(key, 4)
+    uniform = lambda k, shape: np.asarray(jax.random.uniform(k, shape))  # noqa: E731
+    start = low + (high - low) * uniform(k_a, (num_units, num_params))
+    end = low + (high - low) * uniform(k_b, (num_units, num_params))
+    power = 1.0 + uniform(k_k, (num_units, num_params))
+    constant = uniform(k_c, (num_units,)) < constant_share
+    end = np.where(constant[:, None], start, end)
+    span = np.maximum(np.asarray(lengths) - 1, 1)[:, None]
+    s = np.clip(np.arange(num_steps)[None, :] / span, 0.0, 1.0)  # [U, T]
+    return start[:, None] + (end - start)[:, None] * s[..., None] ** power[:, None]
+
+
+def simulate_units(
+    problem: Problem,
+    units: UnitArrays,
+    key: jax.Array,
+    *,
+    copies: int = 1,
+    constant_share: float = 0.25,
+) -> tuple[UnitArrays, np.ndarray]:
+    """``copies`` simulated fleets along ``units``' conditions (module doc).
+
+    Returns:
+        ``(simulated, x_clean)``: the simulated units (noisy outputs, theta labels,
+        the real units' lengths; unit ids ``-1 - i``: never a file's unit) and their
+        ``[U', T, S]`` noise-free outputs.
+
+    Raises:
+        ValueError: the model gives non-finite outputs on a simulated valid row
+            (the message names the parameter values' range to check).
+    """
+    w = np.concatenate([units.w] * copies)
+    lengths = np.concatenate([units.lengths] * copies)
+    k_theta, k_noise = jax.random.split(key)
+    theta = theta_paths(
+        k_theta,
+        problem.theta_low,
+        problem.theta_high,
+        lengths,
+        w.shape[1],
+        constant_share,
+    ).astype(units.x.dtype)
+    mask = np.arange(w.shape[1])[None, :] < lengths[:, None]
+    clean = simulate_fleet(problem, w, theta, mask).astype(units.x.dtype)
+    bad = mask & ~np.all(np.isfinite(clean), axis=-1)
+    if bad.any():
+        u, t = np.argwhere(bad)[0]
+        raise ValueError(
+            f"simulating labelled units: the model gives non-finite outputs at "
+            f"theta={theta[u, t].tolist()} (simulated unit {u}, row {t}) inside the "
+            f"box {problem.theta_low.tolist()} .. {problem.theta_high.tolist()}; "
+            "narrow the bounds or make the model finite there"
+        )
+    clean = np.where(mask[..., None], clean, 0.0).astype(units.x.dtype)
+    noise = np.asarray(jax.random.normal(k_noise, clean.shape), clean.dtype)
+    noisy = clean + (problem.noise_std.astype(clean.dtype) * noise) * mask[..., None]
+    ids = -1 - np.arange(len(lengths), dtype=np.int64)
+    return UnitArrays(w, noisy, theta, lengths.astype(np.int32), ids), clean
+
+
+def parse_noise(noise: Sequence[str], names: Sequence[str]) -> np.ndarray | None:
+    """The ``[S]`` noise std of the command line's ``noise=`` (``()``: none given):
+    one value per output in order, or ``name:value`` pairs naming every output.
+
+    Raises:
+        ValueError: a malformed entry, an unknown or missing output, or a value
+            that is not finite and > 0.
+    """
+    if not noise:
+        return None
+    names = list(names)
+    pairs = [str(v).split(":") for v in noise]
+    try:
+        if all(len(p) == 2 for p in pairs):
+            given = {k.strip(): float(v) for k, v in pairs}
+            unknown = sorted(set(given) - set(names))
+            missing = [n for n in names if n not in given]
+            if unknown or missing:
+                raise ValueError(
+                    f"noise= names unknown outputs {unknown} or misses {missing}; "
+                    f"give one std per used output {names}"
+                )
+            values = np.array([given[n] for n in names])
+        elif all(len(p) == 1 for p in pairs) and len(pairs) == len(names):
+            values = np.array([float(p[0]) for p in pairs])
+        else:
+            raise ValueError(
+                f"noise= takes one std per used output {names} (in that order) or "
+                f"name:std pairs, got {list(noise)}"
+            )
+    except ValueError as err:
+        if "noise=" in str(err):
+            raise
+        raise ValueError(
+            f"noise=: {list(noise)} holds a value that is not a number"
+        ) from None
+    if not np.all(np.isfinite(values) & (values > 0)):
+        raise ValueError(f"noise= values must be finite and > 0, got {values}")
+    return values
+
+
+def estimate_noise(problem: Problem, units: UnitArrays) -> Problem:
+    """The problem with the noise the front door's screening estimates on
+    ``units`` (a UKF pass; ``noise_source`` says so)."""
+    import pandas as pd
+
+    from jaxcal.calibrators.front import calibrate
+
+    model = problem.model
+    mask = np.asarray(units.mask, bool)
+    u, t = np.nonzero(mask)
+    frame = pd.DataFrame(
+        {
+            **{n: units.w[u, t, i] for i, n in enumerate(model.condition_names)},
+            **{n: units.x[u, t, i] for i, n in enumerate(problem.output_names)},
+            "unit": units.unit_ids[u],
+            "time": t,
+        }
+    )
+    result = calibrate(
+        model,
+        frame,
+        method="ukf",
+        theta=list(problem.theta_names),
+        outputs=list(problem.output_names),
+        progress=False,
+    )
+    noise = np.asarray(result.problem.noise_std, np.float64)
+    return problem.with_noise(noise, f"{result.noise_source}, on the training units")
+
+
+class Simulations:
+    """A run's simulated units, each made on first use (module doc).
+
+    Args:
+        cfg: the run's :class:`~jaxcal.config.TrainConfig` (``simulate``, ``noise``,
+            ``seed``).
+        data: the run's :class:`~jaxcal.training.data.CalibrationData`.
+        log: where notes go.
+    """
+
+    def __init__(self, cfg, data, log=print):
+        self.cfg, self.data, self.log = cfg.simulate, data, log
+        self.given = parse_noise(cfg.noise, data.problem.output_names)
+        self.key = jax.random.fold_in(jax.random.key(cfg.seed), 27)
+        self._problem: Problem | None = None
+        self._train: tuple[UnitArrays, np.ndarray] | None = None
+        self.used: dict[str, str] = {}
+
+    def problem(self) -> Problem:
+        """The problem with the simulations' noise (given, else estimated)."""
+        if self._problem is None:
+            problem = self.data.problem
+            if self.given is not None:
+                problem = problem.with_noise(self.given, "given")
+            else:
+                self.log("simulated units need the output noise: estimating it")
+                problem = estimate_noise(problem, self.data.train)
+            noise = ", ".join(
+                f"{n} {v:.3g}"
+                for n, v in zip(problem.output_names, problem.noise_std, strict=True)
+            )
+            self.log(f"simulation noise ({problem.noise_source}): {noise}")
+            self._problem = problem
+        return self._problem
+
+    def _train_sims(self) -> tuple[UnitArrays, np.ndarray]:
+        if self._train is None:
+            self._train = simulate_units(
+                self.problem(),
+                self.data.train,
+                jax.random.fold_in(self.key, 0),
+                copies=self.cfg.copies,
+                constant_share=self.cfg.constant_share,
+            )
+        return self._train
+
+    def labelled_train(self):
+        """The run's data with simulated, labelled training units (the surrogate D
+        of unlabelled data is fitted on them)."""
+        self.used["surrogate"] = "simulated training units"
+        return self.data._replace(train=self._train_sims()[0])
+
+    def training_fleet(self) -> tuple[UnitArrays, np.ndarray | None]:
+        """``(units, x_target)`` the policy trains on (``simulate.train``)."""
+        real = self.data.train
+        self.used["policy"] = {
+            "data": "training units",
+            "simulated": "simulated training units",
+            "both": "training units and simulated ones",
+        }[self.cfg.train]
+        if self.cfg.train == "data":
+            return real, None
+        sim, clean = self._train_sims()
+        if self.cfg.train == "simulated":
+            return sim, clean
+        both = UnitArrays(
+            np.concatenate([real.w, sim.w]),
+            np.concatenate([real.x, sim.x]),
+            None,
+            np.concatenate([real.lengths, sim.lengths]),
+            np.concatenate([real.unit_ids, sim.unit_ids]),
+        )
+        return both, np.concatenate([real.x, clean])
+
+    def selection_units(self) -> UnitArrays:
+        """Simulated units along the validation units' conditions (the training
+        units' without them) on which ``budget.select=sim_theta`` scores theta."""
+        val = self.data.val
+        base = val if val is not None else self.data.train
+        sim, _ = simulate_units(
+            self.problem(),
+            base,
+            jax.random.fold_in(self.key, 2),
+            copies=self.cfg.band_copies,
+            constant_share=self.cfg.constant_share,
+        )
+        self.used["selection"] = "theta RMSE on simulated units"
+        return sim
+
+    def band_units(self) -> tuple[UnitArrays | None, str]:
+        """``(units, what they are)`` the uncertainty band is fitted on
+        (``simulate.band``)."""
+        val = self.data.val
+        labelled = val is not None and val.theta is not None
+        if self.cfg.band == "labelled" or (self.cfg.band == "auto" and labelled):
+            self.used["band"] = "labelled validation units"
+            return val, "labelled validation units"
+        base, which = (val, "validation") if val is not None else (None, "training")
+        base = self.data.train if base is None else base
+        sim, _ = simulate_units(
+            self.problem(),
+            base,
+            jax.random.fold_in(self.key, 1),
+            copies=self.cfg.band_copies,
+            constant_share=self.cfg.constant_share,
+        )
+        what = f"units simulated along the {which} units' conditions"
+        self.used["band"] = what
+        return sim, what
+
+    def with_noise_floor(self, cfg):
+        """``cfg`` with the log cost's floor at the noise (``simulate.cost_floor=
+        noise``): the RMS of the noise std in the cost's normalised units. Below the
+        noise a simulated target's error is no longer worth a log-scale reward: a
+        floor of 1e-4 made the policy trade the noise averaging of the steady state
+        for speed (``results/policy_any_model``)."""
+        if self.cfg.train == "data" or self.cfg.cost_floor != "noise":
+            return cfg
+        import dataclasses
+
+        problem = self.problem()
+        x_std = np.asarray(problem.norm.x_std, np.float64)
+        floor = float(np.sqrt(np.mean((problem.noise_std / x_std) ** 2)))
+
+        self.used["cost_floor"] = f"{floor:.3g}"
+        return dataclasses.replace(
+            cfg, env=dataclasses.replace(cfg.env, cost_floor=floor)
+        )
+
+    def report(self) -> dict:
+        """The ``final.json`` record: what was simulated, with which noise."""
+        if self._problem is None:
+            return {"used_for": self.used}
+        return {
+            "used_for": self.used,
+            "noise_std": dict(
+                zip(
+                    self._problem.output_names,
+                    self._problem.noise_std.tolist(),
+                    strict=True,
+                )
+            ),
+            "noise_source": self._problem.noise_source,
+            "copies": self.cfg.copies,
+            "constant_share": self.cfg.constant_share,
+        }

@@ -1,0 +1,132 @@
+"""Labelled units simulated from the model (jaxcal.training.simulated)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcal
+from jaxcal.training.data import UnitArrays, training_problem
+from jaxcal.training.simulated import parse_noise, simulate_units, theta_paths
+
+
+def _fn(w, theta):
+    return jnp.stack([theta[0] * w[0], theta[1] + w[0] * w[1]])
+
+
+MODEL = jaxcal.Model.from_function(
+    _fn,
+    conditions=("a", "b"),
+    parameters={"p": (1.0, 0.5, 2.0), "q": (0.0, -1.0, 1.0)},
+    outputs=("y1", "y2"),
+    name="lin",
+)
+
+
+def _units(num_units=6, rows=50, seed=0):
+    rng = np.random.default_rng(seed)
+    w = rng.uniform(0.5, 1.5, (num_units, rows, 2))
+    lengths = np.full(num_units, rows, np.int32)
+    lengths[0] = rows // 2
+    x = np.zeros((num_units, rows, 2))
+    return UnitArrays(w, x, None, lengths, np.arange(1, num_units + 1))
+
+
+def test_theta_paths_stay_in_the_box_monotone_and_some_constant():
+    low, high = np.array([0.5, -1.0]), np.array([2.0, 1.0])
+    lengths = np.array([30] * 200)
+    paths = theta_paths(jax.random.key(0), low, high, lengths, 40, 0.25)
+    assert paths.shape == (200, 40, 2)
+    assert np.all(paths >= low - 1e-12) and np.all(paths <= high + 1e-12)
+    steps = np.diff(paths, axis=1)
+    assert np.all((steps >= -1e-12).all(1) | (steps <= 1e-12).all(1))  # monotone
+    constant = np.all(np.abs(steps) < 1e-12, axis=(1, 2))
+    assert 0.1 < constant.mean() < 0.4
+    np.testing.assert_allclose(paths[:, 30:], paths[:, 29:30].repeat(10, 1))
+
+
+def test_simulated_units_are_the_model_plus_the_problems_noise():
+    units = _units()
+    problem = training_problem(
+        MODEL, units, ("p", "q"), ("y1", "y2"), MODEL.nominal, *MODEL.bounds
+    ).with_noise(np.array([0.01, 0.2]), "given")
+    sim, clean = simulate_units(problem, units, jax.random.key(1), copies=2)
+    assert sim.x.shape == (12, 50, 2) and np.all(sim.unit_ids < 0)
+    mask = np.asarray(sim.mask)
+    expect = np.asarray(jax.vmap(jax.vmap(_fn))(sim.w, sim.theta))
+    np.testing.assert_allclose(clean[mask], expect[mask], rtol=1e-6)
+    noise = (sim.x - clean)[mask]
+    np.testing.assert_allclose(noise.std(axis=0), [0.01, 0.2], rtol=0.1)
+    assert np.all(sim.x[~mask] == 0.0)
+
+
+def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
+    names = ("y1", "y2")
+    np.testing.assert_allclose(parse_noise(("y2:0.5", "y1:0.1"), names), [0.1, 0.5])
+    np.testing.assert_allclose(parse_noise(("0.1", "0.5"), names), [0.1, 0.5])
+    assert parse_noise((), names) is None
+    for bad, match in (
+        (("y1:0.1",), "misses"),
+        (("y3:0.1", "y1:1", "y2:1"), "unknown"),
+        (("0.1",), "one std per used output"),
+        (("0.1", "x"), "not a number"),
+        (("0.1", "-1"), "finite and > 0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            parse_noise(bad, names)
+
+
+def test_any_model_default_preset_uses_labels_to_score_only():
+    from jaxcal.config import ANY_MODEL_COPIES, make_train_config
+
+    cfg = make_train_config("file", "default")
+    assert cfg.dataset.labels == "score" and cfg.env.start == "prior"
+    assert cfg.simulate.train == "simulated" and cfg.simulate.band == "simulated"
+    assert cfg.simulate.copies == ANY_MODEL_COPIES and cfg.budget.select == "sim_theta"
+    # the turbofan data sets and the other presets keep their formulation
+    cmapss = make_train_config("cmapss", "default")
+    assert cmapss.dataset.labels == "use" and cmapss.simulate.train == "data"
+    assert make_train_config("file", "smoke").simulate.train == "data"
+
+
+def test_table_data_with_labels_to_score_only(tmp_path):
+    import pandas as pd
+
+    from jaxcal.training.tables import load_table_data
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for unit in range(1, 5):
+        w = rng.uniform(0.5, 1.5, (20, 2))
+        theta = np.array([1.2, 0.1])
+        x = np.asarray(jax.vmap(_fn, (0, None))(jnp.asarray(w), jnp.asarray(theta)))
+        rows.append(
+            pd.DataFrame(
+                {"unit": unit, "time": np.arange(20), "a": w[:, 0], "b": w[:, 1],
+                 "y1": x[:, 0], "y2": x[:, 1], "p": theta[0], "q": theta[1]}
+            )
+        )  # fmt: skip
+    path = tmp_path / "lin.csv"
+    pd.concat(rows).to_csv(path, index=False)
+    used = load_table_data(path, MODEL, theta=("p", "q"))
+    assert used.info["box"] == "labelled range"
+    scored = load_table_data(path, MODEL, theta=("p", "q"), use_labels=False)
+    assert scored.info["box"].startswith("model bounds")
+    np.testing.assert_array_equal(scored.problem.theta_low, MODEL.bounds[0])
+    np.testing.assert_array_equal(scored.problem.theta_base, MODEL.nominal)
+    assert scored.test.theta is not None  # still there, to score
+
+
+def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
+    from jaxcal.calibrators.policy import IncrementPolicyParams, make_policy_calibrator
+
+    fields = dict(
+        actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
+        x_mean=jnp.zeros(2), x_std=jnp.ones(2), theta_low=jnp.array([0.5, -1.0]),
+        theta_high=jnp.array([2.0, 1.0]), step_ref=jnp.ones(2),
+    )  # fmt: skip
+    for start, expect in ((None, [1.25, 0.0]), (jnp.array([1.0, 0.0]), [1.0, 0.0])):
+        params = IncrementPolicyParams(**fields, theta_start=start)
+        cal = make_policy_calibrator(None, lambda p, w, x, th: x, params)
+        state = cal.init(None, jnp.ones(2), jnp.zeros(2))
+        np.testing.assert_allclose(state.theta, expect)
