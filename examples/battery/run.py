@@ -41,7 +41,7 @@ BENCH_STEPS = 2000
 
 def _args(argv):
     opts = {"out": "results/examples/battery", "data": "data/battery",
-            "runs": "runs", "chunks": "40", "skip": ""}  # fmt: skip
+            "runs": "runs", "chunks": "", "skip": ""}  # fmt: skip
     for token in argv:
         key, sep, value = token.partition("=")
         if not sep or key not in opts:
@@ -77,15 +77,17 @@ def _method_options(method: str, opts: dict) -> dict:
 
 def _train_policy(csv: str, opts: dict) -> float:
     """Train the tracking policy by the command line; returns its training seconds."""
-    from peers import THETA
+    from peers import THETA, UKF
 
     units = ",".join(str(u) for u in POLICY_TEST_UNITS)
     command = [
         sys.executable, "-m", "jaxcal.train",
         f"model={os.path.join(HERE, 'model.py')}:MODEL", f"data={csv}",
         f"theta={','.join(THETA)}", f"test_units={units}", f"name={NAME}",
-        f"budget.num_chunks={opts['chunks']}", f"output.runs_dir={opts['runs']}",
-        "dynamics=physics",  # the surrogate is refused for a model with memory
+        f"output.runs_dir={opts['runs']}",
+        # the noise the UKF is given: 2 mV sensor + ~18 mV ECM-vs-SPMe model error
+        f"noise={UKF['noise']}",
+        *([f"budget.num_chunks={opts['chunks']}"] if opts["chunks"] else []),
     ]  # fmt: skip
     print("$ " + " ".join(command[1:]), flush=True)
     subprocess.run(command, check=True)

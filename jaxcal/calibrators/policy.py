@@ -110,15 +110,24 @@ class IncrementPolicyParams(PolicyParams):
 
     Attributes:
         step_ref: ``[P]`` residual RMS at which a step is half its largest.
-        theta_start: ``[P]`` theta before a stream's first sample; ``None``: the box
-            centre (runs before it was a field load with ``None``: no leaf, the same
-            checkpoint layout).
         max_increment: largest step as a share of the box width (static).
     """
 
     step_ref: Array
-    theta_start: Array | None = None
     max_increment: float = struct.field(pytree_node=False, default=0.5)
+
+
+@struct.dataclass
+class StartedIncrementPolicyParams(IncrementPolicyParams):
+    """:class:`IncrementPolicyParams` of a policy that starts a stream at a given
+    theta rather than the box centre (its own class: the checkpoints of the runs
+    before it keep their layout).
+
+    Attributes:
+        theta_start: ``[P]`` theta before a stream's first sample.
+    """
+
+    theta_start: Array | None = None
 
 
 @struct.dataclass
@@ -163,14 +172,11 @@ def policy_params_from_env(
         return PolicyParams(**fields)
     if max_increment is None:
         raise ValueError("an incremental policy needs the env's max_increment")
-    if theta_start is not None:
-        theta_start = jnp.asarray(theta_start, env_params.theta_low.dtype)
-    return IncrementPolicyParams(
-        **fields,
-        step_ref=env_params.step_ref,
-        theta_start=theta_start,
-        max_increment=max_increment,
-    )
+    fields.update(step_ref=env_params.step_ref, max_increment=max_increment)
+    if theta_start is None:
+        return IncrementPolicyParams(**fields)
+    start = jnp.asarray(theta_start, env_params.theta_low.dtype)
+    return StartedIncrementPolicyParams(**fields, theta_start=start)
 
 
 def make_policy_calibrator(
@@ -222,7 +228,7 @@ def make_policy_calibrator(
         z0 = None if z0 is None else z0.astype(x0.dtype)
         theta0 = None
         if incremental:  # the run's start, else the box centre (the env's reset_at)
-            theta0 = params.theta_start
+            theta0 = getattr(params, "theta_start", None)
             if theta0 is None:
                 theta0 = 0.5 * (params.theta_low + params.theta_high)
         count = None if band is None else jnp.zeros((), jnp.int32)

@@ -35,6 +35,7 @@ from jaxcal.calibrators.interface import Calibrator, SampleCheck
 from jaxcal.calibrators.policy import (
     IncrementPolicyParams,
     PolicyParams,
+    StartedIncrementPolicyParams,
     make_policy_calibrator,
     range_check,
 )
@@ -198,13 +199,13 @@ def load_run(
         )
         if not env_cfg.incremental:
             return PolicyParams(**fields)
-        prior = getattr(cfg.env, "start", "centre") == "prior"
-        return IncrementPolicyParams(
-            **fields,
-            step_ref=jnp.ones(dims[2], dtype),
-            theta_start=jnp.zeros(dims[2], dtype) if prior else None,
-            max_increment=env_cfg.max_increment,
+        fields.update(
+            step_ref=jnp.ones(dims[2], dtype), max_increment=env_cfg.max_increment
         )
+        if getattr(cfg.env, "start", "centre") == "prior":
+            start = jnp.zeros(dims[2], dtype)
+            return StartedIncrementPolicyParams(**fields, theta_start=start)
+        return IncrementPolicyParams(**fields)
 
     target = jax.eval_shape(abstract, jax.random.key(0))
     folder = run_dir / POLICY_DIR

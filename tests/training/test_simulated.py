@@ -81,7 +81,7 @@ def test_any_model_default_preset_uses_labels_to_score_only():
 
     cfg = make_train_config("file", "default")
     assert cfg.dataset.labels == "score" and cfg.env.start == "prior"
-    assert cfg.simulate.train == "simulated" and cfg.simulate.band == "simulated"
+    assert cfg.simulate.train == "both" and cfg.simulate.band == "simulated"
     assert cfg.simulate.copies == ANY_MODEL_COPIES and cfg.budget.select == "sim_theta"
     # the turbofan data sets and the other presets keep their formulation
     cmapss = make_train_config("cmapss", "default")
@@ -118,15 +118,26 @@ def test_table_data_with_labels_to_score_only(tmp_path):
 
 
 def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
-    from jaxcal.calibrators.policy import IncrementPolicyParams, make_policy_calibrator
+    import dataclasses
 
+    from jaxcal.calibrators.policy import (
+        IncrementPolicyParams,
+        StartedIncrementPolicyParams,
+        make_policy_calibrator,
+    )
+
+    # the layout of every incremental run saved before theta_start existed
+    names = [f.name for f in dataclasses.fields(IncrementPolicyParams)]
+    assert names[-2:] == ["step_ref", "max_increment"] and "theta_start" not in names
     fields = dict(
         actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
         x_mean=jnp.zeros(2), x_std=jnp.ones(2), theta_low=jnp.array([0.5, -1.0]),
         theta_high=jnp.array([2.0, 1.0]), step_ref=jnp.ones(2),
     )  # fmt: skip
-    for start, expect in ((None, [1.25, 0.0]), (jnp.array([1.0, 0.0]), [1.0, 0.0])):
-        params = IncrementPolicyParams(**fields, theta_start=start)
+    for params, expect in (
+        (IncrementPolicyParams(**fields), [1.25, 0.0]),
+        (StartedIncrementPolicyParams(**fields, theta_start=jnp.ones(2)), [1.0, 1.0]),
+    ):
         cal = make_policy_calibrator(None, lambda p, w, x, th: x, params)
         state = cal.init(None, jnp.ones(2), jnp.zeros(2))
         np.testing.assert_allclose(state.theta, expect)
