@@ -1,0 +1,228 @@
+"""The sections of a training run's configuration: data, environment, budget,
+simulated units and output (:class:`jaxcal.config.TrainConfig` holds one of each;
+``jaxcal.config`` re-exports them). Frozen dataclasses that check their own fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from jaxcal.envs.tracking import check_action_options
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Which data file a run trains on, and how it is read.
+
+    An ``.h5`` file in the N-CMAPSS layout has dev / test splits; any other file
+    (``.csv``, ``.parquet``, NASA C-MAPSS ``.txt``) is read as rows of the model's
+    variables (:func:`jaxcal.data.readers.read_dataset`): a ``split`` column
+    (train / val / test, or dev / test) is used when present, else whole units are
+    held out (``test_units``, ``val_units``).
+    """
+
+    name: str = "cmapss"  # preset name (run names use it; "": the file's stem)
+    path: str = "data/cmapss.h5"  # the data file
+    # jaxcal.generate preset that builds `path` when the file is missing ("": never)
+    generate: str = "cmapss"
+    stride: int = 1  # keep every stride-th row (NASA files are 1 Hz)
+    # held-out dev units for progress and tuning; None: the last val_fraction of the
+    # dev units; (): none. Test units are the file's test split, scored at the end.
+    val_units: tuple[int, ...] | None = None
+    val_fraction: float = 0.15
+    # units held out for the final test of a file without a split column; None: the
+    # last test_fraction of its units (N-CMAPSS files: their test split, always)
+    test_units: tuple[int, ...] | None = None
+    test_fraction: float = 0.2
+    # rows with NaN / Inf in w, the sensors or theta: "error" refuses the file (the
+    # message names file, columns, first rows, counts); "drop" drops and logs them
+    nonfinite: Literal["error", "drop"] = "error"
+    # what a file's true-parameter columns are for: "use" (also the action box,
+    # their range widened by env.theta_margin, and the fixed parameters' values) or
+    # "score" (test scores only: the box is the model's bounds)
+    labels: Literal["use", "score"] = "use"
+    # file column names the reader maps to jaxcal names, "<file name>:<jaxcal name>"
+    # (e.g. T_24:T24); any other unknown or missing column name is an error
+    rename: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.stride < 1:
+            raise ValueError(f"dataset.stride must be >= 1, got {self.stride}")
+        if self.labels not in ("use", "score"):
+            raise ValueError(
+                f"dataset.labels must be 'use' or 'score', got {self.labels!r}"
+            )
+        if self.nonfinite not in ("error", "drop"):
+            raise ValueError(
+                f"dataset.nonfinite must be 'error' or 'drop', got {self.nonfinite!r}"
+            )
+        bad = [p for p in self.rename if len(p.split(":")) != 2 or "" in p.split(":")]
+        if bad:
+            raise ValueError(
+                f"dataset.rename must be <file name>:<jaxcal name> pairs (e.g. "
+                f"dataset.rename=T_24:T24,T_30:T30), got {list(bad)}"
+            )
+        if not 0.0 < self.test_fraction < 1.0:
+            raise ValueError(
+                f"dataset.test_fraction must be in (0, 1), got {self.test_fraction}"
+            )
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(
+                f"dataset.val_fraction must be in [0, 1), got {self.val_fraction}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """Run-level settings of the tracking environment (``EnvConfig`` adds the data's
+    dimensions)."""
+
+    episode_length: int = 200  # steps per training window
+    # the action box is the dev range of theta widened by this share on each side
+    theta_margin: float = 0.1
+    # "absolute": the action sets theta (the paper's); "increment": it changes theta,
+    # gated by the residual (jaxcal.envs.increment: a learned feedback that drives
+    # the tracking error to zero instead of guessing theta)
+    action: Literal["absolute", "increment"] = "absolute"
+    # incremental actions: the largest change per step, as a share of the box width
+    max_increment: float = 0.5
+    # "squared": the paper's tracking cost; "log": log(1 + cost / cost_floor^2), the
+    # same weight for halving the error at every scale (jaxcal.envs.tracking.EnvConfig)
+    cost: Literal["squared", "log"] = "squared"
+    cost_floor: float = 1e-4
+    # where a deployed incremental policy starts theta: "centre" of the box, or the
+    # model's nominal values ("prior", what the UKF starts from)
+    start: Literal["centre", "prior"] = "centre"
+
+    def __post_init__(self) -> None:
+        check_action_options(
+            self.action, self.max_increment, self.cost, self.cost_floor
+        )
+        if self.episode_length < 1:
+            raise ValueError(
+                f"env.episode_length must be >= 1, got {self.episode_length}"
+            )
+        if self.start not in ("centre", "prior"):
+            raise ValueError(
+                f"env.start must be 'centre' or 'prior', got {self.start!r}"
+            )
+        if self.theta_margin < 0:
+            raise ValueError(f"env.theta_margin must be >= 0, got {self.theta_margin}")
+
+
+@dataclasses.dataclass(frozen=True)
+class BudgetConfig:
+    """How long the policy trains, how often the host scores and saves, and which
+    policy the run keeps.
+
+    Changing these fields does not change the training trajectory, so a run may be
+    resumed (or extended) with a different budget.
+    """
+
+    num_chunks: int = 150  # jitted chunks of runner.num_steps_per_chunk iterations
+    eval_every: int = 5  # chunks between validation scores (0: never)
+    ckpt_every: int = 5  # chunks between checkpoints (the last chunk is always saved)
+    # Wall-clock limit of the whole job in seconds, from its start (data generation
+    # included): training stops after the chunk that crosses it, the final scoring
+    # still runs. None: no limit. A safety net for a loaded machine; a run stopped by
+    # it depends on the machine's speed (final.json says so).
+    time_limit_s: float | None = 1080.0
+    # The policy the run keeps (scored on test, loaded by jaxcal.deploy): "last", or
+    # "val_tracking": the one with the lowest validation *tracking* RMSE among the
+    # scored chunks (label-free early stopping: theta labels are never used).
+    # "sim_theta": the lowest theta RMSE (in box widths) on units simulated along the
+    # validation units' conditions (jaxcal.training.simulated; no label either).
+    select: Literal["last", "val_tracking", "sim_theta"] = "val_tracking"
+    # The actor that is deployed: "target", the Polyak-averaged policy of Algorithm 1
+    # (theta-bar <- tau theta + (1 - tau) theta-bar; LAC and CLAC keep one, SAC has
+    # none and falls back to its online actor), or "online", the last gradient iterate.
+    policy: Literal["target", "online"] = "target"
+    # Time to target: every scoring also runs the test units and final.json reports
+    # the job's wall time at the first scoring whose test theta RMSE <= this value
+    # (reporting only: selection never sees test scores). None: off. The dataset
+    # presets' values are in TARGET_THETA_RMSE (cmapss: 2.5e-4, the issue's goal).
+    target_theta_rmse: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.target_theta_rmse is not None and not self.target_theta_rmse > 0:
+            raise ValueError(
+                "budget.target_theta_rmse must be > 0 or None, got "
+                f"{self.target_theta_rmse!r}"
+            )
+        if self.num_chunks < 0 or self.eval_every < 0 or self.ckpt_every < 1:
+            raise ValueError(
+                "budget.num_chunks and budget.eval_every must be >= 0 and "
+                f"budget.ckpt_every >= 1, got {self}"
+            )
+        if self.policy not in ("target", "online"):
+            raise ValueError(
+                f"budget.policy must be 'target' or 'online', got {self.policy!r}"
+            )
+        if self.select not in ("last", "val_tracking", "sim_theta"):
+            raise ValueError(
+                "budget.select must be 'last', 'val_tracking' or 'sim_theta', got "
+                f"{self.select!r}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationConfig:
+    """Units simulated from the model wherever a run needs true theta
+    (:mod:`jaxcal.training.simulated`): the user's labels are for scoring only."""
+
+    # what the policy trains on: "data" (the training units, cost on their noisy
+    # outputs), "simulated" (simulated copies of them, cost on the noise-free
+    # outputs) or "both"
+    train: Literal["data", "simulated", "both"] = "data"
+    copies: int = 1  # simulated copies of each training unit
+    # share of simulated units whose parameters stay constant
+    constant_share: float = 0.25
+    # the units the uncertainty band is fitted on: "simulated" (along the validation
+    # units' conditions), "labelled" (the validation units' own labels) or "auto"
+    # (labelled when the validation units carry labels, else simulated)
+    band: Literal["auto", "simulated", "labelled"] = "auto"
+    band_copies: int = 8  # simulated copies of each validation unit for the band
+    # the log cost's floor when training on simulated units: "noise" (the noise
+    # std's RMS in the cost's normalised units) or "env" (env.cost_floor as given)
+    cost_floor: Literal["noise", "env"] = "env"
+
+    def __post_init__(self) -> None:
+        if self.train not in ("data", "simulated", "both"):
+            raise ValueError(
+                "simulate.train must be 'data', 'simulated' or 'both', got "
+                f"{self.train!r}"
+            )
+        if self.band not in ("auto", "simulated", "labelled"):
+            raise ValueError(
+                "simulate.band must be 'auto', 'simulated' or 'labelled', got "
+                f"{self.band!r}"
+            )
+        if self.cost_floor not in ("noise", "env"):
+            raise ValueError(
+                f"simulate.cost_floor must be 'noise' or 'env', got {self.cost_floor!r}"
+            )
+        if self.copies < 1 or self.band_copies < 1:
+            raise ValueError(
+                "simulate.copies and simulate.band_copies must be >= 1, got "
+                f"{self.copies}, {self.band_copies}"
+            )
+        if not 0.0 <= self.constant_share <= 1.0:
+            raise ValueError(
+                f"simulate.constant_share must be in [0, 1], got {self.constant_share}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputConfig:
+    """Where and what a run writes."""
+
+    runs_dir: str = "runs"  # parent folder of run folders
+    # run folder name, one folder inside runs_dir (no '/', '\\', '..', leading '.');
+    # "": <dataset>-<agent>-<dynamics>-s<seed>[-preset]
+    name: str = ""
+    # save the replay buffer in checkpoints: exact resumes, but the checkpoint grows by
+    # buffer_size x (2 O + A + 2) x 4 bytes; without it a resume refills the buffer
+    save_buffer: bool = True
+    max_to_keep: int = 2  # checkpoints kept
+    progress: bool = True  # tqdm bars
