@@ -40,7 +40,7 @@ from jaxcal.calibrators.interface import Calibrator, CalStepOutput  # noqa: E402
 from jaxcal.paper.compare import evaluate_method  # noqa: E402
 from jaxcal.paper.methods import make_method  # noqa: E402
 from jaxcal.paper.suite import Suite, SuiteConfig  # noqa: E402
-from jaxcal.training.run_dir import write_json  # noqa: E402
+from jaxcal.runs.folder import write_json  # noqa: E402
 
 QUANTILES = (0.9, 0.99, 1.0)  # b = this quantile of the absolute policy's val error
 VARIANTS = {"clean": (1.0, 0.0), "bias": (1.02, 0.0)}

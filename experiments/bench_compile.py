@@ -204,7 +204,7 @@ def main(argv: list[str]) -> None:
             doc[f"{case}/{method}"] = measure(case, method)
     print(json.dumps(doc, indent=1))
     if "out" in opts:
-        from jaxcal.atomic import write_atomic
+        from jaxcal.runs.atomic import write_atomic
 
         path = Path(opts["out"])
         whole = json.loads(path.read_text()) if path.exists() else {}

@@ -48,7 +48,7 @@ from cpubench.training import QUICK_SIZES, TrainingSizes, bench_training  # noqa
 from cpubench.ukf import bench_ukf  # noqa: E402
 
 from jaxcal.cache import enable_compilation_cache  # noqa: E402
-from jaxcal.training.run_dir import write_atomic  # noqa: E402
+from jaxcal.runs.folder import write_atomic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SECTIONS = ("policy", "training", "engine", "ukf", "end_to_end")

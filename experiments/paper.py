@@ -84,7 +84,7 @@ class Context:
 
     def generator_config(self, key: str):
         """Its resolved generator config (``python -m jaxcal.generate`` parsing)."""
-        from jaxcal.generate import parse_args
+        from jaxcal.cli.generate import parse_args
 
         spec = self.preset.datasets[key]
         cfg, _ = parse_args([f"dataset={spec.generator}", *spec.overrides])
@@ -92,8 +92,8 @@ class Context:
 
     def train_argv(self, key: str, agent: str) -> list[str]:
         """The training command line of one run (deterministic run name)."""
-        from jaxcal.config import make_train_config
-        from jaxcal.train import parse_args
+        from jaxcal.cli.train import parse_args
+        from jaxcal.training.config import make_train_config
 
         spec = self.preset.datasets[key]
         # AGENTS: e.g. "clac-f" -> agent=clac dynamics=physics (method CLAC-F)
@@ -131,7 +131,7 @@ class Context:
 
     def run_dir(self, key: str, agent: str) -> str:
         """The run folder of one training (from its command line, no training)."""
-        from jaxcal.train import parse_args
+        from jaxcal.cli.train import parse_args
 
         cfg = parse_args(self.train_argv(key, agent))
         return str(Path(cfg.output.runs_dir) / cfg.run_name)
@@ -301,8 +301,8 @@ def train_or_reuse(argv: list[str], *, log: Callable[[str], None] = print) -> di
     """
     import jax
 
-    from jaxcal.train import main, parse_args
-    from jaxcal.training.run_dir import FINAL_FILE, prepare_run_dir, read_json
+    from jaxcal.cli.train import main, parse_args
+    from jaxcal.runs.folder import FINAL_FILE, prepare_run_dir, read_json
 
     cfg = parse_args(argv)
     run_dir = Path(cfg.output.runs_dir) / cfg.run_name
@@ -419,7 +419,7 @@ def parse_args(argv: list[str]) -> tuple[Preset, Path, int]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run (or resume) the experiment and write the report; returns the exit code."""
-    from jaxcal.cli_args import parse_command_line
+    from jaxcal.cli.args import parse_command_line
 
     argv = sys.argv[1:] if argv is None else list(argv)
     parsed, code = parse_command_line(argv, parse_args, __doc__, USAGE)

@@ -27,7 +27,7 @@ TRACK_SENSORS = ("T30", "T48", "Ps30", "Nc")  # preferred four sensors
 def save_traces(path: Path, run, units, suite) -> None:
     """The figure data of one evaluation, downsampled, as ``.npz`` (atomically)."""
     from jaxcal.paper.compare import stacked
-    from jaxcal.training.run_dir import write_atomic
+    from jaxcal.runs.folder import write_atomic
 
     theta, starts = stacked(run.theta, units.mask)
     truth, _ = stacked(units.theta, units.mask)

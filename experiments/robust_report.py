@@ -16,8 +16,8 @@ import os
 
 import numpy as np
 
-from jaxcal.atomic import write_atomic
 from jaxcal.diagnosis.report import json_safe
+from jaxcal.runs.atomic import write_atomic
 
 STEP_KINDS = ("sensor_step", "parameter_step")
 LEVERS = {  # lever -> what was switched off (levers/<name>/ beside the study)

@@ -41,8 +41,8 @@ def main(argv: list[str]) -> int:
     jax.config.update("jax_enable_x64", True)
     from unseen_models import NOISE, _simulate, make_fleet, motor_model
 
-    from jaxcal.config import _DEFAULT_SURROGATE
     from jaxcal.surrogate.fit import fit_surrogate, make_transitions, surrogate_errors
+    from jaxcal.training.config import _DEFAULT_SURROGATE
 
     model = motor_model()
     fleet = make_fleet("motor")

@@ -9,17 +9,27 @@ The public front::
     turbofan = jaxcal.models.load("cmapss")
     data = jaxcal.read_dataset("data.parquet", model)           # a jaxcal.Dataset
 
-Layers (imports flow one way): ``model`` / ``problem`` -> ``physics`` / ``models`` ->
-``data`` -> ``surrogate`` -> ``envs`` -> ``agents`` / ``baselines`` / ``calibrators``
--> ``training`` -> ``evaluation`` / ``loop`` / ``fleet`` -> CLI modules. Importing the
-package has no side effects and loads nothing heavy: the names below are imported on
-first use, and float64 is switched on only by entry points
+Layers (imports flow one way, downwards; ``tests/test_architecture.py`` holds the
+order): the host-only leaves (``runs/``, ``settings``, ``precision``, ``cache``,
+``numerics/``, ``plotting``) -> ``model`` -> ``physics/`` -> ``data/`` -> ``problem``
+-> ``models/`` -> ``nets/`` / ``surrogate/`` / ``envs/`` / ``agents/`` ->
+``calibrators/`` (the methods and the front door) -> ``training/`` (the job and its
+config) -> ``deploy/`` (loading a run, streaming) -> ``diagnosis/`` / ``fleet/`` /
+``paper/`` -> ``cli/`` (every ``python -m jaxcal.<tool>``; the old module paths are
+shims that forward there). Importing the package loads nothing heavy: the names below
+are imported on first use, and float64 is switched on only by entry points
 (:func:`jaxcal.precision.enable_x64`).
+
+This module is the composition root. Its one act at import: it hands the run-folder
+slot of :mod:`jaxcal.runs` the reader of :mod:`jaxcal.deploy.loading` (imported when a
+run is first read), so the policy method and the front door, below the training
+layer, take a run folder without importing a layer above their own.
 """
 
 import importlib
 
-__version__ = "0.1.0"
+from jaxcal import runs as _runs
+from jaxcal.version import __version__  # noqa: F401 (jaxcal.__version__)
 
 _EXPORTS = {
     "Model": ("jaxcal.model", "Model"),
@@ -34,6 +44,16 @@ _EXPORTS = {
 }
 
 __all__ = sorted(_EXPORTS)
+
+
+def _read_run(run_dir, **options):
+    """:func:`jaxcal.deploy.loading.load_run`, imported on first use."""
+    from jaxcal.deploy.loading import load_run
+
+    return load_run(run_dir, **options)
+
+
+_runs.register_run_reader(_read_run)
 
 
 def __getattr__(name):

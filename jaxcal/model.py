@@ -99,6 +99,10 @@ class Model:
             the model's own solver tolerance (not bit for bit), cheaper when
             ``hint`` is the previous call's along a stream of nearby inputs.
         initial_hint: ``initial_hint() -> hint``, the hint before any call.
+        origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
+            :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
+            programs can be kept on disk, :mod:`jaxcal.calibrators.on_disk`);
+            None for any other model.
     """
 
     name: str
@@ -117,6 +121,7 @@ class Model:
     diagnosis: DiagnosisHints = DiagnosisHints()
     hinted_fn: Callable[[Array, Array, Any], Any] | None = None
     initial_hint_fn: Callable[[], Any] | None = None
+    origin: str | None = None
 
     # ---------------------------------------------------------------- builders
 

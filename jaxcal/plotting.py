@@ -23,7 +23,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from jaxcal.atomic import make_temp, release_temp
+from jaxcal.runs.atomic import make_temp, release_temp
 
 TRUTH_COLOR = "tab:orange"  # the paper draws ground truth as orange squares
 SERIES_COLORS = ("tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -257,6 +257,18 @@ def plot_stacked_traces(
     return save_figure(fig, path, dpi=dpi)
 
 
+def _units_to_draw(units, present: np.ndarray, dtype, max_units: int) -> np.ndarray:
+    """The requested unit ids (each must be ``present``), or the first
+    ``max_units`` present ones."""
+    if units is None:
+        return present[:max_units]
+    units = np.asarray(units, dtype=dtype).reshape(-1)
+    missing = [u for u in units.tolist() if u not in set(present.tolist())]
+    if missing:
+        raise ValueError(f"unit(s) {missing} not in the result: {present.tolist()}")
+    return units
+
+
 def unit_traces_figure(
     time,
     unit,
@@ -305,13 +317,7 @@ def unit_traces_figure(
         raise ValueError(f"theta_std must be {theta.shape}, got {std.shape}")
     ok = np.ones(num_rows, bool) if valid is None else np.asarray(valid, bool)
     present = np.unique(unit)
-    if units is None:
-        units = present[:max_units]
-    else:
-        units = np.asarray(units, dtype=unit.dtype).reshape(-1)
-        missing = [u for u in units.tolist() if u not in set(present.tolist())]
-        if missing:
-            raise ValueError(f"unit(s) {missing} not in the result: {present.tolist()}")
+    units = _units_to_draw(units, present, unit.dtype, max_units)
     fig = Figure(figsize=(10, 2.4 * num_params + 0.8), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(num_params, 1, sharex=True, squeeze=False)[:, 0]

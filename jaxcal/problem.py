@@ -10,7 +10,8 @@ questions each of them used to answer on its own:
 * the box the calibrated parameters live in (``theta_low``/``theta_high``: the
   model's bounds, or the data's labelled range widened by a margin);
 * which outputs are used (``output_names``, ``S``) and their normalisation, and the
-  conditions' (:class:`Normalisation`, over the training rows);
+  conditions' (:class:`~jaxcal.data.normalisation.Normalisation`, over the training
+  rows);
 * the measurement noise per output (``noise_std``), given or estimated;
 * the range of the training data (``input_range``): a later sample far outside it is
   flagged instead of being silently used.
@@ -29,11 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
+from jaxcal.data.normalisation import Normalisation
 from jaxcal.model import Model
-
-# A constant channel (std below this, relative to its scale) is normalised by 1.
-_CONSTANT_REL_STD = 1e-12
-
 
 # Half-width of the box of a declared parameter that is constant in labelled data.
 CONSTANT_THETA_HALF_WIDTH = 0.01
@@ -53,33 +51,6 @@ def labelled_box(
         width > VARYING_TOLERANCE, theta_margin * width, CONSTANT_THETA_HALF_WIDTH
     )
     return low - margin, high + margin
-
-
-class Normalisation(NamedTuple):
-    """Training statistics: ``w_n = (w - w_mean) / w_std``, likewise for ``x``."""
-
-    w_mean: np.ndarray  # [W]
-    w_std: np.ndarray  # [W] > 0
-    x_mean: np.ndarray  # [S]
-    x_std: np.ndarray  # [S] > 0
-
-    @classmethod
-    def of(cls, w: np.ndarray, x: np.ndarray, dtype=np.float64) -> Normalisation:
-        """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1),
-        computed in ``dtype`` (``None``: the arrays' own, so a float32 run keeps the
-        exact float32 statistics it always had). A NaN (a missing output of a partial
-        row) is left out of its column's statistics."""
-
-        def stats(a):
-            a = np.asarray(a, dtype)
-            if np.isnan(a).any():  # host branch: complete data keep their exact bits
-                mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
-            else:
-                mean, std = a.mean(axis=0), a.std(axis=0)
-            tiny = std <= _CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
-            return mean, np.where(tiny, 1.0, std).astype(a.dtype)
-
-        return cls(*stats(w), *stats(x))
 
 
 class Transition(NamedTuple):

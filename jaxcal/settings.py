@@ -16,7 +16,7 @@ a field annotated with a union of configs (``SACConfig | LACConfig``) restores t
 right one. ``check_output_path`` checks that an output file or folder can be written,
 so that a command refuses a bad ``out=`` before any long work. A library module (configs
 are read and stored by the training job, the paper pipeline, the diagnosis): the
-command-line front itself (help, usage, exit codes) is :mod:`jaxcal.cli_args`.
+command-line front itself (help, usage, exit codes) is :mod:`jaxcal.cli.args`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The package's import graph: one way, no cycle, no library module importing a CLI."""
+"""The package's import graph: one way down a fixed order of layers, no cycle, and no
+command line below ``jaxcal/cli/``."""
 
 import ast
 import pathlib
@@ -6,17 +7,50 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "jaxcal"
-# Command-line mains (and their shared front); nothing below them may import them.
-CLI_MODULES = {
-    "jaxcal.train",
-    "jaxcal.evaluate",
-    "jaxcal.diagnose",
-    "jaxcal.generate",
-    "jaxcal.bench",
-    "jaxcal.cli_args",
-    "jaxcal.fleet.__main__",
-    "jaxcal.physics.validate",
+
+# The documented ``python -m`` paths: shims that only forward to their cli module.
+SHIMS = {
+    "jaxcal.train": "jaxcal.cli.train",
+    "jaxcal.evaluate": "jaxcal.cli.evaluate",
+    "jaxcal.diagnose": "jaxcal.cli.diagnose",
+    "jaxcal.generate": "jaxcal.cli.generate",
+    "jaxcal.bench": "jaxcal.cli.bench",
+    "jaxcal.fleet.__main__": "jaxcal.cli.fleet",
+    "jaxcal.physics.validate": "jaxcal.cli.validate",
 }
+
+# Bottom to top. A module belongs to the layer of the longest entry that is its name or
+# a package above it; it may import its own layer and the layers below, never above
+# (function-level imports count). Every module must have a layer.
+LAYERS = (
+    # host-only leaves: types, precision, settings, caches, run-folder files, figures
+    (
+        "jaxcal.typedefs",
+        "jaxcal.version",
+        "jaxcal.precision",
+        "jaxcal.settings",
+        "jaxcal.cache",
+        "jaxcal.numerics",
+        "jaxcal.runs",
+        "jaxcal.plotting",
+    ),
+    ("jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.model"),
+    ("jaxcal.physics",),
+    ("jaxcal.data",),
+    ("jaxcal.problem",),
+    ("jaxcal.models",),
+    ("jaxcal.nets", "jaxcal.surrogate", "jaxcal.envs", "jaxcal.agents"),
+    ("jaxcal.calibrators",),
+    ("jaxcal.training",),
+    ("jaxcal.deploy",),
+    ("jaxcal.diagnosis", "jaxcal.fleet", "jaxcal.paper"),
+    # the command lines, their shims, and the package root (the composition root:
+    # the public names, imported lazily, and the run reader it hands jaxcal.runs)
+    ("jaxcal.cli", *SHIMS, "jaxcal"),
+)
+
+# sys.argv read, not parsed: the lock file records who holds a run (pid, command).
+ARGV_READERS = {"jaxcal.runs.lock"}
 
 
 def _module_name(path: pathlib.Path) -> str:
@@ -24,32 +58,67 @@ def _module_name(path: pathlib.Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imports(path: pathlib.Path, modules: set[str]) -> set[str]:
-    """jaxcal modules imported anywhere in the file (function-level imports too)."""
+def _is_package(module: str) -> bool:
+    return (ROOT.parent / module.replace(".", "/")).is_dir()
+
+
+def _imports(module: str, tree: ast.AST, modules: set[str]) -> set[str]:
+    """jaxcal modules imported anywhere in the file (function-level imports too); a
+    ``from package import name`` counts as the submodule when ``name`` is one, else as
+    the package."""
     found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolved against this module's package
+                package = module.split(".")
+                package = package if _is_package(module) else package[:-1]
+                package = package[: len(package) - node.level + 1]
+                base = ".".join([*package, base] if base else package)
+            subs = [f"{base}.{a.name}" for a in node.names]
+            names = [s for s in subs if s in modules]
+            if len(names) < len(subs):
+                names.append(base)
         else:
             continue
         found |= {n for n in names if n in modules}
-    return found
+    return found - {module}
 
 
 @pytest.fixture(scope="module")
-def graph():
-    files = {_module_name(p): p for p in ROOT.rglob("*.py")}
-    modules = set(files)
-    return {m: _imports(p, modules) - {m} for m, p in files.items()}
+def trees():
+    return {_module_name(p): ast.parse(p.read_text()) for p in ROOT.rglob("*.py")}
 
 
-def test_no_library_module_imports_a_command_line_module(graph):
+@pytest.fixture(scope="module")
+def graph(trees):
+    modules = set(trees)
+    return {m: _imports(m, tree, modules) for m, tree in trees.items()}
+
+
+def _layer(module: str) -> int | None:
+    best = None  # (length of the matching entry, layer)
+    for index, entries in enumerate(LAYERS):
+        for entry in entries:
+            matches = module == entry or (
+                entry != "jaxcal" and module.startswith(entry + ".")
+            )
+            if matches and (best is None or len(entry) > best[0]):
+                best = (len(entry), index)
+    return None if best is None else best[1]
+
+
+def test_every_module_has_a_layer(graph):
+    assert not sorted(m for m in graph if _layer(m) is None)
+
+
+def test_no_import_runs_back_up(graph):
     offenders = {
-        m: sorted(deps & CLI_MODULES)
+        m: sorted(d for d in deps if _layer(d) > _layer(m))
         for m, deps in graph.items()
-        if m not in CLI_MODULES and deps & CLI_MODULES
+        if any(_layer(d) > _layer(m) for d in deps)
     }
     assert not offenders, offenders
 
@@ -57,7 +126,7 @@ def test_no_library_module_imports_a_command_line_module(graph):
 def test_the_import_graph_has_no_cycle(graph):
     # package __init__ files re-export their children; a child importing a sibling
     # through the package is not a cycle of concepts, so packages are left out.
-    packages = {m for m in graph if (ROOT.parent / m.replace(".", "/")).is_dir()}
+    packages = {m for m in graph if _is_package(m)}
     edges = {m: deps - packages for m, deps in graph.items() if m not in packages}
     state, cycle = {}, []
 
@@ -76,10 +145,80 @@ def test_the_import_graph_has_no_cycle(graph):
     assert not cycle, cycle[:3]
 
 
-def _enables_x64_globally(path: pathlib.Path) -> bool:
+def _is_cli(module: str) -> bool:
+    return module == "jaxcal.cli" or module.startswith("jaxcal.cli.")
+
+
+def _command_line_traits(module: str, tree: ast.AST) -> list[str]:
+    """What makes a module a command line: a ``main``, argparse, ``sys.argv``, an
+    ``if __name__ == "__main__"`` block, an import of :mod:`jaxcal.cli`."""
+    traits = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and (
+            node.name == "main"
+        ):
+            traits.append("defines main")
+        elif isinstance(node, ast.Import | ast.ImportFrom):
+            names = [a.name for a in node.names]
+            names += [node.module] if isinstance(node, ast.ImportFrom) else []
+            if any(n and n.split(".")[0] == "argparse" for n in names):
+                traits.append("imports argparse")
+            if any(n and _is_cli(n) for n in names):
+                traits.append("imports jaxcal.cli")
+            if (
+                isinstance(node, ast.ImportFrom)
+                and node.module == "jaxcal"
+                and ("cli" in names)
+            ):
+                traits.append("imports jaxcal.cli")
+        elif (
+            isinstance(node, ast.Attribute)
+            and node.attr == "argv"
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "sys"
+            and module not in ARGV_READERS
+        ):
+            traits.append("uses sys.argv")
+        elif (
+            isinstance(node, ast.Compare)
+            and isinstance(node.left, ast.Name)
+            and node.left.id == "__name__"
+        ):
+            traits.append('has an if __name__ == "__main__" block')
+    return sorted(set(traits))
+
+
+def test_no_command_line_below_cli(trees):
+    offenders = {
+        m: traits
+        for m, tree in trees.items()
+        if not _is_cli(m)
+        and m not in SHIMS
+        and (traits := _command_line_traits(m, tree))
+    }
+    assert not offenders, offenders
+
+
+def test_the_shims_only_forward_to_the_command_lines(trees, graph):
+    for shim, target in SHIMS.items():
+        body = trees[shim].body
+        docstring = body[0]
+        assert isinstance(docstring, ast.Expr), shim
+        assert isinstance(docstring.value, ast.Constant), shim
+        imported, guard = body[1:]
+        assert isinstance(imported, ast.ImportFrom), shim
+        assert imported.module == target, shim
+        assert [a.name for a in imported.names] == ["main"], shim
+        assert isinstance(guard, ast.If) and ast.unparse(guard) == (
+            "if __name__ == '__main__':\n    raise SystemExit(main())"
+        ), shim
+        assert graph[shim] == {target}, shim
+
+
+def _enables_x64_globally(tree: ast.AST) -> bool:
     """A call of ``jaxcal.precision.enable_x64()`` or ``jax.config.update(
     "jax_enable_x64", ...)``; the scoped ``with jax.enable_x64(...)`` is allowed."""
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(tree):
         if not isinstance(node, ast.Call):
             continue
         func = node.func
@@ -95,12 +234,11 @@ def _enables_x64_globally(path: pathlib.Path) -> bool:
     return False
 
 
-def test_no_library_module_enables_float64():
+def test_no_library_module_enables_float64(trees):
     offenders = [
-        _module_name(p)
-        for p in ROOT.rglob("*.py")
-        if _module_name(p) not in CLI_MODULES | {"jaxcal.precision"}
-        and _enables_x64_globally(p)
+        m
+        for m, tree in trees.items()
+        if not _is_cli(m) and m != "jaxcal.precision" and _enables_x64_globally(tree)
     ]
     assert not offenders, offenders
 

@@ -47,3 +47,41 @@ def test_a_program_that_chose_its_own_directory_keeps_it(tmp_path):
         "cache.ensure_default()",
     )
     assert _run({"JAXCAL_CACHE_DIR": str(tmp_path / "other")}, chosen) == str(tmp_path)
+
+
+KEPT = """
+import os, sys, warnings, json
+import jax, numpy as np, pandas as pd
+import jaxcal
+from jaxcal.calibrators import on_disk
+
+if sys.argv[1] == "again":  # a program kept on disk must not be traced again
+    def refuse(*args, **kwargs):
+        print("traced and exported again", file=sys.stderr)
+        os._exit(7)
+    on_disk.export.export = refuse
+model = jaxcal.models.load("heat_exchanger")
+rng = np.random.default_rng(0)
+low, high = (np.asarray(b) for b in model.condition_range)
+w = rng.uniform(low, high, (60, len(low)))
+x = np.asarray(jax.vmap(lambda a: model.evaluate(a, model.nominal)[0])(w))
+frame = pd.DataFrame(np.hstack([w, x * (1 + 0.01 * rng.standard_normal(x.shape))]),
+                     columns=model.condition_names + model.output_names)
+frame.insert(0, "unit", np.repeat([1, 2], 30))
+noise = dict(zip(model.output_names, 0.01 * np.abs(x).mean(0)))
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    result = jaxcal.calibrate(model, frame, "ukf", noise=noise, progress=False)
+print(json.dumps(np.asarray(result.theta).tolist()))
+"""
+
+
+def test_a_built_in_models_program_is_kept_on_disk_and_not_traced_again(tmp_path):
+    env = {"JAXCAL_CACHE_DIR": str(tmp_path / "xla")}
+    first = _run({**env}, KEPT.replace("sys.argv[1]", "'first'"))
+    kept = list((tmp_path / "xla" / "jaxcal-programs").glob("*.jaxexport"))
+    assert kept, "no program was kept"
+    again = _run({**env}, KEPT.replace("sys.argv[1]", "'again'"))
+    assert again == first  # the same numbers from the program read back
+    off = _run({**env, "JAXCAL_CACHE": "0"}, KEPT.replace("sys.argv[1]", "'first'"))
+    assert off == first  # the cache off: traced as before, same numbers

@@ -11,7 +11,7 @@ import optax
 import pytest
 from flax import struct
 
-from jaxcal.checkpoint import Checkpointer, load_config, save_config
+from jaxcal.runs.checkpoint import Checkpointer, load_config, save_config
 
 
 @struct.dataclass

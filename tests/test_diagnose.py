@@ -8,10 +8,10 @@ import jax
 import numpy as np
 import pytest
 
+from jaxcal.cli.diagnose import main
 from jaxcal.data.cmapss_text import SENSOR_MAP
 from jaxcal.data.ncmapss_io import write_ncmapss
 from jaxcal.data.record import Record
-from jaxcal.diagnose import main
 from jaxcal.diagnosis.signatures import linearize
 from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
 from jaxcal.models import load

@@ -114,8 +114,7 @@ def test_not_run_markers_give_a_reason_above_a_python_block():
 
 def _parsers():
     """``{module: parse(args)}`` of the command lines with a parser of their own."""
-    from jaxcal import diagnose, evaluate, generate, train
-    from jaxcal.fleet import __main__ as fleet
+    from jaxcal.cli import diagnose, evaluate, fleet, generate, train
 
     return {
         "jaxcal.train": train.parse_args,

@@ -13,12 +13,12 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.calibrators.interface import REASONS, run_fleet
-from jaxcal.config import resolve_config
+from jaxcal.cli.evaluate import main, parse_args
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env
-from jaxcal.evaluate import main, parse_args
 from jaxcal.problem import Normalisation
 from jaxcal.training.components import make_agent
+from jaxcal.training.config import resolve_config
 from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.runner import evaluate_policy

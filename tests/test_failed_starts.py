@@ -12,20 +12,19 @@ import os
 import signal
 import subprocess
 import sys
-from types import SimpleNamespace
 
 import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
-from jaxcal import evaluate
-from jaxcal.atomic import host_tag, make_temp, release_temp, write_atomic
-from jaxcal.config import resolve_config
+from jaxcal.cli import evaluate
+from jaxcal.cli.train import main as train_main
+from jaxcal.cli.train import parse_args
 from jaxcal.data.ncmapss_writer import NCMAPSSWriter
+from jaxcal.runs.atomic import host_tag, make_temp, release_temp, write_atomic
+from jaxcal.runs.folder import check_run_dir
 from jaxcal.settings import check_output_path, config_to_dict
-from jaxcal.train import main as train_main
-from jaxcal.train import parse_args
 from jaxcal.training import run_data
-from jaxcal.training.run_dir import check_run_dir
+from jaxcal.training.config import resolve_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -101,17 +100,22 @@ def test_failed_data_generation_leaves_no_run_folder(tmp_path, monkeypatch, caps
     assert not runs.exists()
     calls = []
 
-    def fake_run(command, check):
-        calls.append(command)
-        return SimpleNamespace(returncode=fake_run.code)
+    def fake_generate(cfg, out, *, progress):  # the generator's two ways to fail
+        calls.append(cfg.name)
+        raise fake_generate.error
 
-    monkeypatch.setattr(run_data.subprocess, "run", fake_run)
-    for code, exit_code in ((1, 1), (2, 2)):
-        fake_run.code = code
+    monkeypatch.setattr(run_data, "generate_dataset", fake_generate)
+    for error, exit_code in ((RuntimeError("solver"), 1), (ValueError("bad"), 1)):
+        fake_generate.error = error
         assert train_main(base + [f"path={tmp_path / 'data' / 'tiny.h5'}"]) == exit_code
         assert "generating" in capsys.readouterr().err
         assert not runs.exists()
-    assert len(calls) == 2 and calls[0][2] == "jaxcal.generate"
+    assert calls == ["tiny", "tiny"]
+    # a preset that does not exist: bad arguments, before any generation
+    nope = ["dataset.generate=nope", f"path={tmp_path / 'data' / 'tiny.h5'}"]
+    assert train_main(base + nope) == 2
+    assert "unknown dataset 'nope'" in capsys.readouterr().err
+    assert calls == ["tiny", "tiny"] and not runs.exists()
 
 
 def _config(runs):

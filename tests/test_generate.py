@@ -8,10 +8,10 @@ import sys
 import h5py
 import pytest
 
-from jaxcal.atomic import host_tag
+from jaxcal.cli.generate import main, parse_args
 from jaxcal.data.chunked_engine import jit_evaluate_engine
 from jaxcal.data.ncmapss_io import load_ncmapss
-from jaxcal.generate import main, parse_args
+from jaxcal.runs.atomic import host_tag
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.metrics_log import MetricsWriter, metrics_columns, read_metrics
+from jaxcal.runs.metrics_log import MetricsWriter, metrics_columns, read_metrics
 
 
 def test_round_trip_converts_numpy_and_jax_values(tmp_path):

@@ -159,7 +159,7 @@ def test_models_load_specs(tmp_path):
 
 
 def test_a_run_folder_of_the_older_layout_reads_as_the_same_problem():
-    from jaxcal.training.runs import run_problem
+    from jaxcal.deploy.loading import run_problem
 
     model = _model()
     frame = _frame()

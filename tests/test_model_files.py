@@ -81,7 +81,7 @@ def syntax_error_file(tmp_path):
 
 
 def test_train_exits_2_with_one_line(syntax_error_file, tmp_path, capsys):
-    from jaxcal.train import main as train
+    from jaxcal.cli.train import main as train
 
     path, data = syntax_error_file
     runs = tmp_path / "runs"

@@ -7,8 +7,8 @@ import sys
 import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
-from jaxcal.metrics_log import read_metrics
-from jaxcal.train import main, parse_args
+from jaxcal.cli.train import main, parse_args
+from jaxcal.runs.metrics_log import read_metrics
 
 
 def test_unknown_key_is_an_error_listing_the_valid_keys(capsys):

@@ -10,7 +10,7 @@ batching (``vmap`` inside one call) gains over a loop of single calls.
 from __future__ import annotations
 
 from cpubench.measure import figure, missing_peer, peer
-from jaxcal.bench import bench_engine
+from jaxcal.cli.bench import bench_engine
 
 
 def bench_engine_section(*, batch: int, repeats: int) -> dict:

@@ -115,7 +115,7 @@ def toy_model(seed: int = 0) -> Model:
 
 def engine_model() -> Model:
     """The ``cmapss`` engine on HPT_eff_mod and the 14 measured sensors."""
-    from jaxcal.bench import envelope_points
+    from jaxcal.cli.bench import envelope_points
     from jaxcal.physics import load_engine
     from jaxcal.physics.constants import (
         MEASURED_SENSOR_NAMES,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -42,7 +42,7 @@ from jaxcal.agents.common import (
     polyak_update,
 )
 from jaxcal.agents.configs import _ActorCriticConfig
-from jaxcal.agents.networks import make_networks
+from jaxcal.agents.networks import Networks, make_networks
 from jaxcal.typedefs import Array, Metrics, PRNGKey
 
 # ``critic_loss(critic_params, state, batch, key, networks, *, gamma, **weights)
@@ -126,6 +126,131 @@ def _state_fields(
     return {"actor", "critic", "target_critic_params", "step"} | targets | logs
 
 
+def _check_state_type(spec: ActorCriticSpec, multipliers: tuple[Multiplier, ...]):
+    """``spec.state_type`` must hold exactly the fields the spec implies."""
+    fields = {f.name for f in dataclasses.fields(spec.state_type)}
+    if fields != _state_fields(spec, multipliers):
+        raise ValueError(
+            f"{spec.state_type.__name__} has fields {sorted(fields)}, the spec needs "
+            f"{sorted(_state_fields(spec, multipliers))}"
+        )
+
+
+class _Learners(NamedTuple):
+    """The networks and one Adam per learnt quantity (static: closed over by the
+    agent's ``init`` and ``update``, never traced)."""
+
+    networks: Networks
+    actor_optimizer: optax.GradientTransformation
+    critic_optimizer: optax.GradientTransformation
+    multipliers: tuple[Multiplier, ...]  # the entropy temperature first
+    multiplier_optimizers: tuple[optax.GradientTransformation, ...]
+
+
+def _init_state(
+    key: PRNGKey,
+    spec: ActorCriticSpec,
+    learners: _Learners,
+    observation_size: int,
+    action_size: int,
+) -> Any:
+    """A fresh agent state: networks initialised, targets copied, each multiplier at
+    its initial value."""
+    key_actor, key_critic = jax.random.split(key)
+    obs = jnp.zeros((1, observation_size), jnp.float32)
+    action = jnp.zeros((1, action_size), jnp.float32)
+    actor_params = learners.networks.actor.init(key_actor, obs)
+    critic_params = learners.networks.critic.init(key_critic, obs, action)
+    logs = {
+        m.field: init_log_multiplier(optimizer, m.initial_value)
+        for m, optimizer in zip(
+            learners.multipliers, learners.multiplier_optimizers, strict=True
+        )
+    }
+    if spec.target_actor:
+        logs["target_actor_params"] = copy_tree(actor_params)
+    return spec.state_type(
+        actor=init_optimized(learners.actor_optimizer, actor_params),
+        critic=init_optimized(learners.critic_optimizer, critic_params),
+        target_critic_params=copy_tree(critic_params),
+        step=jnp.zeros((), jnp.int32),
+        **logs,
+    )
+
+
+def _step_multipliers(
+    learners: _Learners, state: Any, actor_aux: Metrics
+) -> tuple[dict, Metrics]:
+    """One step per multiplier on its loss of the actor aux, each log value projected
+    when bounded: (new log values by state field, the losses' aux)."""
+    changes, metrics = {}, {}
+    for m, optimizer in zip(
+        learners.multipliers, learners.multiplier_optimizers, strict=True
+    ):
+        log_value, aux = minimize(
+            optimizer, getattr(state, m.field), m.loss, actor_aux[m.signal]
+        )
+        if m.max_value is not None:
+            log_value = clip_log_multiplier(log_value, m.max_value)
+        changes[m.field] = log_value
+        metrics.update(aux)
+    return changes, metrics
+
+
+def _update(
+    key: PRNGKey,
+    state: Any,
+    batch: Transition,
+    cfg: _ActorCriticConfig,
+    spec: ActorCriticSpec,
+    learners: _Learners,
+) -> tuple[Any, Metrics]:
+    """One update on a minibatch, in the order of :func:`make_actor_critic`."""
+    key_critic, key_actor = jax.random.split(key)
+    # Both losses weigh with the multipliers as they were before this update.
+    weights = {
+        m.name: jnp.exp(getattr(state, m.field).params) for m in learners.multipliers
+    }
+    critic, critic_aux = minimize(
+        learners.critic_optimizer,
+        state.critic,
+        spec.critic_loss,
+        state,
+        batch,
+        key_critic,
+        learners.networks,
+        gamma=cfg.gamma,
+        **weights,
+    )
+    actor, actor_aux = minimize(
+        learners.actor_optimizer,
+        state.actor,
+        spec.actor_loss,
+        critic.params,
+        batch,
+        key_actor,
+        learners.networks,
+        **weights,
+    )
+    changes, multiplier_aux = _step_multipliers(learners, state, actor_aux)
+    metrics = {**critic_aux, **actor_aux}
+    metrics.update(multiplier_aux)
+    if spec.target_actor:
+        changes["target_actor_params"] = polyak_update(
+            state.target_actor_params, actor.params, cfg.tau
+        )
+    new_state = state.replace(
+        actor=actor,
+        critic=critic,
+        target_critic_params=polyak_update(
+            state.target_critic_params, critic.params, cfg.tau
+        ),
+        step=state.step + 1,
+        **changes,
+    )
+    return new_state, metrics
+
+
 def make_actor_critic(
     cfg: _ActorCriticConfig,
     spec: ActorCriticSpec,
@@ -161,84 +286,20 @@ def make_actor_critic(
     """
     check_sizes(observation_size, action_size)
     multipliers = (entropy_temperature(cfg, action_size), *spec.multipliers)
-    fields = {f.name for f in dataclasses.fields(spec.state_type)}
-    if fields != _state_fields(spec, multipliers):
-        raise ValueError(
-            f"{spec.state_type.__name__} has fields {sorted(fields)}, the spec needs "
-            f"{sorted(_state_fields(spec, multipliers))}"
-        )
-    networks = make_networks(cfg, action_size)
-    actor_optimizer = optax.adam(cfg.actor_lr)
-    critic_optimizer = optax.adam(cfg.critic_lr)
-    optimizers = [optax.adam(m.learning_rate) for m in multipliers]
+    _check_state_type(spec, multipliers)
+    learners = _Learners(
+        networks=make_networks(cfg, action_size),
+        actor_optimizer=optax.adam(cfg.actor_lr),
+        critic_optimizer=optax.adam(cfg.critic_lr),
+        multipliers=multipliers,
+        multiplier_optimizers=tuple(optax.adam(m.learning_rate) for m in multipliers),
+    )
 
     def init(key: PRNGKey) -> Any:
-        key_actor, key_critic = jax.random.split(key)
-        obs = jnp.zeros((1, observation_size), jnp.float32)
-        action = jnp.zeros((1, action_size), jnp.float32)
-        actor_params = networks.actor.init(key_actor, obs)
-        critic_params = networks.critic.init(key_critic, obs, action)
-        logs = {
-            m.field: init_log_multiplier(optimizer, m.initial_value)
-            for m, optimizer in zip(multipliers, optimizers, strict=True)
-        }
-        if spec.target_actor:
-            logs["target_actor_params"] = copy_tree(actor_params)
-        return spec.state_type(
-            actor=init_optimized(actor_optimizer, actor_params),
-            critic=init_optimized(critic_optimizer, critic_params),
-            target_critic_params=copy_tree(critic_params),
-            step=jnp.zeros((), jnp.int32),
-            **logs,
-        )
+        return _init_state(key, spec, learners, observation_size, action_size)
 
     def update(key: PRNGKey, state: Any, batch: Transition) -> tuple[Any, Metrics]:
-        key_critic, key_actor = jax.random.split(key)
-        # Both losses weigh with the multipliers as they were before this update.
-        weights = {m.name: jnp.exp(getattr(state, m.field).params) for m in multipliers}
-        critic, critic_aux = minimize(
-            critic_optimizer,
-            state.critic,
-            spec.critic_loss,
-            state,
-            batch,
-            key_critic,
-            networks,
-            gamma=cfg.gamma,
-            **weights,
-        )
-        actor, actor_aux = minimize(
-            actor_optimizer,
-            state.actor,
-            spec.actor_loss,
-            critic.params,
-            batch,
-            key_actor,
-            networks,
-            **weights,
-        )
-        changes, metrics = {}, {**critic_aux, **actor_aux}
-        for m, optimizer in zip(multipliers, optimizers, strict=True):
-            log_value, aux = minimize(
-                optimizer, getattr(state, m.field), m.loss, actor_aux[m.signal]
-            )
-            if m.max_value is not None:
-                log_value = clip_log_multiplier(log_value, m.max_value)
-            changes[m.field] = log_value
-            metrics.update(aux)
-        if spec.target_actor:
-            changes["target_actor_params"] = polyak_update(
-                state.target_actor_params, actor.params, cfg.tau
-            )
-        new_state = state.replace(
-            actor=actor,
-            critic=critic,
-            target_critic_params=polyak_update(
-                state.target_critic_params, critic.params, cfg.tau
-            ),
-            step=state.step + 1,
-            **changes,
-        )
-        return new_state, metrics
+        return _update(key, state, batch, cfg, spec, learners)
 
-    return Agent(init, make_act(networks.actor), update, observation_size, action_size)
+    actor = learners.networks.actor
+    return Agent(init, make_act(actor), update, observation_size, action_size)

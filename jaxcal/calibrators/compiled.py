@@ -25,14 +25,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.guard import OK
 from jaxcal.calibrators.interface import Calibrator, SensorNorm, run_fleet
+from jaxcal.calibrators.on_disk import kept, serialisable
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array
 
 MAX_PROGRAMS = 64  # programs kept per process (least recently used dropped)
 
 
+@serialisable
 class Inputs(NamedTuple):
     """The numbers of one calibration, arguments of its compiled program."""
 
@@ -102,9 +103,13 @@ def _remember(key: Hashable, kind: str, keep, build: Callable):
 
 def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callable):
     """The program ``build()`` made once for (``kind``, ``problem``'s key,
-    ``settings``, ``dtype``) in this process; ``build`` returns a jitted function."""
+    ``settings``, ``dtype``) in this process; ``build`` returns a jitted function.
+    A built-in model's program is also kept on disk for the next process
+    (:func:`~jaxcal.calibrators.on_disk.kept`)."""
     key = (kind, problem_key(problem, dtype), settings)
-    return _remember(key, kind, problem.model, build)
+    origin = problem.model.origin
+    disk = None if origin is None else (kind, origin, *key[1][1:], settings)
+    return _remember(key, kind, problem.model, lambda: kept(build(), disk))
 
 
 def cached_value(key: tuple, build: Callable):
@@ -144,19 +149,22 @@ def filter_program(
     problem: Problem, settings: Hashable, make: Callable[[Inputs], Calibrator], check,
     dtype,
 ):  # fmt: skip
-    """``run(inputs, w, x, mask) -> (CalOutput, innovation [U,T,S], its std)``: the
-    fleet scan of a filter ``make(inputs)`` whose ``aux`` holds ``innovation`` and
-    ``innovation_std``, with each row's innovation taken from the state before it
-    (also at skipped rows: how the row looks to the filter that did not use it).
-    One program serves the screening passes and the UKF's own run
-    (:mod:`jaxcal.calibrators.screen`)."""
+    """``run(inputs, w, x, mask, probe) -> (CalOutput, innovation [U,T,S], its
+    std)``: the fleet scan of a filter ``make(inputs)`` whose ``aux`` holds
+    ``innovation`` and ``innovation_std``, each row's taken from the state before it:
+    at the rows used, and at the ``probe [U, T]`` rows (skipped, yet judged: how the
+    row looks to the filter that did not use it; NaN at other rows). The probe rides
+    on the scan's own step (:func:`~jaxcal.calibrators.guard.probed_update`), so the
+    innovations cost no model evaluation beyond the filter's. One program serves the
+    screening passes and the UKF's own run (:mod:`jaxcal.calibrators.screen`)."""
 
     def build():
-        def run(inputs: Inputs, w, x, mask):
-            cal = _traced_once(_exposing_state(make(inputs)))
-            out = run_fleet(cal, w, x, mask, check=check)
-            innovation, std = _innovations(cal, w, x, out.reason, out.aux["filter"])
-            aux = {k: v for k, v in out.aux.items() if k != "filter"}
+        def run(inputs: Inputs, w, x, mask, probe):
+            cal = _traced_once(make(inputs))
+            out = run_fleet(cal, w, x, mask, check=check, probe=probe)
+            fresh = out.aux["fresh"]
+            aux = {k: v for k, v in out.aux.items() if k != "fresh"}
+            innovation, std = fresh["innovation"], fresh["innovation_std"]
             return out._replace(aux=aux), innovation, std
 
         return jax.jit(run)
@@ -165,45 +173,10 @@ def filter_program(
 
 
 def _traced_once(cal: Calibrator) -> Calibrator:
-    """``cal`` with its step as a nested ``jax.jit``: the runner traces a step three
-    times (its output shapes, the scan body, the innovations) and a nested jit keeps
-    the first trace's jaxpr for the other two (a third of a small model's tracing, what
-    a new process pays on a warm cache)."""
+    """``cal`` with its step as a nested ``jax.jit``: the runner traces a step twice
+    (its output shapes, the scan body) and a nested jit keeps the first trace's jaxpr
+    for the other (what a new process pays on a warm cache)."""
     return cal._replace(step=jax.jit(cal.step))
-
-
-def _exposing_state(cal: Calibrator) -> Calibrator:
-    """``cal`` with its state after each row in ``aux["filter"]`` (held on skipped
-    rows: the state carried past them)."""
-
-    def step(state, w, x):
-        new, out = cal.step(state, w, x)
-        return new, out._replace(aux={**out.aux, "filter": new})
-
-    return Calibrator(init=cal.init, step=step, accepts_partial=cal.accepts_partial)
-
-
-def _innovations(cal: Calibrator, w, x, reason, filt):
-    """``[U, T, S]`` innovation and its predicted std at every cell, from the state
-    before the row: the carried state of the previous row, the prior up to the
-    stream's first used row (where ``run_calibrator`` starts it)."""
-
-    def unit(w_u, x_u, reason_u, filt_u):
-        ok = reason_u == OK
-        first = jnp.argmax(ok)
-        state0 = cal.init(None, jnp.nan_to_num(w_u[first]), jnp.nan_to_num(x_u[first]))
-        at_prior = (jnp.arange(w_u.shape[0]) <= first) | ~jnp.any(ok)
-
-        def before(carried, s0):
-            shifted = jnp.concatenate([s0[None], carried[:-1]])
-            pick = at_prior.reshape((-1,) + (1,) * s0.ndim)
-            return jnp.where(pick, s0[None], shifted)
-
-        prev = jax.tree.map(before, filt_u, state0)
-        aux = jax.vmap(cal.step)(prev, w_u, x_u)[1].aux
-        return aux["innovation"], aux["innovation_std"]
-
-    return jax.vmap(unit)(w, x, reason, filt)
 
 
 def norm_of(inputs: Inputs) -> SensorNorm:

@@ -59,6 +59,9 @@ Compiled once: the UKF and least squares are compiled once per process and metho
 settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
 compiled`), and once per machine through JAX's persistent compilation cache, on by
 default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off).
+
+The result in the data's row order, and the console line counting the skipped rows,
+are assembled by :mod:`jaxcal.calibrators.front_rows`.
 """
 
 from __future__ import annotations
@@ -71,12 +74,17 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from jaxcal.calibrators import methods
-from jaxcal.calibrators.guard import MASKED, OK, REASON_CODE, REASONS
-from jaxcal.calibrators.outliers import OUTLIER_Z, describe_outliers
+from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
+    MANY_OUTLIERS,
+    flag_notes,
+    to_rows,
+)
+from jaxcal.calibrators.guard import REASON_CODE
+from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.calibrators.result import CalibrationResult
-from jaxcal.calibrators.skipped import model_nonfinite_note, nothing_valid_error
+from jaxcal.calibrators.skipped import nothing_valid_error
 from jaxcal.data.buckets import bucket_units
-from jaxcal.data.dataset import Dataset, clip_jitter
+from jaxcal.data.dataset import clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.precision import is_x64, require_x64
@@ -84,7 +92,6 @@ from jaxcal.problem import Problem
 
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
 METHODS = tuple(methods.METHODS)  # the method table's names
-MANY_OUTLIERS = 0.01  # a share of outlier rows worth a word about the model
 PROGRESS_AFTER = 3.0  # seconds before a call shows its progress line
 
 
@@ -149,11 +156,38 @@ def calibrate(
 
     model = load(model)
     dtype = _dtype(model)
+    cfg, data, problem, notes, threshold = _read_problem(
+        model, data, method, theta, noise, outputs, options, dtype
+    )
+    buckets = bucket_units(data, dtype)
+    bar = _progress(len(buckets.parts) + 2, progress)
+    screened, problem, built = _screen_and_build(
+        cfg, problem, data, buckets, noise, threshold, seed, bar
+    )
+    skip = np.zeros(data.num_rows, bool) if screened is None else screened.outlier
+    outs = _run_groups(built, buckets, skip, method, bar)
+    result = to_rows(outs, buckets, data, problem, method, built.prior_std, skip)
+    if not result.valid.any():
+        codes = np.asarray([REASON_CODE[r] for r in result.reason])
+        raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
+    flagged = flag_notes(result, problem, data, screened, dtype)
+    flagged += [] if screened is None else list(screened.notes)
+    for line in flagged:  # the console line (a warning: shown once per message)
+        warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
+    return dataclasses.replace(result, notes=(*notes, *flagged))
+
+
+def _read_problem(model: Model, data, method, theta, noise, outputs, options, dtype):
+    """``(cfg, data, problem, notes, threshold)`` of a call: the method's config
+    from ``options`` (the readers' options and ``outlier_z`` taken out of it; a
+    policy's ``run`` loaded, its names the defaults), the data read for the model
+    (conditions clipped to its range where within jitter: ``notes``), the problem
+    and its noise checked against the float dtype."""
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
     threshold = _threshold(options.pop("outlier_z", OUTLIER_Z))
     if method == "policy" and options.get("run"):
         # a trained policy fixes its parameters and outputs: default to the run's
-        from jaxcal.training.runs import load_run
+        from jaxcal.calibrators.trained import load_run
 
         run = options["run"] = load_run(options["run"])
         theta = run.problem.theta_names if theta is None else theta
@@ -164,17 +198,27 @@ def calibrate(
     data = dataclasses.replace(data, w=clipped)
     problem = Problem.build(model, data, theta=theta, noise=noise)
     _check_noise_precision(problem, dtype)
-    buckets = bucket_units(data, dtype)
-    bar = _progress(len(buckets.parts) + 2, progress)
+    return cfg, data, problem, notes, threshold
+
+
+def _screen_and_build(cfg, problem, data, buckets, noise, threshold, seed, bar):
+    """``(screened, problem, built)``: the screening passes (:func:`_screen`; their
+    noise goes into the problem), then the method built on the screened problem,
+    each a step of the progress ``bar``."""
     bar.set_description_str("jaxcal.calibrate: screening (UKF passes)", False)
     screened = _screen(cfg, problem, data, buckets, noise, threshold)
     if screened is not None:
         problem = screened.problem
     bar.update()
-    bar.set_description_str(f"jaxcal.calibrate: building {method}", False)
+    bar.set_description_str(f"jaxcal.calibrate: building {cfg.name}", False)
     built = methods.build(problem, cfg, buckets, seed)
     bar.update()
-    skip = np.zeros(data.num_rows, bool) if screened is None else screened.outlier
+    return screened, problem, built
+
+
+def _run_groups(built, buckets, skip: np.ndarray, method: str, bar) -> list:
+    """The built method's output on each padded unit group (``skip [N]`` rows, the
+    outliers, skipped like padding), a step of the progress ``bar`` each."""
     parts = zip(buckets.parts, buckets.from_rows(skip, False), strict=True)
     outs = []
     for k, (part, cells) in enumerate(parts):
@@ -182,26 +226,19 @@ def calibrate(
         outs.append(built.run(part, cells))
         bar.update()
     bar.close()
-    result = _to_rows(outs, buckets, data, problem, method, built.prior_std, skip)
-    if not result.valid.any():
-        codes = np.asarray([REASON_CODE[r] for r in result.reason])
-        raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
-    flagged = _flag_notes(result, problem, data, screened, dtype)
-    flagged += [] if screened is None else list(screened.notes)
-    for line in flagged:  # the console line (a warning: shown once per message)
-        warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
-    return dataclasses.replace(result, notes=(*notes, *flagged))
+    return outs
 
 
 def _progress(total: int, enabled: bool):
     """A progress line on stderr, shown only once a call has taken
-    :data:`PROGRESS_AFTER` seconds (a first call compiles; E2E trains)."""
+    :data:`PROGRESS_AFTER` seconds (a first call compiles; E2E trains; the
+    turbofan's filter passes take seconds each)."""
     from tqdm.auto import tqdm
 
     return tqdm(
         total=total, desc="jaxcal.calibrate", delay=PROGRESS_AFTER, leave=False,
         disable=not enabled, file=sys.stderr,
-        bar_format="{desc} ({n}/{total} steps, {elapsed}; a first call compiles)",
+        bar_format="{desc} ({n}/{total} steps, {elapsed})",
     )  # fmt: skip
 
 
@@ -261,80 +298,4 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
         cfg = UKF(state_std=std)
     return screen(
         problem, data, buckets, cfg, estimate=noise is None, threshold=threshold
-    )
-
-
-def _flag_notes(result, problem, data, screened, dtype) -> list[str]:
-    """The console line counting skipped rows per reason (and what the outliers
-    and non-finite model outputs were), or nothing when every row was used."""
-    counts = result.num_flagged
-    if not counts:
-        return []
-    listed = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-    line = (
-        f"{sum(counts.values())} of {len(result.valid)} rows flagged and skipped "
-        f"({listed}; see result.valid / result.reason)"
-    )
-    if screened is not None and "outlier" in counts:
-        line += "; " + describe_outliers(
-            screened.found._replace(mask=result.reason == "outlier"),
-            data.unit, problem.output_names,
-        )  # fmt: skip
-        share = counts["outlier"] / len(result.valid)
-        if share > MANY_OUTLIERS:
-            line += (
-                f"; {share:.1%} of the rows, more than wild readings usually are: "
-                "the model may misfit there (outlier_z=None keeps every row)"
-            )
-    if "state_nonfinite" in counts:
-        note = model_nonfinite_note(problem, data, result.reason, dtype)
-        line += "" if note is None else f"; {note}"
-    return [line]
-
-
-def _to_rows(outs, buckets, data: Dataset, problem: Problem, method, prior_std, skip):
-    """Per-group outputs -> a :class:`CalibrationResult` in the data's row order.
-
-    Rows the method skipped repeat the last used row's estimate; rows before a
-    unit's first used row report the prior (mean, and std where the method has
-    one) and no model output (``nan``); outlier rows get their own reason."""
-    rows = lambda values, fill=np.nan: buckets.to_rows(  # noqa: E731
-        [np.asarray(v) for v in values], fill
-    )
-    aux = [o.aux if isinstance(o.aux, dict) else {} for o in outs]
-    reason = rows([o.reason for o in outs], MASKED).astype(np.int64)
-    reason[skip & (reason == MASKED)] = REASON_CODE["outlier"]
-    valid = reason == OK
-    before = rows(
-        [np.cumsum(np.asarray(o.valid), axis=1) == 0 for o in outs], True
-    ).astype(bool)
-    theta = rows([o.theta for o in outs]).astype(np.float64)
-    theta[before] = problem.theta_prior
-    std = states = None
-    if "theta_std" in aux[0]:
-        std = rows([a["theta_std"] for a in aux]).astype(np.float64)
-        std[before] = prior_std
-    if "state" in aux[0]:
-        states = rows([a["state"] for a in aux]).astype(np.float64)
-        states[before] = np.nan
-    xhat = rows([o.xhat for o in outs]).astype(np.float64)
-    xhat[before] = np.nan
-    partial = None
-    if all(o.partial is not None for o in outs):
-        partial = rows([o.partial for o in outs], False).astype(bool)
-    return CalibrationResult(
-        theta=theta,
-        theta_std=std,
-        states=states,
-        state_names=problem.model.state_names,
-        xhat=xhat,
-        valid=valid,
-        reason=np.asarray(REASONS)[reason],
-        theta_names=problem.theta_names,
-        output_names=problem.output_names,
-        unit=data.unit,
-        time=data.time,
-        method=method,
-        problem=problem,
-        partial=partial,
     )

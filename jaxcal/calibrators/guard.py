@@ -199,11 +199,29 @@ def guarded_update(
         ``(carry, out, reason)``: ``out`` is the new outputs if the row is ok, else
         ``carry.out`` unchanged; ``reason`` adds ``state_nonfinite`` to ``reason_t``.
     """
+    return probed_update(step, carry, w_t, x_t, reason_t, False)[:3]
+
+
+def probed_update(
+    step: Callable, carry: GuardCarry, w_t: Array, x_t: Array, reason_t: Array,
+    probe_t: Array,
+) -> tuple[GuardCarry, CalStepOutput, Array, CalStepOutput]:  # fmt: skip
+    """:func:`guarded_update`, and a row that is not used but ``probe_t`` (a
+    skipped row whose own values are fine) is still fed to ``step``: its fresh
+    outputs say how the row looks to the state before it, while the carry moves on
+    exactly as if it had not come. Costs nothing: the step runs at every row anyway
+    (on the last ok sample where the row is not used).
+
+    Returns:
+        ``(carry, out, reason, fresh)``: ``fresh`` the step's outputs at this row
+        (meaningful where the row was used or probed).
+    """
     ok = reason_t == OK
     # never feed a flagged value to the model (the NaNs of a partial row reach only
     # a calibrator that accepts them: its reason is ok only then)
-    w_in = jnp.where(ok, w_t, carry.w)
-    x_in = jnp.where(ok, x_t, carry.x)
+    feed = ok | probe_t
+    w_in = jnp.where(feed, w_t, carry.w)
+    x_in = jnp.where(feed, x_t, carry.x)
     new_state, new_out = step(carry.state, w_in, x_in)
     finite = _all_finite((new_state, new_out.theta))
     reason = jnp.where(ok & ~finite, jnp.int32(STATE_NONFINITE), reason_t)
@@ -212,7 +230,8 @@ def guarded_update(
     state = jax.tree.map(keep, new_state, carry.state)
     out = jax.tree.map(keep, new_out, carry.out)
     w_keep, x_keep = jnp.where(ok, w_in, carry.w), jnp.where(ok, x_in, carry.x)
-    return GuardCarry(state, out, w_keep, x_keep), out, reason.astype(jnp.int32)
+    carry = GuardCarry(state, out, w_keep, x_keep)
+    return carry, out, reason.astype(jnp.int32), new_out
 
 
 def count_reasons(reason, mask=None) -> dict[str, int]:

@@ -72,6 +72,7 @@ from jaxcal.calibrators.guard import (  # noqa: F401 (re-exported: one import pa
     guarded_update,
     initial_carry,
     is_partial,
+    probed_update,
     sample_reason,
 )
 from jaxcal.physics.constants import health_index, sensor_index
@@ -132,6 +133,7 @@ def run_calibrator(
     key: PRNGKey | None = None,
     unroll: int = 1,
     check: SampleCheck | None = None,
+    probe: Array | None = None,
 ) -> CalOutput:
     """Run a calibrator over one padded record with ``lax.scan``, guarded.
 
@@ -151,18 +153,24 @@ def run_calibrator(
         key: PRNG key handed to ``calibrator.init`` (``None`` for deterministic ones).
         unroll: ``lax.scan`` unroll factor (8 speeds up cheap steps).
         check: the valid input box; ``None`` checks finiteness only.
+        probe: ``[T]`` bool or ``None``: rows left out by ``mask`` that the step
+            still sees, from the state before them, without using them
+            (:func:`~jaxcal.calibrators.guard.probed_update`; only rows whose own
+            values pass the checks).
 
     Returns:
         ``CalOutput`` with ``theta [T, P]``, ``xhat [T, S]``, ``aux`` entries
         ``[T, ...]``, ``valid [T]``, ``reason [T]`` and ``partial [T]``. Sums over
-        time must use ``valid`` (held rows repeat).
+        time must use ``valid`` (held rows repeat). With ``probe``,
+        ``aux["fresh"]`` holds the step's own ``aux`` at every row used or probed
+        (NaN elsewhere).
     """
     w, x, mask = _check_record(w, x, mask)
     partial_ok = calibrator.accepts_partial
-    reason = jax.vmap(
+    own = jax.vmap(
         lambda w_t, x_t: sample_reason(check, w_t, x_t, partial_ok=partial_ok)
     )(w, x)
-    reason = jnp.where(mask, reason, jnp.int32(MASKED))
+    reason = jnp.where(mask, own, jnp.int32(MASKED))
     first = jnp.argmax(reason == OK)  # the first ok row (0 if none is)
     # nan_to_num is the identity on an ok row; it only matters when no row is ok.
     w0, x0 = jnp.nan_to_num(w[first]), jnp.nan_to_num(x[first])
@@ -175,11 +183,33 @@ def run_calibrator(
         return carry, (out, reason_t)
 
     carry0 = GuardCarry(state0, out0, w0, x0)
-    _, (outs, reason) = lax.scan(body, carry0, (w, x, reason), unroll=unroll)
+    aux = {}
+    if probe is None:
+        _, (outs, reason) = lax.scan(body, carry0, (w, x, reason), unroll=unroll)
+    else:
+        probe = probe & (own == OK)
+        outs, reason, aux["fresh"] = _probed_scan(
+            calibrator.step, carry0, (w, x, reason, probe), unroll
+        )
     return CalOutput(
-        theta=outs.theta, xhat=outs.xhat, aux=outs.aux, valid=reason == OK,
+        theta=outs.theta, xhat=outs.xhat, aux={**outs.aux, **aux} if aux else outs.aux,
+        valid=reason == OK,
         reason=reason, partial=jax.vmap(is_partial)(x) & mask,
     )  # fmt: skip
+
+
+def _probed_scan(step, carry0, rows, unroll):
+    """:func:`run_calibrator`'s scan with the probed rows fed too; also returns the
+    step's own ``aux`` at every row used or probed (NaN elsewhere)."""
+
+    def body(carry, inputs):
+        _, _, reason_in, probe_t = inputs
+        carry, out, reason_t, fresh = probed_update(step, carry, *inputs)
+        seen = (reason_in == OK) | probe_t
+        fresh = jax.tree.map(lambda a: jnp.where(seen, a, jnp.nan), fresh.aux)
+        return carry, (out, reason_t, fresh)
+
+    return lax.scan(body, carry0, rows, unroll=unroll)[1]
 
 
 def run_fleet(
@@ -191,6 +221,7 @@ def run_fleet(
     keys: PRNGKey | None = None,
     unroll: int = 1,
     check: SampleCheck | None = None,
+    probe: Array | None = None,
 ) -> CalOutput:
     """:func:`run_calibrator` vmapped over units.
 
@@ -202,6 +233,7 @@ def run_fleet(
         keys: ``[U]`` PRNG keys, or ``None`` for deterministic calibrators.
         unroll: ``lax.scan`` unroll factor.
         check: the valid input box shared by every unit (``None``: finiteness).
+        probe: ``[U, T]`` bool or ``None``: rows to probe (:func:`run_calibrator`).
 
     Returns:
         ``CalOutput`` with ``theta [U, T, P]``, ``xhat [U, T, S]``, ``aux [U, T, ...]``,
@@ -221,14 +253,14 @@ def run_fleet(
             f"run_fleet: mask must be [U, T] = {w.shape[:2]}, got {mask.shape}"
         )
 
-    def one(w_u, x_u, m_u, key_u):
+    def one(w_u, x_u, m_u, key_u, probe_u):
         return run_calibrator(
-            calibrator, w_u, x_u, m_u, key=key_u, unroll=unroll, check=check
-        )
+            calibrator, w_u, x_u, m_u, key=key_u, unroll=unroll, check=check,
+            probe=probe_u,
+        )  # fmt: skip
 
-    return jax.vmap(one, in_axes=(0, 0, 0, None if keys is None else 0))(
-        w, x, mask, keys
-    )
+    axes = (0, 0, 0, None if keys is None else 0, None if probe is None else 0)
+    return jax.vmap(one, in_axes=axes)(w, x, mask, keys, probe)
 
 
 def measure_declared(

@@ -181,29 +181,17 @@ def make_least_squares(
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> LSState:
         del key
-        # Unfilled slots hold the first sample so the model is never run at zeros.
-        return LSState(
-            z=theta0 / scale,
-            w_buf=jnp.tile(w0, (cfg.window, 1)),
-            x_buf=jnp.tile(jnp.nan_to_num(x0), (cfg.window, 1)),
-            observed=jnp.ones((cfg.window, x0.shape[0]), bool),
-            valid=jnp.zeros((cfg.window,), bool),
-            pos=jnp.zeros((), jnp.int32),
-            history=init_drift_history(theta0 / scale, cfg.window),
-        )
+        return _initial_state(cfg.window, theta0, scale, w0, x0)
 
     def step(state: LSState, w_t: Array, x_t: Array) -> tuple[LSState, CalStepOutput]:
         observed_t = ~jnp.isnan(x_t)  # a missing output leaves the residual
-        w_buf = state.w_buf.at[state.pos].set(w_t)
-        x_buf = state.x_buf.at[state.pos].set(jnp.where(observed_t, x_t, 0.0))
-        observed = state.observed.at[state.pos].set(observed_t)
-        valid = state.valid.at[state.pos].set(True)
+        filled = _insert(state, w_t, x_t, observed_t)
         z_prev = state.z
-        used = valid[:, None] & observed  # [N, S] the residuals of the cost
+        used = filled.valid[:, None] & filled.observed  # [N, S] the cost's residuals
 
         def residual(z):
-            pred = jax.vmap(lambda w: measure_fn(w, scale * z))(w_buf)
-            r = jnp.where(used, (pred - x_buf) / sigma, 0.0).ravel()
+            pred = jax.vmap(lambda w: measure_fn(w, scale * z))(filled.w_buf)
+            r = jnp.where(used, (pred - filled.x_buf) / sigma, 0.0).ravel()
             if cfg.prior_std is not None:
                 r = jnp.concatenate([r, (z - z_prev) / cfg.prior_std])
             return r
@@ -211,26 +199,15 @@ def make_least_squares(
         fit = lm_run(linearize(residual), z_prev, cfg.num_iters, damping_of(cfg))
         num_sensors = x_t.shape[0]
         r_now = lax.dynamic_slice(fit.resid, (state.pos * num_sensors,), (num_sensors,))
-        cov = gauss_newton_cov(fit.jac)
-        ages = (state.pos - jnp.arange(cfg.window)) % cfg.window  # slot -> age
-        ages = jnp.repeat(ages.astype(cov.dtype), num_sensors)
-        if cfg.prior_std is not None:
-            ages = jnp.concatenate([ages, prior_age(state.history)])
-        drift_jac = -ages[:, None] * fit.jac
-        if cfg.prior_std is not None:
-            ages = ages.at[-theta0.shape[0] :].set(-1.0)  # the prior: no sample
-        std, laplace_std, history = drift_std(
-            state.history, fit.y, cov, fit.jac, drift_jac, ages, cfg.window
-        )
+        std, laplace_std, history = _lagged_std(fit, state, cfg, num_sensors)
         aux = {
             "theta_std": scale * std,
             "laplace_std": scale * laplace_std,
             "cost": fit.cost,
         }
-        new_state = LSState(
-            z=fit.y, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
-            pos=(state.pos + 1) % cfg.window, history=history,
-        )  # fmt: skip
+        new_state = filled.replace(
+            z=fit.y, pos=(state.pos + 1) % cfg.window, history=history
+        )
         # F(w_t, theta) from the cached residual; a missing output has none there
         # (masked to 0), so a partial row costs one model evaluation more.
         from_resid = x_t + sigma * r_now
@@ -243,6 +220,46 @@ def make_least_squares(
         return new_state, out
 
     return Calibrator(init=init, step=step, accepts_partial=True)
+
+
+def _initial_state(window: int, theta0, scale, w0: Array, x0: Array) -> LSState:
+    """The state before the first sample: the estimate at ``theta0``; unfilled slots
+    hold the first sample so the model is never run at zeros."""
+    return LSState(
+        z=theta0 / scale,
+        w_buf=jnp.tile(w0, (window, 1)),
+        x_buf=jnp.tile(jnp.nan_to_num(x0), (window, 1)),
+        observed=jnp.ones((window, x0.shape[0]), bool),
+        valid=jnp.zeros((window,), bool),
+        pos=jnp.zeros((), jnp.int32),
+        history=init_drift_history(theta0 / scale, window),
+    )
+
+
+def _insert(state: LSState, w_t: Array, x_t: Array, observed_t: Array) -> LSState:
+    """``state`` with the sample written into the ring buffer's slot ``pos`` (a
+    missing output as 0, marked not ``observed``); ``pos`` not advanced yet."""
+    return state.replace(
+        w_buf=state.w_buf.at[state.pos].set(w_t),
+        x_buf=state.x_buf.at[state.pos].set(jnp.where(observed_t, x_t, 0.0)),
+        observed=state.observed.at[state.pos].set(observed_t),
+        valid=state.valid.at[state.pos].set(True),
+    )
+
+
+def _lagged_std(fit, state: LSState, cfg: LeastSquaresConfig, num_sensors: int):
+    """``(std, laplace_std, history)`` (:func:`drift_std`) of the window's fit: each
+    residual row's sample age (slot ``pos`` is the newest; the prior on ``z`` is
+    pseudo-data of the previous estimate's age) sets its response to a drift."""
+    cov = gauss_newton_cov(fit.jac)
+    ages = (state.pos - jnp.arange(cfg.window)) % cfg.window  # slot -> age
+    ages = jnp.repeat(ages.astype(cov.dtype), num_sensors)
+    if cfg.prior_std is not None:
+        ages = jnp.concatenate([ages, prior_age(state.history)])
+    drift_jac = -ages[:, None] * fit.jac
+    if cfg.prior_std is not None:
+        ages = ages.at[-fit.y.shape[0] :].set(-1.0)  # the prior: no sample
+    return drift_std(state.history, fit.y, cov, fit.jac, drift_jac, ages, cfg.window)
 
 
 def fit_least_squares(

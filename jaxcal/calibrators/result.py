@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcal.atomic import make_temp, release_temp
 from jaxcal.problem import Problem
+from jaxcal.runs.atomic import make_temp, release_temp
 
 META_KEY = b"jaxcal.result"  # the Parquet schema-metadata key of a saved result
 FORMAT_VERSION = 1

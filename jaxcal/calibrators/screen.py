@@ -171,25 +171,28 @@ def screen(
         source = "estimated (post-fit residual of a UKF pass, outliers left out)"
         problem = problem.with_noise(noise, source)
     if found.mask.any():  # the outputs' centre of the rows used, as without them
-        x_mean = data.x[~found.mask].mean(axis=0).astype(problem.norm.x_mean.dtype)
+        x_mean = np.nanmean(data.x[~found.mask], axis=0)  # a partial row has NaN
+        x_mean = x_mean.astype(problem.norm.x_mean.dtype)
         norm = problem.norm._replace(x_mean=x_mean)
         problem = dataclasses.replace(problem, norm=norm)
     return Screen(problem, found.mask, found, notes)
 
 
 def _pass_function(problem: Problem, data: Dataset, cfg: UKF, dtype):
-    """``(noise [S], w, x, mask) -> (reason, xhat, innovation, its std)`` of the
-    UKF on ``problem`` with that noise, ``[U, T, ...]``: the method table's UKF
-    program (:func:`~jaxcal.calibrators.methods.ukf_program`, compiled once per
-    process; the noise and the outputs' centre are arguments)."""
+    """``(noise [S], w, x, mask, probe) -> (reason, xhat, innovation, its std)`` of
+    the UKF on ``problem`` with that noise, ``[U, T, ...]``, the ``probe`` rows
+    judged though skipped: the method table's UKF program
+    (:func:`~jaxcal.calibrators.methods.ukf_program`, compiled once per process; the
+    noise and the outputs' centre are arguments)."""
     # the outputs' median: a mean a wild reading moved (1e6 in one row) would cost
     # every unit digits in float32
     centre = np.nan_to_num(robust_centre(data.x))
     inputs = model_inputs(problem, cfg, dtype, x_mean=centre)
     program = ukf_program(problem, cfg, dtype)
 
-    def run(noise, w, x, mask):
-        out, innovation, std = program(inputs._replace(noise_std=noise), w, x, mask)
+    def run(noise, w, x, mask, probe):
+        inp = inputs._replace(noise_std=noise)
+        out, innovation, std = program(inp, w, x, mask, probe)
         return out.reason, out.xhat, innovation, std
 
     return run
@@ -203,8 +206,8 @@ def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _
     for part, skip_part in zip(
         buckets.parts, buckets.from_rows(skip, False), strict=True
     ):
-        mask = part.mask & ~skip_part
-        out = ukf(noise, jnp.asarray(part.w), jnp.asarray(part.x), mask)
+        mask, probe = part.mask & ~skip_part, part.mask & skip_part
+        out = ukf(noise, jnp.asarray(part.w), jnp.asarray(part.x), mask, probe)
         groups.append([np.asarray(v) for v in out])
     reason, xhat, innovation, spread = (
         buckets.to_rows(values, MASKED if k == 0 else np.nan)

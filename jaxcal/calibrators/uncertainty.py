@@ -37,7 +37,7 @@ import flax.struct
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.atomic import write_atomic
+from jaxcal.runs.atomic import write_atomic
 from jaxcal.typedefs import Array
 
 UNCERTAINTY_FILE = "uncertainty.json"

@@ -27,6 +27,8 @@ make_least_squares` (no scan, samples evaluated in parallel); the front picks it
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -104,104 +106,34 @@ def make_window_least_squares(
     num_params = theta0.shape[0]
     init_state, step_fn, num_states = transition
     s_scale = check_scale(state_scale, num_states, theta0.dtype)
-    s_std = (
-        s_scale
-        if state_std is None
-        else jnp.broadcast_to(jnp.asarray(state_std, theta0.dtype), (num_states,))
-    )
+    s_std = _arrival_std(state_std, s_scale)
     sigma = norm.std * cfg.r  # residual unit: one noise std
-    if theta_box is None:
-        box = None
-    else:  # on the parameters; the window-start state is free
-        free = jnp.full((num_states,), jnp.inf, theta0.dtype)
-        low, high = (jnp.asarray(b, theta0.dtype) / scale for b in theta_box)
-        box = (jnp.concatenate([low, -free]), jnp.concatenate([high, free]))
-
-    def simulate(theta, zs, w_buf, valid):
-        """Outputs over the window and the final state; invalid slots hold z.
-        ``theta`` is ``[P]`` or one per sample, ``[N, P]``."""
-        thetas = jnp.broadcast_to(theta, w_buf.shape[:1] + theta.shape[-1:])
-
-        def body(z, inputs):
-            w, ok, theta_k = inputs
-            z_next, x = step_fn(z, w, theta_k)
-            return jnp.where(ok, z_next, z), x
-
-        z_end, x = lax.scan(body, zs, (w_buf, valid, thetas))
-        return x, z_end
+    box = _parameter_box(theta_box, scale, num_states)
+    simulate = functools.partial(_simulate, step_fn)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> WindowState:
         del key
-        # Unfilled slots hold the first sample so the model is never run at zeros.
-        return WindowState(
-            u=theta0 / scale,
-            zs=jnp.asarray(init_state(w0, theta0), theta0.dtype),
-            w_buf=jnp.tile(w0, (cfg.window, 1)),
-            x_buf=jnp.tile(jnp.nan_to_num(x0), (cfg.window, 1)),
-            observed=jnp.ones((cfg.window, x0.shape[0]), bool),
-            valid=jnp.zeros((cfg.window,), bool),
-            history=init_drift_history(theta0 / scale, cfg.window),
-        )
+        return _initial_window(init_state, cfg.window, theta0, scale, w0, x0)
 
     def step(state: WindowState, w_t: Array, x_t: Array):
-        theta_now = scale * state.u
-        # 1. the oldest sample leaves: the window now starts one step later.
-        z_left, _ = step_fn(state.zs, state.w_buf[0], theta_now)
-        zs_prior = jnp.where(state.valid[0], z_left, state.zs)
-        # 2. shift the new sample in (oldest first).
-        w_buf = jnp.concatenate([state.w_buf[1:], w_t[None]])
-        observed_t = ~jnp.isnan(x_t)  # a missing output leaves the residual
-        x_buf = jnp.concatenate(
-            [state.x_buf[1:], jnp.where(observed_t, x_t, 0.0)[None]]
-        )
-        observed = jnp.concatenate([state.observed[1:], observed_t[None]])
-        valid = jnp.concatenate([state.valid[1:], jnp.ones((1,), bool)])
-        used = valid[:, None] & observed  # [N, S] the residuals of the cost
-        u_prev = state.u
-
-        def residual(v):
-            u, dz = v[:num_params], v[num_params:]
-            zs = zs_prior + s_std * dz
-            pred, _ = simulate(scale * u, zs, w_buf, valid)
-            r = jnp.where(used, (pred - x_buf) / sigma, 0.0).ravel()
-            r = jnp.concatenate([r, dz])  # arrival cost: z_s ~ N(z_prior, std^2)
-            if cfg.prior_std is not None:
-                r = jnp.concatenate([r, (u - u_prev) / cfg.prior_std])
-            return r
-
-        v0 = jnp.concatenate([u_prev, jnp.zeros((num_states,), u_prev.dtype)])
+        window = _advance(step_fn, state, scale, w_t, x_t)  # .zs: the start's prior
+        used = window.valid[:, None] & window.observed  # [N, S] the cost's residuals
+        residual = _window_residual(simulate, window, used, cfg, sigma, scale, s_std)
+        v0 = jnp.concatenate([state.u, jnp.zeros((num_states,), state.u.dtype)])
         fit = lm_run(linearize(residual), v0, cfg.num_iters, damping_of(cfg), box=box)
         u, dz = fit.y[:num_params], fit.y[num_params:]
-        zs = zs_prior + s_std * dz
+        zs = window.zs + s_std * dz
         theta = scale * u
-        pred, z_end = simulate(theta, zs, w_buf, valid)
+        pred, z_end = simulate(theta, zs, window.w_buf, window.valid)
         cov = gauss_newton_cov(fit.jac)
         std = jnp.sqrt(jnp.diagonal(cov))
-        # the residual's response to theta drifting within the window (through the
-        # simulated state: the model's memory spreads a drift over later samples);
-        # the arrival cost has no theta in it; the prior on theta is pseudo-data of
-        # the previous estimate's age
-        age = jnp.arange(cfg.window - 1, -1, -1).astype(u.dtype)
 
-        def drifted(rate):
-            path = scale * (u[None] - age[:, None] * rate[None])  # [N, P]
-            pred_path, _ = simulate(path, zs, w_buf, valid)
-            return jnp.where(used, pred_path / sigma, 0.0).ravel()
+        def simulate_path(path):  # the outputs along a theta path [N, P]
+            return simulate(path, zs, window.w_buf, window.valid)[0]
 
-        drift_jac = [
-            jax.jacfwd(drifted)(jnp.zeros_like(u)),
-            jnp.zeros((num_states, num_params), u.dtype),
-        ]
-        if cfg.prior_std is not None:
-            prior_rows = jnp.diag(prior_age(state.history)) / cfg.prior_std
-            drift_jac.append(-prior_rows)
-        ages = jnp.concatenate([  # the rows' sample ages; -1: no sample
-            jnp.repeat(age, x_t.shape[0]),
-            jnp.full(fit.jac.shape[0] - age.size * x_t.shape[0], -1.0, u.dtype),
-        ])  # fmt: skip
-        theta_std, laplace_std, history = drift_std(
-            state.history, u, cov, fit.jac, jnp.concatenate(drift_jac), ages,
-            cfg.window,
+        theta_std, laplace_std, history = _drift_widened_std(
+            fit, u, cov, simulate_path, used, sigma, scale, state.history, cfg,
+            num_states,
         )  # fmt: skip
         aux = {
             "theta_std": scale * theta_std,
@@ -210,10 +142,127 @@ def make_window_least_squares(
             "state": z_end,
             "state_std": s_std * std[num_params:],
         }
-        new_state = WindowState(
-            u=u, zs=zs, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid,
-            history=history,
-        )  # fmt: skip
+        new_state = window.replace(u=u, zs=zs, history=history)
         return new_state, CalStepOutput(theta=theta, xhat=pred[-1], aux=aux)
 
     return Calibrator(init=init, step=step, accepts_partial=True)
+
+
+def _arrival_std(state_std, s_scale: Array) -> Array:
+    """``[Z]`` std of the window start around its propagated value (the arrival
+    cost): ``state_std`` broadcast, default the states' natural size."""
+    if state_std is None:
+        return s_scale
+    return jnp.broadcast_to(jnp.asarray(state_std, s_scale.dtype), s_scale.shape)
+
+
+def _parameter_box(theta_box, scale: Array, num_states: int):
+    """The LM iteration's box on ``[u, dz]``: ``theta_box`` on the scaled parameters;
+    the window-start state is free (``None``: no box)."""
+    if theta_box is None:
+        return None
+    free = jnp.full((num_states,), jnp.inf, scale.dtype)
+    low, high = (jnp.asarray(b, scale.dtype) / scale for b in theta_box)
+    return (jnp.concatenate([low, -free]), jnp.concatenate([high, free]))
+
+
+def _simulate(step_fn, theta, zs, w_buf, valid):
+    """Outputs ``[N, S]`` over the window and the final state from ``zs``; invalid
+    slots hold z. ``theta`` is ``[P]`` or one per sample, ``[N, P]``."""
+    thetas = jnp.broadcast_to(theta, w_buf.shape[:1] + theta.shape[-1:])
+
+    def body(z, inputs):
+        w, ok, theta_k = inputs
+        z_next, x = step_fn(z, w, theta_k)
+        return jnp.where(ok, z_next, z), x
+
+    z_end, x = lax.scan(body, zs, (w_buf, valid, thetas))
+    return x, z_end
+
+
+def _initial_window(init_state, window: int, theta0, scale, w0, x0) -> WindowState:
+    """The state before the first sample: the estimate at ``theta0``, the window
+    starting from ``init(w0, theta0)``; unfilled slots hold the first sample so the
+    model is never run at zeros."""
+    return WindowState(
+        u=theta0 / scale,
+        zs=jnp.asarray(init_state(w0, theta0), theta0.dtype),
+        w_buf=jnp.tile(w0, (window, 1)),
+        x_buf=jnp.tile(jnp.nan_to_num(x0), (window, 1)),
+        observed=jnp.ones((window, x0.shape[0]), bool),
+        valid=jnp.zeros((window,), bool),
+        history=init_drift_history(theta0 / scale, window),
+    )
+
+
+def _advance(step_fn, state: WindowState, scale, w_t: Array, x_t: Array):
+    """The window once ``(w_t, x_t)`` entered, as a :class:`WindowState` whose ``zs``
+    is the prior of its start: the oldest sample leaves (the start advanced through
+    it with the current theta), the new one shifts in (oldest first: the model is
+    simulated forwards); a missing output is 0 in ``x_buf`` and False in
+    ``observed``."""
+    theta_now = scale * state.u
+    z_left, _ = step_fn(state.zs, state.w_buf[0], theta_now)
+    zs_prior = jnp.where(state.valid[0], z_left, state.zs)
+    w_buf = jnp.concatenate([state.w_buf[1:], w_t[None]])
+    observed_t = ~jnp.isnan(x_t)  # a missing output leaves the residual
+    x_buf = jnp.concatenate([state.x_buf[1:], jnp.where(observed_t, x_t, 0.0)[None]])
+    observed = jnp.concatenate([state.observed[1:], observed_t[None]])
+    valid = jnp.concatenate([state.valid[1:], jnp.ones((1,), bool)])
+    return state.replace(
+        zs=zs_prior, w_buf=w_buf, x_buf=x_buf, observed=observed, valid=valid
+    )
+
+
+def _window_residual(simulate, window: WindowState, used, cfg, sigma, scale, s_std):
+    """The residual of ``v = [u, dz]`` (scaled parameters, the window start's offset
+    from its prior in ``state_std``): the used outputs in noise stds, the arrival
+    cost ``z_s ~ N(z_prior, state_std^2)`` and, with ``prior_std``, the step from
+    the previous estimate ``window.u``."""
+    num_params, u_prev = window.u.shape[0], window.u
+
+    def residual(v):
+        u, dz = v[:num_params], v[num_params:]
+        zs = window.zs + s_std * dz
+        pred, _ = simulate(scale * u, zs, window.w_buf, window.valid)
+        r = jnp.where(used, (pred - window.x_buf) / sigma, 0.0).ravel()
+        r = jnp.concatenate([r, dz])  # arrival cost: z_s ~ N(z_prior, std^2)
+        if cfg.prior_std is not None:
+            r = jnp.concatenate([r, (u - u_prev) / cfg.prior_std])
+        return r
+
+    return residual
+
+
+def _drift_widened_std(
+    fit, u, cov, simulate_path, used, sigma, scale, history, cfg, num_states: int
+):
+    """``(theta_std, laplace_std, history)`` of :func:`drift_std`: the Laplace std
+    widened by the window's lag behind a drifting theta.
+
+    The residual's response to theta drifting within the window goes through the
+    simulated state (``simulate_path(theta [N, P]) -> x [N, S]``: the model's memory
+    spreads a drift over later samples); the arrival cost has no theta in it; the
+    prior on theta is pseudo-data of the previous estimate's age.
+    """
+    num_params, num_outputs = u.shape[0], used.shape[1]
+    age = jnp.arange(cfg.window - 1, -1, -1).astype(u.dtype)
+
+    def drifted(rate):
+        path = scale * (u[None] - age[:, None] * rate[None])  # [N, P]
+        return jnp.where(used, simulate_path(path) / sigma, 0.0).ravel()
+
+    drift_jac = [
+        jax.jacfwd(drifted)(jnp.zeros_like(u)),
+        jnp.zeros((num_states, num_params), u.dtype),
+    ]
+    if cfg.prior_std is not None:
+        prior_rows = jnp.diag(prior_age(history)) / cfg.prior_std
+        drift_jac.append(-prior_rows)
+    ages = jnp.concatenate([  # the rows' sample ages; -1: no sample
+        jnp.repeat(age, num_outputs),
+        jnp.full(fit.jac.shape[0] - age.size * num_outputs, -1.0, u.dtype),
+    ])  # fmt: skip
+    return drift_std(
+        history, u, cov, fit.jac, jnp.concatenate(drift_jac), ages, cfg.window
+    )

@@ -49,6 +49,7 @@ from jaxcal.data.chunked_engine import (
     solve_all,
     solve_rows,
 )
+from jaxcal.data.cruise_band import CruiseBand, sample_cruise_band
 from jaxcal.data.dataset_configs import DatasetConfig
 from jaxcal.data.degradation import (
     DegradationConfig,
@@ -57,12 +58,7 @@ from jaxcal.data.degradation import (
     sample_unit_degradation,
     slice_cycles,
 )
-from jaxcal.data.flights import (
-    CruiseBand,
-    FlightConfig,
-    sample_cruise_band,
-    sample_flight,
-)
+from jaxcal.data.flights import FlightConfig, sample_flight
 from jaxcal.data.ncmapss_io import SPLITS, NCMAPSSWriter
 from jaxcal.data.record import Record
 from jaxcal.physics import load_engine

@@ -157,6 +157,40 @@ def _read_rul(rul_path: str, num_units: int) -> np.ndarray:
     return np.asarray(values, dtype=np.int64)
 
 
+def _is_test_file(path: str, rul_path, kind: str) -> bool:
+    """Whether ``path`` holds truncated test series (see ``kind`` of
+    :func:`load_cmapss_text`)."""
+    if kind not in ("auto", "train", "test"):
+        raise ValueError(f"kind must be 'auto', 'train' or 'test', got {kind!r}")
+    if kind == "auto":
+        is_test = rul_path is not None or os.path.basename(path).startswith("test")
+    else:
+        is_test = kind == "test"
+    if rul_path is not None and not is_test:
+        raise ValueError("rul_path is only meaningful for a test file (kind='test')")
+    return is_test
+
+
+def _remaining_useful_life(path: str, unit, cycle, is_test: bool, rul_path):
+    """[N] RUL of every line: the unit's last cycle - cycle (train), plus the RUL
+    file's value of the unit (test), -1 when a test file comes without one."""
+    units, inverse = np.unique(unit, return_inverse=True)
+    last_per_unit = np.zeros(len(units), dtype=np.int64)
+    np.maximum.at(last_per_unit, inverse, cycle)
+    last_cycle = last_per_unit[inverse]
+    if not is_test:
+        return last_cycle - cycle
+    if rul_path is None:
+        return np.full_like(cycle, -1)  # a truncated series with unknown failure time
+    rul_values = _read_rul(os.fspath(rul_path), len(units))
+    if units[0] != 1 or units[-1] != len(units):
+        raise ValueError(
+            f"{path}: test units must be 1..{len(units)} to match {rul_path} "
+            f"line by line, got {units.tolist()[:5]}..."
+        )
+    return rul_values[unit - 1] + last_cycle - cycle
+
+
 def load_cmapss_text(
     path, rul_path=None, *, kind: str = "auto", nonfinite: str = "error"
 ) -> Record:
@@ -184,14 +218,7 @@ def load_cmapss_text(
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"C-MAPSS text file not found: {path}")
-    if kind not in ("auto", "train", "test"):
-        raise ValueError(f"kind must be 'auto', 'train' or 'test', got {kind!r}")
-    if kind == "auto":
-        is_test = rul_path is not None or os.path.basename(path).startswith("test")
-    else:
-        is_test = kind == "test"
-    if rul_path is not None and not is_test:
-        raise ValueError("rul_path is only meaningful for a test file (kind='test')")
+    is_test = _is_test_file(path, rul_path, kind)
     check_nonfinite_policy(nonfinite)
 
     table, lines = _parse(path)
@@ -209,23 +236,7 @@ def load_cmapss_text(
     # the rows are dropped at the end.
     unit = table[:, 0].astype(np.int64)
     cycle = table[:, 1].astype(np.int64)
-    units, inverse = np.unique(unit, return_inverse=True)
-    last_per_unit = np.zeros(len(units), dtype=np.int64)
-    np.maximum.at(last_per_unit, inverse, cycle)
-    last_cycle = last_per_unit[inverse]
-    if not is_test:
-        rul = last_cycle - cycle
-    elif rul_path is None:
-        rul = np.full_like(cycle, -1)  # a truncated series with unknown failure time
-    else:
-        rul_values = _read_rul(os.fspath(rul_path), len(units))
-        if units[0] != 1 or units[-1] != len(units):
-            raise ValueError(
-                f"{path}: test units must be 1..{len(units)} to match {rul_path} "
-                f"line by line, got {units.tolist()[:5]}..."
-            )
-        rul = rul_values[unit - 1] + last_cycle - cycle
-
+    rul = _remaining_useful_life(path, unit, cycle, is_test, rul_path)
     if keep is not None:
         table, unit, cycle, rul = table[keep], unit[keep], cycle[keep], rul[keep]
     sensor = {s: table[:, 4 + s] for s in range(1, 22)}  # s1 is 0-based column 5

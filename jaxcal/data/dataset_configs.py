@@ -21,7 +21,7 @@ paper's two data sets (Table 1) and a tiny preset for tests and smoke runs:
 * ``tiny``: a Dataset #1-like fleet of three short-lived units, a few hundred samples.
 
 The config is hashable and never mutated; CLIs change it with
-:func:`jaxcal.cli_args.parse_overrides` (``seed=3``, ``sensor_snr_db=70``).
+:func:`jaxcal.settings.parse_overrides` (``seed=3``, ``sensor_snr_db=70``).
 """
 
 from __future__ import annotations

@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxcal.data.normalisation import Normalisation
 from jaxcal.data.record import Record
 from jaxcal.physics.constants import HEALTH_NAMES
 from jaxcal.precision import float_dtype
-from jaxcal.problem import Normalisation
 
 
 @struct.dataclass

@@ -7,13 +7,14 @@ be vmapped over keys (one flight per key) and jitted at the data-set builder:
   class 1 / 2 / 3 (1-3 h, 3-5 h, 5-7 h total flight time), recorded only above 10,000 ft
   as in N-CMAPSS DS02, and padded to ``FlightConfig.num_steps`` samples with a validity
   mask.
-* :func:`sample_cruise_band`: the paper's Dataset #2 trajectory, a smooth random walk
-  reflected inside a narrow cruise band (alt 25.7-29 kft, Mach 0.67-0.74, TRA 69-82 %).
+* :func:`sample_cruise_band` (:mod:`.cruise_band`, re-exported here): the paper's
+  Dataset #2 trajectory, a smooth random walk reflected inside a narrow cruise band
+  (alt 25.7-29 kft, Mach 0.67-0.74, TRA 69-82 %).
 
 Noise is second-order low-pass filtered Gaussian noise (two first-order filters run by
-``lax.scan``), plus a little white jitter: smooth but noisy, like
-recorded flight data. T2 = (T_ISA(alt) + dT)(1 + 0.2 M^2) with an off-standard-day dT
-within +-25 degR (data_facts.md section 4; physics_facts.md 2.1).
+``lax.scan``, :mod:`.flight_signals`), plus a little white jitter: smooth but noisy,
+like recorded flight data. T2 = (T_ISA(alt) + dT)(1 + 0.2 M^2) with an off-standard-day
+dT within +-25 degR (data_facts.md section 4; physics_facts.md 2.1).
 """
 
 from __future__ import annotations
@@ -25,8 +26,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax import lax
 
+from jaxcal.data.cruise_band import (  # noqa: F401 (re-exported: the other generator)
+    CruiseBand,
+    sample_cruise_band,
+)
+from jaxcal.data.flight_signals import FlightProfile, smooth_noise
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.typedefs import Array, PRNGKey
 
@@ -103,36 +108,6 @@ class FlightConfig:
         return int(math.ceil(longest_s / self.dt_s))
 
 
-@dataclasses.dataclass(frozen=True)
-class CruiseBand:
-    """Narrow cruise band of the paper's Dataset #2 (Table 1: AGTF30 column)."""
-
-    alt_ft: Range = (25_700.0, 29_000.0)
-    mach: Range = (0.67, 0.74)
-    tra: Range = (69.1, 82.4)
-    dt_s: float = 1.0
-    traverse_s: float = 1500.0  # typical time to drift across the band once
-    velocity_tau_s: float = 120.0  # correlation time of the random velocity
-    jitter_frac: float = 0.01  # white noise std as a fraction of the band width
-    delta_t_day_r: float = 5.0  # small off-standard day [degR]
-    delta_t_drift_r: float = 1.0
-
-    def __post_init__(self):
-        for name in ("alt_ft", "mach", "tra"):
-            lo, hi = getattr(self, name)
-            if not lo < hi:
-                raise ValueError(f"CruiseBand.{name} must be (lo, hi) with lo < hi")
-
-
-class FlightProfile(NamedTuple):
-    """One flight, padded. Padded samples repeat the last recorded condition."""
-
-    w: Array  # [T, 4] alt [ft], Mach, TRA [%], T2 [degR] (CONDITION_NAMES)
-    mask: Array  # [T] bool, True where recorded
-    duration_s: Array  # [] recorded time above the floor [s]
-    flight_time_s: Array  # [] total flight time incl. the part below the floor [s]
-
-
 def _lerp(bounds, u):
     lo, hi = bounds
     return lo + (hi - lo) * u
@@ -141,54 +116,6 @@ def _lerp(bounds, u):
 def _smoothstep(x):
     s = jnp.clip(x, 0.0, 1.0)
     return s * s * (3.0 - 2.0 * s)
-
-
-def _linear_recurrence(a: float, u: Array, z_init: Array) -> Array:
-    """z_t = a z_{t-1} + u_t along axis 0 with z_{-1} = z_init.
-
-    A sequential ``lax.scan``: its body compiles once whatever T is, whereas a parallel
-    ``associative_scan`` over 25,200 samples took seconds to compile on CPU.
-    """
-
-    def step(z, u_t):
-        z = a * z + u_t
-        return z, z
-
-    _, z = lax.scan(step, z_init, u)
-    return z
-
-
-def smooth_noise(key: PRNGKey, num_steps: int, num_channels: int, dt_s, tau_s) -> Array:
-    """Stationary unit-variance noise through two cascaded first-order low-pass filters.
-
-    x_t = a x_{t-1} + e_t, y_t = a y_{t-1} + x_t with a = exp(-dt/tau); (x, y) start
-    from their stationary joint law, so there is no transient; y is scaled to unit
-    variance.
-
-    Args:
-        key: PRNG key.
-        num_steps: T (static).
-        num_channels: C (static), independent channels.
-        dt_s: sampling period [s] (static float).
-        tau_s: filter time constant [s] (static float).
-
-    Returns:
-        [T, C] noise.
-    """
-    a = math.exp(-dt_s / tau_s)
-    var_x = 1.0 / (1.0 - a * a)
-    cov_xy = var_x / (1.0 - a * a)
-    var_y = (2.0 * a * a * cov_xy + var_x) / (1.0 - a * a)
-    key_init, key_drive = jax.random.split(key)
-    z0 = jax.random.normal(key_init, (2, num_channels))
-    x_init = math.sqrt(var_x) * z0[0]
-    y_init = (
-        cov_xy / math.sqrt(var_x) * z0[0]
-        + math.sqrt(max(var_y - cov_xy**2 / var_x, 0.0)) * z0[1]
-    )
-    drive = jax.random.normal(key_drive, (num_steps, num_channels))
-    x = _linear_recurrence(a, drive, x_init)
-    return _linear_recurrence(a, x, y_init) / math.sqrt(var_y)
 
 
 def _check_class(flight_class, num_classes: int) -> Array:
@@ -200,6 +127,179 @@ def _check_class(flight_class, num_classes: int) -> Array:
             f"flight_class must be in 1..{num_classes}, got {flight_class}"
         )
     return jnp.clip(jnp.asarray(flight_class, jnp.int32) - 1, 0, num_classes - 1)
+
+
+class _Plan(NamedTuple):
+    """The scalar draws of one flight: its length and the levels of its phases."""
+
+    draws: Array  # [13] uniform draws; the last sets the descent rate (_cruise_timing)
+    flight_time: Array  # [s], including the part below the floor
+    recorded: Array  # [s] above the floor
+    alt_cruise: Array  # initial cruise level [ft]
+    mach_cruise: Array
+    mach_start: Array  # at the floor in the climb
+    mach_end: Array  # at the floor in the descent
+    tra_c0: Array  # climb schedule start / end [%]
+    tra_c1: Array
+    tra_cruise: Array
+    tra_desc: Array
+    delta_t_day: Array  # off-standard day [degR]
+    t_climb: Array  # recorded climb time [s]
+
+
+class _Timing(NamedTuple):
+    """When the phases and the step climbs happen."""
+
+    step_size: Array  # [K] step climbs [ft] (0 when the cruise is too short)
+    step_time: Array  # [K] their starts [s]
+    t_descent: Array  # [s]
+    t_tod: Array  # top of descent [s]
+    level_end: Array  # cruise level after every step [ft]
+
+
+def _top_alt(cfg: FlightConfig) -> float:
+    """Highest nominal level: noise must not push the recorded altitude past the
+    ceiling."""
+    return cfg.max_alt_ft - 3.0 * cfg.alt_noise_ft
+
+
+def _flight_plan(key: PRNGKey, idx: Array, cfg: FlightConfig) -> _Plan:
+    """Draw the flight time of class ``idx`` and the phase levels; longer flights
+    cruise higher and faster (levels interpolated by flight time)."""
+    u = jax.random.uniform(key, (13,))
+    hours = jnp.asarray(cfg.class_hours)[idx]
+    flight_time = 3600.0 * _lerp(hours, u[0])
+    longest = max(hi for _, hi in cfg.class_hours)
+    shortest = min(lo for lo, _ in cfg.class_hours)
+    frac = jnp.clip((flight_time / 3600.0 - shortest) / (longest - shortest), 0.0, 1.0)
+    recorded = flight_time - _lerp(cfg.below_floor_s, u[1])
+
+    floor, top = cfg.min_alt_ft, _top_alt(cfg)
+    alt_lo = _lerp((cfg.cruise_alt_short_ft[0], cfg.cruise_alt_long_ft[0]), frac)
+    alt_hi = _lerp((cfg.cruise_alt_short_ft[1], cfg.cruise_alt_long_ft[1]), frac)
+    alt_cruise = jnp.clip(_lerp((alt_lo, alt_hi), u[2]), floor + 2000.0, top)
+    mach_lo = _lerp((cfg.cruise_mach_short[0], cfg.cruise_mach_long[0]), frac)
+    mach_hi = _lerp((cfg.cruise_mach_short[1], cfg.cruise_mach_long[1]), frac)
+    mach_cruise = _lerp((mach_lo, mach_hi), u[3])
+    mach_start, mach_end = (
+        _lerp(cfg.climb_start_mach, u[4]),
+        _lerp(cfg.descent_end_mach, u[5]),
+    )
+    tra_c0, tra_c1 = _lerp(cfg.climb_start_tra, u[6]), _lerp(cfg.climb_end_tra, u[7])
+    tra_cruise, tra_desc = _lerp(cfg.cruise_tra, u[8]), _lerp(cfg.descent_tra, u[9])
+    delta_t_day = _lerp((-cfg.delta_t_day_r, cfg.delta_t_day_r), u[10])
+
+    t_climb = jnp.maximum(
+        (alt_cruise - floor) / _lerp(cfg.climb_rate_fpm, u[11]) * 60.0, cfg.dt_s
+    )
+    return _Plan(
+        u, flight_time, recorded, alt_cruise, mach_cruise, mach_start, mach_end,
+        tra_c0, tra_c1, tra_cruise, tra_desc, delta_t_day, t_climb,
+    )  # fmt: skip
+
+
+def _cruise_level(alt_cruise: Array, ramp: Array, sizes: Array, cfg: FlightConfig):
+    """The cruise level after the step climbs ``sizes`` [K] ramped ``ramp`` [..., K]
+    (0: not started, 1: done), kept 2000 ft above the floor and below the top."""
+    steps = jnp.sum(sizes * _smoothstep(ramp), axis=-1)
+    return jnp.clip(alt_cruise + steps, cfg.min_alt_ft + 2000.0, _top_alt(cfg))
+
+
+def _cruise_timing(key: PRNGKey, plan: _Plan, cfg: FlightConfig) -> _Timing:
+    """Draw the step climbs and fit climb, cruise and descent into the recorded time."""
+    floor = cfg.min_alt_ft
+    key_step_t, key_step_size = jax.random.split(key)
+    step_size = jax.random.choice(
+        key_step_size, jnp.asarray(cfg.alt_step_choices_ft), (cfg.num_alt_steps,)
+    )
+    # The end level does not depend on when the steps happen, so the descent length (and
+    # with it the cruise length) is known before the steps are placed inside the cruise.
+    ones = jnp.ones((cfg.num_alt_steps,))
+    descent_rate = _lerp(cfg.descent_rate_fpm, plan.draws[12]) / 60.0  # ft/s
+    t_descent = (_cruise_level(plan.alt_cruise, ones, step_size, cfg) - floor) / (
+        descent_rate
+    )
+    # Clamp at 0 so that odd configs shorten the flight rather than break it; a cruise
+    # too short for one step climb gets none.
+    t_cruise = jnp.maximum(plan.recorded - plan.t_climb - t_descent, 0.0)
+    step_size = jnp.where(t_cruise > cfg.alt_step_ramp_s, step_size, 0.0)
+    level_end = _cruise_level(plan.alt_cruise, ones, step_size, cfg)
+    t_tod = plan.t_climb + t_cruise
+    step_time = plan.t_climb + jax.random.uniform(key_step_t, (cfg.num_alt_steps,)) * (
+        jnp.maximum(t_cruise - cfg.alt_step_ramp_s, 0.0)
+    )
+    return _Timing(step_size, step_time, t_descent, t_tod, level_end)
+
+
+def _nominal_profile(t: Array, plan: _Plan, timing: _Timing, cfg: FlightConfig):
+    """Noise-free (alt, Mach, TRA) [T] at times ``t``: a concave climb, the cruise
+    with its step climbs, the descent; TRA blended between phases."""
+    floor = cfg.min_alt_ft
+    step_size, t_climb, t_tod = timing.step_size, plan.t_climb, timing.t_tod
+    ramp = jnp.clip((t[:, None] - timing.step_time) / cfg.alt_step_ramp_s, 0.0, 1.0)
+    s_climb = jnp.clip(t / t_climb, 0.0, 1.0)
+    s_desc = jnp.clip((t - t_tod) / timing.t_descent, 0.0, 1.0)
+    alt_cruise, level_end = plan.alt_cruise, timing.level_end
+    alt_nom = jnp.where(
+        t < t_climb,
+        floor + (alt_cruise - floor) * (1.0 - (1.0 - s_climb) ** cfg.climb_shape),
+        jnp.where(
+            t < t_tod,
+            _cruise_level(alt_cruise, ramp, step_size, cfg),
+            level_end - (level_end - floor) * s_desc**cfg.descent_shape,
+        ),
+    )
+    mach_start, mach_cruise = plan.mach_start, plan.mach_cruise
+    mach_nom = jnp.where(
+        t < t_climb,
+        mach_start + (mach_cruise - mach_start) * (1.0 - (1.0 - s_climb) ** 2),
+        mach_cruise + (plan.mach_end - mach_cruise) * s_desc**2,
+    )
+    w_cruise = _smoothstep((t - t_climb) / cfg.phase_blend_s)
+    w_desc = _smoothstep((t - t_tod) / cfg.phase_blend_s)
+    tra_climb = plan.tra_c0 + (plan.tra_c1 - plan.tra_c0) * s_climb
+    bump = jnp.sum(step_size / 1000.0 * 4.0 * ramp * (1.0 - ramp), axis=-1)
+    tra_nom = (
+        (tra_climb * (1.0 - w_cruise) + plan.tra_cruise * w_cruise) * (1.0 - w_desc)
+        + plan.tra_desc * w_desc
+        + cfg.step_tra_boost * bump
+    )
+    return alt_nom, mach_nom, tra_nom
+
+
+def _noisy_conditions(keys, nominal, delta_t_day: Array, cfg: FlightConfig) -> Array:
+    """w [T, 4]: smooth noise and white jitter on the nominal (alt, Mach, TRA), each
+    kept in its limits, and T2 of the ISA day offset by a drifting dT.
+
+    Args:
+        keys: (noise, jitter, dT drift) PRNG keys.
+        nominal: (alt, Mach, TRA) [T] from :func:`_nominal_profile`.
+    """
+    key_noise, key_jitter, key_drift = keys
+    alt_nom, mach_nom, tra_nom = nominal
+    floor = cfg.min_alt_ft
+    n = smooth_noise(key_noise, cfg.num_steps, 3, cfg.dt_s, cfg.noise_tau_s)
+    j = jax.random.normal(key_jitter, (cfg.num_steps, 3))
+    # Altitude noise fades out within 2000 ft of the floor: recorded samples stay above.
+    fade = jnp.clip((alt_nom - floor) / 2000.0, 0.0, 1.0)
+    alt = alt_nom + fade * (cfg.alt_noise_ft * n[:, 0] + cfg.alt_jitter_ft * j[:, 0])
+    alt = jnp.clip(alt, floor, cfg.max_alt_ft)
+    mach = jnp.clip(
+        mach_nom + cfg.mach_noise * n[:, 1] + cfg.mach_jitter * j[:, 1],
+        *cfg.mach_limits,
+    )
+    tra = jnp.clip(
+        tra_nom + cfg.tra_noise * n[:, 2] + cfg.tra_jitter * j[:, 2], *cfg.tra_limits
+    )
+    drift = smooth_noise(key_drift, cfg.num_steps, 1, cfg.dt_s, cfg.delta_t_drift_tau_s)
+    delta_t = jnp.clip(
+        delta_t_day + cfg.delta_t_drift_r * drift[:, 0],
+        -cfg.delta_t_limit_r,
+        cfg.delta_t_limit_r,
+    )
+    return jnp.stack(
+        [alt, mach, tra, isa_total_temperature(alt, mach, delta_t)], axis=-1
+    )
 
 
 def sample_flight(key: PRNGKey, flight_class, cfg: FlightConfig) -> FlightProfile:
@@ -222,158 +322,17 @@ def sample_flight(key: PRNGKey, flight_class, cfg: FlightConfig) -> FlightProfil
     """
     idx = _check_class(flight_class, cfg.num_classes)
     key_plan, key_steps, key_noise, key_jitter, key_drift = jax.random.split(key, 5)
-    u = jax.random.uniform(key_plan, (13,))
-    hours = jnp.asarray(cfg.class_hours)[idx]
-    flight_time = 3600.0 * _lerp(hours, u[0])
-    longest = max(hi for _, hi in cfg.class_hours)
-    shortest = min(lo for lo, _ in cfg.class_hours)
-    frac = jnp.clip((flight_time / 3600.0 - shortest) / (longest - shortest), 0.0, 1.0)
-    recorded = flight_time - _lerp(cfg.below_floor_s, u[1])
-
-    floor, top = cfg.min_alt_ft, cfg.max_alt_ft - 3.0 * cfg.alt_noise_ft
-    alt_lo = _lerp((cfg.cruise_alt_short_ft[0], cfg.cruise_alt_long_ft[0]), frac)
-    alt_hi = _lerp((cfg.cruise_alt_short_ft[1], cfg.cruise_alt_long_ft[1]), frac)
-    alt_cruise = jnp.clip(_lerp((alt_lo, alt_hi), u[2]), floor + 2000.0, top)
-    mach_lo = _lerp((cfg.cruise_mach_short[0], cfg.cruise_mach_long[0]), frac)
-    mach_hi = _lerp((cfg.cruise_mach_short[1], cfg.cruise_mach_long[1]), frac)
-    mach_cruise = _lerp((mach_lo, mach_hi), u[3])
-    mach_start, mach_end = (
-        _lerp(cfg.climb_start_mach, u[4]),
-        _lerp(cfg.descent_end_mach, u[5]),
-    )
-    tra_c0, tra_c1 = _lerp(cfg.climb_start_tra, u[6]), _lerp(cfg.climb_end_tra, u[7])
-    tra_cruise, tra_desc = _lerp(cfg.cruise_tra, u[8]), _lerp(cfg.descent_tra, u[9])
-    delta_t_day = _lerp((-cfg.delta_t_day_r, cfg.delta_t_day_r), u[10])
-
-    t_climb = jnp.maximum(
-        (alt_cruise - floor) / _lerp(cfg.climb_rate_fpm, u[11]) * 60.0, cfg.dt_s
-    )
-    key_step_t, key_step_size = jax.random.split(key_steps)
-    step_size = jax.random.choice(
-        key_step_size, jnp.asarray(cfg.alt_step_choices_ft), (cfg.num_alt_steps,)
-    )
-
-    def level(ramp, sizes):
-        steps = jnp.sum(sizes * _smoothstep(ramp), axis=-1)
-        return jnp.clip(alt_cruise + steps, floor + 2000.0, top)
-
-    # The end level does not depend on when the steps happen, so the descent length (and
-    # with it the cruise length) is known before the steps are placed inside the cruise.
-    ones = jnp.ones((cfg.num_alt_steps,))
-    descent_rate = _lerp(cfg.descent_rate_fpm, u[12]) / 60.0  # ft/s
-    t_descent = (level(ones, step_size) - floor) / descent_rate
-    # Clamp at 0 so that odd configs shorten the flight rather than break it; a cruise
-    # too short for one step climb gets none.
-    t_cruise = jnp.maximum(recorded - t_climb - t_descent, 0.0)
-    step_size = jnp.where(t_cruise > cfg.alt_step_ramp_s, step_size, 0.0)
-    level_end = level(ones, step_size)
-    t_tod = t_climb + t_cruise
-    step_time = t_climb + jax.random.uniform(key_step_t, (cfg.num_alt_steps,)) * (
-        jnp.maximum(t_cruise - cfg.alt_step_ramp_s, 0.0)
-    )
-
+    plan = _flight_plan(key_plan, idx, cfg)
+    timing = _cruise_timing(key_steps, plan, cfg)
     t = jnp.arange(cfg.num_steps) * cfg.dt_s
-    ramp = jnp.clip((t[:, None] - step_time) / cfg.alt_step_ramp_s, 0.0, 1.0)  # [T, K]
-    s_climb = jnp.clip(t / t_climb, 0.0, 1.0)
-    s_desc = jnp.clip((t - t_tod) / t_descent, 0.0, 1.0)
-    alt_nom = jnp.where(
-        t < t_climb,
-        floor + (alt_cruise - floor) * (1.0 - (1.0 - s_climb) ** cfg.climb_shape),
-        jnp.where(
-            t < t_tod,
-            level(ramp, step_size),
-            level_end - (level_end - floor) * s_desc**cfg.descent_shape,
-        ),
+    nominal = _nominal_profile(t, plan, timing, cfg)
+    w = _noisy_conditions(
+        (key_noise, key_jitter, key_drift), nominal, plan.delta_t_day, cfg
     )
-    mach_nom = jnp.where(
-        t < t_climb,
-        mach_start + (mach_cruise - mach_start) * (1.0 - (1.0 - s_climb) ** 2),
-        mach_cruise + (mach_end - mach_cruise) * s_desc**2,
-    )
-    w_cruise = _smoothstep((t - t_climb) / cfg.phase_blend_s)
-    w_desc = _smoothstep((t - t_tod) / cfg.phase_blend_s)
-    tra_climb = tra_c0 + (tra_c1 - tra_c0) * s_climb
-    bump = jnp.sum(step_size / 1000.0 * 4.0 * ramp * (1.0 - ramp), axis=-1)
-    tra_nom = (
-        (tra_climb * (1.0 - w_cruise) + tra_cruise * w_cruise) * (1.0 - w_desc)
-        + tra_desc * w_desc
-        + cfg.step_tra_boost * bump
-    )
-
-    n = smooth_noise(key_noise, cfg.num_steps, 3, cfg.dt_s, cfg.noise_tau_s)
-    j = jax.random.normal(key_jitter, (cfg.num_steps, 3))
-    # Altitude noise fades out within 2000 ft of the floor: recorded samples stay above.
-    fade = jnp.clip((alt_nom - floor) / 2000.0, 0.0, 1.0)
-    alt = alt_nom + fade * (cfg.alt_noise_ft * n[:, 0] + cfg.alt_jitter_ft * j[:, 0])
-    alt = jnp.clip(alt, floor, cfg.max_alt_ft)
-    mach = jnp.clip(
-        mach_nom + cfg.mach_noise * n[:, 1] + cfg.mach_jitter * j[:, 1],
-        *cfg.mach_limits,
-    )
-    tra = jnp.clip(
-        tra_nom + cfg.tra_noise * n[:, 2] + cfg.tra_jitter * j[:, 2], *cfg.tra_limits
-    )
-    drift = smooth_noise(key_drift, cfg.num_steps, 1, cfg.dt_s, cfg.delta_t_drift_tau_s)
-    delta_t = jnp.clip(
-        delta_t_day + cfg.delta_t_drift_r * drift[:, 0],
-        -cfg.delta_t_limit_r,
-        cfg.delta_t_limit_r,
-    )
-    w = jnp.stack([alt, mach, tra, isa_total_temperature(alt, mach, delta_t)], axis=-1)
-
-    duration = jnp.minimum(t_tod + t_descent, cfg.num_steps * cfg.dt_s)
+    duration = jnp.minimum(timing.t_tod + timing.t_descent, cfg.num_steps * cfg.dt_s)
     mask = t < duration
     last = jnp.maximum(jnp.sum(mask) - 1, 0)
     w = w[jnp.minimum(jnp.arange(cfg.num_steps), last)]
-    return FlightProfile(w=w, mask=mask, duration_s=duration, flight_time_s=flight_time)
-
-
-def _reflect(x: Array, lo: Array, hi: Array) -> Array:
-    """Fold x into [lo, hi] as a path reflected at both edges (triangle wave)."""
-    width = hi - lo
-    y = jnp.mod(x - lo, 2.0 * width)
-    return lo + jnp.where(y > width, 2.0 * width - y, y)
-
-
-def sample_cruise_band(
-    key: PRNGKey, num_steps: int, band: CruiseBand = CruiseBand()
-) -> FlightProfile:
-    """Smooth random motion of (alt, Mach, TRA) reflected inside a cruise band.
-
-    Each channel integrates a smooth random velocity (unit-variance :func:`smooth_noise`
-    scaled so that a displacement of one band width takes about ``band.traverse_s``: for
-    an integrated correlated velocity, std(displacement) ~ sigma_v sqrt(2 tau t)), adds
-    white jitter and is folded back into the band. T2 comes from ISA plus a small dT.
-
-    Args:
-        key: PRNG key.
-        num_steps: T (static); the paper uses 5,000 samples at 1 Hz.
-        band: static :class:`CruiseBand`.
-
-    Returns:
-        :class:`FlightProfile` with every sample valid.
-    """
-    key_start, key_motion, key_jitter, key_day, key_drift = jax.random.split(key, 5)
-    lo = jnp.asarray([band.alt_ft[0], band.mach[0], band.tra[0]])
-    hi = jnp.asarray([band.alt_ft[1], band.mach[1], band.tra[1]])
-    width = hi - lo
-    start = lo + width * jax.random.uniform(key_start, (3,))
-    velocity = smooth_noise(key_motion, num_steps, 3, band.dt_s, band.velocity_tau_s)
-    sigma_v = width / math.sqrt(2.0 * band.velocity_tau_s * band.traverse_s)
-    path = start + jnp.cumsum(velocity * sigma_v * band.dt_s, axis=0)
-    path = path + band.jitter_frac * width * jax.random.normal(
-        key_jitter, (num_steps, 3)
-    )
-    x = _reflect(path, lo, hi)
-    day = jax.random.uniform(
-        key_day, (), minval=-band.delta_t_day_r, maxval=band.delta_t_day_r
-    )
-    drift = smooth_noise(key_drift, num_steps, 1, band.dt_s, 1800.0)[:, 0]
-    t2 = isa_total_temperature(x[:, 0], x[:, 1], day + band.delta_t_drift_r * drift)
-    duration = jnp.asarray(num_steps * band.dt_s, dtype=x.dtype)
     return FlightProfile(
-        w=jnp.concatenate([x, t2[:, None]], axis=-1),
-        mask=jnp.ones((num_steps,), dtype=bool),
-        duration_s=duration,
-        flight_time_s=duration,
+        w=w, mask=mask, duration_s=duration, flight_time_s=plan.flight_time
     )

@@ -16,8 +16,9 @@ temporary file in the destination directory and ``os.replace`` it into place onl
 everything succeeded.
 """
 
+from jaxcal.data.ncmapss_columns import parse_rename
 from jaxcal.data.ncmapss_layout import LAYOUT_NAMES, SPLITS
-from jaxcal.data.ncmapss_reader import load_ncmapss, ncmapss_info, parse_rename
+from jaxcal.data.ncmapss_reader import load_ncmapss, ncmapss_info
 from jaxcal.data.ncmapss_writer import NCMAPSSWriter, write_ncmapss
 
 __all__ = [

@@ -1,30 +1,21 @@
 """Reader of N-CMAPSS HDF5 files (ours and NASA's): column order from the ``*_var``
 names, subsets by slicing (layout: :mod:`jaxcal.data.ncmapss_io`).
 
-Column names are checked, never guessed: every ``*_var`` group must hold exactly the
-names of the layout (any order; X_s / X_v may also hold other jaxcal sensor names), so
-a renamed sensor (``T_24`` for ``T24``) is an error that lists what was expected and
-what was found, unless the caller maps it with ``rename={"T_24": "T24"}``. Rows holding
+Column names are checked, never guessed (:mod:`jaxcal.data.ncmapss_columns`): a renamed
+sensor (``T_24`` for ``T24``) is an error that lists what was expected and what was
+found, unless the caller maps it with ``rename={"T_24": "T24"}``. Rows holding
 NaN or Inf in a returned column follow the ``nonfinite`` policy of
 :data:`~jaxcal.data.record.NONFINITE_POLICIES` (default: refuse them).
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
-import h5py
 import numpy as np
 
-from jaxcal.data.ncmapss_layout import (
-    _BLOCK_ROWS,
-    _GROUPS,
-    LAYOUT_NAMES,
-    SPLITS,
-    _check_split,
-    _dtype,
-)
+from jaxcal.data.ncmapss_columns import column_names, open_read, split_layout
+from jaxcal.data.ncmapss_layout import _BLOCK_ROWS, SPLITS, _dtype
 from jaxcal.data.record import (
     Record,
     apply_nonfinite_policy,
@@ -36,133 +27,6 @@ from jaxcal.physics.constants import (
     HEALTH_NAMES,
     SENSOR_NAMES,
 )
-
-
-def _open_read(path) -> tuple[str, h5py.File]:
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"N-CMAPSS file not found: {path}")
-    try:
-        return path, h5py.File(path, "r")
-    except OSError as err:
-        raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
-
-
-def _dataset(f: h5py.File, path: str, key: str) -> h5py.Dataset:
-    if key not in f:
-        raise ValueError(
-            f"{path}: missing dataset {key!r}; an N-CMAPSS file holds "
-            f"{[f'{g}_{s}' for s in SPLITS for g in _GROUPS]} and "
-            f"{[f'{g}_var' for g in LAYOUT_NAMES]}"
-        )
-    return f[key]
-
-
-def _var_names(f: h5py.File, path: str, group: str) -> list[str]:
-    """Decoded ``<group>_var`` column names (fixed-width bytes in the real files)."""
-    raw = np.asarray(_dataset(f, path, f"{group}_var")[()]).ravel()
-    return [
-        (v.decode("ascii") if isinstance(v, bytes) else str(v)).strip() for v in raw
-    ]
-
-
-def parse_rename(pairs: Sequence[str]) -> dict[str, str]:
-    """``("T_24:T24", ...)`` (the ``dataset.rename`` form) as ``{"T_24": "T24"}``."""
-    out = {}
-    for pair in pairs:
-        old, sep, new = pair.partition(":")
-        if not sep or not old or not new or ":" in new:
-            raise ValueError(
-                f"rename entries must be <file name>:<jaxcal name>, got {pair!r}"
-            )
-        out[old.strip()] = new.strip()
-    return out
-
-
-def _check_rename(rename, raw: dict, path: str) -> dict[str, str]:
-    """``rename`` as a ``{file name: jaxcal name}`` dict of names the file holds."""
-    if rename is None:
-        return {}
-    if not isinstance(rename, Mapping) or not all(
-        isinstance(k, str) and isinstance(v, str) for k, v in rename.items()
-    ):
-        raise ValueError(
-            f"rename must map file column names to jaxcal names (str -> str), got "
-            f"{rename!r}"
-        )
-    found = {n for names in raw.values() for n in names}
-    stray = sorted(k for k in rename if k not in found)
-    if stray:
-        raise ValueError(
-            f"{path}: rename names column(s) {stray} that no *_var array holds; "
-            f"found {dict(raw)}"
-        )
-    return dict(rename)
-
-
-def _layout_problems(group: str, names: list[str]) -> str:
-    """What is wrong with the (renamed) names of ``<group>_var``; "" when nothing."""
-    expected = LAYOUT_NAMES[group]
-    # X_s / X_v may carry any sensor jaxcal knows (e.g. the C-MAPSS extras epr, BPR).
-    allowed = SENSOR_NAMES if group in ("X_s", "X_v") else expected
-    unknown = [n for n in names if n not in allowed]
-    missing = [n for n in expected if n not in names]
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if not (unknown or missing or repeated):
-        return ""
-    what = [
-        f"{label} {items}"
-        for label, items in (
-            ("unknown", unknown),
-            ("missing", missing),
-            ("repeated", repeated),
-        )
-        if items
-    ]
-    return (
-        f"{group}_var: {', '.join(what)}; expected (any order) {list(expected)}, "
-        f"found {names}"
-    )
-
-
-def _column_names(f: h5py.File, path: str, rename=None) -> dict[str, list[str]]:
-    """The checked column names of every group, after ``rename``.
-
-    Raises:
-        ValueError: a name is unknown, missing or repeated in its group, or a sensor
-            is in both X_s and X_v; the message lists, per group, what was expected
-            and what was found, and how to map names.
-    """
-    raw = {g: _var_names(f, path, g) for g in LAYOUT_NAMES}
-    mapping = _check_rename(rename, raw, path)
-    names = {g: [mapping.get(n, n) for n in raw[g]] for g in LAYOUT_NAMES}
-    problems = [p for g in LAYOUT_NAMES if (p := _layout_problems(g, names[g]))]
-    both = sorted(set(names["X_s"]) & set(names["X_v"]))
-    if both:
-        problems.append(f"sensor(s) {both} in both X_s_var and X_v_var")
-    if problems:
-        raise ValueError(
-            f"{path}: column names do not match the N-CMAPSS layout: "
-            + "; ".join(problems)
-            + ". Map other names with rename={'<file name>': '<jaxcal name>'} "
-            "(train / evaluate: dataset.rename=<file name>:<jaxcal name>,...)"
-        )
-    return names
-
-
-def _split_layout(f: h5py.File, path: str, split: str, names: dict) -> dict:
-    """Datasets of ``split``, with their shapes checked against ``names``."""
-    _check_split(split)
-    dsets = {g: _dataset(f, path, f"{g}_{split}") for g in _GROUPS}
-    num_rows = dsets["A"].shape[0]
-    for group, dset in dsets.items():
-        k = 1 if group == "Y" else len(names[group])
-        if dset.ndim != 2 or dset.shape != (num_rows, k):
-            raise ValueError(
-                f"{path}: dataset {group}_{split} has shape {dset.shape}, expected "
-                f"({num_rows}, {k}) from A_{split} and {group}_var"
-            )
-    return {"dsets": dsets, "names": names, "num_rows": num_rows}
 
 
 def _unit_ranges(a_dset, unit_col, wanted, start, stop, block_rows):
@@ -197,6 +61,65 @@ def _read_into(dset, ranges, stride, cols, out, block_rows) -> None:
             block = dset[a0 : min(b, a0 + block_rows * stride) : stride]
             out[pos : pos + block.shape[0]] = block[:, cols]
             pos += block.shape[0]
+
+
+def _checked_read_options(stride, block_rows, nonfinite: str) -> tuple[int, int]:
+    """``(stride, block_rows)`` as ints, each checked, and the nonfinite policy."""
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride}")
+    if int(block_rows) < 1:
+        raise ValueError(f"block_rows must be >= 1, got {block_rows}")
+    check_nonfinite_policy(nonfinite)
+    return int(stride), int(block_rows)
+
+
+def _selected_ranges(layout: dict, units, rows, stride: int, block_rows: int, where):
+    """The ``[a, b)`` file row ranges to read: the window ``rows``, only the rows of
+    ``units`` (each must be there), every range aligned to the stride grid of the
+    window start (so a unit selection sees exactly the rows the full load would)."""
+    dsets, names = layout["dsets"], layout["names"]
+    start, stop = _row_window(rows, layout["num_rows"])
+    if units is None:
+        ranges = [[start, stop]]
+    else:
+        wanted = _unit_ids(units)
+        ranges, seen = _unit_ranges(
+            dsets["A"], names["A"].index("unit"), wanted, start, stop, block_rows
+        )
+        missing = sorted(set(wanted.astype(int).tolist()) - seen)
+        if missing:
+            raise ValueError(
+                f"{where} rows {start}:{stop} has no unit(s) {missing}; "
+                f"units there are {sorted(seen)}"
+            )
+    # Align every range to the global stride grid start, start + stride, ...
+    ranges = [[a + (start - a) % stride, b] for a, b in ranges]
+    return [[a, b] for a, b in ranges if a < b]
+
+
+def _read_columns(layout: dict, ranges, stride: int, sensors, path, block_rows: int):
+    """Every returned column over ``ranges``: ``(x_names, w, x, theta, aux, rul)``,
+    the sensors' groups read only when a requested sensor is in them."""
+    dsets, names = layout["dsets"], layout["names"]
+    total = sum(len(range(a, b, stride)) for a, b in ranges)
+
+    def read(group, cols):
+        out = np.empty((total, len(cols)), dtype=_dtype(group))
+        _read_into(dsets[group], ranges, stride, cols, out, block_rows)
+        return out
+
+    x_names, plan = _sensor_plan(names, sensors, path)
+    x = np.empty((total, len(x_names)), dtype=np.float64)
+    for group in ("X_s", "X_v"):
+        picks = [(j, c) for j, (g, c) in enumerate(plan) if g == group]
+        if not picks:
+            continue  # this group is not needed: do not touch it on disk
+        x[:, [j for j, _ in picks]] = read(group, [c for _, c in picks])
+    w = read("W", [names["W"].index(n) for n in CONDITION_NAMES])
+    theta = read("T", [names["T"].index(n) for n in HEALTH_NAMES])
+    aux = read("A", [names["A"].index(n) for n in AUX_NAMES])
+    rul = read("Y", [0])[:, 0]
+    return x_names, w, x, theta, aux, rul
 
 
 def load_ncmapss(
@@ -236,51 +159,16 @@ def load_ncmapss(
         A :class:`Record` whose ``sample_rate_hz`` is the file's ``sample_rate_hz`` root
         attribute (1.0 when absent, as in NASA's files) divided by ``stride``.
     """
-    if int(stride) != stride or stride < 1:
-        raise ValueError(f"stride must be an integer >= 1, got {stride}")
-    if int(block_rows) < 1:
-        raise ValueError(f"block_rows must be >= 1, got {block_rows}")
-    check_nonfinite_policy(nonfinite)
-    stride, block_rows = int(stride), int(block_rows)
-    path, f = _open_read(path)
+    stride, block_rows = _checked_read_options(stride, block_rows, nonfinite)
+    path, f = open_read(path)
     with f:
-        layout = _split_layout(f, path, split, _column_names(f, path, rename))
-        dsets, names, num_rows = layout["dsets"], layout["names"], layout["num_rows"]
-        start, stop = _row_window(rows, num_rows)
-        if units is None:
-            ranges = [[start, stop]]
-        else:
-            wanted = _unit_ids(units)
-            ranges, seen = _unit_ranges(
-                dsets["A"], names["A"].index("unit"), wanted, start, stop, block_rows
-            )
-            missing = sorted(set(wanted.astype(int).tolist()) - seen)
-            if missing:
-                raise ValueError(
-                    f"{path} [{split}] rows {start}:{stop} has no unit(s) {missing}; "
-                    f"units there are {sorted(seen)}"
-                )
-        # Align every range to the global stride grid start, start + stride, ...
-        ranges = [[a + (start - a) % stride, b] for a, b in ranges]
-        ranges = [[a, b] for a, b in ranges if a < b]
-        total = sum(len(range(a, b, stride)) for a, b in ranges)
-
-        def read(group, cols):
-            out = np.empty((total, len(cols)), dtype=_dtype(group))
-            _read_into(dsets[group], ranges, stride, cols, out, block_rows)
-            return out
-
-        x_names, plan = _sensor_plan(names, sensors, path)
-        x = np.empty((total, len(x_names)), dtype=np.float64)
-        for group in ("X_s", "X_v"):
-            picks = [(j, c) for j, (g, c) in enumerate(plan) if g == group]
-            if not picks:
-                continue  # this group is not needed: do not touch it on disk
-            x[:, [j for j, _ in picks]] = read(group, [c for _, c in picks])
-        w = read("W", [names["W"].index(n) for n in CONDITION_NAMES])
-        theta = read("T", [names["T"].index(n) for n in HEALTH_NAMES])
-        aux = read("A", [names["A"].index(n) for n in AUX_NAMES])
-        rul = read("Y", [0])[:, 0]
+        layout = split_layout(f, path, split, column_names(f, path, rename))
+        ranges = _selected_ranges(
+            layout, units, rows, stride, block_rows, f"{path} [{split}]"
+        )
+        x_names, w, x, theta, aux, rul = _read_columns(
+            layout, ranges, stride, sensors, path, block_rows
+        )
         rate = float(f.attrs.get("sample_rate_hz", 1.0))
     keep, dropped = _nonfinite_rows(
         w, x, x_names, theta, aux, nonfinite, f"{path} [{split}]", ranges, stride
@@ -364,7 +252,7 @@ def _sensor_plan(names: dict, sensors, path: str):
     where = {}
     for group in ("X_s", "X_v"):
         for col, name in enumerate(names[group]):
-            where[name] = (group, col)  # names are unique (_column_names checks)
+            where[name] = (group, col)  # names are unique (column_names checks)
     if sensors is None:
         x_names = tuple(n for n in SENSOR_NAMES if n in where)
     else:
@@ -397,14 +285,14 @@ def ncmapss_info(
         "splits": {split: {"rows": N, "units": [...]}}}``; a split appears when its
         ``A_<split>`` dataset exists.
     """
-    path, f = _open_read(path)
+    path, f = open_read(path)
     with f:
-        columns = _column_names(f, path, rename)
+        columns = column_names(f, path, rename)
         splits = {}
         for split in SPLITS:
             if f"A_{split}" not in f:
                 continue
-            layout = _split_layout(f, path, split, columns)
+            layout = split_layout(f, path, split, columns)
             n = layout["num_rows"]
             _, seen = _unit_ranges(
                 layout["dsets"]["A"],

@@ -3,7 +3,7 @@
 Writers fill a temporary file in the destination directory and ``os.replace`` it into
 place only when everything succeeded (layout: :mod:`jaxcal.data.ncmapss_io`). The
 temporary file is made by the project's atomic writer
-(:func:`jaxcal.training.run_dir.make_temp`), so a file left by a writer killed mid-way
+(:func:`jaxcal.runs.atomic.make_temp`), so a file left by a writer killed mid-way
 is removed by the next write to the same path.
 """
 
@@ -15,7 +15,6 @@ import os
 import h5py
 import numpy as np
 
-from jaxcal.atomic import make_temp, release_temp
 from jaxcal.data.ncmapss_layout import (
     _BLOCK_ROWS,
     _CHUNK_ROWS,
@@ -31,6 +30,7 @@ from jaxcal.data.ncmapss_layout import (
     _width,
 )
 from jaxcal.data.record import Record
+from jaxcal.runs.atomic import make_temp, release_temp
 
 
 class NCMAPSSWriter:

@@ -38,10 +38,13 @@ from jaxcal.data.dataset import Dataset, partial_rows
 from jaxcal.data.record import apply_nonfinite_policy
 from jaxcal.data.table_checks import (
     check_ignore,
+    check_model_columns,
     check_unique_times,
     check_units_in_one_split,
     index_as_columns,
+    numeric_columns,
     renamed_columns,
+    unit_and_time,
 )
 from jaxcal.model import Model
 from jaxcal.model_spec import TABLE_COLUMNS as SPECIAL_COLUMNS
@@ -69,47 +72,19 @@ def dataset_from_frame(
     check_ignore(ignore, model, source)
     frame = frame.drop(columns=[c for c in frame.columns if str(c) in ignore])
     columns = [str(c) for c in frame.columns]
-    unknown = [c for c in columns if c not in known]
-    missing = [n for n in model.condition_names if n not in columns]
-    outputs = [n for n in model.output_names if n in columns]
-    if unknown or missing or not outputs:
-        raise ValueError(
-            f"{source}: columns do not match model {model.name!r}"
-            + (f"; unknown columns {unknown}" if unknown else "")
-            + (f"; missing conditions {missing}" if missing else "")
-            + ("; no output column" if not outputs else "")
-            + f". Expected conditions {list(model.condition_names)}, outputs (any "
-            f"of) {list(model.output_names)}, optional {list(SPECIAL_COLUMNS)} and "
-            f"true parameters {list(model.parameter_names)}; found {columns}. Map "
-            "other names with rename={...} or skip columns with ignore=(...)"
-        )
+    outputs = check_model_columns(columns, model, known, source)
     if not len(frame):
         raise ValueError(f"no rows in {source} (columns {columns})")
     thetas = [n for n in model.parameter_names if n in columns]
-    numeric = {}
-    for name in [*model.condition_names, *outputs, *thetas]:
-        try:
-            numeric[name] = frame[name].to_numpy(dtype=np.float64)
-        except (TypeError, ValueError) as err:
-            raise ValueError(
-                f"{source}: column {name!r} is not numeric ({err})"
-            ) from None
+    numeric = numeric_columns(
+        frame, [*model.condition_names, *outputs, *thetas], source
+    )
     keep, dropped = apply_nonfinite_policy(
         _partial_rows_exempt(numeric, outputs) if partial else numeric, nonfinite,
         source=source, row_of=lambda pos: pos + row_offset,
         row_word="line" if row_offset else "row",
     )  # fmt: skip
-    n = len(frame)
-    unit = frame["unit"].to_numpy() if "unit" in columns else np.zeros(n, np.int64)
-    time = frame["time"].to_numpy() if "time" in columns else np.arange(n)
-    for name, values in (("unit", unit), ("time", time)):
-        try:
-            finite = np.isfinite(np.asarray(values, np.float64))
-        except (TypeError, ValueError):
-            raise ValueError(f"{source}: column {name!r} must be numeric") from None
-        if not finite.all():
-            row = int(np.flatnonzero(~finite)[0]) + row_offset
-            raise ValueError(f"{source}: column {name!r} is empty or NaN at row {row}")
+    unit, time = unit_and_time(frame, source, row_offset)
     split = frame["split"].to_numpy().astype(str) if "split" in columns else None
     data = Dataset(
         w=np.stack([numeric[n] for n in model.condition_names], axis=1),
@@ -261,6 +236,18 @@ def read_dataset(
     path = os.fspath(source)
     if not os.path.isfile(path):
         raise ValueError(f"data file not found: {path}")
+    return _read_file(
+        path, model, rename=rename, ignore=ignore, nonfinite=nonfinite,
+        partial=partial, reader_options=reader_options,
+    )  # fmt: skip
+
+
+def _read_file(
+    path: str, model: Model | None, *, rename, ignore, nonfinite: str,
+    partial: bool, reader_options: dict,
+) -> Dataset:  # fmt: skip
+    """A data file -> Dataset, the reader picked by the extension (the options as
+    in :func:`read_dataset`)."""
     ext = os.path.splitext(path)[1].lower()
     if ext in (".csv", ".parquet", ".pq"):
         import pandas as pd

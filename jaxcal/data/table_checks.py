@@ -1,7 +1,8 @@
 """The checks a table passes before it becomes a :class:`~jaxcal.data.dataset.Dataset`
 (:mod:`jaxcal.data.readers`): how its index, column names and ``ignore=`` are read,
-and the two facts about units that padding relies on (a time is not repeated within
-a unit; a unit lies in one split). Each failure is a ``ValueError`` naming the file
+that its columns fit the model and are numeric, its unit and time ids, and the two
+facts about units that padding relies on (a time is not repeated within a unit; a
+unit lies in one split). Each failure is a ``ValueError`` naming the file
 or frame, the columns, units or times, and what to do.
 """
 
@@ -124,3 +125,63 @@ def check_units_in_one_split(unit: np.ndarray, split: np.ndarray, source: str) -
             + "); each unit must lie in one split (train, val or test), or its "
             "training rows would be scored as test rows"
         )
+
+
+def check_model_columns(columns: list[str], model: Model, known: set, source: str):
+    """Every column must be ``known``, every condition present and at least one
+    output; the error lists what was expected and what was found.
+
+    Returns:
+        The model's outputs present, in the model's order.
+    """
+    unknown = [c for c in columns if c not in known]
+    missing = [n for n in model.condition_names if n not in columns]
+    outputs = [n for n in model.output_names if n in columns]
+    if unknown or missing or not outputs:
+        raise ValueError(
+            f"{source}: columns do not match model {model.name!r}"
+            + (f"; unknown columns {unknown}" if unknown else "")
+            + (f"; missing conditions {missing}" if missing else "")
+            + ("; no output column" if not outputs else "")
+            + f". Expected conditions {list(model.condition_names)}, outputs (any "
+            f"of) {list(model.output_names)}, optional {list(TABLE_COLUMNS)} and "
+            f"true parameters {list(model.parameter_names)}; found {columns}. Map "
+            "other names with rename={...} or skip columns with ignore=(...)"
+        )
+    return outputs
+
+
+def numeric_columns(frame, names: Sequence[str], source: str) -> dict:
+    """``{name: float64 [N] values}`` of the columns ``names``; a column that does
+    not convert is an error naming it."""
+    numeric = {}
+    for name in names:
+        try:
+            numeric[name] = frame[name].to_numpy(dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(
+                f"{source}: column {name!r} is not numeric ({err})"
+            ) from None
+    return numeric
+
+
+def unit_and_time(frame, source: str, row_offset: int):
+    """The ``unit`` and ``time`` columns (defaults: one unit, the row order); both
+    must be numeric and finite (a row without its unit or time is no row).
+
+    Args:
+        row_offset: added to the 0-based row in messages (a CSV's header line).
+    """
+    n = len(frame)
+    columns = [str(c) for c in frame.columns]
+    unit = frame["unit"].to_numpy() if "unit" in columns else np.zeros(n, np.int64)
+    time = frame["time"].to_numpy() if "time" in columns else np.arange(n)
+    for name, values in (("unit", unit), ("time", time)):
+        try:
+            finite = np.isfinite(np.asarray(values, np.float64))
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: column {name!r} must be numeric") from None
+        if not finite.all():
+            row = int(np.flatnonzero(~finite)[0]) + row_offset
+            raise ValueError(f"{source}: column {name!r} is empty or NaN at row {row}")
+    return unit, time

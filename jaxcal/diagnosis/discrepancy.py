@@ -142,6 +142,43 @@ def _designs(z, degree, num_s, whiten):
     return [(s, white[:, s]) for s in range(num_s)]
 
 
+def _standardised_inputs(w: np.ndarray):
+    """``(mean [W], std [W], the varying conditions' columns, their standardised
+    values [N, W_varying])``: a constant condition explains nothing."""
+    w_mean, w_std = w.mean(0), w.std(0)
+    inputs = tuple(
+        j for j in range(w.shape[1]) if w_std[j] > 1e-9 * max(abs(w_mean[j]), 1)
+    )
+    z = (w[:, inputs] - w_mean[list(inputs)]) / w_std[list(inputs)]
+    return w_mean, w_std, inputs, z
+
+
+def _gain_shares(sub, names, degree: int, base, full, gain: float):
+    """What the CV gain of an output's delta depends on: ``(dependence, unique)``.
+
+    Args:
+        sub: ``sub(columns, degree) -> CV SSE`` of the output on some inputs.
+        names: the inputs' condition names; degree: the selected degree.
+        base: SSR without delta; full: CV SSE of the selected delta; gain: its gain.
+
+    Returns:
+        ``dependence``: the share of an offset only (``constant``) and of each input
+        alone on top of it; ``unique``: the share lost when an input is dropped.
+    """
+    const = sub([], 0)
+    # shares in [0, 1]: a sub-model's CV gain can exceed the selected full model's by
+    # the noise of cross-validation, which is no share above 1
+    dependence = {"constant": min(max(float(base - const), 0.0) / gain, 1.0)}
+    unique = {}
+    for k, name in enumerate(names):
+        alone = sub([k], degree)
+        dependence[name] = min(max(float(const - alone), 0.0) / gain, 1.0)
+        keep = [i for i in range(len(names)) if i != k]
+        loss = sub(keep, degree) - full
+        unique[name] = min(max(float(loss), 0.0) / gain, 1.0)
+    return dependence, unique
+
+
 def fit_discrepancy(
     w: np.ndarray,
     resid: np.ndarray,
@@ -173,11 +210,7 @@ def fit_discrepancy(
         raise ValueError(
             f"condition_names has {len(condition_names)} names for w [N, {w.shape[1]}]"
         )
-    w_mean, w_std = w.mean(0), w.std(0)
-    inputs = tuple(
-        j for j in range(w.shape[1]) if w_std[j] > 1e-9 * max(abs(w_mean[j]), 1)
-    )
-    z = (w[:, inputs] - w_mean[list(inputs)]) / w_std[list(inputs)]
+    w_mean, w_std, inputs, z = _standardised_inputs(w)
     folds = _folds(groups, cfg.folds)
     degrees = cfg.degrees if inputs else (0,)
     grid = [(d, r) for d in degrees for r in cfg.ridges]
@@ -195,7 +228,6 @@ def fit_discrepancy(
         delta = _monomials(z, d) @ coef
         dependence, unique = {}, {}
         if gain > threshold:
-            full = cv[:, s].min()
 
             def sub(cols, degree, s=s, r=r):  # CV SSE of output s on some inputs
                 part = (
@@ -205,18 +237,10 @@ def fit_discrepancy(
                 )
                 return _cv_sse(z[:, cols], resid[:, [s]], folds, degree, r, part)[0]
 
-            const = sub([], 0)
-            # shares in [0, 1]: a sub-model's CV gain can exceed the selected full
-            # model's by the noise of cross-validation, which is no share above 1
-            dependence["constant"] = min(max(float(base[s] - const), 0.0) / gain, 1.0)
-            for k, j in enumerate(inputs):
-                alone = sub([k], d)
-                dependence[condition_names[j]] = min(
-                    max(float(const - alone), 0.0) / gain, 1.0
-                )
-                keep = [i for i in range(len(inputs)) if i != k]
-                loss = sub(keep, d) - full
-                unique[condition_names[j]] = min(max(float(loss), 0.0) / gain, 1.0)
+            names = [condition_names[j] for j in inputs]
+            dependence, unique = _gain_shares(
+                sub, names, d, base[s], cv[:, s].min(), gain
+            )
         sensors.append(
             SensorDiscrepancy(
                 name,

@@ -95,7 +95,7 @@ def extension_json(res, base_spec: str) -> dict:
 
 def write_extended(out_dir: str, res, base_spec: str) -> str:
     """Write ``extended_model.json`` into ``out_dir`` (atomically); its path."""
-    from jaxcal.atomic import write_atomic
+    from jaxcal.runs.atomic import write_atomic
 
     path = os.path.join(out_dir, "extended_model.json")
     spec = extension_json(res, base_spec)

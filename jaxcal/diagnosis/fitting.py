@@ -278,6 +278,33 @@ def schur_solve(
     return SchurSolution(du, dg, schur, reduction)
 
 
+def _evaluate_trial(model, data, lay, trial, offset, valid, ssr):
+    """The trial point's evaluation: its SSR first, its signatures only when it
+    lowers the SSR below ``ssr`` (those of a rejected point are never needed)."""
+    ev_t = evaluate_model(
+        model, data, lay, trial, offset=offset, valid=valid, columns=False
+    )
+    if is_accepted(ev_t.ssr, ssr) and ev_t.cols is None:
+        # the signatures too: a point where they overflow (a model with memory
+        # driven unstable along a tangent) is rejected like a worse one
+        ev_t = evaluate_model(model, data, lay, trial, offset=offset,
+                              valid=valid)  # fmt: skip
+    return ev_t
+
+
+def _global_covariance(stats, spec: ModelSpec, local_idx, global_idx) -> np.ndarray:
+    """``(J^T J)^-1`` of the shared terms in physical units, from the Schur
+    complement of the undamped system at the solution."""
+    final = schur_solve(stats, local_idx, global_idx)
+    scale = np.array([c.scale for c in spec.global_terms])
+    schur = 0.5 * (final.schur + final.schur.T)  # symmetric up to rounding
+    return (
+        np.asarray(inverse_psd(schur, rcond=1e-12)) * np.outer(scale, scale)
+        if global_idx.size
+        else np.zeros((0, 0))
+    )
+
+
 def fit_model(
     model: Model,
     data: LoopData,
@@ -328,14 +355,7 @@ def fit_model(
             params.unit_coef + step.local_step, params.global_coef + step.global_step
         )
         trial = _into_box(model, data, lay, params, trial, box)
-        ev_t = evaluate_model(
-            model, data, lay, trial, offset=offset, valid=valid, columns=False
-        )
-        if is_accepted(ev_t.ssr, ev.ssr) and ev_t.cols is None:
-            # the signatures too: a point where they overflow (a model with memory
-            # driven unstable along a tangent) is rejected like a worse one
-            ev_t = evaluate_model(model, data, lay, trial, offset=offset,
-                                  valid=valid)  # fmt: skip
+        ev_t = _evaluate_trial(model, data, lay, trial, offset, valid, ev.ssr)
         accepted = bool(is_accepted(ev_t.ssr, ev.ssr))
         damping = float(next_damping(damping, accepted, _DAMPING))
         if accepted:
@@ -347,14 +367,7 @@ def fit_model(
                 break
         elif damping > _GIVE_UP:
             break
-    final = schur_solve(stats, local_idx, global_idx)
-    scale = np.array([c.scale for c in spec.global_terms])
-    schur = 0.5 * (final.schur + final.schur.T)  # symmetric up to rounding
-    cov = (
-        np.asarray(inverse_psd(schur, rcond=1e-12)) * np.outer(scale, scale)
-        if global_idx.size
-        else np.zeros((0, 0))
-    )
+    cov = _global_covariance(stats, spec, local_idx, global_idx)
     return FitResult(
         spec, params, ev, lay, ev.ssr, num_params(data, spec, model),
         int(ev.used.sum()), selection_penalty(data, spec), cov, it, converged,

@@ -26,6 +26,9 @@
    Candidates whose projected signature keeps less than ``absorbed_frac`` of its norm
    are flagged *absorbed*: the declared parameters can mimic them, so they smear into
    theta instead of showing in the residual.
+
+An entry's evidence (price, p-value, BIC) and the screening of step 1 are in
+:mod:`.ranking`.
 """
 
 from __future__ import annotations
@@ -36,13 +39,18 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
-from scipy import stats as sps
-from scipy.special import gammaln
 
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.kinds import Candidate, nests
 from jaxcal.diagnosis.onsets import polish_onsets, refine_onsets
 from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.ranking import (  # noqa: F401 (log10_chi2_sf: re-exported)
+    RankEntry,
+    effect_sizes,
+    log10_chi2_sf,
+    rank_entry,
+    screened_singles,
+)
 from jaxcal.diagnosis.screen import (
     ONSET_GRID,
     ONSET_GRID_DYNAMIC,
@@ -79,27 +87,6 @@ class IdentifyConfig:
             raise ValueError("IdentifyConfig.forms: a subset of ('fleet', 'units')")
 
 
-class RankEntry(NamedTuple):
-    """One candidate model (a single effect in one form, or a pair) and its evidence."""
-
-    name: str  # members' labels joined by " + "
-    members: tuple[Candidate, ...]
-    df: int  # parameters added to the declared-only model
-    lr_stat: float  # SSR_0 - SSR_c (= 2 delta log-likelihood)
-    log10_p: float  # log10 of the chi2(df) tail probability of lr_stat
-    bic: float  # extended BIC (carriers' price included)
-    delta_bic: float  # BIC_0 - BIC_c, > 0 favours the candidate
-    sizes: tuple[float, ...]  # per member, physical units (mean over its carriers)
-    stds: tuple[float, ...]  # per member
-    refit: bool  # True: nonlinear joint refit; False: linearised screening
-    detectability: float  # projected / raw signature norm (singles; 1 for pairs)
-
-    @property
-    def member_names(self) -> tuple[str, ...]:
-        """The members' effect names (without their form)."""
-        return tuple(c.name for c in self.members)
-
-
 class Identification(NamedTuple):
     """Outcome of :func:`identify`."""
 
@@ -115,118 +102,6 @@ class Identification(NamedTuple):
     # the candidate no unit showed on its own with the largest summed unit score, on
     # every unit, and that sum: a basis for the noise model (pipeline), never a verdict
     near_miss: tuple = ()  # (Candidate, LR) or ()
-
-
-def log10_chi2_sf(x: float, df: int) -> float:
-    """log10 of the chi2(df) tail probability, finite far into the tail.
-
-    Where scipy's ``logsf`` underflows, the leading term of the asymptotic series of
-    the upper incomplete gamma function is used (Abramowitz & Stegun 6.5.32).
-    """
-    if df <= 0:
-        return 0.0
-    value = float(sps.chi2.logsf(x, df))
-    if not np.isfinite(value):
-        half = 0.5 * x
-        value = -half + (0.5 * df - 1.0) * np.log(half) - float(gammaln(0.5 * df))
-    return value / np.log(10.0)
-
-
-def _price(members: Sequence[Candidate], data: LoopData) -> tuple[int, float]:
-    """``(df, selection)`` of adding ``members``: coefficients (and onsets) and the
-    extended BIC's price of the units terms' carriers."""
-    df, sel, u = 0, 0.0, data.num_units
-    for c in members:
-        per = c.kind.num_free(data.num_candidate_knots)
-        if c.per_unit:
-            m = len(c.carriers)
-            df += per * m
-            sel += 2.0 * float(gammaln(u + 1) - gammaln(m + 1) - gammaln(u - m + 1))
-        else:
-            df += per
-    return df, sel
-
-
-def _entry(members, lr, null, data, sizes, stds, refit, detect) -> RankEntry:
-    df, sel = _price(members, data)
-    log_n = np.log(max(null.num_resid, 2))
-    bic = null.bic - lr + df * log_n + sel
-    return RankEntry(
-        " + ".join(c.label for c in members), tuple(members), df, float(lr),
-        log10_chi2_sf(lr, df), float(bic), float(null.bic - bic), tuple(sizes),
-        tuple(stds), refit, float(detect),
-    )  # fmt: skip
-
-
-def effect_sizes(fit: FitResult, members: Sequence[Candidate], data: LoopData):
-    """Physical sizes of the members of a fitted model and their standard errors.
-
-    A fleet term: its value and standard error (inflated by the residual variance
-    factor when that exceeds 1). A units term: the mean over its carriers (a spline:
-    of the departure from nominal at each carrier's last row) and the standard error
-    of that mean across them (NaN with one carrier).
-    """
-    s2 = max(1.0, fit.ssr / max(fit.num_resid - fit.num_params, 1))
-    glob = fit.spec.global_terms
-    sizes, stds = [], []
-    last = data.starts[1:] - 1
-    for c in members:
-        if not c.per_unit:
-            g = [t.key for t in glob].index(c.key)
-            sizes.append(float(fit.term_values(c)[0]))
-            stds.append(float(np.sqrt(fit.global_cov[g, g] * s2)))
-            continue
-        carriers = np.asarray(c.carriers, int)
-        if c.kind.channel == "parameter" and c.kind.profile == "spline":
-            j = data.parameter_names.index(c.target)
-            vals = fit.evaluation.theta[last[carriers], j] - data.parameter_nominal[j]
-        else:
-            vals = fit.term_values(c)[carriers, 0]
-        sizes.append(float(np.mean(vals)))
-        spread = np.std(vals) / np.sqrt(vals.size) if vals.size > 1 else np.nan
-        stds.append(float(spread))
-    return sizes, stds
-
-
-def _singles(screen: Screen, library, null, data, forms=("fleet", "units")):
-    """Every library candidate in each of its forms, screened; and the near miss
-    (:class:`Identification`)."""
-    out, onset_ci, near = [], {}, ()
-    for cand in library:
-        if "units" not in forms and not cand.kind.fleet:
-            if cand.kind.profile == "step":
-                continue
-            every = cand.with_form("units", range(data.num_units))
-            lr = float(screen.unit_scores(cand).lr.sum())
-            det = screen.detectability(every)
-            out.append(_entry([every], lr, null, data, [np.nan], [np.nan], False, det))
-            continue
-        detect = screen.detectability(
-            cand.with_form("units", range(data.num_units))
-            if cand.kind.profile == "step" or not cand.kind.fleet
-            else cand
-        )
-        if cand.kind.fleet:
-            lr, coef, var = screen.fleet_score(cand)
-            fleet = cand.with_form("fleet")
-            out.append(_entry([fleet], lr, null, data, [cand.scale * coef],
-                              [cand.scale * np.sqrt(var)], False, detect))  # fmt: skip
-        if "units" not in forms:
-            continue
-        units, scores = screen.units_form(cand)
-        if cand.kind.profile == "step":
-            onset_ci[cand.name] = scores.onset_ci
-        total = float(np.sum(scores.lr))
-        if units is None and total > (near[1] if near else 0.0):
-            every = range(data.num_units)
-            onsets = scores.onset if cand.kind.profile == "step" else ()
-            near = (cand.with_form("units", every, onsets), total)
-        if units is not None:
-            carriers = list(units.carriers)
-            lr = float(scores.lr[carriers].sum())
-            size = cand.scale * float(np.nanmean(scores.estimate[carriers]))
-            out.append(_entry([units], lr, null, data, [size], [np.nan], False, detect))
-    return out, onset_ci, near
 
 
 def _profile_onsets(model, data, declared, members, fit, offset, cfg):
@@ -259,6 +134,108 @@ def _profile_onsets(model, data, declared, members, fit, offset, cfg):
     return members, fit, intervals
 
 
+def _pairs_to_test(screen: Screen, singles, cfg: IdentifyConfig) -> list[tuple]:
+    """Pairs of the best ``pair_top`` effects (the best form of each, ``singles``
+    sorted by BIC) whose members do not reproduce each other's signature."""
+    top = []
+    for e in singles:  # the best form of each of the best effects
+        if all(e.members[0].name != t.members[0].name for t in top):
+            top.append(e)
+        if len(top) >= cfg.pair_top:
+            break
+    return [
+        (a.members[0], b.members[0])
+        for a, b in itertools.combinations(top, 2)
+        if max(screen.overlap(a.members[0], b.members[0]),
+               screen.overlap(b.members[0], a.members[0])) < cfg.confound_r2
+    ]  # fmt: skip
+
+
+@dataclasses.dataclass
+class _Refits:
+    """Joint nonlinear refits of ranked entries with the declared parameters: each
+    replaces its linearised entry in ``entries`` and keeps its fit and the profiled
+    onset intervals of its steps."""
+
+    model: Model
+    data: LoopData
+    declared: Sequence[str]
+    null: FitResult
+    offset: np.ndarray | None
+    cfg: IdentifyConfig
+    entries: dict  # entry name -> RankEntry, updated in place
+    fits: dict = dataclasses.field(default_factory=dict)  # entry name -> FitResult
+    onset_ci: dict = dataclasses.field(default_factory=dict)  # name -> {step: [U, 2]}
+
+    def refit(self, members) -> None:
+        """Refit ``members`` and replace their entry."""
+        model, data, null = self.model, self.data, self.null
+        spec = spec_for(self.declared, members, null.spec.initial_state)
+        fit = fit_model(
+            model, data, spec, init_from(null, model, data, spec), offset=self.offset,
+            max_iters=self.cfg.max_iters,
+        )  # fmt: skip
+        name = " + ".join(c.label for c in members)
+        members, fit, self.onset_ci[name] = _profile_onsets(
+            model, data, self.declared, members, fit, self.offset, self.cfg
+        )
+        self.fits[name] = fit
+        sizes, stds = effect_sizes(fit, members, data)
+        old = self.entries[name]
+        self.entries[name] = rank_entry(members, null.ssr - fit.ssr, null, data, sizes,
+                                    stds, True, old.detectability)  # fmt: skip
+
+
+def _winner(ranking, entries: dict, fits: dict, num_tests: int, cfg: IdentifyConfig):
+    """The best refitted entry when it is significant (``bic_margin`` and the
+    Bonferroni p-value), a pair only when it beats the best single by the margin;
+    ``None`` otherwise."""
+    threshold = np.log10(cfg.alpha / max(num_tests, 1))
+    winner = ranking[0] if ranking else None  # empty: no unit shows any candidate
+    best_single = min(
+        (e for e in entries.values() if len(e.members) == 1 and e.refit),
+        key=lambda e: e.bic,
+        default=None,
+    )
+    if winner is not None and len(winner.members) > 1 and best_single is not None:
+        if winner.bic > best_single.bic - cfg.bic_margin:
+            winner = best_single
+    significant = (
+        winner is not None
+        and winner.delta_bic >= cfg.bic_margin
+        and winner.log10_p < threshold
+    )
+    if not significant or winner.name not in fits:
+        return None
+    return winner
+
+
+def _confounded_with(winner, singles, entries: dict, screen: Screen, cfg) -> list:
+    """Candidates confounded with each member of ``winner`` (module docstring, 4):
+    within the margin of it, by the BIC or the LR statistic, and reproducing at
+    least ``confound_r2`` of its signature; nested candidates are not rivals."""
+    confounded = []
+    for m in winner.members:
+        group = [m.name]
+        for e in singles:
+            other = e.members[0]
+            if other.name in winner.member_names or other.name in group:
+                continue
+            if nests(other, m) or nests(m, other):
+                continue
+            e = entries.get(e.name, e)  # the refitted numbers where there are
+            if (
+                e.bic > winner.bic + cfg.bic_margin
+                and e.lr_stat < winner.lr_stat - cfg.bic_margin
+            ):
+                continue  # worse by the margin, penalised and unpenalised
+            if screen.overlap(m, other) >= cfg.confound_r2:
+                group.append(other.name)
+        if len(group) > 1:
+            confounded.extend(g for g in group if g not in confounded)
+    return confounded
+
+
 def identify(
     model: Model,
     data: LoopData,
@@ -284,97 +261,37 @@ def identify(
         :class:`Identification`.
     """
     screen = Screen(model, data, library, null)
-    singles, onset_ci, near_miss = _singles(screen, library, null, data, cfg.forms)
+    singles, onset_ci, near_miss = screened_singles(
+        screen, library, null, data, cfg.forms
+    )
     singles.sort(key=lambda e: e.bic)
     entries = {e.name: e for e in singles}
-    top = []
-    for e in singles:  # the best form of each of the best effects
-        if all(e.members[0].name != t.members[0].name for t in top):
-            top.append(e)
-        if len(top) >= cfg.pair_top:
-            break
-    pairs = [
-        (a.members[0], b.members[0])
-        for a, b in itertools.combinations(top, 2)
-        if max(screen.overlap(a.members[0], b.members[0]),
-               screen.overlap(b.members[0], a.members[0])) < cfg.confound_r2
-    ]  # fmt: skip
+    pairs = _pairs_to_test(screen, singles, cfg)
     for pair in pairs:
         lr = screen.joint(pair)[0]
-        e = _entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
+        e = rank_entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
-    fits = {}
-    initial_state = null.spec.initial_state
-
-    refined_ci = {}  # entry name -> {step name: [U, 2] profiled onset interval}
-
-    def refit(members):
-        spec = spec_for(declared, members, initial_state)
-        fit = fit_model(
-            model, data, spec, init_from(null, model, data, spec), offset=offset,
-            max_iters=cfg.max_iters,
-        )  # fmt: skip
-        name = " + ".join(c.label for c in members)
-        members, fit, refined_ci[name] = _profile_onsets(
-            model, data, declared, members, fit, offset, cfg
-        )
-        fits[name] = fit
-        sizes, stds = effect_sizes(fit, members, data)
-        old = entries[name]
-        entries[name] = _entry(members, null.ssr - fit.ssr, null, data, sizes, stds,
-                               True, old.detectability)  # fmt: skip
-
+    refits = _Refits(model, data, declared, null, offset, cfg, entries)
     for e in singles[: cfg.top_k]:
-        refit(list(e.members))
+        refits.refit(list(e.members))
     for pair in pairs:
-        refit(list(pair))
+        refits.refit(list(pair))
     ranking = sorted(entries.values(), key=lambda e: e.bic)
     for _ in range(cfg.top_k):  # a linearised score may have ranked a model too low
         if not ranking or ranking[0].refit:
             break
-        refit(list(ranking[0].members))
+        refits.refit(list(ranking[0].members))
         ranking = sorted(entries.values(), key=lambda e: e.bic)
     num_tests = len(singles) + len(pairs)
-    threshold = np.log10(cfg.alpha / max(num_tests, 1))
-
-    def significant(e):
-        return e.delta_bic >= cfg.bic_margin and e.log10_p < threshold
-
-    winner = ranking[0] if ranking else None  # empty: no unit shows any candidate
-    best_single = min(
-        (e for e in entries.values() if len(e.members) == 1 and e.refit),
-        key=lambda e: e.bic,
-        default=None,
-    )
-    if winner is not None and len(winner.members) > 1 and best_single is not None:
-        if winner.bic > best_single.bic - cfg.bic_margin:
-            winner = best_single
-    if winner is None or not significant(winner) or winner.name not in fits:
-        winner = None
+    fits = refits.fits
+    winner = _winner(ranking, entries, fits, num_tests, cfg)
     absorbed = sorted({e.members[0].name for e in singles
                        if e.detectability < cfg.absorbed_frac})  # fmt: skip
     confounded = []
     if winner is not None:
-        for m in winner.members:
-            group = [m.name]
-            for e in singles:
-                other = e.members[0]
-                if other.name in winner.member_names or other.name in group:
-                    continue
-                if nests(other, m) or nests(m, other):
-                    continue
-                e = entries.get(e.name, e)  # the refitted numbers where there are
-                if (
-                    e.bic > winner.bic + cfg.bic_margin
-                    and e.lr_stat < winner.lr_stat - cfg.bic_margin
-                ):
-                    continue  # worse by the margin, penalised and unpenalised
-                if screen.overlap(m, other) >= cfg.confound_r2:
-                    group.append(other.name)
-            if len(group) > 1:
-                confounded.extend(g for g in group if g not in confounded)
-    if winner is not None:  # the winner's onsets were profiled at its own fit
-        onset_ci.update(refined_ci.get(winner.name, {}))
+        confounded = _confounded_with(winner, singles, entries, screen, cfg)
+        # the winner's onsets were profiled at its own fit
+        onset_ci.update(refits.onset_ci.get(winner.name, {}))
     return Identification(
         null, ranking, winner, None if winner is None else fits[winner.name],
         confounded, absorbed, num_tests, fits, onset_ci, near_miss,

@@ -1,12 +1,10 @@
-"""The human-readable page of a diagnosis (report.md) and its one-line summaries.
+"""The human-readable page of a diagnosis (report.md).
 
-Pure text from the report dict of :mod:`.report` (no plotting), so a console line
-(:mod:`jaxcal.diagnose`, experiments/loop_cmapss.py) can use the same wording. Numbers
-are printed so that they cannot mislead: a standard error that could not be estimated
-is "n/a", never "0" (:func:`fmt_std`); a p-value far in the tail is "< 1e-16", never
-"0" or a denormal (:func:`fmt_p`); the verdict carries its plausibility flags
-(:func:`verdict_line`); each added effect gets its per-unit table, carriers listed and
-the rest counted (:func:`render_markdown`).
+Pure text from the report dict of :mod:`.report` (no plotting). :func:`render_markdown`
+assembles the page from one function per section; numbers and one-line summaries are
+worded by :mod:`.formatting` (re-exported here), so a console line (:mod:`jaxcal.cli.
+diagnose`, experiments/loop_cmapss.py) reads the same. Each added effect gets its
+per-unit table, carriers listed and the rest counted (:func:`_unit_table`).
 """
 
 from __future__ import annotations
@@ -15,61 +13,14 @@ import math
 
 import numpy as np
 
-
-def dropped_rows_line(dropped: dict) -> str:
-    """``{"rows", "columns"}`` of the report as one sentence (no final stop);
-    ``rows`` is ``None`` when the reader did not count them."""
-    per_column = ", ".join(f"{k}: {v}" for k, v in dropped["columns"].items())
-    count = "" if dropped["rows"] is None else f"{dropped['rows']} "
-    return (
-        f"Dropped {count}rows with NaN or Inf values before the fit "
-        f"(rows per column: {per_column})"
-    )
-
-
-def _fmt(v, digits=4):
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return str(v)
-
-
-def fmt_std(v, digits=2) -> str:
-    """A standard error; never "0": one that could not be estimated is "n/a"."""
-    if v is None or not math.isfinite(v) or v <= 0:
-        return "n/a"
-    return f"{v:.{digits}g}"
-
-
-P_FLOOR = 1e-16  # below this a p-value says only "far in the tail" (model error rules)
-
-
-def fmt_p(p) -> str:
-    """A p-value: ``< 1e-16`` far in the tail, never 0 or a denormal."""
-    if p is None or not math.isfinite(p):
-        return "–"
-    return f"< {P_FLOOR:.0e}" if p < P_FLOOR else f"{p:.2g}"
-
-
-def effect_line(e: dict, num_units: int | None = None) -> str:
-    """``name = size ± std unit`` (with the carriers when known), for one-line use."""
-    form = " (per unit)" if e.get("form") == "units" else ""
-    text = f"{e['name']}{form} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
-    if num_units is not None and "carriers" in e:
-        text += f" (carried by {e['carriers']} of {num_units} units)"
-    return text
-
-
-def verdict_line(rep: dict) -> str:
-    """The verdict with its plausibility flags."""
-    text = f"**Verdict: {rep['verdict']}"
-    flags = rep.get("flags") or []
-    if flags:
-        kinds = sorted({f"{f['flag']} ({f['subject']})" for f in flags})
-        text += " — FLAGGED: " + "; ".join(kinds)
-    return text + ".**"
-
+from jaxcal.diagnosis.formatting import (  # noqa: F401 (re-exported: the wording)
+    dropped_rows_line,
+    effect_line,
+    fmt_p,
+    fmt_std,
+    verdict_line,
+)
+from jaxcal.diagnosis.formatting import fmt_value as _fmt  # short: many cells
 
 MAX_UNIT_ROWS = 100  # carriers listed in report.md (all are in report.json)
 
@@ -147,10 +98,10 @@ def _noise_lines(noise: dict, units: dict) -> list[str]:
     return lines + [""]
 
 
-def render_markdown(rep: dict) -> str:
-    """The human-readable page of a report dict."""
+def _header_lines(rep: dict) -> list[str]:
+    """Title, the data in one paragraph, the verdict; then the noise model, the
+    dropped rows and the excluded outputs when the report has them."""
     d = rep["data"]
-    units = d.get("units_of") or {}
     lines = [
         f"# Diagnosis: {rep['source'] or 'record'}",
         "",
@@ -164,7 +115,7 @@ def render_markdown(rep: dict) -> str:
         "",
     ]
     if d.get("noise"):
-        lines += _noise_lines(d["noise"], units)
+        lines += _noise_lines(d["noise"], d.get("units_of") or {})
     dropped = d.get("dropped") or {}
     if dropped.get("rows") or dropped.get("columns"):
         lines += [dropped_rows_line(dropped) + ".", ""]
@@ -175,8 +126,14 @@ def render_markdown(rep: dict) -> str:
             + ".",
             "",
         ]
+    return lines
+
+
+def _plausibility_lines(rep: dict) -> list[str]:
+    """The plausibility flags (or the sentence that there are none), then the
+    fallback note when the loop fell back."""
     flags = rep.get("flags") or []
-    lines += ["## Plausibility", ""]
+    lines = ["## Plausibility", ""]
     if flags:
         lines += [f"- **{f['flag']}** ({f['subject']}): {f['detail']}." for f in flags]
     else:
@@ -188,6 +145,13 @@ def render_markdown(rep: dict) -> str:
     lines.append("")
     if rep.get("fallback_note"):
         lines += [f"Fallback: {rep['fallback_note']}.", ""]
+    return lines
+
+
+def _identified_lines(rep: dict) -> list[str]:
+    """The identified effects' table, each effect's per-unit table after it, and the
+    confounded set."""
+    lines = []
     if rep["identified"]:
         lines += [
             "## Identified effect",
@@ -203,7 +167,7 @@ def render_markdown(rep: dict) -> str:
         lines += [
             f"| {e['name']} | {_fmt(e['size'])} | {fmt_std(e['std'])} | {e['unit']} "
             f"| {_fmt(e.get('start_value'))} / {_fmt(e.get('end_value'))} "
-            f"| {e.get('carriers', '–')} of {d['units']} |"
+            f"| {e.get('carriers', '–')} of {rep['data']['units']} |"
             for e in rep["identified"]
         ]
         lines.append("")
@@ -216,34 +180,45 @@ def render_markdown(rep: dict) -> str:
             f"{', '.join(rep['confounded'])}. The first stands in for the set.",
             "",
         ]
-    if rep["discrepancy"]:
-        lines += [
-            "## Discrepancy delta(w) (not explained by the library)",
-            "",
-            "Shares of the cross-validated gain: *alone* = an offset only "
-            "(constant), or what delta on that input alone adds to the offset; "
-            "*unique* = lost when the input is dropped from the full delta.",
-            "",
-            "| sensor | std of delta | mean of delta | CV gain / threshold | "
-            "alone | unique |",
-            "|---|---|---|---|---|---|",
-        ]
-        for s in rep["discrepancy"]:
-            dep, uni = (
-                ", ".join(
-                    f"{k} {v:.2f}"
-                    for k, v in sorted(s[key].items(), key=lambda kv: -kv[1])
-                )
-                for key in ("dependence", "unique")
+    return lines
+
+
+def _discrepancy_lines(rep: dict) -> list[str]:
+    """The discrepancy delta(w) per sensor, with what it depends on (none: no lines)."""
+    if not rep["discrepancy"]:
+        return []
+    units = rep["data"].get("units_of") or {}
+    lines = [
+        "## Discrepancy delta(w) (not explained by the library)",
+        "",
+        "Shares of the cross-validated gain: *alone* = an offset only "
+        "(constant), or what delta on that input alone adds to the offset; "
+        "*unique* = lost when the input is dropped from the full delta.",
+        "",
+        "| sensor | std of delta | mean of delta | CV gain / threshold | "
+        "alone | unique |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in rep["discrepancy"]:
+        dep, uni = (
+            ", ".join(
+                f"{k} {v:.2f}" for k, v in sorted(s[key].items(), key=lambda kv: -kv[1])
             )
-            lines.append(
-                f"| {s['sensor']} [{units.get(s['sensor'], '-')}] | "
-                f"{_fmt(s['amplitude_units'])} | "
-                f"{_fmt(s['mean_units'])} | {s['cv_gain']:.0f} / "
-                f"{s['threshold']:.0f} | {dep} | {uni} |"
-            )
-        lines.append("")
-    lines += [
+            for key in ("dependence", "unique")
+        )
+        lines.append(
+            f"| {s['sensor']} [{units.get(s['sensor'], '-')}] | "
+            f"{_fmt(s['amplitude_units'])} | "
+            f"{_fmt(s['mean_units'])} | {s['cv_gain']:.0f} / "
+            f"{s['threshold']:.0f} | {dep} | {uni} |"
+        )
+    lines.append("")
+    return lines
+
+
+def _ranking_lines(rep: dict) -> list[str]:
+    """The first ten candidates of the ranking and the absorbed ones."""
+    lines = [
         "## Ranking (declared-only residual)",
         "",
         f"{rep['num_tests']} tests; delta BIC > 0 favours the candidate over the "
@@ -267,8 +242,14 @@ def render_markdown(rep: dict) -> str:
             + ", ".join(rep["absorbed"])
             + ".",
         ]
-    b, a = rep["before"], rep["after"]
-    lines += [
+    return lines
+
+
+def _before_after_lines(rep: dict) -> list[str]:
+    """What was added and the errors before and after, per output."""
+    d, b, a = rep["data"], rep["before"], rep["after"]
+    units = d.get("units_of") or {}
+    lines = [
         "",
         "## Before / after",
         "",
@@ -289,6 +270,13 @@ def render_markdown(rep: dict) -> str:
             f"{b['tracking_rmse_norm'][s]:.3f} | {a['tracking_rmse_norm'][s]:.3f} | "
             f"{fmt_p(b['whiteness_p'][s])} | {fmt_p(a['whiteness_p'][s])} |"
         )
+    return lines
+
+
+def _closing_lines(rep: dict) -> list[str]:
+    """The extended model, theta errors against a known truth, the truth itself and
+    the figures: each only when the report has it."""
+    lines = []
     ext = rep.get("extended_model")
     if ext:
         where = (
@@ -304,6 +292,7 @@ def render_markdown(rep: dict) -> str:
             f"declared ones and each added effect, tracked in real time by any "
             f"method. In {where}.",
         ]
+    b, a = rep["before"], rep["after"]
     if b["theta_rmse"]:
         lines += ["", "| theta RMSE vs truth | before | after |", "|---|---|---|"]
         for k in a["theta_rmse"]:
@@ -318,4 +307,18 @@ def render_markdown(rep: dict) -> str:
     if rep.get("figures"):
         lines += ["", "## Figures", ""]
         lines += [f"![{k}]({v})" for k, v in rep["figures"].items()]
+    return lines
+
+
+def render_markdown(rep: dict) -> str:
+    """The human-readable page of a report dict, its sections in reading order."""
+    lines = [
+        *_header_lines(rep),
+        *_plausibility_lines(rep),
+        *_identified_lines(rep),
+        *_discrepancy_lines(rep),
+        *_ranking_lines(rep),
+        *_before_after_lines(rep),
+        *_closing_lines(rep),
+    ]
     return "\n".join(lines) + "\n"

@@ -51,17 +51,13 @@ from jaxcal.diagnosis.cleaning import drop_outliers
 from jaxcal.diagnosis.discrepancy import Discrepancy, DiscrepancyConfig
 from jaxcal.diagnosis.fallback import fallback
 from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.identify import (
-    Identification,
-    IdentifyConfig,
-    effect_sizes,
-    identify,
-)
+from jaxcal.diagnosis.identify import Identification, IdentifyConfig, identify
 from jaxcal.diagnosis.kinds import Candidate, build_library
 from jaxcal.diagnosis.noise import MAX_ORDER, ljung_box_p
 from jaxcal.diagnosis.noise_fit import fit_noise, quantised
 from jaxcal.diagnosis.plausibility import plausibility_flags
 from jaxcal.diagnosis.prepare import LoopData, prepare_data
+from jaxcal.diagnosis.ranking import effect_sizes
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import init_from, spec_for
 from jaxcal.diagnosis.terms import ModelSpec
@@ -254,14 +250,7 @@ def diagnose(
     Returns:
         :class:`DiagnosisResult`.
     """
-    if not isinstance(model, Model):
-        from jaxcal.models import load
-
-        model = load(model)
-    declared = tuple(declared)
-    if not declared or len(set(declared)) != len(declared):
-        raise ValueError(f"calibrate must name distinct parameters, got {declared}")
-    model.parameter_index(declared)
+    model, declared = _checked_request(model, declared)
     dataset, dropped_rows = _as_dataset(data)
     data = prepare_data(
         dataset, model, sensors=sensors, units=units, max_rows=max_rows,
@@ -269,18 +258,7 @@ def diagnose(
         dropped_rows=dropped_rows,
     )  # fmt: skip
     spec0 = ModelSpec(declared, initial_state=model.is_stateful)
-    null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
-    if not null.evaluation.valid.all():
-        bad = int(np.sum(~null.evaluation.valid))
-        note = (
-            f"{bad} rows left out: the model is invalid there (did not converge or "
-            "inputs outside its range)"
-        )
-        keep = null.evaluation.valid
-        data = data.mask_rows(keep, note) if model.is_stateful else data.take_rows(
-            keep, note
-        )  # fmt: skip
-        null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
+    data, null = _valid_rows_fit(model, data, spec0, cfg)
     data, null = drop_outliers(model, data, spec0, null, cfg)
     given = None if noise_std is None else data.noise_std
     for _ in range(NOISE_ROUNDS):  # the fit and its noise model, to a fixed point
@@ -291,10 +269,7 @@ def diagnose(
     library = _library(model, data, declared, cfg)
     ident = identify(model, data, declared, library, cfg.identify, null)
     for _ in range(cfg.noise_passes - 1):
-        if ident.winner is not None:
-            basis = _winner_basis(ident, cfg.identify.bic_margin)
-        else:
-            basis = _best_fit(model, data, declared, ident, null, cfg)
+        basis = _noise_basis(model, data, declared, ident, null, cfg)
         if basis is None:
             break
         refit = _fit_noise(data, basis, given, cfg)
@@ -307,6 +282,47 @@ def diagnose(
         library = _library(model, data, declared, cfg)
         ident = identify(model, data, declared, library, cfg.identify, null)
     return _finish(model, data, declared, library, ident, null, cfg)
+
+
+def _checked_request(model: Model | str, declared) -> tuple[Model, tuple[str, ...]]:
+    """The model (a ``jaxcal.models.load`` spec loaded) and the declared parameters,
+    which must be distinct parameters of it."""
+    if not isinstance(model, Model):
+        from jaxcal.models import load
+
+        model = load(model)
+    declared = tuple(declared)
+    if not declared or len(set(declared)) != len(declared):
+        raise ValueError(f"calibrate must name distinct parameters, got {declared}")
+    model.parameter_index(declared)
+    return model, declared
+
+
+def _valid_rows_fit(model: Model, data: LoopData, spec0: ModelSpec, cfg):
+    """The declared-only fit, refitted without the rows where the model is invalid
+    (masked for a model with memory, whose states run through them): ``(data,
+    fit)``."""
+    null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
+    if not null.evaluation.valid.all():
+        bad = int(np.sum(~null.evaluation.valid))
+        note = (
+            f"{bad} rows left out: the model is invalid there (did not converge or "
+            "inputs outside its range)"
+        )
+        keep = null.evaluation.valid
+        data = data.mask_rows(keep, note) if model.is_stateful else data.take_rows(
+            keep, note
+        )  # fmt: skip
+        null = fit_model(model, data, spec0, max_iters=cfg.max_iters)
+    return data, null
+
+
+def _noise_basis(model, data, declared, ident: Identification, null, cfg):
+    """The fit the next noise pass estimates the noise on: the winner's, else the
+    best fit of a near miss (``None``: no pass is needed)."""
+    if ident.winner is not None:
+        return _winner_basis(ident, cfg.identify.bic_margin)
+    return _best_fit(model, data, declared, ident, null, cfg)
 
 
 def _winner_basis(ident: Identification, margin: float) -> FitResult:

@@ -113,67 +113,90 @@ def plausibility_flags(
         rmse_before, rmse_after: ``[S]`` tracking RMSE per output.
         alpha: level of the band (``z_band`` at ``alpha / U``, two-sided).
     """
-    flags = []
     z_band = float(sps.norm.isf(alpha / (2.0 * max(data.num_units, 1))))
     bounds = {p.name: p for p in (*model.parameters, *model.effects)}
+    flags = []
     for name, value in after.value.items():  # per-unit parameters (theta - nominal)
-        p = bounds[name]
-        theta = p.nominal + value
-        band = z_band * after.std[name]  # a value at a bound within noise is fine
-        out = _per_unit_any(data, (theta < p.low - band) | (theta > p.high + band))
-        if out.any():
-            worst = value[np.argmax(np.abs(value))]
+        flags += _parameter_flags(
+            model, data, name, value, declared, after, before, bounds[name], z_band
+        )
+    flags += _constant_from_start_flags(model, data, unit_effects, members, z_band)
+    flags += _effect_bound_flags(members, effect_values, bounds)
+    flags += _sensor_worse_flags(data, rmse_before, rmse_after)
+    return flags
+
+
+def _parameter_flags(model, data, name, value, declared, after, before, p, z_band):
+    """``outside_bounds``, ``better_than_new`` and ``declared_against_sign`` of one
+    per-unit parameter (``value`` = theta - nominal, ``[N]``)."""
+    flags = []
+    theta = p.nominal + value
+    band = z_band * after.std[name]  # a value at a bound within noise is fine
+    out = _per_unit_any(data, (theta < p.low - band) | (theta > p.high + band))
+    if out.any():
+        worst = value[np.argmax(np.abs(value))]
+        flags.append(_flag(
+            "outside_bounds", name,
+            f"{name} leaves its range [{p.low:g}, {p.high:g}] in {out.sum()} "
+            f"unit(s) (departure up to {worst:+.4g})", _ids(data, out),
+        ))  # fmt: skip
+    sign = degradation_sign(model, name)
+    if sign == 0:
+        return flags
+    floor = 0.5 * natural_scale(model, name)
+    wrong = -sign * value
+    rows = (wrong > z_band * after.std[name]) & (wrong > floor)
+    bad = _per_unit_any(data, rows)
+    if bad.any():
+        flags.append(_flag(
+            "better_than_new", name,
+            f"{name} is better than new (the wrong side of nominal by up to "
+            f"{-sign * wrong.max():+.4g}, beyond its band) in {bad.sum()} of "
+            f"{data.num_units} units", _ids(data, bad),
+        ))  # fmt: skip
+    if name in declared and name in before.value:
+        moved = _improves(data, value, after.std[name], sign, z_band, floor)
+        was = _improves(data, before.value[name], before.std[name], sign, z_band, floor)
+        if moved.any():
             flags.append(_flag(
-                "outside_bounds", name,
-                f"{name} leaves its range [{p.low:g}, {p.high:g}] in {out.sum()} "
-                f"unit(s) (departure up to {worst:+.4g})", _ids(data, out),
+                "declared_against_sign", name,
+                f"after the extension the declared {name} improves over the "
+                f"unit's life (against its direction of wear) in {moved.sum()} "
+                f"of {data.num_units} units (before the extension: {was.sum()})",
+                _ids(data, moved),
             ))  # fmt: skip
-        sign = degradation_sign(model, name)
-        if sign == 0:
-            continue
-        floor = 0.5 * natural_scale(model, name)
-        wrong = -sign * value
-        rows = (wrong > z_band * after.std[name]) & (wrong > floor)
-        bad = _per_unit_any(data, rows)
-        if bad.any():
-            flags.append(_flag(
-                "better_than_new", name,
-                f"{name} is better than new (the wrong side of nominal by up to "
-                f"{-sign * wrong.max():+.4g}, beyond its band) in {bad.sum()} of "
-                f"{data.num_units} units", _ids(data, bad),
-            ))  # fmt: skip
-        if name in declared and name in before.value:
-            moved = _improves(data, value, after.std[name], sign, z_band, floor)
-            was = _improves(
-                data, before.value[name], before.std[name], sign, z_band, floor
-            )
-            if moved.any():
-                flags.append(_flag(
-                    "declared_against_sign", name,
-                    f"after the extension the declared {name} improves over the "
-                    f"unit's life (against its direction of wear) in {moved.sum()} "
-                    f"of {data.num_units} units (before the extension: {was.sum()})",
-                    _ids(data, moved),
-                ))  # fmt: skip
+    return flags
+
+
+def _constant_from_start_flags(model, data, unit_effects, members, z_band) -> list:
+    """``constant_from_start`` of the added effects whose kind has the rule."""
+    flags = []
     by_name = {c.name: c for c in members}
     for eff in unit_effects:
         target, cand = eff.name, by_name[eff.name]
-        if "constant_from_start" in cand.kind.rules:
-            step = natural_scale(model, cand.target)
-            start, end = eff.start_value, eff.start_value + eff.size
-            const = (
-                (np.abs(start) > z_band * eff.start_std)
-                & (np.abs(start) >= 0.5 * step)
-                & (np.abs(start) >= 0.5 * np.abs(end))
-            )
-            if const.any():
-                flags.append(_flag(
-                    "constant_from_start", target,
-                    f"{target} is already {np.median(start[const]):+.4g} (median) at "
-                    f"the first cycle in {const.sum()} of {data.num_units} units: a "
-                    "departure present from day one, not wear",
-                    _ids(data, const),
-                ))  # fmt: skip
+        if "constant_from_start" not in cand.kind.rules:
+            continue
+        step = natural_scale(model, cand.target)
+        start, end = eff.start_value, eff.start_value + eff.size
+        const = (
+            (np.abs(start) > z_band * eff.start_std)
+            & (np.abs(start) >= 0.5 * step)
+            & (np.abs(start) >= 0.5 * np.abs(end))
+        )
+        if const.any():
+            flags.append(_flag(
+                "constant_from_start", target,
+                f"{target} is already {np.median(start[const]):+.4g} (median) at "
+                f"the first cycle in {const.sum()} of {data.num_units} units: a "
+                "departure present from day one, not wear",
+                _ids(data, const),
+            ))  # fmt: skip
+    return flags
+
+
+def _effect_bound_flags(members, effect_values: dict, bounds: dict) -> list:
+    """``outside_bounds`` of the added registered effects (their stated range)."""
+    flags = []
     for cand in members:
         if cand.kind.channel != "effect" or cand.target not in bounds:
             continue
@@ -186,12 +209,19 @@ def plausibility_flags(
                 f"{cand.name} = {bad[np.argmax(np.abs(bad))]:.4g} lies outside its "
                 f"range [{p.low:g}, {p.high:g}]",
             ))  # fmt: skip
+    return flags
+
+
+def _sensor_worse_flags(data, rmse_before, rmse_after) -> list:
+    """``sensor_worse``: RMSE up by more than its sampling spread (and at least
+    :data:`WORSE_FRACTION`)."""
     margin = max(WORSE_FRACTION, 3.0 / np.sqrt(2.0 * max(data.num_rows, 1)))
     worse = rmse_after > rmse_before * (1.0 + margin)
-    for s in np.flatnonzero(worse):
-        flags.append(_flag(
+    return [
+        _flag(
             "sensor_worse", data.sensor_names[s],
             f"{data.sensor_names[s]} tracks worse after the extension: RMSE "
             f"{rmse_before[s]:.4g} -> {rmse_after[s]:.4g}",
-        ))  # fmt: skip
-    return flags
+        )
+        for s in np.flatnonzero(worse)
+    ]  # fmt: skip

@@ -21,19 +21,19 @@ import os
 import numpy as np
 from matplotlib.figure import Figure
 
-from jaxcal.atomic import write_atomic
 from jaxcal.diagnosis.extended import added_parameters, write_extended
 from jaxcal.diagnosis.identify import Identification
 from jaxcal.diagnosis.markdown import render_markdown
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
 from jaxcal.diagnosis.residuals import summary_table
 from jaxcal.plotting import plot_stacked_traces, save_figure
+from jaxcal.runs.atomic import write_atomic
 
 MAX_RANKING = 20  # ranking rows written to the report
 
 
 def write_text(path: str, text: str) -> str:
-    """Write ``text`` to ``path`` atomically (:func:`jaxcal.atomic.write_atomic`)."""
+    """Write ``text`` to ``path`` atomically (``runs.atomic.write_atomic``)."""
     return str(write_atomic(path, text))
 
 

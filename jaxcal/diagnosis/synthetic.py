@@ -44,6 +44,7 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.kinds import KINDS, TAU_CYCLES, natural_scale, offset_conditions
 from jaxcal.diagnosis.prepare import DEFAULT_NOISE_REL
 from jaxcal.diagnosis.signatures import signatures, zero_inputs
+from jaxcal.diagnosis.synthetic_effects import add_bump, apply_effect, kind_of
 from jaxcal.model import Model
 from jaxcal.typedefs import PRNGKey
 
@@ -60,15 +61,6 @@ def kinds(model: Model) -> tuple[str, ...]:
         "none", "parameter", *effects, *_SENSOR_KINDS, "discrepancy",
         "sensor_gain_drift", *extra, "parameter_step", "sensor_step",
     )  # fmt: skip
-
-
-def kind_of(model: Model, label: str):
-    """The :data:`~jaxcal.diagnosis.kinds.KINDS` entry of a study label."""
-    if label in KINDS:
-        return KINDS[label]
-    if label in [e.name for e in model.effects]:
-        return KINDS["effect"]
-    raise ValueError(f"no effect kind {label!r}")
 
 
 def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
@@ -235,20 +227,9 @@ def make_synthetic_data(
     Returns:
         :class:`SyntheticData`; rows where the model is invalid are left out.
     """
-    valid_kinds = kinds(model)
-    if kind not in valid_kinds:
-        raise ValueError(
-            f"unknown effect kind {kind!r}; valid: {', '.join(valid_kinds)}"
-        )
     sensors = tuple(cfg.sensors) or model.output_names
+    _check_request(model, kind, target, sensors, cfg.declared)
     sizes = {**default_sizes(model), **dict(cfg.sizes or {})}
-    if kind != "none" and target is not None:
-        valid_targets = _targets(model, kind, sensors, cfg.declared)
-        if target not in valid_targets:
-            raise ValueError(
-                f"target={target!r} is not valid for kind {kind!r}; valid: "
-                f"{list(valid_targets)}"
-            )
     keys = jax.random.split(key, 6)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(keys[4])).ravel())
     tgt, size_drawn = (
@@ -261,41 +242,25 @@ def make_synthetic_data(
     order = np.lexsort((scn.cycle, scn.unit))
     w, unit, cycle = scn.w[order], scn.unit[order], scn.cycle[order]
     theta, health = np.array(scn.theta, np.float64)[order], scn.health[order]
-    sidx = model.output_index(sensors)
-    rows = rows_of(w, unit, sidx)
+    rows = rows_of(w, unit, model.output_index(sensors))
     inputs = zero_inputs(model, w.shape[0], rows.num_units)._replace(theta=theta)
     level = np.abs(signatures(model, rows, inputs).x).mean(0)
-    rel = model.diagnosis.noise_rel or {}
-    std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors]) * level
-    std = std * cfg.noise_scale
-    on = np.ones(w.shape[0], bool)
-    if carriers is not None:
-        bad = sorted(set(np.asarray(carriers).tolist()) - set(unit.tolist()))
-        if bad:
-            raise ValueError(f"carriers {bad} are not units of the scenario")
-        on = np.isin(unit, np.asarray(carriers))
+    std = _reference_noise(model, sensors, level) * cfg.noise_scale
+    on = _carrier_rows(unit, carriers)
     ids = np.unique(unit[on]) if kind != "none" else np.zeros(0)
-    onsets = {}
-    if kind in KINDS and KINDS[kind].profile == "step":
-        for u in ids:
-            cyc = cycle[unit == u]
-            share = rng.uniform(*cfg.onset_range)
-            onsets[int(u)] = float(cyc[int(round(share * (cyc.size - 1)))])
+    onsets = _step_onsets(rng, kind, ids, unit, cycle, cfg.onset_range)
     step_on = np.array([cycle[i] >= onsets.get(int(unit[i]), np.inf)
                         for i in range(w.shape[0])])  # fmt: skip
     tau = (cycle - 1) / TAU_CYCLES  # every life starts at cycle 1
-    size, unit_str = _apply(model, kind, tgt, size, cfg, inputs, on, step_on, tau,
-                            health, std, level, sensors, w)  # fmt: skip
+    size, unit_str = apply_effect(model, kind, tgt, size, cfg.parameter_physical,
+                                  inputs, on, step_on, tau, health, std, level,
+                                  sensors, w)  # fmt: skip
     sig = signatures(model, rows, inputs)
     x = sig.y.copy()
     bump_on = ""
     if kind == "discrepancy":
         s = list(sensors).index(tgt)
-        bump_on, (c_lo, c_hi), width = cfg.bump or _default_bump(model, w)
-        c = model.condition_names.index(bump_on)
-        c0 = rng.uniform(c_lo, c_hi)
-        size = size * std[s]
-        x[:, s] += on * size * np.exp(-(((w[:, c] - c0) / width) ** 2))
+        bump_on, size = add_bump(rng, model, cfg.bump, x[:, s], size * std[s], w, on)
         unit_str = model.unit_of(tgt)
     noise_rng = np.random.default_rng(np.asarray(jax.random.key_data(keys[5])).ravel())
     x = x + std * ar1_noise(noise_rng, x.shape, unit, cfg.noise_ar)
@@ -305,60 +270,63 @@ def make_synthetic_data(
         unit=unit[ok], time=cycle[ok], theta=inputs.theta[ok],
         theta_names=model.parameter_names, source=f"synthetic:{kind}",
     )  # fmt: skip
-    if kind in ("none", "discrepancy"):
-        name = "" if kind == "none" else f"discrepancy[{tgt}]"
-    else:
-        name = kind_of(model, kind).candidate_name(tgt)
     truth = EffectTruth(
-        kind, name, tgt, float(size), unit_str, bump_on,
+        kind, _truth_name(model, kind, tgt), tgt, float(size), unit_str, bump_on,
         () if carriers is None else tuple(int(u) for u in carriers),
         tuple(onsets[int(u)] for u in ids) if onsets else (),
     )  # fmt: skip
     return SyntheticData(data, dict(zip(sensors, std.tolist(), strict=True)), truth)
 
 
-def _apply(model, kind, tgt, size, cfg, inputs, on, step_on, tau, health, std,
-           level, sensors, w):  # fmt: skip
-    """Switch the effect on in ``inputs`` (in place); ``(size, unit)`` physical."""
+def _check_request(model: Model, kind: str, target, sensors, declared) -> None:
+    """``kind`` must be one of :func:`kinds`, a forced ``target`` one it can act on."""
+    valid_kinds = kinds(model)
+    if kind not in valid_kinds:
+        raise ValueError(
+            f"unknown effect kind {kind!r}; valid: {', '.join(valid_kinds)}"
+        )
+    if kind != "none" and target is not None:
+        valid_targets = _targets(model, kind, sensors, declared)
+        if target not in valid_targets:
+            raise ValueError(
+                f"target={target!r} is not valid for kind {kind!r}; valid: "
+                f"{list(valid_targets)}"
+            )
+
+
+def _carrier_rows(unit: np.ndarray, carriers) -> np.ndarray:
+    """``[N]`` bool: the rows of the carrying units (every row when ``None``)."""
+    if carriers is None:
+        return np.ones(unit.shape[0], bool)
+    bad = sorted(set(np.asarray(carriers).tolist()) - set(unit.tolist()))
+    if bad:
+        raise ValueError(f"carriers {bad} are not units of the scenario")
+    return np.isin(unit, np.asarray(carriers))
+
+
+def _reference_noise(model: Model, sensors, level: np.ndarray) -> np.ndarray:
+    """``[S]`` noise std at the model's reference relative level of each output's
+    mean ``|x|`` (``DiagnosisHints.noise_rel``)."""
+    rel = model.diagnosis.noise_rel or {}
+    return np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors]) * level
+
+
+def _step_onsets(rng, kind, ids, unit, cycle, onset_range) -> dict[int, float]:
+    """unit id -> a step's onset cycle, drawn uniformly in ``onset_range`` of the
+    unit's life (one draw per carrier, in ``ids`` order); none unless ``kind`` is a
+    step."""
+    onsets = {}
+    if kind not in KINDS or KINDS[kind].profile != "step":
+        return onsets
+    for u in ids:
+        cyc = cycle[unit == u]
+        share = rng.uniform(*onset_range)
+        onsets[int(u)] = float(cyc[int(round(share * (cyc.size - 1)))])
+    return onsets
+
+
+def _truth_name(model: Model, kind: str, tgt: str) -> str:
+    """The library candidate's name of the effect put in ("" for none)."""
     if kind in ("none", "discrepancy"):
-        return size, "-"
-    spec = kind_of(model, kind)
-    channel = spec.channel
-    profile = {
-        "constant": np.ones_like(tau),
-        "drift": tau,
-        "step": step_on.astype(float),
-        "spline": 1.0 - health,
-    }[spec.profile]
-    profile = profile * on
-    if channel == "parameter":
-        j = model.parameter_names.index(tgt)
-        step = 1.0 if cfg.parameter_physical and kind == "parameter" else (
-            natural_scale(model, tgt)
-        )  # fmt: skip
-        size = size * step
-        inputs.theta[:, j] += size * profile
-        return size, model.unit_of(tgt)
-    if channel == "effect":
-        e = [x.name for x in model.effects].index(tgt)
-        inputs.effects[:, e] += size * profile
-        return size, model.effects[e].unit
-    if channel == "condition":
-        c = model.condition_names.index(tgt)
-        size = size * 0.01 * float(np.std(w[:, c]) or 1.0)
-        inputs.w_offset[:, c] += size * profile
-        return size, model.conditions[c].unit
-    s = list(sensors).index(tgt)
-    idx = model.output_index([tgt])[0]
-    relative = channel == "multiplicative"
-    size = size * (std[s] / level[s] if relative else std[s])
-    field = inputs.multiplicative if relative else inputs.additive
-    field[:, idx] += size * profile
-    return size, spec.physical_unit(model, tgt)
-
-
-def _default_bump(model: Model, w: np.ndarray):
-    spread = w.std(0)
-    c = int(np.argmax(spread > 0))
-    lo, hi = np.percentile(w[:, c], [45.0, 65.0])
-    return model.condition_names[c], (float(lo), float(hi)), 0.2 * float(spread[c])
+        return "" if kind == "none" else f"discrepancy[{tgt}]"
+    return kind_of(model, kind).candidate_name(tgt)

@@ -201,6 +201,37 @@ def _first_persistent(above: np.ndarray, cycle: np.ndarray) -> float:
     return float(cycle[0 if below.size == 0 else below[-1] + 1])
 
 
+def _carrier_onsets(data, cand, carries, traj, row_traj, delta, z_band, onset_ci):
+    """``(onset [U], onset interval [U, 2])`` in cycles of each carrier (NaN
+    elsewhere): where a spline's change or a drift's accumulated change first stays
+    beyond its band, a step's fitted onset (and its profiled interval when known),
+    the first cycle for a constant."""
+    onset = np.full(data.num_units, np.nan)
+    ci = np.full((data.num_units, 2), np.nan)
+    spline = cand.kind.channel == "parameter" and cand.kind.profile == "spline"
+    for u in np.flatnonzero(carries):
+        sl = slice(data.starts[u], data.starts[u + 1])
+        cyc = data.cycle[sl]
+        if spline:
+            band = delta + z_band * traj.change_std[cand.target][sl]
+            above = np.abs(traj.change[cand.target][sl]) > band
+            onset[u] = _first_persistent(above, cyc)
+        elif cand.kind.profile == "step":
+            row = cand.onsets[list(cand.carriers).index(u)]
+            onset[u] = data.cycle[row]
+            if onset_ci and cand.name in onset_ci:
+                ci[u] = data.cycle[np.asarray(onset_ci[cand.name][u], int)]
+        elif cand.kind.profile == "drift":
+            s = data.sensor_names.index(cand.target)
+            change = np.abs(row_traj[sl])
+            if cand.kind.channel == "multiplicative":
+                change = change * np.abs(data.x[sl, s])
+            onset[u] = _first_persistent(change >= data.noise_std[s], cyc)
+        else:
+            onset[u] = float(cyc[0])
+    return onset, ci
+
+
 def unit_effects(
     model: Model,
     data: LoopData,
@@ -218,8 +249,6 @@ def unit_effects(
     _, s2 = _unit_stats(data, fit)
     out = []
     for cand in members:
-        onset = np.full(units, np.nan)
-        ci = np.full((units, 2), np.nan)
         delta = cand.kind.min_effect * cand.scale
         spline = cand.kind.channel == "parameter" and cand.kind.profile == "spline"
         if spline:
@@ -246,26 +275,9 @@ def unit_effects(
             z = (np.abs(size) - delta) / size_std
         p = np.where(np.isfinite(z) & allowed, sps.norm.sf(z), 1.0)
         carries = holm(p, alpha) & allowed
-        for u in np.flatnonzero(carries):
-            sl = slice(data.starts[u], data.starts[u + 1])
-            cyc = data.cycle[sl]
-            if spline:
-                band = delta + z_band * traj.change_std[cand.target][sl]
-                above = np.abs(traj.change[cand.target][sl]) > band
-                onset[u] = _first_persistent(above, cyc)
-            elif cand.kind.profile == "step":
-                row = cand.onsets[list(cand.carriers).index(u)]
-                onset[u] = data.cycle[row]
-                if onset_ci and cand.name in onset_ci:
-                    ci[u] = data.cycle[np.asarray(onset_ci[cand.name][u], int)]
-            elif cand.kind.profile == "drift":
-                s = data.sensor_names.index(cand.target)
-                change = np.abs(row_traj[sl])
-                if cand.kind.channel == "multiplicative":
-                    change = change * np.abs(data.x[sl, s])
-                onset[u] = _first_persistent(change >= data.noise_std[s], cyc)
-            else:
-                onset[u] = float(cyc[0])
+        onset, ci = _carrier_onsets(
+            data, cand, carries, traj, row_traj, delta, z_band, onset_ci
+        )
         out.append(
             UnitEffect(
                 cand.name,

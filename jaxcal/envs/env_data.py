@@ -117,21 +117,7 @@ def make_env_params(
         np.atleast_1d(np.asarray(theta_low)),
         np.atleast_1d(np.asarray(theta_high)),
     )
-    if w_np.ndim != 3 or x_np.ndim != 3 or w_np.shape[:2] != x_np.shape[:2]:
-        raise ValueError(
-            "w and x must be [U, T, W] and [U, T, S] with equal U, T; got "
-            f"{w_np.shape} and {x_np.shape}"
-        )
-    num_units, num_steps = x_np.shape[:2]
-    if lengths_np.shape != (num_units,) or not np.issubdtype(
-        lengths_np.dtype, np.integer
-    ):
-        raise ValueError(f"lengths must be an int array of shape ({num_units},)")
-    if lengths_np.min() < 2 or lengths_np.max() > num_steps:
-        raise ValueError(f"lengths must lie in [2, T={num_steps}], got {lengths_np}")
-    valid = np.arange(num_steps)[None, :] < lengths_np[:, None]
-    if not (np.isfinite(w_np[valid]).all() and np.isfinite(x_np[valid]).all()):
-        raise ValueError("w and x must be finite on valid rows (t < lengths[u])")
+    valid = _check_padded_data(w_np, x_np, lengths_np)
     if low.shape != high.shape or low.ndim != 1 or not np.all(low < high):
         raise ValueError(
             f"theta_low and theta_high must be [P] arrays with theta_low < theta_high, "
@@ -139,38 +125,12 @@ def make_env_params(
         )
     if stats is None:
         stats = compute_norm_stats(w_np, x_np, lengths_np)
-    for name, value, dim in (
-        ("w_std", stats.w_std, w_np.shape[-1]),
-        ("x_std", stats.x_std, x_np.shape[-1]),
-    ):
-        value = np.asarray(value)
-        if value.shape != (dim,) or not np.all(value > 0):
-            raise ValueError(f"stats.{name} must be a positive [{dim}] array")
-    z_ref_np = None
-    if z_ref is not None:
-        z_ref_np = np.asarray(z_ref, x_np.dtype)
-        if z_ref_np.ndim != 3 or z_ref_np.shape[:2] != (num_units, num_steps):
-            raise ValueError(
-                f"z_ref must be [U, T, Z] with [U, T] = ({num_units}, {num_steps}), "
-                f"got {z_ref_np.shape}"
-            )
-        if not np.isfinite(z_ref_np[valid]).all():
-            raise ValueError("z_ref must be finite on valid rows (t < lengths[u])")
+    _check_stats(stats, w_np.shape[-1], x_np.shape[-1])
+    z_ref_np = None if z_ref is None else _checked_z_ref(z_ref, x_np, valid)
     if step_ref is not None:
-        step_ref = np.asarray(step_ref, x_np.dtype)
-        if step_ref.shape != low.shape or not np.all(step_ref > 0):
-            raise ValueError(
-                f"step_ref must be a positive [{low.shape[0]}] array, got {step_ref}"
-            )
-        step_ref = jnp.asarray(step_ref)
+        step_ref = _checked_step_ref(step_ref, low, x_np.dtype)
     if x_target is not None:
-        x_target = np.asarray(x_target, x_np.dtype)
-        if x_target.shape != x_np.shape or not np.isfinite(x_target[valid]).all():
-            raise ValueError(
-                f"x_target must be finite and shaped like x {x_np.shape}, got "
-                f"{x_target.shape}"
-            )
-        x_target = jnp.asarray(x_target)
+        x_target = _checked_x_target(x_target, x_np, valid)
     return EnvParams(
         w=jnp.asarray(w_np),
         x=jnp.asarray(x_np),
@@ -186,3 +146,73 @@ def make_env_params(
         step_ref=step_ref,
         x_target=x_target,
     )
+
+
+def _check_padded_data(w_np, x_np, lengths_np) -> np.ndarray:
+    """Checks the padded [U, T, .] data and the unit lengths.
+
+    Returns:
+        [U, T] bool, True on the valid rows (t < lengths[u]).
+    """
+    if w_np.ndim != 3 or x_np.ndim != 3 or w_np.shape[:2] != x_np.shape[:2]:
+        raise ValueError(
+            "w and x must be [U, T, W] and [U, T, S] with equal U, T; got "
+            f"{w_np.shape} and {x_np.shape}"
+        )
+    num_units, num_steps = x_np.shape[:2]
+    if lengths_np.shape != (num_units,) or not np.issubdtype(
+        lengths_np.dtype, np.integer
+    ):
+        raise ValueError(f"lengths must be an int array of shape ({num_units},)")
+    if lengths_np.min() < 2 or lengths_np.max() > num_steps:
+        raise ValueError(f"lengths must lie in [2, T={num_steps}], got {lengths_np}")
+    valid = np.arange(num_steps)[None, :] < lengths_np[:, None]
+    if not (np.isfinite(w_np[valid]).all() and np.isfinite(x_np[valid]).all()):
+        raise ValueError("w and x must be finite on valid rows (t < lengths[u])")
+    return valid
+
+
+def _check_stats(stats: Normalisation, w_dim: int, x_dim: int) -> None:
+    """The normalisation's stds must be positive and sized like w and x."""
+    for name, value, dim in (
+        ("w_std", stats.w_std, w_dim),
+        ("x_std", stats.x_std, x_dim),
+    ):
+        value = np.asarray(value)
+        if value.shape != (dim,) or not np.all(value > 0):
+            raise ValueError(f"stats.{name} must be a positive [{dim}] array")
+
+
+def _checked_z_ref(z_ref, x_np: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``z_ref`` in the data's dtype, checked: [U, T, Z], finite on valid rows."""
+    z_ref_np = np.asarray(z_ref, x_np.dtype)
+    num_units, num_steps = x_np.shape[:2]
+    if z_ref_np.ndim != 3 or z_ref_np.shape[:2] != (num_units, num_steps):
+        raise ValueError(
+            f"z_ref must be [U, T, Z] with [U, T] = ({num_units}, {num_steps}), "
+            f"got {z_ref_np.shape}"
+        )
+    if not np.isfinite(z_ref_np[valid]).all():
+        raise ValueError("z_ref must be finite on valid rows (t < lengths[u])")
+    return z_ref_np
+
+
+def _checked_step_ref(step_ref, low: np.ndarray, dtype) -> Array:
+    """``step_ref`` as a positive [P] array in the data's dtype."""
+    step_ref = np.asarray(step_ref, dtype)
+    if step_ref.shape != low.shape or not np.all(step_ref > 0):
+        raise ValueError(
+            f"step_ref must be a positive [{low.shape[0]}] array, got {step_ref}"
+        )
+    return jnp.asarray(step_ref)
+
+
+def _checked_x_target(x_target, x_np: np.ndarray, valid: np.ndarray) -> Array:
+    """``x_target`` in the data's dtype, shaped like x and finite on valid rows."""
+    x_target = np.asarray(x_target, x_np.dtype)
+    if x_target.shape != x_np.shape or not np.isfinite(x_target[valid]).all():
+        raise ValueError(
+            f"x_target must be finite and shaped like x {x_np.shape}, got "
+            f"{x_target.shape}"
+        )
+    return jnp.asarray(x_target)

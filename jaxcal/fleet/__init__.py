@@ -9,7 +9,8 @@
   from an N-CMAPSS file.
 * :mod:`~jaxcal.fleet.distributed` — ``jax.distributed`` set-up and
   :func:`calibrate_distributed` for units split over processes.
-* ``python -m jaxcal.fleet`` — the command line (see ``docs/fleet.md``): any model
+* ``python -m jaxcal.fleet`` — the command line (:mod:`jaxcal.cli.fleet`; see
+  ``docs/fleet.md``): any model
   (``model=``) on an N-CMAPSS file or a table (``data=``,
   :mod:`~jaxcal.fleet.sources`), the method built from the front door's method table
   (:mod:`~jaxcal.fleet.method`).

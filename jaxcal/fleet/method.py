@@ -246,7 +246,7 @@ def make_method(problem: Problem, cfg, source, seed: int = 0) -> FleetMethod:
         check = methods.model_check(problem)
         return FleetMethod(problem, methods.make(problem, cfg), check)
     if isinstance(cfg, methods.Policy):
-        from jaxcal.training.runs import run_check
+        from jaxcal.deploy import run_check
 
         return FleetMethod(problem, methods.make(problem, cfg), run_check(cfg.run))
     if not source.complete:

@@ -23,7 +23,7 @@ in the destination directory and ``os.replace`` s it into place only when the ``
 block ends without an exception, so a reader never sees a half-written file and a
 failed run leaves any previous file untouched; the temporary file of a run killed
 mid-way is removed by the next write to the same path
-(:func:`jaxcal.training.run_dir.make_temp`). Memory is one chunk.
+(:func:`jaxcal.runs.folder.make_temp`). Memory is one chunk.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from collections.abc import Mapping, Sequence
 import h5py
 import numpy as np
 
-from jaxcal.atomic import make_temp, release_temp
 from jaxcal.calibrators.interface import REASONS, count_reasons
+from jaxcal.runs.atomic import make_temp, release_temp
 
 _CHUNK_ROWS = 8192  # HDF5 chunk length of the growable datasets
 

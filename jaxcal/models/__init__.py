@@ -15,6 +15,7 @@ naming the spec, the file and the line, so a command line exits 2 with one line.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.util
 import os
@@ -22,9 +23,13 @@ import sys
 import traceback
 from collections.abc import Callable
 
+from jaxcal import cache
 from jaxcal.model import Model
+from jaxcal.precision import is_x64
 
 _REGISTRY: dict[str, Callable[[], Model]] = {}
+_BUILTIN: dict[str, Callable[[], Model]] = {}  # jaxcal's own factories
+_LOADED: dict[tuple[str, bool], Model] = {}  # built-in models, one object each
 
 
 def register(name: str, factory: Callable[[], Model]) -> None:
@@ -100,6 +105,8 @@ def load(spec: str | Model) -> Model:
     if isinstance(spec, Model):
         return spec
     spec = str(spec)
+    if spec in _REGISTRY and _REGISTRY[spec] is _BUILTIN.get(spec):
+        return _builtin(spec)
     if spec in _REGISTRY:
         return _REGISTRY[spec]()
     if spec.endswith(".json"):  # a diagnosis's extended model (models/extended.py)
@@ -128,6 +135,19 @@ def load(spec: str | Model) -> Model:
     return _from_attr(getattr(module, attr), spec, getattr(module, "__file__", None))
 
 
+def _builtin(name: str) -> Model:
+    """A built-in model, one object per name and precision (so one set of compiled
+    programs), marked as jaxcal's own code (``Model.origin``: its programs are kept
+    on disk, :mod:`jaxcal.calibrators.on_disk`). Loading one turns on the
+    compilation cache (:mod:`jaxcal.cache`): its set-up compiles too."""
+    cache.ensure_default()
+    key = (name, is_x64())
+    if key not in _LOADED:
+        model = _BUILTIN[name]()
+        _LOADED[key] = dataclasses.replace(model, origin=f"jaxcal.models:{name}")
+    return _LOADED[key]
+
+
 def _turbofan(name: str) -> Callable[[], Model]:
     def factory() -> Model:
         from jaxcal.models.turbofan import load_turbofan
@@ -149,9 +169,10 @@ def _thermal() -> Model:
     return thermal_model()
 
 
-register("cmapss", _turbofan("cmapss"))
-register("agtf30", _turbofan("agtf30"))
-register("heat_exchanger", _heat_exchanger)
-register("thermal", _thermal)
+_BUILTIN.update(
+    cmapss=_turbofan("cmapss"), agtf30=_turbofan("agtf30"),
+    heat_exchanger=_heat_exchanger, thermal=_thermal,
+)  # fmt: skip
+_REGISTRY.update(_BUILTIN)
 
 __all__ = ["available", "load", "register"]

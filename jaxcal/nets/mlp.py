@@ -9,16 +9,16 @@ statistics, one pytree to checkpoint) and :func:`fit_regressor`.
 
 Training jits one function per epoch that draws a permutation of the training indices
 and advances every minibatch in a ``lax.scan``; the host loop over epochs only evaluates
-the validation loss, logs, updates a progress bar and applies early stopping. Networks
-run in float32 whatever the global precision: inputs are cast and statistics are stored
-as float32.
+the validation loss, logs, updates a progress bar and applies early stopping (both in
+:mod:`jaxcal.nets.epochs`). Networks run in float32 whatever the global precision:
+inputs are cast and statistics are stored as float32.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import flax.linen as nn
 import jax
@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
-from tqdm.auto import tqdm
 
+from jaxcal.nets.epochs import TrainState, chunked_mse, make_train_epoch, run_epochs
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 ACTIVATIONS: dict[str, Callable[[Array], Array]] = {
@@ -38,7 +38,6 @@ ACTIVATIONS: dict[str, Callable[[Array], Array]] = {
     "gelu": nn.gelu,
     "silu": nn.silu,
 }
-EVAL_CHUNK = 8192  # rows per chunk when scoring large sets, to bound activation memory
 
 
 class MLP(nn.Module):
@@ -148,30 +147,6 @@ class RegressorConfig:
             raise ValueError("patience (early stopping) needs validation_fraction > 0")
 
 
-@struct.dataclass
-class _TrainState:
-    net: PyTree
-    opt_state: optax.OptState
-
-
-def _mse(model: nn.Module, net: PyTree, xn: Array, yn: Array) -> Array:
-    """Mean squared error on normalised data, scored in chunks (bounded memory)."""
-    n = xn.shape[0]
-    chunk = min(n, EVAL_CHUNK)
-    num_chunks = -(-n // chunk)
-    pad = num_chunks * chunk - n
-    weight = jnp.pad(jnp.ones(n, jnp.float32), (0, pad)).reshape(num_chunks, chunk)
-    xs = jnp.pad(xn, ((0, pad), (0, 0))).reshape(num_chunks, chunk, -1)
-    ys = jnp.pad(yn, ((0, pad), (0, 0))).reshape(num_chunks, chunk, -1)
-
-    def chunk_sse(args):
-        x, y, w = args
-        err = model.apply({"params": net}, x) - y
-        return jnp.sum(w[:, None] * err**2)
-
-    return jnp.sum(jax.lax.map(chunk_sse, (xs, ys, weight))) / (n * yn.shape[1])
-
-
 def _check_data(inputs, targets) -> tuple[np.ndarray, np.ndarray]:
     x = np.asarray(inputs, dtype=np.float32)
     y = np.asarray(targets, dtype=np.float32)
@@ -185,6 +160,40 @@ def _check_data(inputs, targets) -> tuple[np.ndarray, np.ndarray]:
             row = int(np.argwhere(~np.isfinite(v))[0, 0])
             raise ValueError(f"{name} contain NaN or inf (first at row {row})")
     return x, y
+
+
+class _Split(NamedTuple):
+    """Standardised training and validation arrays and the statistics they used."""
+
+    xn: Array  # [N_train, I]
+    yn: Array  # [N_train, O]
+    xv: Array  # [N_val, I]
+    yv: Array  # [N_val, O]
+    input_norm: Normalizer
+    target_norm: Normalizer
+    num_val: int
+
+
+def _standardised_split(key: PRNGKey, x, y, validation_fraction: float) -> _Split:
+    """Hold out a random ``validation_fraction`` of the rows (none: keep the order)
+    and standardise both parts with the training part's statistics."""
+    n = x.shape[0]
+    num_val = int(round(validation_fraction * n))
+    if num_val and n - num_val < 1:
+        raise ValueError(f"validation_fraction leaves no training samples (N = {n})")
+    order = np.asarray(jax.random.permutation(key, n)) if num_val else np.arange(n)
+    train_idx, val_idx = order[: n - num_val], order[n - num_val :]
+    input_norm, target_norm = fit_normalizer(x[train_idx]), fit_normalizer(y[train_idx])
+
+    def standardise(v, norm):  # on the host: eager jnp ops would each compile
+        return jnp.asarray((v - np.asarray(norm.mean)) / np.asarray(norm.std))
+
+    xn, yn = (
+        standardise(x[train_idx], input_norm),
+        standardise(y[train_idx], target_norm),
+    )
+    xv, yv = standardise(x[val_idx], input_norm), standardise(y[val_idx], target_norm)
+    return _Split(xn, yn, xv, yv, input_norm, target_norm, num_val)
 
 
 def fit_regressor(
@@ -219,80 +228,20 @@ def fit_regressor(
     """
     x, y = _check_data(inputs, targets)
     key_split, key_init, key_epochs = jax.random.split(key, 3)
-    n = x.shape[0]
-    num_val = int(round(cfg.validation_fraction * n))
-    if num_val and n - num_val < 1:
-        raise ValueError(f"validation_fraction leaves no training samples (N = {n})")
-    order = (
-        np.asarray(jax.random.permutation(key_split, n)) if num_val else np.arange(n)
-    )
-    train_idx, val_idx = order[: n - num_val], order[n - num_val :]
-    input_norm, target_norm = fit_normalizer(x[train_idx]), fit_normalizer(y[train_idx])
-
-    def standardise(v, norm):  # on the host: eager jnp ops would each compile
-        return jnp.asarray((v - np.asarray(norm.mean)) / np.asarray(norm.std))
-
-    xn, yn = (
-        standardise(x[train_idx], input_norm),
-        standardise(y[train_idx], target_norm),
-    )
-    xv, yv = standardise(x[val_idx], input_norm), standardise(y[val_idx], target_norm)
-
+    data = _standardised_split(key_split, x, y, cfg.validation_fraction)
     optimizer = optax.adam(cfg.learning_rate)
-    net = jax.jit(model.init)(key_init, xn[:1])["params"]
-    state = _TrainState(net=net, opt_state=optimizer.init(net))
-    n_train = xn.shape[0]
+    net = jax.jit(model.init)(key_init, data.xn[:1])["params"]
+    state = TrainState(net=net, opt_state=optimizer.init(net))
+    n_train = data.xn.shape[0]
     batch_size = min(cfg.batch_size, n_train)
-    num_batches = n_train // batch_size  # the remainder changes with every permutation
-
-    def loss_fn(net, xb, yb):
-        return jnp.mean((model.apply({"params": net}, xb) - yb) ** 2)
-
-    def sgd_step(state, batch_idx, xn, yn):
-        loss, grads = jax.value_and_grad(loss_fn)(
-            state.net, xn[batch_idx], yn[batch_idx]
-        )
-        updates, opt_state = optimizer.update(grads, state.opt_state, state.net)
-        return _TrainState(optax.apply_updates(state.net, updates), opt_state), loss
-
-    @jax.jit
-    def train_epoch(state, epoch, xn, yn):
-        key = jax.random.fold_in(key_epochs, epoch)
-        perm = jax.random.permutation(key, n_train)[: num_batches * batch_size]
-        batches = perm.reshape(num_batches, batch_size)
-        state, losses = jax.lax.scan(
-            lambda s, b: sgd_step(s, b, xn, yn), state, batches
-        )
-        return state, jnp.mean(losses)
-
-    val_loss_fn = jax.jit(lambda net, xv, yv: _mse(model, net, xv, yv))
-    train_hist, val_hist = [], []
-    best_net, best_val, best_epoch, since_best = state.net, math.inf, 0, 0
-    bar = tqdm(range(cfg.num_epochs), disable=not progress, desc="fit", leave=False)
-    for epoch in bar:
-        state, train_loss = train_epoch(state, epoch, xn, yn)
-        record = {"train_loss": float(train_loss)}
-        if num_val:
-            record["val_loss"] = float(val_loss_fn(state.net, xv, yv))
-        if not all(math.isfinite(v) for v in record.values()):
-            raise FloatingPointError(
-                f"loss became non-finite at epoch {epoch}: {record}"
-            )
-        train_hist.append(record["train_loss"])
-        if num_val:
-            val_hist.append(record["val_loss"])
-            if record["val_loss"] < best_val - cfg.min_delta:
-                best_net, best_val, best_epoch = state.net, record["val_loss"], epoch
-                since_best = 0
-            else:
-                since_best += 1
-        else:
-            best_net, best_epoch = state.net, epoch
-        bar.set_postfix(record)
-        if log_fn is not None:
-            log_fn(epoch, record)
-        if cfg.patience is not None and since_best >= cfg.patience:
-            break
+    train_epoch = make_train_epoch(model, optimizer, key_epochs, n_train, batch_size)
+    val_loss_fn = jax.jit(lambda net, xv, yv: chunked_mse(model, net, xv, yv))
+    best_net, train_hist, val_hist, best_epoch = run_epochs(
+        train_epoch, val_loss_fn, state, (data.xn, data.yn),
+        (data.xv, data.yv) if data.num_val else None, num_epochs=cfg.num_epochs,
+        patience=cfg.patience, min_delta=cfg.min_delta, log_fn=log_fn,
+        progress=progress,
+    )  # fmt: skip
     history = {
         "train_loss": np.asarray(train_hist),
         "val_loss": np.asarray(val_hist),
@@ -301,6 +250,6 @@ def fit_regressor(
         "stopped_early": len(train_hist) < cfg.num_epochs,
     }
     params = RegressorParams(
-        net=best_net, input_norm=input_norm, target_norm=target_norm
+        net=best_net, input_norm=data.input_norm, target_norm=data.target_norm
     )
     return params, history

@@ -121,6 +121,35 @@ def limit_units(
     )
 
 
+def _timed_run(method: Method, args: tuple):
+    """``(output, compile_s, run_s)`` of the method's fleet runner on ``args``:
+    compiled ahead of time (excluded from the run), then one blocking execution."""
+    tic = time.perf_counter()
+    compiled = method.run.lower(*args).compile()
+    compile_s = time.perf_counter() - tic
+    tic = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    return out, compile_s, time.perf_counter() - tic
+
+
+def _theta_scores(theta, truth, mask, scored, reason, problem: Problem) -> dict:
+    """The scores without a model output: theta RMSE pooled and per parameter, the
+    sample counts and the flagged samples' reasons."""
+    pooled, per_param = theta_rmse(theta, truth, scored)
+    scores = {
+        "theta_rmse": pooled,
+        "theta_rmse_per_param": dict(
+            zip(problem.theta_names, per_param.tolist(), strict=True)
+        ),
+        "tracking_rmse_norm": None,
+        "num_samples": int(mask.sum()),
+        "num_scored": int(scored.sum()),
+        "flagged": count_reasons(reason, mask),
+    }
+    scores["num_flagged"] = sum(scores["flagged"].values())
+    return scores
+
+
 def evaluate_method(
     method: Method,
     units: UnitArrays,
@@ -152,12 +181,7 @@ def evaluate_method(
     mask = units.mask
     keys = jax.random.split(jax.random.key(seed), len(units.lengths))
     settings = (jnp.asarray(bias, dtype), jnp.asarray(noise_sigma, dtype))
-    tic = time.perf_counter()
-    compiled = method.run.lower(w, x, mask, keys, *settings).compile()
-    compile_s = time.perf_counter() - tic
-    tic = time.perf_counter()
-    out = jax.block_until_ready(compiled(w, x, mask, keys, *settings))
-    run_s = time.perf_counter() - tic
+    out, compile_s, run_s = _timed_run(method, (w, x, mask, keys, *settings))
     theta = np.asarray(out.theta, np.float64)
     xhat = np.asarray(out.xhat, np.float64)
     reason = np.asarray(out.reason)
@@ -172,18 +196,7 @@ def evaluate_method(
             problem.output_names, problem.theta_names, reason=reason,
         )  # fmt: skip
     else:  # no model output (or a diverged one): theta scores only
-        pooled, per_param = theta_rmse(theta, units.theta, scored)
-        scores = {
-            "theta_rmse": pooled,
-            "theta_rmse_per_param": dict(
-                zip(problem.theta_names, per_param.tolist(), strict=True)
-            ),
-            "tracking_rmse_norm": None,
-            "num_samples": int(mask.sum()),
-            "num_scored": int(scored.sum()),
-            "flagged": count_reasons(reason, mask),
-        }
-        scores["num_flagged"] = sum(scores["flagged"].values())
+        scores = _theta_scores(theta, units.theta, mask, scored, reason, problem)
     per_unit = np.sqrt(
         np.nanmean(
             np.where(scored[..., None], (theta - units.theta) ** 2, np.nan), axis=(1, 2)

@@ -25,7 +25,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.atomic import write_atomic
 from jaxcal.calibrators.gated import (
     DEFAULT_WINDOW,
     Z90,
@@ -42,6 +41,7 @@ from jaxcal.calibrators.uncertainty import (
 )
 from jaxcal.paper.compare import evaluate_method
 from jaxcal.paper.methods import Method, make_method
+from jaxcal.runs.atomic import write_atomic
 
 NAME, FEEDBACK, ANCHOR = "CLAC-gate", "CLAC-inc", "CLAC"
 GATE_FILE = "clac-gate.json"
@@ -103,7 +103,7 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
         "val_coverage90", "sensitivity", "threshold_median", "window",
         "fit_seconds", "gate"}``.
     """
-    from jaxcal.training.runs import load_run, needs_x64
+    from jaxcal.deploy.loading import load_run, needs_x64
 
     tic = time.perf_counter()
     val = suite.data.val

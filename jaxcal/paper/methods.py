@@ -55,10 +55,10 @@ from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squa
 from jaxcal.calibrators.methods import UKF, LeastSquares, model_based_factory
 from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
+from jaxcal.deploy import run_check
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
-from jaxcal.training.runs import run_check
 from jaxcal.typedefs import Array, PRNGKey
 
 BuildFn = Callable[[Array, Array], Calibrator]  # (bias [], noise_sigma []) -> method

@@ -34,8 +34,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxcal.atomic import write_atomic
 from jaxcal.problem import Normalisation
+from jaxcal.runs.atomic import write_atomic
 from jaxcal.training.data import UnitArrays
 
 MISSING_HINT = "sbi not installed: pip install -e '.[npe]' (or make npe-setup)"

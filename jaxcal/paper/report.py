@@ -30,11 +30,34 @@ from jaxcal.paper.tables import (
     table,
     timing_table,
 )
-from jaxcal.training.run_dir import write_atomic, write_json
+from jaxcal.runs.folder import write_atomic, write_json
 
 
-# Why a baseline can beat our CLAC; printed only where it does (see _reason).
 def _setup(r: Results) -> list[str]:
+    """The set-up section: data files, trainings, E2E fits, methods, scored units."""
+    return [
+        *_data_sets(r),
+        "",
+        "Trainings (`python -m jaxcal.train ...`, one seed each):",
+        "",
+        *_trainings(r),
+        "",
+        "E2E fits:",
+        "",
+        *_e2e_fits(r),
+        "",
+        "Methods as scored (first evaluation of each):",
+        "",
+        *_methods(r),
+        "",
+        "Scored test units:",
+        "",
+        *_scored_units(r),
+    ]
+
+
+def _data_sets(r: Results) -> list[str]:
+    """The data files and, when checked, today's F against each file's x."""
     out = ["Data sets:", ""]
     rows = []
     for name, step in r.steps.items():
@@ -62,7 +85,11 @@ def _setup(r: Results) -> list[str]:
             "x| in training-std units (0 when the file was written by this engine; the "
             "model-based methods see any gap as model error): " + "; ".join(gaps) + ".",
         ]
-    out += ["", "Trainings (`python -m jaxcal.train ...`, one seed each):", ""]
+    return out
+
+
+def _trainings(r: Results) -> list[str]:
+    """The table of the policy trainings."""
     rows = []
     for name, step in r.steps.items():
         if name.startswith("train-"):
@@ -75,12 +102,15 @@ def _setup(r: Results) -> list[str]:
                  num(surrogate.get("free_run_rmse_norm_mean")),
                  "reused" if step["reused"] else "trained"]
             )  # fmt: skip
-    out += table(
+    return table(
         ["run", "arguments", "seed", "chunks", "kept chunk", "wall s",
          "D free-run test error (norm.)", "origin"],
         rows,
     )  # fmt: skip
-    out += ["", "E2E fits:", ""]
+
+
+def _e2e_fits(r: Results) -> list[str]:
+    """The table of the E2E regressor fits."""
     rows = []
     for name, step in r.steps.items():
         if name.startswith("fit-") and "units" in step:  # CLAC-gate's fit has its own
@@ -91,15 +121,22 @@ def _setup(r: Results) -> list[str]:
                  f"{step['epochs_run']} (best {step['best_epoch']})",
                  f"{step['train_seconds']:.0f}", str(step["config"]["seed"])]
             )  # fmt: skip
-    out += table(["fit", "units", "samples", "epochs", "seconds", "seed"], rows)
-    out += ["", "Methods as scored (first evaluation of each):", ""]
+    return table(["fit", "units", "samples", "epochs", "seconds", "seed"], rows)
+
+
+def _methods(r: Results) -> list[str]:
+    """Each method's settings as its first evaluation recorded them."""
     seen = {}
     for name, step in r.steps.items():
         if name.startswith("eval-") and step["method"] not in seen:
             seen[step["method"]] = step["info"]
-    for method, info in seen.items():
-        out.append(f"* {NAMES.get(method, method)}: `{info}`")
-    out += ["", "Scored test units:", ""]
+    return [f"* {NAMES.get(method, method)}: `{info}`" for method, info in seen.items()]
+
+
+def _scored_units(r: Results) -> list[str]:
+    """Per data set: the scored test units, samples and the model-based methods'
+    cost per sample."""
+    out = []
     for ds in sorted(
         {s["dataset"] for n, s in r.steps.items() if n.startswith("eval-")}
     ):

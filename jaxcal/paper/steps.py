@@ -22,8 +22,8 @@ from pathlib import Path
 import jax
 from flax import serialization
 
+from jaxcal.runs.folder import read_json, write_atomic, write_json
 from jaxcal.settings import config_to_dict
-from jaxcal.training.run_dir import read_json, write_atomic, write_json
 
 
 class StepStore:

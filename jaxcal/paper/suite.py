@@ -53,8 +53,8 @@ from jaxcal.paper.simulate import (
 )
 from jaxcal.paper.steps import load_params, save_params
 from jaxcal.physics.engine import ENVELOPES
+from jaxcal.runs.folder import DATA_FILE, read_json
 from jaxcal.training.data import UnitArrays, load_calibration_data
-from jaxcal.training.run_dir import DATA_FILE, read_json
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,7 +213,7 @@ class Suite:
 
             return gated_method(self)
         if name in self.runs:
-            from jaxcal.training.runs import load_run, needs_x64
+            from jaxcal.deploy.loading import load_run, needs_x64
 
             # a policy on the engines' F loads its float64 params under x64 (the
             # process may not have trained it: a reused run)

@@ -12,7 +12,9 @@ The closure is C-MAPSS-like: the physical fan speed is set by the corrected-spee
 of the TRA schedule, Nf = NRf_dmd sqrt(T2/518.67), and the fuel flow is solved.
 
 ``effects`` extends the model with the parametric effects the closing-the-loop library
-needs (see :data:`EFFECT_NAMES`); all zero reproduces the plain engine.
+needs (see :data:`EFFECT_NAMES`); all zero reproduces the plain engine. The gas path's
+stages (inlet, compressors, hot section, nozzles) are in :mod:`.gas_path`; this module
+closes them into the residuals and the stations.
 """
 
 from __future__ import annotations
@@ -21,16 +23,9 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jaxcal.physics import components, maps, thermo
-from jaxcal.physics.atmosphere import free_stream
-from jaxcal.physics.constants import HP_PER_BTU_S, P_STD_PSIA, T_STD_R
-from jaxcal.physics.design import (
-    DesignPoint,
-    EngineDesign,
-    corrected_fan_speed_demand,
-    inlet_recovery,
-)
-from jaxcal.physics.nozzle import nozzle_flow
+from jaxcal.physics import gas_path, maps
+from jaxcal.physics.constants import HP_PER_BTU_S
+from jaxcal.physics.design import DesignPoint, EngineDesign
 
 NUM_UNKNOWNS = 9
 UNKNOWN_NAMES = (
@@ -131,137 +126,54 @@ def balance(d: EngineDesign, dp: DesignPoint, w, theta, effects, z, unroll=False
     Returns:
         (residuals [9], Stations).
     """
+    # The stages run in gas-path order, each op where the single-function form had
+    # it: the traced program, and so every bit of the output, is unchanged.
     alt, mach, tra, t2_meas = w[0], w[1], w[2], w[3]
     h = unpack_theta(theta)
     mode = d.health_mode
-    t2 = t2_meas + effects[0]
-    _, p_amb, pt0 = free_stream(alt, mach, t2)
-    p2 = (inlet_recovery(d, mach) + effects[5]) * pt0
-    theta2, delta2 = t2 / T_STD_R, p2 / P_STD_PSIA
-    # controller: corrected demand on the *measured* T2
-    pcn, nrf_dmd = corrected_fan_speed_demand(d, tra)
-    nf = nrf_dmd * jnp.sqrt(t2_meas / T_STD_R)
-    # fan
-    n_fan = nf / jnp.sqrt(theta2) / dp.nrf
-    beta_fan = maps.BETA_DESIGN + z[2]
-    wc_fan, pr_fan, eta_fan = maps.compressor_map(
-        d.fan, dp.wc_fan, d.pr_fan_d, d.eta_fan_d, n_fan, beta_fan
-    )
-    wc_fan = wc_fan * (1.0 + h["fan"][1])
-    eta_fan = maps.apply_efficiency_modifier(eta_fan, h["fan"][0], mode)
-    w2c = dp.wc_fan * jnp.exp(z[0])
-    w2 = w2c * delta2 / jnp.sqrt(theta2)
-    bpr = d.bpr_d * jnp.exp(z[1])
-    w_core = w2 / (1.0 + bpr)
-    w_byp = w2 - w_core
-    t21, dh_fan = thermo.compress(t2, pr_fan, eta_fan, unroll=unroll)
-    p21 = p2 * pr_fan
-    # LPC (booster) on the LP shaft
-    p21c = p21 * (1.0 - d.dp_fan_duct)
-    n_lpc = nf * d.gear_ratio / jnp.sqrt(t21 / T_STD_R) / dp.nc_lpc
-    beta_lpc = maps.BETA_DESIGN + z[3]
-    wc_lpc, pr_lpc, eta_lpc = maps.compressor_map(
-        d.lpc, dp.wc_lpc, d.pr_lpc_d, d.eta_lpc_d, n_lpc, beta_lpc
-    )
-    wc_lpc = wc_lpc * (1.0 + h["lpc"][1])
-    eta_lpc = maps.apply_efficiency_modifier(eta_lpc, h["lpc"][0], mode)
-    w21c = w_core * jnp.sqrt(t21 / T_STD_R) / (p21c / P_STD_PSIA)
-    t24, dh_lpc = thermo.compress(t21, pr_lpc, eta_lpc, unroll=unroll)
-    p24 = p21c * pr_lpc
-    # HPC
-    t25, p25 = t24, p24 * (1.0 - d.dp_lpc_duct)
-    n_hpc = jnp.exp(z[7])
-    nc = n_hpc * dp.nc_hpc * jnp.sqrt(t25 / T_STD_R)
-    beta_hpc = maps.BETA_DESIGN + z[4]
-    wc_hpc, pr_hpc, eta_hpc = maps.compressor_map(
-        d.hpc, dp.wc_hpc, d.pr_hpc_d, d.eta_hpc_d, n_hpc, beta_hpc
-    )
-    wc_hpc = wc_hpc * (1.0 + h["hpc"][1])
-    eta_hpc = maps.apply_efficiency_modifier(eta_hpc, h["hpc"][0], mode)
-    w25c = w_core * jnp.sqrt(t25 / T_STD_R) / (p25 / P_STD_PSIA)
-    t30, dh_hpc = thermo.compress(t25, pr_hpc, eta_hpc, unroll=unroll)
-    p30 = p25 * pr_hpc
-    w31, w32 = d.bleed_hpt * w_core, d.bleed_lpt * w_core
-    w_cust = effects[1] * w_core
-    w3b = w_core - w31 - w32 - w_cust
-    power_hpc = w_core * dh_hpc - w32 * (1.0 - d.lpt_bleed_work) * dh_hpc
-    h30 = thermo.enthalpy(t30)
-    h32 = thermo.enthalpy(t25) + d.lpt_bleed_work * dh_hpc
-    # burner
-    wf = dp.wf_corr * jnp.exp(z[8]) * delta2 * jnp.sqrt(theta2)
-    burner = components.burner_exit(w3b, t30, wf, d.eta_burner, d.lhv, unroll)
-    p40 = p30 * (1.0 - d.dp_burner)
-    # HPT
-    pr_hpt = 1.0 + (dp.pr_hpt - 1.0) * jnp.exp(z[5])
-    w31r = d.hpt_cool_rotor_frac * w31
-    w41, far41, _, t41 = components.mix_cooling(
-        burner.w4, burner.t4, burner.far, w31r, h30, unroll
-    )
-    eta_hpt = maps.turbine_efficiency(
-        d.hpt, d.eta_hpt_d, nc / jnp.sqrt(t41) / dp.ntc_hpt
-    )
-    eta_hpt = maps.apply_efficiency_modifier(eta_hpt, h["hpt"][0], mode)
-    hpt = components.turbine_rotor(
-        w41, t41, far41, pr_hpt, eta_hpt, w31 - w31r, h30, unroll
-    )
-    phi_hpt_map = maps.turbine_capacity(d.hpt, dp.phi_hpt, dp.pr_hpt, pr_hpt)
-    phi_hpt_map = phi_hpt_map * (1.0 + h["hpt"][1])
-    p45 = p40 / pr_hpt
-    # LPT
-    p45l = p45 * (1.0 - d.dp_hpt_duct)
-    pr_lpt = 1.0 + (dp.pr_lpt - 1.0) * jnp.exp(z[6])
-    w32r = d.lpt_cool_rotor_frac * w32
-    n_lp = nf * d.gear_ratio
-    w46, far46, _, t46 = components.mix_cooling(
-        hpt.w_out, hpt.t_out, hpt.far_out, w32r, h32, unroll
-    )
-    eta_lpt = maps.turbine_efficiency(
-        d.lpt, d.eta_lpt_d, n_lp / jnp.sqrt(t46) / dp.ntc_lpt
-    )
-    eta_lpt = maps.apply_efficiency_modifier(eta_lpt, h["lpt"][0], mode)
-    lpt = components.turbine_rotor(
-        w46, t46, far46, pr_lpt, eta_lpt, w32 - w32r, h32, unroll
-    )
-    phi_lpt_map = maps.turbine_capacity(d.lpt, dp.phi_lpt, dp.pr_lpt, pr_lpt)
-    phi_lpt_map = phi_lpt_map * (1.0 + h["lpt"][1])
-    p50 = p45l / pr_lpt
-    # nozzles
-    p8 = p50 * (1.0 - d.dp_lpt_duct)
-    a8 = dp.a8 * (1.0 + effects[3])
-    w8_noz, _ = nozzle_flow(
-        p8, lpt.t_out, p_amb, a8, thermo.gamma(lpt.t_out, lpt.far_out), d.cd_core
-    )
-    p15 = p21 * (1.0 - d.dp_bypass)
-    a18 = dp.a18 * (1.0 + d.vafn_slope * (d.mach_d - mach)) * (1.0 + effects[4])
-    w18_noz, _ = nozzle_flow(p15, t21, p_amb, a18, thermo.gamma(t21), d.cd_bypass)
+    inlet = gas_path.inlet_stage(d, alt, mach, tra, t2_meas, effects)
+    fan, w2, w_core, w_byp = gas_path.fan_stage(d, dp, inlet, h["fan"], mode, z, unroll)
+    lpc = gas_path.lpc_stage(d, dp, inlet.nf, fan, w_core, h["lpc"], mode, z, unroll)
+    core = gas_path.core_stage(d, dp, lpc, w_core, h["hpc"], mode, effects, z, unroll)
+    hot = gas_path.hot_section(d, dp, inlet, core, h, mode, z, unroll)
+    w8_noz, p15, w18_noz = gas_path.nozzle_flows(d, dp, mach, effects, inlet, fan, hot)
+    burner, hpt, lpt, t21, p21 = hot.burner, hot.hpt, hot.lpt, fan.t_out, fan.p_out
     # shafts
     offtake = (d.hpx_hp + effects[2]) / HP_PER_BTU_S
-    power_fan, power_lpc = w2 * dh_fan, w_core * dh_lpc
+    power_fan, power_lpc = w2 * fan.dh, w_core * lpc.dh
     residuals = jnp.stack(
         [
-            (w2c - wc_fan) / dp.wc_fan,
-            (w21c - wc_lpc) / dp.wc_lpc,
-            (w25c - wc_hpc) / dp.wc_hpc,
-            (burner.w4 * jnp.sqrt(burner.t4) / p40 - phi_hpt_map) / dp.phi_hpt,
-            (hpt.w_out * jnp.sqrt(hpt.t_out) / p45l - phi_lpt_map) / dp.phi_lpt,
+            (fan.wc_in - fan.wc_map) / dp.wc_fan,
+            (lpc.wc_in - lpc.wc_map) / dp.wc_lpc,
+            (core.hpc.wc_in - core.hpc.wc_map) / dp.wc_hpc,
+            (burner.w4 * jnp.sqrt(burner.t4) / hot.p40 - hot.phi_hpt_map) / dp.phi_hpt,
+            (hpt.w_out * jnp.sqrt(hpt.t_out) / hot.p45l - hot.phi_lpt_map) / dp.phi_lpt,
             (lpt.w_out - w8_noz) / dp.w8,
             (w_byp - w18_noz) / dp.w18,
-            (d.eta_mech_hp * hpt.power - power_hpc - offtake) / dp.power_hp,
+            (d.eta_mech_hp * hpt.power - core.power_hpc - offtake) / dp.power_hp,
             (d.eta_mech_lp * lpt.power - power_fan - power_lpc) / dp.power_lp,
         ]
     )
-    sm_fan = maps.surge_margin(d.fan, dp.wc_fan, d.pr_fan_d, w2c, pr_fan, h["fan"][1])
-    sm_lpc = maps.surge_margin(d.lpc, dp.wc_lpc, d.pr_lpc_d, w21c, pr_lpc, h["lpc"][1])
-    sm_hpc = maps.surge_margin(d.hpc, dp.wc_hpc, d.pr_hpc_d, w25c, pr_hpc, h["hpc"][1])
+    sm_fan = maps.surge_margin(
+        d.fan, dp.wc_fan, d.pr_fan_d, fan.wc_in, fan.pr, h["fan"][1]
+    )
+    sm_lpc = maps.surge_margin(
+        d.lpc, dp.wc_lpc, d.pr_lpc_d, lpc.wc_in, lpc.pr, h["lpc"][1]
+    )
+    sm_hpc = maps.surge_margin(
+        d.hpc, dp.wc_hpc, d.pr_hpc_d, core.hpc.wc_in, core.hpc.pr, h["hpc"][1]
+    )
     stations = Stations(
-        t2=t2, p2=p2, p_amb=p_amb, t21=t21, p21=p21, t24=t24, p24=p24, t25=t25, p25=p25,
-        t30=t30, p30=p30, t4=burner.t4, p40=p40, t41=hpt.t_rotor_in, t48=hpt.t_out,
-        p45=p45, t50=lpt.t_out, p50=p50, p15=p15, nf=nf, nc=nc,
-        nf_dmd=nf, pcn_dmd=pcn, wf=wf, far=burner.far, w2=w2, w_core=w_core,
-        w_byp=w_byp, w31=w31, w32=w32, w_cust=w_cust, w48=hpt.w_out, w50=lpt.w_out,
-        w8_noz=w8_noz, w18_noz=w18_noz, power_fan=power_fan, power_lpc=power_lpc,
-        power_hpc=power_hpc, power_hpt=hpt.power, power_lpt=lpt.power,
+        t2=inlet.t2, p2=inlet.p2, p_amb=inlet.p_amb, t21=t21, p21=p21, t24=lpc.t_out,
+        p24=lpc.p_out, t25=core.t25, p25=core.p25, t30=core.hpc.t_out,
+        p30=core.hpc.p_out, t4=burner.t4, p40=hot.p40, t41=hpt.t_rotor_in,
+        t48=hpt.t_out, p45=hot.p45, t50=lpt.t_out, p50=hot.p50, p15=p15, nf=inlet.nf,
+        nc=core.nc, nf_dmd=inlet.nf, pcn_dmd=inlet.pcn, wf=hot.wf, far=burner.far,
+        w2=w2, w_core=w_core, w_byp=w_byp, w31=core.w31, w32=core.w32,
+        w_cust=core.w_cust, w48=hpt.w_out, w50=lpt.w_out, w8_noz=w8_noz,
+        w18_noz=w18_noz, power_fan=power_fan, power_lpc=power_lpc,
+        power_hpc=core.power_hpc, power_hpt=hpt.power, power_lpt=lpt.power,
         power_offtake=offtake, sm_fan=sm_fan, sm_lpc=sm_lpc, sm_hpc=sm_hpc,
-        h_bleed32=h32,
+        h_bleed32=core.h32,
     )  # fmt: skip
     return residuals, stations

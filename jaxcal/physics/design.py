@@ -136,6 +136,35 @@ def schedule_coefficients(design: EngineDesign):
     return c0, c1, c2
 
 
+def _turbine_for_work(gas, w_cool, rotor_frac, h_cool, power, eta):
+    """A turbine in design mode: the PR that extracts ``power`` from ``gas`` (W, T,
+    FAR) after the rotor's share ``rotor_frac`` of the cooling bleed ``w_cool``
+    mixed in (the rest mixes at the exit).
+
+    Returns:
+        (PR, turbine exit, rotor inlet temperature).
+    """
+    w_rotor = rotor_frac * w_cool
+    w_in, far_in, h_in, t_in = components.mix_cooling(*gas, w_rotor, h_cool)
+    pr = components.turbine_pr_for_work(w_in, t_in, far_in, h_in, power, eta)
+    rotor = components.turbine_rotor(
+        w_in, t_in, far_in, pr, eta, w_cool - w_rotor, h_cool
+    )
+    return pr, rotor, t_in
+
+
+def _unit_area_flows(d: EngineDesign, p50, lpt, p21, t21, p_amb):
+    """Flows of unit-area core and bypass nozzles at the design point (the areas
+    that pass the design flows follow by division)."""
+    p8 = p50 * (1.0 - d.dp_lpt_duct)
+    w8_unit, _ = nozzle_flow(
+        p8, lpt.t_out, p_amb, 1.0, thermo.gamma(lpt.t_out, lpt.far_out)
+    )
+    p15 = p21 * (1.0 - d.dp_bypass)
+    w18_unit, _ = nozzle_flow(p15, t21, p_amb, 1.0, thermo.gamma(t21))
+    return w8_unit, w18_unit
+
+
 def design_point(d: EngineDesign) -> DesignPoint:
     """Run the cycle at the design condition in design mode (see module docstring)."""
     t2 = isa_total_temperature(d.alt_d, d.mach_d)
@@ -170,37 +199,21 @@ def design_point(d: EngineDesign) -> DesignPoint:
     phi_hpt = w4 * jnp.sqrt(d.t4_d) / p40
     # HPT: work from the HP shaft balance
     power_hpt = (power_hpc + d.hpx_hp / HP_PER_BTU_S) / d.eta_mech_hp
-    w31r = d.hpt_cool_rotor_frac * w31
-    w41, far41, h41, t41 = components.mix_cooling(w4, d.t4_d, far, w31r, h30)
-    pr_hpt = components.turbine_pr_for_work(
-        w41, t41, far41, h41, power_hpt, d.eta_hpt_d
-    )
-    hpt = components.turbine_rotor(
-        w41, t41, far41, pr_hpt, d.eta_hpt_d, w31 - w31r, h30
+    pr_hpt, hpt, t41 = _turbine_for_work(
+        (w4, d.t4_d, far), w31, d.hpt_cool_rotor_frac, h30, power_hpt, d.eta_hpt_d
     )
     p45 = p40 / pr_hpt
     # LPT: work from the LP shaft balance
     p45l = p45 * (1.0 - d.dp_hpt_duct)
     phi_lpt = hpt.w_out * jnp.sqrt(hpt.t_out) / p45l
     power_lpt = (w2 * dh_fan + w_core * dh_lpc) / d.eta_mech_lp
-    w32r = d.lpt_cool_rotor_frac * w32
-    w46, far46, h46, t46 = components.mix_cooling(
-        hpt.w_out, hpt.t_out, hpt.far_out, w32r, h32
-    )
-    pr_lpt = components.turbine_pr_for_work(
-        w46, t46, far46, h46, power_lpt, d.eta_lpt_d
-    )
-    lpt = components.turbine_rotor(
-        w46, t46, far46, pr_lpt, d.eta_lpt_d, w32 - w32r, h32
-    )
+    pr_lpt, lpt, t46 = _turbine_for_work(
+        (hpt.w_out, hpt.t_out, hpt.far_out), w32, d.lpt_cool_rotor_frac, h32,
+        power_lpt, d.eta_lpt_d,
+    )  # fmt: skip
     p50 = p45l / pr_lpt
     # nozzles: areas that pass the design flows
-    p8 = p50 * (1.0 - d.dp_lpt_duct)
-    w8_unit, _ = nozzle_flow(
-        p8, lpt.t_out, p_amb, 1.0, thermo.gamma(lpt.t_out, lpt.far_out)
-    )
-    p15 = p21 * (1.0 - d.dp_bypass)
-    w18_unit, _ = nozzle_flow(p15, t21, p_amb, 1.0, thermo.gamma(t21))
+    w8_unit, w18_unit = _unit_area_flows(d, p50, lpt, p21, t21, p_amb)
     n_lp = nf * d.gear_ratio
     return DesignPoint(
         wc_fan=w2 * jnp.sqrt(theta2) / delta2,

@@ -88,9 +88,38 @@ def evaluate_hinted(
         *(jnp.asarray(a, bool if i == 2 else dtype) for i, a in enumerate(hint))
     )
     p = jnp.concatenate([w, theta])
+    usable = _is_usable(hint)
+    residual = _residual_with_outputs(d, dp, w, theta, effects)
+    z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
+    start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
+    z, rmax, iters, jinv, (x, is_physical) = solver.quasi_newton(
+        residual, start, None, cfg.tol, max_iter
+    )
+    inside = in_envelope(envelope, w, theta)
+    fast_ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & is_physical
+
+    def fast(_):
+        info = EngineInfo(inside, rmax, iters, inside, z)
+        return x, info, jinv, solver.secant_sensitivity(hint, p, z)
+
+    def cold(_):
+        return _cold_solve(d, dp, w, theta, effects, p, guess, envelope, cfg)
+
+    x, info, jinv, dz_dp = jax.lax.cond(fast_ok, fast, cold, None)
+    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
+
+
+def _is_usable(hint: solver.Hint):
+    """``[]`` bool: the hint closed its sample and every array of it is finite."""
     usable = hint.ok
     for a in (hint.z, hint.jinv, hint.p, hint.dz_dp):
         usable = usable & jnp.all(jnp.isfinite(a))
+    return usable
+
+
+def _residual_with_outputs(d: EngineDesign, dp: DesignPoint, w, theta, effects):
+    """``residual(z, _) -> (r, (x [S], physical))``, the balance with unrolled
+    thermo loops and the sample's outputs, for Broyden's method."""
 
     def balance(z):
         return cycle.balance(d, dp, w, theta, effects, z, unroll=True)
@@ -105,28 +134,17 @@ def evaluate_hinted(
         # are returned without one more balance
         return jax.tree.map(lambda a: a[0], jax.vmap(one)(z[None]))
 
-    z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
-    start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
-    z, rmax, iters, jinv, (x, is_physical) = solver.quasi_newton(
-        residual, start, None, cfg.tol, max_iter
+    return residual
+
+
+def _cold_solve(d, dp, w, theta, effects, p, guess, envelope, cfg):
+    """``(x, EngineInfo, jinv, dz_dp)`` of the cold solve from the guess table
+    (:func:`evaluate_design`), with the exact inverse Jacobian and the sensitivity
+    to ``p = [w, theta]`` at its solution for the next hint."""
+    xc, info = evaluate_design(
+        d, w, theta, guess=guess, envelope=envelope, solver_cfg=cfg, dp=dp
     )
-    inside = in_envelope(envelope, w, theta)
-    fast_ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & is_physical
-
-    def fast(_):
-        info = EngineInfo(inside, rmax, iters, inside, z)
-        return x, info, jinv, solver.secant_sensitivity(hint, p, z)
-
-    def cold(_):
-        xc, info = evaluate_design(
-            d, w, theta, guess=guess, envelope=envelope, solver_cfg=cfg, dp=dp
-        )
-        jac = jax.jacfwd(residual_fn)(info.z, (d, dp, w, theta, effects))
-        dr_dp = jax.jacfwd(
-            lambda q: residual_fn(info.z, (d, dp, q[:4], q[4:], effects))
-        )(p)
-        jinv = jnp.linalg.inv(jac)
-        return xc, info, jinv, -jinv @ dr_dp
-
-    x, info, jinv, dz_dp = jax.lax.cond(fast_ok, fast, cold, None)
-    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
+    jac = jax.jacfwd(residual_fn)(info.z, (d, dp, w, theta, effects))
+    dr_dp = jax.jacfwd(lambda q: residual_fn(info.z, (d, dp, q[:4], q[4:], effects)))(p)
+    jinv = jnp.linalg.inv(jac)
+    return xc, info, jinv, -jinv @ dr_dp

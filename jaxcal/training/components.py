@@ -34,6 +34,7 @@ from jaxcal.calibrators.policy import make_fleet_runner
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, transition_dynamics
 from jaxcal.envs.tracking import Dynamics, Env, EnvConfig, make_tracking_env
 from jaxcal.model import Model
+from jaxcal.precision import require_x64
 from jaxcal.problem import Problem
 from jaxcal.surrogate.model import surrogate_apply
 from jaxcal.training.runner import RunnerConfig, make_train_chunk
@@ -54,8 +55,9 @@ def make_agent(
 
 
 def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvConfig:
-    """The :class:`EnvConfig` of a run's :class:`~jaxcal.config.TrainConfig` and its
-    data's dimensions (the one place the run-level ``env.*`` fields are mapped)."""
+    """The :class:`EnvConfig` of a run's
+    :class:`~jaxcal.training.config.TrainConfig` and its data's dimensions (the one
+    place the run-level ``env.*`` fields are mapped)."""
     return EnvConfig(
         sensor_dim,
         condition_dim,
@@ -113,17 +115,10 @@ def check_dynamics(kind: str, model: Model) -> None:
             "surrogate D (x_next = D(w_next, x, theta)) cannot carry them: use "
             "dynamics=physics"
         )
-    if kind == "physics":
-        require_x64(model, "dynamics=physics")
-
-
-def require_x64(model: Model, what: str) -> None:
-    """A clear error when ``model`` needs float64 and x64 is off."""
-    if model.x64 and not jax.config.jax_enable_x64:
-        raise ValueError(
-            f"{what}: model {model.name!r} needs float64 (an iterative solver "
-            "inside): call jax.config.update('jax_enable_x64', True) (or "
-            "jaxcal.precision.enable_x64()) at the start of the program"
+    if kind == "physics" and model.x64:
+        require_x64(
+            f"dynamics=physics: model {model.name!r} needs float64 (an iterative "
+            "solver inside)"
         )
 
 

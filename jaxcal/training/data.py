@@ -1,10 +1,10 @@
-"""The calibration data set of a training run: padded ``[U, T, ...]`` arrays per split
-and the one :class:`~jaxcal.problem.Problem` they define.
+"""Reading the calibration data set of a training run from an N-CMAPSS-layout file.
 
-:class:`CalibrationData` is what training, evaluation and the paper's comparison read:
-the train / validation / test units as :class:`UnitArrays` and the problem (model,
-declared parameters, used outputs, action box, normalisation over the training units,
-training input range). Two sources make one:
+:class:`~jaxcal.training.calibration_data.CalibrationData` is what training,
+evaluation and the paper's comparison read: the train / validation / test units as
+:class:`~jaxcal.training.calibration_data.UnitArrays` and the problem they define
+(:mod:`jaxcal.training.calibration_data`, whose names are re-exported here, the one
+import path). Two sources make one:
 
 * :func:`load_calibration_data` (this module) reads an N-CMAPSS-layout HDF5 file (one
   of ours or any of NASA's DS01-DS08) for the turbofan;
@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from typing import NamedTuple
 
 import numpy as np
 
@@ -48,114 +47,12 @@ from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
 from jaxcal.data.record import Record
 from jaxcal.model import Model
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
-from jaxcal.problem import (
-    VARYING_TOLERANCE,
-    InputRange,
-    Normalisation,
-    Problem,
-    labelled_box,
+from jaxcal.problem import VARYING_TOLERANCE, labelled_box
+from jaxcal.training.calibration_data import (  # noqa: F401 (re-exported: one import path)
+    CalibrationData,
+    UnitArrays,
+    training_problem,
 )
-
-
-class UnitArrays(NamedTuple):
-    """One split, padded (host numpy).
-
-    Attributes:
-        w: ``[U, T, W]`` operating conditions (ft, -, %, degR).
-        x: ``[U, T, S]`` sensors in file units.
-        theta: ``[U, T, P]`` declared parameters (labels, for scoring only), or
-            ``None`` when the data carry no true values.
-        lengths: ``[U]`` int32 valid rows per unit.
-        unit_ids: ``[U]`` int64 unit ids of the file.
-    """
-
-    w: np.ndarray
-    x: np.ndarray
-    theta: np.ndarray | None
-    lengths: np.ndarray
-    unit_ids: np.ndarray
-
-    @property
-    def mask(self) -> np.ndarray:
-        """``[U, T]`` bool, True on valid rows."""
-        return np.arange(self.x.shape[1])[None, :] < self.lengths[:, None]
-
-    @property
-    def num_samples(self) -> int:
-        """Number of valid rows over all units."""
-        return int(self.lengths.sum())
-
-
-class CalibrationData(NamedTuple):
-    """Everything a run needs from its data.
-
-    Attributes:
-        train, val, test: the splits; ``val`` is ``None`` when no unit is held out.
-        problem: the :class:`~jaxcal.problem.Problem`: model, declared parameters
-            (``theta_names``, action box ``theta_low``/``theta_high``, the other
-            parameters' values ``theta_base``), used outputs, normalisation and
-            input range of the training units.
-        info: provenance (path, sample rate, rows and units per split).
-    """
-
-    train: UnitArrays
-    val: UnitArrays | None
-    test: UnitArrays
-    problem: Problem
-    info: dict
-
-    # Read-only views of the problem, for readers written against the older fields.
-    @property
-    def sensors(self) -> tuple[str, ...]:
-        return self.problem.output_names
-
-    @property
-    def theta_names(self) -> tuple[str, ...]:
-        return self.problem.theta_names
-
-    @property
-    def theta_low(self) -> np.ndarray:
-        return self.problem.theta_low
-
-    @property
-    def theta_high(self) -> np.ndarray:
-        return self.problem.theta_high
-
-    @property
-    def theta_base(self) -> np.ndarray:
-        return self.problem.theta_base
-
-    @property
-    def engine(self) -> str:
-        """The model's name (the engine configuration for the turbofan)."""
-        return self.problem.model.name
-
-
-def training_problem(
-    model: Model,
-    train: UnitArrays,
-    theta_names, output_names, theta_base, theta_low, theta_high,
-) -> Problem:  # fmt: skip
-    """The problem of a run: normalisation and input range over the valid rows of
-    the training units (float64; the pipeline re-derives the normalisation in the
-    run's dtype), noise provisional (1 % of each output's spread; the policy does
-    not use it)."""
-    rows = np.asarray(train.mask, bool)
-    w = np.asarray(train.w, np.float64)[rows]
-    x = np.asarray(train.x, np.float64)[rows]
-    norm = Normalisation.of(w, x)
-    return Problem(
-        model=model,
-        theta_names=tuple(theta_names),
-        output_names=tuple(output_names),
-        theta_base=np.asarray(theta_base, np.float64),
-        theta_low=np.asarray(theta_low, np.float64),
-        theta_high=np.asarray(theta_high, np.float64),
-        norm=norm,
-        noise_std=0.01 * norm.x_std,
-        input_range=InputRange(w.min(0), w.max(0), x.min(0), x.max(0)),
-        noise_source="provisional (1 % of each output's spread)",
-    )
 
 
 def _json_attr(attrs: dict, key: str):
@@ -216,9 +113,9 @@ def split_units(
 
 
 def read_options(dataset) -> dict:
-    """The reader options of a ``DataConfig`` (``jaxcal.config``) as keyword args of
-    :func:`load_calibration_data`: ``nonfinite`` and ``rename`` (older run configs
-    without these fields read with the defaults)."""
+    """The reader options of a ``DataConfig`` (``jaxcal.training.config``) as keyword
+    args of :func:`load_calibration_data`: ``nonfinite`` and ``rename`` (older run
+    configs without these fields read with the defaults)."""
     return {
         "nonfinite": getattr(dataset, "nonfinite", "error"),
         "rename": parse_rename(getattr(dataset, "rename", ())),
@@ -299,22 +196,58 @@ def load_calibration_data(
     read = dict(sensors=sensors, stride=stride, rename=rename, nonfinite=nonfinite)
     dev = load_ncmapss(path, "dev", units=train_ids + val_ids, **read)
     test = load_ncmapss(path, "test", units=test_ids, **read)
+    dropped = _dropped_rows(path, dev, test, train_ids + val_ids, test_ids, log)
+    theta_names = _theta_names(path, theta, dev)
+    theta_idx = [HEALTH_NAMES.index(n) for n in theta_names]
+    theta_low, theta_high = labelled_box(dev.theta[:, theta_idx], theta_margin)
+    dev_fleet = _pad(dev, theta_idx)
+    is_val = np.isin(dev_fleet.unit_ids, val_ids)
+    model = _file_model(info) if model is None else model
+    train = _take(dev_fleet, ~is_val)
+    problem = training_problem(
+        model, train, theta_names, sensors, dev.theta.mean(axis=0), theta_low,
+        theta_high,
+    )  # fmt: skip
+    units = {"train": train_ids, "val": val_ids, "test": test_ids}
+    return CalibrationData(
+        train=train,
+        val=_take(dev_fleet, is_val) if val_ids else None,
+        test=_pad(test, theta_idx),
+        problem=problem,
+        info=_provenance(path, info, stride, dev, test, units, dropped),
+    )
+
+
+def _dropped_rows(path, dev: Record, test: Record, dev_ids, test_ids, log) -> dict:
+    """``info["dropped"]``: the rows with NaN / Inf dropped per split and column
+    (``nonfinite="drop"``; logged when any).
+
+    Raises:
+        ValueError: a unit of ``dev_ids`` / ``test_ids`` lost every row.
+    """
     dropped = {
         split: {"rows": rec.dropped_rows, "columns": rec.dropped}
         for split, rec in (("dev", dev), ("test", test))
     }
     if log is not None and (dev.dropped_rows or test.dropped_rows):
         log(f"data {path}: {describe_dropped(dropped)} (dataset.nonfinite=drop)")
-    for split, rec, ids in (
-        ("dev", dev, train_ids + val_ids),
-        ("test", test, test_ids),
-    ):
+    for split, rec, ids in (("dev", dev, dev_ids), ("test", test, test_ids)):
         lost = sorted(set(ids) - set(rec.units.tolist())) if rec.dropped_rows else []
         if lost:
             raise ValueError(
                 f"{path}: no {split} row of unit(s) {lost} is left after dropping the "
                 "rows with NaN / Inf values; fix the file or leave those units out"
             )
+    return dropped
+
+
+def _theta_names(path, theta: tuple[str, ...], dev: Record) -> tuple[str, ...]:
+    """The declared parameters: ``theta`` checked against ``HEALTH_NAMES``, or (``()``)
+    those that vary over the dev split.
+
+    Raises:
+        ValueError: an unknown or repeated name, or no parameter varies.
+    """
     low, high = dev.theta.min(axis=0), dev.theta.max(axis=0)
     if theta:
         unknown = [n for n in theta if n not in HEALTH_NAMES]
@@ -323,50 +256,44 @@ def load_calibration_data(
                 f"theta must be distinct names from {list(HEALTH_NAMES)}, got "
                 f"{list(theta)}"
             )
-        theta_names = tuple(theta)
-    else:
-        varying = high - low > VARYING_TOLERANCE
-        theta_names = tuple(n for n, v in zip(HEALTH_NAMES, varying, strict=True) if v)
-        if not theta_names:
-            raise ValueError(
-                f"{path}: no health parameter varies over the dev split; name the "
-                "parameters to calibrate with theta=<name>,<name>"
-            )
-    theta_idx = [HEALTH_NAMES.index(n) for n in theta_names]
-    theta_low, theta_high = labelled_box(dev.theta[:, theta_idx], theta_margin)
-    dev_fleet = _pad(dev, theta_idx)
-    is_val = np.isin(dev_fleet.unit_ids, val_ids)
-
-    def take(mask: np.ndarray) -> UnitArrays:
-        # Re-trim the padding to the longest selected unit.
-        longest = int(dev_fleet.lengths[mask].max())
-        return UnitArrays(
-            *(a[mask][:, :longest] for a in dev_fleet[:3]),
-            lengths=dev_fleet.lengths[mask],
-            unit_ids=dev_fleet.unit_ids[mask],
+        return tuple(theta)
+    varying = high - low > VARYING_TOLERANCE
+    theta_names = tuple(n for n, v in zip(HEALTH_NAMES, varying, strict=True) if v)
+    if not theta_names:
+        raise ValueError(
+            f"{path}: no health parameter varies over the dev split; name the "
+            "parameters to calibrate with theta=<name>,<name>"
         )
+    return theta_names
 
-    if model is None:
-        from jaxcal.models import load
 
-        engine = _json_attr(info["attrs"], "engine")
-        model = load(str(engine) if engine else "cmapss")
-    train = take(~is_val)
-    problem = training_problem(
-        model, train, theta_names, sensors, dev.theta.mean(axis=0), theta_low,
-        theta_high,
-    )  # fmt: skip
-    return CalibrationData(
-        train=train,
-        val=take(is_val) if val_ids else None,
-        test=_pad(test, theta_idx),
-        problem=problem,
-        info={
-            "path": str(path),
-            "sample_rate_hz": info["sample_rate_hz"] / stride,
-            "stride": stride,
-            "rows": {"dev": dev.num_rows, "test": test.num_rows},
-            "units": {"train": train_ids, "val": val_ids, "test": test_ids},
-            "dropped": dropped,
-        },
+def _take(fleet: UnitArrays, mask: np.ndarray) -> UnitArrays:
+    """The units of ``fleet`` where ``mask``, the padding re-trimmed to the longest
+    selected unit."""
+    longest = int(fleet.lengths[mask].max())
+    return UnitArrays(
+        *(a[mask][:, :longest] for a in fleet[:3]),
+        lengths=fleet.lengths[mask],
+        unit_ids=fleet.unit_ids[mask],
     )
+
+
+def _file_model(info: dict) -> Model:
+    """The turbofan the file names (its ``engine`` attribute), else ``cmapss``."""
+    from jaxcal.models import load
+
+    engine = _json_attr(info["attrs"], "engine")
+    return load(str(engine) if engine else "cmapss")
+
+
+def _provenance(path, info: dict, stride: int, dev, test, units, dropped) -> dict:
+    """``CalibrationData.info``: the file, its sample rate after ``stride``, the rows
+    and units per split, the dropped rows."""
+    return {
+        "path": str(path),
+        "sample_rate_hz": info["sample_rate_hz"] / stride,
+        "stride": stride,
+        "rows": {"dev": dev.num_rows, "test": test.num_rows},
+        "units": units,
+        "dropped": dropped,
+    }

@@ -25,7 +25,7 @@ naming a file outside the folder is refused, as loading it would run that file:
 :func:`adopt_model_file` copies a file you trust into the run.
 
 Loading a run folder runs its model's code, as loading a pickle does: load only run
-folders you trust. :mod:`jaxcal.training.model_check` compares a model passed to a
+folders you trust. :mod:`jaxcal.calibrators.run_model` compares a model passed to a
 run with the run's own.
 """
 
@@ -42,12 +42,12 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
-from jaxcal import __version__
-from jaxcal.atomic import write_atomic
 from jaxcal.model import Model
 from jaxcal.models import available, load
-from jaxcal.training.run_dir import DATA_FILE, read_json, write_json
-from jaxcal.training.run_guard import hold_run
+from jaxcal.runs.atomic import write_atomic
+from jaxcal.runs.folder import DATA_FILE, read_json, write_json
+from jaxcal.runs.lock import hold_run
+from jaxcal.version import __version__
 
 SOURCE_DIR = "model"  # the copy of a file model, inside the run folder
 _IDENTIFIER = re.compile(r"[A-Za-z_]\w*")

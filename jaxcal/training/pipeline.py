@@ -5,23 +5,26 @@
 
 1. the run folder ``<runs_dir>/<name>`` is checked, without writing: it must be
    writable, and a stored config must match for a resume
-   (:func:`jaxcal.training.run_dir.check_run_dir`);
+   (:func:`jaxcal.runs.folder.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
-   (``python -m jaxcal.generate`` in a subprocess, so the engine's float64 setting
-   does not leak into training), then the train / val / test units and the one
+   (:func:`jaxcal.data.generation.generate_dataset`, a function call whose float64
+   scope does not leak into training), then the train / val / test units and the one
    :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
    file through :mod:`jaxcal.training.data`, any model's rows through
    :mod:`jaxcal.training.tables`). Only then, every check of the config and the data
    passed, is the run folder created with its ``config.json``
-   (:func:`jaxcal.training.run_dir.prepare_run_dir`): a start that fails leaves
+   (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that fails leaves
    nothing behind that would block the corrected command;
 3. the surrogate D is fitted on the training units' transitions or restored
    (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it; data
    without true theta fit it on units simulated from the model
    (:mod:`jaxcal.training.simulated`, which makes every labelled unit a run needs:
    the user's labels only score);
-4. the policy learns on the training units' (w, x) only, no theta label
-   (:mod:`jaxcal.training.policy_stage`); a model with memory trains on its own
+4. the policy learns on the training units' (w, x) only, no theta label (the
+   environment's parameters: :mod:`jaxcal.training.train_env`; the host loop:
+   :mod:`jaxcal.training.policy_stage`, with the deployable checkpoints and the
+   selection of :mod:`jaxcal.training.kept_policy` and the scores of
+   :mod:`jaxcal.training.policy_scoring`); a model with memory trains on its own
    step (``dynamics=physics``), the environment carrying its state, and episodes
    start from the reference state track
    (:func:`jaxcal.envs.memory.reference_states`: the model run along each unit with
@@ -35,7 +38,8 @@
    deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
    time, updates/s and env steps/s, the time to target (plus, for transparency, the
-   scores of the last policy and of the last online actor);
+   scores of the last policy and of the last online actor;
+   :mod:`jaxcal.training.final_report`);
 6. the kept policy's run over simulated units (or the labelled validation units,
    ``simulate.band``) fits its split-conformal theta band, written to
    ``uncertainty.json``; ``final.json`` gets the band's 90 % coverage on the test
@@ -52,7 +56,7 @@ of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides t
 runner checkpoints, every checkpoint step saves the deployable
 :class:`~jaxcal.calibrators.policy.PolicyParams` (actor, dynamics parameters,
 normalisation, action box) under ``policy/``, and the selected one under
-``policy_best/``; :func:`jaxcal.training.runs.load_run` loads a run from those and
+``policy_best/``; :func:`jaxcal.deploy.loading.load_run` loads a run from those and
 ``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.
 
 No x64 switch here: a model that needs float64 (``model.x64``) with
@@ -62,126 +66,44 @@ does).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.policy import (
-    PolicyParams,
-    policy_params_from_env,
-    range_check,
+from jaxcal.problem import Problem
+from jaxcal.runs.folder import (
+    DATA_FILE,
+    FINAL_FILE,
+    check_run_dir,
+    prepare_run_dir,
+    write_json,
 )
-from jaxcal.checkpoint import Checkpointer
-from jaxcal.config import TrainConfig
-from jaxcal.envs.env_data import compute_norm_stats
-from jaxcal.envs.increment import increment_step_ref
-from jaxcal.envs.memory import as_stateful, reference_states
-from jaxcal.envs.tracking import EnvParams, make_env_params
-from jaxcal.problem import Normalisation, Problem
-from jaxcal.training.components import (
-    check_dynamics,
-    env_config,
-    make_components,
-    make_dynamics,
-)
-from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.runs.lock import hold_run, run_folder
+from jaxcal.training.components import check_dynamics, env_config, make_components
+from jaxcal.training.config import TrainConfig
+from jaxcal.training.data import CalibrationData
+from jaxcal.training.final_report import final_report
+from jaxcal.training.kept_policy import train_kept_policy
 from jaxcal.training.model_source import (
     check_source_unchanged,
     model_source,
     store_model_source,
 )
-from jaxcal.training.policy_stage import train_policy
+from jaxcal.training.policy_scoring import make_policy_scoring
 from jaxcal.training.run_data import (  # noqa: F401 (re-exported)
     GenerationError,
     ensure_data_file,
     model_spec,
     read_run_data,
 )
-from jaxcal.training.run_dir import (
-    DATA_FILE,
-    FINAL_FILE,
-    POLICY_BEST_DIR,
-    POLICY_DIR,
-    check_run_dir,
-    prepare_run_dir,
-    write_json,
-)
-from jaxcal.training.run_guard import hold_run, run_folder
-from jaxcal.training.scoring import describe_units, score_units, theta_rmse
+from jaxcal.training.scoring import describe_units
 from jaxcal.training.simulated import Simulations, parse_noise
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
-from jaxcal.training.uncertainty_stage import (
-    fit_policy_band,
-    scored_mask,
-    time_to_target,
-)
-
-
-def _env_params(
-    units: UnitArrays,
-    problem: Problem,
-    dyn_params,
-    dtype,
-    dynamics_kind: str,
-    max_increment: float | None = None,
-    x_target: np.ndarray | None = None,
-    stats_of: UnitArrays | None = None,
-) -> EnvParams:
-    # The normalisation is computed here, in the run's dtype, as it always was: a
-    # float32 run keeps bit for bit the statistics (and so the training) it had.
-    # Simulated units are normalised with the real training units' statistics
-    # (``stats_of``), what the deployed policy sees.
-    w, x = units.w.astype(dtype), units.x.astype(dtype)
-    stats = None
-    if stats_of is not None:
-        stats = compute_norm_stats(
-            stats_of.w.astype(dtype), stats_of.x.astype(dtype), stats_of.lengths
-        )
-    z_ref = None  # a static model: Z = 0
-    dyn = as_stateful(make_dynamics(dynamics_kind, problem))
-    if problem.model.is_stateful:
-        # The label-free reference: the model along each unit at the prior theta
-        # (the joint UKF's filtered states would be closer; see the module note).
-        z_ref = reference_states(
-            dyn, dyn_params, w, x, units.lengths, problem.theta_prior
-        )
-    params = make_env_params(
-        w,
-        x,
-        units.lengths,
-        problem.theta_low.astype(dtype),
-        problem.theta_high.astype(dtype),
-        dyn_params,
-        stats=stats,
-        z_ref=z_ref,
-        x_target=None if x_target is None else x_target.astype(dtype),
-    )
-    if max_increment is None:
-        return params
-    return params.replace(
-        step_ref=jnp.asarray(
-            increment_step_ref(dyn, params, problem.theta_prior, max_increment), dtype
-        )
-    )
-
-
-def _throughput(records: list[dict]) -> dict:
-    """updates/s and env steps/s over the run's chunks, compile chunks excluded."""
-    timed = [r for r in records if not r.get("includes_compile")] or records
-    seconds = sum(r["chunk_seconds"] for r in timed)
-    if not timed or seconds <= 0:
-        return {"updates_per_s": None, "env_steps_per_s": None}
-    return {
-        "updates_per_s": sum(r["updates_per_s"] * r["chunk_seconds"] for r in timed)
-        / seconds,
-        "env_steps_per_s": sum(r["env_steps_per_s"] * r["chunk_seconds"] for r in timed)
-        / seconds,
-    }
+from jaxcal.training.train_env import make_training_env, with_env_norm
+from jaxcal.training.uncertainty_stage import fit_policy_band
 
 
 def run_training(
@@ -202,7 +124,7 @@ def run_training(
     dict before its one write (the command line adds its wall times), still under
     the run's lock.
 
-    The run folder is locked (:func:`jaxcal.training.run_guard.hold_run`) from its
+    The run folder is locked (:func:`jaxcal.runs.lock.hold_run`) from its
     first write to its last: a second training of the name fails at once. It keeps a
     copy of a model file (:mod:`jaxcal.training.model_source`), which a resume
     checks is unchanged.
@@ -266,48 +188,15 @@ def _train(
 ) -> dict:
     """The job of :func:`run_training` once its checks passed and it holds the run:
     surrogate, policy, test scores, band; returns the ``final.json`` dict."""
-    problem = data.problem
-    model = problem.model
+    model = data.problem.model
     key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
     sims = Simulations(cfg, data, log)
-    surrogate_report = None
-    dyn_params = None
-    if cfg.dynamics == "surrogate":
-        dyn_params, surrogate_report = fit_or_restore_surrogate(
-            key_surrogate,
-            data if data.train.theta is not None else sims.labelled_train(),
-            cfg.surrogate,
-            run_dir,
-            progress=cfg.output.progress,
-            log=log,
-        )
-    incremental = cfg.env.action == "increment"
-    fleet, target = sims.training_fleet()
-    train_params = _env_params(
-        fleet, problem, dyn_params, dtype, cfg.dynamics,
-        cfg.env.max_increment if incremental else None,
-        x_target=target, stats_of=None if fleet is data.train else data.train,
-    )  # fmt: skip
-    if incremental:
-        log(
-            "incremental actions: step gate n_ref "
-            f"{np.asarray(train_params.step_ref).tolist()} (residual RMS), largest "
-            f"step {cfg.env.max_increment:g} of the box width"
-        )
-    norm = (train_params.w_mean, train_params.w_std, train_params.x_mean,
-            train_params.x_std)  # fmt: skip
-    problem = dataclasses.replace(
-        problem, norm=Normalisation(*(np.asarray(a, np.float64) for a in norm))
+    dyn_params, surrogate_report = _fit_dynamics(
+        cfg, key_surrogate, data, sims, run_dir, log
     )
-    write_json(
-        run_dir / DATA_FILE,
-        {"model_spec": model_spec(cfg, model), "model_source": model_record,
-         "x64": model.x64,
-         "problem": problem.to_json(), **data.info,
-         # kept at the top for readers of the older layout (the paper suite)
-         "sensors": problem.output_names, "theta_names": problem.theta_names},
-    )  # fmt: skip
-    start = problem.theta_prior if cfg.env.start == "prior" else None
+    train_params = make_training_env(cfg, data, sims, dyn_params, dtype, log)
+    problem = with_env_norm(data.problem, train_params)
+    write_json(run_dir / DATA_FILE, _data_record(cfg, problem, data, model_record))
     env_cfg = env_config(
         sims.with_noise_floor(cfg),
         len(model.conditions),
@@ -315,165 +204,25 @@ def _train(
         len(problem.theta_names),
     )
     parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
-    check = range_check(problem)  # samples far outside the training range: flagged
-
-    def run(units: UnitArrays, params: PolicyParams):
-        return parts.run_units(
-            params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
-        )
-
-    def score(units: UnitArrays, params: PolicyParams, out=None) -> dict:
-        out = run(units, params) if out is None else out
-        return score_units(
-            out.theta,
-            out.xhat,
-            units.theta,
-            units.x,
-            units.mask,
-            problem.norm.x_std,
-            problem.output_names,
-            problem.theta_names,
-            reason=out.reason,
-        )
-
-    def deployable(agent_state, which: str = cfg.budget.policy) -> PolicyParams:
-        actor = agent_state.actor.params
-        if which == "target":
-            actor = getattr(agent_state, "target_actor_params", actor)
-        return policy_params_from_env(
-            train_params, actor, max_increment=env_cfg.max_increment,
-            theta_start=start,
-        )  # fmt: skip
-
     select_units = sims.selection_units() if cfg.budget.select == "sim_theta" else None
-
-    def val_scorer(agent_state) -> dict:
-        params = deployable(agent_state)
-        scores = {}
-        if data.val is not None:
-            scores = score(data.val, params)
-            keys = ("theta_rmse", "tracking_rmse_norm")
-            scores = {k: scores[k] for k in keys if scores[k] is not None}
-        if select_units is not None:
-            out = run(select_units, params)
-            width = problem.theta_high - problem.theta_low
-            scores["sim_theta_rmse"], _ = theta_rmse(
-                out.theta / width,
-                select_units.theta / width,
-                scored_mask(select_units, out),
-            )
-        return scores
-
-    def test_reporter(agent_state) -> dict:
-        # Reporting only (time to target): train_policy logs it as test_*, and
-        # selection reads val_* alone, so test labels never choose the policy.
-        out = run(data.test, deployable(agent_state))
-        pooled, _ = theta_rmse(out.theta, data.test.theta, scored_mask(data.test, out))
-        return {"theta_rmse": pooled}
-
-    target = cfg.budget.target_theta_rmse
-    if target is not None and data.test.theta is None:
-        log("budget.target_theta_rmse: the test units have no true theta, so the "
-            "time to target is not measured")  # fmt: skip
-        target = None
-    select = (cfg.budget.select == "val_tracking" and data.val is not None) or (
-        cfg.budget.select == "sim_theta"
-    )
-    deadline = (
-        None
-        if cfg.budget.time_limit_s is None
-        else wall_start + cfg.budget.time_limit_s
-    )
-    keep = cfg.output.max_to_keep
-    with (
-        Checkpointer(run_dir / POLICY_DIR, max_to_keep=keep) as latest_ckpt,
-        Checkpointer(run_dir / POLICY_BEST_DIR, max_to_keep=1) as best_ckpt,
-    ):
-
-        def save_latest(step: int, runner) -> None:
-            params = deployable(runner.agent_state)
-            latest_ckpt.save(step, jax.device_get(params), wait=True)
-
-        def save_best(step: int, runner) -> None:
-            # A chunk re-run after a resume reproduces the policy already saved.
-            if step not in best_ckpt.all_steps():
-                params = deployable(runner.agent_state)
-                best_ckpt.save(step, jax.device_get(params), wait=True)
-
-        policy = train_policy(
-            key_runner,
-            parts.env,
-            parts.agent,
-            parts.train_chunk,
-            train_params,
-            cfg.runner,
-            run_dir,
-            num_chunks=cfg.budget.num_chunks,
-            eval_every=cfg.budget.eval_every,
-            ckpt_every=cfg.budget.ckpt_every,
-            deadline=deadline,
-            save_buffer=cfg.output.save_buffer,
-            max_to_keep=keep,
-            scorer=val_scorer
-            if data.val is not None or select_units is not None
-            else None,
-            best_key="val_sim_theta_rmse"
-            if cfg.budget.select == "sim_theta"
-            else "val_tracking_rmse_norm",
-            on_checkpoint=save_latest,
-            on_best=save_best if select else None,
-            reporter=test_reporter if target is not None else None,
-            target=target,
-            clock=clock,
-            progress=cfg.output.progress,
-            log=log,
-        )
-        last = deployable(policy.runner.agent_state)
-        selected, selected_step = last, policy.chunks_done
-        if select and best_ckpt.latest_step() is not None:
-            selected_step = best_ckpt.latest_step()
-            selected = best_ckpt.restore(selected_step, last)
-    test_out = run(data.test, selected)
-    test = score(data.test, selected, test_out)
-    records = policy.records
-    val_record = next((r for r in records if r["step"] == selected_step), {})
-    final = {
-        "run": str(run_dir),
-        "agent": cfg.agent_name,
-        "dynamics": cfg.dynamics,
-        "preset": cfg.preset,
-        "seed": cfg.seed,
-        "data": str(path),
-        "model": model.name,
-        "theta_names": list(data.theta_names),
-        "test_units": data.info["units"]["test"],
-        "select": cfg.budget.select if select else "last",
-        "policy": cfg.budget.policy
-        if hasattr(policy.runner.agent_state, "target_actor_params")
-        else "online",
-        "selected_chunk": selected_step,
-        "test": test,
-        "test_last": test
-        if selected_step == policy.chunks_done
-        else score(data.test, last),
-        "test_online_last": score(
-            data.test, deployable(policy.runner.agent_state, "online")
-        ),
-        "val_selected": {
-            k[4:]: v for k, v in val_record.items() if k.startswith("val_")
-        },
-        "chunks": policy.chunks_done,
-        "stopped_early": policy.stopped_early,
-        "env_steps": int(policy.runner.env_steps),
-        "num_updates": int(policy.runner.num_updates),
-        "train_seconds": float(sum(r["chunk_seconds"] for r in records)),
-        **_throughput(records),
-        "session_wall_seconds": time.perf_counter() - wall_start,
-        "surrogate": surrogate_report,
-        **time_to_target(records, target),
-    }
+    scoring = make_policy_scoring(
+        cfg, data, problem, parts, train_params, env_cfg.max_increment, dtype,
+        select_units,
+    )  # fmt: skip
+    target = _test_target(cfg, data, log)
+    kept = train_kept_policy(
+        cfg, key_runner, run_dir, parts, train_params, scoring,
+        has_val=data.val is not None, target=target, clock=clock,
+        wall_start=wall_start, log=log,
+    )  # fmt: skip
+    test_out = scoring.run(data.test, kept.selected)
+    test = scoring.score(data.test, kept.selected, test_out)
+    final = final_report(
+        cfg, run_dir, path, data, kept, test, scoring, surrogate_report, target,
+        wall_start,
+    )  # fmt: skip
     band_units, fitted_on = sims.band_units()
-    band_out = None if band_units is None else run(band_units, selected)
+    band_out = None if band_units is None else scoring.run(band_units, kept.selected)
     names = tuple(data.theta_names)
     final.update(
         fit_policy_band(
@@ -483,3 +232,49 @@ def _train(
     )  # fmt: skip
     final["simulated"] = sims.report()
     return final
+
+
+def _fit_dynamics(
+    cfg: TrainConfig, key, data: CalibrationData, sims, run_dir: Path, log
+):
+    """``(dyn_params, surrogate report)``: the surrogate D fitted or restored
+    (:mod:`jaxcal.training.surrogate_stage`; on simulated labelled units when the
+    data carry no true theta), or ``(None, None)`` with ``dynamics=physics``."""
+    if cfg.dynamics != "surrogate":
+        return None, None
+    return fit_or_restore_surrogate(
+        key,
+        data if data.train.theta is not None else sims.labelled_train(),
+        cfg.surrogate,
+        run_dir,
+        progress=cfg.output.progress,
+        log=log,
+    )
+
+
+def _data_record(
+    cfg: TrainConfig, problem: Problem, data: CalibrationData, model_record: dict
+) -> dict:
+    """The run's ``data.json``: the model (its spec, the kept source, float64), the
+    problem with the training normalisation, and the data's provenance."""
+    model = problem.model
+    return {
+        "model_spec": model_spec(cfg, model), "model_source": model_record,
+        "x64": model.x64,
+        "problem": problem.to_json(), **data.info,
+        # kept at the top for readers of the older layout (the paper suite)
+        "sensors": problem.output_names, "theta_names": problem.theta_names,
+    }  # fmt: skip
+
+
+def _test_target(
+    cfg: TrainConfig, data: CalibrationData, log: Callable[[str], None]
+) -> float | None:
+    """``budget.target_theta_rmse``, or ``None`` when the test units have no true
+    theta to measure the time to target by (said in the log)."""
+    target = cfg.budget.target_theta_rmse
+    if target is not None and data.test.theta is None:
+        log("budget.target_theta_rmse: the test units have no true theta, so the "
+            "time to target is not measured")  # fmt: skip
+        target = None
+    return target

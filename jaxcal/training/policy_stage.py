@@ -30,10 +30,10 @@ from tqdm.auto import tqdm
 
 from jaxcal.agents.buffer import init_buffer
 from jaxcal.agents.common import Agent
-from jaxcal.checkpoint import Checkpointer
 from jaxcal.envs.tracking import Env, EnvParams
-from jaxcal.metrics_log import MetricsWriter
-from jaxcal.training.run_dir import CHECKPOINT_DIR, METRICS_FILE, truncate_metrics
+from jaxcal.runs.checkpoint import Checkpointer
+from jaxcal.runs.folder import CHECKPOINT_DIR, METRICS_FILE, truncate_metrics
+from jaxcal.runs.metrics_log import MetricsWriter
 from jaxcal.training.runner import RunnerConfig, RunnerState, init_runner
 from jaxcal.typedefs import PRNGKey
 
@@ -111,6 +111,35 @@ def _scalars(metrics: dict) -> dict:
     return {k: np.asarray(v).item() for k, v in metrics.items()}
 
 
+class ChunkScoring(NamedTuple):
+    """How :func:`train_policy` scores a chunk (every ``eval_every`` chunks and the
+    last) and selects the kept one; every field is optional.
+
+    Attributes:
+        scorer: validation scores of an agent state, logged as ``val_*``.
+        best_key: the record field selection minimises (default: the validation
+            tracking RMSE; ``val_sim_theta_rmse``: theta RMSE on simulated units).
+        on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
+            lowest ``best_key`` so far (earlier sessions included).
+        reporter: test scores of an agent state, called at the same chunks as
+            ``scorer`` and logged as ``test_*`` with ``test_score_seconds``. For
+            reporting only (time to target): selection reads ``val_*`` keys alone.
+        target: the test theta RMSE whose first crossing (``test_theta_rmse <=
+            target``, earlier sessions included) is logged once, and marked in
+            its record as ``time_to_target_s`` / ``time_to_target_chunk``.
+        clock: seconds since the job's start (earlier sessions included); stamped
+            as ``job_seconds`` on every scored record, after the validation
+            scores and before the test scores (reporting is not part of the job).
+    """
+
+    scorer: Scorer | None = None
+    best_key: str = BEST_KEY
+    on_best: Callable[[int, RunnerState], None] | None = None
+    reporter: Scorer | None = None
+    target: float | None = None
+    clock: Callable[[], float] | None = None
+
+
 def train_policy(
     key: PRNGKey,
     env: Env,
@@ -126,13 +155,8 @@ def train_policy(
     deadline: float | None = None,
     save_buffer: bool = True,
     max_to_keep: int = 2,
-    scorer: Scorer | None = None,
+    scoring: ChunkScoring = ChunkScoring(),
     on_checkpoint: Callable[[int, RunnerState], None] | None = None,
-    on_best: Callable[[int, RunnerState], None] | None = None,
-    best_key: str = BEST_KEY,
-    reporter: Scorer | None = None,
-    target: float | None = None,
-    clock: Callable[[], float] | None = None,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> PolicyResult:
@@ -147,29 +171,16 @@ def train_policy(
         runner_cfg: loop sizes.
         run_dir: the run folder (``checkpoints/`` and ``metrics.jsonl`` live there).
         num_chunks: total chunks of the run (earlier sessions included).
-        eval_every: chunks between ``scorer`` calls (0: never; the last chunk is
-            always scored when a scorer is given).
+        eval_every: chunks between scorings (0: never; the last chunk is always
+            scored when a scorer is given).
         ckpt_every: chunks between checkpoints (the last chunk is always saved).
         deadline: ``time.perf_counter()`` value after which the session ends (after
             the chunk that crosses it); ``None``: no limit.
         save_buffer: include the replay buffer in checkpoints.
         max_to_keep: checkpoints kept on disk.
-        scorer: validation scores of an agent state, logged as ``val_*``.
+        scoring: the scorings and the selection (:class:`ChunkScoring`).
         on_checkpoint: called as ``on_checkpoint(chunk, runner)`` after each save
             (the pipeline saves the deployable policy there).
-        on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
-            lowest ``best_key`` so far (earlier sessions included).
-        best_key: the record field selection minimises (default: the validation
-            tracking RMSE; ``val_sim_theta_rmse``: theta RMSE on simulated units).
-        reporter: test scores of an agent state, called at the same chunks as
-            ``scorer`` and logged as ``test_*`` with ``test_score_seconds``. For
-            reporting only (time to target): selection reads ``val_*`` keys alone.
-        target: the test theta RMSE whose first crossing (``test_theta_rmse <=
-            target``, earlier sessions included) is logged once, and marked in
-            its record as ``time_to_target_s`` / ``time_to_target_chunk``.
-        clock: seconds since the job's start (earlier sessions included); stamped
-            as ``job_seconds`` on every scored record, after the validation
-            scores and before the test scores (reporting is not part of the job).
         progress: show a tqdm bar.
         log: where one-line messages go.
 
@@ -178,94 +189,151 @@ def train_policy(
     """
     run_dir = Path(run_dir)
     with Checkpointer(run_dir / CHECKPOINT_DIR, max_to_keep=max_to_keep) as ckpt:
-        start = ckpt.latest_step() or 0
-        if start:
-            abstract = jax.eval_shape(
-                lambda k: init_runner(k, env, agent, train_params, runner_cfg), key
-            )
-            runner = _restore_runner(ckpt, abstract, runner_cfg, env, save_buffer)
-            log(f"resumed from checkpoint {start} of {run_dir / CHECKPOINT_DIR}")
-        else:
-            runner = _init_runner(key, env, agent, train_params, runner_cfg)
+        start, runner = _start_runner(
+            ckpt, run_dir, key, env, agent, train_params, runner_cfg, save_buffer, log
+        )
         records = truncate_metrics(run_dir / METRICS_FILE, start)
         if start >= num_chunks:
             return PolicyResult(runner, records, start, False)
-        stopped_early = False
-        best = min(
-            (r[best_key] for r in records if best_key in r), default=float("inf")
-        )
-        reached = any(_reaches(r, target) for r in records)
-        last_val = next(
-            (r["val_theta_rmse"] for r in reversed(records) if "val_theta_rmse" in r),
-            None,
-        )
-        bar = tqdm(
-            total=num_chunks,
-            initial=start,
-            desc="policy",
-            unit="chunk",
-            disable=not progress,
-            dynamic_ncols=True,
-        )
+        best, reached, last_val = _earlier_marks(records, scoring)
+        bar = _progress_bar(num_chunks, start, progress)
         with MetricsWriter(run_dir / METRICS_FILE) as writer, bar:
             for chunk in range(start + 1, num_chunks + 1):
-                updates_before = int(runner.num_updates)
-                tic = time.perf_counter()
-                runner, metrics = train_chunk(runner, train_params)
-                record = _scalars(jax.device_get(metrics))
-                seconds = time.perf_counter() - tic
-                record.update(
-                    chunk_seconds=seconds,
-                    includes_compile=chunk == start + 1,
-                    updates_per_s=(record["num_updates"] - updates_before) / seconds,
-                    env_steps_per_s=runner_cfg.num_envs
-                    * runner_cfg.num_steps_per_chunk
-                    / seconds,
+                runner, record = _timed_chunk(
+                    train_chunk, runner, train_params, runner_cfg, chunk == start + 1
                 )
-                last = chunk == num_chunks or (
-                    deadline is not None and time.perf_counter() >= deadline
-                )
-                scored = last or bool(eval_every and chunk % eval_every == 0)
-                if scored and scorer is not None:
-                    scores = scorer(runner.agent_state)
-                    record.update({f"val_{k}": v for k, v in scores.items()})
-                if scored and clock is not None:
-                    record["job_seconds"] = clock()
-                if scored and reporter is not None:
-                    tic_test = time.perf_counter()
-                    scores = reporter(runner.agent_state)
-                    record.update({f"test_{k}": v for k, v in scores.items()})
-                    record["test_score_seconds"] = time.perf_counter() - tic_test
-                    if not reached and _reaches(record, target):
-                        reached = True
-                        record["time_to_target_s"] = record.get("job_seconds")
-                        record["time_to_target_chunk"] = chunk
-                        log(
-                            f"test theta RMSE {record[TEST_KEY]:.3e} <= target "
-                            f"{target:.3e} at chunk {chunk}, "
-                            f"{record.get('job_seconds') or 0:.0f} s into the job"
-                        )
+                last = chunk == num_chunks or _past(deadline)
+                if last or bool(eval_every and chunk % eval_every == 0):
+                    reached = _score(record, runner, chunk, scoring, reached, log)
                 writer.write(chunk, record)
                 records.append({"step": chunk, **record})
                 if chunk % ckpt_every == 0 or last:
-                    ckpt.save(chunk, _checkpoint_item(runner, save_buffer))
-                    if on_checkpoint is not None:
-                        on_checkpoint(chunk, runner)
-                if record.get(best_key, float("inf")) < best:
-                    best = record[best_key]
-                    if on_best is not None:
-                        on_best(chunk, runner)
-                if "val_theta_rmse" in record:
-                    last_val = record["val_theta_rmse"]
+                    _save(ckpt, chunk, runner, save_buffer, on_checkpoint)
+                best = _select(record, best, chunk, runner, scoring)
+                last_val = record.get("val_theta_rmse", last_val)
                 bar.update(1)
                 bar.set_postfix(_postfix(record, last_val), refresh=False)
                 if last:
-                    stopped_early = chunk < num_chunks
-                    if stopped_early:
-                        log(f"time limit reached after chunk {chunk} of {num_chunks}")
+                    stopped_early = _stopped_early(chunk, num_chunks, log)
                     break
         ckpt.wait_until_finished()
     return PolicyResult(runner, records, chunk, stopped_early)
+
+
+def _start_runner(
+    ckpt, run_dir, key, env, agent, train_params, runner_cfg, save_buffer, log
+):
+    """``(start, runner)``: the runner restored from the latest checkpoint of
+    ``run_dir`` (its chunk ``start``), or a new one at ``start = 0``."""
+    start = ckpt.latest_step() or 0
+    if not start:
+        return 0, _init_runner(key, env, agent, train_params, runner_cfg)
+    abstract = jax.eval_shape(
+        lambda k: init_runner(k, env, agent, train_params, runner_cfg), key
+    )
+    runner = _restore_runner(ckpt, abstract, runner_cfg, env, save_buffer)
+    log(f"resumed from checkpoint {start} of {run_dir / CHECKPOINT_DIR}")
+    return start, runner
+
+
+def _past(deadline: float | None) -> bool:
+    """Whether the session's ``deadline`` (a ``time.perf_counter()`` value) has
+    passed (never without one)."""
+    return deadline is not None and time.perf_counter() >= deadline
+
+
+def _save(ckpt, chunk: int, runner, save_buffer: bool, on_checkpoint) -> None:
+    """The runner checkpoint of ``chunk``, then ``on_checkpoint(chunk, runner)``."""
+    ckpt.save(chunk, _checkpoint_item(runner, save_buffer))
+    if on_checkpoint is not None:
+        on_checkpoint(chunk, runner)
+
+
+def _stopped_early(chunk: int, num_chunks: int, log) -> bool:
+    """Whether the session ended before the run's last chunk (said in the log)."""
+    stopped_early = chunk < num_chunks
+    if stopped_early:
+        log(f"time limit reached after chunk {chunk} of {num_chunks}")
+    return stopped_early
+
+
+def _earlier_marks(records: list[dict], scoring: ChunkScoring):
+    """``(best, reached, last_val)`` of the earlier sessions' records: the lowest
+    ``best_key``, whether the target was reached, the last validation theta RMSE."""
+    best_key = scoring.best_key
+    best = min((r[best_key] for r in records if best_key in r), default=float("inf"))
+    reached = any(_reaches(r, scoring.target) for r in records)
+    last_val = next(
+        (r["val_theta_rmse"] for r in reversed(records) if "val_theta_rmse" in r),
+        None,
+    )
+    return best, reached, last_val
+
+
+def _progress_bar(num_chunks: int, start: int, progress: bool):
+    """The chunks' tqdm bar (off with ``progress=False``)."""
+    return tqdm(
+        total=num_chunks,
+        initial=start,
+        desc="policy",
+        unit="chunk",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+
+
+def _timed_chunk(train_chunk, runner, train_params, runner_cfg, first: bool):
+    """``(runner, record)`` of one chunk: its metrics as scalars, its wall time and
+    throughput (``includes_compile`` on a session's first chunk)."""
+    updates_before = int(runner.num_updates)
+    tic = time.perf_counter()
+    runner, metrics = train_chunk(runner, train_params)
+    record = _scalars(jax.device_get(metrics))
+    seconds = time.perf_counter() - tic
+    record.update(
+        chunk_seconds=seconds,
+        includes_compile=first,
+        updates_per_s=(record["num_updates"] - updates_before) / seconds,
+        env_steps_per_s=runner_cfg.num_envs * runner_cfg.num_steps_per_chunk / seconds,
+    )
+    return runner, record
+
+
+def _score(record: dict, runner, chunk: int, scoring: ChunkScoring, reached, log):
+    """Adds a scored chunk's validation scores, job time and test scores to its
+    ``record``; returns whether the target is reached (its first crossing logged
+    and marked)."""
+    if scoring.scorer is not None:
+        scores = scoring.scorer(runner.agent_state)
+        record.update({f"val_{k}": v for k, v in scores.items()})
+    if scoring.clock is not None:
+        record["job_seconds"] = scoring.clock()
+    if scoring.reporter is None:
+        return reached
+    tic_test = time.perf_counter()
+    scores = scoring.reporter(runner.agent_state)
+    record.update({f"test_{k}": v for k, v in scores.items()})
+    record["test_score_seconds"] = time.perf_counter() - tic_test
+    if not reached and _reaches(record, scoring.target):
+        reached = True
+        record["time_to_target_s"] = record.get("job_seconds")
+        record["time_to_target_chunk"] = chunk
+        log(
+            f"test theta RMSE {record[TEST_KEY]:.3e} <= target "
+            f"{scoring.target:.3e} at chunk {chunk}, "
+            f"{record.get('job_seconds') or 0:.0f} s into the job"
+        )
+    return reached
+
+
+def _select(record: dict, best: float, chunk: int, runner, scoring: ChunkScoring):
+    """The lowest ``best_key`` so far; a chunk that lowers it is passed to
+    ``on_best``."""
+    if record.get(scoring.best_key, float("inf")) < best:
+        best = record[scoring.best_key]
+        if scoring.on_best is not None:
+            scoring.on_best(chunk, runner)
+    return best
 
 
 def _reaches(record: dict, target: float | None) -> bool:

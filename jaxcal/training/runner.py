@@ -16,15 +16,16 @@ once (``donate_argnums=0``) and logs between chunks::
 The environment parameters (data, normalisation, dynamics parameters) are an argument of
 the chunk rather than part of the runner state: they are not donated, not duplicated
 when vmapping over seeds (``in_axes=(0, None)``), and a new data set or surrogate does
-not trigger recompilation. :func:`evaluate_policy` runs the deterministic policy once
-through every whole unit trajectory.
+not trigger recompilation. :func:`evaluate_policy`
+(:mod:`jaxcal.training.policy_rollout`, re-exported here) runs the deterministic policy
+once through every whole unit trajectory.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +40,10 @@ from jaxcal.agents.buffer import (
 )
 from jaxcal.agents.common import Agent
 from jaxcal.envs.tracking import Env, EnvParams, check_env_params
+from jaxcal.training.policy_rollout import (  # noqa: F401 (re-exported: one import path)
+    EvalOutput,
+    evaluate_policy,
+)
 from jaxcal.typedefs import Array, Metrics, PRNGKey
 
 
@@ -163,8 +168,27 @@ def make_train_chunk(
     * the agent's update metrics, averaged over the iterations that updated;
     * the counters ``env_steps``, ``num_updates`` and ``buffer_size`` at chunk end.
     """
-    step_envs = jax.vmap(env.step, in_axes=(0, 0, 0, None))
-    reset_envs = jax.vmap(env.reset, in_axes=(0, None))
+    iteration = _make_iteration(env, agent, cfg)
+
+    def train_chunk(
+        runner: RunnerState, env_params: EnvParams
+    ) -> tuple[RunnerState, Metrics]:
+        runner, steps = jax.lax.scan(
+            lambda r, _: iteration(r, env_params),
+            runner,
+            None,
+            length=cfg.num_steps_per_chunk,
+        )
+        return runner, _chunk_metrics(steps, runner)
+
+    return train_chunk
+
+
+def _make_updates(agent: Agent, cfg: RunnerConfig):
+    """``(run_updates, skip_updates)``, both ``(agent_state, buffer, key) ->
+    (agent_state, metrics)``: ``updates_per_step`` agent updates on fresh minibatches
+    (metrics averaged), or none with zero metrics of the same shapes (the other
+    branch of the ``lax.cond`` on the buffer's size)."""
 
     def run_updates(agent_state: Any, buffer: ReplayBuffer, key: PRNGKey):
         def one_update(state, key_update):
@@ -179,6 +203,18 @@ def make_train_chunk(
     def skip_updates(agent_state: Any, buffer: ReplayBuffer, key: PRNGKey):
         shapes = jax.eval_shape(run_updates, agent_state, buffer, key)[1]
         return agent_state, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+    return run_updates, skip_updates
+
+
+def _make_iteration(env: Env, agent: Agent, cfg: RunnerConfig):
+    """``iteration(runner, env_params) -> (runner, step metrics)``: one step of the
+    ``num_envs`` environments (uniform random actions during warm-up, policy samples
+    afterwards), the transitions written to the buffer, finished episodes reset and
+    the agent updated once the buffer holds ``update_threshold`` transitions."""
+    step_envs = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    reset_envs = jax.vmap(env.reset, in_axes=(0, None))
+    run_updates, skip_updates = _make_updates(agent, cfg)
 
     def iteration(runner: RunnerState, env_params: EnvParams):
         key, key_act, key_random, key_step, key_reset, key_update = jax.random.split(
@@ -242,99 +278,27 @@ def make_train_chunk(
         }
         return new_runner, step_metrics
 
-    def train_chunk(
-        runner: RunnerState, env_params: EnvParams
-    ) -> tuple[RunnerState, Metrics]:
-        runner, steps = jax.lax.scan(
-            lambda r, _: iteration(r, env_params),
-            runner,
-            None,
-            length=cfg.num_steps_per_chunk,
-        )
-        updated = steps["updated"].astype(jnp.float32)
-        num_updated = jnp.maximum(updated.sum(), 1.0)
-        metrics = {
-            name: jnp.sum(values * updated) / num_updated
-            for name, values in steps["update"].items()
-        }
-        episodes = steps["finished"].sum()
-        metrics.update(
-            cost=steps["cost"].mean(),
-            episode_cost=steps["finished_cost"].sum() / jnp.maximum(episodes, 1),
-            episodes=episodes,
-            env_steps=runner.env_steps,
-            num_updates=runner.num_updates,
-            buffer_size=runner.buffer.size,
-        )
-        return runner, metrics
-
-    return train_chunk
+    return iteration
 
 
-class EvalOutput(NamedTuple):
-    """Deterministic-policy rollout over whole unit trajectories.
-
-    Attributes:
-        theta: [U, T, P] inferred parameters; theta[:, t] is the action taken at t - 1,
-            and theta[:, 0] repeats theta[:, 1] (no action precedes the first sample).
-        xhat: [U, T, S] model output, xhat[:, 0] = x[:, 0].
-        cost: [U, T] tracking cost c_{t-1} of reaching xhat[:, t]; cost[:, 0] = 0.
-        mask: [U, T] bool, t < lengths[u]; every output is 0 where the mask is False.
-    """
-
-    theta: Array
-    xhat: Array
-    cost: Array
-    mask: Array
-
-
-def evaluate_policy(
-    key: PRNGKey, env: Env, agent: Agent, agent_state: Any, env_params: EnvParams
-) -> EvalOutput:
-    """Runs pi*(s) = tanh(mean) through each unit from its first sample (paper §4).
-
-    ``lax.scan`` over time, ``vmap`` over units; padded rows are masked out. Jit it at
-    the call site (``jax.jit(evaluate_policy, static_argnums=(1, 2))``).
-
-    Args:
-        key: PRNG key (the deterministic policy and the env do not consume randomness,
-            but the interfaces take keys).
-        env: the tracking environment.
-        agent: the trained agent.
-        agent_state: its state.
-        env_params: the units to run through (use the training normalisation).
-
-    Returns:
-        :class:`EvalOutput`.
-    """
-    num_units, num_steps = env_params.x.shape[:2]
-
-    def run_unit(key_unit: PRNGKey, unit: Array):
-        obs, state = env.reset_at(env_params, unit, 0)
-        xhat_first = state.xhat
-
-        def body(carry, key_t):
-            obs, state = carry
-            key_act, key_step = jax.random.split(key_t)
-            action = agent.act(key_act, agent_state, obs, deterministic=True)
-            obs, state, cost, _, info = env.step(key_step, state, action, env_params)
-            return (obs, state), (info["theta"], state.xhat, cost)
-
-        keys = jax.random.split(key_unit, num_steps - 1)
-        _, (theta, xhat, cost) = jax.lax.scan(body, (obs, state), keys)
-        if env.config.incremental:  # the step at t returns theta_t (predict-correct)
-            theta = jnp.concatenate([theta, theta[-1:]])
-        else:  # the step at t sets the theta of sample t + 1
-            theta = jnp.concatenate([theta[:1], theta])
-        xhat = jnp.concatenate([xhat_first[None], xhat])
-        cost = jnp.concatenate([jnp.zeros((1,), cost.dtype), cost])
-        mask = jnp.arange(num_steps) < env_params.lengths[unit]
-        return EvalOutput(
-            theta=jnp.where(mask[:, None], theta, 0.0),
-            xhat=jnp.where(mask[:, None], xhat, 0.0),
-            cost=jnp.where(mask, cost, 0.0),
-            mask=mask,
-        )
-
-    keys = jax.random.split(key, num_units)
-    return jax.vmap(run_unit)(keys, jnp.arange(num_units))
+def _chunk_metrics(steps: dict, runner: RunnerState) -> Metrics:
+    """The chunk's metrics from its iterations' ``steps`` (stacked over the scan) and
+    the runner at its end: the update metrics averaged over the iterations that
+    updated, the mean cost, the finished episodes' mean cost and count, and the
+    counters."""
+    updated = steps["updated"].astype(jnp.float32)
+    num_updated = jnp.maximum(updated.sum(), 1.0)
+    metrics = {
+        name: jnp.sum(values * updated) / num_updated
+        for name, values in steps["update"].items()
+    }
+    episodes = steps["finished"].sum()
+    metrics.update(
+        cost=steps["cost"].mean(),
+        episode_cost=steps["finished_cost"].sum() / jnp.maximum(episodes, 1),
+        episodes=episodes,
+        env_steps=runner.env_steps,
+        num_updates=runner.num_updates,
+        buffer_size=runner.buffer.size,
+    )
+    return metrics

@@ -181,8 +181,8 @@ class Simulations:
     """A run's simulated units, each made on first use (module doc).
 
     Args:
-        cfg: the run's :class:`~jaxcal.config.TrainConfig` (``simulate``, ``noise``,
-            ``seed``).
+        cfg: the run's :class:`~jaxcal.training.config.TrainConfig` (``simulate``,
+            ``noise``, ``seed``).
         data: the run's :class:`~jaxcal.training.data.CalibrationData`.
         log: where notes go.
     """

@@ -20,7 +20,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxcal.checkpoint import Checkpointer
+from jaxcal.runs.checkpoint import Checkpointer
+from jaxcal.runs.folder import SURROGATE_DIR, SURROGATE_FILE, read_json, write_json
 from jaxcal.surrogate.fit import fit_surrogate, make_transitions, surrogate_errors
 from jaxcal.surrogate.model import (
     SurrogateConfig,
@@ -28,7 +29,6 @@ from jaxcal.surrogate.model import (
     init_surrogate_params,
 )
 from jaxcal.training.data import CalibrationData, UnitArrays
-from jaxcal.training.run_dir import SURROGATE_DIR, SURROGATE_FILE, read_json, write_json
 from jaxcal.training.scoring import describe_units
 from jaxcal.typedefs import PRNGKey
 

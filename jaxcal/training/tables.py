@@ -222,18 +222,7 @@ def load_table_data(
         source, model, rename=rename, nonfinite=nonfinite, partial=False
     )
     data = data.for_model(model, tuple(outputs) or None)
-    if data.split is not None:
-        if test_units is not None:
-            raise ValueError(
-                f"{data.source} has a split column: it defines the test units "
-                "(leave test_units out, or drop the column)"
-            )
-        train, val, test = split_by_column(data, val_units, val_fraction)
-    else:
-        train, val, test = hold_out_units(
-            data.units, test_units, val_units, test_fraction, val_fraction,
-            data.source,
-        )  # fmt: skip
+    train, val, test = _split(data, test_units, val_units, test_fraction, val_fraction)
     dev = data.select_units(train + val)
     theta = tuple(theta) or (
         default_theta(model, dev) if use_labels else model.parameter_names
@@ -244,15 +233,7 @@ def load_table_data(
         name: pad_units(data, ids, theta) if ids else None
         for name, ids in (("train", train), ("val", val), ("test", test))
     }
-    short = [
-        int(u)
-        for units in splits.values()
-        if units is not None
-        for u, n in zip(units.unit_ids, units.lengths, strict=True)
-        if n < 2
-    ]
-    if short:
-        raise ValueError(f"{data.source}: unit(s) {short} have fewer than 2 rows")
+    _check_lengths(data.source, splits)
     problem = training_problem(
         model, splits["train"], theta, data.output_names, base, low, high
     )
@@ -271,3 +252,39 @@ def load_table_data(
             "dropped": data.dropped,
         },
     )
+
+
+def _split(data: Dataset, test_units, val_units, test_fraction, val_fraction):
+    """(train, val, test) unit ids: by the ``split`` column when the data have one
+    (:func:`split_by_column`), else held out (:func:`hold_out_units`).
+
+    Raises:
+        ValueError: ``test_units`` given with a split column, or a bad split.
+    """
+    if data.split is not None:
+        if test_units is not None:
+            raise ValueError(
+                f"{data.source} has a split column: it defines the test units "
+                "(leave test_units out, or drop the column)"
+            )
+        return split_by_column(data, val_units, val_fraction)
+    return hold_out_units(
+        data.units, test_units, val_units, test_fraction, val_fraction, data.source
+    )
+
+
+def _check_lengths(source, splits: dict) -> None:
+    """Every unit must have 2 rows at least (one step).
+
+    Raises:
+        ValueError: naming the shorter units.
+    """
+    short = [
+        int(u)
+        for units in splits.values()
+        if units is not None
+        for u, n in zip(units.unit_ids, units.lengths, strict=True)
+        if n < 2
+    ]
+    if short:
+        raise ValueError(f"{source}: unit(s) {short} have fewer than 2 rows")

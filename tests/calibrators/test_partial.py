@@ -364,3 +364,23 @@ def test_training_leaves_partial_rows_out_and_the_diagnosis_uses_them(frame):
     assert int((~loop.observed).sum()) == missing
     assert np.isfinite(loop.x).all()  # a missing entry holds 0, masked out
     assert any("some outputs missing" in n for n in loop.notes)
+
+
+def test_a_partial_row_beside_an_outlier_keeps_the_rest_of_the_stream():
+    """The screening's outputs' centre without the outlier rows is a NaN-aware mean:
+    a missing output elsewhere once made it NaN and every row ``state_nonfinite``."""
+    import sys
+
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from test_compile_once import MEMORY, _data
+
+    frame = _data(MEMORY, 0)
+    frame.loc[13, "y2"] = np.nan
+    frame.loc[50, "y1"] += 5.0  # a wild reading: the screen flags it
+    noise = {"y1": 0.01, "y2": 0.01}
+    with pytest.warns(UserWarning):
+        result = jaxcal.calibrate(MEMORY, frame, "ukf", noise=noise, progress=False)
+    reason = np.asarray(result.reason)
+    assert reason[50] == "outlier"
+    assert not np.any(reason == "state_nonfinite")
+    assert reason[13] == "ok" and np.isfinite(result.theta).all()

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.diagnose import main
+from jaxcal.cli.diagnose import main
 
 
 def pump(w, theta):

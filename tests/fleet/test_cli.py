@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from jaxcal.fleet.__main__ import FleetConfig, main, parse_args
+from jaxcal.cli.fleet import FleetConfig, main, parse_args
 from jaxcal.fleet.results import read_results
 
 HX_UNITS, HX_ROWS = (4, 9, 2), 50  # unit ids (not in order) and rows per unit

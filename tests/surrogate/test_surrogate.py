@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.checkpoint import Checkpointer
 from jaxcal.nets.mlp import RegressorConfig
+from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.surrogate.fit import (
     fit_surrogate,
     make_transitions,

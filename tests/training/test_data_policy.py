@@ -8,14 +8,14 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxcal.config import resolve_config
+from jaxcal.cli.train import main
 from jaxcal.data.ncmapss_io import write_ncmapss
 from jaxcal.data.record import Record
 from jaxcal.physics.constants import (
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,
 )
-from jaxcal.train import main
+from jaxcal.training.config import resolve_config
 from jaxcal.training.data import load_calibration_data, read_options
 
 SENSORS = MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES

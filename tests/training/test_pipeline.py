@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
-from jaxcal.config import make_train_config, resolve_config
 from jaxcal.deploy import load_run
-from jaxcal.metrics_log import read_metrics
+from jaxcal.runs.metrics_log import read_metrics
+from jaxcal.training.config import make_train_config, resolve_config
 from jaxcal.training.data import load_calibration_data
 from jaxcal.training.pipeline import ensure_data_file, run_training
 from jaxcal.training.scoring import theta_rmse, tracking_rmse
@@ -173,7 +173,7 @@ def test_checkpointed_policy_round_trips(resumed_and_straight, data_file):
     assert load_run(runs / "straight").step == final_resumed["selected_chunk"]
     chex.assert_tree_all_finite(run.params)
     # Rescoring the restored policy gives the scores computed in memory at the end.
-    from jaxcal.evaluate import evaluate_run
+    from jaxcal.cli.evaluate import evaluate_run
 
     report = evaluate_run(str(runs / "straight"), repeats=3)
     assert report["theta_rmse"] == pytest.approx(final_resumed["test"]["theta_rmse"])

@@ -22,18 +22,18 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.config import OutputConfig, TrainConfig, resolve_config
+from jaxcal.calibrators.run_model import check_run_model
+from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import adopt_model_file, load_run
 from jaxcal.models import load
-from jaxcal.train import main as train_main
-from jaxcal.training import pipeline
-from jaxcal.training.model_check import check_run_model
+from jaxcal.runs.lock import LOCK_FILE, RunInUseError, hold_run
+from jaxcal.training import kept_policy, pipeline
+from jaxcal.training.config import OutputConfig, TrainConfig, resolve_config
 from jaxcal.training.model_source import (
     load_run_model,
     model_source,
     recorded_source,
 )
-from jaxcal.training.run_guard import LOCK_FILE, RunInUseError, hold_run
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 ENV = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": REPO}
@@ -60,7 +60,7 @@ SOURCE = textwrap.dedent(
 EDITED = SOURCE.replace("p * a + q * b", "3.0 * p * a + q * b")
 HOLDER = (
     "import sys, time\n"
-    "from jaxcal.training.run_guard import hold_run\n"
+    "from jaxcal.runs.lock import hold_run\n"
     "with hold_run(sys.argv[1]):\n"
     "    print('held', flush=True)\n"
     "    time.sleep(600)\n"
@@ -112,7 +112,7 @@ def trained(files):
     """The run ``toy``; while its policy trains, a second training of the name is
     started as a separate command (its exit code and stderr are kept)."""
     second = {}
-    real = pipeline.train_policy
+    real = kept_policy.train_policy
 
     def train_policy_beside_a_twin(*args, **kwargs):
         proc = subprocess.run(
@@ -123,7 +123,7 @@ def trained(files):
         return real(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(pipeline, "train_policy", train_policy_beside_a_twin)
+        patch.setattr(kept_policy, "train_policy", train_policy_beside_a_twin)
         assert train_main(_argv(files, "name=toy")) == 0
     return SimpleNamespace(run=files.runs / "toy", second=second)
 

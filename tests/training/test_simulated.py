@@ -77,7 +77,7 @@ def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
 
 
 def test_any_model_default_preset_uses_labels_to_score_only():
-    from jaxcal.config import ANY_MODEL_COPIES, make_train_config
+    from jaxcal.training.config import ANY_MODEL_COPIES, make_train_config
 
     cfg = make_train_config("file", "default")
     assert cfg.dataset.labels == "score" and cfg.env.start == "prior"

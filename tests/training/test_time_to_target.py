@@ -13,9 +13,9 @@ from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.calibrators.interface import CalOutput
 from jaxcal.calibrators.uncertainty import UNCERTAINTY_FILE, load_band
-from jaxcal.config import resolve_config
-from jaxcal.metrics_log import read_metrics
-from jaxcal.train import format_final
+from jaxcal.cli.train import format_final
+from jaxcal.runs.metrics_log import read_metrics
+from jaxcal.training.config import resolve_config
 from jaxcal.training.data import UnitArrays
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.uncertainty_stage import fit_policy_band, time_to_target

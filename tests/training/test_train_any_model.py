@@ -13,9 +13,9 @@ import pandas as pd
 import pytest
 
 import jaxcal
+from jaxcal.cli.evaluate import main as evaluate_main
+from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import StreamingCalibrator
-from jaxcal.evaluate import main as evaluate_main
-from jaxcal.train import main as train_main
 from jaxcal.training.tables import hold_out_units, load_table_data
 
 

@@ -17,6 +17,8 @@ import pandas as pd
 import pytest
 
 import jaxcal
+from jaxcal.cli.evaluate import main as evaluate_main
+from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import StreamingCalibrator
 from jaxcal.envs.memory import StatefulDynamics, as_stateful, reference_states
 from jaxcal.envs.tracking import (
@@ -25,8 +27,6 @@ from jaxcal.envs.tracking import (
     make_env_params,
     make_tracking_env,
 )
-from jaxcal.evaluate import main as evaluate_main
-from jaxcal.train import main as train_main
 from jaxcal.training.components import make_dynamics
 
 
@@ -251,9 +251,7 @@ def test_static_env_transitions_are_those_of_before():
     assert type(state) is EnvState and len(jax.tree.leaves(state)) == 4
 
 
-def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(
-    trained, csv
-):
+def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(trained, csv):
     """``jaxcal.calibrate(model, data, "policy", run=...)``: the same rows as the
     deployed calibrator's batch run, theta and names from the run."""
     result = jaxcal.calibrate(MODEL, csv, "policy", run=trained)

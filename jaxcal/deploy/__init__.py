@@ -44,20 +44,17 @@ as loading a pickle does: load only run folders you trust. A run of the older
 layout, whose model is a file outside it, is refused; :func:`adopt_model_file`
 copies a file you trust into it.
 
-This module is the public import path only: the code lives below the command lines,
-in :mod:`jaxcal.training.runs` (loading) and :mod:`jaxcal.training.streaming`. A run
-whose model needs float64 with ``dynamics=physics`` needs x64 enabled first
-(``jaxcal.precision.enable_x64()``).
+The package holds deployment: :mod:`jaxcal.deploy.loading` reads a run folder
+(:func:`load_run`), :mod:`jaxcal.deploy.streaming` runs it sample by sample; the
+record of a loaded run and its calibrator are the policy method's
+(:mod:`jaxcal.calibrators.trained`), re-exported here. A run whose model needs float64
+with ``dynamics=physics`` needs x64 enabled first (``jaxcal.precision.enable_x64()``).
 """
 
-from jaxcal.training.runs import (
-    LoadedRun,
-    adopt_model_file,
-    load_calibrator,
-    load_run,
-    run_check,
-)
-from jaxcal.training.streaming import StepInfo, StreamingCalibrator
+from jaxcal.calibrators.trained import LoadedRun, load_calibrator, run_check
+from jaxcal.deploy.loading import load_run
+from jaxcal.deploy.streaming import StepInfo, StreamingCalibrator
+from jaxcal.training.model_source import adopt_model_file
 
 __all__ = [
     "LoadedRun",

@@ -36,7 +36,7 @@ from jaxcal.calibrators.policy import (
     make_fleet_runner,
     make_guarded_stream_step,
 )
-from jaxcal.training.runs import LoadedRun, as_loaded, load_calibrator, run_check
+from jaxcal.calibrators.trained import LoadedRun, as_loaded, load_calibrator, run_check
 
 
 class StepInfo(NamedTuple):

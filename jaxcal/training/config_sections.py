@@ -1,6 +1,7 @@
 """The sections of a training run's configuration: data, environment, budget,
-simulated units and output (:class:`jaxcal.config.TrainConfig` holds one of each;
-``jaxcal.config`` re-exports them). Frozen dataclasses that check their own fields.
+simulated units and output (:class:`jaxcal.training.config.TrainConfig` holds one of
+each; ``jaxcal.training.config`` re-exports them). Frozen dataclasses that check their
+own fields.
 """
 
 from __future__ import annotations

@@ -2,31 +2,31 @@
 
 ``runs/<name>/`` holds::
 
-    config.json        the resolved TrainConfig (read by jaxcal.checkpoint.load_config)
+    config.json        the resolved TrainConfig (jaxcal.runs.checkpoint.load_config)
     data.json          sensors, declared parameters, units, action box, normalisation
     surrogate/         Orbax checkpoint of the surrogate D (step 0)
     surrogate.json     D's fit history and per-sensor one-step / free-running errors
     checkpoints/       Orbax checkpoints of the runner state, step = chunks done
     policy/            the deployable PolicyParams at the same steps (jaxcal.deploy)
     policy_best/       the policy of the chunk with the lowest validation tracking RMSE
-    metrics.jsonl      one record per chunk (jaxcal.metrics_log)
+    metrics.jsonl      one record per chunk (jaxcal.runs.metrics_log)
     final.json         test scores, wall time, throughput and time to target of the
                        finished run, and the 90 % band's test coverage
     uncertainty.json   the kept policy's split-conformal theta band, fitted on the
                        validation units (jaxcal.calibrators.uncertainty)
     model/             the copy of a model file the run was trained on, which
                        loading the run uses (jaxcal.training.model_source)
-    .lock              held by the one training of the run (jaxcal.training.run_guard)
+    .lock              held by the one training of the run (jaxcal.runs.lock)
 
 The name is one folder inside ``runs_dir`` (``name=../x`` or an absolute name is
-refused, :func:`jaxcal.training.run_guard.check_run_name`).
+refused, :func:`jaxcal.runs.lock.check_run_name`).
 
 Rerunning with the same name resumes: the stored config must match the new one except
 for the fields that do not change the training trajectory (:data:`RESUMABLE_FIELDS`).
 A folder that holds only ``config.json`` (a start that failed before this version
 checked everything first) holds no run and does not block another config.
 
-All files are written atomically (:func:`jaxcal.atomic.write_atomic`: temporary
+All files are written atomically (:func:`jaxcal.runs.atomic.write_atomic`: temporary
 file, then ``os.replace``; temp files of killed writers are removed by the next
 write to the same target).
 """
@@ -38,17 +38,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-from jaxcal.atomic import (  # noqa: F401 (re-exported: one import path)
+from jaxcal.runs.atomic import (  # noqa: F401 (re-exported: one import path)
     is_pid_alive,
     make_temp,
     release_temp,
     remove_stale_temps,
     write_atomic,
 )
-from jaxcal.checkpoint import CONFIG_FILE
-from jaxcal.metrics_log import read_metrics, to_json_value
+from jaxcal.runs.checkpoint import CONFIG_FILE
+from jaxcal.runs.lock import check_not_in_use
+from jaxcal.runs.metrics_log import read_metrics, to_json_value
 from jaxcal.settings import check_output_path, config_to_dict
-from jaxcal.training.run_guard import check_not_in_use
 
 DATA_FILE = "data.json"
 SURROGATE_DIR = "surrogate"

@@ -30,7 +30,7 @@ from typing import Any
 import jax
 import orbax.checkpoint as ocp
 
-from jaxcal.atomic import write_atomic
+from jaxcal.runs.atomic import write_atomic
 from jaxcal.settings import config_from_dict, config_to_dict
 
 CONFIG_FILE = "config.json"

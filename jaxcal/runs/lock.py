@@ -18,7 +18,7 @@ process that just opened it and one that creates a new one. ``flock`` is advisor
 and local: it guards trainings through this module on one machine (over NFS it
 holds only where the server supports locks).
 
-Host-only and imports nothing of jaxcal beyond :mod:`jaxcal.atomic`, so the config
+Host-only and imports nothing of jaxcal beyond :mod:`jaxcal.runs.atomic`, so the config
 checks a name before any heavy import.
 """
 
@@ -34,7 +34,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from jaxcal.atomic import host_tag
+from jaxcal.runs.atomic import host_tag
 
 LOCK_FILE = ".lock"
 NAME_FORM = (

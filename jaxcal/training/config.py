@@ -75,17 +75,17 @@ from pathlib import Path
 from typing import Literal
 
 from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
-from jaxcal.config_sections import (  # noqa: F401 (re-exported)
+from jaxcal.nets.mlp import RegressorConfig
+from jaxcal.runs.lock import check_run_name
+from jaxcal.settings import parse_overrides
+from jaxcal.surrogate.model import SurrogateConfig
+from jaxcal.training.config_sections import (  # noqa: F401 (re-exported)
     BudgetConfig,
     DataConfig,
     OutputConfig,
     SimulationConfig,
     TrackingConfig,
 )
-from jaxcal.nets.mlp import RegressorConfig
-from jaxcal.settings import parse_overrides
-from jaxcal.surrogate.model import SurrogateConfig
-from jaxcal.training.run_guard import check_run_name
 from jaxcal.training.runner import RunnerConfig
 
 AgentConfig = SACConfig | LACConfig | CLACConfig

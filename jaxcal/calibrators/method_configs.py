@@ -1,0 +1,154 @@
+"""The methods' configs: one frozen, hashable dataclass per method of
+:func:`jaxcal.calibrate`, the table of their names, and the front door's keyword
+options read into one.
+
+:class:`UKF`, :class:`LeastSquares`, :class:`E2E` and :class:`Policy` are registered
+in :data:`METHODS` by name; :func:`config` turns keyword options into a config (a
+misspelt option lists the valid ones and the closest match). A config is hashable, so
+it keys the compiled programs (:mod:`jaxcal.calibrators.compiled`); what makes it
+a ready :class:`Built` for a problem is :func:`jaxcal.calibrators.methods.build`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from jaxcal.calibrators.interface import Calibrator
+from jaxcal.calibrators.least_squares import LeastSquaresConfig
+from jaxcal.calibrators.ukf import UKFConfig
+
+
+def _frozen(value):
+    """A state option as a hashable value (a ``{state: value}`` as sorted pairs, an
+    array as a tuple); what cannot be read is left for
+    :func:`~jaxcal.calibrators.model_based.state_option` to refuse with its
+    message."""
+    try:
+        if isinstance(value, dict):
+            return tuple(sorted((k, float(v)) for k, v in value.items()))
+        if value is None or isinstance(value, (int, float, str)):
+            return value
+        return tuple(np.ravel(np.asarray(value, np.float64)).tolist())
+    except (TypeError, ValueError):
+        return value
+
+
+@dataclasses.dataclass(frozen=True)
+class UKF:
+    """The unscented Kalman filter on the model (random-walk parameters); with hidden
+    states the joint state-and-parameter filter. ``filter``: its settings (``r`` is
+    1: the noise is the ``noise_std`` input); ``state_std`` / ``state_q``: the
+    initial state's std and the states' process noise (scalar, per state, or
+    ``{state: value}``; default 1 % / 1e-6 of each state's size)."""
+
+    filter: UKFConfig = UKFConfig(r=1.0)
+    state_std: Any = None
+    state_q: Any = None
+
+    name = "ukf"
+    field_type = UKFConfig
+    field_name = "filter"
+
+
+@dataclasses.dataclass(frozen=True)
+class LeastSquares:
+    """Sliding-window least squares on the model (Levenberg-Marquardt); with hidden
+    states the moving-window fit of the parameters and the window's initial state.
+    ``solver``: its settings (``r`` is 1); ``state_std``: the window start's std."""
+
+    solver: LeastSquaresConfig = LeastSquaresConfig(r=1.0)
+    state_std: Any = None
+
+    name = "ls"
+    field_type = LeastSquaresConfig
+    field_name = "solver"
+
+
+@dataclasses.dataclass(frozen=True)
+class E2E:
+    """The E2E network ``theta_t = G(w_t, x_t, x_{t-1})``: given weights
+    (``e2e=``), else trained on simulations of the model (E2E-sim) with
+    ``e2e_config``; ``e2e_window``: past samples G reads (a model with memory:
+    16); ``e2e_copies``: simulated fleets."""
+
+    e2e: Any = dataclasses.field(default=None, compare=False)
+    e2e_config: Any = None
+    e2e_window: int | None = None
+    e2e_copies: int = 8
+
+    name = "e2e"
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+    """A trained tracking policy, ``run=<run folder>``; an incremental (feedback)
+    policy's run with ``anchor=<absolute policy's run folder>`` is gated by it where
+    the model misfits the data (:mod:`jaxcal.calibrators.gated`)."""
+
+    run: Any = dataclasses.field(default=None, compare=False)
+    anchor: Any = dataclasses.field(default=None, compare=False)
+
+    name = "policy"
+
+
+class Built(NamedTuple):
+    """A method ready to run: ``run(padded, skip=None) -> CalOutput`` per padded
+    group (``skip [U, T]``: cells skipped like padding), and ``prior_std [P]``,
+    what is known of theta before a stream's first sample."""
+
+    run: Callable
+    prior_std: np.ndarray
+    calibrator: Calibrator | None = None  # E2E, a policy (the model-based: make())
+
+
+def options_of(config_type) -> tuple[str, ...]:
+    """The keyword options of a method's config."""
+    names = [f.name for f in dataclasses.fields(config_type)]
+    inner = getattr(config_type, "field_type", None)
+    if inner is not None:
+        names.remove(config_type.field_name)
+        names += [f.name for f in dataclasses.fields(inner) if f.name != "r"]
+    return tuple(names)
+
+
+def config(method: str, options: dict):
+    """The config of ``method`` from keyword ``options`` (every one consumed).
+
+    Raises:
+        ValueError: an unknown method, or an option the method does not take
+            (listing the valid ones and the closest match).
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")
+    config_type = METHODS[method]
+    valid = options_of(config_type)
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        hints = [difflib.get_close_matches(k, valid, n=1) for k in unknown]
+        said = "; ".join(
+            f"{k!r}" + (f" (did you mean {h[0]!r}?)" if h else "")
+            for k, h in zip(unknown, hints, strict=True)
+        )
+        raise ValueError(
+            f"unknown option(s) for method={method!r}: {said}; its options are "
+            f"{sorted(valid)}"
+        )
+    kwargs = {}
+    inner = getattr(config_type, "field_type", None)
+    if inner is not None:
+        names = {f.name for f in dataclasses.fields(inner)} - {"r"}
+        inner_kw = {k: options[k] for k in options if k in names}
+        kwargs[config_type.field_name] = inner(r=1.0, **inner_kw)
+    for f in dataclasses.fields(config_type):
+        if f.name in options:
+            value = options[f.name]
+            kwargs[f.name] = _frozen(value) if f.name.startswith("state_") else value
+    return config_type(**kwargs)
+
+
+METHODS: dict[str, type] = {c.name: c for c in (UKF, LeastSquares, E2E, Policy)}

@@ -1,0 +1,122 @@
+"""The programs of jaxcal's own models, kept on disk as exported StableHLO.
+
+JAX's persistent compilation cache (:mod:`jaxcal.cache`) spares a new process the
+XLA compilation, but not the tracing that comes before it: to find the cached
+executable, JAX first traces the Python function into a jaxpr and lowers it, and for
+the turbofan (a Newton solve batched over sigma points and units) that is 25-40 s
+of every new process, against milliseconds of compute. ``jax.export`` serialises a
+traced and lowered program; a later process deserialises it (milliseconds) and
+compiles it, which the persistent cache then answers.
+
+Only a model whose code is jaxcal's own is kept this way (``Model.origin``, set by
+:func:`jaxcal.models.load` for the built-in models): a program on disk is keyed by
+what it was traced from, and for jaxcal's models that is jaxcal's source (every file
+of the package, hashed once per process), the JAX version, the problem's names and
+fixed values, the method's settings, the float type and the arguments' shapes. A
+user's model is traced again in each process (seconds for a small model).
+
+The directory is the cache's (``$JAXCAL_CACHE_DIR/../programs``, by default
+``~/.cache/jaxcal/programs``), on and off with it (``JAXCAL_CACHE=0``), and trusted
+as it is: a program there is code the process runs. A file that cannot be read is
+traced again and rewritten.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import numpy as np
+from jax import export
+
+from jaxcal import cache
+from jaxcal.calibrators.interface import CalOutput
+from jaxcal.runs.atomic import write_atomic
+
+SUFFIX = ".jaxexport"
+
+
+_SERIALISABLE: set[type] = set()
+
+
+def serialisable(cls: type) -> type:
+    """Register a named tuple that programs take or return for serialisation
+    (once per class; usable as a decorator)."""
+    if cls not in _SERIALISABLE:
+        export.register_namedtuple_serialization(
+            cls, serialized_name=f"{cls.__module__}.{cls.__qualname__}"
+        )
+        _SERIALISABLE.add(cls)
+    return cls
+
+
+serialisable(CalOutput)
+
+
+@functools.cache
+def source_digest() -> str:
+    """sha256 of every file of the jaxcal package (code and stored constants)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and path.suffix in (".py", ".json"):
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def kept(fn: Callable, key: tuple | None) -> Callable:
+    """``fn`` (jitted), run from a program kept on disk under ``key`` (one file per
+    argument signature), or ``fn`` itself when ``key`` is None or the cache is off.
+
+    Args:
+        fn: the jitted program.
+        key: what the program depends on besides its arguments' shapes (``repr``-
+            stable across processes), or None (not kept).
+    """
+    if key is None:
+        return fn
+    calls = {}  # argument signature -> the compiled call of its exported program
+
+    def run(*args):
+        if not cache.is_enabled():
+            return fn(*args)
+        leaves, tree = jax.tree.flatten(args)
+        signature = (str(tree),) + tuple(
+            (np.shape(a), np.result_type(a).name) for a in leaves
+        )
+        call = calls.get(signature)
+        if call is None:
+            call = calls[signature] = _exported(fn, key, signature, args)
+        return call(*args)
+
+    return run
+
+
+def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
+    """The jitted call of ``fn``'s exported program, read from disk or exported and
+    written there."""
+    text = repr((key, signature, source_digest(), jax.__version__))
+    name = hashlib.sha256(text.encode()).hexdigest()[:32] + SUFFIX
+    path = Path(cache.program_directory()) / name
+    exp = None
+    if path.is_file():
+        try:
+            exp = export.deserialize(bytearray(path.read_bytes()))
+        except Exception as err:  # noqa: BLE001 - a damaged file is traced again
+            warnings.warn(f"{path}: unreadable ({err}); traced again", stacklevel=3)
+    if exp is None:
+        try:
+            exp = export.export(fn)(*args)
+            data = bytes(exp.serialize())
+        except Exception as err:  # noqa: BLE001 - not keepable: run it as it is
+            warnings.warn(f"program not kept on disk: {err}", stacklevel=3)
+            return fn
+        os.makedirs(path.parent, mode=0o700, exist_ok=True)
+        write_atomic(path, data)
+    return jax.jit(exp.call)

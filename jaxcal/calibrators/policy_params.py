@@ -1,0 +1,116 @@
+"""What a deployed policy reads and carries.
+
+:class:`PolicyParams` (and its incremental variants :class:`IncrementPolicyParams`,
+:class:`StartedIncrementPolicyParams`) holds everything the step of
+:mod:`jaxcal.calibrators.policy_step` reads, every array a leaf (traced,
+checkpointable), so one jitted runner serves any trained policy of the same
+architecture without retracing; :class:`PolicyState` is what the step carries from
+sample to sample. :func:`policy_params_from_env` builds the parameters of a policy
+from its training environment's. :mod:`jaxcal.calibrators.policy` re-exports them.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+from jaxcal.envs.tracking import EnvParams
+from jaxcal.typedefs import Array, PyTree
+
+
+@struct.dataclass
+class PolicyParams:
+    """Everything a deployed policy reads (all leaves: traced, checkpointable).
+
+    Attributes:
+        actor: parameters of the squashed Gaussian actor.
+        dyn_params: parameters of the dynamics (surrogate weights or engine constants).
+        w_mean, w_std: ``[W]`` training normalisation of w.
+        x_mean, x_std: ``[S]`` training normalisation of x and x-hat.
+        theta_low, theta_high: ``[P]`` action box.
+    """
+
+    actor: PyTree
+    dyn_params: PyTree
+    w_mean: Array
+    w_std: Array
+    x_mean: Array
+    x_std: Array
+    theta_low: Array
+    theta_high: Array
+
+
+@struct.dataclass
+class IncrementPolicyParams(PolicyParams):
+    """:class:`PolicyParams` of a policy with incremental actions (its own class, so
+    that checkpoints of absolute-action policies keep their layout).
+
+    Attributes:
+        step_ref: ``[P]`` residual RMS at which a step is half its largest.
+        max_increment: largest step as a share of the box width (static).
+    """
+
+    step_ref: Array
+    max_increment: float = struct.field(pytree_node=False, default=0.5)
+
+
+@struct.dataclass
+class StartedIncrementPolicyParams(IncrementPolicyParams):
+    """:class:`IncrementPolicyParams` of a policy that starts a stream at a given
+    theta rather than the box centre (its own class: the checkpoints of the runs
+    before it keep their layout).
+
+    Attributes:
+        theta_start: ``[P]`` theta before a stream's first sample.
+    """
+
+    theta_start: Array | None = None
+
+
+@struct.dataclass
+class PolicyState:
+    """Calibrator state: the model output (and state) of the previous sample.
+
+    Attributes:
+        xhat: ``[S]`` x-hat_{t-1} (physical units).
+        started: ``[]`` bool, False before the first sample.
+        z: ``[Z]`` model state after the previous sample; ``None``: static model.
+    """
+
+    xhat: Array
+    started: Array
+    z: Array | None = None
+    theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
+    count: Array | None = None  # [] int32 samples taken (with an uncertainty band)
+    hint: PyTree | None = None  # the model's solver warm start (HintedDynamics)
+
+
+def policy_params_from_env(
+    env_params: EnvParams,
+    actor_params: PyTree,
+    *,
+    max_increment: float | None = None,
+    theta_start: Array | None = None,
+) -> PolicyParams:
+    """The deployment parameters of a policy trained on ``env_params``
+    (``max_increment``: the env's, for incremental actions; ``theta_start``: where
+    an incremental policy starts, ``None``: the box centre)."""
+    fields = dict(
+        actor=actor_params,
+        dyn_params=env_params.dyn_params,
+        w_mean=env_params.w_mean,
+        w_std=env_params.w_std,
+        x_mean=env_params.x_mean,
+        x_std=env_params.x_std,
+        theta_low=env_params.theta_low,
+        theta_high=env_params.theta_high,
+    )
+    if env_params.step_ref is None:
+        return PolicyParams(**fields)
+    if max_increment is None:
+        raise ValueError("an incremental policy needs the env's max_increment")
+    fields.update(step_ref=env_params.step_ref, max_increment=max_increment)
+    if theta_start is None:
+        return IncrementPolicyParams(**fields)
+    start = jnp.asarray(theta_start, env_params.theta_low.dtype)
+    return StartedIncrementPolicyParams(**fields, theta_start=start)

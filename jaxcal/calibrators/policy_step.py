@@ -1,0 +1,222 @@
+"""The deployed policy's step as a :class:`~jaxcal.calibrators.interface.Calibrator`
+(:func:`make_policy_calibrator`).
+
+Deployment of the paper's policy (§3.1, "Implementation stage"): with the model output
+x-hat_{t-1} carried in the state, each new sample (w_t, x_t) gives
+
+    s = [norm(x-hat_{t-1}), norm(x_t), norm(w_t)],   theta_t = box(pi*(s)),
+    x-hat_t = D(w_t, x-hat_{t-1}, theta_t),
+
+with pi* = tanh(mean) the deterministic policy and ``box`` the environment's affine map
+to [theta_low, theta_high]. This is the training environment's step shifted by one
+index, so on samples t >= 1 the calibrator reproduces
+:func:`jaxcal.training.runner.evaluate_policy`. On the first sample there is no x-hat
+yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
+norm(w_0)])) and x-hat_0 = x_0.
+
+With incremental actions (:class:`IncrementPolicyParams`, ``env.action=increment``,
+:mod:`jaxcal.envs.increment`) the state carries theta_{t-1}, and each sample is
+predicted, then corrected:
+
+    x-hat_t = F(w_t, theta_{t-1}),  r = (x_t - x-hat_t) / sigma_x,
+    s = [r / |r|, lg |r|, norm(w_t), theta_{t-1}],
+    theta_t = clip(theta_{t-1} + M pi*(s) |r| / (|r| + n_ref), box);
+
+one model evaluation per sample, theta_{-1} = the box centre (the environment's
+``reset_at``), and x-hat_t is the one-step prediction.
+
+A model with memory (:class:`~jaxcal.envs.memory.StatefulDynamics`) also carries its
+state z: (z_t, x-hat_t) = step(z_{t-1}, w_t, x-hat_{t-1}, theta_t), and the first
+sample sets z_0 = init(w_0), the state after w_0 with the prior theta (the training
+environment's reference state at t = 0 is the same, so on whole trajectories the two
+still agree). A static model carries ``z = None``.
+
+A static model with a warm start (:class:`~jaxcal.envs.memory.HintedDynamics`, e.g.
+the turbofan's Newton solve) may also carry its solver hint from sample to sample
+(``warm_start=True``, ``PolicyState.hint``): x-hat is then the model's output to its
+solver tolerance, at a fraction of the cold solve's cost; the first sample starts
+without one. Only a single stream does (deployment, one sample per call): batched over
+units, the hinted solve's ``lax.cond`` fall-back runs for every unit, so whole
+trajectories and fleets keep the cold solve (and the paper's bits).
+
+What the step reads and carries
+(:class:`~jaxcal.calibrators.policy_params.PolicyParams`,
+:class:`~jaxcal.calibrators.policy_params.PolicyState`) is in
+:mod:`jaxcal.calibrators.policy_params`; the jitted runners over fleets and streams
+are in :mod:`jaxcal.calibrators.policy`, which re-exports both modules' names.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import flax.linen as nn
+import jax.numpy as jnp
+
+from jaxcal.calibrators.interface import Calibrator, CalStepOutput
+from jaxcal.calibrators.policy_params import (
+    IncrementPolicyParams,
+    PolicyParams,
+    PolicyState,
+)
+from jaxcal.calibrators.uncertainty import ThetaBand, band_std
+from jaxcal.envs.increment import apply_increment, increment_observation
+from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
+from jaxcal.envs.tracking import Dynamics, action_to_theta
+from jaxcal.typedefs import Array, PRNGKey
+
+
+def make_policy_calibrator(
+    actor: nn.Module,
+    dynamics: Dynamics | StatefulDynamics,
+    params: PolicyParams,
+    band: ThetaBand | None = None,
+    *,
+    warm_start: bool = False,
+) -> Calibrator:
+    """The deterministic policy pi* and the dynamics as ``Calibrator(init, step)``.
+
+    Args:
+        actor: the agent's actor module (``apply(params, obs) -> (mean, log_std)``).
+        dynamics: ``dynamics(dyn_params, w [W], xhat [S], theta [P]) -> xhat [S]``,
+            or a :class:`~jaxcal.envs.memory.StatefulDynamics`.
+        params: :class:`PolicyParams` (may be traced).
+        band: the run's calibrated error band
+            (:mod:`jaxcal.calibrators.uncertainty`, fitted on its validation units);
+            ``None``: no uncertainty.
+        warm_start: carry the model's solver hint from sample to sample (a
+            :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise). For one
+            stream, one sample per call: under ``vmap`` the hinted solve's fall-back
+            runs for every unit and costs more than the cold solve.
+
+    Returns:
+        A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is
+        ``{"theta_std": [P]}`` (the band's std at the sample's index in the stream)
+        with a band, else ``None``. It does not accept partial rows: a row with some
+        outputs missing (NaN) is skipped by the runners with reason ``x_partial``
+        (the network's input is the whole normalised ``x_t``; imputing the missing
+        output with x-hat would feed back the policy's own prediction as if
+        measured).
+    """
+    dyn = as_stateful(dynamics)
+    incremental = isinstance(params, IncrementPolicyParams)
+    hinted = warm_start and isinstance(dynamics, HintedDynamics)
+    transition = _make_transition(dyn, dynamics, params, hinted)
+    first_state = functools.partial(_first_state, dyn, params)
+    sample_step = _increment_step if incremental else _absolute_step
+    advance = functools.partial(sample_step, actor, params, transition, first_state)
+
+    def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
+        del key  # deterministic; x-hat starts at the first measurement
+        return _initial_state(dyn, dynamics, params, band, hinted, w0, x0)
+
+    def step(
+        state: PolicyState, w_t: Array, x_t: Array
+    ) -> tuple[PolicyState, CalStepOutput]:
+        new_state, theta, xhat = advance(state, w_t, x_t)
+        if band is None:
+            return new_state, CalStepOutput(theta=theta, xhat=xhat)
+        aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
+        new_state = new_state.replace(count=state.count + 1)
+        return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
+
+    return Calibrator(init, step)
+
+
+def _make_transition(dyn: StatefulDynamics, dynamics, params: PolicyParams, hinted):
+    """``transition(state, z, w_t, xhat_prev, theta) -> (z, x-hat, hint)``: one model
+    step, warm-started from ``state.hint`` when the model can (``hinted``)."""
+
+    def transition(state: PolicyState, z, w_t, xhat_prev, theta):
+        if not hinted:
+            return (*dyn.step(params.dyn_params, z, w_t, xhat_prev, theta), None)
+        hint, xhat = dynamics.step(params.dyn_params, state.hint, w_t, xhat_prev, theta)
+        return z, xhat, hint
+
+    return transition
+
+
+def _initial_state(
+    dyn: StatefulDynamics, dynamics, params: PolicyParams, band, hinted, w0, x0
+) -> PolicyState:
+    """The state before the first sample: x-hat = x_0, the model state init(w_0),
+    an incremental policy's start theta (the run's, else the box centre: the env's
+    ``reset_at``), the band's sample count and the model's first solver hint."""
+    z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
+    z0 = None if z0 is None else z0.astype(x0.dtype)
+    theta0 = None
+    if isinstance(params, IncrementPolicyParams):
+        theta0 = getattr(params, "theta_start", None)
+        if theta0 is None:
+            theta0 = 0.5 * (params.theta_low + params.theta_high)
+    count = None if band is None else jnp.zeros((), jnp.int32)
+    hint = dynamics.init_hint() if hinted else None
+    return PolicyState(
+        xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
+        hint=hint,
+    )  # fmt: skip
+
+
+def _first_state(dyn, params: PolicyParams, state: PolicyState, z, w_t, x_t):
+    """``z``, or before any sample the model state init(w_0) (the env's
+    ``z_ref[0]``); ``None`` for a static model."""
+    if not dyn.num_states:
+        return z
+    z_first = dyn.init(params.dyn_params, w_t.astype(x_t.dtype))
+    return jnp.where(state.started, z, z_first.astype(z.dtype))
+
+
+def _absolute_step(actor, params, transition, first_state, state, w_t, x_t):
+    """``(state, theta_t, x-hat_t)`` of an absolute action: theta_t = box(pi*(s)) with
+    s = [norm(x-hat_{t-1}), norm(x_t), norm(w_t)], then the model step to x-hat_t
+    (the first sample: x-hat = x_0 and the state init(w_0))."""
+    xhat_prev = jnp.where(state.started, state.xhat, x_t)
+    obs = jnp.concatenate(
+        [
+            (xhat_prev - params.x_mean) / params.x_std,
+            (x_t - params.x_mean) / params.x_std,
+            (w_t - params.w_mean) / params.w_std,
+        ]
+    ).astype(jnp.float32)
+    mean, _ = actor.apply(params.actor, obs)
+    theta = action_to_theta(jnp.tanh(mean), params)
+    z, xhat, hint = transition(state, state.z, w_t, xhat_prev, theta)
+    xhat = jnp.where(state.started, xhat.astype(x_t.dtype), x_t)
+    z = first_state(state, z, w_t, x_t)  # the first sample's: init
+    new_state = PolicyState(xhat=xhat, started=jnp.ones((), bool), z=z, hint=hint)
+    return new_state, theta, xhat
+
+
+def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
+    """``(state, theta_t, x-hat_t)`` of an incremental action: predict sample t with
+    theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`)."""
+    xhat_prev = jnp.where(state.started, state.xhat, x_t)
+    z_prev = first_state(state, state.z, w_t, x_t)
+    z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
+    xhat = xhat.astype(x_t.dtype)
+    resid = (x_t - xhat) / params.x_std
+    obs = increment_observation(
+        resid,
+        (w_t - params.w_mean) / params.w_std,
+        state.theta,
+        params.theta_low,
+        params.theta_high,
+    )
+    mean, _ = actor.apply(params.actor, obs)
+    theta = apply_increment(
+        jnp.tanh(mean),
+        state.theta,
+        resid,
+        params.theta_low,
+        params.theta_high,
+        params.max_increment,
+        params.step_ref,
+    )
+    new_state = PolicyState(
+        xhat=xhat,
+        started=jnp.ones((), bool),
+        z=None if z is None else z.astype(z_prev.dtype),
+        theta=theta.astype(state.theta.dtype),
+        hint=hint,
+    )
+    return new_state, theta, xhat

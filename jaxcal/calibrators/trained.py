@@ -1,0 +1,162 @@
+"""A trained policy as a method: the loaded run, its calibrator and its sample check.
+
+``jaxcal.calibrate(model, data, method="policy", run=<folder>)`` and the method
+table's policy (:mod:`jaxcal.calibrators.methods`) calibrate with a run of the
+training job. What they need of it is here: :class:`LoadedRun` (the record of a
+loaded run), :func:`load_calibrator` (its policy as a ``Calibrator(init, step)``,
+gated by an anchor run where asked), :func:`run_check` (its training range as the
+sample check) and :func:`check_run_model` (the model given is the run's own,
+:mod:`jaxcal.calibrators.run_model`).
+
+Reading a run folder needs the training job's config and components, which sit
+above the calibrators. So :func:`load_run` here reads through the one slot of
+:mod:`jaxcal.runs` (:func:`jaxcal.runs.read_run`), which the package root fills with
+the reader of :mod:`jaxcal.deploy.loading`: every import arrow runs downwards, and
+the policy method still takes a run folder. Users import all of this from
+:mod:`jaxcal.deploy`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from jaxcal.calibrators.gated import feedback_sensitivity, make_gated_calibrator
+from jaxcal.calibrators.interface import Calibrator, SampleCheck
+from jaxcal.calibrators.policy import make_policy_calibrator, range_check
+from jaxcal.calibrators.run_model import check_run_model  # noqa: F401 (re-exported)
+from jaxcal.runs import read_run
+
+
+class LoadedRun(NamedTuple):
+    """A trained policy ready to run (:func:`jaxcal.deploy.load_run`).
+
+    Attributes:
+        run_dir: the run folder.
+        config: its resolved :class:`~jaxcal.training.config.TrainConfig`.
+        problem: the run's :class:`~jaxcal.problem.Problem` (model, names, box,
+            normalisation, training input range).
+        params: the deployable
+            :class:`~jaxcal.calibrators.policy.PolicyParams` (or its incremental
+            variants).
+        actor: the actor module (static).
+        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
+            :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
+        step: the checkpoint step (chunks trained) the policy comes from.
+        band: the calibrated error band of the kept policy
+            (:class:`~jaxcal.calibrators.uncertainty.ThetaBand` of
+            ``uncertainty.json``, fitted on the validation units at the end of
+            training); ``None`` for a run without one.
+        model_source: what the run stores of its model (``data.json``
+            ``"model_source"``, :mod:`jaxcal.training.model_source`); ``None`` for a
+            run of the older layout (its registered model's name, if it had one).
+    """
+
+    run_dir: Path
+    config: Any
+    problem: Any
+    params: Any
+    actor: Any
+    dynamics: Any
+    step: int
+    band: Any = None
+    model_source: dict | None = None
+
+    @property
+    def meta(self):
+        """The problem, under the name older callers use (``range_check(run.meta)``)."""
+        return self.problem
+
+
+def load_run(
+    run_dir: str | os.PathLike | LoadedRun,
+    *,
+    which: str = "selected",
+    step: int | None = None,
+) -> LoadedRun:
+    """A run's policy, read by :func:`jaxcal.deploy.loading.load_run` (see there);
+    a :class:`LoadedRun` passes through unchanged."""
+    if isinstance(run_dir, LoadedRun):
+        return run_dir
+    return read_run(run_dir, which=which, step=step)
+
+
+def as_loaded(run: str | os.PathLike | LoadedRun) -> LoadedRun:
+    """``run`` loaded (a :class:`LoadedRun` passes through)."""
+    return load_run(run)
+
+
+def run_check(run: LoadedRun) -> SampleCheck | None:
+    """The run's valid input box (training range + margin; ``None``: finiteness).
+
+    Pass it as ``check=`` to ``run_calibrator`` / ``run_fleet`` / the fleet paths.
+    """
+    return range_check(run.problem)
+
+
+def load_calibrator(
+    run_dir: str | os.PathLike | LoadedRun,
+    anchor: str | os.PathLike | LoadedRun | None = None,
+    *,
+    warm_start: bool = False,
+) -> Calibrator:
+    """The run's policy as a ``Calibrator(init, step)`` (pure functions, not jitted).
+
+    Use it like any other method: ``jax.jit(run_fleet, static_argnums=0)(cal, w, x,
+    m)``, with ``check=run_check(run)`` to flag samples outside the training range.
+
+    Args:
+        run_dir: the run (folder or loaded).
+        anchor: an absolute policy's run with its band (``uncertainty.json``): the
+            run, an incremental policy, is then gated by it where the model misfits
+            the data (:mod:`jaxcal.calibrators.gated`).
+        warm_start: for one stream, one sample per call: the model's solver is
+            warm-started from the previous sample when it can be
+            (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); keep the
+            default for ``run_fleet`` over many units.
+
+    Raises:
+        ValueError: the anchor has no band, its names differ from the run's, or the
+            run is not an incremental policy.
+    """
+    run = as_loaded(run_dir)
+    cal = make_policy_calibrator(
+        run.actor, run.dynamics, run.params, run.band, warm_start=warm_start
+    )
+    if anchor is None:
+        return cal
+    anchor = as_loaded(anchor)
+    check_anchor(run, anchor)
+    anchor_cal = make_policy_calibrator(
+        anchor.actor, anchor.dynamics, anchor.params, anchor.band,
+        warm_start=warm_start,
+    )  # fmt: skip
+    return make_gated_calibrator(
+        cal,
+        anchor_cal,
+        x_std=run.params.x_std,
+        sensitivity=feedback_sensitivity(run.params),
+        anchor_band=anchor.band,
+    )
+
+
+def check_anchor(run: LoadedRun, anchor: LoadedRun) -> None:
+    """An anchor must calibrate the same problem and carry its band.
+
+    Raises:
+        ValueError: naming the anchor's folder and what differs.
+    """
+    if anchor.band is None:
+        raise ValueError(
+            f"anchor run {anchor.run_dir} has no uncertainty.json (the error band "
+            "the training job fits at its end): the gate's threshold is the "
+            "anchor's 90 % half-width"
+        )
+    for field in ("theta_names", "output_names"):
+        if tuple(getattr(anchor.problem, field)) != tuple(getattr(run.problem, field)):
+            raise ValueError(
+                f"anchor run {anchor.run_dir} has {field} "
+                f"{list(getattr(anchor.problem, field))}, the run {run.run_dir} "
+                f"{list(getattr(run.problem, field))}: both must calibrate one problem"
+            )

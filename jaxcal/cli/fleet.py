@@ -1,0 +1,336 @@
+"""Command line: calibrate every unit of a fleet, sharded, streamed, optionally on
+several processes.
+
+Usage::
+
+    python -m jaxcal.fleet data=data/cmapss.h5 method=ukf out=results/fleet/ukf.h5
+    python -m jaxcal.fleet model=heat_exchanger data=fleet.csv method=ukf \\
+        noise=T_hot_out:0.05,T_cold_out:0.05,dp_hot:0.2,duty:1 out=OUT.h5
+    python -m jaxcal.fleet model=my_model.py:model data=fleet.parquet method=ls \\
+        theta=leak noise=0.1 window=16 out=OUT.h5
+    python -m jaxcal.fleet data=FILE.h5 method=ls theta=HPT_eff_mod \\
+        outputs=T24,T30,T48,T50 units=7,8 stride=10 chunk_units=4 window=16 out=OUT.h5
+    python -m jaxcal.fleet data=FILE method=policy run=runs/<id> out=OUT.h5
+    # two processes (same command on each, its own id; or the JAXCAL_* variables):
+    python -m jaxcal.fleet --coordinator 10.0.0.1:12355 --num-processes 2 \\
+        --process-id 0 data=FILE method=ukf out=OUT.h5
+
+``model=`` is any :func:`jaxcal.models.load` spec (a registered name such as
+``cmapss``, ``heat_exchanger``, ``thermal``; ``path/to/file.py:attr``; an
+``extended_model.json``), default ``cmapss`` (``engine=`` is its old name). ``data=``
+is an N-CMAPSS ``.h5`` file (the turbofan's layout, streamed: never read whole) or any
+table the front door reads (``.csv``, ``.parquet``, C-MAPSS ``.txt``; held in memory),
+its columns named as the model's (:mod:`jaxcal.fleet.sources`). The method is built
+from the front door's method table (:mod:`jaxcal.fleet.method`): ``method=ukf|ls|
+e2e|policy`` (``least_squares`` is the old name of ``ls``; ``e2e`` on tables only),
+and every key that is not a field of :class:`FleetConfig` is an option of the method
+(``q=``, ``prior_std=``, ``window=``, ``num_iters=``, ``state_std=``, ``anchor=``,
+...; the old ``ukf.q=`` / ``least_squares.window=`` forms still work): a misspelt one
+prints the valid ones and exits with code 2. ``noise=`` is the measurement noise
+std, ``name:std,...`` per output or one number for all; without it the turbofan
+keeps its default (1 % of each output's spread) and other models are refused.
+Fields are parsed by :func:`jaxcal.settings.parse_overrides`.
+The cluster flags fall back to ``JAXCAL_COORDINATOR`` / ``JAXCAL_NUM_PROCESSES`` /
+``JAXCAL_PROCESS_ID``; ``--local-devices K`` splits each process's CPU into ``K``
+devices.
+Process 0 writes ``out`` (atomically; columns named by the problem's parameters and
+outputs) and prints a JSON summary; a bad argument prints the error and exits with
+code 2. See ``docs/fleet.md``.
+
+Samples with NaN / Inf, or outside the method's valid inputs (the model's condition
+range for ``ukf`` / ``ls``, the run's training range for ``policy``, the data's for
+``e2e``), are skipped and flagged: the file's ``valid`` / ``reason`` columns,
+``flagged`` counts per reason in the summary; ``theta_rmse`` is over valid rows only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+
+from jaxcal.cli.args import parse_command_line
+from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
+from jaxcal.settings import config_to_dict, parse_overrides
+
+USAGE = (
+    "usage: python -m jaxcal.fleet data=FILE out=OUT.h5 [model=SPEC] "
+    "[method=ukf|ls|e2e|policy] [run=RUN_DIR] [noise=NAME:STD,...|STD] "
+    "[field=value ...] [option=value ...] "
+    "[--coordinator HOST:PORT --num-processes N --process-id I] [--local-devices K]"
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetConfig:
+    """What ``python -m jaxcal.fleet`` runs (every field but ``options`` settable as
+    ``key=value``; any other key is an option of the method, kept in ``options``)."""
+
+    data: str = ""  # N-CMAPSS .h5 (streamed) or a table: .csv, .parquet, .txt
+    out: str = ""  # output results file (required; written atomically by process 0)
+    model: str = ""  # jaxcal.models.load spec; "" = engine=
+    engine: str = "cmapss"  # old name of model=
+    split: str = ""  # N-CMAPSS: dev | test ("" = test); a table's split label ("" all)
+    method: Literal["ukf", "ls", "least_squares", "e2e", "policy"] = "ukf"
+    run: str = ""  # method=policy: the training run directory (runs/<id>)
+    theta: tuple[str, ...] = ()  # () = a policy's, the turbofan's HPT_eff_mod, or all
+    outputs: tuple[str, ...] = ()  # () = a policy's, the file's observed_sensors
+    # else X_s (N-CMAPSS), or every model output of the table
+    sensors: tuple[str, ...] = ()  # old name of outputs=
+    noise: str = ""  # measurement noise std: name:std,... or one number
+    units: tuple[int, ...] = ()  # () = every unit (of the split)
+    stride: int = 1  # keep file rows 0, stride, 2 stride, ...
+    chunk_units: int = 0  # units per global chunk; 0 = one per device
+    max_len: int = 0  # padded length T; 0 = the longest selected unit
+    theta0: tuple[float, ...] = ()  # prior mean / start per parameter; () = nominal
+    unroll: int = 1  # lax.scan unroll factor
+    seed: int = 0  # method=e2e: training seed
+    options: tuple[tuple[str, Any], ...] = ()  # the method's (name, value) options
+
+
+FLEET_KEYS = tuple(
+    f.name for f in dataclasses.fields(FleetConfig) if f.name != "options"
+)
+
+
+def _split_tokens(tokens: list[str]) -> tuple[list[str], list[tuple]]:
+    """Fleet ``key=value`` tokens, and the method's ``(prefix, name, text)``."""
+    fleet, options = [], []
+    for token in tokens:
+        key, sep, text = token.partition("=")
+        key = key.strip()
+        head, dot, name = key.partition(".")
+        if key == "theta_scale":
+            raise ValueError(
+                "theta_scale= is gone: the parameters are scaled by half their box "
+                "(the model's bounds), as in jaxcal.calibrate; q and prior_std are "
+                "in those units"
+            )
+        if sep and dot and head in OPTION_PREFIXES:
+            options.append((head, name, text))
+        elif sep and key and not dot and key not in FLEET_KEYS:
+            options.append((None, key, text))
+        else:
+            fleet.append(token)
+    return fleet, options
+
+
+def method_config(cfg: FleetConfig, run=None):
+    """The method table's config of ``cfg`` (a policy's ``run``: loaded or a path)."""
+    from jaxcal.calibrators import methods
+
+    options = dict(cfg.options)
+    if cfg.method == "policy":
+        options["run"] = run if run is not None else cfg.run
+    return methods.config(cfg.method, options)
+
+
+def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
+    """The resolved config and cluster settings of a command line.
+
+    Args:
+        argv: ``key=value`` tokens and ``--flag value`` cluster options.
+
+    Returns:
+        ``(config, cluster)`` with ``cluster`` keys ``coordinator``,
+        ``num_processes``, ``process_id``, ``local_device_count``.
+
+    Raises:
+        ValueError: naming the bad key, option or flag and the expected form.
+    """
+    from jaxcal.fleet.distributed import process_settings
+    from jaxcal.fleet.sources import is_ncmapss
+
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--coordinator", default=None)
+    parser.add_argument("--num-processes", type=int, default=None)
+    parser.add_argument("--process-id", type=int, default=None)
+    parser.add_argument("--local-devices", type=int, default=None)
+    try:
+        flags, rest = parser.parse_known_args(argv)
+    except SystemExit:
+        raise ValueError("bad cluster flag (expected --name value)") from None
+    unknown = [t for t in rest if t.startswith("--")]
+    if unknown:
+        raise ValueError(
+            f"unknown flag(s) {unknown}; flags are --coordinator, --num-processes, "
+            "--process-id, --local-devices"
+        )
+    fleet_tokens, option_tokens = _split_tokens(rest)
+    cfg = parse_overrides(fleet_tokens, FleetConfig())
+    method = canonical(cfg.method)
+    options = method_options(method, option_tokens, FLEET_KEYS)
+    cfg = dataclasses.replace(cfg, method=method, options=options)
+    if not cfg.data or not cfg.out:
+        raise ValueError("data=<file> and out=<results.h5> are required")
+    if method == "policy" and not cfg.run:
+        raise ValueError("method=policy needs run=<runs/...> (training run dir)")
+    if method == "e2e" and is_ncmapss(cfg.data):
+        raise ValueError(
+            "method=e2e trains on the whole data set: give the data as a table "
+            "(.csv, .parquet), or use jaxcal.calibrate"
+        )
+    method_config(cfg)  # a bad option value fails here, before any work
+    parse_noise(cfg.noise)
+    if cfg.stride < 1 or cfg.chunk_units < 0 or cfg.max_len < 0 or cfg.unroll < 1:
+        raise ValueError(
+            "need stride >= 1, chunk_units >= 0, max_len >= 0 and unroll >= 1"
+        )
+    if cfg.outputs and cfg.sensors:
+        raise ValueError("outputs= and its old name sensors= are both given")
+    if cfg.theta and cfg.theta0 and len(cfg.theta0) != len(cfg.theta):
+        raise ValueError(
+            f"theta0 needs one value per theta name ({len(cfg.theta)} values)"
+        )
+    coordinator, num_processes, process_id = process_settings(
+        flags.coordinator, flags.num_processes, flags.process_id
+    )
+    cluster = {
+        "coordinator": coordinator,
+        "num_processes": num_processes,
+        "process_id": process_id,
+        "local_device_count": flags.local_devices,
+    }
+    return cfg, cluster
+
+
+def theta_rmse(path: str, block_rows: int = 1 << 20) -> list[float] | None:
+    """Per-parameter RMSE of ``theta`` against ``theta_true`` in a results file,
+    over its valid (not flagged) rows."""
+    with h5py.File(path, "r") as f:
+        if "theta_true" not in f:
+            return None
+        total, sq = 0, 0.0
+        for a in range(0, f["theta"].shape[0], block_rows):
+            err = f["theta"][a : a + block_rows] - f["theta_true"][a : a + block_rows]
+            if "valid" in f:  # flagged rows repeat an older theta: not scored
+                err = err[f["valid"][a : a + block_rows]]
+            total += err.shape[0]
+            sq = sq + np.square(err).sum(axis=0)
+    return np.sqrt(sq / max(total, 1)).tolist()
+
+
+def run(cfg: FleetConfig) -> dict:
+    """Calibrate the selected units of ``cfg.data``; process 0 writes ``cfg.out``."""
+    import jax
+
+    from jaxcal.fleet.method import build_problem, make_method, require_noise
+    from jaxcal.fleet.results import FleetResultWriter
+    from jaxcal.fleet.sharded import make_unit_mesh
+    from jaxcal.fleet.sources import open_source
+    from jaxcal.fleet.streaming import calibrate_stream, units_per_chunk
+    from jaxcal.models import load
+
+    model = load(cfg.model or cfg.engine)
+    noise = parse_noise(cfg.noise)
+    require_noise(model, cfg.method, noise)
+    theta, outputs, loaded = _names(cfg, model)
+    if cfg.theta0 and len(cfg.theta0) != len(theta):
+        raise ValueError(f"theta0 needs one value per theta name {list(theta)}")
+    source = open_source(
+        cfg.data, model, outputs=outputs, split=cfg.split, units=cfg.units,
+        stride=cfg.stride, max_len=cfg.max_len,
+    )  # fmt: skip
+    problem = build_problem(
+        model, source, theta=theta, method=cfg.method, noise=noise, theta0=cfg.theta0
+    )
+    fleet = make_method(problem, method_config(cfg, loaded), source, cfg.seed)
+    mesh = make_unit_mesh()
+    num_processes, process_index = jax.process_count(), jax.process_index()
+    chunk_units = cfg.chunk_units or mesh.size
+    size = units_per_chunk(chunk_units, num_processes, mesh)
+    chunks = source.chunks(
+        problem.theta_names, chunk_units, process_index, num_processes
+    )
+    attrs = {
+        "config": config_to_dict(cfg),
+        "method": cfg.method,
+        "model": model.name,
+        "source": source.description,
+        "norm_source": source.norm_source,
+        "noise_std": problem.noise_std.tolist(),
+        "noise_source": problem.noise_source,
+        "num_processes": num_processes,
+        "num_devices": mesh.size,
+    }
+    stream = dict(size=size, unroll=cfg.unroll, check=fleet.check)
+    if process_index == 0:
+        with FleetResultWriter(
+            cfg.out, theta_names=problem.theta_names,
+            sensor_names=problem.output_names, attrs=attrs,
+        ) as writer:  # fmt: skip
+            stats = calibrate_stream(
+                fleet.calibrator, chunks, mesh, writer=writer, **stream
+            )
+        rmse = theta_rmse(cfg.out)
+    else:
+        stats = calibrate_stream(fleet.calibrator, chunks, mesh, **stream)
+        rmse = None
+    return {
+        **stats,
+        "out": cfg.out,
+        "model": model.name,
+        "method": cfg.method,
+        "theta_names": list(problem.theta_names),
+        "noise_source": problem.noise_source,
+        "max_len": source.max_len,
+        "units_per_chunk_per_process": size,
+        "num_devices": mesh.size,
+        "num_processes": num_processes,
+        "theta_rmse": rmse,
+    }
+
+
+def _names(cfg: FleetConfig, model):
+    """``(theta, outputs, loaded)``: the calibrated parameters and the outputs used,
+    a policy's run loaded (``None`` for another method): a trained policy fixes its
+    names, the defaults; otherwise the model's default parameters."""
+    from jaxcal.fleet.method import default_theta
+
+    theta, outputs, loaded = cfg.theta, cfg.outputs or cfg.sensors, None
+    if cfg.method == "policy":  # a trained policy fixes its names: default to them
+        from jaxcal.deploy import load_run
+
+        loaded = load_run(cfg.run)
+        theta = theta or loaded.problem.theta_names
+        outputs = outputs or loaded.problem.output_names
+    return tuple(theta) or default_theta(model), outputs, loaded
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    parsed, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if code is not None:
+        return code
+    cfg, cluster = parsed
+    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.fleet.distributed import initialize
+    from jaxcal.precision import enable_x64
+
+    # Before any JAX computation: the cluster, then float64 (the engine's solver).
+    try:
+        initialize(**cluster)
+    except RuntimeError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    enable_x64()
+    enable_compilation_cache()
+    try:
+        summary = run(cfg)
+    except (ValueError, FileNotFoundError, KeyError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    import jax
+
+    if jax.process_index() == 0:
+        print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

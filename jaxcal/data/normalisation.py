@@ -1,0 +1,44 @@
+"""The data's normalisation: per-column mean and std of the conditions and outputs.
+
+:class:`Normalisation` is the one record of these statistics: ``w_n = (w - w_mean) /
+w_std``, likewise for ``x``. It lives in the data layer because data code builds it
+(the padded fleet's :func:`jaxcal.data.fleet.fit_norm_stats`) as well as the problem
+(:class:`jaxcal.problem.Problem`, which carries the one normalisation of a
+calibration and re-exports this class); it imports nothing of jaxcal.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+# A constant channel (std below this, relative to its scale) is normalised by 1.
+CONSTANT_REL_STD = 1e-12
+
+
+class Normalisation(NamedTuple):
+    """Training statistics: ``w_n = (w - w_mean) / w_std``, likewise for ``x``."""
+
+    w_mean: np.ndarray  # [W]
+    w_std: np.ndarray  # [W] > 0
+    x_mean: np.ndarray  # [S]
+    x_std: np.ndarray  # [S] > 0
+
+    @classmethod
+    def of(cls, w: np.ndarray, x: np.ndarray, dtype=np.float64) -> Normalisation:
+        """Statistics of rows ``w [N, W]``, ``x [N, S]`` (a constant column gets 1),
+        computed in ``dtype`` (``None``: the arrays' own, so a float32 run keeps the
+        exact float32 statistics it always had). A NaN (a missing output of a partial
+        row) is left out of its column's statistics."""
+
+        def stats(a):
+            a = np.asarray(a, dtype)
+            if np.isnan(a).any():  # host branch: complete data keep their exact bits
+                mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
+            else:
+                mean, std = a.mean(axis=0), a.std(axis=0)
+            tiny = std <= CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
+            return mean, np.where(tiny, 1.0, std).astype(a.dtype)
+
+        return cls(*stats(w), *stats(x))

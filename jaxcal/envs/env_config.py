@@ -1,0 +1,135 @@
+"""Static configuration of the tracking environment and the checks of its data.
+
+:class:`EnvConfig` holds the sizes and choices that shape the traced program
+(:mod:`jaxcal.envs.tracking`); :func:`check_env_params` checks an
+:class:`~jaxcal.envs.env_data.EnvParams` against it before any tracing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from jaxcal.envs.env_data import EnvParams
+
+
+def check_action_options(
+    action: str, max_increment: float, cost: str, cost_floor: float
+) -> None:
+    """Validates the action and cost options (:class:`EnvConfig`, and the training
+    config's ``env.*`` fields before any work).
+
+    Raises:
+        ValueError: naming the ``env.`` field and its allowed values.
+    """
+    if action not in ("absolute", "increment"):
+        raise ValueError(
+            f"env.action must be 'absolute' or 'increment', got {action!r}"
+        )
+    if not 0.0 < max_increment <= 1.0:
+        raise ValueError(f"env.max_increment must be in (0, 1], got {max_increment}")
+    if cost not in ("squared", "log") or not cost_floor > 0:
+        raise ValueError(
+            "env.cost must be 'squared' or 'log' and env.cost_floor > 0, got "
+            f"{cost!r}, {cost_floor}"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static configuration of the tracking environment.
+
+    Attributes:
+        sensor_dim: S, number of observed outputs x.
+        condition_dim: W, number of operating conditions w.
+        param_dim: P, number of calibrated parameters theta.
+        episode_length: steps per training episode (window length).
+        differentiable: if True, gradients flow through the transition.
+        action: ``"absolute"``: the action sets theta (the paper's); ``"increment"``:
+            the action changes theta, gated by the residual
+            (:mod:`jaxcal.envs.increment`).
+        max_increment: the largest change of theta per step as a share of the box
+            width (``action="increment"`` only).
+        cost: ``"squared"``: c = mean_S ((x - x-hat) / sigma)^2 (the paper's);
+            ``"log"``: log(1 + c / floor^2), which weighs a halving of the error the
+            same at every scale (a feedback policy must keep contracting the error
+            where the outputs barely see theta, at idle, not only where they do).
+        cost_floor: the residual RMS below which the log cost is flat.
+    """
+
+    sensor_dim: int
+    condition_dim: int
+    param_dim: int
+    episode_length: int = 100
+    differentiable: bool = False
+    action: str = "absolute"
+    max_increment: float = 0.5
+    cost: str = "squared"
+    cost_floor: float = 1e-4
+
+    def __post_init__(self) -> None:
+        for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(
+                    f"EnvConfig.{name} must be a positive int, got {value!r}"
+                )
+        check_action_options(
+            self.action, self.max_increment, self.cost, self.cost_floor
+        )
+
+    @property
+    def incremental(self) -> bool:
+        """True when the action changes theta rather than setting it."""
+        return self.action == "increment"
+
+    @property
+    def observation_size(self) -> int:
+        """Size of s_t: 2 S + W ([x-hat_t, x_{t+1}, w_{t+1}]), or S + 1 + W + P for
+        incremental actions ([r / |r|, lg |r|, w_{t+1}, theta_t])."""
+        if self.incremental:
+            return self.sensor_dim + 1 + self.condition_dim + self.param_dim
+        return 2 * self.sensor_dim + self.condition_dim
+
+    @property
+    def min_unit_length(self) -> int:
+        """Shortest unit a training window fits in: episode_length + 2 samples."""
+        return self.episode_length + 2
+
+
+def check_dims(params: EnvParams, cfg: EnvConfig) -> None:
+    """Checks the last dimensions of x, w and theta_low against ``cfg``.
+
+    Raises:
+        ValueError: naming the field, its dimension and the expected one.
+    """
+    # Shapes are static under tracing, so inside jit this runs once per compilation.
+    for name, want in (
+        ("x", cfg.sensor_dim),
+        ("w", cfg.condition_dim),
+        ("theta_low", cfg.param_dim),
+    ):
+        got = getattr(params, name).shape[-1]
+        if want != got:
+            raise ValueError(
+                f"EnvParams.{name} has last dimension {got}, EnvConfig expects {want}"
+            )
+
+
+def check_env_params(params: EnvParams, cfg: EnvConfig) -> None:
+    """Checks that ``params`` fit ``cfg``: dimensions, and window length when concrete.
+
+    Raises:
+        ValueError: if a dimension differs or no unit is long enough for one window.
+    """
+    check_dims(params, cfg)
+    if isinstance(params.lengths, jax.core.Tracer):
+        return  # abstract evaluation (jit, eval_shape): only shapes can be checked
+    longest = int(np.max(np.asarray(params.lengths)))
+    if longest < cfg.min_unit_length:
+        raise ValueError(
+            f"no unit is long enough for episode_length={cfg.episode_length}: the "
+            f"longest has {longest} rows, a window needs {cfg.min_unit_length}"
+        )

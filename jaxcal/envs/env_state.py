@@ -1,0 +1,96 @@
+"""The tracking environment's state and its interface as pure functions.
+
+Four state classes, one per (model with memory?, incremental actions?), so that the
+checkpoints of each kind keep their layout (:func:`make_env_state` picks one); the
+environment itself is :class:`Env`, the gymnax-style ``reset``/``step`` pair built by
+:func:`jaxcal.envs.tracking.make_tracking_env`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+from flax import struct
+
+from jaxcal.envs.env_config import EnvConfig
+from jaxcal.typedefs import Array
+
+
+@struct.dataclass
+class EnvState:
+    """State of one tracking episode (no PRNG key, gymnax rule).
+
+    Attributes:
+        unit: [] int32, unit index u.
+        time: [] int32, index t of the current sample in the unit.
+        step: [] int32, steps taken in this episode.
+        xhat: [S] current model output x-hat_t (physical units).
+    """
+
+    unit: Array
+    time: Array
+    step: Array
+    xhat: Array
+
+
+@struct.dataclass
+class StatefulEnvState(EnvState):
+    """:class:`EnvState` of a model with memory.
+
+    Attributes:
+        z: [Z] model state after sample t.
+    """
+
+    z: Array
+
+
+@struct.dataclass
+class IncrementEnvState(EnvState):
+    """:class:`EnvState` of incremental actions: theta_t [P] is carried."""
+
+    theta: Array
+
+
+@struct.dataclass
+class StatefulIncrementEnvState(StatefulEnvState):
+    """:class:`StatefulEnvState` of incremental actions: theta_t [P] is carried."""
+
+    theta: Array
+
+
+def make_env_state(unit, time, step, xhat, z, theta=None) -> EnvState:
+    """The state of a static model (``z is None``) or of one with memory, with
+    theta when the actions are incremental (each its own class, so that the
+    checkpoints of absolute-action runs keep their layout)."""
+    fields = dict(unit=unit, time=time, step=step, xhat=xhat)
+    if z is None:
+        if theta is None:
+            return EnvState(**fields)
+        return IncrementEnvState(**fields, theta=theta)
+    if theta is None:
+        return StatefulEnvState(**fields, z=z)
+    return StatefulIncrementEnvState(**fields, z=z, theta=theta)
+
+
+class Env(NamedTuple):
+    """The environment as pure functions (gymnax signature).
+
+    Attributes:
+        reset: ``reset(key, params) -> (obs [O], state)``.
+        step: ``step(key, state, action [P], params) -> (obs, state, cost, done,
+            info)``; ``info`` holds ``theta`` [P], ``terminated`` and ``truncated``.
+        reset_at: ``reset_at(params, unit, time) -> (obs, state)``, a deterministic
+            start at a given sample (evaluation over whole trajectories; incremental
+            actions start from the box centre, as a deployed stream).
+        observation_size: O (:attr:`EnvConfig.observation_size`).
+        action_size: P.
+        config: the static :class:`EnvConfig` the env was built with.
+    """
+
+    reset: Callable
+    step: Callable
+    reset_at: Callable
+    observation_size: int
+    action_size: int
+    config: EnvConfig

@@ -1,0 +1,100 @@
+"""The ``final.json`` of a training run: what ran, how fast, and how the kept policy
+scores.
+
+:func:`final_report` gathers the run's identity (agent, dynamics, preset, seed, data,
+model, parameters, test units), the selection (``budget.select`` and the chunk kept),
+the test scores of the kept policy, of the last one and of the last online actor,
+the validation scores of the kept chunk, the counters, the training time and
+throughput (:func:`throughput`), the surrogate's report and the time to target
+(:func:`jaxcal.training.uncertainty_stage.time_to_target`). The band's coverage and
+what was simulated are added by the pipeline.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from jaxcal.training.config import TrainConfig
+from jaxcal.training.data import CalibrationData
+from jaxcal.training.kept_policy import KeptPolicy
+from jaxcal.training.policy_scoring import PolicyScoring
+from jaxcal.training.uncertainty_stage import time_to_target
+
+
+def throughput(records: list[dict]) -> dict:
+    """updates/s and env steps/s over the run's chunks, compile chunks excluded."""
+    timed = [r for r in records if not r.get("includes_compile")] or records
+    seconds = sum(r["chunk_seconds"] for r in timed)
+    if not timed or seconds <= 0:
+        return {"updates_per_s": None, "env_steps_per_s": None}
+    return {
+        "updates_per_s": sum(r["updates_per_s"] * r["chunk_seconds"] for r in timed)
+        / seconds,
+        "env_steps_per_s": sum(r["env_steps_per_s"] * r["chunk_seconds"] for r in timed)
+        / seconds,
+    }
+
+
+def final_report(
+    cfg: TrainConfig,
+    run_dir: Path,
+    path: Path,
+    data: CalibrationData,
+    kept: KeptPolicy,
+    test: dict,
+    scoring: PolicyScoring,
+    surrogate_report: dict | None,
+    target: float | None,
+    wall_start: float,
+) -> dict:
+    """The ``final.json`` dict of a run (the band and the simulations not yet in it).
+
+    Args:
+        cfg: the run's config; run_dir: its folder; path: its data file.
+        data: the run's data.
+        kept: the trained and kept policy.
+        test: the kept policy's scores on the test units.
+        scoring: the run's policy functions (the other policies' test scores).
+        surrogate_report: the surrogate's fit report (``None``: no surrogate).
+        target: the time to target's test theta RMSE (``None``: not measured).
+        wall_start: the session's ``time.perf_counter()`` at its start.
+    """
+    policy, score = kept.result, scoring.score
+    records = policy.records
+    val_record = next((r for r in records if r["step"] == kept.selected_step), {})
+    return {
+        "run": str(run_dir),
+        "agent": cfg.agent_name,
+        "dynamics": cfg.dynamics,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "data": str(path),
+        "model": data.problem.model.name,
+        "theta_names": list(data.theta_names),
+        "test_units": data.info["units"]["test"],
+        "select": cfg.budget.select if kept.select else "last",
+        "policy": cfg.budget.policy
+        if hasattr(policy.runner.agent_state, "target_actor_params")
+        else "online",
+        "selected_chunk": kept.selected_step,
+        "test": test,
+        "test_last": test
+        if kept.selected_step == policy.chunks_done
+        else score(data.test, kept.last),
+        "test_online_last": score(
+            data.test, scoring.deployable(policy.runner.agent_state, "online")
+        ),
+        "val_selected": {
+            k[4:]: v for k, v in val_record.items() if k.startswith("val_")
+        },
+        "chunks": policy.chunks_done,
+        "stopped_early": policy.stopped_early,
+        "env_steps": int(policy.runner.env_steps),
+        "num_updates": int(policy.runner.num_updates),
+        "train_seconds": float(sum(r["chunk_seconds"] for r in records)),
+        **throughput(records),
+        "session_wall_seconds": time.perf_counter() - wall_start,
+        "surrogate": surrogate_report,
+        **time_to_target(records, target),
+    }

@@ -1,0 +1,142 @@
+"""The policy of a training run: trained with its deployable checkpoints, and the
+one the run keeps.
+
+:func:`train_kept_policy` runs the host loop (:func:`jaxcal.training.policy_stage.
+train_policy`) with the run's budget. Besides the runner checkpoints, every
+checkpoint step saves the deployable :class:`~jaxcal.calibrators.policy.
+PolicyParams` under ``policy/``. With selection on (``budget.select=val_tracking``
+and validation units, or ``budget.select=sim_theta``) each scored chunk that beats
+the best so far saves its policy under ``policy_best/`` (one kept), and that policy
+is the run's selected one; otherwise the last policy is.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+
+from jaxcal.calibrators.policy import PolicyParams
+from jaxcal.envs.tracking import EnvParams
+from jaxcal.runs.checkpoint import Checkpointer
+from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR
+from jaxcal.training.config import TrainConfig
+from jaxcal.training.policy_scoring import PolicyScoring
+from jaxcal.training.policy_stage import ChunkScoring, PolicyResult, train_policy
+from jaxcal.typedefs import PRNGKey
+
+
+class KeptPolicy(NamedTuple):
+    """What :func:`train_kept_policy` trained and kept.
+
+    Attributes:
+        result: the host loop's :class:`~jaxcal.training.policy_stage.PolicyResult`.
+        last: the deployable policy of the last chunk.
+        selected: the policy the run keeps (``last`` without selection).
+        selected_step: its chunk.
+        select: whether selection was on.
+    """
+
+    result: PolicyResult
+    last: PolicyParams
+    selected: PolicyParams
+    selected_step: int
+    select: bool
+
+
+def train_kept_policy(
+    cfg: TrainConfig,
+    key: PRNGKey,
+    run_dir: Path,
+    parts,
+    train_params: EnvParams,
+    scoring: PolicyScoring,
+    *,
+    has_val: bool,
+    target: float | None,
+    clock: Callable[[], float],
+    wall_start: float,
+    log: Callable[[str], None],
+) -> KeptPolicy:
+    """Trains (or resumes) the run's policy and returns it with the kept one.
+
+    Args:
+        cfg: the run's config (budget, runner, output).
+        key: the runner's PRNG key.
+        run_dir: the run folder.
+        parts: the run's components (environment, agent, jitted chunk).
+        train_params: the training units' :class:`EnvParams`.
+        scoring: the run's :class:`~jaxcal.training.policy_scoring.PolicyScoring`.
+        has_val: whether the run has validation units.
+        target: the test theta RMSE of time to target (``None``: not reported).
+        clock: seconds since the job's start; wall_start: its
+            ``time.perf_counter()`` (the time limit counts from it).
+        log: where one-line messages go.
+    """
+    select = (cfg.budget.select == "val_tracking" and has_val) or (
+        cfg.budget.select == "sim_theta"
+    )
+    deadline = (
+        None
+        if cfg.budget.time_limit_s is None
+        else wall_start + cfg.budget.time_limit_s
+    )
+    keep = cfg.output.max_to_keep
+    with (
+        Checkpointer(run_dir / POLICY_DIR, max_to_keep=keep) as latest_ckpt,
+        Checkpointer(run_dir / POLICY_BEST_DIR, max_to_keep=1) as best_ckpt,
+    ):
+        save_latest, save_best = _savers(scoring.deployable, latest_ckpt, best_ckpt)
+        policy = train_policy(
+            key,
+            parts.env,
+            parts.agent,
+            parts.train_chunk,
+            train_params,
+            cfg.runner,
+            run_dir,
+            num_chunks=cfg.budget.num_chunks,
+            eval_every=cfg.budget.eval_every,
+            ckpt_every=cfg.budget.ckpt_every,
+            deadline=deadline,
+            save_buffer=cfg.output.save_buffer,
+            max_to_keep=keep,
+            scoring=ChunkScoring(
+                scorer=scoring.val_scorer,
+                best_key="val_sim_theta_rmse"
+                if cfg.budget.select == "sim_theta"
+                else "val_tracking_rmse_norm",
+                on_best=save_best if select else None,
+                reporter=scoring.test_reporter if target is not None else None,
+                target=target,
+                clock=clock,
+            ),
+            on_checkpoint=save_latest,
+            progress=cfg.output.progress,
+            log=log,
+        )
+        last = scoring.deployable(policy.runner.agent_state)
+        selected, selected_step = last, policy.chunks_done
+        if select and best_ckpt.latest_step() is not None:
+            selected_step = best_ckpt.latest_step()
+            selected = best_ckpt.restore(selected_step, last)
+    return KeptPolicy(policy, last, selected, selected_step, select)
+
+
+def _savers(deployable, latest_ckpt: Checkpointer, best_ckpt: Checkpointer):
+    """``(save_latest, save_best)``, both ``(chunk, runner) -> None``: the deployable
+    policy of the runner's agent state saved under ``policy/`` / ``policy_best/``."""
+
+    def save_latest(step: int, runner) -> None:
+        params = deployable(runner.agent_state)
+        latest_ckpt.save(step, jax.device_get(params), wait=True)
+
+    def save_best(step: int, runner) -> None:
+        # A chunk re-run after a resume reproduces the policy already saved.
+        if step not in best_ckpt.all_steps():
+            params = deployable(runner.agent_state)
+            best_ckpt.save(step, jax.device_get(params), wait=True)
+
+    return save_latest, save_best

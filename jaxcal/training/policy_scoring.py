@@ -1,0 +1,125 @@
+"""How a training run scores its policy: an agent state as the deployable policy,
+run over units and scored.
+
+:func:`make_policy_scoring` closes over one run (its environment, components,
+normalised problem and range check) and returns :class:`PolicyScoring`: the
+deployable :class:`~jaxcal.calibrators.policy.PolicyParams` of an agent state (its
+Polyak-averaged target actor or its online one), the deployment calibrator's run over
+units (:mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped over units, in the
+run's dtype), the scores of such a run (:func:`jaxcal.training.scoring.score_units`),
+the validation scores the host loop logs and selects by, and the test units' theta
+RMSE it may report (time to target; selection never reads it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+from jaxcal.calibrators.policy import (
+    PolicyParams,
+    policy_params_from_env,
+    range_check,
+)
+from jaxcal.envs.tracking import EnvParams
+from jaxcal.problem import Problem
+from jaxcal.training.config import TrainConfig
+from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.training.scoring import score_units, theta_rmse
+from jaxcal.training.uncertainty_stage import scored_mask
+
+
+class PolicyScoring(NamedTuple):
+    """The policy functions of one run.
+
+    Attributes:
+        deployable: ``(agent_state, which=budget.policy) -> PolicyParams``
+            (``which``: ``"target"`` or ``"online"``).
+        run: ``(units, params) -> CalOutput``, the deployed policy over the units.
+        score: ``(units, params, out=None) -> dict`` of
+            :func:`~jaxcal.training.scoring.score_units` (``out``: a run already
+            made).
+        val_scorer: ``agent_state -> dict``: the validation units' theta and
+            tracking RMSE, and with ``budget.select=sim_theta`` the theta RMSE on
+            simulated units (``sim_theta_rmse``); ``None`` with neither.
+        test_reporter: ``agent_state -> {"theta_rmse": ...}`` over the test units.
+    """
+
+    deployable: Callable[..., PolicyParams]
+    run: Callable[[UnitArrays, PolicyParams], Any]
+    score: Callable[..., dict]
+    val_scorer: Callable[[Any], dict] | None
+    test_reporter: Callable[[Any], dict]
+
+
+def make_policy_scoring(
+    cfg: TrainConfig,
+    data: CalibrationData,
+    problem: Problem,
+    parts,
+    train_params: EnvParams,
+    max_increment: float | None,
+    dtype,
+    select_units: UnitArrays | None,
+) -> PolicyScoring:
+    """:class:`PolicyScoring` of a run on ``problem`` (normalised as ``train_params``)
+    with its components ``parts`` (``run_units``); ``select_units``: the simulated
+    units of ``budget.select=sim_theta``, else ``None``."""
+    check = range_check(problem)  # samples far outside the training range: flagged
+    start = problem.theta_prior if cfg.env.start == "prior" else None
+
+    def run(units: UnitArrays, params: PolicyParams):
+        return parts.run_units(
+            params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
+        )
+
+    def score(units: UnitArrays, params: PolicyParams, out=None) -> dict:
+        out = run(units, params) if out is None else out
+        return score_units(
+            out.theta,
+            out.xhat,
+            units.theta,
+            units.x,
+            units.mask,
+            problem.norm.x_std,
+            problem.output_names,
+            problem.theta_names,
+            reason=out.reason,
+        )
+
+    def deployable(agent_state, which: str = cfg.budget.policy) -> PolicyParams:
+        actor = agent_state.actor.params
+        if which == "target":
+            actor = getattr(agent_state, "target_actor_params", actor)
+        return policy_params_from_env(
+            train_params, actor, max_increment=max_increment, theta_start=start
+        )
+
+    def val_scorer(agent_state) -> dict:
+        params = deployable(agent_state)
+        scores = {}
+        if data.val is not None:
+            scores = score(data.val, params)
+            keys = ("theta_rmse", "tracking_rmse_norm")
+            scores = {k: scores[k] for k in keys if scores[k] is not None}
+        if select_units is not None:
+            out = run(select_units, params)
+            width = problem.theta_high - problem.theta_low
+            scores["sim_theta_rmse"], _ = theta_rmse(
+                out.theta / width,
+                select_units.theta / width,
+                scored_mask(select_units, out),
+            )
+        return scores
+
+    def test_reporter(agent_state) -> dict:
+        # Reporting only (time to target): train_policy logs it as test_*, and
+        # selection reads val_* alone, so test labels never choose the policy.
+        out = run(data.test, deployable(agent_state))
+        pooled, _ = theta_rmse(out.theta, data.test.theta, scored_mask(data.test, out))
+        return {"theta_rmse": pooled}
+
+    scored = data.val is not None or select_units is not None
+    return PolicyScoring(
+        deployable, run, score, val_scorer if scored else None, test_reporter
+    )
