@@ -8,7 +8,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.runs.metrics_log import MetricsWriter, metrics_columns, read_metrics
+from jaxcal.runs.metrics_log import MetricsWriter, read_metrics
+
+
+def metrics_columns(records):
+    """Numeric scalar metrics as columns ``{name: values}`` (NaN where missing): how
+    a reader of the log tabulates it."""
+    names = sorted(
+        {k for r in records for k, v in r.items() if isinstance(v, bool | int | float)}
+    )
+    return {
+        name: np.array([r.get(name, np.nan) for r in records], dtype=float)
+        for name in names
+    }
 
 
 def test_round_trip_converts_numpy_and_jax_values(tmp_path):

@@ -58,12 +58,6 @@ def isa_total_temperature(alt_ft, mach, delta_t_r=0.0):
     return (t_amb + delta_t_r) * ram_ratio(mach)
 
 
-def delta_isa(alt_ft, mach, t2_r):
-    """Ambient temperature deviation from ISA implied by a measured T2 [degR]."""
-    t_amb, _ = isa_static(alt_ft)
-    return jnp.asarray(t2_r) / ram_ratio(mach) - t_amb
-
-
 def free_stream(alt_ft, mach, t2_r):
     """Ambient static and free-stream total conditions.
 

@@ -31,6 +31,7 @@ import jax
 import orbax.checkpoint as ocp
 
 from jaxcal.runs.atomic import write_atomic
+from jaxcal.runs.metrics_log import to_json_value
 from jaxcal.settings import config_from_dict, config_to_dict
 
 CONFIG_FILE = "config.json"
@@ -209,7 +210,7 @@ def save_config(run_dir: str | os.PathLike, cfg: Any) -> Path:
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     data = cfg if isinstance(cfg, dict) else config_to_dict(cfg)
-    text = json.dumps(data, indent=2, sort_keys=False) + "\n"
+    text = json.dumps(to_json_value(data), indent=2) + "\n"
     return write_atomic(run_dir / CONFIG_FILE, text)
 
 

@@ -45,7 +45,7 @@ from jaxcal.runs.atomic import (  # noqa: F401 (re-exported: one import path)
     remove_stale_temps,
     write_atomic,
 )
-from jaxcal.runs.checkpoint import CONFIG_FILE
+from jaxcal.runs.checkpoint import CONFIG_FILE, save_config
 from jaxcal.runs.lock import check_not_in_use
 from jaxcal.runs.metrics_log import read_metrics, to_json_value
 from jaxcal.settings import check_output_path, config_to_dict
@@ -171,7 +171,7 @@ def prepare_run_dir(run_dir: str | os.PathLike, cfg: Any) -> bool:
         ValueError: see :func:`check_run_dir`.
     """
     resumed = check_run_dir(run_dir, cfg) == "resume"
-    write_json(Path(run_dir) / CONFIG_FILE, config_to_dict(cfg))
+    save_config(run_dir, cfg)  # the one writer of config.json
     return resumed
 
 

@@ -99,14 +99,3 @@ def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
                 continue
             raise ValueError(f"{path}:{number}: not a JSON record ({err})") from None
     return records
-
-
-def metrics_columns(records: list[Mapping[str, Any]]) -> dict[str, np.ndarray]:
-    """Numeric scalar metrics as columns ``{name: values}`` (NaN where missing)."""
-    names = sorted(
-        {k for r in records for k, v in r.items() if isinstance(v, bool | int | float)}
-    )
-    return {
-        name: np.array([r.get(name, np.nan) for r in records], dtype=float)
-        for name in names
-    }

@@ -13,7 +13,15 @@ from jaxcal.data.flights import (
     sample_flight,
     smooth_noise,
 )
-from jaxcal.physics.atmosphere import delta_isa, isa_total_temperature
+from jaxcal.physics.atmosphere import isa_static, isa_total_temperature, ram_ratio
+
+
+def delta_isa(alt_ft, mach, t2_r):
+    """Ambient temperature deviation from ISA implied by a measured T2 [degR] (the
+    test's reference: the library schedules on T2 itself)."""
+    t_amb, _ = isa_static(alt_ft)
+    return jnp.asarray(t2_r) / ram_ratio(mach) - t_amb
+
 
 CFG = FlightConfig(dt_s=30.0)  # T_max = 840: small but still whole flights
 NUM_FLIGHTS = 24
