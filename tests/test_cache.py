@@ -85,3 +85,16 @@ def test_a_built_in_models_program_is_kept_on_disk_and_not_traced_again(tmp_path
     assert again == first  # the same numbers from the program read back
     off = _run({**env, "JAXCAL_CACHE": "0"}, KEPT.replace("sys.argv[1]", "'first'"))
     assert off == first  # the cache off: traced as before, same numbers
+
+
+def test_only_the_most_recently_used_programs_are_kept(tmp_path):
+    from jaxcal.calibrators import on_disk
+
+    for i in range(5):
+        f = tmp_path / f"p{i}{on_disk.SUFFIX}"
+        f.write_bytes(b"x")
+        os.utime(f, (1000 + i, 1000 + i))
+    (tmp_path / "other.bin").write_bytes(b"y")  # not a program: never touched
+    on_disk._prune(tmp_path, keep=2)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["other.bin", f"p3{on_disk.SUFFIX}", f"p4{on_disk.SUFFIX}"]

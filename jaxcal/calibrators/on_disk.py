@@ -18,7 +18,8 @@ user's model is traced again in each process (seconds for a small model).
 The directory is the cache's (``$JAXCAL_CACHE_DIR/../programs``, by default
 ``~/.cache/jaxcal/programs``), on and off with it (``JAXCAL_CACHE=0``), and trusted
 as it is: a program there is code the process runs. A file that cannot be read is
-traced again and rewritten.
+traced again and rewritten; at most :data:`MAX_KEPT` programs are kept, the least
+recently used removed first.
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ from jaxcal.calibrators.interface import CalOutput
 from jaxcal.runs.atomic import write_atomic
 
 SUFFIX = ".jaxexport"
+# Programs kept at most; past it the least recently used go (a new jaxcal source or
+# JAX version keys new files, so old ones would otherwise pile up, ~0.5 MB each).
+MAX_KEPT = 64
 
 
 _SERIALISABLE: set[type] = set()
@@ -108,6 +112,7 @@ def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
     if path.is_file():
         try:
             exp = export.deserialize(bytearray(path.read_bytes()))
+            os.utime(path)  # recently used: kept by _prune
         except Exception as err:  # noqa: BLE001 - a damaged file is traced again
             warnings.warn(f"{path}: unreadable ({err}); traced again", stacklevel=3)
     if exp is None:
@@ -119,4 +124,17 @@ def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
             return fn
         os.makedirs(path.parent, mode=0o700, exist_ok=True)
         write_atomic(path, data)
+        _prune(path.parent)
     return jax.jit(exp.call)
+
+
+def _prune(directory: Path, keep: int = MAX_KEPT) -> None:
+    """Remove all but the ``keep`` most recently used programs in ``directory``."""
+    files = []
+    for f in directory.glob("*" + SUFFIX):
+        try:
+            files.append((f.stat().st_mtime, f))
+        except OSError:  # removed meanwhile by another process
+            continue
+    for _, f in sorted(files, reverse=True)[keep:]:
+        f.unlink(missing_ok=True)
