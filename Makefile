@@ -43,8 +43,8 @@ train: $(STAMP)
 	$(BIN)/python -m jaxcal.train dataset=cmapss
 
 validate: $(STAMP)
-	$(BIN)/python -m jaxcal.physics.validate
-	$(BIN)/python -m jaxcal.physics.validate --engine agtf30
+	$(BIN)/python -m jaxcal.validate
+	$(BIN)/python -m jaxcal.validate --engine agtf30
 
 bench-engine: $(STAMP)
 	$(BIN)/python -m jaxcal.bench engine --out results/engine/bench_engine.json

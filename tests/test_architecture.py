@@ -16,7 +16,7 @@ SHIMS = {
     "jaxcal.generate": "jaxcal.cli.generate",
     "jaxcal.bench": "jaxcal.cli.bench",
     "jaxcal.fleet.__main__": "jaxcal.cli.fleet",
-    "jaxcal.physics.validate": "jaxcal.cli.validate",
+    "jaxcal.validate": "jaxcal.cli.validate",
 }
 
 # Bottom to top. A module belongs to the layer of the longest entry that is its name or

@@ -4,7 +4,7 @@
 (a training run), :mod:`~jaxcal.cli.evaluate` (a trained run on a data split or
 file), :mod:`~jaxcal.cli.diagnose` (the residual diagnosis), :mod:`~jaxcal.cli.generate`
 (a data set file), :mod:`~jaxcal.cli.bench` (engine throughput),
-:mod:`~jaxcal.cli.validate` (``python -m jaxcal.physics.validate``: the engine
+:mod:`~jaxcal.cli.validate` (``python -m jaxcal.validate``: the engine
 against its reference) and :mod:`~jaxcal.cli.fleet` (``python -m jaxcal.fleet``:
 a fleet file, sharded and streamed). The documented module paths
 (``jaxcal/train.py``, ``jaxcal/fleet/__main__.py``, ...) are shims that only forward

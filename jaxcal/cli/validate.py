@@ -1,4 +1,4 @@
-"""``python -m jaxcal.physics.validate``: every check of design/engine.md, measured.
+"""``python -m jaxcal.validate``: every check of design/engine.md, measured.
 
 Prints one line per check (measured number, threshold, PASS/FAIL) and writes the full
 numbers as JSON (default ``results/engine/validation.json``; ``--out PATH`` to change,

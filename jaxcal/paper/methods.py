@@ -54,8 +54,8 @@ from jaxcal.calibrators.interface import (
 from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
 from jaxcal.calibrators.methods import UKF, LeastSquares, model_based_factory
 from jaxcal.calibrators.policy import make_policy_calibrator
+from jaxcal.calibrators.trained import run_check
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
-from jaxcal.deploy import run_check
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem

@@ -1,4 +1,4 @@
-"""``python -m jaxcal.physics.validate``: forwards to :mod:`jaxcal.cli.validate`, where
+"""``python -m jaxcal.validate``: forwards to :mod:`jaxcal.cli.validate`, where
 the command line lives (this path is the documented command; nothing else belongs
 here)."""
 
