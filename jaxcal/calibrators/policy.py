@@ -43,6 +43,8 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     PolicyParams,
     PolicyState,
     StartedIncrementPolicyParams,
+    counts,
+    initial_sensitivity,
     policy_params_from_env,
 )
 from jaxcal.calibrators.policy_step import make_policy_calibrator
@@ -143,12 +145,13 @@ def initial_guard_carry(
     theta = None
     if isinstance(params, IncrementPolicyParams):
         theta = 0.5 * (params.theta_low + params.theta_high)
-    count = None if band is None else jnp.zeros((), jnp.int32)
+    count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hinted = warm_start and isinstance(dynamics, HintedDynamics)
     hint = dynamics.init_hint() if hinted else None
     state = PolicyState(
-        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count, hint=hint
-    )
+        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count,
+        hint=hint, sens=initial_sensitivity(params, num_states, x.dtype),
+    )  # fmt: skip
     step = make_policy_calibrator(
         actor, dynamics, params, band, warm_start=warm_start
     ).step

@@ -48,10 +48,13 @@ class IncrementPolicyParams(PolicyParams):
     Attributes:
         step_ref: ``[P]`` residual RMS at which a step is half its largest.
         max_increment: largest step as a share of the box width (static).
+        gauss_newton: the observation holds the residual's Gauss-Newton step
+            (static; :class:`~jaxcal.envs.env_config.EnvConfig`).
     """
 
     step_ref: Array
     max_increment: float = struct.field(pytree_node=False, default=0.5)
+    gauss_newton: bool = struct.field(pytree_node=False, default=False)
 
 
 @struct.dataclass
@@ -65,6 +68,21 @@ class StartedIncrementPolicyParams(IncrementPolicyParams):
     """
 
     theta_start: Array | None = None
+
+
+def counts(params: PolicyParams, band) -> bool:
+    """Whether a policy's state counts its samples: for its band's time buckets, or
+    for the stream's age its Gauss-Newton observation holds."""
+    return band is not None or getattr(params, "gauss_newton", False)
+
+
+def initial_sensitivity(params: PolicyParams, num_states: int, dtype) -> Array | None:
+    """A stream's first ``dz / dtheta``: zeros ``[Z, P]`` for a Gauss-Newton
+    observation on a model with memory
+    (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else ``None``."""
+    if not (getattr(params, "gauss_newton", False) and num_states):
+        return None
+    return jnp.zeros((num_states, params.theta_low.shape[-1]), dtype)
 
 
 @struct.dataclass
@@ -83,6 +101,8 @@ class PolicyState:
     theta: Array | None = None  # [P] theta_{t-1} (incremental actions)
     count: Array | None = None  # [] int32 samples taken (with an uncertainty band)
     hint: PyTree | None = None  # the model's solver warm start (HintedDynamics)
+    # [Z, P] the state's sensitivity to theta (gauss_newton on a model with memory)
+    sens: Array | None = None
 
 
 def policy_params_from_env(
@@ -91,6 +111,7 @@ def policy_params_from_env(
     *,
     max_increment: float | None = None,
     theta_start: Array | None = None,
+    gauss_newton: bool = False,
 ) -> PolicyParams:
     """The deployment parameters of a policy trained on ``env_params``
     (``max_increment``: the env's, for incremental actions; ``theta_start``: where
@@ -109,7 +130,11 @@ def policy_params_from_env(
         return PolicyParams(**fields)
     if max_increment is None:
         raise ValueError("an incremental policy needs the env's max_increment")
-    fields.update(step_ref=env_params.step_ref, max_increment=max_increment)
+    fields.update(
+        step_ref=env_params.step_ref,
+        max_increment=max_increment,
+        gauss_newton=gauss_newton,
+    )
     if theta_start is None:
         return IncrementPolicyParams(**fields)
     start = jnp.asarray(theta_start, env_params.theta_low.dtype)

@@ -58,9 +58,16 @@ from jaxcal.calibrators.policy_params import (
     IncrementPolicyParams,
     PolicyParams,
     PolicyState,
+    counts,
+    initial_sensitivity,
 )
 from jaxcal.calibrators.uncertainty import ThetaBand, band_std
-from jaxcal.envs.increment import apply_increment, increment_observation
+from jaxcal.envs.increment import (
+    apply_increment,
+    gauss_newton_features,
+    increment_observation,
+    step_with_sensitivity,
+)
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, action_to_theta
 from jaxcal.typedefs import Array, PRNGKey
@@ -114,10 +121,11 @@ def make_policy_calibrator(
         state: PolicyState, w_t: Array, x_t: Array
     ) -> tuple[PolicyState, CalStepOutput]:
         new_state, theta, xhat = advance(state, w_t, x_t)
+        if state.count is not None:
+            new_state = new_state.replace(count=state.count + 1)
         if band is None:
             return new_state, CalStepOutput(theta=theta, xhat=xhat)
         aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
-        new_state = new_state.replace(count=state.count + 1)
         return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
 
     return Calibrator(init, step)
@@ -149,11 +157,11 @@ def _initial_state(
         theta0 = getattr(params, "theta_start", None)
         if theta0 is None:
             theta0 = 0.5 * (params.theta_low + params.theta_high)
-    count = None if band is None else jnp.zeros((), jnp.int32)
+    count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hint = dynamics.init_hint() if hinted else None
     return PolicyState(
         xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
-        hint=hint,
+        hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
     )  # fmt: skip
 
 
@@ -192,7 +200,20 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
     theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`)."""
     xhat_prev = jnp.where(state.started, state.xhat, x_t)
     z_prev = first_state(state, state.z, w_t, x_t)
-    z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
+    extra = sens = None
+    if params.gauss_newton:  # the environment's observation (jaxcal.envs.increment)
+        jac, sens, z, xhat, hint = step_with_sensitivity(
+            lambda z_, th: transition(state, z_, w_t, xhat_prev, th),
+            z_prev,
+            state.theta,
+            state.sens,
+        )
+        resid = (x_t - xhat.astype(x_t.dtype)) / params.x_std
+        extra = gauss_newton_features(
+            resid, jac, state.count, params, params.max_increment
+        )
+    else:
+        z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
     xhat = xhat.astype(x_t.dtype)
     resid = (x_t - xhat) / params.x_std
     obs = increment_observation(
@@ -201,6 +222,7 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         state.theta,
         params.theta_low,
         params.theta_high,
+        extra,
     )
     mean, _ = actor.apply(params.actor, obs)
     theta = apply_increment(
@@ -218,5 +240,6 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         z=None if z is None else z.astype(z_prev.dtype),
         theta=theta.astype(state.theta.dtype),
         hint=hint,
+        sens=None if sens is None else sens.astype(state.sens.dtype),
     )
     return new_state, theta, xhat

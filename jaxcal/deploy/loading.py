@@ -172,7 +172,9 @@ def _policy_target(cfg: TrainConfig, env_cfg, agent, dims, dtype):
         if not env_cfg.incremental:
             return PolicyParams(**fields)
         fields.update(
-            step_ref=jnp.ones(dims[2], dtype), max_increment=env_cfg.max_increment
+            step_ref=jnp.ones(dims[2], dtype),
+            max_increment=env_cfg.max_increment,
+            gauss_newton=env_cfg.gauss_newton,
         )
         if getattr(cfg.env, "start", "centre") == "prior":
             start = jnp.zeros(dims[2], dtype)

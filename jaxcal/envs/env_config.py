@@ -57,6 +57,10 @@ class EnvConfig:
             same at every scale (a feedback policy must keep contracting the error
             where the outputs barely see theta, at idle, not only where they do).
         cost_floor: the residual RMS below which the log cost is flat.
+        gauss_newton: incremental actions only: the observation also holds the
+            Gauss-Newton step of the residual through the model's Jacobian and the
+            stream's age (:func:`~jaxcal.envs.increment.gauss_newton_features`), so
+            the network learns a gain schedule rather than the model's inverse.
     """
 
     sensor_dim: int
@@ -68,6 +72,7 @@ class EnvConfig:
     max_increment: float = 0.5
     cost: str = "squared"
     cost_floor: float = 1e-4
+    gauss_newton: bool = False
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):
@@ -79,6 +84,11 @@ class EnvConfig:
         check_action_options(
             self.action, self.max_increment, self.cost, self.cost_floor
         )
+        if self.gauss_newton and not self.incremental:
+            raise ValueError(
+                "env.gauss_newton needs env.action='increment' (it is the step of "
+                "an incremental action's residual)"
+            )
 
     @property
     def incremental(self) -> bool:
@@ -88,9 +98,11 @@ class EnvConfig:
     @property
     def observation_size(self) -> int:
         """Size of s_t: 2 S + W ([x-hat_t, x_{t+1}, w_{t+1}]), or S + 1 + W + P for
-        incremental actions ([r / |r|, lg |r|, w_{t+1}, theta_t])."""
+        incremental actions ([r / |r|, lg |r|, w_{t+1}, theta_t]), P more with
+        ``gauss_newton`` (and the age)."""
         if self.incremental:
-            return self.sensor_dim + 1 + self.condition_dim + self.param_dim
+            extra = self.param_dim + 1 if self.gauss_newton else 0
+            return self.sensor_dim + 1 + self.condition_dim + self.param_dim + extra
         return 2 * self.sensor_dim + self.condition_dim
 
     @property

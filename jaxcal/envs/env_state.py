@@ -1,6 +1,7 @@
 """The tracking environment's state and its interface as pure functions.
 
-Four state classes, one per (model with memory?, incremental actions?), so that the
+Four state classes, one per (model with memory?, incremental actions?), and a fifth
+for a Gauss-Newton observation on a model with memory, so that the
 checkpoints of each kind keep their layout (:func:`make_env_state` picks one); the
 environment itself is :class:`Env`, the gymnax-style ``reset``/``step`` pair built by
 :func:`jaxcal.envs.tracking.make_tracking_env`.
@@ -59,11 +60,27 @@ class StatefulIncrementEnvState(StatefulEnvState):
     theta: Array
 
 
-def make_env_state(unit, time, step, xhat, z, theta=None) -> EnvState:
+@struct.dataclass
+class SensitiveEnvState(StatefulIncrementEnvState):
+    """:class:`StatefulIncrementEnvState` of a Gauss-Newton observation
+    (``EnvConfig.gauss_newton``): the state's sensitivity to theta is carried.
+
+    Attributes:
+        sens: [Z, P] dz / dtheta
+            (:func:`~jaxcal.envs.increment.step_with_sensitivity`).
+    """
+
+    sens: Array
+
+
+def make_env_state(unit, time, step, xhat, z, theta=None, sens=None) -> EnvState:
     """The state of a static model (``z is None``) or of one with memory, with
-    theta when the actions are incremental (each its own class, so that the
-    checkpoints of absolute-action runs keep their layout)."""
+    theta when the actions are incremental and the state's sensitivity with a
+    Gauss-Newton observation (each its own class, so that the checkpoints of the
+    runs before it keep their layout)."""
     fields = dict(unit=unit, time=time, step=step, xhat=xhat)
+    if sens is not None:
+        return SensitiveEnvState(**fields, z=z, theta=theta, sens=sens)
     if z is None:
         if theta is None:
             return EnvState(**fields)

@@ -39,6 +39,9 @@ from jaxcal.typedefs import Array
 
 # |r| below this counts as zero in the direction r / |r| (float32 observations)
 _TINY = 1e-12
+# samples since a stream's start beyond which its age no longer changes the
+# observation (the start-up transient is over; training windows are longer)
+AGE_HORIZON = 32
 
 
 def residual_features(resid: Array) -> tuple[Array, Array]:
@@ -54,14 +57,96 @@ def residual_features(resid: Array) -> tuple[Array, Array]:
 
 
 def increment_observation(
-    resid: Array, w_next_norm: Array, theta: Array, low: Array, high: Array
+    resid: Array,
+    w_next_norm: Array,
+    theta: Array,
+    low: Array,
+    high: Array,
+    extra: Array | None = None,
 ) -> Array:
     """``s = [r / |r|, lg |r|, norm(w_{t+1}), theta_t in [-1, 1]]`` as float32
-    ``[S + 1 + W + P]``."""
+    ``[S + 1 + W + P]``, followed by ``extra`` (:func:`gauss_newton_features`)
+    where given."""
     direction, log_norm = residual_features(resid)
     theta_unit = 2.0 * (theta - low) / (high - low) - 1.0
-    obs = jnp.concatenate([direction, log_norm, w_next_norm, theta_unit])
+    parts = [direction, log_norm, w_next_norm, theta_unit]
+    obs = jnp.concatenate(parts if extra is None else [*parts, extra])
     return obs.astype(jnp.float32)
+
+
+def gauss_newton_features(resid, jac, age, params, max_increment: float) -> Array:
+    """``[P + 1]``: the Gauss-Newton step of the residual (:func:`gauss_newton_feature`)
+    and the stream's age, ``log(1 + min(n, H)) / log(1 + H)`` in [0, 1] for ``n``
+    samples since its start (H = :data:`AGE_HORIZON`): a Kalman filter's gain falls
+    as its data grow, so the start-up transient wants larger steps than the steady
+    state. ``params``: anything with ``x_std``, ``theta_low``, ``theta_high`` and
+    ``step_ref`` (the environment's or the deployed policy's)."""
+    step = gauss_newton_feature(
+        resid, jac, params.x_std, params.theta_low, params.theta_high,
+        max_increment, params.step_ref,
+    )  # fmt: skip
+    n = jnp.minimum(jnp.asarray(age, jnp.float32), AGE_HORIZON)
+    old = jnp.log1p(n) / np.log1p(AGE_HORIZON)
+    return jnp.concatenate([step.astype(jnp.float32), old[None]])
+
+
+def gauss_newton_feature(
+    resid: Array,
+    jac: Array,
+    x_std: Array,
+    low: Array,
+    high: Array,
+    max_increment: float,
+    step_ref: Array,
+) -> Array:
+    """``[P]`` the Gauss-Newton step of the residual in the action's own scale.
+
+    With ``J = d(x / sigma_x) / d theta`` at the prediction (``jac`` ``[S, P]`` in
+    output units over ``x_std``), the step that explains the normalised residual
+    ``r`` is ``delta = (J^T J + lambda I)^-1 J^T r`` (Levenberg's damping ``lambda``
+    a millionth of the mean curvature, so an unseen parameter gets no step rather
+    than an infinite one). The gated increment moves theta by
+    ``M (high - low) a |r| / (|r| + n_ref)``, about ``M (high - low) a |r| / n_ref``
+    for small residuals, so ``a = g delta n_ref / (M (high - low) |r|)`` is the
+    Gauss-Newton step with gain ``g``: that ratio is the feature, clipped to
+    [-10, 10]. The network then learns a gain per parameter and situation (a
+    Kalman-like gain) instead of the model's inverse, which its fixed-size input
+    cannot resolve as precisely (``results/policy_any_model``).
+    """
+    j = jac / x_std[:, None]
+    curvature = j.T @ j
+    damping = 1e-6 * jnp.trace(curvature) / j.shape[1] + 1e-30
+    delta = jnp.linalg.solve(
+        curvature + damping * jnp.eye(j.shape[1], dtype=j.dtype), j.T @ resid
+    )
+    norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
+    scale = step_ref / (max_increment * (high - low) * (norm + _TINY))
+    return jnp.clip(delta * scale, -10.0, 10.0)
+
+
+def step_with_sensitivity(step, z, theta: Array, sens: Array | None):
+    """``(J [S, P], sens', *out)`` of one model step ``step(z, theta) -> (z', x-hat,
+    ...)`` with its Jacobian in theta by forward mode (P tangents: a few parameters).
+
+    A model with memory carries ``sens = dz / dtheta`` ``[Z, P]`` (forward
+    sensitivity, as the extended Kalman filter's joint state: the state moved with
+    theta over the past samples, theta held): J is then the total derivative
+    ``dx-hat / dtheta + dx-hat / dz sens`` and ``sens'`` the next state's. With a
+    one-step Jacobian, a parameter that acts through the state (a motor's winding
+    resistance through its speed) looks several times weaker than it is and the
+    Gauss-Newton step comes out too short. A static model passes ``sens=None``
+    (``sens'`` is ``None``).
+    """
+
+    def moved(th):
+        z_in = z if sens is None else z + sens @ (th - theta).astype(sens.dtype)
+        out = step(z_in, th)
+        return (out[1] if sens is None else (out[0], out[1])), out
+
+    jac, out = jax.jacfwd(moved, has_aux=True)(theta)
+    if sens is None:
+        return (jac, None, *out)
+    return (jac[1], jac[0], *out)
 
 
 def apply_increment(

@@ -56,7 +56,12 @@ from jaxcal.envs.env_state import (  # noqa: F401 (re-exported: the env's state)
     EnvState,
     make_env_state,
 )
-from jaxcal.envs.increment import apply_increment, increment_observation
+from jaxcal.envs.increment import (
+    apply_increment,
+    gauss_newton_features,
+    increment_observation,
+    step_with_sensitivity,
+)
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
@@ -122,32 +127,57 @@ def _z_at(dyn: StatefulDynamics, params: EnvParams, unit, time) -> Array | None:
     return _row(params.z_ref, params, unit, time)
 
 
-def _observe(cfg: EnvConfig, state: EnvState, params: EnvParams) -> Array:
+def _observe(cfg: EnvConfig, state: EnvState, params: EnvParams, jac=None) -> Array:
     """The agent's observation: :func:`observation`, or for incremental actions the
     residual of the current sample (predict-correct: x-hat is the prediction of
-    sample t with theta_{t-1})."""
+    sample t with theta_{t-1}), with ``gauss_newton`` its step through ``jac``, the
+    prediction's Jacobian, and the window's age."""
     if not cfg.incremental:
         return observation(state, params)
     x_now = _row(params.x, params, state.unit, state.time)
     w_now = _row(params.w, params, state.unit, state.time)
+    resid = (x_now - state.xhat) / params.x_std
+    extra = None
+    if cfg.gauss_newton:  # the age: samples since the window's start
+        extra = gauss_newton_features(resid, jac, state.step, params, cfg.max_increment)
     return increment_observation(
-        (x_now - state.xhat) / params.x_std,
+        resid,
         (w_now - params.w_mean) / params.w_std,
         state.theta,
         params.theta_low,
         params.theta_high,
+        extra,
     )
 
 
-def _predict_first(dyn: StatefulDynamics, params: EnvParams, unit, time, theta):
-    """(z, x-hat) of sample ``time`` predicted with theta_{t-1} = ``theta``: the
-    model from the previous sample's reference state (x-hat of the surrogate: the
-    previous measurement)."""
+def _model_step(
+    cfg: EnvConfig, dyn: StatefulDynamics, params: EnvParams, z, w, xhat, theta, sens
+):
+    """``(z, x-hat, J, sens)`` of one model step; with ``gauss_newton`` J is its
+    Jacobian in theta and ``sens`` the state's sensitivity carried
+    (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else both ``None``."""
+    if not cfg.gauss_newton:
+        return (*dyn.step(params.dyn_params, z, w, xhat, theta), None, None)
+    jac, sens, z, xhat = step_with_sensitivity(
+        lambda z_, th: dyn.step(params.dyn_params, z_, w, xhat, th), z, theta, sens
+    )
+    return z, xhat, *jax.lax.stop_gradient((jac, sens))
+
+
+def _predict_first(cfg, dyn: StatefulDynamics, params: EnvParams, unit, time, theta):
+    """(z, x-hat, J, sens) of sample ``time`` predicted with theta_{t-1} =
+    ``theta``: the model from the previous sample's reference state (x-hat of the
+    surrogate: the previous measurement); J and sens as :func:`_model_step`, the
+    reference state's sensitivity taken as zero."""
     z_prev = _z_at(dyn, params, unit, time - 1)
     x_prev = _row(params.x, params, unit, time - 1)
     w_now = _row(params.w, params, unit, time)
-    z, xhat = dyn.step(params.dyn_params, z_prev, w_now, x_prev, theta)
-    return jax.lax.stop_gradient((z, xhat.astype(x_prev.dtype)))
+    sens = None
+    if cfg.gauss_newton and dyn.num_states:
+        sens = jnp.zeros((dyn.num_states, theta.shape[-1]), x_prev.dtype)
+    out = _model_step(cfg, dyn, params, z_prev, w_now, x_prev, theta, sens)
+    z, xhat, jac, sens = jax.lax.stop_gradient(out)
+    return z, xhat.astype(x_prev.dtype), jac, sens
 
 
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
@@ -221,10 +251,11 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         time = jnp.asarray(time, jnp.int32)
         xhat = _row(params.x, params, unit, time)
         z = _z_at(dyn, params, unit, time)
+        jac = sens = None
         if cfg.incremental:  # deterministic starts: from the box centre
             if theta is None:
                 theta = 0.5 * (params.theta_low + params.theta_high)
-            z, xhat = _predict_first(dyn, params, unit, time, theta)
+            z, xhat, jac, sens = _predict_first(cfg, dyn, params, unit, time, theta)
         state = make_env_state(
             unit=unit,
             time=time,
@@ -232,8 +263,9 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             xhat=xhat,
             z=None if z is None else z.astype(xhat.dtype),
             theta=theta if cfg.incremental else None,
+            sens=sens,
         )
-        return _observe(cfg, state, params), state
+        return _observe(cfg, state, params, jac), state
 
     def reset(key: PRNGKey, params: EnvParams) -> tuple[Array, EnvState]:
         unit, start, theta = _draw_start(key, params, cfg)
@@ -248,7 +280,10 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         time = state.time + 1
         w_next = _row(params.w, params, state.unit, time)
         z = getattr(state, "z", None)  # None: a static model's EnvState
-        z, xhat = dyn.step(params.dyn_params, z, w_next, state.xhat, theta)
+        sens = getattr(state, "sens", None)  # with gauss_newton on a model with memory
+        z, xhat, jac, sens = _model_step(
+            cfg, dyn, params, z, w_next, state.xhat, theta, sens
+        )
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = _step_cost(cfg, params, state.unit, time, xhat)
@@ -259,10 +294,11 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             xhat=xhat.astype(state.xhat.dtype),
             z=None if z is None else z.astype(state.z.dtype),
             theta=theta if cfg.incremental else None,
+            sens=None if sens is None else sens.astype(state.sens.dtype),
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}
-        obs = _observe(cfg, next_state, params)
+        obs = _observe(cfg, next_state, params, jac)
         return obs, next_state, cost.astype(jnp.float32), done, info
 
     return Env(reset, step, reset_at, cfg.observation_size, cfg.param_dim, cfg)

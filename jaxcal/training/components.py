@@ -67,7 +67,17 @@ def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvC
         max_increment=cfg.env.max_increment,
         cost=cfg.env.cost,
         cost_floor=cfg.env.cost_floor,
+        gauss_newton=uses_gauss_newton(cfg.env, sensor_dim, param_dim),
     )
+
+
+def uses_gauss_newton(env, sensor_dim: int, param_dim: int) -> bool:
+    """``env.gauss_newton`` resolved: ``"auto"`` is on for incremental actions when
+    the outputs are at least as many as the parameters (one sample's Gauss-Newton
+    step then determines theta)."""
+    if env.gauss_newton == "auto":
+        return env.action == "increment" and sensor_dim >= param_dim
+    return env.gauss_newton == "on"
 
 
 def make_dynamics(kind: str, problem: Problem) -> Dynamics | StatefulDynamics:

@@ -312,7 +312,11 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     16.7 mOhm on copies alone, 8.8 with both), for ``ANY_MODEL_CHUNKS`` chunks scored
     after each; the kept one has the
     lowest theta RMSE on simulated validation units, and its band is fitted on
-    simulated units (measured: ``results/policy_any_model/README.md``). The other
+    simulated units, both along the theta drifts the UKF finds in the data
+    (``simulate.paths=data``); the policy observes the residual's Gauss-Newton step
+    and the stream's age where the outputs determine it (``env.gauss_newton=auto``;
+    measured:
+    ``results/policy_any_model/README.md``). The other
     presets keep their formulation; without labels they fit D and the band on
     simulated units as well.
     """
@@ -321,12 +325,13 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     return dataclasses.replace(
         cfg,
         dataset=dataclasses.replace(cfg.dataset, labels="score"),
-        env=dataclasses.replace(cfg.env, start="prior"),
+        env=dataclasses.replace(cfg.env, start="prior", gauss_newton="auto"),
         simulate=SimulationConfig(
             train="both",
             band="simulated",
             cost_floor="noise",
             copies=ANY_MODEL_COPIES,
+            paths="data",
         ),
         budget=dataclasses.replace(
             cfg.budget,

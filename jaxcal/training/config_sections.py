@@ -95,6 +95,13 @@ class TrackingConfig:
     # where a deployed incremental policy starts theta: "centre" of the box, or the
     # model's nominal values ("prior", what the UKF starts from)
     start: Literal["centre", "prior"] = "centre"
+    # incremental actions: the observation also holds the residual's Gauss-Newton
+    # step through the model's Jacobian and the stream's age
+    # (jaxcal.envs.increment.gauss_newton_features): "on", "off", or "auto" (on when
+    # the outputs are at least as many as the calibrated parameters, so that one
+    # sample's step determines theta; off on the battery's one voltage for R0 and Q,
+    # where it measured far worse: results/policy_any_model)
+    gauss_newton: Literal["off", "on", "auto"] = "off"
 
     def __post_init__(self) -> None:
         check_action_options(
@@ -103,6 +110,16 @@ class TrackingConfig:
         if self.episode_length < 1:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"
+            )
+        if self.gauss_newton not in ("off", "on", "auto"):
+            raise ValueError(
+                f"env.gauss_newton must be 'off', 'on' or 'auto', got "
+                f"{self.gauss_newton!r}"
+            )
+        if self.gauss_newton == "on" and self.action != "increment":
+            raise ValueError(
+                "env.gauss_newton=on needs env.action=increment (it observes an "
+                "incremental action's residual)"
             )
         if self.start not in ("centre", "prior"):
             raise ValueError(
@@ -184,6 +201,11 @@ class SimulationConfig:
     # (labelled when the validation units carry labels, else simulated)
     band: Literal["auto", "simulated", "labelled"] = "auto"
     band_copies: int = 8  # simulated copies of each validation unit for the band
+    # the theta paths of the units the band is fitted and the policy selected on:
+    # "box" (drawn across the box, jaxcal.training.sim_paths.theta_paths) or "data"
+    # (the UKF's estimates on the training and validation units, smoothed:
+    # jaxcal.training.sim_paths.estimated_drifts)
+    paths: Literal["box", "data"] = "box"
     # the log cost's floor when training on simulated units: "noise" (the noise
     # std's RMS in the cost's normalised units) or "env" (env.cost_floor as given)
     cost_floor: Literal["noise", "env"] = "env"
@@ -198,6 +220,10 @@ class SimulationConfig:
             raise ValueError(
                 "simulate.band must be 'auto', 'simulated' or 'labelled', got "
                 f"{self.band!r}"
+            )
+        if self.paths not in ("box", "data"):
+            raise ValueError(
+                f"simulate.paths must be 'box' or 'data', got {self.paths!r}"
             )
         if self.cost_floor not in ("noise", "env"):
             raise ValueError(

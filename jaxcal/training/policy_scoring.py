@@ -92,8 +92,9 @@ def make_policy_scoring(
         if which == "target":
             actor = getattr(agent_state, "target_actor_params", actor)
         return policy_params_from_env(
-            train_params, actor, max_increment=max_increment, theta_start=start
-        )
+            train_params, actor, max_increment=max_increment, theta_start=start,
+            gauss_newton=parts.env.config.gauss_newton,
+        )  # fmt: skip
 
     def val_scorer(agent_state) -> dict:
         params = deployable(agent_state)

@@ -11,11 +11,8 @@ tracking cost of a simulated unit compares the prediction with them
 for precision below the noise level, which the cost of a noisy target cannot see
 (``log(e + n)^2`` is flat in ``e`` for ``|e| << |n|``).
 
-Theta trajectories, per unit and parameter (degradation-like: monotone, smooth, the
-whole box reachable within a unit's life): ``theta(t) = a + (b - a) s^k`` with
-``s = t / (L - 1)``, ``a, b`` uniform in the box and ``k`` uniform in [1, 2]; a share
-``constant_share`` of the units keeps ``b = a`` (a constant parameter, the case a
-band must not be too wide for).
+Theta trajectories are drawn across the box, or follow the drifts the UKF finds in
+the data (``simulate.paths``): :mod:`jaxcal.training.sim_paths`.
 
 The noise is the problem's: given (``noise=`` of the command line), else estimated
 by the front door's screening (a UKF pass over the training units,
@@ -32,30 +29,12 @@ import numpy as np
 from jaxcal.calibrators.e2e_sim import simulate_fleet
 from jaxcal.problem import Problem
 from jaxcal.training.data import UnitArrays
-
-
-def theta_paths(
-    key: jax.Array,
-    low: np.ndarray,
-    high: np.ndarray,
-    lengths: np.ndarray,
-    num_steps: int,
-    constant_share: float = 0.25,
-) -> np.ndarray:
-    """``[U, T, P]`` theta trajectories in ``[low, high]`` (module doc); rows past a
-    unit's length hold its last value."""
-    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
-    num_units, num_params = len(lengths), len(low)
-    k_a, k_b, k_k, k_c = jax.random.split(key, 4)
-    uniform = lambda k, shape: np.asarray(jax.random.uniform(k, shape))  # noqa: E731
-    start = low + (high - low) * uniform(k_a, (num_units, num_params))
-    end = low + (high - low) * uniform(k_b, (num_units, num_params))
-    power = 1.0 + uniform(k_k, (num_units, num_params))
-    constant = uniform(k_c, (num_units,)) < constant_share
-    end = np.where(constant[:, None], start, end)
-    span = np.maximum(np.asarray(lengths) - 1, 1)[:, None]
-    s = np.clip(np.arange(num_steps)[None, :] / span, 0.0, 1.0)  # [U, T]
-    return start[:, None] + (end - start)[:, None] * s[..., None] ** power[:, None]
+from jaxcal.training.sim_paths import (
+    drift_paths,
+    estimated_drifts,
+    front_ukf,
+    theta_paths,
+)
 
 
 def simulate_units(
@@ -65,8 +44,11 @@ def simulate_units(
     *,
     copies: int = 1,
     constant_share: float = 0.25,
+    drifts: np.ndarray | None = None,
 ) -> tuple[UnitArrays, np.ndarray]:
-    """``copies`` simulated fleets along ``units``' conditions (module doc).
+    """``copies`` simulated fleets along ``units``' conditions (module doc), theta
+    along the ``drifts`` where given (:func:`estimated_drifts`, in turn over the
+    copies' units: :func:`drift_paths`), else drawn (:func:`theta_paths`).
 
     Returns:
         ``(simulated, x_clean)``: the simulated units (noisy outputs, theta labels,
@@ -80,14 +62,18 @@ def simulate_units(
     w = np.concatenate([units.w] * copies)
     lengths = np.concatenate([units.lengths] * copies)
     k_theta, k_noise = jax.random.split(key)
-    theta = theta_paths(
-        k_theta,
-        problem.theta_low,
-        problem.theta_high,
-        lengths,
-        w.shape[1],
-        constant_share,
-    ).astype(units.x.dtype)
+    if drifts is None:
+        paths = theta_paths(
+            k_theta,
+            problem.theta_low,
+            problem.theta_high,
+            lengths,
+            w.shape[1],
+            constant_share,
+        )
+    else:
+        paths = drift_paths(problem, drifts, lengths, w.shape[1])
+    theta = paths.astype(units.x.dtype)
     mask = np.arange(w.shape[1])[None, :] < lengths[:, None]
     clean = simulate_fleet(problem, w, theta, mask).astype(units.x.dtype)
     bad = mask & ~np.all(np.isfinite(clean), axis=-1)
@@ -150,31 +136,25 @@ def parse_noise(noise: Sequence[str], names: Sequence[str]) -> np.ndarray | None
 def estimate_noise(problem: Problem, units: UnitArrays) -> Problem:
     """The problem with the noise the front door's screening estimates on
     ``units`` (a UKF pass; ``noise_source`` says so)."""
-    import pandas as pd
-
-    from jaxcal.calibrators.front import calibrate
-
-    model = problem.model
-    mask = np.asarray(units.mask, bool)
-    u, t = np.nonzero(mask)
-    frame = pd.DataFrame(
-        {
-            **{n: units.w[u, t, i] for i, n in enumerate(model.condition_names)},
-            **{n: units.x[u, t, i] for i, n in enumerate(problem.output_names)},
-            "unit": units.unit_ids[u],
-            "time": t,
-        }
-    )
-    result = calibrate(
-        model,
-        frame,
-        method="ukf",
-        theta=list(problem.theta_names),
-        outputs=list(problem.output_names),
-        progress=False,
-    )
+    result, _ = front_ukf(problem, units)
     noise = np.asarray(result.problem.noise_std, np.float64)
     return problem.with_noise(noise, f"{result.noise_source}, on the training units")
+
+
+def _joined(a: UnitArrays, b: UnitArrays) -> UnitArrays:
+    """Two unit sets as one (padded to the longer; labels dropped)."""
+    steps = max(a.w.shape[1], b.w.shape[1])
+
+    def pad(v):
+        return np.pad(v, [(0, 0), (0, steps - v.shape[1])] + [(0, 0)] * (v.ndim - 2))
+
+    return UnitArrays(
+        np.concatenate([pad(a.w), pad(b.w)]),
+        np.concatenate([pad(a.x), pad(b.x)]),
+        None,
+        np.concatenate([a.lengths, b.lengths]),
+        np.concatenate([a.unit_ids, b.unit_ids]),
+    )
 
 
 class Simulations:
@@ -193,6 +173,7 @@ class Simulations:
         self.key = jax.random.fold_in(jax.random.key(cfg.seed), 27)
         self._problem: Problem | None = None
         self._train: tuple[UnitArrays, np.ndarray] | None = None
+        self._paths: tuple[UnitArrays, np.ndarray] | None = None
         self.used: dict[str, str] = {}
 
     def problem(self) -> Problem:
@@ -251,18 +232,52 @@ class Simulations:
         )
         return both, np.concatenate([real.x, clean])
 
-    def selection_units(self) -> UnitArrays:
-        """Simulated units along the validation units' conditions (the training
-        units' without them) on which ``budget.select=sim_theta`` scores theta."""
+    def _drifts(self) -> tuple[UnitArrays, np.ndarray]:
+        """``(units, drifts)``: every unit but the test ones and the theta drifts
+        the UKF finds on them (:func:`estimated_drifts`), made once."""
+        if self._paths is None:
+            train, val = self.data.train, self.data.val
+            units = train if val is None else _joined(train, val)
+            self.log(
+                "simulated units follow the theta drifts the UKF finds in the data"
+            )
+            self._paths = units, estimated_drifts(self.problem(), units)
+        return self._paths
+
+    def _held_out_sims(self, salt: int) -> tuple[UnitArrays, str]:
+        """``(simulated units, what they follow)`` for selection and the band:
+        ``band_copies`` copies along the validation units' conditions (the training
+        units' without them) with theta drawn across the box, or
+        (``simulate.paths=data``) along every non-test unit's conditions with the
+        theta drifts the UKF finds in the data, each copy of a unit with another
+        unit's drift (conditions and drift: a pair the policy never trained on)."""
+        key = jax.random.fold_in(self.key, salt)
+        copies = self.cfg.band_copies
+        if self.cfg.paths == "data":
+            units, drifts = self._drifts()
+            turn = np.arange(units.w.shape[0])[None] + np.arange(copies)[:, None] + 1
+            drifts = drifts[(turn % len(drifts)).ravel()]  # copy c, unit u: u + c + 1
+            sim, _ = simulate_units(
+                self.problem(), units, key, copies=copies, drifts=drifts
+            )
+            what = "the training and validation units' conditions, each with another's"
+            return sim, f"{what} theta drift"
         val = self.data.val
-        base = val if val is not None else self.data.train
+        base, which = (val, "validation") if val is not None else (None, "training")
+        base = self.data.train if base is None else base
         sim, _ = simulate_units(
             self.problem(),
             base,
-            jax.random.fold_in(self.key, 2),
-            copies=self.cfg.band_copies,
+            key,
+            copies=copies,
             constant_share=self.cfg.constant_share,
         )
+        return sim, f"the {which} units' conditions"
+
+    def selection_units(self) -> UnitArrays:
+        """Simulated units (:meth:`_held_out_sims`) on which
+        ``budget.select=sim_theta`` scores theta."""
+        sim, _ = self._held_out_sims(2)
         self.used["selection"] = "theta RMSE on simulated units"
         return sim
 
@@ -274,16 +289,8 @@ class Simulations:
         if self.cfg.band == "labelled" or (self.cfg.band == "auto" and labelled):
             self.used["band"] = "labelled validation units"
             return val, "labelled validation units"
-        base, which = (val, "validation") if val is not None else (None, "training")
-        base = self.data.train if base is None else base
-        sim, _ = simulate_units(
-            self.problem(),
-            base,
-            jax.random.fold_in(self.key, 1),
-            copies=self.cfg.band_copies,
-            constant_share=self.cfg.constant_share,
-        )
-        what = f"units simulated along the {which} units' conditions"
+        sim, along = self._held_out_sims(1)
+        what = f"units simulated along {along}"
         self.used["band"] = what
         return sim, what
 

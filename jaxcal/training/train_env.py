@@ -23,7 +23,7 @@ from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvParams, make_env_params
 from jaxcal.problem import Normalisation, Problem
-from jaxcal.training.components import make_dynamics
+from jaxcal.training.components import make_dynamics, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import CalibrationData, UnitArrays
 from jaxcal.training.simulated import Simulations
@@ -54,6 +54,13 @@ def make_training_env(
             f"{np.asarray(train_params.step_ref).tolist()} (residual RMS), largest "
             f"step {cfg.env.max_increment:g} of the box width"
         )
+        outputs, params = len(data.problem.output_names), len(data.problem.theta_names)
+        if uses_gauss_newton(cfg.env, outputs, params):
+            log(
+                f"the policy observes the residual's Gauss-Newton step "
+                f"(env.gauss_newton={cfg.env.gauss_newton}: {outputs} outputs, "
+                f"{params} parameters)"
+            )
     return train_params
 
 

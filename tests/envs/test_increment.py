@@ -207,3 +207,80 @@ def test_calibrator_carries_a_hinted_models_warm_start(setup):
     hint, out2 = doubled.step(None, jnp.int32(5), w[0, 0], x[0, 0], jnp.zeros(P))
     assert int(hint) == 6
     np.testing.assert_allclose(out2, 2.0 * physics(None, w[0, 0], None, jnp.zeros(P)))
+
+
+def test_gauss_newton_feature_makes_a_unit_gain_the_gauss_newton_step(setup):
+    # with env.gauss_newton the observation ends with the residual's Gauss-Newton
+    # step in the action's scale: an actor that outputs it (gain 1) drives theta to
+    # the truth, and the deployed calibrator reproduces the environment's rollout
+    _, params, w, x, truth = setup
+    cfg = EnvConfig(
+        S, W, P, episode_length=20, action="increment", max_increment=MAX_INC,
+        gauss_newton=True,
+    )  # fmt: skip
+    env = make_tracking_env(physics, cfg)
+    assert env.observation_size == S + 1 + W + 2 * P + 1
+
+    class Actor:
+        def apply(self, _, obs):
+            return jnp.arctanh(jnp.clip(obs[-P - 1 : -1], -0.999, 0.999)), None
+
+    pp = policy_params_from_env(params, None, max_increment=MAX_INC, gauss_newton=True)
+    cal = make_policy_calibrator(Actor(), physics, pp)
+    out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
+    theta = np.asarray(out.theta)
+    np.testing.assert_allclose(theta[:, -1], np.broadcast_to(truth, (U, P)), atol=1e-6)
+    obs, state = env.reset_at(params, 1, 0)
+    resid = (x[1, 0] - np.asarray(state.xhat)) / np.asarray(params.x_std)
+    a = A / np.asarray(params.x_std)[:, None]
+    delta = np.linalg.lstsq(a, resid, rcond=None)[0]
+    width = np.asarray(params.theta_high - params.theta_low)
+    scale = np.asarray(params.step_ref) / (MAX_INC * width * np.sqrt(np.mean(resid**2)))
+    np.testing.assert_allclose(
+        obs[-P - 1 : -1], np.clip(delta * scale, -10, 10), rtol=1e-4
+    )
+    assert obs[-1] == 0.0  # the window's age: its first sample
+    ages = []
+    thetas = []
+    for _ in range(10):  # a test loop over a few steps, not a hot path
+        mean, _ = Actor().apply(None, obs)
+        obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
+        thetas.append(np.asarray(state.theta))
+        ages.append(float(obs[-1]))
+    np.testing.assert_allclose(theta[1, :10], thetas, atol=1e-6)
+    np.testing.assert_allclose(
+        ages, np.log1p(np.arange(1, 11)) / np.log1p(32), rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="gauss_newton needs env.action"):
+        EnvConfig(S, W, P, gauss_newton=True)
+
+
+def test_sensitivity_carried_gives_a_memory_models_total_derivative():
+    # a linear model with memory, z' = a z + b theta, x = c z + d theta: with the
+    # state's sensitivity carried from zero, the step's Jacobian is the derivative
+    # of the whole rollout from a fixed z_0 with theta held (not the one-step one)
+    from jaxcal.envs.increment import step_with_sensitivity
+
+    a, b = jnp.array([[0.6]]), jnp.array([[1.0, 0.5]])
+    c, d = jnp.array([[2.0], [0.0]]), jnp.array([[0.0, 0.0], [0.3, 1.0]])
+
+    def step(z, theta):
+        z_next = a @ z + b @ theta
+        return z_next, c @ z_next + d @ theta
+
+    theta, z0 = jnp.array([0.2, -0.1]), jnp.array([1.0])
+
+    def rollout(th, n):
+        z = z0
+        for _ in range(n):  # a test's reference, three steps
+            z, x = step(z, th)
+        return x
+
+    z, sens = z0, jnp.zeros((1, 2))
+    for n in range(1, 4):
+        jac, sens, z, x = step_with_sensitivity(step, z, theta, sens)
+        np.testing.assert_allclose(jac, jax.jacfwd(rollout)(theta, n), rtol=1e-6)
+        np.testing.assert_allclose(x, rollout(theta, n), rtol=1e-6)
+    one_step, none, *_ = step_with_sensitivity(step, z, theta, None)
+    assert none is None
+    np.testing.assert_allclose(one_step, c @ b + d, rtol=1e-6)

@@ -7,7 +7,8 @@ import pytest
 
 import jaxcal
 from jaxcal.training.data import UnitArrays, training_problem
-from jaxcal.training.simulated import parse_noise, simulate_units, theta_paths
+from jaxcal.training.sim_paths import drift_paths, estimated_drifts, theta_paths
+from jaxcal.training.simulated import parse_noise, simulate_units
 
 
 def _fn(w, theta):
@@ -60,6 +61,31 @@ def test_simulated_units_are_the_model_plus_the_problems_noise():
     assert np.all(sim.x[~mask] == 0.0)
 
 
+def test_estimated_drifts_follow_the_units_own_slow_drift():
+    """The UKF's theta on units made along a drift, fitted by a quadratic: close to
+    that drift (not to paths across the box), held past a unit's end; copies
+    simulated along the drifts take them in turn."""
+    units = _units(num_units=3, rows=120)
+    problem = training_problem(
+        MODEL, units, ("p", "q"), ("y1", "y2"), MODEL.nominal, *MODEL.bounds
+    ).with_noise(np.array([0.01, 0.01]), "given")
+    coef = np.array([[[1.1, -0.2], [0.0, 0.1], [0.3, 0.0]]])  # [1, 3, P]
+    sim, _ = simulate_units(problem, units, jax.random.key(2), drifts=coef)
+    s = np.minimum(np.arange(120)[None] / (units.lengths[:, None] - 1.0), 1.0)
+    truth = np.stack([1.1 + 0.3 * s**2, -0.2 + 0.1 * s], -1)
+    np.testing.assert_allclose(sim.theta, truth, rtol=1e-6)
+    drifts = estimated_drifts(problem, sim._replace(theta=None))
+    paths = drift_paths(problem, drifts, units.lengths, 120)
+    late = np.asarray(units.mask) & (np.arange(120) >= 20)[None]  # after start-up
+    err = np.abs(paths - truth)[late]
+    assert err.max(0).tolist() < [0.03, 0.03], err.max(0)
+    np.testing.assert_array_equal(paths[0, 60:], paths[0, 59:60].repeat(60, 0))
+    twice, _ = simulate_units(
+        problem, units, jax.random.key(3), copies=2, drifts=drifts
+    )
+    np.testing.assert_allclose(twice.theta[3:], paths, rtol=1e-6)
+
+
 def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
     names = ("y1", "y2")
     np.testing.assert_allclose(parse_noise(("y2:0.5", "y1:0.1"), names), [0.1, 0.5])
@@ -77,15 +103,21 @@ def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
 
 
 def test_any_model_default_preset_uses_labels_to_score_only():
+    from jaxcal.training.components import uses_gauss_newton
     from jaxcal.training.config import ANY_MODEL_COPIES, make_train_config
 
     cfg = make_train_config("file", "default")
     assert cfg.dataset.labels == "score" and cfg.env.start == "prior"
     assert cfg.simulate.train == "both" and cfg.simulate.band == "simulated"
     assert cfg.simulate.copies == ANY_MODEL_COPIES and cfg.budget.select == "sim_theta"
+    assert cfg.simulate.paths == "data" and cfg.env.gauss_newton == "auto"
+    # "auto": the Gauss-Newton observation where the outputs determine theta
+    assert uses_gauss_newton(cfg.env, 3, 2) and uses_gauss_newton(cfg.env, 2, 2)
+    assert not uses_gauss_newton(cfg.env, 1, 2)  # the battery: one voltage, R0 and Q
     # the turbofan data sets and the other presets keep their formulation
     cmapss = make_train_config("cmapss", "default")
     assert cmapss.dataset.labels == "use" and cmapss.simulate.train == "data"
+    assert cmapss.simulate.paths == "box" and not uses_gauss_newton(cmapss.env, 9, 2)
     assert make_train_config("file", "smoke").simulate.train == "data"
 
 
@@ -127,8 +159,12 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
     )
 
     # the layout of every incremental run saved before theta_start existed
-    names = [f.name for f in dataclasses.fields(IncrementPolicyParams)]
-    assert names[-2:] == ["step_ref", "max_increment"] and "theta_start" not in names
+    # (the arrays a checkpoint holds; max_increment and gauss_newton are static)
+    fields = dataclasses.fields(IncrementPolicyParams)
+    leaves = [f.name for f in fields if f.metadata.get("pytree_node", True)]
+    static = [f.name for f in fields if not f.metadata.get("pytree_node", True)]
+    assert leaves[-1] == "step_ref" and "theta_start" not in leaves
+    assert static == ["max_increment", "gauss_newton"]
     fields = dict(
         actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
         x_mean=jnp.zeros(2), x_std=jnp.ones(2), theta_low=jnp.array([0.5, -1.0]),

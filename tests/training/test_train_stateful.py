@@ -162,18 +162,23 @@ def test_surrogate_is_refused_for_a_model_with_memory(csv, tmp_path, capsys):
     assert not (tmp_path / "sur").exists()
 
 
-def test_env_carries_the_model_state():
-    """With theta at the truth, the env's x-hat is the model's output exactly: z is
-    taken from the reference track at the episode start and advanced every step."""
+def _unit_three():
+    """``(w [1, T, 2], noisy x [1, T, 2], true theta, problem)`` of unit 3."""
     frame = _frame()
     unit = frame[frame.unit == 3]
     w = unit[["u", "v"]].to_numpy()[None]
     x_noisy = unit[["y1", "y2"]].to_numpy()[None]
-    truth = np.array([A[2], K[2]])
-    x_clean, z_true = _simulate(jnp.asarray(w[0]), jnp.tile(truth, (NUM_ROWS, 1)))
     problem = jaxcal.Problem.build(
         MODEL, jaxcal.read_dataset(frame, MODEL), theta=("a", "k")
     )
+    return w, x_noisy, np.array([A[2], K[2]]), problem
+
+
+def test_env_carries_the_model_state():
+    """With theta at the truth, the env's x-hat is the model's output exactly: z is
+    taken from the reference track at the episode start and advanced every step."""
+    w, x_noisy, truth, problem = _unit_three()
+    x_clean, z_true = _simulate(jnp.asarray(w[0]), jnp.tile(truth, (NUM_ROWS, 1)))
     # the run's physics transition (its first state: z_0 = u_0, whatever theta)
     dyn = make_dynamics("physics", problem)
     assert isinstance(dyn, StatefulDynamics) and dyn.num_states == 1
@@ -261,3 +266,48 @@ def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(traine
     w, x = frame[unit][["u", "v"]].to_numpy(), frame[unit][["y1", "y2"]].to_numpy()
     theta, _ = StreamingCalibrator(trained).run(w[None], x[None])
     np.testing.assert_allclose(result.theta[unit], theta[0], atol=1e-6)
+
+
+def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree():
+    """env.gauss_newton on a model with memory: an actor that takes the observed
+    Gauss-Newton step (the state's sensitivity carried) drives theta to the truth on
+    noise-free data, and the deployed calibrator reproduces the env's thetas."""
+    from jaxcal.calibrators.interface import run_fleet
+    from jaxcal.calibrators.policy import make_policy_calibrator
+    from jaxcal.calibrators.policy_params import policy_params_from_env
+    from jaxcal.envs.increment import increment_step_ref
+
+    w, _, truth, problem = _unit_three()
+    x_clean, _ = _simulate(jnp.asarray(w[0]), jnp.tile(truth, (NUM_ROWS, 1)))
+    dyn = make_dynamics("physics", problem)
+    lengths = np.array([NUM_ROWS])
+    x = x_clean[None]
+    low, high = np.array([0.3, 0.5]), np.array([0.95, 2.0])
+    z_ref = reference_states(dyn, None, w, x, lengths, problem.theta_prior)
+    params = make_env_params(w, x, lengths, low, high, None, z_ref=z_ref)
+    step_ref = increment_step_ref(dyn, params, problem.theta_prior, 0.2)
+    params = params.replace(step_ref=jnp.asarray(step_ref))
+    cfg = EnvConfig(
+        2, 2, 2, episode_length=20, action="increment", max_increment=0.2,
+        gauss_newton=True,
+    )  # fmt: skip
+    env = make_tracking_env(dyn, cfg)
+
+    class Actor:  # gain 1/2 on the Gauss-Newton step
+        def apply(self, _, obs):
+            return jnp.arctanh(jnp.clip(0.5 * obs[-3:-1], -0.999, 0.999)), None
+
+    pp = policy_params_from_env(params, None, max_increment=0.2, gauss_newton=True)
+    cal = make_policy_calibrator(Actor(), dyn, pp)
+    mask = jnp.ones((1, NUM_ROWS), bool)
+    out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), mask)
+    theta = np.asarray(out.theta)[0]
+    np.testing.assert_allclose(theta[-1], truth, atol=1e-3)
+    obs, state = env.reset_at(params, 0, 0)
+    assert state.sens.shape == (1, 2)
+    thetas = []
+    for _ in range(8):  # a test loop over a few steps, not a hot path
+        mean, _ = Actor().apply(None, obs)
+        obs, state, *_ = env.step(None, state, jnp.tanh(mean), params)
+        thetas.append(np.asarray(state.theta))
+    np.testing.assert_allclose(theta[:8], thetas, rtol=1e-5, atol=1e-6)
