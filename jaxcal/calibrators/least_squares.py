@@ -98,21 +98,21 @@ class LeastSquaresConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class FitConfig:
-    """Static settings of the batch fit (scipy-like tolerances, in scaled units)."""
+class FitConfig(Tolerance):
+    """Static settings of the batch fit: the solver's stopping rules (the fields of
+    :class:`~jaxcal.numerics.levenberg_marquardt.Tolerance`, scipy-like, in scaled
+    units) and its Marquardt damping."""
 
-    max_iters: int = 100  # upper bound on LM iterations
-    gtol: float = 1e-10  # stop when ||J^T r||_inf <= gtol
-    ftol: float = 1e-14  # stop when an accepted step lowers the cost by <= ftol * cost
-    xtol: float = 1e-12  # stop when ||dz|| <= xtol * (xtol + ||z||)
     damping_init: float = 1e-3  # initial Marquardt lambda
     damping_factor: float = 10.0  # lambda /= factor on acceptance, *= on rejection
 
     def __post_init__(self):
-        if self.max_iters < 1:
-            raise ValueError(f"FitConfig.max_iters must be >= 1, got {self.max_iters}")
-        if min(self.gtol, self.ftol, self.xtol) < 0 or not self.damping_factor > 1:
-            raise ValueError("FitConfig: tolerances must be >= 0, damping_factor > 1")
+        super().__post_init__()
+        if not (self.damping_init > 0 and self.damping_factor > 1):
+            raise ValueError(
+                "FitConfig: need damping_init > 0 and damping_factor > 1, got "
+                f"{self.damping_init}, {self.damping_factor}"
+            )
 
 
 @struct.dataclass
@@ -323,8 +323,7 @@ def _fit_jit(measure_fn, cfg, w, x, theta0, mask, std, scale):
         pred = jax.vmap(lambda w_t: measure_fn(w_t, scale * z))(w)
         return jnp.where(used, (pred - x) / std, 0.0).ravel()
 
-    tol = Tolerance(cfg.max_iters, cfg.gtol, cfg.ftol, cfg.xtol)
-    fit, stats = lm_solve(linearize(residual), theta0 / scale, tol, damping_of(cfg))
+    fit, stats = lm_solve(linearize(residual), theta0 / scale, cfg, damping_of(cfg))
     num_resid = jnp.sum(used)
     num_params = theta0.shape[0]
     s2 = 2.0 * fit.cost / jnp.maximum(num_resid - num_params, 1)

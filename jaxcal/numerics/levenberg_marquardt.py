@@ -95,10 +95,11 @@ class Tolerance:
     xtol: float = 1e-12  # stop when ||dy|| <= xtol * (xtol + ||y||)
 
     def __post_init__(self):
+        name = type(self).__name__  # also a subclass's (FitConfig)
         if self.max_iters < 1:
-            raise ValueError(f"Tolerance.max_iters must be >= 1, got {self.max_iters}")
+            raise ValueError(f"{name}.max_iters must be >= 1, got {self.max_iters}")
         if min(self.gtol, self.ftol, self.xtol) < 0:
-            raise ValueError("Tolerance: gtol, ftol and xtol must be >= 0")
+            raise ValueError(f"{name}: gtol, ftol and xtol must be >= 0")
 
 
 class LMState(NamedTuple):
