@@ -158,3 +158,44 @@ def test_real_nested_configs_parse_and_round_trip():
     assert config_from_dict(SurrogateConfig, config_to_dict(cfg)) == cfg
     with pytest.raises(ValueError, match="validation_fraction must be in"):
         parse_overrides(["fit.validation_fraction=1.5"], E2EConfig())
+
+
+def test_every_command_line_has_the_one_grammar_with_its_documented_flags():
+    # the flag spellings of the docs and the Makefile are key=value tokens of the
+    # one parser (jaxcal.settings.parse_overrides): both forms give the same config
+    from jaxcal.cli import bench, validate
+    from jaxcal.cli.args import flags_as_overrides
+    from jaxcal.cli.fleet import parse_args as fleet_args
+
+    flags = {"--engine": "engine", "--out": "out", "--quick": "quick"}
+    assert flags_as_overrides(
+        ["--engine", "agtf30", "--out=r.json", "--quick", "seed=1"],
+        flags,
+        switches=("--quick",),
+    ) == ["engine=agtf30", "out=r.json", "quick=true", "seed=1"]
+    with pytest.raises(ValueError, match="unknown flag '--engin'.*--engine"):
+        flags_as_overrides(["--engin", "x"], flags)
+    with pytest.raises(ValueError, match="--out needs a value"):
+        flags_as_overrides(["--out"], flags)
+
+    want = validate.ValidateArgs(engine="agtf30", out=None, quick=True)
+    assert validate.parse_args(["--engine", "agtf30", "--quick"]) == want
+    assert validate.parse_args(["engine=agtf30", "quick=true"]) == want
+    with pytest.raises(ValueError, match="engine='x'.*cmapss, agtf30"):
+        validate.parse_args(["engine=x"])
+
+    want = bench.BenchArgs(engine="cmapss", batch=8, repeats=2, out="b.json")
+    argv = ["engine", "--batch", "8", "--repeats=2", "--out", "b.json"]
+    assert bench.parse_args(argv) == want
+    assert bench.parse_args(["engine", "batch=8", "repeats=2", "out=b.json"]) == want
+    with pytest.raises(ValueError, match="say what to bench"):
+        bench.parse_args(["--batch", "8"])
+    with pytest.raises(ValueError, match="positive"):
+        bench.parse_args(["engine", "batch=0"])
+    assert bench.main(["engine", "--batches", "8"]) == 2  # a typo: usage, exit 2
+
+    base = ["data=a.csv", "out=o.h5"]
+    flagged = fleet_args([*base, "--coordinator", "h:1", "--num-processes=2",
+                          "--process-id", "0"])  # fmt: skip
+    keyed = fleet_args([*base, "coordinator=h:1", "num_processes=2", "process_id=0"])
+    assert flagged == keyed and keyed[1]["num_processes"] == 2

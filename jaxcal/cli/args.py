@@ -1,6 +1,7 @@
 """The shared front of every ``python -m jaxcal.<tool>`` command line: help, usage and
-exit codes (0 done, 2 bad arguments). Parsing ``key=value`` overrides and storing
-configs is library work and lives in :mod:`jaxcal.settings`."""
+exit codes (0 done, 2 bad arguments), and the documented ``--flag value`` spellings as
+``key=value`` tokens. Parsing ``key=value`` overrides and storing configs is library
+work and lives in :mod:`jaxcal.settings`: every command line has that one grammar."""
 
 from __future__ import annotations
 
@@ -36,3 +37,44 @@ def parse_command_line(
     except ValueError as err:
         print(f"error: {err}\n{usage}", file=sys.stderr)
         return None, 2
+
+
+def flags_as_overrides(
+    argv: Sequence[str],
+    flags: typing.Mapping[str, str],
+    switches: typing.Collection[str] = (),
+) -> list[str]:
+    """``argv`` with its documented ``--flag value`` / ``--flag=value`` spellings (and
+    bare ``--switch`` booleans) as the ``key=value`` tokens of the one parser,
+    :func:`jaxcal.settings.parse_overrides`; other tokens pass through.
+
+    Args:
+        argv: the command line's tokens.
+        flags: ``{"--num-processes": "num_processes", ...}``, flag to config key.
+        switches: the flags among ``flags`` that take no value (``--quick``).
+
+    Raises:
+        ValueError: an unknown flag (listing the known ones) or one without its
+            value.
+    """
+    out: list[str] = []
+    tokens = list(argv)
+    while tokens:
+        token = tokens.pop(0)
+        if not token.startswith("--"):
+            out.append(token)
+            continue
+        name, sep, value = token.partition("=")
+        if name not in flags:
+            raise ValueError(
+                f"unknown flag {name!r}; the flags are {', '.join(flags)} (or "
+                "key=value)"
+            )
+        if name in switches and not sep:
+            value = "true"
+        elif not sep:
+            if not tokens or tokens[0].startswith("--"):
+                raise ValueError(f"{name} needs a value: {name} VALUE")
+            value = tokens.pop(0)
+        out.append(f"{flags[name]}={value}")
+    return out

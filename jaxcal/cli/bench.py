@@ -4,25 +4,64 @@ Measures, in one process: compile time of the jitted evaluate, single-call laten
 at batch 1 (blocking, median of repeats = the real-time cost of one sample),
 throughput at a large batch (default 65,536 operating points spread over the envelope
 with random small health modifiers), the fraction converged, and the float precision
-used. Options: ``--engine agtf30``, ``--batch N``, ``--repeats K``, ``--out PATH``
-(also write the JSON).
+used. Options (``key=value``, or the flag spellings ``--engine agtf30``): ``engine=``
+(``cmapss`` or ``agtf30``), ``batch=N``, ``repeats=K``, ``out=PATH`` (also write the
+JSON).
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
+from typing import Literal
 
 import jax
 import numpy as np
 
 from jaxcal.cache import enable_compilation_cache
+from jaxcal.cli.args import flags_as_overrides, parse_command_line
 from jaxcal.physics import load_engine
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.precision import enable_x64, float_dtype
+from jaxcal.runs.atomic import write_atomic
+from jaxcal.settings import parse_overrides
+
+USAGE = (
+    "usage: python -m jaxcal.bench engine [engine=cmapss|agtf30] [batch=N] "
+    "[repeats=K] [out=PATH]  (or --engine X --batch N --repeats K --out PATH)"
+)
+FLAGS = {f"--{k}": k for k in ("engine", "batch", "repeats", "out")}
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchArgs:
+    """What ``python -m jaxcal.bench engine`` measures and where it writes."""
+
+    engine: Literal["cmapss", "agtf30"] = "cmapss"
+    batch: int = 65536  # operating points of the throughput call
+    repeats: int = 5  # timed calls, the median reported
+    out: str | None = None  # also write the JSON here
+
+    def __post_init__(self) -> None:
+        if self.batch < 1 or self.repeats < 1:
+            raise ValueError(
+                f"batch and repeats must be positive integers, got {self.batch}, "
+                f"{self.repeats}"
+            )
+
+
+def parse_args(argv: list[str]) -> BenchArgs:
+    """The :class:`BenchArgs` of a command line (``engine`` first: what to bench).
+
+    Raises:
+        ValueError: no ``engine``, or a bad key, flag or value (named).
+    """
+    if not argv or argv[0] != "engine":
+        raise ValueError("say what to bench: engine")
+    return parse_overrides(flags_as_overrides(argv[1:], FLAGS), BenchArgs())
 
 
 def envelope_points(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -88,26 +127,16 @@ def bench_engine(name: str, batch: int, repeats: int) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=["engine"])
-    p.add_argument("--engine", default="cmapss", choices=["cmapss", "agtf30"])
-    p.add_argument("--batch", type=int, default=65536)
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--out", default=None)
-    args = p.parse_args(argv)
-    if args.batch < 1 or args.repeats < 1:
-        p.error("--batch and --repeats must be positive integers")
+    args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if args is None:
+        return code
     enable_x64()
     enable_compilation_cache()
     result = bench_engine(args.engine, args.batch, args.repeats)
     text = json.dumps(result, indent=1)
     print(text)
     if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        tmp = args.out + ".tmp"
-        with open(tmp, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, args.out)
+        write_atomic(args.out, text)
     return 0
 
 

@@ -45,7 +45,6 @@ range for ``ukf`` / ``ls``, the run's training range for ``policy``, the data's 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -54,7 +53,7 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from jaxcal.cli.args import parse_command_line
+from jaxcal.cli.args import flags_as_overrides, parse_command_line
 from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
 from jaxcal.settings import config_to_dict, parse_overrides
 
@@ -96,6 +95,26 @@ class FleetConfig:
 FLEET_KEYS = tuple(
     f.name for f in dataclasses.fields(FleetConfig) if f.name != "options"
 )
+
+
+@dataclasses.dataclass(frozen=True)
+class ClusterArgs:
+    """The ``jax.distributed`` settings of a command line (``key=value`` or the
+    documented flags, :data:`CLUSTER_FLAGS`); ``None``: from the environment
+    (:func:`jaxcal.fleet.distributed.process_settings`)."""
+
+    coordinator: str | None = None  # HOST:PORT of process 0
+    num_processes: int | None = None
+    process_id: int | None = None
+    local_devices: int | None = None  # CPU devices of this process
+
+
+CLUSTER_FLAGS = {
+    "--coordinator": "coordinator",
+    "--num-processes": "num_processes",
+    "--process-id": "process_id",
+    "--local-devices": "local_devices",
+}
 
 
 def _split_tokens(tokens: list[str]) -> tuple[list[str], list[tuple]]:
@@ -146,21 +165,12 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     from jaxcal.fleet.distributed import process_settings
     from jaxcal.fleet.sources import is_ncmapss
 
-    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
-    parser.add_argument("--coordinator", default=None)
-    parser.add_argument("--num-processes", type=int, default=None)
-    parser.add_argument("--process-id", type=int, default=None)
-    parser.add_argument("--local-devices", type=int, default=None)
-    try:
-        flags, rest = parser.parse_known_args(argv)
-    except SystemExit:
-        raise ValueError("bad cluster flag (expected --name value)") from None
-    unknown = [t for t in rest if t.startswith("--")]
-    if unknown:
-        raise ValueError(
-            f"unknown flag(s) {unknown}; flags are --coordinator, --num-processes, "
-            "--process-id, --local-devices"
-        )
+    tokens = flags_as_overrides(argv, CLUSTER_FLAGS)
+    keys = set(CLUSTER_FLAGS.values())
+    flags = parse_overrides(
+        [t for t in tokens if t.partition("=")[0].strip() in keys], ClusterArgs()
+    )
+    rest = [t for t in tokens if t.partition("=")[0].strip() not in keys]
     fleet_tokens, option_tokens = _split_tokens(rest)
     cfg = parse_overrides(fleet_tokens, FleetConfig())
     method = canonical(cfg.method)

@@ -1,8 +1,10 @@
 """``python -m jaxcal.validate``: every check of design/engine.md, measured.
 
 Prints one line per check (measured number, threshold, PASS/FAIL) and writes the full
-numbers as JSON (default ``results/engine/validation.json``; ``--out PATH`` to change,
-``--engine agtf30`` for the other configuration, ``--quick`` for a coarser envelope grid).
+numbers as JSON (default ``results/engine/validation_<engine>.json``; ``out=PATH`` to
+change, ``engine=agtf30`` for the other configuration, ``quick=true`` for a coarser
+envelope grid; the flag spellings ``--out PATH``, ``--engine agtf30`` and ``--quick``
+work too).
 Exit status 1 when any check fails. Checks: conservation, FD002 table, FD001 HPC
 signature, HPT-efficiency signature, envelope convergence (and rejection outside it),
 DS02 ranges, gradients vs finite differences, Jacobian rank and condition number, plus the
@@ -11,18 +13,19 @@ AGTF30 operating points for that configuration.
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import itertools
 import json
-import os
 import sys
 import time
 from pathlib import Path
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.cli.args import flags_as_overrides, parse_command_line
 from jaxcal.physics import reference as ref
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.physics.audit import audit_point
@@ -30,6 +33,8 @@ from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, SENSOR_NAMES
 from jaxcal.physics.engine import Engine, load_engine
 from jaxcal.physics.guess import tra_for_pcn
 from jaxcal.precision import enable_x64
+from jaxcal.runs.atomic import write_atomic
+from jaxcal.settings import parse_overrides
 
 S = {n: i for i, n in enumerate(SENSOR_NAMES)}
 
@@ -324,22 +329,44 @@ def _fmt(v):
     return str(v)
 
 
+USAGE = (
+    "usage: python -m jaxcal.validate [engine=cmapss|agtf30] [out=PATH] [quick=true]"
+    "  (or --engine X --out PATH --quick)"
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidateArgs:
+    """Which engine to check and where the numbers go."""
+
+    engine: Literal["cmapss", "agtf30"] = "cmapss"
+    out: str | None = None  # default results/engine/validation_<engine>.json
+    quick: bool = False  # a coarser envelope grid
+
+
+def parse_args(argv: list[str]) -> ValidateArgs:
+    """The :class:`ValidateArgs` of a command line (the one ``key=value`` grammar,
+    the documented flags as its spellings).
+
+    Raises:
+        ValueError: a bad key, flag or value (named).
+    """
+    flags = {"--engine": "engine", "--out": "out", "--quick": "quick"}
+    tokens = flags_as_overrides(argv, flags, switches=("--quick",))
+    return parse_overrides(tokens, ValidateArgs())
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--engine", default="cmapss", choices=["cmapss", "agtf30"])
-    p.add_argument("--out", default=None, help="JSON path (default results/engine/validation_<engine>.json)")
-    p.add_argument("--quick", action="store_true", help="coarser envelope grid")
-    args = p.parse_args(argv)
+    args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
+    if args is None:
+        return code
     enable_x64()
     result = run(args.engine, args.quick)
     for c in result["checks"]:
         flag = "PASS" if c["passed"] else "FAIL"
         print(f"[{flag}] {c['check']}: {_fmt(c['value'])} (threshold {_fmt(c['threshold'])})")
     out = Path(args.out or f"results/engine/validation_{args.engine}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1, default=float))
-    os.replace(tmp, out)
+    write_atomic(out, json.dumps(result, indent=1, default=float))
     print(f"{'all checks passed' if result['all_passed'] else 'SOME CHECKS FAILED'} "
           f"({result['seconds']:.0f} s); details in {out}")  # fmt: skip
     return 0 if result["all_passed"] else 1
