@@ -23,7 +23,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from jaxcal.runs.atomic import make_temp, release_temp
+from jaxcal.runs.atomic import write_atomic_with
 
 TRUTH_COLOR = "tab:orange"  # the paper draws ground truth as orange squares
 SERIES_COLORS = ("tab:blue", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -32,18 +32,9 @@ _PROFILE_PANELS = ((0, "alt [kft]", 1e-3), (1, "Mach [-]", 1.0), (2, "TRA [%]", 
 
 def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: int = 120) -> str:
     """Write ``fig`` as PNG to ``path`` atomically (temp file + rename); return path."""
-    path = os.fspath(path)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     FigureCanvasAgg(fig)
-    fd, tmp = make_temp(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=dpi)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; figures are for sharing
-        os.replace(tmp, path)
-    finally:
-        release_temp(tmp)
-    return path
+    write_atomic_with(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    return os.fspath(path)
 
 
 def _batched(x, name: str, ndim: int) -> np.ndarray:

@@ -230,3 +230,20 @@ def test_a_killed_ncmapss_writer_leaves_a_temp_the_next_write_removes(tmp_path):
     with pytest.raises(RuntimeError), NCMAPSSWriter(target):
         raise RuntimeError("boom")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data.h5"]
+
+
+def test_a_writer_that_fails_midway_leaves_the_old_file_and_no_temp(tmp_path):
+    # the one atomic writer with a writer callback (a figure, a Parquet table)
+    from jaxcal.runs.atomic import write_atomic_with
+
+    target = tmp_path / "result.parquet"
+    write_atomic_with(target, lambda f: f.write(b"old"))
+
+    def half(f):
+        f.write(b"half a ")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_atomic_with(target, half)
+    assert target.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["result.parquet"]

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxcal.problem import Problem
-from jaxcal.runs.atomic import make_temp, release_temp
+from jaxcal.runs.atomic import write_atomic_with
 
 META_KEY = b"jaxcal.result"  # the Parquet schema-metadata key of a saved result
 FORMAT_VERSION = 1
@@ -273,17 +273,7 @@ class CalibrationResult:
         table = table.replace_schema_metadata(
             {**(table.schema.metadata or {}), META_KEY: json.dumps(meta).encode()}
         )
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = make_temp(path)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                pq.write_table(table, f)
-            os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; results are for sharing
-            os.replace(tmp, path)
-        finally:
-            release_temp(tmp)
-        return path
+        return write_atomic_with(path, lambda f: pq.write_table(table, f))
 
     @classmethod
     def load(cls, path: str | os.PathLike, model=None) -> CalibrationResult:

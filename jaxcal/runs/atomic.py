@@ -17,7 +17,9 @@ import os
 import re
 import socket
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO, Any
 
 # Temporary files this process is writing now: a same-pid temp file is stale only
 # when it is not one of these (the pid of a dead writer may have been reused).
@@ -111,12 +113,22 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
     """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``
     (a reader never sees half a file); creates the folder; removes temp files of
     ``path`` left by killed writers (:func:`remove_stale_temps`); returns the path."""
+    return write_atomic_with(
+        path, lambda f: f.write(data), binary=isinstance(data, bytes)
+    )
+
+
+def write_atomic_with(
+    path: str | os.PathLike, write: Callable[[IO], Any], *, binary: bool = True
+) -> Path:
+    """:func:`write_atomic` of what ``write(file)`` writes into the open temporary
+    file (a figure's ``savefig``, a Parquet table's writer); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = make_temp(path)
     try:
-        with os.fdopen(fd, "wb" if isinstance(data, bytes) else "w") as f:
-            f.write(data)
+        with os.fdopen(fd, "wb" if binary else "w") as f:
+            write(f)
         os.chmod(tmp, 0o644)  # mkstemp makes 0600 files; results are for sharing
         os.replace(tmp, path)
     finally:
