@@ -91,9 +91,10 @@ def _time_basis(lengths: np.ndarray, num_steps: int) -> np.ndarray:
 
 
 def estimated_drifts(problem: Problem, units: UnitArrays) -> np.ndarray:
-    """``[U, 3, P]`` the real units' own theta drifts: the UKF's theta on ``units``
+    """``[K, 3, P]`` the real units' own theta drifts: the UKF's theta on ``units``
     with the problem's noise, fitted per unit and parameter by a least-squares
-    quadratic in the unit's own time (:func:`_time_basis`).
+    quadratic in the unit's own time (:func:`_time_basis`); the ``K`` units of at
+    least three rows the UKF used.
 
     A band fitted on units whose parameters move as the real ones do (their drift
     rates, their levels) covers the real units about as often as it covers them;
@@ -110,8 +111,15 @@ def estimated_drifts(problem: Problem, units: UnitArrays) -> np.ndarray:
     weight[u, t] = np.asarray(result.valid, np.float64)
     theta = np.zeros((num_units, num_steps, len(problem.theta_names)))
     theta[u, t] = np.nan_to_num(np.asarray(result.theta, np.float64))
+    keep = weight.sum(axis=1) >= 3  # a quadratic needs three rows the UKF used
+    if not keep.any():
+        raise ValueError(
+            "simulate.paths=data: the UKF used fewer than 3 rows of every training "
+            "and validation unit, so the data show no drift; use simulate.paths=box"
+        )
+    basis, weight, theta = basis[keep], weight[keep], theta[keep]
     gram = np.einsum("uti,ut,utj->uij", basis, weight, basis)
-    gram += 1e-9 * np.eye(3)  # a unit of one or two rows: its level
+    gram += 1e-9 * np.eye(3)  # three rows at nearly one time: still solvable
     return np.linalg.solve(gram, np.einsum("uti,ut,utp->uip", basis, weight, theta))
 
 

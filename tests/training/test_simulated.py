@@ -84,6 +84,11 @@ def test_estimated_drifts_follow_the_units_own_slow_drift():
         problem, units, jax.random.key(3), copies=2, drifts=drifts
     )
     np.testing.assert_allclose(twice.theta[3:], paths, rtol=1e-6)
+    # a unit of fewer than three rows the UKF used shows no drift: left out
+    short = sim.lengths.copy()
+    short[1] = 2
+    kept = estimated_drifts(problem, sim._replace(lengths=short, theta=None))
+    np.testing.assert_allclose(kept, drifts[[0, 2]], rtol=1e-9)
 
 
 def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
