@@ -27,6 +27,13 @@ prediction error of the next sample, F(w_{t+1}, theta_t), the same evaluation th
 gives the next state. A model with memory advances its state with theta_{t-1}, the
 value the prediction used (theta moves slowly; a second evaluation per sample would
 be exact).
+
+With ``EnvConfig.gauss_newton`` the observation also holds the residual's
+Gauss-Newton step through the model's Jacobian, scaled so that an action equal to it
+is that step, and the stream's age (:func:`gauss_newton_features`); the Jacobian
+costs P forward-mode tangents of the same evaluation, and on a model with memory it
+carries the state's sensitivity (:func:`step_with_sensitivity`). The network then
+learns a gain schedule rather than the model's inverse.
 """
 
 from __future__ import annotations
