@@ -122,17 +122,29 @@ def child(case: str, method: str, calls: int) -> dict:
     monitoring.register_event_duration_secs_listener(
         lambda name, secs, **kw: spent.__setitem__(name, spent.get(name, 0.0) + secs)
     )
-    times, stages = [], []
+    times, stages, disk = [], [], []
     for _ in range(calls):
         spent.clear()
         start = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             result = jaxcal.calibrate(model, data, method=method)
         times.append(time.perf_counter() - start)
         stages.append({STAGES[k]: round(v, 2) for k, v in spent.items() if k in STAGES})
+        # a program not kept on disk (or unreadable) makes the next process trace
+        # again: recorded, since the calibration's own warnings are not shown
+        disk += [str(w.message)[:300] for w in caught if _about_disk(w.message)]
         print(f"  {case} {method}: {times[-1]:.2f} s", file=sys.stderr, flush=True)
-    return {"times": times, "stages": stages, "rows": int(len(result.theta))}
+    return {
+        "times": times, "stages": stages, "rows": int(len(result.theta)),
+        "disk_warnings": disk,
+    }  # fmt: skip
+
+
+def _about_disk(message) -> bool:
+    """Whether a warning is :mod:`jaxcal.calibrators.on_disk`'s."""
+    text = str(message)
+    return "not kept on disk" in text or "unreadable" in text
 
 
 def _spawn(case, method, calls, cache_dir) -> dict:
@@ -156,6 +168,7 @@ def measure(case: str, method: str) -> dict:
         "repeat_ratio": round(repeat / first, 4),
         "new_process_ratio": round(new / first, 4),
         "rows": both["rows"],
+        "disk_warnings": both["disk_warnings"] + fresh["disk_warnings"],
         "stages": {
             "first": both["stages"][0], "repeat": both["stages"][1],
             "new_process": fresh["stages"][0],
