@@ -223,14 +223,7 @@ class Simulations:
         sim, clean = self._train_sims()
         if self.cfg.train == "simulated":
             return sim, clean
-        both = UnitArrays(
-            np.concatenate([real.w, sim.w]),
-            np.concatenate([real.x, sim.x]),
-            None,
-            np.concatenate([real.lengths, sim.lengths]),
-            np.concatenate([real.unit_ids, sim.unit_ids]),
-        )
-        return both, np.concatenate([real.x, clean])
+        return _joined(real, sim), np.concatenate([real.x, clean])
 
     def _drifts(self) -> tuple[UnitArrays, np.ndarray]:
         """``(units, drifts)``: every unit but the test ones and the theta drifts
