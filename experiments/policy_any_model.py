@@ -2,6 +2,7 @@
 
     python experiments/policy_any_model.py [cases=heat_exchanger,pump,motor]
         [out=results/policy_any_model] [data=data/policy_any_model] [runs=runs]
+        [seed=0]
         [args="budget.num_chunks=8 ..."]
 
 Per case: a fleet of 12 units (the heat-exchanger example's, or one of
@@ -41,17 +42,18 @@ Z90 = 1.6448536269514722
 TARGET = 1.2  # issue 27: the policy's theta RMSE within this factor of the UKF's
 
 
-def _case(name: str):
-    """``(model spec, labelled frame, theta names, noise)`` of a case."""
+def _case(name: str, seed: int = 0):
+    """``(model spec, labelled frame, theta names, noise)`` of a case, its fleet
+    drawn with ``seed``."""
     if name == "heat_exchanger":
         from make_data import NOISE, make_fleet
 
-        return "heat_exchanger", make_fleet(), ["fouling", "dp_coeff"], NOISE
+        return "heat_exchanger", make_fleet(seed), ["fouling", "dp_coeff"], NOISE
     from unseen_models import MODELS, NOISE, make_fleet
 
     spec = f"{os.path.join(HERE, 'unseen_models.py')}:{name}_model"
     model = MODELS[name]()
-    return spec, make_fleet(name), list(model.parameter_names), NOISE[name]
+    return spec, make_fleet(name, seed=seed), list(model.parameter_names), NOISE[name]
 
 
 def _scores(res, truth: pd.DataFrame, theta) -> dict:
@@ -68,7 +70,7 @@ def _scores(res, truth: pd.DataFrame, theta) -> dict:
 def run_case(name: str, opts: dict) -> dict:
     import jaxcal
 
-    spec, fleet, theta, noise = _case(name)
+    spec, fleet, theta, noise = _case(name, int(opts["seed"]))
     folder = os.path.join(opts["data"], name)
     os.makedirs(folder, exist_ok=True)
     unlabelled = os.path.join(folder, "fleet_unlabelled.csv")
@@ -122,10 +124,12 @@ def _params(spec: str) -> set[str]:
 
 
 def _page(results: dict, opts: dict) -> str:
+    seed = f" seed={opts['seed']}" if opts.get("seed", "0") != "0" else ""
     lines = [
         "# The RL calibrator on any model, from unlabelled data",
         "",
-        "`python experiments/policy_any_model.py` (this machine, 2 CPU cores). Each "
+        f"`python experiments/policy_any_model.py{seed}` (this machine, 2 CPU "
+        "cores). Each "
         "case: 12 units, test units 10-12; the policy is trained by "
         "`python -m jaxcal.train model=... data=<file without parameter columns> "
         "noise=...` with the default preset"
@@ -174,6 +178,7 @@ def main(argv: list[str]) -> int:
         "out": "results/policy_any_model",
         "data": "data/policy_any_model",
         "runs": "runs",
+        "seed": "0",
     }
     for token in argv:
         key, sep, value = token.partition("=")
