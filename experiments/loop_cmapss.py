@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from jaxcal.cache import enable_compilation_cache
-from jaxcal.data.cmapss_text import load_cmapss_text
+from jaxcal.data.readers import read_dataset
 from jaxcal.diagnosis.markdown import effect_line
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
 from jaxcal.diagnosis.report import write_report, write_text
@@ -216,9 +216,9 @@ def main(argv: list[str]) -> int:
     ]
     for fd, path in paths.items():
         start = time.time()
-        record = load_cmapss_text(path)
+        data = read_dataset(path)
         res = diagnose(
-            record, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None
+            data, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None
         )
         seconds = time.time() - start
         config = {

@@ -134,11 +134,14 @@ def _page(results: dict, opts: dict) -> str:
         "`python -m jaxcal.train model=... data=<file without parameter columns> "
         "noise=...` with the default preset"
         + (f" and `{opts['args']}`" if opts.get("args") else "")
-        + "; the labels score only. Job time: the training command's wall time.",
+        + "; the labels score only. Job time: the training command's wall time. "
+        "Kept chunk: the training chunk whose policy was kept (0: the untrained "
+        "policy, `env.filter_gain` of the filter's step, which no chunk beat on the "
+        "simulated validation units).",
         "",
         "| model | parameter | UKF RMSE | LS RMSE | policy RMSE | policy / UKF | "
-        "policy band 90 % coverage | UKF coverage | job s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "policy band 90 % coverage | UKF coverage | job s | kept chunk |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
         m = r["methods"]
@@ -149,7 +152,8 @@ def _page(results: dict, opts: dict) -> str:
                 f"| {pol['rmse'][n]:.4g} | {pol['ratio_to_ukf'][n]:.2f} "
                 f"| {m['policy'].get('coverage90', {}).get(n, float('nan')):.3f} "
                 f"| {m['ukf'].get('coverage90', {}).get(n, float('nan')):.3f} "
-                f"| {m['policy']['job_seconds']:.0f} |"
+                f"| {m['policy']['job_seconds']:.0f} "
+                f"| {m['policy']['selected_chunk']} |"
             )
     lines += ["", *_time_to_target(results)]
     return "\n".join(lines) + "\n"

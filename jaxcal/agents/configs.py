@@ -54,6 +54,15 @@ class _ActorCriticConfig:
     entropy_temperature_lr: float = 1e-4
     # Target entropy H_t; None means -d with d the action dimension (paper).
     target_entropy: float | None = None
+    # A prior the actor's mean is a correction of: (start, gain) adds
+    # arctanh(gain * obs[start : start + A]) to the pre-tanh mean, so that the
+    # untrained actor already takes that share of the observed step (the filter
+    # step of env.gauss_newton=filter, set by the training from the env; residual
+    # policy learning: Silver et al. 2018, arXiv:1812.06298). None: no prior.
+    actor_prior: tuple[int, float] | None = None
+    # Updates before the actor's first step (its learning rate is 0 until then);
+    # with a prior the critic first learns what the prior's actions return.
+    actor_delay: int = 0
 
     def __post_init__(self) -> None:
         for name in ("actor_hidden_sizes", "critic_hidden_sizes"):

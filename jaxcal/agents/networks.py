@@ -59,6 +59,9 @@ class SquashedGaussianActor(nn.Module):
         action_size: A.
         negative_slope: leaky-ReLU slope.
         log_std_min, log_std_max: clip of the log standard deviation.
+        prior: ``(start, gain)``: the mean is a correction of the action
+            ``gain * obs[start : start + A]`` (``_ActorCriticConfig.actor_prior``);
+            ``None``: none. It adds no parameter.
     """
 
     hidden_sizes: Sequence[int]
@@ -66,13 +69,21 @@ class SquashedGaussianActor(nn.Module):
     negative_slope: float = 0.2
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+    prior: tuple[int, float] | None = None
 
     @nn.compact
     def __call__(self, obs: Array) -> tuple[Array, Array]:
         """Maps ``obs [..., O]`` to ``(mean [..., A], log_std [..., A])``."""
         h = MLP(self.hidden_sizes, self.negative_slope)(obs)
-        mean = nn.Dense(self.action_size, kernel_init=_KERNEL_INIT)(h)
+        # with a prior the untrained mean is the prior's alone (a zero head)
+        head_init = _KERNEL_INIT if self.prior is None else nn.initializers.zeros
+        mean = nn.Dense(self.action_size, kernel_init=head_init)(h)
         log_std = nn.Dense(self.action_size, kernel_init=_KERNEL_INIT)(h)
+        if self.prior is not None:
+            start, gain = self.prior
+            base = gain * obs[..., start : start + self.action_size]
+            # 0.999: the prior's pre-tanh action stays finite (|u| < 3.8)
+            mean = mean + jnp.arctanh(jnp.clip(base, -0.999, 0.999)).astype(mean.dtype)
         return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
 
 
@@ -141,6 +152,7 @@ def make_networks(cfg: _ActorCriticConfig, action_size: int) -> Networks:
         negative_slope=cfg.leaky_relu_slope,
         log_std_min=cfg.log_std_min,
         log_std_max=cfg.log_std_max,
+        prior=getattr(cfg, "actor_prior", None),
     )
     if isinstance(cfg, SACConfig):
         critic = TwinQCritic(

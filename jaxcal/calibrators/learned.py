@@ -19,7 +19,7 @@ from jaxcal.calibrators import compiled
 from jaxcal.calibrators.interface import Calibrator, SampleCheck, run_fleet
 from jaxcal.calibrators.method_configs import E2E, Built, Policy
 from jaxcal.data.buckets import Buckets
-from jaxcal.data.dataset import Padded
+from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 
 _FLEET = jax.jit(run_fleet, static_argnums=0)  # one dispatch cache per process

@@ -26,7 +26,7 @@ from jaxcal.calibrators.least_squares import make_least_squares
 from jaxcal.calibrators.method_configs import UKF, Built, LeastSquares
 from jaxcal.calibrators.ukf import make_joint_ukf, make_ukf
 from jaxcal.calibrators.window_state import make_window_least_squares
-from jaxcal.data.dataset import Padded
+from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 
 

@@ -50,11 +50,16 @@ class IncrementPolicyParams(PolicyParams):
         max_increment: largest step as a share of the box width (static).
         gauss_newton: the observation holds the residual's Gauss-Newton step
             (static; :class:`~jaxcal.envs.env_config.EnvConfig`).
+        gn_filter: it holds the filter's step (static; ``EnvConfig.gn_filter``).
+        x_noise: ``[S]`` the measurement noise std the filter weighs the outputs
+            by; ``None`` without ``gn_filter`` (the checkpoints before it).
     """
 
     step_ref: Array
     max_increment: float = struct.field(pytree_node=False, default=0.5)
     gauss_newton: bool = struct.field(pytree_node=False, default=False)
+    gn_filter: bool = struct.field(pytree_node=False, default=False)
+    x_noise: Array | None = None
 
 
 @struct.dataclass
@@ -73,14 +78,20 @@ class StartedIncrementPolicyParams(IncrementPolicyParams):
 def counts(params: PolicyParams, band) -> bool:
     """Whether a policy's state counts its samples: for its band's time buckets, or
     for the stream's age its Gauss-Newton observation holds."""
-    return band is not None or getattr(params, "gauss_newton", False)
+    return band is not None or uses_jacobian(params)
+
+
+def uses_jacobian(params: PolicyParams) -> bool:
+    """Whether the policy observes a step through the model's Jacobian (the
+    one-sample Gauss-Newton step or the filter's)."""
+    return getattr(params, "gauss_newton", False) or getattr(params, "gn_filter", False)
 
 
 def initial_sensitivity(params: PolicyParams, num_states: int, dtype) -> Array | None:
     """A stream's first ``dz / dtheta``: zeros ``[Z, P]`` for a Gauss-Newton
     observation on a model with memory
     (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else ``None``."""
-    if not (getattr(params, "gauss_newton", False) and num_states):
+    if not (uses_jacobian(params) and num_states):
         return None
     return jnp.zeros((num_states, params.theta_low.shape[-1]), dtype)
 
@@ -103,6 +114,7 @@ class PolicyState:
     hint: PyTree | None = None  # the model's solver warm start (HintedDynamics)
     # [Z, P] the state's sensitivity to theta (gauss_newton on a model with memory)
     sens: Array | None = None
+    cov: Array | None = None  # [P, P] the filter step's covariance (gn_filter)
 
 
 def policy_params_from_env(
@@ -112,6 +124,7 @@ def policy_params_from_env(
     max_increment: float | None = None,
     theta_start: Array | None = None,
     gauss_newton: bool = False,
+    gn_filter: bool = False,
 ) -> PolicyParams:
     """The deployment parameters of a policy trained on ``env_params``
     (``max_increment``: the env's, for incremental actions; ``theta_start``: where
@@ -134,6 +147,8 @@ def policy_params_from_env(
         step_ref=env_params.step_ref,
         max_increment=max_increment,
         gauss_newton=gauss_newton,
+        gn_filter=gn_filter,
+        x_noise=env_params.x_noise if gn_filter else None,
     )
     if theta_start is None:
         return IncrementPolicyParams(**fields)

@@ -60,12 +60,15 @@ from jaxcal.calibrators.policy_params import (
     PolicyState,
     counts,
     initial_sensitivity,
+    uses_jacobian,
 )
 from jaxcal.calibrators.uncertainty import ThetaBand, band_std
 from jaxcal.envs.increment import (
     apply_increment,
+    filter_feature,
     gauss_newton_features,
     increment_observation,
+    initial_filter_cov,
     step_with_sensitivity,
 )
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
@@ -162,7 +165,15 @@ def _initial_state(
     return PolicyState(
         xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
         hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
+        cov=_initial_cov(params),
     )  # fmt: skip
+
+
+def _initial_cov(params: PolicyParams) -> Array | None:
+    """The filter step's first covariance (``gn_filter``), else ``None``."""
+    if not getattr(params, "gn_filter", False):
+        return None
+    return initial_filter_cov(params.theta_low.shape[-1], params.theta_low.dtype)
 
 
 def _first_state(dyn, params: PolicyParams, state: PolicyState, z, w_t, x_t):
@@ -200,8 +211,8 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
     theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`)."""
     xhat_prev = jnp.where(state.started, state.xhat, x_t)
     z_prev = first_state(state, state.z, w_t, x_t)
-    extra = sens = None
-    if params.gauss_newton:  # the environment's observation (jaxcal.envs.increment)
+    extra = sens = cov = None
+    if uses_jacobian(params):  # the environment's observation (jaxcal.envs.increment)
         jac, sens, z, xhat, hint = step_with_sensitivity(
             lambda z_, th: transition(state, z_, w_t, xhat_prev, th),
             z_prev,
@@ -209,9 +220,15 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
             state.sens,
         )
         resid = (x_t - xhat.astype(x_t.dtype)) / params.x_std
+        filtered = None
+        if params.gn_filter:
+            cov, filtered = filter_feature(
+                state.cov, resid, jac, params, params.max_increment
+            )
         extra = gauss_newton_features(
-            resid, jac, state.count, params, params.max_increment
-        )
+            resid, jac, state.count, params, params.max_increment,
+            one_sample=params.gauss_newton, filtered=filtered,
+        )  # fmt: skip
     else:
         z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
     xhat = xhat.astype(x_t.dtype)
@@ -241,5 +258,6 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         theta=theta.astype(state.theta.dtype),
         hint=hint,
         sens=None if sens is None else sens.astype(state.sens.dtype),
+        cov=None if cov is None else cov.astype(state.cov.dtype),
     )
     return new_state, theta, xhat

@@ -80,20 +80,20 @@ def _rename(cfg: DiagnoseConfig) -> dict:
 
 
 def load_data(cfg: DiagnoseConfig, model):
-    """Read the data file of ``cfg`` for ``model``: ``(Dataset or Record)``.
-
-    N-CMAPSS and C-MAPSS files come as turbofan ``Record`` s (they carry the count of
-    dropped rows); tables as a :class:`~jaxcal.data.dataset.Dataset`. Rows with NaN /
-    Inf values are dropped and counted, never passed on in silence.
+    """Read the data file of ``cfg`` for ``model`` as a
+    :class:`~jaxcal.data.dataset.Dataset` (one split of an N-CMAPSS file, a C-MAPSS
+    text file or a table). Rows with NaN / Inf values are dropped and counted (the
+    turbofan readers count the rows, ``Dataset.dropped_rows``), never passed on in
+    silence.
     """
-    from jaxcal.data.readers import read_dataset
+    from jaxcal.data.readers import read_dataset, read_ncmapss_split
 
     if not os.path.isfile(cfg.data):
         raise ValueError(f"data={cfg.data!r}: file not found")
     ext = os.path.splitext(cfg.data)[1].lower()
     units = list(cfg.units) or None
     if ext in (".h5", ".hdf5"):
-        from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+        from jaxcal.data.ncmapss_io import ncmapss_info
         from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
 
         rename = _rename(cfg)
@@ -104,15 +104,13 @@ def load_data(cfg: DiagnoseConfig, model):
             stride = max(1, rows // cfg.max_rows) if cfg.max_rows else 1
         # the virtual sensors X_v are not measured on an engine: X_s unless asked
         sensors = cfg.residual_outputs or list(MEASURED_SENSOR_NAMES)
-        return load_ncmapss(
-            cfg.data, split=cfg.split, units=units, sensors=sensors, stride=stride,
-            rename=rename, nonfinite="drop",
+        return read_ncmapss_split(
+            cfg.data, cfg.split, label=False, units=units, sensors=sensors,
+            stride=stride, rename=rename, nonfinite="drop",
         )  # fmt: skip
     if ext == ".txt":
-        from jaxcal.data.cmapss_text import load_cmapss_text
-
-        record = load_cmapss_text(cfg.data, nonfinite="drop")
-        return record if units is None else record.select_units(units)
+        data = read_dataset(cfg.data, nonfinite="drop")
+        return data if units is None else data.select_units(units)
     if ext in (".csv", ".parquet", ".pq"):
         data = read_dataset(
             cfg.data, model, rename=_rename(cfg), ignore=cfg.ignore, nonfinite="drop"

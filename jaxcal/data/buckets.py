@@ -23,7 +23,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxcal.data.dataset import Dataset, Padded
+from jaxcal.data.dataset import Dataset
+from jaxcal.data.padded import Padded
 
 MAX_PADDING = 2.0  # padded cells of a group / its rows
 
@@ -32,7 +33,7 @@ class Buckets(NamedTuple):
     """A data set's units as padded groups (module docstring).
 
     Attributes:
-        parts: the groups, each a :class:`~jaxcal.data.dataset.Padded` whose ``rows``
+        parts: the groups, each a :class:`~jaxcal.data.padded.Padded` whose ``rows``
             index the whole data set's rows.
         num_rows: ``N``, the data set's rows.
     """

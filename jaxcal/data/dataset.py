@@ -10,17 +10,17 @@ through :func:`jaxcal.calibrate`, training, evaluation, the diagnosis — reads 
 Calibration runs each unit as its own stream: :meth:`Dataset.padded` turns the rows
 into ``[U, T, ...]`` arrays with a validity mask (units padded to the longest) and
 remembers each padded cell's original row, so results come back in the input's row
-order (:meth:`Padded.to_rows`).
+order (:meth:`jaxcal.data.padded.Padded.to_rows`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import NamedTuple
 
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.model import Model, names_to_index
 
 # Conditions this close outside the model's range (share of its width) are logging
@@ -55,6 +55,8 @@ class Dataset:
         row: ``[N]`` int64 position of each row in the source (result row order).
         source: provenance (file path or "DataFrame"/"arrays").
         dropped: ``{column: rows}`` dropped by the reader for non-finite values.
+        dropped_rows: rows the reader dropped in total (each row once), or ``None``
+            when it did not count them (the N-CMAPSS / C-MAPSS readers do).
     """
 
     w: np.ndarray
@@ -69,6 +71,7 @@ class Dataset:
     row: np.ndarray | None = None
     source: str = "arrays"
     dropped: dict | None = None
+    dropped_rows: int | None = None
 
     def __post_init__(self):
         w = _float_matrix("w", self.w, None, self.condition_names)
@@ -101,6 +104,8 @@ class Dataset:
                 raise ValueError(f"Dataset.split must be [N={n}], got {split.shape}")
             set_("split", split)
         set_("dropped", dict(self.dropped or {}))
+        if self.dropped_rows is not None:
+            set_("dropped_rows", int(self.dropped_rows))
 
     # ---------------------------------------------------------------- facts
 
@@ -225,10 +230,10 @@ class Dataset:
         return Padded(
             w=self.w[fill].astype(dtype),
             x=self.x[fill].astype(dtype),
-            mask=mask,
-            rows=rows,
-            unit_ids=np.asarray(units, np.int64),
             theta=theta,
+            lengths=counts.astype(np.int32),
+            unit_ids=np.asarray(units, np.int64),
+            rows=rows,
         )
 
 
@@ -277,32 +282,3 @@ def clip_jitter(
                 )
                 w[outside, j] = bound
     return w, notes
-
-
-class Padded(NamedTuple):
-    """A data set as padded unit streams.
-
-    Attributes:
-        w: ``[U, T, W]``. x: ``[U, T, S]``. mask: ``[U, T]`` bool, True on data.
-        rows: ``[U, T]`` int64 index into the data set's rows (-1 on padding).
-        unit_ids: ``[U]``. theta: ``[U, T, P]`` or None.
-    """
-
-    w: np.ndarray
-    x: np.ndarray
-    mask: np.ndarray
-    rows: np.ndarray
-    unit_ids: np.ndarray
-    theta: np.ndarray | None = None
-
-    @property
-    def lengths(self) -> np.ndarray:
-        return self.mask.sum(axis=1).astype(np.int32)
-
-    def to_rows(self, values: np.ndarray, num_rows: int, fill=np.nan) -> np.ndarray:
-        """``[U, T, ...]`` per-step values back to ``[N, ...]`` in the data's row order
-        (the padded cells are dropped)."""
-        values = np.asarray(values)
-        out = np.full((num_rows,) + values.shape[2:], fill, dtype=values.dtype)
-        out[self.rows[self.mask]] = values[self.mask]
-        return out

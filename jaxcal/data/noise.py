@@ -35,7 +35,7 @@ def signal_power(x: Array, mask: Array | None = None) -> Array:
 
     Args:
         x: ``[..., S]`` sensor values in physical units.
-        mask: optional ``[...]`` bool, True on valid rows (e.g. ``Fleet.mask``).
+        mask: optional ``[...]`` bool, True on valid rows (e.g. ``Padded.mask``).
 
     Returns:
         ``[S]`` signal power.

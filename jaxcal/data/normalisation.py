@@ -1,10 +1,9 @@
 """The data's normalisation: per-column mean and std of the conditions and outputs.
 
 :class:`Normalisation` is the one record of these statistics: ``w_n = (w - w_mean) /
-w_std``, likewise for ``x``. It lives in the data layer because data code builds it
-(the padded fleet's :func:`jaxcal.data.fleet.fit_norm_stats`) as well as the problem
+w_std``, likewise for ``x``. It lives in the data layer, below the problem
 (:class:`jaxcal.problem.Problem`, which carries the one normalisation of a
-calibration and re-exports this class); it imports nothing of jaxcal.
+calibration and re-exports this class), and imports nothing of jaxcal.
 """
 
 from __future__ import annotations

@@ -35,6 +35,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from jaxcal.data.dataset import Dataset, partial_rows
+from jaxcal.data.padded import Padded
 from jaxcal.data.record import apply_nonfinite_policy
 from jaxcal.data.table_checks import (
     check_ignore,
@@ -167,8 +168,31 @@ def dataset_from_record(record, split: str | None = None) -> Dataset:
         theta_names=HEALTH_NAMES if record.theta is not None else (),
         split=None if split is None else np.full(n, split),
         source=record.source,
-        dropped=getattr(record, "dropped", None),
+        dropped=record.dropped,
+        dropped_rows=record.dropped_rows,
     )
+
+
+def read_ncmapss_split(path, split: str, *, label: bool = True, **options) -> Dataset:
+    """One split of an N-CMAPSS file as a Dataset (``label``: with its split column;
+    ``options``: those of :func:`~jaxcal.data.ncmapss_io.load_ncmapss`)."""
+    from jaxcal.data.ncmapss_io import load_ncmapss
+
+    record = load_ncmapss(path, split, **options)
+    return dataset_from_record(record, split if label else None)
+
+
+def read_ncmapss_padded(
+    path, split: str, *, max_len: int | None = None, dtype=np.float64, **options
+) -> Padded:
+    """The units of one split of an N-CMAPSS file padded to ``max_len`` (``None``:
+    the longest; a longer unit is an error): ascending ids, file order within a
+    unit, flight numbers in ``cycle``, all ten health modifiers in ``theta``
+    (:meth:`~jaxcal.data.record.Record.padded`; ``options`` as for
+    :func:`read_ncmapss_split`)."""
+    from jaxcal.data.ncmapss_io import load_ncmapss
+
+    return load_ncmapss(path, split, **options).padded(dtype, max_len)
 
 
 def _concat(parts: list[Dataset], source: str) -> Dataset:
@@ -264,14 +288,11 @@ def _read_file(
             partial=partial,
         )  # fmt: skip
     if ext in (".h5", ".hdf5"):
-        from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
+        from jaxcal.data.ncmapss_io import ncmapss_info
 
         splits = [s for s in ("dev", "test") if s in ncmapss_info(path)["splits"]]
         options = {"nonfinite": nonfinite, "rename": rename, **reader_options}
-        parts = [
-            dataset_from_record(load_ncmapss(path, split, **options), split)
-            for split in splits
-        ]
+        parts = [read_ncmapss_split(path, split, **options) for split in splits]
         return _concat(parts, path)
     if ext == ".txt":
         from jaxcal.data.cmapss_text import load_cmapss_text

@@ -7,8 +7,8 @@ extras, named by :data:`~jaxcal.physics.constants.SENSOR_NAMES`), the health mod
 flight class, health state) and the RUL ``Y``. The HDF5 reader
 (:mod:`jaxcal.data.ncmapss_io`) and the C-MAPSS text reader
 (:mod:`jaxcal.data.cmapss_text`) both produce it, so downstream code does not care where
-the data came from. Arrays are numpy (host side); :mod:`jaxcal.data.fleet` turns a
-Record into padded JAX arrays.
+the data came from. Arrays are numpy (host side); :meth:`Record.padded` turns a Record
+into the one padded container, :class:`~jaxcal.data.padded.Padded`.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.physics.constants import CONDITION_NAMES, HEALTH_NAMES, SENSOR_NAMES
 
 # What a reader does with a row holding NaN / Inf in a column it returns.
@@ -330,6 +331,49 @@ class Record:
                 f"{self.units.tolist()}"
             )
         return self.take(np.isin(self.unit, wanted))
+
+    def padded(self, dtype=np.float64, max_len: int | None = None) -> Padded:
+        """The units as one :class:`~jaxcal.data.padded.Padded` (host numpy).
+
+        Units come in ascending id order, the rows of a unit in record order (file
+        order is time order); padding repeats a unit's last row. ``theta`` is all
+        ten health modifiers, zeros when the source has none; ``rows`` is ``None``.
+
+        Args:
+            dtype: float dtype of ``w``, ``x`` and ``theta``.
+            max_len: common length ``T``; ``None``: the longest unit. A longer unit
+                is an error, never truncated.
+        """
+        if self.num_rows == 0:
+            raise ValueError("padding needs a record with at least one row")
+        unit_ids, inverse, counts = np.unique(
+            self.unit, return_inverse=True, return_counts=True
+        )
+        order = np.argsort(inverse, kind="stable")  # group by unit, keep time order
+        longest = int(counts.max())
+        max_len = longest if max_len is None else int(max_len)
+        if max_len < longest:
+            raise ValueError(
+                f"{self.source}: max_len={max_len} is shorter than a unit of {longest} "
+                f"rows among units {unit_ids.tolist()}; raise max_len"
+            )
+        # Index of the source row of every (unit, step): the padding repeats the last.
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        steps = np.minimum(np.arange(max_len)[None, :], counts[:, None] - 1)
+        source = order[starts[:, None] + steps]  # [U, T]
+        theta = (
+            self.theta[source]
+            if self.theta is not None
+            else np.zeros((len(unit_ids), max_len, len(HEALTH_NAMES)))
+        )
+        return Padded(
+            w=self.w[source].astype(dtype),
+            x=self.x[source].astype(dtype),
+            theta=theta.astype(dtype),
+            lengths=counts.astype(np.int32),
+            unit_ids=unit_ids.astype(np.int64),
+            cycle=self.cycle[source],
+        )
 
     def columns(self, names: Sequence[str]) -> np.ndarray:
         """Columns of ``x`` (or of ``extras``) by name.

@@ -42,7 +42,12 @@ from jaxcal.problem import Problem
 from jaxcal.runs.checkpoint import Checkpointer, load_config
 from jaxcal.runs.folder import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
 from jaxcal.surrogate.model import init_surrogate_params
-from jaxcal.training.components import env_config, make_agent, make_dynamics
+from jaxcal.training.components import (
+    agent_config,
+    env_config,
+    make_agent,
+    make_dynamics,
+)
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.model_source import load_run_model, recorded_source
 
@@ -129,7 +134,8 @@ def load_run(
         len(problem.theta_names),
     )  # fmt: skip
     env_cfg = env_config(cfg, *dims)
-    agent = make_agent(cfg.agent, env_cfg.observation_size, dims[2])
+    agent_cfg = agent_config(cfg, env_cfg)
+    agent = make_agent(agent_cfg, env_cfg.observation_size, dims[2])
     target = _policy_target(cfg, env_cfg, agent, dims, dtype)
     step_given = step
     params, step = _restore_policy(run_dir, cfg, which, step, target)
@@ -138,7 +144,7 @@ def load_run(
         config=cfg,
         problem=problem,
         params=params,
-        actor=make_networks(cfg.agent, dims[2]).actor,
+        actor=make_networks(agent_cfg, dims[2]).actor,
         dynamics=make_dynamics(cfg.dynamics, problem),
         step=int(step),
         # the band belongs to the kept policy: none for another checkpoint
@@ -175,6 +181,8 @@ def _policy_target(cfg: TrainConfig, env_cfg, agent, dims, dtype):
             step_ref=jnp.ones(dims[2], dtype),
             max_increment=env_cfg.max_increment,
             gauss_newton=env_cfg.gauss_newton,
+            gn_filter=env_cfg.gn_filter,
+            x_noise=jnp.ones(dims[1], dtype) if env_cfg.gn_filter else None,
         )
         if getattr(cfg.env, "start", "centre") == "prior":
             start = jnp.zeros(dims[2], dtype)

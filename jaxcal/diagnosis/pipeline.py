@@ -1,10 +1,10 @@
 """Close the loop on one data set: calibrate, trace the residual, add the effect.
 
 :func:`diagnose` runs the steps of design/loop.md on any :class:`~jaxcal.model.Model`
-and a :class:`~jaxcal.data.dataset.Dataset` (time = cycle; a turbofan
-:class:`~jaxcal.data.record.Record` is converted). A model with memory is fitted in
-**output-error** form: each unit is simulated from its initial state (with an offset
-fitted per unit) and every candidate acts through the states (:mod:`.signatures`).
+and a :class:`~jaxcal.data.dataset.Dataset` (time = cycle). A model with memory is
+fitted in **output-error** form: each unit is simulated from its initial state (with an
+offset fitted per unit) and every candidate acts through the states
+(:mod:`.signatures`).
 
 1. **Calibrate** the declared parameters (per-unit splines in time, jointly over
    the data): the "before" model.
@@ -193,15 +193,12 @@ def _effects_of(members, fit: FitResult, data) -> list:
 
 
 def _as_dataset(data) -> tuple[Dataset, int | None]:
-    """A Dataset and the reader's dropped-row count (a Record is converted)."""
+    """A Dataset and the reader's dropped-row count (``None``: not counted)."""
     if isinstance(data, Dataset):
-        return data, None
-    if hasattr(data, "x_names") and hasattr(data, "cycle"):  # a turbofan Record
-        from jaxcal.data.readers import dataset_from_record
-
-        return dataset_from_record(data), int(data.dropped_rows)
+        return data, data.dropped_rows
     raise ValueError(
-        f"data must be a jaxcal Dataset (or a turbofan Record), got {type(data)}"
+        f"data must be a jaxcal Dataset (a file: jaxcal.data.readers.read_dataset), "
+        f"got {type(data)}"
     )
 
 
@@ -235,8 +232,7 @@ def diagnose(
     """Find the residual, trace it to an effect, add it and compare (module docstring).
 
     Args:
-        data: a :class:`~jaxcal.data.dataset.Dataset` (``time`` = cycle) or a
-            turbofan ``Record``.
+        data: a :class:`~jaxcal.data.dataset.Dataset` (``time`` = cycle).
         model: a :class:`~jaxcal.model.Model` (static or with hidden states) or a
             ``jaxcal.models.load`` spec; float64 must be enabled by the caller.
         declared: the calibrated (declared) parameters.

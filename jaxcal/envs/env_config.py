@@ -73,6 +73,7 @@ class EnvConfig:
     cost: str = "squared"
     cost_floor: float = 1e-4
     gauss_newton: bool = False
+    gn_filter: bool = False
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):
@@ -84,11 +85,16 @@ class EnvConfig:
         check_action_options(
             self.action, self.max_increment, self.cost, self.cost_floor
         )
-        if self.gauss_newton and not self.incremental:
+        if self.uses_jacobian and not self.incremental:
             raise ValueError(
                 "env.gauss_newton needs env.action='increment' (it is the step of "
                 "an incremental action's residual)"
             )
+
+    @property
+    def uses_jacobian(self) -> bool:
+        """True when the observation holds a step through the model's Jacobian."""
+        return self.gauss_newton or self.gn_filter
 
     @property
     def incremental(self) -> bool:
@@ -99,9 +105,10 @@ class EnvConfig:
     def observation_size(self) -> int:
         """Size of s_t: 2 S + W ([x-hat_t, x_{t+1}, w_{t+1}]), or S + 1 + W + P for
         incremental actions ([r / |r|, lg |r|, w_{t+1}, theta_t]), P more with
-        ``gauss_newton`` (and the age)."""
+        ``gauss_newton``, P more with ``gn_filter`` (and the age with either)."""
         if self.incremental:
-            extra = self.param_dim + 1 if self.gauss_newton else 0
+            extra = self.param_dim * (int(self.gauss_newton) + int(self.gn_filter))
+            extra += int(self.uses_jacobian)
             return self.sensor_dim + 1 + self.condition_dim + self.param_dim + extra
         return 2 * self.sensor_dim + self.condition_dim
 

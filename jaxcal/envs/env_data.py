@@ -37,6 +37,9 @@ class EnvParams:
             the observations ``x``. Simulated units carry their noise-free outputs
             here (:mod:`jaxcal.training.simulated`): the cost of a noisy target
             stops rewarding precision at the noise level, the clean one does not.
+        x_noise: [S] the problem's measurement noise std (output units), which the
+            filter step of ``EnvConfig.gn_filter`` weighs the outputs by; ``None``
+            without it.
     """
 
     w: Array
@@ -52,6 +55,7 @@ class EnvParams:
     z_ref: Array | None = None
     step_ref: Array | None = None
     x_target: Array | None = None
+    x_noise: Array | None = None
 
 
 def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:

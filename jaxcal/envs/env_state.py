@@ -73,12 +73,37 @@ class SensitiveEnvState(StatefulIncrementEnvState):
     sens: Array
 
 
-def make_env_state(unit, time, step, xhat, z, theta=None, sens=None) -> EnvState:
+@struct.dataclass
+class FilteredEnvState(IncrementEnvState):
+    """:class:`IncrementEnvState` with the filter step's covariance
+    (``EnvConfig.gn_filter``): ``cov`` [P, P] in half-box units
+    (:func:`~jaxcal.envs.increment.filter_feature`)."""
+
+    cov: Array
+
+
+@struct.dataclass
+class FilteredSensitiveEnvState(SensitiveEnvState):
+    """:class:`SensitiveEnvState` with the filter step's covariance ``cov``
+    [P, P]."""
+
+    cov: Array
+
+
+def make_env_state(
+    unit, time, step, xhat, z, theta=None, sens=None, cov=None
+) -> EnvState:
     """The state of a static model (``z is None``) or of one with memory, with
-    theta when the actions are incremental and the state's sensitivity with a
-    Gauss-Newton observation (each its own class, so that the checkpoints of the
-    runs before it keep their layout)."""
+    theta when the actions are incremental, the state's sensitivity with a
+    Gauss-Newton observation and the filter's covariance with its step (each its
+    own class, so that the checkpoints of the runs before it keep their layout)."""
     fields = dict(unit=unit, time=time, step=step, xhat=xhat)
+    if cov is not None:
+        if sens is not None:
+            return FilteredSensitiveEnvState(
+                **fields, z=z, theta=theta, sens=sens, cov=cov
+            )
+        return FilteredEnvState(**fields, theta=theta, cov=cov)
     if sens is not None:
         return SensitiveEnvState(**fields, z=z, theta=theta, sens=sens)
     if z is None:

@@ -33,7 +33,11 @@ Gauss-Newton step through the model's Jacobian, scaled so that an action equal t
 is that step, and the stream's age (:func:`gauss_newton_features`); the Jacobian
 costs P forward-mode tangents of the same evaluation, and on a model with memory it
 carries the state's sensitivity (:func:`step_with_sensitivity`). The network then
-learns a gain schedule rather than the model's inverse.
+learns a gain schedule rather than the model's inverse. With ``EnvConfig.gn_filter``
+it also holds the step of an extended Kalman filter on theta carried along the
+stream (:func:`filter_feature`): one sample's step cannot separate parameters the
+outputs see in one direction only (a battery's one voltage), the samples together
+can, and the filter's gain falls as its data grow, as the UKF's does.
 """
 
 from __future__ import annotations
@@ -49,6 +53,11 @@ _TINY = 1e-12
 # samples since a stream's start beyond which its age no longer changes the
 # observation (the start-up transient is over; training windows are longer)
 AGE_HORIZON = 32
+# The filter step's random walk per sample and prior std, in half-box units: the
+# UKF's defaults (jaxcal.calibrators.ukf_steps.UKFConfig.q, .prior_std), so that a
+# gain of 1 on it starts and settles as the filter it is compared with.
+FILTER_Q = 0.01
+FILTER_PRIOR_STD = 1.0
 
 
 def residual_features(resid: Array) -> tuple[Array, Array]:
@@ -81,20 +90,71 @@ def increment_observation(
     return obs.astype(jnp.float32)
 
 
-def gauss_newton_features(resid, jac, age, params, max_increment: float) -> Array:
+def gauss_newton_features(
+    resid, jac, age, params, max_increment: float, *, one_sample=True, filtered=None
+) -> Array:
     """``[P + 1]``: the Gauss-Newton step of the residual (:func:`gauss_newton_feature`)
     and the stream's age, ``log(1 + min(n, H)) / log(1 + H)`` in [0, 1] for ``n``
     samples since its start (H = :data:`AGE_HORIZON`): a Kalman filter's gain falls
     as its data grow, so the start-up transient wants larger steps than the steady
     state. ``params``: anything with ``x_std``, ``theta_low``, ``theta_high`` and
-    ``step_ref`` (the environment's or the deployed policy's)."""
-    step = gauss_newton_feature(
-        resid, jac, params.x_std, params.theta_low, params.theta_high,
-        max_increment, params.step_ref,
-    )  # fmt: skip
+    ``step_ref`` (the environment's or the deployed policy's). ``filtered``: the
+    filter's step ``[P]`` (:func:`filter_feature`), placed before the age;
+    ``one_sample=False`` leaves out the one-sample step (``[P + 1]`` then holds the
+    filter's step and the age)."""
+    parts = []
+    if one_sample:
+        parts.append(
+            gauss_newton_feature(
+                resid, jac, params.x_std, params.theta_low, params.theta_high,
+                max_increment, params.step_ref,
+            ).astype(jnp.float32)
+        )  # fmt: skip
+    if filtered is not None:
+        parts.append(filtered.astype(jnp.float32))
     n = jnp.minimum(jnp.asarray(age, jnp.float32), AGE_HORIZON)
     old = jnp.log1p(n) / np.log1p(AGE_HORIZON)
-    return jnp.concatenate([step.astype(jnp.float32), old[None]])
+    return jnp.concatenate([*parts, old[None]])
+
+
+def initial_filter_cov(param_dim: int, dtype) -> Array:
+    """A stream's first filter covariance ``[P, P]`` in half-box units (the UKF's
+    prior, :data:`FILTER_PRIOR_STD`)."""
+    return FILTER_PRIOR_STD**2 * jnp.eye(param_dim, dtype=dtype)
+
+
+def filter_feature(
+    cov: Array, resid: Array, jac: Array, params, max_increment: float
+) -> tuple[Array, Array]:
+    """``(cov', step [P])``: one extended Kalman filter update of theta, its step
+    in the action's scale (as :func:`gauss_newton_feature`'s).
+
+    The filter runs in half-box units ``u = theta / h`` (``h = (high - low) / 2``,
+    the UKF's ``theta_scale``) with a random walk :data:`FILTER_Q` per sample and
+    the problem's measurement noise ``params.x_noise`` ``[S]`` (output units):
+    ``P- = P + q^2 I``, ``S = J P- J^T + R``, ``K = P- J^T S^-1``, the step ``K r``
+    and ``P = (I - K J) P- (I - K J)^T + K R K^T`` (the Joseph form, which keeps
+    ``P`` symmetric positive definite in float32), Särkkä (2013), "Bayesian
+    Filtering and Smoothing", alg. 5.4. ``J`` is the prediction's Jacobian
+    ``jac`` ``[S, P]`` and ``r`` the raw residual ``resid * x_std``. The filter's
+    mean is the policy's theta: the step is the filter's from where the policy is.
+    """
+    half = 0.5 * (params.theta_high - params.theta_low)
+    j = (jac * half[None, :]).astype(cov.dtype)
+    eye = jnp.eye(cov.shape[0], dtype=cov.dtype)
+    pred = cov + FILTER_Q**2 * eye
+    noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
+    s = j @ pred @ j.T + noise
+    gain = jnp.linalg.solve(s, j @ pred).T  # S symmetric: P- J^T S^-1
+    keep = eye - gain @ j
+    new_cov = keep @ pred @ keep.T + gain @ noise @ gain.T
+    new_cov = 0.5 * (new_cov + new_cov.T)
+    delta = half * (gain @ (resid * params.x_std).astype(cov.dtype))
+    norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
+    scale = params.step_ref / (
+        max_increment * (params.theta_high - params.theta_low) * (norm + _TINY)
+    )
+    return new_cov, jnp.clip(delta * scale, -10.0, 10.0)
 
 
 def gauss_newton_feature(

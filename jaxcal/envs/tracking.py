@@ -58,8 +58,10 @@ from jaxcal.envs.env_state import (  # noqa: F401 (re-exported: the env's state)
 )
 from jaxcal.envs.increment import (
     apply_increment,
+    filter_feature,
     gauss_newton_features,
     increment_observation,
+    initial_filter_cov,
     step_with_sensitivity,
 )
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
@@ -118,6 +120,11 @@ def _check_params(params: EnvParams, cfg: EnvConfig, dyn: StatefulDynamics) -> N
             "each parameter): build the params with make_env_params(..., "
             "step_ref=...)"
         )
+    if cfg.gn_filter and params.x_noise is None:
+        raise ValueError(
+            "env.gn_filter needs EnvParams.x_noise (the measurement noise std of "
+            "each output, [S]): build the params with x_noise=problem.noise_std"
+        )
 
 
 def _z_at(dyn: StatefulDynamics, params: EnvParams, unit, time) -> Array | None:
@@ -127,19 +134,25 @@ def _z_at(dyn: StatefulDynamics, params: EnvParams, unit, time) -> Array | None:
     return _row(params.z_ref, params, unit, time)
 
 
-def _observe(cfg: EnvConfig, state: EnvState, params: EnvParams, jac=None) -> Array:
+def _observe(
+    cfg: EnvConfig, state: EnvState, params: EnvParams, jac=None, filtered=None
+) -> Array:
     """The agent's observation: :func:`observation`, or for incremental actions the
     residual of the current sample (predict-correct: x-hat is the prediction of
     sample t with theta_{t-1}), with ``gauss_newton`` its step through ``jac``, the
-    prediction's Jacobian, and the window's age."""
+    prediction's Jacobian, with ``gn_filter`` the filter's step ``filtered``, and
+    the window's age."""
     if not cfg.incremental:
         return observation(state, params)
     x_now = _row(params.x, params, state.unit, state.time)
     w_now = _row(params.w, params, state.unit, state.time)
     resid = (x_now - state.xhat) / params.x_std
     extra = None
-    if cfg.gauss_newton:  # the age: samples since the window's start
-        extra = gauss_newton_features(resid, jac, state.step, params, cfg.max_increment)
+    if cfg.uses_jacobian:  # the age: samples since the window's start
+        extra = gauss_newton_features(
+            resid, jac, state.step, params, cfg.max_increment,
+            one_sample=cfg.gauss_newton, filtered=filtered,
+        )  # fmt: skip
     return increment_observation(
         resid,
         (w_now - params.w_mean) / params.w_std,
@@ -156,7 +169,7 @@ def _model_step(
     """``(z, x-hat, J, sens)`` of one model step; with ``gauss_newton`` J is its
     Jacobian in theta and ``sens`` the state's sensitivity carried
     (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else both ``None``."""
-    if not cfg.gauss_newton:
+    if not cfg.uses_jacobian:
         return (*dyn.step(params.dyn_params, z, w, xhat, theta), None, None)
     jac, sens, z, xhat = step_with_sensitivity(
         lambda z_, th: dyn.step(params.dyn_params, z_, w, xhat, th), z, theta, sens
@@ -173,11 +186,21 @@ def _predict_first(cfg, dyn: StatefulDynamics, params: EnvParams, unit, time, th
     x_prev = _row(params.x, params, unit, time - 1)
     w_now = _row(params.w, params, unit, time)
     sens = None
-    if cfg.gauss_newton and dyn.num_states:
+    if cfg.uses_jacobian and dyn.num_states:
         sens = jnp.zeros((dyn.num_states, theta.shape[-1]), x_prev.dtype)
     out = _model_step(cfg, dyn, params, z_prev, w_now, x_prev, theta, sens)
     z, xhat, jac, sens = jax.lax.stop_gradient(out)
     return z, xhat.astype(x_prev.dtype), jac, sens
+
+
+def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov):
+    """``(cov', step)`` of the filter step at sample ``time`` (``gn_filter``;
+    :func:`~jaxcal.envs.increment.filter_feature`), else ``(None, None)``."""
+    if not cfg.gn_filter:
+        return None, None
+    resid = (_row(params.x, params, unit, time) - xhat) / params.x_std
+    out = filter_feature(cov, resid, jac, params, cfg.max_increment)
+    return jax.lax.stop_gradient(out)
 
 
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
@@ -256,6 +279,10 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             if theta is None:
                 theta = 0.5 * (params.theta_low + params.theta_high)
             z, xhat, jac, sens = _predict_first(cfg, dyn, params, unit, time, theta)
+        cov, filtered = None, None
+        if cfg.gn_filter:
+            prior = initial_filter_cov(cfg.param_dim, params.theta_low.dtype)
+            cov, filtered = _filtered(cfg, params, unit, time, xhat, jac, prior)
         state = make_env_state(
             unit=unit,
             time=time,
@@ -264,8 +291,9 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             z=None if z is None else z.astype(xhat.dtype),
             theta=theta if cfg.incremental else None,
             sens=sens,
+            cov=cov,
         )
-        return _observe(cfg, state, params, jac), state
+        return _observe(cfg, state, params, jac, filtered), state
 
     def reset(key: PRNGKey, params: EnvParams) -> tuple[Array, EnvState]:
         unit, start, theta = _draw_start(key, params, cfg)
@@ -287,6 +315,10 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = _step_cost(cfg, params, state.unit, time, xhat)
+        cov, filtered = _filtered(
+            cfg, params, state.unit, time, xhat.astype(state.xhat.dtype), jac,
+            getattr(state, "cov", None),
+        )  # fmt: skip
         next_state = make_env_state(
             unit=state.unit,
             time=time,
@@ -295,10 +327,11 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             z=None if z is None else z.astype(state.z.dtype),
             theta=theta if cfg.incremental else None,
             sens=None if sens is None else sens.astype(state.sens.dtype),
+            cov=cov,
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}
-        obs = _observe(cfg, next_state, params, jac)
+        obs = _observe(cfg, next_state, params, jac, filtered)
         return obs, next_state, cost.astype(jnp.float32), done, info
 
     return Env(reset, step, reset_at, cfg.observation_size, cfg.param_dim, cfg)

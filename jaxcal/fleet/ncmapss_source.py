@@ -3,11 +3,10 @@
 A file may be far larger than memory (the AGTF30 set is 2.4 GB; NASA's DS files hold
 up to ~10 M rows), so nothing here reads a whole split: :func:`unit_lengths` scans only
 the unit column of ``A_<split>`` in blocks, :func:`iter_ncmapss_chunks` reads one chunk
-of units at a time with :func:`~jaxcal.data.ncmapss_io.load_ncmapss` (which reads only
-the rows of the requested units) and pads it with :func:`~jaxcal.data.fleet.to_fleet` to
-the fixed length ``T`` that keeps the compiled program unique, and
-:func:`sensor_norm` takes the normalisation from the file's reference statistics or,
-failing those, from one blocked pass over the sensor columns.
+of units at a time, padded to the fixed length ``T`` that keeps the compiled program
+unique (:func:`~jaxcal.data.readers.read_ncmapss_padded`, which reads only the rows of
+the requested units), and :func:`sensor_norm` takes the normalisation from the file's
+reference statistics or, failing those, from one blocked pass over the sensor columns.
 
 Row selection with ``stride`` keeps file rows ``0, stride, 2 stride, ...`` (the grid of
 ``load_ncmapss`` for a unit selection), here and in the lengths.
@@ -23,10 +22,10 @@ import h5py
 import numpy as np
 
 from jaxcal.calibrators.interface import SensorNorm
-from jaxcal.data.fleet import to_fleet
-from jaxcal.data.ncmapss_io import load_ncmapss
+from jaxcal.data.readers import read_ncmapss_padded, read_ncmapss_split
 from jaxcal.fleet.streaming import UnitChunk, plan_chunks
 from jaxcal.physics.constants import health_index
+from jaxcal.precision import float_dtype
 
 _BLOCK_ROWS = 1 << 20  # rows per read block of the unit scan and the statistics pass
 
@@ -124,21 +123,16 @@ def iter_ncmapss_chunks(
             pos, index = parts[0][:1], np.full(1, -1)
         # NaN / Inf samples are kept: the runners skip and flag them one by one
         # (dropping here would shift rows against unit_lengths).
-        record = load_ncmapss(
+        fleet = read_ncmapss_padded(
             path,
             split,
+            max_len=max_len,
+            dtype=float_dtype(),
             units=unit_ids[pos],
             sensors=list(sensors),
             stride=stride,
             nonfinite="keep",
         )
-        _, counts = np.unique(record.unit, return_counts=True)
-        if counts.max() > max_len:
-            raise ValueError(
-                f"max_len={max_len} is shorter than a unit of {counts.max()} rows "
-                f"among units {unit_ids[pos].tolist()}; raise max_len (0 = longest)"
-            )
-        fleet = to_fleet(record, max_len=max_len)
         extras = None
         if truth_idx is not None:
             extras = {"theta_true": np.asarray(fleet.theta)[..., truth_idx]}
@@ -193,11 +187,11 @@ def sensor_norm(
     total, sums, squares = 0, 0.0, 0.0
     for a in range(0, num_rows, block_rows):
         # statistics of the finite rows only: one NaN would poison the mean
-        rec = load_ncmapss(
-            path, split, sensors=list(sensors), rows=(a, min(a + block_rows, num_rows)),
-            stride=stride, nonfinite="drop",
+        block = read_ncmapss_split(
+            path, split, label=False, sensors=list(sensors),
+            rows=(a, min(a + block_rows, num_rows)), stride=stride, nonfinite="drop",
         )  # fmt: skip
-        x = rec.x if wanted is None else rec.x[np.isin(rec.unit, wanted)]
+        x = block.x if wanted is None else block.x[np.isin(block.unit, wanted)]
         total += x.shape[0]
         sums = sums + x.sum(axis=0)
         squares = squares + np.square(x).sum(axis=0)
@@ -205,6 +199,6 @@ def sensor_norm(
         raise ValueError(f"{path} [{split}]: no rows to compute sensor statistics on")
     mean = sums / total
     std = np.sqrt(np.maximum(squares / total - np.square(mean), 0.0))
-    # The floor of jaxcal.data.fleet.fit_norm_stats: constant columns must not blow up.
+    # A scale-aware floor: constant columns must not blow up after normalisation.
     std = np.maximum(std, 1e-6 * np.maximum(1.0, np.abs(mean)))
     return SensorNorm(mean=mean, std=std), "data pass"

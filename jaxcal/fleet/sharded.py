@@ -12,7 +12,7 @@ states it and rules out surprise communication.
 
 ``U`` must be a multiple of the device count ``D``: :func:`pad_units` appends *dummy*
 units that repeat the last real unit (so a model is only ever evaluated at physical
-operating points, as with :class:`~jaxcal.data.fleet.Fleet`'s time padding) with an
+operating points, as with :class:`~jaxcal.data.padded.Padded`'s time padding) with an
 all-False mask; their outputs are dropped. :func:`shard_units` builds global arrays with
 ``jax.make_array_from_process_local_data``, which is also the multi-process entry
 (:mod:`jaxcal.fleet.distributed`): with one process the local data is the whole fleet.

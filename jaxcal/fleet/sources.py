@@ -132,8 +132,7 @@ def open_source(
 
 
 def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource:
-    from jaxcal.data.ncmapss_io import load_ncmapss
-    from jaxcal.data.readers import dataset_from_record
+    from jaxcal.data.readers import read_ncmapss_split
     from jaxcal.fleet.ncmapss_source import (
         iter_ncmapss_chunks,
         sensor_norm,
@@ -153,11 +152,11 @@ def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource
     unit_ids, lengths = unit_lengths(path, split, wanted, stride=stride)
     length = max_len or int(lengths.max())
     norm, norm_source = sensor_norm(path, split, outputs, wanted, stride=stride)
-    record = load_ncmapss(
+    first = read_ncmapss_split(
         path, split, units=unit_ids[:1], sensors=list(outputs), stride=stride,
         nonfinite="keep",
     )  # fmt: skip
-    sample = clean_rows(dataset_from_record(record, split).for_model(model, outputs))
+    sample = clean_rows(first.for_model(model, outputs))
 
     def chunks(theta_names, chunk_units, process_index=0, num_processes=1):
         truth = sample.theta is not None and set(theta_names) <= set(sample.theta_names)

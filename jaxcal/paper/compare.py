@@ -32,9 +32,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, count_reasons
+from jaxcal.data.padded import Padded
 from jaxcal.paper.methods import Method
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 from jaxcal.training.scoring import score_units, theta_rmse
 
 Z90 = 1.6449  # two-sided 90 % quantile of the standard normal
@@ -93,12 +93,12 @@ class MethodRun(NamedTuple):
 
 
 def limit_units(
-    units: UnitArrays,
+    units: Padded,
     *,
     max_units: int | None = None,
     max_steps: int | None = None,
     seed: int = 0,
-) -> UnitArrays:
+) -> Padded:
     """A seeded subset of ``max_units`` units, each cut to ``max_steps`` samples.
 
     Every method of a table is scored on the same limited split. The subset is drawn
@@ -114,7 +114,7 @@ def limit_units(
     steps = units.x.shape[1] if max_steps is None else min(max_steps, units.x.shape[1])
     lengths = np.minimum(units.lengths[keep], steps).astype(np.int32)
     steps = int(lengths.max())
-    return UnitArrays(
+    return Padded(
         *(a[keep, :steps] for a in units[:3]),
         lengths=lengths,
         unit_ids=units.unit_ids[keep],
@@ -152,7 +152,7 @@ def _theta_scores(theta, truth, mask, scored, reason, problem: Problem) -> dict:
 
 def evaluate_method(
     method: Method,
-    units: UnitArrays,
+    units: Padded,
     problem: Problem,
     *,
     seed: int = 0,
@@ -229,7 +229,7 @@ def evaluate_method(
 
 def measure_latency(
     method: Method,
-    units: UnitArrays,
+    units: Padded,
     *,
     repeats: int,
     seed: int = 0,

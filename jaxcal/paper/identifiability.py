@@ -28,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import measure_declared
+from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import stacked
 from jaxcal.paper.methods import engine_outputs
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 
 
 def normalised_jacobians(
@@ -109,7 +109,7 @@ def split_error(
 
 
 def identifiability_study(
-    engine, problem: Problem, units: UnitArrays, traces: dict, *, stride: int = 1
+    engine, problem: Problem, units: Padded, traces: dict, *, stride: int = 1
 ) -> dict:
     """The weakest direction of every test unit and each method's error split.
 

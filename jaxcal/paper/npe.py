@@ -34,9 +34,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.problem import Normalisation
 from jaxcal.runs.atomic import write_atomic
-from jaxcal.training.data import UnitArrays
 
 MISSING_HINT = "sbi not installed: pip install -e '.[npe]' (or make npe-setup)"
 GAUSS_90 = 1.6448536269514722  # the standard normal's 95 % quantile
@@ -106,7 +106,7 @@ def npe_features(w, x, norm: Normalisation) -> np.ndarray:
 
 
 def training_pairs(
-    key, units: UnitArrays, norm: Normalisation, max_samples: int
+    key, units: Padded, norm: Normalisation, max_samples: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A seeded subset of the valid samples of ``units`` as NPE training pairs.
 

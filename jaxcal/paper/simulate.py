@@ -19,9 +19,9 @@ import jax
 import numpy as np
 
 from jaxcal.data.chunked_engine import NUM_UNKNOWNS, jit_evaluate_engine
+from jaxcal.data.padded import Padded
 from jaxcal.physics.constants import HEALTH_NAMES, sensor_index
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 
 
 def evaluate_declared(
@@ -74,7 +74,7 @@ def evaluate_declared(
     return x, ok
 
 
-def gather_units(splits: list[UnitArrays | None], unit_ids) -> UnitArrays:
+def gather_units(splits: list[Padded | None], unit_ids) -> Padded:
     """The units ``unit_ids`` (in that order) from any of ``splits``, re-padded.
 
     Raises:
@@ -99,7 +99,7 @@ def gather_units(splits: list[UnitArrays | None], unit_ids) -> UnitArrays:
             out = np.concatenate([out, np.repeat(out[-1:], longest - len(out), 0)])
         return out
 
-    return UnitArrays(
+    return Padded(
         w=np.stack([pad(s.w[i]) for s, i in picks]),
         x=np.stack([pad(s.x[i]) for s, i in picks]),
         theta=np.stack([pad(s.theta[i]) for s, i in picks]),
@@ -112,11 +112,11 @@ def simulated_units(
     key,
     engine,
     problem: Problem,
-    flights: UnitArrays,
+    flights: Padded,
     *,
     max_samples: int,
     chunk_size: int = 8192,
-) -> tuple[UnitArrays, float]:
+) -> tuple[Padded, float]:
     """E2E-sim training data: the flights of ``flights`` with simulated labels.
 
     Each unit's theta moves linearly, over its valid samples, between two points drawn
@@ -134,7 +134,7 @@ def simulated_units(
         chunk_size: see :func:`evaluate_declared`.
 
     Returns:
-        ``(units, converged_share)``: simulated ``UnitArrays`` (``lengths`` count the
+        ``(units, converged_share)``: simulated ``Padded`` (``lengths`` count the
         prefix of valid samples; unsolved samples are cut with their successors) and
         the share of samples that solved.
     """
@@ -158,7 +158,7 @@ def simulated_units(
     x[valid], ok[valid] = x_flat, ok_flat
     # an unsolved sample ends its unit: E2E reads x_{t-1}, so no gap may be bridged
     solved_prefix = np.cumprod(ok, axis=1).sum(axis=1).astype(np.int32)
-    units = UnitArrays(
+    units = Padded(
         w=w,
         x=x,
         theta=theta,
@@ -168,14 +168,14 @@ def simulated_units(
     return units, float(ok_flat.mean())
 
 
-def subset_units(key, units: UnitArrays, max_samples: int) -> UnitArrays:
+def subset_units(key, units: Padded, max_samples: int) -> Padded:
     """A seeded subset of whole units holding at most ``max_samples`` valid samples
     (at least one unit), in their original order and re-padded."""
     order = np.asarray(jax.random.permutation(key, len(units.lengths)))
     budget = np.cumsum(units.lengths[order])
     keep = np.sort(order[: max(1, int(np.searchsorted(budget, max_samples, "right")))])
     longest = int(units.lengths[keep].max())
-    return UnitArrays(
+    return Padded(
         *(a[keep, :longest] for a in units[:3]),
         lengths=units.lengths[keep],
         unit_ids=units.unit_ids[keep],

@@ -31,16 +31,16 @@ from jaxcal.calibrators.std_scale import (
     std_coverage,
     stream_index,
 )
+from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import limit_units
 from jaxcal.paper.methods import Method
-from jaxcal.training.data import UnitArrays
 
 LEVEL = 0.9
 # reported per time range: the start-up transient, the settling, the tracking
 TIME_RANGES = ((0, 32), (32, 1024), (1024, None))
 
 
-def run_with_std(method: Method, units: UnitArrays, *, seed: int) -> dict:
+def run_with_std(method: Method, units: Padded, *, seed: int) -> dict:
     """``method`` over ``units`` (clean model): per-sample theta, std and the scored
     mask, plus the run's seconds (compilation included)."""
     dtype = method.dtype
@@ -70,7 +70,7 @@ def _scale_json(scale: StdScale) -> dict:
 
 
 def coverage_report(
-    scales: dict, run: dict, units: UnitArrays, names: tuple[str, ...]
+    scales: dict, run: dict, units: Padded, names: tuple[str, ...]
 ) -> dict:
     """Coverage of the raw std (``None`` in ``scales``) and of each scale on one
     split: pooled, per parameter, per time range, and the median std."""
@@ -96,7 +96,7 @@ def coverage_report(
     return report
 
 
-def _rmse(run: dict, units: UnitArrays) -> float:
+def _rmse(run: dict, units: Padded) -> float:
     err = (run["theta"] - units.theta)[run["scored"]]
     return float(np.sqrt(np.mean(err**2)))
 

@@ -31,6 +31,7 @@ from jaxcal.calibrators.e2e import E2EConfig, fit_e2e, init_e2e_params
 from jaxcal.calibrators.interface import SampleCheck
 from jaxcal.calibrators.least_squares import LeastSquaresConfig
 from jaxcal.calibrators.ukf import UKFConfig
+from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import (
     MethodRun,
     evaluate_method,
@@ -54,7 +55,7 @@ from jaxcal.paper.simulate import (
 from jaxcal.paper.steps import load_params, save_params
 from jaxcal.physics.engine import ENVELOPES
 from jaxcal.runs.folder import DATA_FILE, read_json
-from jaxcal.training.data import UnitArrays, load_calibration_data
+from jaxcal.training.data import load_calibration_data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,8 +104,8 @@ class Suite:
         self.problem = self.data.problem
         self._engine = None
         self._methods: dict[str, Method] = {}
-        self._test: dict[str, UnitArrays] = {}
-        self._simulated: dict[int, tuple[UnitArrays, float, float]] = {}
+        self._test: dict[str, Padded] = {}
+        self._simulated: dict[int, tuple[Padded, float, float]] = {}
 
     @property
     def engine(self):
@@ -116,7 +117,7 @@ class Suite:
                 self._engine = load_engine(self.problem.model.name)
         return self._engine
 
-    def test_units(self, data_path: str | None = None) -> UnitArrays:
+    def test_units(self, data_path: str | None = None) -> Padded:
         """The scored test units of ``data_path`` (default: the clean file)."""
         path = data_path or self.data_path
         if path not in self._test:
@@ -226,7 +227,7 @@ class Suite:
 
     # ------------------------------------------------------------------ steps
 
-    def simulated(self, seed: int) -> tuple[UnitArrays, float, float]:
+    def simulated(self, seed: int) -> tuple[Padded, float, float]:
         """E2E-sim's training flights (:func:`simulated_units`), simulated once per
         seed and kept, so that E2E-sim and the NPE peer learn from the same samples.
 

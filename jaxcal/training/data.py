@@ -2,7 +2,7 @@
 
 :class:`~jaxcal.training.calibration_data.CalibrationData` is what training,
 evaluation and the paper's comparison read: the train / validation / test units as
-:class:`~jaxcal.training.calibration_data.UnitArrays` and the problem they define
+:class:`~jaxcal.data.padded.Padded` and the problem they define
 (:mod:`jaxcal.training.calibration_data`, whose names are re-exported here, the one
 import path). Two sources make one:
 
@@ -12,9 +12,9 @@ import path). Two sources make one:
   Parquet, C-MAPSS text) through :func:`jaxcal.data.readers.read_dataset`.
 
 Each unit is padded to the longest one of its split (the padding repeats the unit's
-last row, see :func:`jaxcal.data.fleet.to_fleet`) with its valid length. Only the
-needed columns and the rows of the needed units of an HDF5 file are read
-(``load_ncmapss`` slices by unit).
+last row, :meth:`jaxcal.data.dataset.Dataset.padded`) with its valid length. Only
+the needed columns and the rows of the needed units of an HDF5 file are read (the
+N-CMAPSS reader slices by unit, :func:`jaxcal.data.readers.read_ncmapss_split`).
 
 Splits (the policy never sees theta; labels are kept for reporting only):
 
@@ -42,15 +42,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from jaxcal.data.fleet import to_fleet
-from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info, parse_rename
-from jaxcal.data.record import Record
+from jaxcal.data.dataset import Dataset
+from jaxcal.data.ncmapss_io import ncmapss_info, parse_rename
+from jaxcal.data.padded import Padded
+from jaxcal.data.readers import read_ncmapss_split
 from jaxcal.model import Model
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
+from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
 from jaxcal.training.calibration_data import (  # noqa: F401 (re-exported: one import path)
     CalibrationData,
-    UnitArrays,
     training_problem,
 )
 
@@ -133,15 +134,13 @@ def describe_dropped(dropped: dict) -> str:
     )
 
 
-def _pad(record: Record, theta_idx: list[int]) -> UnitArrays:
-    fleet = to_fleet(record)
-    return UnitArrays(
-        w=np.asarray(fleet.w),
-        x=np.asarray(fleet.x),
-        theta=np.asarray(fleet.theta)[..., theta_idx],
-        lengths=np.asarray(fleet.lengths, np.int32),
-        unit_ids=np.asarray(fleet.unit_ids, np.int64),
-    )
+def _pad(data: Dataset, theta_idx: list[int]) -> Padded:
+    """A split's units padded in the run's float dtype, in ascending id order (a
+    file's order), ``theta`` the declared parameters' columns."""
+    by_unit = data.take(np.argsort(data.unit, kind="stable"))
+    padded = by_unit.padded(float_dtype())
+    # rows index the sorted copy, not the file: not carried
+    return padded._replace(theta=padded.theta[..., theta_idx], rows=None)
 
 
 def load_calibration_data(
@@ -173,7 +172,8 @@ def load_calibration_data(
             width on each side.
         nonfinite: rows with NaN / Inf in w, the sensors or theta: ``"error"``
             refuses the file, ``"drop"`` drops them (``info["dropped"]``, logged).
-        rename: ``{file column name: jaxcal name}`` (see ``load_ncmapss``).
+        rename: ``{file column name: jaxcal name}`` (see
+            :func:`~jaxcal.data.ncmapss_io.load_ncmapss`).
         log: where the dropped-row summary goes (``None``: not printed).
         model: the turbofan model (``None``: the engine the file names, through
             ``jaxcal.models.load``).
@@ -193,9 +193,11 @@ def load_calibration_data(
     info = ncmapss_info(path, rename=rename)
     sensors = tuple(sensors) or default_sensors(info)
     train_ids, val_ids, test_ids = split_units(info, val_units, val_fraction)
-    read = dict(sensors=sensors, stride=stride, rename=rename, nonfinite=nonfinite)
-    dev = load_ncmapss(path, "dev", units=train_ids + val_ids, **read)
-    test = load_ncmapss(path, "test", units=test_ids, **read)
+    read = dict(
+        label=False, sensors=sensors, stride=stride, rename=rename, nonfinite=nonfinite
+    )
+    dev = read_ncmapss_split(path, "dev", units=train_ids + val_ids, **read)
+    test = read_ncmapss_split(path, "test", units=test_ids, **read)
     dropped = _dropped_rows(path, dev, test, train_ids + val_ids, test_ids, log)
     theta_names = _theta_names(path, theta, dev)
     theta_idx = [HEALTH_NAMES.index(n) for n in theta_names]
@@ -218,7 +220,7 @@ def load_calibration_data(
     )
 
 
-def _dropped_rows(path, dev: Record, test: Record, dev_ids, test_ids, log) -> dict:
+def _dropped_rows(path, dev: Dataset, test: Dataset, dev_ids, test_ids, log) -> dict:
     """``info["dropped"]``: the rows with NaN / Inf dropped per split and column
     (``nonfinite="drop"``; logged when any).
 
@@ -241,7 +243,7 @@ def _dropped_rows(path, dev: Record, test: Record, dev_ids, test_ids, log) -> di
     return dropped
 
 
-def _theta_names(path, theta: tuple[str, ...], dev: Record) -> tuple[str, ...]:
+def _theta_names(path, theta: tuple[str, ...], dev: Dataset) -> tuple[str, ...]:
     """The declared parameters: ``theta`` checked against ``HEALTH_NAMES``, or (``()``)
     those that vary over the dev split.
 
@@ -267,11 +269,11 @@ def _theta_names(path, theta: tuple[str, ...], dev: Record) -> tuple[str, ...]:
     return theta_names
 
 
-def _take(fleet: UnitArrays, mask: np.ndarray) -> UnitArrays:
+def _take(fleet: Padded, mask: np.ndarray) -> Padded:
     """The units of ``fleet`` where ``mask``, the padding re-trimmed to the longest
     selected unit."""
     longest = int(fleet.lengths[mask].max())
-    return UnitArrays(
+    return Padded(
         *(a[mask][:, :longest] for a in fleet[:3]),
         lengths=fleet.lengths[mask],
         unit_ids=fleet.unit_ids[mask],

@@ -112,6 +112,7 @@ def train_kept_policy(
                 reporter=scoring.test_reporter if target is not None else None,
                 target=target,
                 clock=clock,
+                score_start=getattr(parts.actor, "prior", None) is not None,
             ),
             on_checkpoint=save_latest,
             progress=cfg.output.progress,

@@ -82,7 +82,12 @@ from jaxcal.runs.folder import (
     write_json,
 )
 from jaxcal.runs.lock import hold_run, run_folder
-from jaxcal.training.components import check_dynamics, env_config, make_components
+from jaxcal.training.components import (
+    agent_config,
+    check_dynamics,
+    env_config,
+    make_components,
+)
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import CalibrationData
 from jaxcal.training.final_report import final_report
@@ -203,7 +208,9 @@ def _train(
         len(problem.output_names),
         len(problem.theta_names),
     )
-    parts = make_components(cfg.dynamics, problem, env_cfg, cfg.agent, cfg.runner)
+    parts = make_components(
+        cfg.dynamics, problem, env_cfg, agent_config(cfg, env_cfg), cfg.runner
+    )
     select_units = sims.selection_units() if cfg.budget.select == "sim_theta" else None
     scoring = make_policy_scoring(
         cfg, data, problem, parts, train_params, env_cfg.max_increment, dtype,

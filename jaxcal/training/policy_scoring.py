@@ -21,10 +21,11 @@ from jaxcal.calibrators.policy import (
     policy_params_from_env,
     range_check,
 )
+from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.problem import Problem
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.training.data import CalibrationData
 from jaxcal.training.scoring import score_units, theta_rmse
 from jaxcal.training.uncertainty_stage import scored_mask
 
@@ -46,7 +47,7 @@ class PolicyScoring(NamedTuple):
     """
 
     deployable: Callable[..., PolicyParams]
-    run: Callable[[UnitArrays, PolicyParams], Any]
+    run: Callable[[Padded, PolicyParams], Any]
     score: Callable[..., dict]
     val_scorer: Callable[[Any], dict] | None
     test_reporter: Callable[[Any], dict]
@@ -60,7 +61,7 @@ def make_policy_scoring(
     train_params: EnvParams,
     max_increment: float | None,
     dtype,
-    select_units: UnitArrays | None,
+    select_units: Padded | None,
 ) -> PolicyScoring:
     """:class:`PolicyScoring` of a run on ``problem`` (normalised as ``train_params``)
     with its components ``parts`` (``run_units``); ``select_units``: the simulated
@@ -68,12 +69,12 @@ def make_policy_scoring(
     check = range_check(problem)  # samples far outside the training range: flagged
     start = problem.theta_prior if cfg.env.start == "prior" else None
 
-    def run(units: UnitArrays, params: PolicyParams):
+    def run(units: Padded, params: PolicyParams):
         return parts.run_units(
             params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
         )
 
-    def score(units: UnitArrays, params: PolicyParams, out=None) -> dict:
+    def score(units: Padded, params: PolicyParams, out=None) -> dict:
         out = run(units, params) if out is None else out
         return score_units(
             out.theta,
@@ -94,6 +95,7 @@ def make_policy_scoring(
         return policy_params_from_env(
             train_params, actor, max_increment=max_increment, theta_start=start,
             gauss_newton=parts.env.config.gauss_newton,
+            gn_filter=parts.env.config.gn_filter,
         )  # fmt: skip
 
     def val_scorer(agent_state) -> dict:

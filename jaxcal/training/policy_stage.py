@@ -130,6 +130,10 @@ class ChunkScoring(NamedTuple):
         clock: seconds since the job's start (earlier sessions included); stamped
             as ``job_seconds`` on every scored record, after the validation
             scores and before the test scores (reporting is not part of the job).
+        score_start: also score the untrained policy (chunk 0) and keep it if no
+            chunk beats it: an actor with a prior
+            (:attr:`~jaxcal.agents.configs._ActorCriticConfig.actor_prior`) is a
+            working calibrator before its first update.
     """
 
     scorer: Scorer | None = None
@@ -138,6 +142,7 @@ class ChunkScoring(NamedTuple):
     reporter: Scorer | None = None
     target: float | None = None
     clock: Callable[[], float] | None = None
+    score_start: bool = False
 
 
 def train_policy(
@@ -198,6 +203,13 @@ def train_policy(
         best, reached, last_val = _earlier_marks(records, scoring)
         bar = _progress_bar(num_chunks, start, progress)
         with MetricsWriter(run_dir / METRICS_FILE) as writer, bar:
+            if start == 0 and scoring.score_start:  # the untrained policy: a candidate
+                record = dict(chunk_seconds=0.0, includes_compile=True)
+                record.update(updates_per_s=0.0, env_steps_per_s=0.0)
+                reached = _score(record, runner, 0, scoring, reached, log)
+                writer.write(0, record)
+                records.append({"step": 0, **record})
+                best = _select(record, best, 0, runner, scoring)
             for chunk in range(start + 1, num_chunks + 1):
                 runner, record = _timed_chunk(
                     train_chunk, runner, train_params, runner_cfg, chunk == start + 1

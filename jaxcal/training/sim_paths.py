@@ -18,8 +18,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 
 
 def theta_paths(
@@ -46,7 +46,7 @@ def theta_paths(
     return start[:, None] + (end - start)[:, None] * s[..., None] ** power[:, None]
 
 
-def _frame(problem: Problem, units: UnitArrays):
+def _frame(problem: Problem, units: Padded):
     """``units``' valid rows as the front door's frame, and their ``(unit, time)``
     indexes."""
     import pandas as pd
@@ -64,7 +64,7 @@ def _frame(problem: Problem, units: UnitArrays):
     return frame, (u, t)
 
 
-def front_ukf(problem: Problem, units: UnitArrays, noise=None):
+def front_ukf(problem: Problem, units: Padded, noise=None):
     """The front door's UKF on ``units`` (:func:`jaxcal.calibrators.front.calibrate`)
     and the rows' ``(unit, time)`` indexes."""
     from jaxcal.calibrators.front import calibrate
@@ -90,7 +90,7 @@ def _time_basis(lengths: np.ndarray, num_steps: int) -> np.ndarray:
     return np.stack([np.ones_like(s), s, s * s], axis=-1)
 
 
-def estimated_drifts(problem: Problem, units: UnitArrays) -> np.ndarray:
+def estimated_drifts(problem: Problem, units: Padded) -> np.ndarray:
     """``[K, 3, P]`` the real units' own theta drifts: the UKF's theta on ``units``
     with the problem's noise, fitted per unit and parameter by a least-squares
     quadratic in the unit's own time (:func:`_time_basis`); the ``K`` units of at

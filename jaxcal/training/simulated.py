@@ -27,8 +27,8 @@ import jax
 import numpy as np
 
 from jaxcal.calibrators.e2e_sim import simulate_fleet
+from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 from jaxcal.training.sim_paths import (
     drift_paths,
     estimated_drifts,
@@ -39,13 +39,13 @@ from jaxcal.training.sim_paths import (
 
 def simulate_units(
     problem: Problem,
-    units: UnitArrays,
+    units: Padded,
     key: jax.Array,
     *,
     copies: int = 1,
     constant_share: float = 0.25,
     drifts: np.ndarray | None = None,
-) -> tuple[UnitArrays, np.ndarray]:
+) -> tuple[Padded, np.ndarray]:
     """``copies`` simulated fleets along ``units``' conditions (module doc), theta
     along the ``drifts`` where given (:func:`estimated_drifts`, in turn over the
     copies' units: :func:`drift_paths`), else drawn (:func:`theta_paths`).
@@ -89,7 +89,7 @@ def simulate_units(
     noise = np.asarray(jax.random.normal(k_noise, clean.shape), clean.dtype)
     noisy = clean + (problem.noise_std.astype(clean.dtype) * noise) * mask[..., None]
     ids = -1 - np.arange(len(lengths), dtype=np.int64)
-    return UnitArrays(w, noisy, theta, lengths.astype(np.int32), ids), clean
+    return Padded(w, noisy, theta, lengths.astype(np.int32), ids), clean
 
 
 def parse_noise(noise: Sequence[str], names: Sequence[str]) -> np.ndarray | None:
@@ -133,7 +133,7 @@ def parse_noise(noise: Sequence[str], names: Sequence[str]) -> np.ndarray | None
     return values
 
 
-def estimate_noise(problem: Problem, units: UnitArrays) -> Problem:
+def estimate_noise(problem: Problem, units: Padded) -> Problem:
     """The problem with the noise the front door's screening estimates on
     ``units`` (a UKF pass; ``noise_source`` says so)."""
     result, _ = front_ukf(problem, units)
@@ -141,14 +141,14 @@ def estimate_noise(problem: Problem, units: UnitArrays) -> Problem:
     return problem.with_noise(noise, f"{result.noise_source}, on the training units")
 
 
-def _joined(a: UnitArrays, b: UnitArrays) -> UnitArrays:
+def _joined(a: Padded, b: Padded) -> Padded:
     """Two unit sets as one (padded to the longer; labels dropped)."""
     steps = max(a.w.shape[1], b.w.shape[1])
 
     def pad(v):
         return np.pad(v, [(0, 0), (0, steps - v.shape[1])] + [(0, 0)] * (v.ndim - 2))
 
-    return UnitArrays(
+    return Padded(
         np.concatenate([pad(a.w), pad(b.w)]),
         np.concatenate([pad(a.x), pad(b.x)]),
         None,
@@ -172,8 +172,8 @@ class Simulations:
         self.given = parse_noise(cfg.noise, data.problem.output_names)
         self.key = jax.random.fold_in(jax.random.key(cfg.seed), 27)
         self._problem: Problem | None = None
-        self._train: tuple[UnitArrays, np.ndarray] | None = None
-        self._paths: tuple[UnitArrays, np.ndarray] | None = None
+        self._train: tuple[Padded, np.ndarray] | None = None
+        self._paths: tuple[Padded, np.ndarray] | None = None
         self.used: dict[str, str] = {}
 
     def problem(self) -> Problem:
@@ -193,7 +193,7 @@ class Simulations:
             self._problem = problem
         return self._problem
 
-    def _train_sims(self) -> tuple[UnitArrays, np.ndarray]:
+    def _train_sims(self) -> tuple[Padded, np.ndarray]:
         if self._train is None:
             self._train = simulate_units(
                 self.problem(),
@@ -210,7 +210,7 @@ class Simulations:
         self.used["surrogate"] = "simulated training units"
         return self.data._replace(train=self._train_sims()[0])
 
-    def training_fleet(self) -> tuple[UnitArrays, np.ndarray | None]:
+    def training_fleet(self) -> tuple[Padded, np.ndarray | None]:
         """``(units, x_target)`` the policy trains on (``simulate.train``)."""
         real = self.data.train
         self.used["policy"] = {
@@ -225,7 +225,7 @@ class Simulations:
             return sim, clean
         return _joined(real, sim), np.concatenate([real.x, clean])
 
-    def _drifts(self) -> tuple[UnitArrays, np.ndarray]:
+    def _drifts(self) -> tuple[Padded, np.ndarray]:
         """``(units, drifts)``: every unit but the test ones and the theta drifts
         the UKF finds on them (:func:`estimated_drifts`), made once."""
         if self._paths is None:
@@ -237,7 +237,7 @@ class Simulations:
             self._paths = units, estimated_drifts(self.problem(), units)
         return self._paths
 
-    def _held_out_sims(self, salt: int) -> tuple[UnitArrays, str]:
+    def _held_out_sims(self, salt: int) -> tuple[Padded, str]:
         """``(simulated units, what they follow)`` for selection and the band:
         ``band_copies`` copies along the validation units' conditions (the training
         units' without them) with theta drawn across the box, or
@@ -267,14 +267,14 @@ class Simulations:
         )
         return sim, f"the {which} units' conditions"
 
-    def selection_units(self) -> UnitArrays:
+    def selection_units(self) -> Padded:
         """Simulated units (:meth:`_held_out_sims`) on which
         ``budget.select=sim_theta`` scores theta."""
         sim, _ = self._held_out_sims(2)
         self.used["selection"] = "theta RMSE on simulated units"
         return sim
 
-    def band_units(self) -> tuple[UnitArrays | None, str]:
+    def band_units(self) -> tuple[Padded | None, str]:
         """``(units, what they are)`` the uncertainty band is fitted on
         (``simulate.band``)."""
         val = self.data.val

@@ -20,6 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import SURROGATE_DIR, SURROGATE_FILE, read_json, write_json
 from jaxcal.surrogate.fit import fit_surrogate, make_transitions, surrogate_errors
@@ -28,12 +29,12 @@ from jaxcal.surrogate.model import (
     SurrogateParams,
     init_surrogate_params,
 )
-from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.training.data import CalibrationData
 from jaxcal.training.scoring import describe_units
 from jaxcal.typedefs import PRNGKey
 
 
-def _split_errors(params: SurrogateParams, units: UnitArrays, sensors) -> dict:
+def _split_errors(params: SurrogateParams, units: Padded, sensors) -> dict:
     errors = surrogate_errors(params, units.w, units.x, units.theta, units.mask)
     out = {"num_pairs": errors["num_pairs"]}
     for kind in ("one_step", "free_run"):

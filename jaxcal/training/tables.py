@@ -29,11 +29,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
+from jaxcal.data.padded import Padded
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
-from jaxcal.training.data import CalibrationData, UnitArrays, training_problem
+from jaxcal.training.data import CalibrationData, training_problem
 
 SPLITS = ("train", "val", "test", "dev")
 
@@ -131,20 +132,15 @@ def split_by_column(
     return train, val, test
 
 
-def pad_units(data: Dataset, units: Sequence[int], theta_names) -> UnitArrays:
-    """The rows of ``units`` as padded :class:`UnitArrays` (current float dtype)."""
+def pad_units(data: Dataset, units: Sequence[int], theta_names) -> Padded:
+    """The rows of ``units`` as :class:`~jaxcal.data.padded.Padded` (current float
+    dtype)."""
     padded = data.select_units(units).padded(float_dtype())
     theta = None
     if padded.theta is not None and set(theta_names) <= set(data.theta_names):
         cols = [data.theta_names.index(n) for n in theta_names]
         theta = padded.theta[..., cols]
-    return UnitArrays(
-        w=padded.w,
-        x=padded.x,
-        theta=theta,
-        lengths=padded.lengths,
-        unit_ids=padded.unit_ids,
-    )
+    return padded._replace(theta=theta, rows=None)  # rows of the selection: not kept
 
 
 def box_of(

@@ -18,14 +18,15 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.data.padded import Padded
 from jaxcal.envs.env_data import compute_norm_stats
 from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvParams, make_env_params
 from jaxcal.problem import Normalisation, Problem
-from jaxcal.training.components import make_dynamics, uses_gauss_newton
+from jaxcal.training.components import make_dynamics, uses_filter, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData, UnitArrays
+from jaxcal.training.data import CalibrationData
 from jaxcal.training.simulated import Simulations
 
 
@@ -56,8 +57,14 @@ def make_training_env(
         )
         outputs, params = len(data.problem.output_names), len(data.problem.theta_names)
         if uses_gauss_newton(cfg.env, outputs, params):
+            also = (
+                " and the filter's, a share env.filter_gain="
+                f"{cfg.env.filter_gain:g} of which is its untrained action"
+                if uses_filter(cfg.env, outputs, params)
+                else ""
+            )
             log(
-                f"the policy observes the residual's Gauss-Newton step "
+                f"the policy observes the residual's Gauss-Newton step{also} "
                 f"(env.gauss_newton={cfg.env.gauss_newton}: {outputs} outputs, "
                 f"{params} parameters)"
             )
@@ -74,14 +81,14 @@ def with_env_norm(problem: Problem, params: EnvParams) -> Problem:
 
 
 def training_env_params(
-    units: UnitArrays,
+    units: Padded,
     problem: Problem,
     dyn_params,
     dtype,
     dynamics_kind: str,
     max_increment: float | None = None,
     x_target: np.ndarray | None = None,
-    stats_of: UnitArrays | None = None,
+    stats_of: Padded | None = None,
 ) -> EnvParams:
     """The :class:`EnvParams` of ``units`` for ``dynamics_kind`` with ``dyn_params``
     (``max_increment``: incremental actions' largest step, ``None``: absolute
@@ -120,5 +127,6 @@ def training_env_params(
     return params.replace(
         step_ref=jnp.asarray(
             increment_step_ref(dyn, params, problem.theta_prior, max_increment), dtype
-        )
+        ),
+        x_noise=jnp.asarray(problem.noise_std, dtype),  # the filter step's (gn_filter)
     )

@@ -25,13 +25,13 @@ from jaxcal.calibrators.uncertainty import (
     fit_band,
     save_band,
 )
-from jaxcal.training.data import UnitArrays
+from jaxcal.data.padded import Padded
 from jaxcal.training.policy_stage import TEST_KEY
 
 BAND_LEVEL = 0.9  # the interval the band is fitted for and its coverage checked at
 
 
-def scored_mask(units: UnitArrays, out: CalOutput) -> np.ndarray:
+def scored_mask(units: Padded, out: CalOutput) -> np.ndarray:
     """``[U, T]`` real samples the calibrator did not flag (the scored ones)."""
     mask = np.asarray(units.mask, bool)
     if out.reason is None:
@@ -40,9 +40,9 @@ def scored_mask(units: UnitArrays, out: CalOutput) -> np.ndarray:
 
 
 def fit_policy_band(
-    val: UnitArrays | None,
+    val: Padded | None,
     val_out: CalOutput | None,
-    test: UnitArrays,
+    test: Padded,
     test_out: CalOutput,
     run_dir: str | Path,
     theta_names: tuple[str, ...],

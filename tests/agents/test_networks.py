@@ -88,3 +88,25 @@ def test_log_std_is_clipped_to_config_range():
     _, log_std = networks.actor.apply(params, 1e3 * jnp.ones((2, OBS)))
     assert float(log_std.min()) >= -1.0
     assert float(log_std.max()) <= 0.5
+
+
+def test_actor_prior_makes_an_untrained_mean_the_observed_steps_share():
+    # actor_prior=(start, gain): the pre-tanh mean is arctanh(gain * obs[start:
+    # start + A]) plus the network's own output (zero here), with no new parameter
+    plain = make_networks(SACConfig(actor_hidden_sizes=(8,)), ACT).actor
+    prior = make_networks(
+        SACConfig(actor_hidden_sizes=(8,), actor_prior=(2, 0.5)), ACT
+    ).actor
+    obs = jnp.array([[0.1, -0.2, 0.8, -0.4, 0.3]])
+    params = plain.init(jax.random.key(0), obs)
+    assert jax.tree.structure(prior.init(jax.random.key(0), obs)) == jax.tree.structure(
+        params
+    )
+    zero = jax.tree.map(jnp.zeros_like, params)
+    mean, _ = prior.apply(zero, obs)
+    np.testing.assert_allclose(jnp.tanh(mean), [[0.4, -0.2]], rtol=1e-5)
+    mean_plain, _ = plain.apply(params, obs)
+    mean_prior, _ = prior.apply(params, obs)
+    np.testing.assert_allclose(
+        mean_prior - mean_plain, jnp.arctanh(jnp.array([[0.4, -0.2]])), rtol=1e-5
+    )

@@ -209,6 +209,21 @@ def test_calibrator_carries_a_hinted_models_warm_start(setup):
     np.testing.assert_allclose(out2, 2.0 * physics(None, w[0, 0], None, jnp.zeros(P)))
 
 
+class StepActor:
+    """The actor of gain 1 on the step the observation holds last before the age."""
+
+    def apply(self, _, obs):
+        return jnp.arctanh(jnp.clip(obs[-P - 1 : -1], -0.999, 0.999)), None
+
+
+def _unit_gain_thetas(dynamics, params, w, x, **flags) -> np.ndarray:
+    """``[U, T, P]`` thetas of :class:`StepActor` deployed on every unit."""
+    pp = policy_params_from_env(params, None, max_increment=MAX_INC, **flags)
+    cal = make_policy_calibrator(StepActor(), dynamics, pp)
+    out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
+    return np.asarray(out.theta)
+
+
 def test_gauss_newton_feature_makes_a_unit_gain_the_gauss_newton_step(setup):
     # with env.gauss_newton the observation ends with the residual's Gauss-Newton
     # step in the action's scale: an actor that outputs it (gain 1) drives theta to
@@ -221,14 +236,7 @@ def test_gauss_newton_feature_makes_a_unit_gain_the_gauss_newton_step(setup):
     env = make_tracking_env(physics, cfg)
     assert env.observation_size == S + 1 + W + 2 * P + 1
 
-    class Actor:
-        def apply(self, _, obs):
-            return jnp.arctanh(jnp.clip(obs[-P - 1 : -1], -0.999, 0.999)), None
-
-    pp = policy_params_from_env(params, None, max_increment=MAX_INC, gauss_newton=True)
-    cal = make_policy_calibrator(Actor(), physics, pp)
-    out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
-    theta = np.asarray(out.theta)
+    theta = _unit_gain_thetas(physics, params, w, x, gauss_newton=True)
     np.testing.assert_allclose(theta[:, -1], np.broadcast_to(truth, (U, P)), atol=1e-6)
     obs, state = env.reset_at(params, 1, 0)
     resid = (x[1, 0] - np.asarray(state.xhat)) / np.asarray(params.x_std)
@@ -243,7 +251,7 @@ def test_gauss_newton_feature_makes_a_unit_gain_the_gauss_newton_step(setup):
     ages = []
     thetas = []
     for _ in range(10):  # a test loop over a few steps, not a hot path
-        mean, _ = Actor().apply(None, obs)
+        mean, _ = StepActor().apply(None, obs)
         obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
         thetas.append(np.asarray(state.theta))
         ages.append(float(obs[-1]))
@@ -284,3 +292,54 @@ def test_sensitivity_carried_gives_a_memory_models_total_derivative():
     one_step, none, *_ = step_with_sensitivity(step, z, theta, None)
     assert none is None
     np.testing.assert_allclose(one_step, c @ b + d, rtol=1e-6)
+
+
+def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_agree():
+    # one output, two parameters: x = (a + c w) . theta. One sample's Jacobian has
+    # rank 1; the filter's (carried along the stream) separates the two as w
+    # varies. An actor that outputs the filter step (gain 1) reaches the truth on
+    # noise-free data; the covariance is the Kalman filter's (Joseph form, numpy
+    # reference below) and the deployed calibrator reproduces the environment
+    from jaxcal.envs.increment import FILTER_PRIOR_STD, FILTER_Q
+
+    a_vec, c_vec = np.array([1.0, 0.4]), np.array([0.2, 1.5])
+
+    def bilinear(dyn_params, w_next, xhat, theta):
+        del dyn_params, xhat
+        return ((jnp.asarray(a_vec) + jnp.asarray(c_vec) * w_next[0]) @ theta)[None]
+
+    rng = np.random.default_rng(5)
+    w = rng.uniform(-1.0, 1.0, size=(U, T, 1))
+    truth = np.array([0.3, -0.6])
+    x = ((a_vec + c_vec * w) @ truth)[..., None]
+    low, high = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
+    params = make_env_params(w, x, np.array([T, T]), low, high, None)
+    step_ref = increment_step_ref(as_stateful(bilinear), params, np.zeros(P), MAX_INC)
+    noise = 0.01 * np.asarray(params.x_std)
+    params = params.replace(step_ref=jnp.asarray(step_ref), x_noise=jnp.asarray(noise))
+    cfg = EnvConfig(
+        1, 1, P, episode_length=20, action="increment", max_increment=MAX_INC,
+        gn_filter=True,
+    )  # fmt: skip
+    env = make_tracking_env(bilinear, cfg)
+    assert env.observation_size == 1 + 1 + 1 + P + P + 1
+
+    theta = _unit_gain_thetas(bilinear, params, w, x, gn_filter=True)
+    np.testing.assert_allclose(theta[:, -1], np.broadcast_to(truth, (U, P)), atol=2e-3)
+    obs, state = env.reset_at(params, 1, 0)
+    cov = FILTER_PRIOR_STD**2 * np.eye(P)
+    half = 0.5 * (high - low)
+    thetas = []
+    for t in range(10):  # a test loop over a few steps, not a hot path
+        j = ((a_vec + c_vec * w[1, t, 0]) * half)[None]  # [1, P] in half-box units
+        pred = cov + FILTER_Q**2 * np.eye(P)
+        s = j @ pred @ j.T + np.diag(noise**2)
+        gain = pred @ j.T @ np.linalg.inv(s)
+        cov = (np.eye(P) - gain @ j) @ pred  # the textbook form (same in exact math)
+        np.testing.assert_allclose(np.asarray(state.cov), cov, rtol=1e-3, atol=1e-7)
+        mean, _ = StepActor().apply(None, obs)
+        obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
+        thetas.append(np.asarray(state.theta))
+    np.testing.assert_allclose(theta[1, :10], thetas, atol=1e-5)
+    with pytest.raises(ValueError, match="needs EnvParams.x_noise"):
+        env.reset_at(params.replace(x_noise=None), 0, 0)

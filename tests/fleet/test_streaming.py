@@ -9,7 +9,6 @@ import pytest
 from fleet_worker import problem, reference, ukf
 
 from jaxcal.calibrators.interface import REASON_CODE, Calibrator, SampleCheck
-from jaxcal.data.fleet import to_fleet
 from jaxcal.data.ncmapss_io import load_ncmapss, write_ncmapss
 from jaxcal.data.record import Record
 from jaxcal.fleet.ncmapss_source import iter_ncmapss_chunks, sensor_norm, unit_lengths
@@ -226,7 +225,7 @@ def test_unit_lengths_with_stride(ncmapss_file):
 def test_ncmapss_chunks_match_whole_file_load(ncmapss_file):
     sensors = ["T30", "Nf", "W21"]
     ids, lengths = unit_lengths(ncmapss_file, "test")
-    whole = to_fleet(load_ncmapss(ncmapss_file, "test", sensors=sensors), max_len=10)
+    whole = load_ncmapss(ncmapss_file, "test", sensors=sensors).padded(max_len=10)
     chunks = list(
         iter_ncmapss_chunks(
             ncmapss_file, "test", ids, max_len=10, chunk_units=2, sensors=sensors,

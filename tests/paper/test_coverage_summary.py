@@ -14,6 +14,7 @@ import pytest
 from support.paper_problem import paper_problem
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
+from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import evaluate_method, interval_coverage
 from jaxcal.paper.methods import make_method
 from jaxcal.paper.report import write_report
@@ -25,7 +26,6 @@ from jaxcal.paper.summary import (
     summary_json,
 )
 from jaxcal.paper.tables import Results
-from jaxcal.training.data import UnitArrays
 
 THETA = ("HPT_eff_mod", "HPT_flow_mod")
 SENSORS = ("T24", "T30")
@@ -55,7 +55,7 @@ def test_interval_coverage_counts_only_scored_samples():
     assert empty["coverage90"] is None
 
 
-def _toy_units(num_units=3, num_steps=1500, seed=0) -> UnitArrays:
+def _toy_units(num_units=3, num_steps=1500, seed=0) -> Padded:
     """x = theta + SIGMA * eps: a calibrator reading theta off x errs by SIGMA."""
     rng = np.random.default_rng(seed)
     theta = -np.cumsum(rng.uniform(0, 1e-5, (num_units, num_steps, 2)), axis=1)
@@ -63,7 +63,7 @@ def _toy_units(num_units=3, num_steps=1500, seed=0) -> UnitArrays:
     x[0, 5] = np.nan  # a flagged sample: not scored, not counted as covered
     lengths = np.array([num_steps, num_steps - 100, num_steps - 300], np.int32)
     w = np.tile(np.array([20_000.0, 0.5, 60.0, 500.0]), (num_units, num_steps, 1))
-    return UnitArrays(
+    return Padded(
         w=w, x=x, theta=theta, lengths=lengths, unit_ids=np.arange(1, num_units + 1)
     )
 

@@ -16,6 +16,7 @@ from support.paper_problem import paper_problem
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.calibrators.least_squares import LeastSquaresConfig
+from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import (
     evaluate_method,
     limit_units,
@@ -33,7 +34,6 @@ from jaxcal.paper.report import write_report
 from jaxcal.paper.simulate import gather_units, subset_units
 from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
 from jaxcal.problem import Problem
-from jaxcal.training.data import UnitArrays
 
 SENSORS = ("T24", "T30", "T48", "Nc")
 THETA = ("HPT_eff_mod",)
@@ -65,7 +65,7 @@ def _engine() -> LinearEngine:
     )
 
 
-def _units(engine, lengths=(30, 22), seed=1) -> UnitArrays:
+def _units(engine, lengths=(30, 22), seed=1) -> Padded:
     rng = np.random.default_rng(seed)
     num_steps = max(lengths)
     w = np.stack(
@@ -89,7 +89,7 @@ def _units(engine, lengths=(30, 22), seed=1) -> UnitArrays:
     full[..., HEALTH_NAMES.index("HPT_eff_mod")] = theta[..., 0]
     x_full, _ = engine.evaluate(jnp.asarray(w), jnp.asarray(full))
     cols = [SENSOR_NAMES.index(s) for s in SENSORS]
-    return UnitArrays(
+    return Padded(
         w=w,
         x=np.asarray(x_full)[..., cols],
         theta=theta,
@@ -98,7 +98,7 @@ def _units(engine, lengths=(30, 22), seed=1) -> UnitArrays:
     )
 
 
-def _problem(units: UnitArrays) -> Problem:
+def _problem(units: Padded) -> Problem:
     x = units.x[units.mask]
     return paper_problem("toy", SENSORS, THETA, [-0.02], [0.002], x.mean(0), x.std(0))
 

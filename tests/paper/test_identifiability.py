@@ -6,6 +6,7 @@ import pytest
 from flax import struct
 from support.paper_problem import paper_problem
 
+from jaxcal.data.padded import Padded
 from jaxcal.paper.identifiability import (
     identifiability_study,
     split_error,
@@ -17,7 +18,6 @@ from jaxcal.physics.constants import (
     health_index,
     sensor_index,
 )
-from jaxcal.training.data import UnitArrays
 
 SENSORS = ("T24", "T30", "T48", "Nc")
 THETA = ("HPT_eff_mod", "LPT_flow_mod")
@@ -46,7 +46,7 @@ def _setup(num_units=3, steps=6):
         "toy", SENSORS, THETA, np.full(2, -0.02), np.zeros(2), np.zeros(4), np.ones(4)
     )
     theta = rng.uniform(-0.02, 0.0, (num_units, 1, 2)).repeat(steps, axis=1)
-    units = UnitArrays(
+    units = Padded(
         w=rng.uniform(1.0, 2.0, (num_units, steps, 4)),
         x=np.zeros((num_units, steps, 4)),
         theta=theta,

@@ -15,9 +15,9 @@ import jax
 import numpy as np
 import pytest
 
+from jaxcal.data.padded import Padded
 from jaxcal.paper import npe, npe_steps
 from jaxcal.problem import Normalisation
-from jaxcal.training.data import UnitArrays
 
 ROOT = Path(__file__).resolve().parents[2]
 NOISE = 0.1
@@ -88,7 +88,7 @@ def test_features_and_training_pairs_use_valid_samples_and_the_norm():
         w_mean=np.array([1.0]), w_std=np.array([2.0]),
         x_mean=np.array([10.0, 0.0]), x_std=np.array([1.0, 4.0]),
     )  # fmt: skip
-    units = UnitArrays(
+    units = Padded(
         w=np.arange(6.0).reshape(2, 3, 1),
         x=np.arange(12.0).reshape(2, 3, 2),
         theta=np.arange(6.0).reshape(2, 3, 1),

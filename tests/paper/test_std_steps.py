@@ -14,25 +14,25 @@ import numpy as np
 import pytest
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
+from jaxcal.data.padded import Padded
 from jaxcal.paper.methods import make_method
 from jaxcal.paper.report import write_report
 from jaxcal.paper.std_steps import calib_std_step
 from jaxcal.paper.summary import GOALS, UKF_CALIB_STEP, issue_summary, summary_json
 from jaxcal.paper.tables import Results
-from jaxcal.training.data import UnitArrays
 
 SIGMA = np.array([2e-3, 5e-4])
 INFLATE = 30.0
 
 
-def _units(num_units, seed, num_steps=800) -> UnitArrays:
+def _units(num_units, seed, num_steps=800) -> Padded:
     rng = np.random.default_rng(seed)
     theta = -np.cumsum(rng.uniform(0, 1e-5, (num_units, num_steps, 2)), axis=1)
     x = theta + SIGMA * rng.standard_normal(theta.shape)
     lengths = np.full(num_units, num_steps, np.int32)
     lengths[0] -= 100  # a shorter unit: its padding is not scored
     w = np.tile(np.array([20_000.0, 0.5, 60.0, 500.0]), (num_units, num_steps, 1))
-    return UnitArrays(w=w, x=x, theta=theta, lengths=lengths,
+    return Padded(w=w, x=x, theta=theta, lengths=lengths,
                       unit_ids=np.arange(num_units) + 10 * seed)  # fmt: skip
 
 
@@ -49,7 +49,7 @@ def _toy_method():
     return make_method("toy", build, jnp.float32, {})
 
 
-def _suite(val: UnitArrays, test: UnitArrays):
+def _suite(val: Padded, test: Padded):
     method = _toy_method()
     return types.SimpleNamespace(
         method=lambda name: method,

@@ -95,9 +95,9 @@ def test_warm_stream_matches_the_scored_form(setup, warm):
 def test_policy_method_deploys_warm_without_a_noise_key(setup, warm):
     from types import SimpleNamespace
 
+    from jaxcal.data.padded import Padded
     from jaxcal.paper.compare import measure_latency
     from jaxcal.paper.methods import policy_method
-    from jaxcal.training.data import UnitArrays
 
     dyn, params, w, x = setup
     run = SimpleNamespace(
@@ -113,7 +113,7 @@ def test_policy_method_deploys_warm_without_a_noise_key(setup, warm):
         assert not has_prng_key(state)
         assert state.hint is not None  # the solver's warm start is carried
         np.testing.assert_array_equal(_run(cal, w, x)[0], warm[0])
-        units = UnitArrays(
+        units = Padded(
             w=w[None], x=x[None], theta=np.zeros((1, len(w), 2)),
             lengths=np.array([len(w)], np.int32), unit_ids=np.array([1]),
         )  # fmt: skip

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import jaxcal
-from jaxcal.training.data import UnitArrays, training_problem
+from jaxcal.data.padded import Padded
+from jaxcal.training.data import training_problem
 from jaxcal.training.sim_paths import drift_paths, estimated_drifts, theta_paths
 from jaxcal.training.simulated import parse_noise, simulate_units
 
@@ -30,7 +31,7 @@ def _units(num_units=6, rows=50, seed=0):
     lengths = np.full(num_units, rows, np.int32)
     lengths[0] = rows // 2
     x = np.zeros((num_units, rows, 2))
-    return UnitArrays(w, x, None, lengths, np.arange(1, num_units + 1))
+    return Padded(w, x, None, lengths, np.arange(1, num_units + 1))
 
 
 def test_theta_paths_stay_in_the_box_monotone_and_some_constant():
@@ -108,17 +109,35 @@ def test_parse_noise_pairs_or_ordered_values_else_a_clear_error():
 
 
 def test_any_model_default_preset_uses_labels_to_score_only():
-    from jaxcal.training.components import uses_gauss_newton
+    import dataclasses
+
+    from jaxcal.training.components import (
+        agent_config,
+        env_config,
+        uses_filter,
+        uses_gauss_newton,
+    )
     from jaxcal.training.config import ANY_MODEL_COPIES, make_train_config
 
     cfg = make_train_config("file", "default")
     assert cfg.dataset.labels == "score" and cfg.env.start == "prior"
     assert cfg.simulate.train == "both" and cfg.simulate.band == "simulated"
     assert cfg.simulate.copies == ANY_MODEL_COPIES and cfg.budget.select == "sim_theta"
-    assert cfg.simulate.paths == "data" and cfg.env.gauss_newton == "auto"
-    # "auto": the Gauss-Newton observation where the outputs determine theta
+    assert cfg.simulate.paths == "data" and cfg.env.gauss_newton == "filter"
+    # "filter": the Gauss-Newton observation and the filter's step (its share the
+    # untrained action) where the outputs determine theta, as "auto"
     assert uses_gauss_newton(cfg.env, 3, 2) and uses_gauss_newton(cfg.env, 2, 2)
-    assert not uses_gauss_newton(cfg.env, 1, 2)  # the battery: one voltage, R0 and Q
+    assert uses_filter(cfg.env, 2, 2) and cfg.env.filter_gain == 0.7
+    # the battery: one voltage, R0 and Q
+    assert not uses_gauss_newton(cfg.env, 1, 2) and not uses_filter(cfg.env, 1, 2)
+    env_cfg = env_config(cfg, 2, 3, 2)
+    assert env_cfg.gn_filter and env_cfg.observation_size == 3 + 1 + 2 + 2 + 2 + 2 + 1
+    # the filter's step sits just before the age: the actor's prior reads it there
+    assert agent_config(cfg, env_cfg).actor_prior == (13 - 2 - 1, 0.7)
+    auto_env = dataclasses.replace(cfg.env, gauss_newton="auto")
+    auto = dataclasses.replace(cfg, env=auto_env)
+    assert not env_config(auto, 2, 3, 2).gn_filter  # the runs trained before it
+    assert agent_config(auto, env_config(auto, 2, 3, 2)).actor_prior is None
     # the turbofan data sets and the other presets keep their formulation
     cmapss = make_train_config("cmapss", "default")
     assert cmapss.dataset.labels == "use" and cmapss.simulate.train == "data"
@@ -164,12 +183,14 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
     )
 
     # the layout of every incremental run saved before theta_start existed
-    # (the arrays a checkpoint holds; max_increment and gauss_newton are static)
+    # (the arrays a checkpoint holds; max_increment, gauss_newton and gn_filter are
+    # static, and x_noise, the filter's, is None there: no leaf)
     fields = dataclasses.fields(IncrementPolicyParams)
     leaves = [f.name for f in fields if f.metadata.get("pytree_node", True)]
     static = [f.name for f in fields if not f.metadata.get("pytree_node", True)]
-    assert leaves[-1] == "step_ref" and "theta_start" not in leaves
-    assert static == ["max_increment", "gauss_newton"]
+    assert leaves[-2:] == ["step_ref", "x_noise"] and "theta_start" not in leaves
+    assert next(f for f in fields if f.name == "x_noise").default is None
+    assert static == ["max_increment", "gauss_newton", "gn_filter"]
     fields = dict(
         actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
         x_mean=jnp.zeros(2), x_std=jnp.ones(2), theta_low=jnp.array([0.5, -1.0]),

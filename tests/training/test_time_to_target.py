@@ -14,9 +14,9 @@ from support.synthetic_file import write_synthetic_ncmapss
 from jaxcal.calibrators.interface import CalOutput
 from jaxcal.calibrators.uncertainty import UNCERTAINTY_FILE, load_band
 from jaxcal.cli.train import format_final
+from jaxcal.data.padded import Padded
 from jaxcal.runs.metrics_log import read_metrics
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data import UnitArrays
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.uncertainty_stage import fit_policy_band, time_to_target
 
@@ -98,7 +98,7 @@ def test_the_kept_policy_gets_a_band_measured_on_test_units(runs):
 
 def test_no_validation_units_means_no_band_and_a_note(tmp_path):
     # what run_training passes for a run without validation units (val_units=)
-    test = UnitArrays(
+    test = Padded(
         w=np.zeros((1, 30, 4)), x=np.zeros((1, 30, 2)), theta=np.zeros((1, 30, 1)),
         lengths=np.array([30]), unit_ids=np.array([4]),
     )  # fmt: skip

@@ -268,10 +268,15 @@ def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(traine
     np.testing.assert_allclose(result.theta[unit], theta[0], atol=1e-6)
 
 
-def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree():
+@pytest.mark.parametrize("gn_filter", [False, True])
+def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
+    gn_filter,
+):
     """env.gauss_newton on a model with memory: an actor that takes the observed
-    Gauss-Newton step (the state's sensitivity carried) drives theta to the truth on
-    noise-free data, and the deployed calibrator reproduces the env's thetas."""
+    Gauss-Newton step (the state's sensitivity carried; with ``gn_filter`` the
+    filter's step, which the observation holds last before the age) drives theta to
+    the truth on noise-free data, and the deployed calibrator reproduces the env's
+    thetas."""
     from jaxcal.calibrators.interface import run_fleet
     from jaxcal.calibrators.policy import make_policy_calibrator
     from jaxcal.calibrators.policy_params import policy_params_from_env
@@ -286,10 +291,11 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree()
     z_ref = reference_states(dyn, None, w, x, lengths, problem.theta_prior)
     params = make_env_params(w, x, lengths, low, high, None, z_ref=z_ref)
     step_ref = increment_step_ref(dyn, params, problem.theta_prior, 0.2)
-    params = params.replace(step_ref=jnp.asarray(step_ref))
+    noise = jnp.asarray(0.01 * np.asarray(params.x_std))
+    params = params.replace(step_ref=jnp.asarray(step_ref), x_noise=noise)
     cfg = EnvConfig(
         2, 2, 2, episode_length=20, action="increment", max_increment=0.2,
-        gauss_newton=True,
+        gauss_newton=True, gn_filter=gn_filter,
     )  # fmt: skip
     env = make_tracking_env(dyn, cfg)
 
@@ -297,7 +303,9 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree()
         def apply(self, _, obs):
             return jnp.arctanh(jnp.clip(0.5 * obs[-3:-1], -0.999, 0.999)), None
 
-    pp = policy_params_from_env(params, None, max_increment=0.2, gauss_newton=True)
+    pp = policy_params_from_env(
+        params, None, max_increment=0.2, gauss_newton=True, gn_filter=gn_filter
+    )
     cal = make_policy_calibrator(Actor(), dyn, pp)
     mask = jnp.ones((1, NUM_ROWS), bool)
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), mask)
@@ -305,6 +313,7 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree()
     np.testing.assert_allclose(theta[-1], truth, atol=1e-3)
     obs, state = env.reset_at(params, 0, 0)
     assert state.sens.shape == (1, 2)
+    assert (getattr(state, "cov", None) is not None) == gn_filter
     thetas = []
     for _ in range(8):  # a test loop over a few steps, not a hot path
         mean, _ = Actor().apply(None, obs)
