@@ -1,4 +1,4 @@
-"""Two models the project had not seen before issue 27, written as a user would.
+"""Three models the project had not seen before issue 27, written as a user would.
 
 * ``pump``: a centrifugal pump against a valve (static). The pump curve
   ``H = h0 (1 - wear) (n / n0)^2 - c Q^2`` (affinity laws; Gülich, *Centrifugal
@@ -13,6 +13,18 @@
   sample for constant inputs (first-order linear ODE). Conditions: voltage (V) and
   load torque (N m); parameters: winding resistance ``R`` (grows with temperature and
   ageing) and bearing friction ``b``; outputs: speed (rad/s) and current (A).
+
+* ``fan``: a ventilation fan blowing through a fouling filter and a damper (static,
+  three parameters). The fan curve ``p = p0 (1 - wear) (n / n0)^2 - c Q^2`` (fan
+  laws; Eck, *Fans*, 1973, ch. 2) meets the duct's ``p = k (1 + fouling) Q^2 / d^2``
+  with the damper opened to ``d``; the shaft power ``Q p / eta`` reaches the meter
+  through a drive that loses the share ``loss``. Conditions: speed (rpm) and damper
+  opening (-); parameters: blade ``wear``, filter ``fouling`` (added resistance, a
+  share of the clean duct's) and drive ``loss``; outputs: flow (m^3/s), pressure rise
+  (Pa) and electrical power (kW). Added after the filter step's gain was chosen, as
+  a check on a case nothing was tuned on. Its first version, with the duct's
+  resistance not floored, stopped every UKF step: the sigma points reach
+  ``fouling < -1``.
 
 ``make_fleet(name, ...)`` writes a fleet of units whose parameters drift at
 unit-specific rates, with Gaussian output noise of ``NOISE[name]``.
@@ -88,13 +100,51 @@ def motor_model() -> Model:
     )
 
 
-MODELS = {"pump": pump_model, "motor": motor_model}
+FAN_P0, FAN_N0, FAN_C, FAN_K, FAN_ETA = 800.0, 1200.0, 30.0, 40.0, 0.7  # Pa, rpm, ..
+
+
+def fan_outputs(w, theta):
+    """``[flow m^3/s, pressure Pa, power kW]`` of the fan at ``w = [speed, damper]``."""
+    speed, damper = w[0], w[1]
+    wear, fouling, loss = theta[0], theta[1], theta[2]
+    shut = FAN_P0 * (1.0 - wear) * (speed / FAN_N0) ** 2
+    # floored: the UKF's sigma points reach fouling < -1 (its prior 0.2 - sqrt(3) x
+    # 1.5), where the resistance would turn negative and the flow NaN; jaxcal's
+    # error said so ("outside the parameter bounds; make the model finite there")
+    duct = FAN_K * jnp.maximum(1.0 + fouling, 0.05) / damper**2
+    q = jnp.sqrt(shut / (FAN_C + duct))
+    pressure = duct * q**2
+    power = q * pressure / (FAN_ETA * (1.0 - 0.5 * wear)) / (1.0 - loss) / 1e3
+    return jnp.stack([q, pressure, power])
+
+
+def fan_model() -> Model:
+    """The fan as a static :class:`~jaxcal.model.Model` with three parameters."""
+    return Model.from_function(
+        fan_outputs,
+        conditions={"speed": "rpm", "damper": "-"},
+        parameters={
+            "wear": (0.02, 0.0, 0.4, "-"), "fouling": (0.2, 0.0, 3.0, "-"),
+            "loss": (0.1, 0.02, 0.4, "-"),
+        },  # fmt: skip
+        outputs={"flow": "m^3/s", "pressure": "Pa", "power": "kW"},
+        name="fan",
+        condition_range=([600.0, 0.3], [1500.0, 1.0]),
+    )
+
+
+MODELS = {"pump": pump_model, "motor": motor_model, "fan": fan_model}
 NOISE = {
     "pump": {"flow": 0.2, "head": 0.1, "power": 0.05},
     "motor": {"speed": 0.2, "current": 0.05},
+    "fan": {"flow": 0.03, "pressure": 4.0, "power": 0.03},
 }
-START = {"pump": ([0.0, 0.0], [0.05, 0.03]), "motor": ([0.8, 0.005], [1.0, 0.01])}
-RISE = {"pump": [0.25, 0.12], "motor": [0.6, 0.025]}  # growth over a unit's life
+START = {
+    "pump": ([0.0, 0.0], [0.05, 0.03]),
+    "motor": ([0.8, 0.005], [1.0, 0.01]),
+    "fan": ([0.0, 0.0, 0.08], [0.05, 0.3, 0.12]),
+}
+RISE = {"pump": [0.25, 0.12], "motor": [0.6, 0.025], "fan": [0.15, 1.5, 0.1]}
 
 
 def _schedule(rng, n, low, high):
@@ -133,8 +183,9 @@ def make_fleet(name: str, units: int = 12, rows: int = 300, seed: int = 0):
 
 def _simulate(model: Model, w, theta):
     w, theta = jnp.asarray(w), jnp.asarray(theta)
-    if model.name == "pump":
-        return np.asarray(jax.vmap(pump_outputs)(w, theta))
+    static = {"pump": pump_outputs, "fan": fan_outputs}
+    if model.name in static:
+        return np.asarray(jax.vmap(static[model.name])(w, theta))
 
     def body(z, inputs):
         return motor_step(z, *inputs)

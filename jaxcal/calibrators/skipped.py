@@ -6,8 +6,9 @@ formula breaks in part of the parameter box or of the conditions: fix the model 
 narrow its bounds), or the arithmetic of the update fails although the model is
 finite (a noise std so small that the filter's gain overflows: give a larger noise
 or use float64). :func:`model_nonfinite_note` tells them apart by evaluating the model
-at the flagged rows' conditions, at the nominal parameters and at each parameter's
-bounds; :func:`nothing_valid_error` is the error of a calibration that kept no row.
+at the flagged rows' conditions, at the nominal parameters, at each parameter's
+bounds and where the UKF's sigma points reach beyond them;
+:func:`nothing_valid_error` is the error of a calibration that kept no row.
 """
 
 from __future__ import annotations
@@ -22,16 +23,24 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.problem import Problem
 
 _STATE_NONFINITE = REASON_CODE["state_nonfinite"]
+# the note's ending when the model breaks only outside the parameter bounds
+OUTSIDE = ", outside the parameter bounds"
 
 
 def probe_thetas(problem: Problem) -> np.ndarray:
-    """``[2P + 1, P]``: the prior, then each parameter at its low and its high bound
-    with the others at the prior (the corners a filter's sigma points reach)."""
+    """``[4P + 1, P]``: the prior, then each parameter at its low and its high bound
+    with the others at the prior, then at the prior -+ ``sqrt(P)`` half-widths: where
+    the UKF's sigma points reach with its defaults (``prior_std`` 1 half-width,
+    ``alpha`` 1), beyond the bounds for a parameter whose prior is near one."""
     prior = problem.theta_prior
+    reach = np.sqrt(len(prior)) * problem.theta_half_width
     points = [prior]
     for j in range(len(prior)):
-        for bound in (problem.theta_low[j], problem.theta_high[j]):
-            points.append(np.where(np.arange(len(prior)) == j, bound, prior))
+        for value in (problem.theta_low[j], problem.theta_high[j]):
+            points.append(np.where(np.arange(len(prior)) == j, value, prior))
+    for j in range(len(prior)):
+        for value in (prior[j] - reach[j], prior[j] + reach[j]):
+            points.append(np.where(np.arange(len(prior)) == j, value, prior))
     return np.stack(points)
 
 
@@ -102,10 +111,13 @@ def model_nonfinite_note(
     th = ", ".join(
         f"{n}={v:.6g}" for n, v in zip(problem.theta_names, theta[first], strict=True)
     )
+    outside = np.any(
+        (theta[first] < problem.theta_low) | (theta[first] > problem.theta_high)
+    )
     return (
         f"the model returns non-finite outputs on {int(bad.sum())} of "
         f"{data.num_rows} rows (first: row {int(data.row[r])}, unit "
-        f"{int(data.unit[r])}, w=({w}), theta=({th}))"
+        f"{int(data.unit[r])}, w=({w}), theta=({th}))" + (OUTSIDE if outside else "")
     )
 
 
@@ -130,6 +142,12 @@ def nothing_valid_error(
             "check the data's columns and units against the model's condition range"
         )
     note = model_nonfinite_note(problem, data, reason, dtype)
+    if note is not None and note.endswith(OUTSIDE):
+        return ValueError(
+            f"{message}: {note}; make the model finite there (the UKF's sigma points "
+            "reach sqrt(P) prior stds past the prior, beyond the bounds), or give the "
+            "UKF a smaller prior_std"
+        )
     if note is not None:
         return ValueError(
             f"{message}: {note}; fix the model there or narrow the parameter bounds"

@@ -209,6 +209,24 @@ def test_a_model_nan_in_part_of_the_box_is_named_as_the_cause(frame):
         jaxcal.calibrate(model, frame, "ukf")
 
 
+def _nan_below_box(w, theta):
+    """The tank, NaN where the loss is below -0.05: outside its box [0, 0.5] only,
+    where the UKF's sigma points reach (prior 0.1 - sqrt(2) x 0.25)."""
+    return jnp.where(theta[1] < -0.05, jnp.nan, 1.0) * tank(w, theta)
+
+
+def test_a_model_nan_only_beyond_its_bounds_is_named_with_the_sigma_points(frame):
+    model = tank_model(_nan_below_box, "nan_below_box")
+    # main: "the model is finite at these rows ... a noise std ... too small"
+    with pytest.raises(
+        ValueError,
+        match=r"calibrate: every one of the 160 rows was skipped.*non-finite outputs "
+        r"on 160 of 160 rows .*theta=\(leak=1, loss=-0.25\d*\)\), outside the "
+        r"parameter bounds; make the model finite there \(the UKF's sigma points",
+    ):
+        jaxcal.calibrate(model, frame, "ukf", noise=GIVEN)
+
+
 def test_a_model_nan_on_some_rows_is_counted_and_named(frame):
     model = tank_model(_nan_at_low_flow, "nan_at_low_flow")
     low = (frame.inflow < 0.8).to_numpy()
