@@ -289,7 +289,7 @@ def make_actor_critic(
     _check_state_type(spec, multipliers)
     learners = _Learners(
         networks=make_networks(cfg, action_size),
-        actor_optimizer=optax.adam(_actor_learning_rate(cfg)),
+        actor_optimizer=optax.adam(cfg.actor_lr),
         critic_optimizer=optax.adam(cfg.critic_lr),
         multipliers=multipliers,
         multiplier_optimizers=tuple(optax.adam(m.learning_rate) for m in multipliers),
@@ -304,15 +304,3 @@ def make_actor_critic(
     actor = learners.networks.actor
     return Agent(init, make_act(actor), update, observation_size, action_size)
 
-
-def _actor_learning_rate(cfg: _ActorCriticConfig):
-    """The actor's Adam learning rate: ``actor_lr``, or with ``actor_delay`` zero for
-    that many updates first (the critic learns the returns of the actor's prior
-    before the actor follows its gradient; an untrained critic pulls a working
-    prior off at once)."""
-    if not cfg.actor_delay:
-        return cfg.actor_lr
-    return optax.join_schedules(
-        [optax.constant_schedule(0.0), optax.constant_schedule(cfg.actor_lr)],
-        [cfg.actor_delay],
-    )

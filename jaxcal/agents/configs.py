@@ -60,9 +60,6 @@ class _ActorCriticConfig:
     # step of env.gauss_newton=filter, set by the training from the env; residual
     # policy learning: Silver et al. 2018, arXiv:1812.06298). None: no prior.
     actor_prior: tuple[int, float] | None = None
-    # Updates before the actor's first step (its learning rate is 0 until then);
-    # with a prior the critic first learns what the prior's actions return.
-    actor_delay: int = 0
 
     def __post_init__(self) -> None:
         for name in ("actor_hidden_sizes", "critic_hidden_sizes"):
