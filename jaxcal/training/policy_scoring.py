@@ -108,11 +108,14 @@ def make_policy_scoring(
         if select_units is not None:
             out = run(select_units, params)
             width = problem.theta_high - problem.theta_low
-            scores["sim_theta_rmse"], _ = theta_rmse(
+            scores["sim_theta_rmse"], each = theta_rmse(
                 out.theta / width,
                 select_units.theta / width,
                 scored_mask(select_units, out),
             )
+            # per parameter too (logged, not selected on): which one a chunk moves
+            for name, value in zip(problem.theta_names, each, strict=True):
+                scores[f"sim_theta_rmse_{name}"] = float(value)
         return scores
 
     def test_reporter(agent_state) -> dict:

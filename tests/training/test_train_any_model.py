@@ -235,3 +235,42 @@ def test_a_feedback_run_gated_by_an_absolute_run(trained, csv, tmp_path):
     (bare / "uncertainty.json").unlink()
     with pytest.raises(ValueError, match="no uncertainty.json"):
         jaxcal.calibrate(MODEL, csv, run=runs / "inc", anchor=bare, **opts)
+
+
+def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path):
+    """The default preset on unlabelled data (small budget): the policy observes the
+    filter's step and starts as 0.7 of it; the untrained policy is scored as chunk
+    0, every scoring logs each parameter's simulated error, and the deployed policy
+    carries the filter (its noise, its covariance) and the actor's prior."""
+    from jaxcal.deploy.loading import load_run
+    from jaxcal.runs.metrics_log import read_metrics
+
+    path = tmp_path / "nolabel.csv"
+    _frame(labels=False).to_csv(path, index=False)
+    small = (
+        "budget.num_chunks=2", "runner.num_envs=4", "runner.num_steps_per_chunk=40",
+        "runner.warmup_steps=80", "runner.min_buffer_size=80", "runner.batch_size=32",
+        "env.episode_length=10", "simulate.copies=2",
+    )  # fmt: skip
+    argv = [
+        a for a in _argv(path, tmp_path / "runs", "name=filt", "noise=1e-3,1e-3,1e-3")
+        if a != "preset=smoke"
+    ]
+    assert train_main([*argv, "preset=default", *small]) == 0
+    run_dir = tmp_path / "runs" / "filt"
+    records = read_metrics(run_dir / "metrics.jsonl")
+    assert [r["step"] for r in records] == [0, 1, 2]
+    for r in records:
+        assert {"val_sim_theta_rmse_p", "val_sim_theta_rmse_q"} <= set(r)
+        assert r["val_sim_theta_rmse"] > 0
+    loaded = load_run(run_dir)
+    assert loaded.params.gn_filter and loaded.params.gauss_newton
+    # the filter's R: the noise the training data carry (provisional: 1 % of each
+    # output's spread), not noise= (measured worse: results/policy_any_model)
+    stored = json.loads((run_dir / "data.json").read_text())["problem"]
+    assert stored["noise_source"].startswith("provisional")
+    np.testing.assert_allclose(loaded.params.x_noise, stored["noise_std"], rtol=1e-6)
+    obs_size = 3 + 1 + 2 + 2 + 2 + 2 + 1  # residual, |r|, w, theta, GN, filter, age
+    assert loaded.actor.prior == (obs_size - 2 - 1, 0.7)
+    result = jaxcal.calibrate(MODEL, path, method="policy", run=run_dir)
+    assert result.valid.all() and np.isfinite(result.theta_std).all()
