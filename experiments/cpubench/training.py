@@ -41,6 +41,7 @@ from jaxcal.agents.configs import CLACConfig, SACConfig
 from jaxcal.agents.sac import make_sac
 from jaxcal.envs.gym_wrapper import TrackingGymEnv
 from jaxcal.envs.tracking import EnvConfig, make_env_params, make_tracking_env
+from jaxcal.problem import Normalisation
 from jaxcal.surrogate.model import (
     SurrogateConfig,
     init_surrogate_params,
@@ -81,7 +82,8 @@ def make_problem(sizes: TrainingSizes, seed: int = 0):
     dyn = init_surrogate_params(
         jax.random.key(seed), CONDITIONS, SENSORS, PARAMS, SurrogateConfig()
     )
-    params = make_env_params(w, x, lengths, [-0.02], [0.0], dyn)
+    stats = Normalisation.of(w.reshape(-1, CONDITIONS), x.reshape(-1, SENSORS), None)
+    params = make_env_params(w, x, lengths, [-0.02], [0.0], dyn, stats=stats)
     cfg = EnvConfig(SENSORS, CONDITIONS, PARAMS, episode_length=sizes.episode_length)
     return make_tracking_env(surrogate_apply, cfg), params
 

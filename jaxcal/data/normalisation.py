@@ -30,14 +30,17 @@ class Normalisation(NamedTuple):
         computed in ``dtype`` (``None``: the arrays' own, so a float32 run keeps the
         exact float32 statistics it always had). A NaN (a missing output of a partial
         row) is left out of its column's statistics."""
+        return cls(*column_stats(w, dtype), *column_stats(x, dtype))
 
-        def stats(a):
-            a = np.asarray(a, dtype)
-            if np.isnan(a).any():  # host branch: complete data keep their exact bits
-                mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
-            else:
-                mean, std = a.mean(axis=0), a.std(axis=0)
-            tiny = std <= CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
-            return mean, np.where(tiny, 1.0, std).astype(a.dtype)
 
-        return cls(*stats(w), *stats(x))
+def column_stats(a: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean, std)`` of each column of ``a [N, C]`` in ``dtype`` (``None``: the
+    array's own), NaN left out, a constant column's std 1: the arithmetic of
+    :meth:`Normalisation.of`."""
+    a = np.asarray(a, dtype)
+    if np.isnan(a).any():  # host branch: complete data keep their exact bits
+        mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
+    else:
+        mean, std = a.mean(axis=0), a.std(axis=0)
+    tiny = std <= CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
+    return mean, np.where(tiny, 1.0, std).astype(a.dtype)

@@ -3,7 +3,8 @@
 Everything a traced step of :mod:`jaxcal.envs.tracking` reads lives here, so that a
 new data set, surrogate or reference state track is new input to the compiled
 environment, not a recompilation. Built host-side by :func:`make_env_params`, which
-checks every field and names the offending one.
+checks every field and names the offending one. The normalisation is given, never
+computed here: a run's is its problem's (:class:`~jaxcal.problem.Problem` ``norm``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ class EnvParams:
         w: [U, T, W] operating conditions (physical units), padded after ``lengths``.
         x: [U, T, S] observed outputs (physical units), padded after ``lengths``.
         lengths: [U] int32 valid rows per unit (rows t < lengths[u] are data).
-        w_mean, w_std: [W] normalisation of w (training statistics).
+        w_mean, w_std: [W] normalisation of w (training statistics: the problem's
+            ``norm`` in the data's dtype).
         x_mean, x_std: [S] normalisation of x and x-hat; x_std is also the cost's sigma.
         theta_low, theta_high: [P] action box.
         dyn_params: pytree passed to ``dynamics`` (surrogate weights, engine constants).
@@ -58,27 +60,6 @@ class EnvParams:
     x_noise: Array | None = None
 
 
-def compute_norm_stats(w: Array, x: Array, lengths: Array) -> Normalisation:
-    """Mean and std over the valid rows of all units (host-side, numpy).
-
-    A feature with std below 1e-12 relative to its scale (a constant channel) gets
-    std = 1 so that normalisation never divides by zero
-    (:meth:`Normalisation.of`). The statistics are computed in the data's own dtype:
-    a float32 run normalises with exactly the float32 statistics it always had.
-
-    Args:
-        w: [U, T, W]; x: [U, T, S]; lengths: [U].
-
-    Returns:
-        The problem's :class:`~jaxcal.problem.Normalisation`, arrays in the data's
-        dtype.
-    """
-    w, x, lengths = np.asarray(w), np.asarray(x), np.asarray(lengths)
-    valid = np.arange(x.shape[1])[None, :] < lengths[:, None]
-    stats = Normalisation.of(w[valid], x[valid], dtype=None)
-    return Normalisation(*(jnp.asarray(a) for a in stats))
-
-
 def make_env_params(
     w: Array,
     x: Array,
@@ -87,7 +68,7 @@ def make_env_params(
     theta_high: Array,
     dyn_params: PyTree,
     *,
-    stats: Normalisation | None = None,
+    stats: Normalisation,
     z_ref: Array | None = None,
     step_ref: Array | None = None,
     x_target: Array | None = None,
@@ -99,9 +80,9 @@ def make_env_params(
         lengths: [U] valid rows per unit, 2 <= lengths[u] <= T.
         theta_low, theta_high: [P] action box, theta_low < theta_high.
         dyn_params: the dynamics' parameters.
-        stats: normalisation statistics (the problem's ``norm``); ``None`` computes
-            them from (w, x). Pass the training set's statistics when building
-            test/held-out parameters. They are cast to the data's dtype.
+        stats: the normalisation (a run's: its problem's ``norm``, the training
+            units' statistics, for test and held-out units too), cast to the
+            data's dtype.
         z_ref: ``[U, T, Z]`` reference model states, finite on valid rows;
             ``None``: a static model (no state).
         step_ref: ``[P]`` positive gate scale of incremental actions; ``None``:
@@ -127,8 +108,6 @@ def make_env_params(
             f"theta_low and theta_high must be [P] arrays with theta_low < theta_high, "
             f"got {low} and {high}"
         )
-    if stats is None:
-        stats = compute_norm_stats(w_np, x_np, lengths_np)
     _check_stats(stats, w_np.shape[-1], x_np.shape[-1])
     z_ref_np = None if z_ref is None else _checked_z_ref(z_ref, x_np, valid)
     if step_ref is not None:

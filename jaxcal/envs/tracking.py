@@ -48,7 +48,6 @@ from jaxcal.envs.env_config import (  # noqa: F401 (re-exported: the env's confi
 )
 from jaxcal.envs.env_data import (  # noqa: F401 (re-exported: the env's data)
     EnvParams,
-    compute_norm_stats,
     make_env_params,
 )
 from jaxcal.envs.env_state import (  # noqa: F401 (re-exported: the env's state)

@@ -156,6 +156,7 @@ def load_calibration_data(
     rename: dict[str, str] | None = None,
     log: Callable[[str], None] | None = None,
     model: Model | None = None,
+    norm_dtype=np.float64,
 ) -> CalibrationData:
     """Reads the train / val / test splits of an N-CMAPSS file.
 
@@ -175,8 +176,11 @@ def load_calibration_data(
         rename: ``{file column name: jaxcal name}`` (see
             :func:`~jaxcal.data.ncmapss_io.load_ncmapss`).
         log: where the dropped-row summary goes (``None``: not printed).
-        model: the turbofan model (``None``: the engine the file names, through
-            ``jaxcal.models.load``).
+        model: the turbofan model (``None``: the engine the file names,
+            :func:`file_model`).
+        norm_dtype: the dtype the problem's normalisation is computed in (a
+            training run's: :func:`jaxcal.training.run_data.run_dtype`;
+            :func:`~jaxcal.training.calibration_data.training_norm`).
 
     Returns:
         :class:`CalibrationData`.
@@ -204,11 +208,11 @@ def load_calibration_data(
     theta_low, theta_high = labelled_box(dev.theta[:, theta_idx], theta_margin)
     dev_fleet = _pad(dev, theta_idx)
     is_val = np.isin(dev_fleet.unit_ids, val_ids)
-    model = _file_model(info) if model is None else model
+    model = file_model(info) if model is None else model
     train = _take(dev_fleet, ~is_val)
     problem = training_problem(
         model, train, theta_names, sensors, dev.theta.mean(axis=0), theta_low,
-        theta_high,
+        theta_high, norm_dtype,
     )  # fmt: skip
     units = {"train": train_ids, "val": val_ids, "test": test_ids}
     return CalibrationData(
@@ -280,8 +284,9 @@ def _take(fleet: Padded, mask: np.ndarray) -> Padded:
     )
 
 
-def _file_model(info: dict) -> Model:
-    """The turbofan the file names (its ``engine`` attribute), else ``cmapss``."""
+def file_model(info: dict) -> Model:
+    """The turbofan the file (its :func:`~jaxcal.data.ncmapss_io.ncmapss_info`)
+    names (its ``engine`` attribute), else ``cmapss``."""
     from jaxcal.models import load
 
     engine = _json_attr(info["attrs"], "engine")

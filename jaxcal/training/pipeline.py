@@ -11,10 +11,12 @@
    scope does not leak into training), then the train / val / test units and the one
    :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
    file through :mod:`jaxcal.training.data`, any model's rows through
-   :mod:`jaxcal.training.tables`). Only then, every check of the config and the data
-   passed, is the run folder created with its ``config.json``
-   (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that fails leaves
-   nothing behind that would block the corrected command;
+   :mod:`jaxcal.training.tables`), with the run's one normalisation, computed there
+   in the run's dtype (:func:`run_dtype`) and carried unchanged to the
+   environment, the deployed policy and ``data.json``. Only then, every check of
+   the config and the data passed, is the run folder created with its
+   ``config.json`` (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that
+   fails leaves nothing behind that would block the corrected command;
 3. the surrogate D is fitted on the training units' transitions or restored
    (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it; data
    without true theta fit it on units simulated from the model
@@ -71,7 +73,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax
-import numpy as np
 
 from jaxcal.problem import Problem
 from jaxcal.runs.folder import (
@@ -103,11 +104,12 @@ from jaxcal.training.run_data import (  # noqa: F401 (re-exported)
     ensure_data_file,
     model_spec,
     read_run_data,
+    run_dtype,
 )
 from jaxcal.training.scoring import describe_units
 from jaxcal.training.simulated import Simulations, parse_noise
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
-from jaxcal.training.train_env import make_training_env, with_env_norm
+from jaxcal.training.train_env import make_training_env
 from jaxcal.training.uncertainty_stage import fit_policy_band
 
 
@@ -158,8 +160,7 @@ def run_training(
     model = problem.model
     check_dynamics(cfg.dynamics, model)  # a model with memory: physics only
     parse_noise(cfg.noise, problem.output_names)  # checked before any write
-    # float64 only around a model that needs it; everything else in float32
-    dtype = np.float64 if cfg.dynamics == "physics" and model.x64 else np.float32
+    dtype = run_dtype(cfg, model)  # the dtype data.problem.norm was computed in
     log(
         f"model {model.name!r}; data {path}: theta {list(data.theta_names)} in "
         f"[{', '.join(f'{v:.4g}' for v in data.theta_low)}] .. "
@@ -193,14 +194,14 @@ def _train(
 ) -> dict:
     """The job of :func:`run_training` once its checks passed and it holds the run:
     surrogate, policy, test scores, band; returns the ``final.json`` dict."""
-    model = data.problem.model
+    problem = data.problem  # its normalisation the run's one, never replaced
+    model = problem.model
     key_surrogate, key_runner = jax.random.split(jax.random.key(cfg.seed))
     sims = Simulations(cfg, data, log)
     dyn_params, surrogate_report = _fit_dynamics(
         cfg, key_surrogate, data, sims, run_dir, log
     )
     train_params = make_training_env(cfg, data, sims, dyn_params, dtype, log)
-    problem = with_env_norm(data.problem, train_params)
     write_json(run_dir / DATA_FILE, _data_record(cfg, problem, data, model_record))
     env_cfg = env_config(
         sims.with_noise_floor(cfg),

@@ -29,6 +29,7 @@ import numpy as np
 from jaxcal.calibrators.e2e_sim import simulate_fleet
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
+from jaxcal.training.calibration_data import output_spread
 from jaxcal.training.sim_paths import (
     drift_paths,
     estimated_drifts,
@@ -289,17 +290,19 @@ class Simulations:
 
     def with_noise_floor(self, cfg):
         """``cfg`` with the log cost's floor at the noise (``simulate.cost_floor=
-        noise``): the RMS of the noise std in the cost's normalised units. Below the
-        noise a simulated target's error is no longer worth a log-scale reward: a
-        floor of 1e-4 made the policy trade the noise averaging of the steady state
-        for speed (``results/policy_any_model``)."""
+        noise``): the RMS of the noise std in the cost's normalised units, here each
+        output's float64 spread over the training units
+        (:func:`~jaxcal.training.calibration_data.output_spread`, as it always was;
+        the run's normalisation, in the run's dtype, differs from it in the last
+        digits). Below the noise a simulated target's error is no longer worth a
+        log-scale reward: a floor of 1e-4 made the policy trade the noise averaging
+        of the steady state for speed (``results/policy_any_model``)."""
         if self.cfg.train == "data" or self.cfg.cost_floor != "noise":
             return cfg
         import dataclasses
 
-        problem = self.problem()
-        x_std = np.asarray(problem.norm.x_std, np.float64)
-        floor = float(np.sqrt(np.mean((problem.noise_std / x_std) ** 2)))
+        spread = output_spread(self.data.train)
+        floor = float(np.sqrt(np.mean((self.problem().noise_std / spread) ** 2)))
 
         self.used["cost_floor"] = f"{floor:.3g}"
         return dataclasses.replace(

@@ -193,6 +193,7 @@ def load_table_data(
     use_labels: bool = True,
     nonfinite: str = "error",
     rename: dict[str, str] | None = None,
+    norm_dtype=np.float64,
 ) -> CalibrationData:
     """Any model's data file (or Dataset) as :class:`CalibrationData`.
 
@@ -208,6 +209,8 @@ def load_table_data(
             ``theta`` from the labels (``False``: the model's bounds and nominal
             values; the labels only score).
         nonfinite, rename: the reader's (``"error"`` / ``"drop"``; column renames).
+        norm_dtype: the dtype the problem's normalisation is computed in (a
+            training run's: :func:`jaxcal.training.run_data.run_dtype`).
 
     Raises:
         ValueError: unreadable data, names that do not match the model, a bad
@@ -231,7 +234,7 @@ def load_table_data(
     }
     _check_lengths(data.source, splits)
     problem = training_problem(
-        model, splits["train"], theta, data.output_names, base, low, high
+        model, splits["train"], theta, data.output_names, base, low, high, norm_dtype
     )
     return CalibrationData(
         train=splits["train"],

@@ -3,27 +3,25 @@
 :func:`make_training_env` takes the run's training fleet (the data's training units,
 their simulated copies or both: :meth:`jaxcal.training.simulated.Simulations.
 training_fleet`) and makes the :class:`~jaxcal.envs.tracking.EnvParams` the policy
-learns on: the normalisation, in the run's dtype, over the real training units; for a
-model with memory the label-free reference states along each unit; for incremental
-actions the step gate (:func:`jaxcal.envs.increment.increment_step_ref`).
-:func:`with_env_norm` gives the run's problem that normalisation, the one the
-deployed policy reads.
+learns on: the problem's normalisation (the run's one, computed in the run's dtype
+over the real training units when its data were read:
+:func:`jaxcal.training.calibration_data.training_norm`) cast to the run's dtype, exact;
+for a model with memory the label-free reference states along each unit; for
+incremental actions the step gate (:func:`jaxcal.envs.increment.increment_step_ref`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.padded import Padded
-from jaxcal.envs.env_data import compute_norm_stats
 from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvParams, make_env_params
-from jaxcal.problem import Normalisation, Problem
+from jaxcal.problem import Problem
 from jaxcal.training.components import make_dynamics, uses_filter, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import CalibrationData
@@ -38,16 +36,16 @@ def make_training_env(
     dtype,
     log: Callable[[str], None],
 ) -> EnvParams:
-    """The :class:`EnvParams` of the run's training fleet (its simulated units
-    normalised with the real training units' statistics, and their noise-free
-    outputs the cost's target when there are some); logs the step gate of
-    incremental actions."""
+    """The :class:`EnvParams` of the run's training fleet (normalised with the
+    problem's normalisation, the real training units' statistics, simulated units
+    too; their noise-free outputs the cost's target when there are some); logs the
+    step gate of incremental actions."""
     incremental = cfg.env.action == "increment"
     fleet, target = sims.training_fleet()
     train_params = training_env_params(
         fleet, data.problem, dyn_params, dtype, cfg.dynamics,
         cfg.env.max_increment if incremental else None,
-        x_target=target, stats_of=None if fleet is data.train else data.train,
+        x_target=target,
     )  # fmt: skip
     if incremental:
         log(
@@ -71,15 +69,6 @@ def make_training_env(
     return train_params
 
 
-def with_env_norm(problem: Problem, params: EnvParams) -> Problem:
-    """``problem`` with the normalisation of the environment ``params`` (float64
-    copies): what the deployed policy and the run's ``data.json`` read."""
-    norm = (params.w_mean, params.w_std, params.x_mean, params.x_std)
-    return dataclasses.replace(
-        problem, norm=Normalisation(*(np.asarray(a, np.float64) for a in norm))
-    )
-
-
 def training_env_params(
     units: Padded,
     problem: Problem,
@@ -88,21 +77,14 @@ def training_env_params(
     dynamics_kind: str,
     max_increment: float | None = None,
     x_target: np.ndarray | None = None,
-    stats_of: Padded | None = None,
 ) -> EnvParams:
     """The :class:`EnvParams` of ``units`` for ``dynamics_kind`` with ``dyn_params``
     (``max_increment``: incremental actions' largest step, ``None``: absolute
-    actions; ``x_target [U, T, S]``: the cost's target, ``None``: ``units.x``)."""
-    # The normalisation is computed here, in the run's dtype, as it always was: a
-    # float32 run keeps bit for bit the statistics (and so the training) it had.
-    # Simulated units are normalised with the real training units' statistics
-    # (``stats_of``), what the deployed policy sees.
+    actions; ``x_target [U, T, S]``: the cost's target, ``None``: ``units.x``),
+    normalised with ``problem.norm`` cast to ``dtype``: the run's normalisation,
+    computed in ``dtype`` when the problem was made, so the cast is exact and the
+    environment, the deployed policy and ``data.json`` share it bit for bit."""
     w, x = units.w.astype(dtype), units.x.astype(dtype)
-    stats = None
-    if stats_of is not None:
-        stats = compute_norm_stats(
-            stats_of.w.astype(dtype), stats_of.x.astype(dtype), stats_of.lengths
-        )
     z_ref = None  # a static model: Z = 0
     dyn = as_stateful(make_dynamics(dynamics_kind, problem))
     if problem.model.is_stateful:
@@ -118,7 +100,7 @@ def training_env_params(
         problem.theta_low.astype(dtype),
         problem.theta_high.astype(dtype),
         dyn_params,
-        stats=stats,
+        stats=problem.norm,
         z_ref=z_ref,
         x_target=None if x_target is None else x_target.astype(dtype),
     )

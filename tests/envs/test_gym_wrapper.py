@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from support.norm import own_norm
 
 from jaxcal.envs.gym_wrapper import TrackingGymEnv
 from jaxcal.envs.tracking import EnvConfig, make_env_params, make_tracking_env
@@ -20,7 +21,10 @@ def gym_env():
     rng = np.random.default_rng(1)
     w, x = rng.normal(size=(2, 20, W)), rng.normal(size=(2, 20, S))
     dyn = {"a": rng.normal(size=(S, W)), "b": rng.normal(size=(S, P))}
-    params = make_env_params(w, x, np.array([20, 15]), [0.0], [2.0], dyn)
+    lengths = np.array([20, 15])
+    params = make_env_params(
+        w, x, lengths, [0.0], [2.0], dyn, stats=own_norm(w, x, lengths)
+    )
     env = make_tracking_env(dynamics, EnvConfig(S, W, P, episode_length=EPISODE))
     return TrackingGymEnv(env, params, seed=0)
 

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.norm import own_norm
 
 from jaxcal.calibrators.interface import run_fleet
 from jaxcal.calibrators.policy import (
@@ -45,7 +46,9 @@ def setup():
     truth = np.array([0.3, -0.6])
     x = np.einsum("sp,p->s", A, truth)[None, None] + np.einsum("sw,utw->uts", B, w)
     low, high = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
-    params = make_env_params(w, x, np.array([T, T]), low, high, None)
+    params = make_env_params(
+        w, x, np.array([T, T]), low, high, None, stats=own_norm(w, x, np.array([T, T]))
+    )
     dyn = as_stateful(physics)
     step_ref = increment_step_ref(dyn, params, np.zeros(P), MAX_INC)
     params = params.replace(step_ref=jnp.asarray(step_ref))
@@ -313,7 +316,9 @@ def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_ag
     truth = np.array([0.3, -0.6])
     x = ((a_vec + c_vec * w) @ truth)[..., None]
     low, high = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
-    params = make_env_params(w, x, np.array([T, T]), low, high, None)
+    params = make_env_params(
+        w, x, np.array([T, T]), low, high, None, stats=own_norm(w, x, np.array([T, T]))
+    )
     step_ref = increment_step_ref(as_stateful(bilinear), params, np.zeros(P), MAX_INC)
     noise = 0.01 * np.asarray(params.x_std)
     params = params.replace(step_ref=jnp.asarray(step_ref), x_noise=jnp.asarray(noise))

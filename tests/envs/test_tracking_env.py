@@ -9,14 +9,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.norm import own_norm
 
 from jaxcal.envs.tracking import (
     EnvConfig,
     check_env_params,
-    compute_norm_stats,
     make_env_params,
     make_tracking_env,
 )
+from jaxcal.problem import Normalisation
 
 U, T, S, W, P = 3, 12, 3, 2, 2
 LENGTHS = np.array([12, 9, 5])
@@ -37,8 +38,9 @@ def tiny():
     w, x = np.where(valid, w, np.nan), np.where(valid, x, np.nan)
     dyn_params = {"b": jnp.asarray(rng.normal(size=(S, P))), "c": jnp.ones(S)}
     params = make_env_params(
-        w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]), dyn_params
-    )
+        w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]), dyn_params,
+        stats=own_norm(w, x, LENGTHS),
+    )  # fmt: skip
     env = make_tracking_env(
         dynamics,
         EnvConfig(sensor_dim=S, condition_dim=W, param_dim=P, episode_length=EPISODE),
@@ -154,30 +156,42 @@ def test_transition_gradient_is_stopped_unless_enabled(tiny):
     assert float(jnp.abs(jax.grad(lambda a: cost_of(open_env, a))(action)).sum()) > 0
 
 
-def test_norm_stats_use_valid_rows_only(tiny):
+def test_env_normalises_with_the_given_stats_only(tiny):
+    """The env never computes a normalisation: it takes the given one (a run's
+    problem's), cast to the data's dtype, and refuses a non-positive or missized
+    std."""
     _, params, w, x = tiny
-    valid = np.arange(T)[None] < LENGTHS[:, None]
-    np.testing.assert_allclose(params.x_mean, x[valid].mean(0))
-    np.testing.assert_allclose(params.w_std, w[valid].std(0))
-    constant = np.ones((1, 4, 1))
-    stats = compute_norm_stats(constant, constant, np.array([4]))
-    np.testing.assert_array_equal(stats.x_std, [1.0])
+    other = Normalisation(
+        np.array([1.5, -0.5]), np.array([2.0, 4.0]), np.full(S, 3.0), np.full(S, 0.5)
+    )
+    box = (np.array([0.0, -1.0]), np.array([1.0, 3.0]))
+    given = make_env_params(w, x, LENGTHS, *box, params.dyn_params, stats=other)
+    for name, value in other._asdict().items():
+        got = getattr(given, name)
+        assert got.dtype == jnp.asarray(x).dtype
+        np.testing.assert_array_equal(got, jnp.asarray(value, got.dtype))
+    for bad in (other._replace(x_std=np.zeros(S)), other._replace(w_std=np.ones(3))):
+        with pytest.raises(ValueError, match="stats"):
+            make_env_params(w, x, LENGTHS, *box, params.dyn_params, stats=bad)
+    with pytest.raises(TypeError, match="stats"):
+        make_env_params(w, x, LENGTHS, *box, params.dyn_params)
 
 
 def test_make_env_params_rejects_bad_input(tiny):
     _, params, w, x = tiny
     low, high = np.zeros(P), np.ones(P)
     dyn = params.dyn_params
+    stats = own_norm(w, x, LENGTHS)
     with pytest.raises(ValueError, match="lengths"):
-        make_env_params(w, x, np.array([12, 9, 13]), low, high, dyn)
+        make_env_params(w, x, np.array([12, 9, 13]), low, high, dyn, stats=stats)
     with pytest.raises(ValueError, match="theta_low"):
-        make_env_params(w, x, LENGTHS, high, low, dyn)
+        make_env_params(w, x, LENGTHS, high, low, dyn, stats=stats)
     with pytest.raises(ValueError, match=r"\[U, T, W\]"):
-        make_env_params(w[0], x, LENGTHS, low, high, dyn)
+        make_env_params(w[0], x, LENGTHS, low, high, dyn, stats=stats)
     bad = x.copy()
     bad[0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="finite"):
-        make_env_params(w, bad, LENGTHS, low, high, dyn)
+        make_env_params(w, bad, LENGTHS, low, high, dyn, stats=stats)
 
 
 def test_check_env_params_rejects_mismatch_and_short_units(tiny):
@@ -197,7 +211,7 @@ def test_cost_compares_with_x_target_when_given(tiny):
     target = np.where(np.isfinite(x), x + 0.25, np.nan)
     with_target = make_env_params(
         w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
-        params.dyn_params, x_target=target,
+        params.dyn_params, stats=own_norm(w, x, LENGTHS), x_target=target,
     )  # fmt: skip
     action = jnp.asarray([0.3, -0.2])
     costs, observations = [], []
@@ -213,5 +227,5 @@ def test_cost_compares_with_x_target_when_given(tiny):
     with pytest.raises(ValueError, match="x_target"):
         make_env_params(
             w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
-            params.dyn_params, x_target=target[:, :5],
+            params.dyn_params, stats=own_norm(w, x, LENGTHS), x_target=target[:, :5],
         )  # fmt: skip

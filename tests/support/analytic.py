@@ -22,6 +22,7 @@ from flax import struct
 from jaxcal.envs.tracking import make_env_params
 from jaxcal.problem import Normalisation
 from jaxcal.typedefs import Array, PRNGKey
+from support.norm import own_norm
 
 
 @struct.dataclass
@@ -163,7 +164,7 @@ def problem_env_params(
     Args:
         problem: the generated fleet.
         units: a slice or an index array selecting units.
-        stats: normalisation statistics (``None``: computed on the selected units; pass
+        stats: normalisation statistics (``None``: those of the selected units; pass
             the training units' statistics for held-out units).
 
     Returns:
@@ -176,5 +177,7 @@ def problem_env_params(
         problem.theta_low,
         problem.theta_high,
         problem.dyn_params,
-        stats=stats,
+        stats=own_norm(problem.w[units], problem.x[units], problem.lengths[units])
+        if stats is None
+        else stats,
     )

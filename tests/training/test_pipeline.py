@@ -14,11 +14,13 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.deploy import load_run
+from jaxcal.problem import Normalisation
 from jaxcal.runs.metrics_log import read_metrics
 from jaxcal.training.config import make_train_config, resolve_config
 from jaxcal.training.data import load_calibration_data
-from jaxcal.training.pipeline import ensure_data_file, run_training
+from jaxcal.training.pipeline import ensure_data_file, read_run_data, run_training
 from jaxcal.training.scoring import theta_rmse, tracking_rmse
+from jaxcal.training.train_env import training_env_params
 
 # Per-chunk wall-clock fields differ between runs by nature.
 TIMING = {"chunk_seconds", "updates_per_s", "env_steps_per_s", "includes_compile",
@@ -183,6 +185,34 @@ def test_checkpointed_policy_round_trips(resumed_and_straight, data_file):
     # The surrogate D restored from its checkpoint is the fitted one.
     leaves = jax.tree.leaves(run.params.dyn_params)
     assert leaves and all(np.all(np.isfinite(np.asarray(v))) for v in leaves)
+
+
+def test_a_run_carries_one_normalisation(resumed_and_straight):
+    """The normalisation is made once, when the run's data are read: in the run's
+    dtype (float32 here) over the training units' valid rows, stored as float64
+    copies. The environment, ``data.json`` and the deployed policy hold it bit for
+    bit: nothing recomputes or replaces it."""
+    runs, resumed, _, _ = resumed_and_straight
+    data = read_run_data(resumed)
+    norm, train = data.problem.norm, data.train
+    rows = train.mask
+    w, x = train.w.astype(np.float32)[rows], train.x.astype(np.float32)[rows]
+    for made, own in zip(norm, Normalisation.of(w, x, dtype=None), strict=True):
+        assert made.dtype == np.float64 and own.dtype == np.float32
+        np.testing.assert_array_equal(made, own.astype(np.float64))
+    env = training_env_params(train, data.problem, None, np.float32, "surrogate")
+    run = load_run(runs / "straight")
+    for name, value in norm._asdict().items():
+        cast = value.astype(np.float32)  # exact: a float32 value stored as float64
+        np.testing.assert_array_equal(cast.astype(np.float64), value)
+        for held in (getattr(env, name), getattr(run.params, name)):
+            assert held.dtype == np.float32
+            np.testing.assert_array_equal(np.asarray(held), cast)
+        np.testing.assert_array_equal(getattr(run.problem.norm, name), value)
+    # the provisional noise stays 1 % of each output's float64 spread
+    np.testing.assert_array_equal(
+        data.problem.noise_std, 0.01 * np.asarray(train.x, np.float64)[rows].std(0)
+    )
 
 
 def test_a_different_config_under_the_same_name_is_an_error(resumed_and_straight):

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
+from support.norm import own_norm
 
 import jaxcal
 from jaxcal.cli.evaluate import main as evaluate_main
@@ -187,7 +188,7 @@ def test_env_carries_the_model_state():
     np.testing.assert_allclose(z_ref[0], z_true, rtol=1e-6)
     params = make_env_params(
         w, x_noisy, lengths, np.array([0.3, 0.5]), np.array([0.95, 2.0]), None,
-        z_ref=z_ref,
+        stats=own_norm(w, x_noisy, lengths), z_ref=z_ref,
     )  # fmt: skip
     env = make_tracking_env(dyn, EnvConfig(2, 2, 2, episode_length=20))
     action = 2.0 * (truth - params.theta_low) / (params.theta_high - params.theta_low)
@@ -227,6 +228,7 @@ def test_static_env_transitions_are_those_of_before():
     params = make_env_params(
         w, x, np.array([8, 7]), np.zeros(2, np.float32), np.ones(2, np.float32),
         jnp.asarray(rng.normal(size=(2, 2)), jnp.float32),
+        stats=own_norm(w, x, np.array([8, 7])),
     )  # fmt: skip
     assert params.z_ref is None
     env = make_tracking_env(_static_dynamics, EnvConfig(2, 2, 2, episode_length=5))
@@ -289,7 +291,9 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
     x = x_clean[None]
     low, high = np.array([0.3, 0.5]), np.array([0.95, 2.0])
     z_ref = reference_states(dyn, None, w, x, lengths, problem.theta_prior)
-    params = make_env_params(w, x, lengths, low, high, None, z_ref=z_ref)
+    params = make_env_params(
+        w, x, lengths, low, high, None, stats=own_norm(w, x, lengths), z_ref=z_ref
+    )
     step_ref = increment_step_ref(dyn, params, problem.theta_prior, 0.2)
     noise = jnp.asarray(0.01 * np.asarray(params.x_std))
     params = params.replace(step_ref=jnp.asarray(step_ref), x_noise=noise)
