@@ -136,8 +136,8 @@ def _page(results: dict, opts: dict) -> str:
         + (f" and `{opts['args']}`" if opts.get("args") else "")
         + "; the labels score only. Job time: the training command's wall time. "
         "Kept chunk: the training chunk whose policy was kept (0: the untrained "
-        "policy, `env.filter_gain` of the filter's step, which no chunk beat on the "
-        "simulated validation units).",
+        "policy, the extended Kalman filter's step at `env.filter_gain`, which no "
+        "chunk beat on the simulated validation units).",
         "",
         "| model | parameter | UKF RMSE | LS RMSE | policy RMSE | policy / UKF | "
         "policy band 90 % coverage | UKF coverage | job s | kept chunk |",

@@ -87,6 +87,8 @@ def _train_policy(csv: str, opts: dict) -> float:
         f"output.runs_dir={opts['runs']}",
         # the noise the UKF is given: 2 mV sensor + ~18 mV ECM-vs-SPMe model error
         f"noise={UKF['noise']}",
+        # and its random walk and prior: the policy's filter step is the UKF's
+        f"env.filter_q={UKF['q']}", f"env.filter_prior_std={UKF['prior_std']}",
         *([f"budget.num_chunks={opts['chunks']}"] if opts["chunks"] else []),
     ]  # fmt: skip
     print("$ " + " ".join(command[1:]), flush=True)

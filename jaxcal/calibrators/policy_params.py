@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
+from jaxcal.envs.increment import FILTER_PRIOR_STD, FILTER_Q
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.typedefs import Array, PyTree
 
@@ -53,6 +54,10 @@ class IncrementPolicyParams(PolicyParams):
         gn_filter: it holds the filter's step (static; ``EnvConfig.gn_filter``).
         x_noise: ``[S]`` the measurement noise std the filter weighs the outputs
             by; ``None`` without ``gn_filter`` (the checkpoints before it).
+        filter_q: the filter's random walk per sample, half-widths of the box
+            (static; ``EnvConfig.filter_q``); ``filter_whole``: its feature is the
+            whole step (static; ``EnvConfig.filter_whole``); ``filter_prior_std``:
+            its prior std, half-widths of the box (static).
     """
 
     step_ref: Array
@@ -60,6 +65,9 @@ class IncrementPolicyParams(PolicyParams):
     gauss_newton: bool = struct.field(pytree_node=False, default=False)
     gn_filter: bool = struct.field(pytree_node=False, default=False)
     x_noise: Array | None = None
+    filter_q: float = struct.field(pytree_node=False, default=FILTER_Q)
+    filter_whole: bool = struct.field(pytree_node=False, default=False)
+    filter_prior_std: float = struct.field(pytree_node=False, default=FILTER_PRIOR_STD)
 
 
 @struct.dataclass
@@ -125,6 +133,9 @@ def policy_params_from_env(
     theta_start: Array | None = None,
     gauss_newton: bool = False,
     gn_filter: bool = False,
+    filter_q: float = FILTER_Q,
+    filter_whole: bool = False,
+    filter_prior_std: float = FILTER_PRIOR_STD,
 ) -> PolicyParams:
     """The deployment parameters of a policy trained on ``env_params``
     (``max_increment``: the env's, for incremental actions; ``theta_start``: where
@@ -149,6 +160,9 @@ def policy_params_from_env(
         gauss_newton=gauss_newton,
         gn_filter=gn_filter,
         x_noise=env_params.x_noise if gn_filter else None,
+        filter_q=filter_q,
+        filter_whole=filter_whole,
+        filter_prior_std=filter_prior_std,
     )
     if theta_start is None:
         return IncrementPolicyParams(**fields)

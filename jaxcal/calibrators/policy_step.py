@@ -69,6 +69,7 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
+    moved_state,
     step_with_sensitivity,
 )
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
@@ -173,7 +174,9 @@ def _initial_cov(params: PolicyParams) -> Array | None:
     """The filter step's first covariance (``gn_filter``), else ``None``."""
     if not getattr(params, "gn_filter", False):
         return None
-    return initial_filter_cov(params.theta_low.shape[-1], params.theta_low.dtype)
+    return initial_filter_cov(
+        params.theta_low.shape[-1], params.theta_low.dtype, params.filter_prior_std
+    )
 
 
 def _first_state(dyn, params: PolicyParams, state: PolicyState, z, w_t, x_t):
@@ -223,8 +226,9 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         filtered = None
         if params.gn_filter:
             cov, filtered = filter_feature(
-                state.cov, resid, jac, params, params.max_increment
-            )
+                state.cov, resid, jac, params, params.max_increment,
+                params.filter_q, params.filter_whole,
+            )  # fmt: skip
         extra = gauss_newton_features(
             resid, jac, state.count, params, params.max_increment,
             one_sample=params.gauss_newton, filtered=filtered,
@@ -251,6 +255,8 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         params.max_increment,
         params.step_ref,
     )
+    if params.filter_whole:
+        z = moved_state(z, sens, theta - state.theta)
     new_state = PolicyState(
         xhat=xhat,
         started=jnp.ones((), bool),

@@ -183,6 +183,9 @@ def _policy_target(cfg: TrainConfig, env_cfg, agent, dims, dtype):
             gauss_newton=env_cfg.gauss_newton,
             gn_filter=env_cfg.gn_filter,
             x_noise=jnp.ones(dims[1], dtype) if env_cfg.gn_filter else None,
+            filter_q=env_cfg.filter_q,
+            filter_whole=env_cfg.filter_whole,
+            filter_prior_std=env_cfg.filter_prior_std,
         )
         if getattr(cfg.env, "start", "centre") == "prior":
             start = jnp.zeros(dims[2], dtype)

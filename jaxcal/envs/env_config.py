@@ -13,6 +13,7 @@ import jax
 import numpy as np
 
 from jaxcal.envs.env_data import EnvParams
+from jaxcal.envs.increment import FILTER_PRIOR_STD, FILTER_Q
 
 
 def check_action_options(
@@ -61,6 +62,14 @@ class EnvConfig:
             Gauss-Newton step of the residual through the model's Jacobian and the
             stream's age (:func:`~jaxcal.envs.increment.gauss_newton_features`), so
             the network learns a gain schedule rather than the model's inverse.
+        gn_filter: it also holds an extended Kalman filter's step on theta
+            (:func:`~jaxcal.envs.increment.filter_feature`), whose random walk per
+            sample is ``filter_q`` half-widths of the box and its prior std
+            ``filter_prior_std`` half-widths; ``filter_whole``: a unit
+            gain on it is the filter's whole step at any residual (the gate
+            divided out), and on a model with memory the state moves with theta
+            (:func:`~jaxcal.envs.increment.moved_state`); ``False``: the gate's
+            small-residual slope and the state as simulated, the runs before it.
     """
 
     sensor_dim: int
@@ -74,6 +83,9 @@ class EnvConfig:
     cost_floor: float = 1e-4
     gauss_newton: bool = False
     gn_filter: bool = False
+    filter_q: float = FILTER_Q
+    filter_whole: bool = False
+    filter_prior_std: float = FILTER_PRIOR_STD
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):

@@ -117,20 +117,29 @@ def gauss_newton_features(
     return jnp.concatenate([*parts, old[None]])
 
 
-def initial_filter_cov(param_dim: int, dtype) -> Array:
+def initial_filter_cov(
+    param_dim: int, dtype, prior_std: float = FILTER_PRIOR_STD
+) -> Array:
     """A stream's first filter covariance ``[P, P]`` in half-box units (the UKF's
-    prior, :data:`FILTER_PRIOR_STD`)."""
-    return FILTER_PRIOR_STD**2 * jnp.eye(param_dim, dtype=dtype)
+    prior: ``prior_std``, default :data:`FILTER_PRIOR_STD`)."""
+    return prior_std**2 * jnp.eye(param_dim, dtype=dtype)
 
 
 def filter_feature(
-    cov: Array, resid: Array, jac: Array, params, max_increment: float
+    cov: Array,
+    resid: Array,
+    jac: Array,
+    params,
+    max_increment: float,
+    q: float = FILTER_Q,
+    whole: bool = False,
 ) -> tuple[Array, Array]:
     """``(cov', step [P])``: one extended Kalman filter update of theta, its step
     in the action's scale (as :func:`gauss_newton_feature`'s).
 
     The filter runs in half-box units ``u = theta / h`` (``h = (high - low) / 2``,
-    the UKF's ``theta_scale``) with a random walk :data:`FILTER_Q` per sample and
+    the UKF's ``theta_scale``) with a random walk ``q`` per sample (default
+    :data:`FILTER_Q`, the UKF's) and
     the noise ``params.x_noise`` ``[S]`` (output units; what the training passes,
     ``jaxcal.training.train_env.training_env_params``):
     ``P- = P + q^2 I``, ``S = J P- J^T + R``, ``K = P- J^T S^-1``, the step ``K r``
@@ -143,7 +152,7 @@ def filter_feature(
     half = 0.5 * (params.theta_high - params.theta_low)
     j = (jac * half[None, :]).astype(cov.dtype)
     eye = jnp.eye(cov.shape[0], dtype=cov.dtype)
-    pred = cov + FILTER_Q**2 * eye
+    pred = cov + q**2 * eye
     noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
     s = j @ pred @ j.T + noise
     gain = jnp.linalg.solve(s, j @ pred).T  # S symmetric: P- J^T S^-1
@@ -152,7 +161,13 @@ def filter_feature(
     new_cov = 0.5 * (new_cov + new_cov.T)
     delta = half * (gain @ (resid * params.x_std).astype(cov.dtype))
     norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
-    scale = params.step_ref / (
+    # The gated increment takes a share |r| / (|r| + n_ref) of the largest step:
+    # ``whole`` divides that gate out, so that a unit gain on the feature is the
+    # filter's step at any residual; without it (the runs before it) the feature
+    # inverts the gate's small-residual slope |r| / n_ref only, and a parameter
+    # with a small n_ref (the battery's capacity, 9e-4) took a hundredth of it
+    gate = norm + params.step_ref if whole else params.step_ref
+    scale = gate / (
         max_increment * (params.theta_high - params.theta_low) * (norm + _TINY)
     )
     return new_cov, jnp.clip(delta * scale, -10.0, 10.0)
@@ -215,6 +230,19 @@ def step_with_sensitivity(step, z, theta: Array, sens: Array | None):
     if sens is None:
         return (jac, None, *out)
     return (jac[1], jac[0], *out)
+
+
+def moved_state(z: Array | None, sens: Array | None, delta: Array) -> Array | None:
+    """``z + sens delta``: a model's state moved with a change ``delta`` ``[P]`` of
+    theta, to first order (``sens = dz / dtheta`` ``[Z, P]``), as the extended Kalman
+    filter's joint state moves with its parameters through their cross-covariance:
+    the state then stays the one the current theta would have made. Without it a
+    parameter that acts through the state (a battery's capacity, through the
+    charge it integrates) keeps the error of every past theta in the state, and the
+    filter overshoots to explain it. ``z`` unchanged without a sensitivity."""
+    if z is None or sens is None:
+        return z
+    return z + (sens @ delta.astype(sens.dtype)).astype(z.dtype)
 
 
 def apply_increment(

@@ -61,6 +61,7 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
+    moved_state,
     step_with_sensitivity,
 )
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
@@ -198,7 +199,9 @@ def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov):
     if not cfg.gn_filter:
         return None, None
     resid = (_row(params.x, params, unit, time) - xhat) / params.x_std
-    out = filter_feature(cov, resid, jac, params, cfg.max_increment)
+    out = filter_feature(
+        cov, resid, jac, params, cfg.max_increment, cfg.filter_q, cfg.filter_whole
+    )
     return jax.lax.stop_gradient(out)
 
 
@@ -280,7 +283,9 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             z, xhat, jac, sens = _predict_first(cfg, dyn, params, unit, time, theta)
         cov, filtered = None, None
         if cfg.gn_filter:
-            prior = initial_filter_cov(cfg.param_dim, params.theta_low.dtype)
+            prior = initial_filter_cov(
+                cfg.param_dim, params.theta_low.dtype, cfg.filter_prior_std
+            )
             cov, filtered = _filtered(cfg, params, unit, time, xhat, jac, prior)
         state = make_env_state(
             unit=unit,
@@ -308,6 +313,8 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         w_next = _row(params.w, params, state.unit, time)
         z = getattr(state, "z", None)  # None: a static model's EnvState
         sens = getattr(state, "sens", None)  # with gauss_newton on a model with memory
+        if cfg.filter_whole:
+            z = moved_state(z, sens, theta - state.theta)
         z, xhat, jac, sens = _model_step(
             cfg, dyn, params, z, w_next, state.xhat, theta, sens
         )

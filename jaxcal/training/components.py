@@ -69,7 +69,10 @@ def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvC
         cost=cfg.env.cost,
         cost_floor=cfg.env.cost_floor,
         gauss_newton=uses_gauss_newton(cfg.env, sensor_dim, param_dim),
-        gn_filter=uses_filter(cfg.env, sensor_dim, param_dim),
+        gn_filter=uses_filter(cfg.env),
+        filter_q=cfg.env.filter_q,
+        filter_whole=cfg.env.filter_whole,
+        filter_prior_std=cfg.env.filter_prior_std,
     )
 
 
@@ -93,16 +96,14 @@ def agent_config(cfg, env_cfg: EnvConfig):
     return dataclasses.replace(cfg.agent, actor_prior=prior)
 
 
-def uses_filter(env, sensor_dim: int, param_dim: int) -> bool:
-    """``env.gauss_newton=filter``: the observation also holds the filter's step
-    (:func:`~jaxcal.envs.increment.filter_feature`), where ``auto`` turns the
-    Gauss-Newton step on. With fewer outputs than parameters it measured far
-    worse (the battery: the filter moves theta only, while the voltage's error
-    there is mostly the state of charge, which the UKF estimates jointly:
-    ``results/policy_any_model``)."""
-    return env.gauss_newton == "filter" and uses_gauss_newton(
-        env, sensor_dim, param_dim
-    )
+def uses_filter(env) -> bool:
+    """``env.gauss_newton=filter`` with incremental actions: the observation also
+    holds the filter's step (:func:`~jaxcal.envs.increment.filter_feature`),
+    whatever the outputs' count. Unlike one sample's Gauss-Newton step (``auto``:
+    outputs >= parameters), the filter gathers what the stream tells over time:
+    the battery's one voltage tells R0 and Q apart, with the filter's random
+    walk ``env.filter_q`` at the UKF's (``results/policy_any_model``)."""
+    return env.gauss_newton == "filter" and env.action == "increment"
 
 
 def make_dynamics(kind: str, problem: Problem) -> Dynamics | StatefulDynamics:

@@ -313,11 +313,12 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     after each; the kept one has the
     lowest theta RMSE on simulated validation units, and its band is fitted on
     simulated units, both along the theta drifts the UKF finds in the data
-    (``simulate.paths=data``); where the outputs determine theta, the policy
-    observes the residual's Gauss-Newton step, an extended Kalman filter's step on
-    theta and the stream's age, and its untrained action is ``env.filter_gain`` of
-    the filter's step (``env.gauss_newton=filter``; measured:
-    ``results/policy_any_model/README.md``). The other
+    (``simulate.paths=data``); the policy observes an extended Kalman filter's step
+    on theta (and, where the outputs determine theta, the residual's Gauss-Newton
+    step) and the stream's age, and its untrained action is the filter's step
+    whole (``env.gauss_newton=filter``, ``env.filter_gain=1``,
+    ``env.filter_whole``; measured: ``results/policy_any_model/README.md``). The
+    other
     presets keep their formulation; without labels they fit D and the band on
     simulated units as well.
     """
@@ -326,7 +327,9 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     return dataclasses.replace(
         cfg,
         dataset=dataclasses.replace(cfg.dataset, labels="score"),
-        env=dataclasses.replace(cfg.env, start="prior", gauss_newton="filter"),
+        env=dataclasses.replace(
+            cfg.env, start="prior", gauss_newton="filter", filter_whole=True
+        ),
         simulate=SimulationConfig(
             train="both",
             band="simulated",

@@ -96,6 +96,9 @@ def make_policy_scoring(
             train_params, actor, max_increment=max_increment, theta_start=start,
             gauss_newton=parts.env.config.gauss_newton,
             gn_filter=parts.env.config.gn_filter,
+            filter_q=parts.env.config.filter_q,
+            filter_whole=parts.env.config.filter_whole,
+            filter_prior_std=parts.env.config.filter_prior_std,
         )  # fmt: skip
 
     def val_scorer(agent_state) -> dict:

@@ -41,11 +41,16 @@ def make_training_env(
     too; their noise-free outputs the cost's target when there are some); logs the
     step gate of incremental actions."""
     incremental = cfg.env.action == "increment"
+    outputs, params = len(data.problem.output_names), len(data.problem.theta_names)
+    filtered = uses_filter(cfg.env)
     fleet, target = sims.training_fleet()
     train_params = training_env_params(
         fleet, data.problem, dyn_params, dtype, cfg.dynamics,
         cfg.env.max_increment if incremental else None,
         x_target=target,
+        # the filter's R: the noise the simulated units carry (given, else
+        # estimated), so that its step is the extended Kalman filter's
+        x_noise=sims.problem().noise_std if filtered else None,
     )  # fmt: skip
     if incremental:
         log(
@@ -53,18 +58,20 @@ def make_training_env(
             f"{np.asarray(train_params.step_ref).tolist()} (residual RMS), largest "
             f"step {cfg.env.max_increment:g} of the box width"
         )
-        outputs, params = len(data.problem.output_names), len(data.problem.theta_names)
+        steps = []
         if uses_gauss_newton(cfg.env, outputs, params):
-            also = (
-                " and the filter's, a share env.filter_gain="
+            steps.append("the residual's Gauss-Newton step")
+        if filtered:
+            steps.append(
+                "an extended Kalman filter's step (random walk env.filter_q="
+                f"{cfg.env.filter_q:g}, noise the simulated units' "
+                f"{sims.problem().noise_source}), a share env.filter_gain="
                 f"{cfg.env.filter_gain:g} of which is its untrained action"
-                if uses_filter(cfg.env, outputs, params)
-                else ""
             )
+        if steps:
             log(
-                f"the policy observes the residual's Gauss-Newton step{also} "
-                f"(env.gauss_newton={cfg.env.gauss_newton}: {outputs} outputs, "
-                f"{params} parameters)"
+                f"the policy observes {' and '.join(steps)} (env.gauss_newton="
+                f"{cfg.env.gauss_newton}: {outputs} outputs, {params} parameters)"
             )
     return train_params
 
@@ -77,13 +84,16 @@ def training_env_params(
     dynamics_kind: str,
     max_increment: float | None = None,
     x_target: np.ndarray | None = None,
+    x_noise: np.ndarray | None = None,
 ) -> EnvParams:
     """The :class:`EnvParams` of ``units`` for ``dynamics_kind`` with ``dyn_params``
     (``max_increment``: incremental actions' largest step, ``None``: absolute
-    actions; ``x_target [U, T, S]``: the cost's target, ``None``: ``units.x``),
-    normalised with ``problem.norm`` cast to ``dtype``: the run's normalisation,
-    computed in ``dtype`` when the problem was made, so the cast is exact and the
-    environment, the deployed policy and ``data.json`` share it bit for bit."""
+    actions; ``x_target [U, T, S]``: the cost's target, ``None``: ``units.x``;
+    ``x_noise [S]``: the filter step's measurement noise, ``None``: the
+    problem's), normalised with ``problem.norm`` cast to ``dtype``: the run's
+    normalisation, computed in ``dtype`` when the problem was made, so the cast is
+    exact and the environment, the deployed policy and ``data.json`` share it bit
+    for bit."""
     w, x = units.w.astype(dtype), units.x.astype(dtype)
     z_ref = None  # a static model: Z = 0
     dyn = as_stateful(make_dynamics(dynamics_kind, problem))
@@ -110,10 +120,10 @@ def training_env_params(
         step_ref=jnp.asarray(
             increment_step_ref(dyn, params, problem.theta_prior, max_increment), dtype
         ),
-        # the filter step's R (gn_filter): the noise the training data carry, which
-        # for unlabelled data without a noise estimate is the provisional 1 % of
-        # each output's spread (jaxcal.training.calibration_data), not noise=.
-        # Weighing by the given noise measured worse on three of four models at the
-        # chosen gain (results/policy_any_model: the fan's loss 1.46x, not 0.97x).
-        x_noise=jnp.asarray(problem.noise_std, dtype),
+        # the filter step's R (gn_filter): make_training_env passes the simulated
+        # units' noise (given or estimated). The provisional 1 % of each output's
+        # spread, used before, mis-weighs the outputs (the docs' tank: loss 4.1x
+        # the UKF at gain 0.7; 0.90x with its given noise at gain 1:
+        # results/policy_any_model)
+        x_noise=jnp.asarray(problem.noise_std if x_noise is None else x_noise, dtype),
     )

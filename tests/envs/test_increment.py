@@ -219,9 +219,9 @@ class StepActor:
         return jnp.arctanh(jnp.clip(obs[-P - 1 : -1], -0.999, 0.999)), None
 
 
-def _unit_gain_thetas(dynamics, params, w, x, **flags) -> np.ndarray:
+def _unit_gain_thetas(dynamics, params, w, x, inc=MAX_INC, **flags) -> np.ndarray:
     """``[U, T, P]`` thetas of :class:`StepActor` deployed on every unit."""
-    pp = policy_params_from_env(params, None, max_increment=MAX_INC, **flags)
+    pp = policy_params_from_env(params, None, max_increment=inc, **flags)
     cal = make_policy_calibrator(StepActor(), dynamics, pp)
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
     return np.asarray(out.theta)
@@ -297,6 +297,16 @@ def test_sensitivity_carried_gives_a_memory_models_total_derivative():
     np.testing.assert_allclose(one_step, c @ b + d, rtol=1e-6)
 
 
+A_VEC, C_VEC = np.array([1.0, 0.4]), np.array([0.2, 1.5])
+
+
+def bilinear(dyn_params, w_next, xhat, theta):
+    """One output, two parameters: x = (a + c w) . theta (one sample's Jacobian has
+    rank 1)."""
+    del dyn_params, xhat
+    return ((jnp.asarray(A_VEC) + jnp.asarray(C_VEC) * w_next[0]) @ theta)[None]
+
+
 def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_agree():
     # one output, two parameters: x = (a + c w) . theta. One sample's Jacobian has
     # rank 1; the filter's (carried along the stream) separates the two as w
@@ -305,16 +315,10 @@ def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_ag
     # reference below) and the deployed calibrator reproduces the environment
     from jaxcal.envs.increment import FILTER_PRIOR_STD, FILTER_Q
 
-    a_vec, c_vec = np.array([1.0, 0.4]), np.array([0.2, 1.5])
-
-    def bilinear(dyn_params, w_next, xhat, theta):
-        del dyn_params, xhat
-        return ((jnp.asarray(a_vec) + jnp.asarray(c_vec) * w_next[0]) @ theta)[None]
-
     rng = np.random.default_rng(5)
     w = rng.uniform(-1.0, 1.0, size=(U, T, 1))
     truth = np.array([0.3, -0.6])
-    x = ((a_vec + c_vec * w) @ truth)[..., None]
+    x = ((A_VEC + C_VEC * w) @ truth)[..., None]
     low, high = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
     params = make_env_params(
         w, x, np.array([T, T]), low, high, None, stats=own_norm(w, x, np.array([T, T]))
@@ -336,7 +340,7 @@ def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_ag
     half = 0.5 * (high - low)
     thetas = []
     for t in range(10):  # a test loop over a few steps, not a hot path
-        j = ((a_vec + c_vec * w[1, t, 0]) * half)[None]  # [1, P] in half-box units
+        j = ((A_VEC + C_VEC * w[1, t, 0]) * half)[None]  # [1, P] in half-box units
         pred = cov + FILTER_Q**2 * np.eye(P)
         s = j @ pred @ j.T + np.diag(noise**2)
         gain = pred @ j.T @ np.linalg.inv(s)
@@ -348,3 +352,54 @@ def test_filter_step_identifies_what_one_sample_cannot_and_env_and_calibrator_ag
     np.testing.assert_allclose(theta[1, :10], thetas, atol=1e-5)
     with pytest.raises(ValueError, match="needs EnvParams.x_noise"):
         env.reset_at(params.replace(x_noise=None), 0, 0)
+
+
+@pytest.mark.parametrize("whole", [True, False])
+def test_filter_whole_makes_a_unit_gain_the_filter_step_at_any_residual(whole):
+    # filter_whole divides the increment's gate out of the filter's feature: an
+    # actor of gain 1 then moves theta as the filter's mean moves (numpy Kalman
+    # reference, random walk filter_q) at a residual far above the gate's scale
+    # n_ref (the battery's capacity); without it (the runs before it) the step is
+    # the share n_ref / (|r| + n_ref) of that. The env and the deployed calibrator
+    # agree either way, and both start the filter at filter_prior_std.
+    rng = np.random.default_rng(7)
+    w = rng.uniform(-1.0, 1.0, size=(U, T, 1))
+    truth = np.array([0.06, -0.09])
+    x = ((A_VEC + C_VEC * w) @ truth)[..., None] + 0.02 * rng.normal(size=(U, T, 1))
+    low, high = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
+    lengths = np.array([T, T])
+    params = make_env_params(
+        w, x, lengths, low, high, None, stats=own_norm(w, x, lengths)
+    )
+    noise, q, inc, prior_std = np.array([0.02]), 0.05, 1.0, 0.5
+    step_ref = 0.1 * np.abs(x[1, 0] / np.asarray(params.x_std))  # |r_0| = 10 n_ref
+    params = params.replace(
+        step_ref=jnp.full(P, step_ref[0]), x_noise=jnp.asarray(noise)
+    )
+    cfg = EnvConfig(
+        1, 1, P, episode_length=20, action="increment", max_increment=inc,
+        gn_filter=True, filter_q=q, filter_whole=whole, filter_prior_std=prior_std,
+    )  # fmt: skip
+    env = make_tracking_env(bilinear, cfg)
+    obs, state = env.reset_at(params, 1, 0)
+    assert np.all(np.abs(obs[-P - 1 : -1]) < 0.99)  # unsaturated
+    env_thetas = []
+    for _ in range(10):  # a test loop over a few steps, not a hot path
+        mean, _ = StepActor().apply(None, obs)
+        obs, state, *_ = env.step(jax.random.key(0), state, jnp.tanh(mean), params)
+        env_thetas.append(np.asarray(state.theta))
+    deployed = _unit_gain_thetas(
+        bilinear, params, w, x, inc, gn_filter=True, filter_q=q, filter_whole=whole,
+        filter_prior_std=prior_std,
+    )  # fmt: skip
+    np.testing.assert_allclose(deployed[1, :10], env_thetas, atol=1e-5)
+
+    half = 0.5 * (high - low)
+    j = (A_VEC + C_VEC * w[1, 0, 0])[None] * half
+    pred = (prior_std**2 + q**2) * np.eye(P)
+    gain = pred @ j.T @ np.linalg.inv(j @ pred @ j.T + np.diag(noise**2))
+    first = half * (gain @ x[1, 0])  # from theta = 0, the box centre
+    if whole:
+        np.testing.assert_allclose(env_thetas[0], first, rtol=1e-4)
+    else:
+        np.testing.assert_allclose(env_thetas[0], first / 11.0, rtol=1e-4)

@@ -124,16 +124,21 @@ def test_any_model_default_preset_uses_labels_to_score_only():
     assert cfg.simulate.train == "both" and cfg.simulate.band == "simulated"
     assert cfg.simulate.copies == ANY_MODEL_COPIES and cfg.budget.select == "sim_theta"
     assert cfg.simulate.paths == "data" and cfg.env.gauss_newton == "filter"
-    # "filter": the Gauss-Newton observation and the filter's step (its share the
-    # untrained action) where the outputs determine theta, as "auto"
+    # "filter": the one-sample Gauss-Newton step where the outputs determine theta,
+    # as "auto", and the filter's step (the untrained action: gain 1) everywhere
     assert uses_gauss_newton(cfg.env, 3, 2) and uses_gauss_newton(cfg.env, 2, 2)
-    assert uses_filter(cfg.env, 2, 2) and cfg.env.filter_gain == 0.7
-    # the battery: one voltage, R0 and Q
-    assert not uses_gauss_newton(cfg.env, 1, 2) and not uses_filter(cfg.env, 1, 2)
+    assert uses_filter(cfg.env) and cfg.env.filter_gain == 1.0
+    assert cfg.env.filter_q == 0.01  # the UKF's default random walk
     env_cfg = env_config(cfg, 2, 3, 2)
     assert env_cfg.gn_filter and env_cfg.observation_size == 3 + 1 + 2 + 2 + 2 + 2 + 1
     # the filter's step sits just before the age: the actor's prior reads it there
-    assert agent_config(cfg, env_cfg).actor_prior == (13 - 2 - 1, 0.7)
+    assert agent_config(cfg, env_cfg).actor_prior == (13 - 2 - 1, 1.0)
+    # the battery: one voltage for R0 and Q: no one-sample step, the filter's only
+    assert not uses_gauss_newton(cfg.env, 1, 2)
+    battery = env_config(cfg, 2, 1, 2)
+    assert battery.gn_filter and not battery.gauss_newton
+    assert battery.observation_size == 1 + 1 + 2 + 2 + 2 + 1
+    assert agent_config(cfg, battery).actor_prior == (9 - 2 - 1, 1.0)
     auto_env = dataclasses.replace(cfg.env, gauss_newton="auto")
     auto = dataclasses.replace(cfg, env=auto_env)
     assert not env_config(auto, 2, 3, 2).gn_filter  # the runs trained before it
@@ -183,14 +188,21 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
     )
 
     # the layout of every incremental run saved before theta_start existed
-    # (the arrays a checkpoint holds; max_increment, gauss_newton and gn_filter are
-    # static, and x_noise, the filter's, is None there: no leaf)
+    # (the arrays a checkpoint holds; max_increment, gauss_newton, gn_filter and
+    # filter_q are static, and x_noise, the filter's, is None there: no leaf)
     fields = dataclasses.fields(IncrementPolicyParams)
     leaves = [f.name for f in fields if f.metadata.get("pytree_node", True)]
     static = [f.name for f in fields if not f.metadata.get("pytree_node", True)]
     assert leaves[-2:] == ["step_ref", "x_noise"] and "theta_start" not in leaves
     assert next(f for f in fields if f.name == "x_noise").default is None
-    assert static == ["max_increment", "gauss_newton", "gn_filter"]
+    assert static == [
+        "max_increment",
+        "gauss_newton",
+        "gn_filter",
+        "filter_q",
+        "filter_whole",
+        "filter_prior_std",
+    ]
     fields = dict(
         actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
         x_mean=jnp.zeros(2), x_std=jnp.ones(2), theta_low=jnp.array([0.5, -1.0]),

@@ -239,7 +239,7 @@ def test_a_feedback_run_gated_by_an_absolute_run(trained, csv, tmp_path):
 
 def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path):
     """The default preset on unlabelled data (small budget): the policy observes the
-    filter's step and starts as 0.7 of it; the untrained policy is scored as chunk
+    filter's step and starts as it (gain 1); the untrained policy is scored as chunk
     0, every scoring logs each parameter's simulated error, and the deployed policy
     carries the filter (its noise, its covariance) and the actor's prior."""
     from jaxcal.deploy.loading import load_run
@@ -253,7 +253,8 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
         "env.episode_length=10", "simulate.copies=2",
     )  # fmt: skip
     argv = [
-        a for a in _argv(path, tmp_path / "runs", "name=filt", "noise=1e-3,1e-3,1e-3")
+        a
+        for a in _argv(path, tmp_path / "runs", "name=filt", "noise=1e-3,1e-3,1e-3")
         if a != "preset=smoke"
     ]
     assert train_main([*argv, "preset=default", *small]) == 0
@@ -265,12 +266,12 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
         assert r["val_sim_theta_rmse"] > 0
     loaded = load_run(run_dir)
     assert loaded.params.gn_filter and loaded.params.gauss_newton
-    # the filter's R: the noise the training data carry (provisional: 1 % of each
-    # output's spread), not noise= (measured worse: results/policy_any_model)
+    # the filter's R: the simulated units' noise (here the given noise=), not the
+    # provisional 1 % of each output's spread the unlabelled data's problem holds
     stored = json.loads((run_dir / "data.json").read_text())["problem"]
     assert stored["noise_source"].startswith("provisional")
-    np.testing.assert_allclose(loaded.params.x_noise, stored["noise_std"], rtol=1e-6)
+    np.testing.assert_allclose(loaded.params.x_noise, [1e-3] * 3, rtol=1e-6)
     obs_size = 3 + 1 + 2 + 2 + 2 + 2 + 1  # residual, |r|, w, theta, GN, filter, age
-    assert loaded.actor.prior == (obs_size - 2 - 1, 0.7)
+    assert loaded.actor.prior == (obs_size - 2 - 1, 1.0)
     result = jaxcal.calibrate(MODEL, path, method="policy", run=run_dir)
     assert result.valid.all() and np.isfinite(result.theta_std).all()

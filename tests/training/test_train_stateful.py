@@ -270,13 +270,16 @@ def test_calibrate_front_runs_the_trained_policy_on_the_model_with_memory(traine
     np.testing.assert_allclose(result.theta[unit], theta[0], atol=1e-6)
 
 
-@pytest.mark.parametrize("gn_filter", [False, True])
+@pytest.mark.parametrize(
+    "gn_filter,whole", [(False, False), (True, False), (True, True)]
+)
 def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
-    gn_filter,
+    gn_filter, whole
 ):
     """env.gauss_newton on a model with memory: an actor that takes the observed
     Gauss-Newton step (the state's sensitivity carried; with ``gn_filter`` the
-    filter's step, which the observation holds last before the age) drives theta to
+    filter's step, which the observation holds last before the age; with
+    ``filter_whole`` its whole step, the state moved with theta) drives theta to
     the truth on noise-free data, and the deployed calibrator reproduces the env's
     thetas."""
     from jaxcal.calibrators.interface import run_fleet
@@ -299,7 +302,7 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
     params = params.replace(step_ref=jnp.asarray(step_ref), x_noise=noise)
     cfg = EnvConfig(
         2, 2, 2, episode_length=20, action="increment", max_increment=0.2,
-        gauss_newton=True, gn_filter=gn_filter,
+        gauss_newton=True, gn_filter=gn_filter, filter_whole=whole,
     )  # fmt: skip
     env = make_tracking_env(dyn, cfg)
 
@@ -308,8 +311,9 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
             return jnp.arctanh(jnp.clip(0.5 * obs[-3:-1], -0.999, 0.999)), None
 
     pp = policy_params_from_env(
-        params, None, max_increment=0.2, gauss_newton=True, gn_filter=gn_filter
-    )
+        params, None, max_increment=0.2, gauss_newton=True, gn_filter=gn_filter,
+        filter_whole=whole,
+    )  # fmt: skip
     cal = make_policy_calibrator(Actor(), dyn, pp)
     mask = jnp.ones((1, NUM_ROWS), bool)
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), mask)
