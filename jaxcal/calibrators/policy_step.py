@@ -69,8 +69,13 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
-    moved_state,
     step_with_sensitivity,
+)
+from jaxcal.envs.joint_filter import (
+    conditioned_state,
+    initial_joint_cov,
+    joint_filter_feature,
+    step_with_joint,
 )
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics, action_to_theta
@@ -114,7 +119,10 @@ def make_policy_calibrator(
     hinted = warm_start and isinstance(dynamics, HintedDynamics)
     transition = _make_transition(dyn, dynamics, params, hinted)
     first_state = functools.partial(_first_state, dyn, params)
-    sample_step = _increment_step if incremental else _absolute_step
+    sample_step = _absolute_step
+    if incremental:  # a model with memory under the whole filter: the joint filter
+        joint = params.gn_filter and params.filter_whole and dyn.num_states > 0
+        sample_step = functools.partial(_increment_step, joint=joint)
     advance = functools.partial(sample_step, actor, params, transition, first_state)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
@@ -166,17 +174,19 @@ def _initial_state(
     return PolicyState(
         xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
         hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
-        cov=_initial_cov(params),
+        cov=_initial_cov(params, dyn.num_states),
     )  # fmt: skip
 
 
-def _initial_cov(params: PolicyParams) -> Array | None:
-    """The filter step's first covariance (``gn_filter``), else ``None``."""
+def _initial_cov(params: PolicyParams, num_states: int) -> Array | None:
+    """The filter step's first covariance (``gn_filter``; the joint one on a model
+    with memory under ``filter_whole``), else ``None``."""
     if not getattr(params, "gn_filter", False):
         return None
-    return initial_filter_cov(
-        params.theta_low.shape[-1], params.theta_low.dtype, params.filter_prior_std
-    )
+    dims = (params.theta_low.shape[-1], params.theta_low.dtype, params.filter_prior_std)
+    if params.filter_whole and num_states:
+        return initial_joint_cov(num_states, *dims)
+    return initial_filter_cov(*dims)
 
 
 def _first_state(dyn, params: PolicyParams, state: PolicyState, z, w_t, x_t):
@@ -209,22 +219,37 @@ def _absolute_step(actor, params, transition, first_state, state, w_t, x_t):
     return new_state, theta, xhat
 
 
-def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
+def _increment_step(
+    actor, params, transition, first_state, state, w_t, x_t, joint=False
+):
     """``(state, theta_t, x-hat_t)`` of an incremental action: predict sample t with
-    theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`)."""
+    theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`;
+    ``joint``: the state too, :mod:`jaxcal.envs.joint_filter`)."""
     xhat_prev = jnp.where(state.started, state.xhat, x_t)
     z_prev = first_state(state, state.z, w_t, x_t)
-    extra = sens = cov = None
+    extra = sens = cov = joint_step = None
+    half = 0.5 * (params.theta_high - params.theta_low)
     if uses_jacobian(params):  # the environment's observation (jaxcal.envs.increment)
-        jac, sens, z, xhat, hint = step_with_sensitivity(
-            lambda z_, th: transition(state, z_, w_t, xhat_prev, th),
-            z_prev,
-            state.theta,
-            state.sens,
-        )
+
+        def one(z_, th):
+            return transition(state, z_, w_t, xhat_prev, th)
+
+        if joint:
+            jac, sens, ah, z, xhat, hint = step_with_joint(
+                one, z_prev, state.theta, state.sens, half
+            )
+        else:
+            jac, sens, z, xhat, hint = step_with_sensitivity(
+                one, z_prev, state.theta, state.sens
+            )
         resid = (x_t - xhat.astype(x_t.dtype)) / params.x_std
         filtered = None
-        if params.gn_filter:
+        if joint:
+            cov, filtered, dz, du = joint_filter_feature(
+                state.cov, resid, ah, params, params.max_increment, params.filter_q
+            )
+            joint_step = (dz, du)
+        elif params.gn_filter:
             cov, filtered = filter_feature(
                 state.cov, resid, jac, params, params.max_increment,
                 params.filter_q, params.filter_whole,
@@ -255,8 +280,10 @@ def _increment_step(actor, params, transition, first_state, state, w_t, x_t):
         params.max_increment,
         params.step_ref,
     )
-    if params.filter_whole:
-        z = moved_state(z, sens, theta - state.theta)
+    if joint_step is not None:  # the filter's state, given the policy's theta step
+        dz, du = joint_step
+        z = z + dz.astype(z.dtype)
+        z = conditioned_state(z, cov, (theta - state.theta) / half, du)
     new_state = PolicyState(
         xhat=xhat,
         started=jnp.ones((), bool),

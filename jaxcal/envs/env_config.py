@@ -67,9 +67,9 @@ class EnvConfig:
             sample is ``filter_q`` half-widths of the box and its prior std
             ``filter_prior_std`` half-widths; ``filter_whole``: a unit
             gain on it is the filter's whole step at any residual (the gate
-            divided out), and on a model with memory the state moves with theta
-            (:func:`~jaxcal.envs.increment.moved_state`); ``False``: the gate's
-            small-residual slope and the state as simulated, the runs before it.
+            divided out), and on a model with memory the filter is the joint one of
+            state and theta (:mod:`~jaxcal.envs.joint_filter`); ``False``: the
+            gate's small-residual slope and theta alone, the runs before it.
     """
 
     sensor_dim: int

@@ -90,14 +90,28 @@ class FilteredSensitiveEnvState(SensitiveEnvState):
     cov: Array
 
 
+@struct.dataclass
+class JointFilteredEnvState(FilteredSensitiveEnvState):
+    """:class:`FilteredSensitiveEnvState` of the joint filter of a model with memory
+    (:mod:`jaxcal.envs.joint_filter`): ``cov`` is ``[Z + P, Z + P]``, ``z`` the state
+    the filter corrected and ``fstep`` [P] its theta step (half-box units), which the
+    next action is compared with."""
+
+    fstep: Array
+
+
 def make_env_state(
-    unit, time, step, xhat, z, theta=None, sens=None, cov=None
+    unit, time, step, xhat, z, theta=None, sens=None, cov=None, fstep=None
 ) -> EnvState:
     """The state of a static model (``z is None``) or of one with memory, with
     theta when the actions are incremental, the state's sensitivity with a
     Gauss-Newton observation and the filter's covariance with its step (each its
     own class, so that the checkpoints of the runs before it keep their layout)."""
     fields = dict(unit=unit, time=time, step=step, xhat=xhat)
+    if fstep is not None:
+        return JointFilteredEnvState(
+            **fields, z=z, theta=theta, sens=sens, cov=cov, fstep=fstep
+        )
     if cov is not None:
         if sens is not None:
             return FilteredSensitiveEnvState(

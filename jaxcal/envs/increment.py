@@ -160,6 +160,12 @@ def filter_feature(
     new_cov = keep @ pred @ keep.T + gain @ noise @ gain.T
     new_cov = 0.5 * (new_cov + new_cov.T)
     delta = half * (gain @ (resid * params.x_std).astype(cov.dtype))
+    return new_cov, step_feature(delta, resid, params, max_increment, whole)
+
+
+def step_feature(delta, resid, params, max_increment: float, whole: bool) -> Array:
+    """``[P]`` a filter's step ``delta`` (theta units) in the action's scale, so that
+    a unit gain on it takes that step through the gated increment."""
     norm = jnp.sqrt(jnp.mean(jnp.square(resid)))
     # The gated increment takes a share |r| / (|r| + n_ref) of the largest step:
     # ``whole`` divides that gate out, so that a unit gain on the feature is the
@@ -170,7 +176,7 @@ def filter_feature(
     scale = gate / (
         max_increment * (params.theta_high - params.theta_low) * (norm + _TINY)
     )
-    return new_cov, jnp.clip(delta * scale, -10.0, 10.0)
+    return jnp.clip(delta * scale, -10.0, 10.0)
 
 
 def gauss_newton_feature(
@@ -230,19 +236,6 @@ def step_with_sensitivity(step, z, theta: Array, sens: Array | None):
     if sens is None:
         return (jac, None, *out)
     return (jac[1], jac[0], *out)
-
-
-def moved_state(z: Array | None, sens: Array | None, delta: Array) -> Array | None:
-    """``z + sens delta``: a model's state moved with a change ``delta`` ``[P]`` of
-    theta, to first order (``sens = dz / dtheta`` ``[Z, P]``), as the extended Kalman
-    filter's joint state moves with its parameters through their cross-covariance:
-    the state then stays the one the current theta would have made. Without it a
-    parameter that acts through the state (a battery's capacity, through the
-    charge it integrates) keeps the error of every past theta in the state, and the
-    filter overshoots to explain it. ``z`` unchanged without a sensitivity."""
-    if z is None or sens is None:
-        return z
-    return z + (sens @ delta.astype(sens.dtype)).astype(z.dtype)
 
 
 def apply_increment(

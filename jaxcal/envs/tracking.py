@@ -61,8 +61,13 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
-    moved_state,
     step_with_sensitivity,
+)
+from jaxcal.envs.joint_filter import (
+    conditioned_state,
+    initial_joint_cov,
+    joint_filter_feature,
+    step_with_joint,
 )
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
 from jaxcal.typedefs import Array, PRNGKey, PyTree
@@ -164,21 +169,39 @@ def _observe(
 
 
 def _model_step(
-    cfg: EnvConfig, dyn: StatefulDynamics, params: EnvParams, z, w, xhat, theta, sens
+    cfg: EnvConfig,
+    dyn: StatefulDynamics,
+    params: EnvParams,
+    z,
+    w,
+    xhat,
+    theta,
+    sens,
+    joint: bool = False,
 ):
-    """``(z, x-hat, J, sens)`` of one model step; with ``gauss_newton`` J is its
+    """``(z, x-hat, J, sens, AH)`` of one model step; with ``gauss_newton`` J is its
     Jacobian in theta and ``sens`` the state's sensitivity carried
-    (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else both ``None``."""
+    (:func:`~jaxcal.envs.increment.step_with_sensitivity`), else both ``None``;
+    ``joint``: ``AH`` the step's Jacobians in (state, theta) for the joint filter
+    (:func:`~jaxcal.envs.joint_filter.step_with_joint`), else ``None``."""
     if not cfg.uses_jacobian:
-        return (*dyn.step(params.dyn_params, z, w, xhat, theta), None, None)
-    jac, sens, z, xhat = step_with_sensitivity(
-        lambda z_, th: dyn.step(params.dyn_params, z_, w, xhat, th), z, theta, sens
-    )
-    return z, xhat, *jax.lax.stop_gradient((jac, sens))
+        return (*dyn.step(params.dyn_params, z, w, xhat, theta), None, None, None)
+
+    def one(z_, th):
+        return dyn.step(params.dyn_params, z_, w, xhat, th)
+
+    if joint:
+        half = 0.5 * (params.theta_high - params.theta_low)
+        jac, sens, ah, z, xhat = step_with_joint(one, z, theta, sens, half)
+        return z, xhat, *jax.lax.stop_gradient((jac, sens, ah))
+    jac, sens, z, xhat = step_with_sensitivity(one, z, theta, sens)
+    return z, xhat, *jax.lax.stop_gradient((jac, sens)), None
 
 
-def _predict_first(cfg, dyn: StatefulDynamics, params: EnvParams, unit, time, theta):
-    """(z, x-hat, J, sens) of sample ``time`` predicted with theta_{t-1} =
+def _predict_first(
+    cfg, dyn: StatefulDynamics, params: EnvParams, unit, time, theta, joint=False
+):
+    """(z, x-hat, J, sens, AH) of sample ``time`` predicted with theta_{t-1} =
     ``theta``: the model from the previous sample's reference state (x-hat of the
     surrogate: the previous measurement); J and sens as :func:`_model_step`, the
     reference state's sensitivity taken as zero."""
@@ -188,21 +211,28 @@ def _predict_first(cfg, dyn: StatefulDynamics, params: EnvParams, unit, time, th
     sens = None
     if cfg.uses_jacobian and dyn.num_states:
         sens = jnp.zeros((dyn.num_states, theta.shape[-1]), x_prev.dtype)
-    out = _model_step(cfg, dyn, params, z_prev, w_now, x_prev, theta, sens)
-    z, xhat, jac, sens = jax.lax.stop_gradient(out)
-    return z, xhat.astype(x_prev.dtype), jac, sens
+    out = _model_step(cfg, dyn, params, z_prev, w_now, x_prev, theta, sens, joint)
+    z, xhat, jac, sens, ah = jax.lax.stop_gradient(out)
+    return z, xhat.astype(x_prev.dtype), jac, sens, ah
 
 
-def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov):
-    """``(cov', step)`` of the filter step at sample ``time`` (``gn_filter``;
-    :func:`~jaxcal.envs.increment.filter_feature`), else ``(None, None)``."""
+def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov, ah=None):
+    """``(cov', step, dz, du)`` of the filter step at sample ``time`` (``gn_filter``;
+    :func:`~jaxcal.envs.increment.filter_feature`, or with the joint Jacobians
+    ``ah`` :func:`~jaxcal.envs.joint_filter.joint_filter_feature`, the only one with
+    a state step ``dz`` and a theta step ``du``), else all ``None``."""
     if not cfg.gn_filter:
-        return None, None
+        return None, None, None, None
     resid = (_row(params.x, params, unit, time) - xhat) / params.x_std
+    if ah is not None:
+        out = joint_filter_feature(
+            cov, resid, ah, params, cfg.max_increment, cfg.filter_q
+        )
+        return jax.lax.stop_gradient(out)
     out = filter_feature(
         cov, resid, jac, params, cfg.max_increment, cfg.filter_q, cfg.filter_whole
     )
-    return jax.lax.stop_gradient(out)
+    return (*jax.lax.stop_gradient(out), None, None)
 
 
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
@@ -267,6 +297,8 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         :class:`Env`.
     """
     dyn = as_stateful(dynamics)
+    # a model with memory under the whole filter: state and theta filtered jointly
+    joint = cfg.gn_filter and cfg.filter_whole and dyn.num_states > 0
 
     def reset_at(
         params: EnvParams, unit: Array, time: Array, theta: Array | None = None
@@ -280,13 +312,24 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         if cfg.incremental:  # deterministic starts: from the box centre
             if theta is None:
                 theta = 0.5 * (params.theta_low + params.theta_high)
-            z, xhat, jac, sens = _predict_first(cfg, dyn, params, unit, time, theta)
-        cov, filtered = None, None
-        if cfg.gn_filter:
-            prior = initial_filter_cov(
-                cfg.param_dim, params.theta_low.dtype, cfg.filter_prior_std
+            z, xhat, jac, sens, ah = _predict_first(
+                cfg, dyn, params, unit, time, theta, joint
             )
-            cov, filtered = _filtered(cfg, params, unit, time, xhat, jac, prior)
+        cov = filtered = fstep = None
+        if cfg.gn_filter:
+            dtype = params.theta_low.dtype
+            prior = (
+                initial_joint_cov(
+                    dyn.num_states, cfg.param_dim, dtype, cfg.filter_prior_std
+                )
+                if joint
+                else initial_filter_cov(cfg.param_dim, dtype, cfg.filter_prior_std)
+            )
+            cov, filtered, dz, fstep = _filtered(
+                cfg, params, unit, time, xhat, jac, prior, ah
+            )
+            if joint:
+                z = z + dz.astype(z.dtype)
         state = make_env_state(
             unit=unit,
             time=time,
@@ -296,6 +339,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             theta=theta if cfg.incremental else None,
             sens=sens,
             cov=cov,
+            fstep=fstep,
         )
         return _observe(cfg, state, params, jac, filtered), state
 
@@ -313,18 +357,23 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         w_next = _row(params.w, params, state.unit, time)
         z = getattr(state, "z", None)  # None: a static model's EnvState
         sens = getattr(state, "sens", None)  # with gauss_newton on a model with memory
-        if cfg.filter_whole:
-            z = moved_state(z, sens, theta - state.theta)
-        z, xhat, jac, sens = _model_step(
-            cfg, dyn, params, z, w_next, state.xhat, theta, sens
+        if joint:  # the filter's state, given the policy's theta step
+            half = 0.5 * (params.theta_high - params.theta_low)
+            z = conditioned_state(
+                z, state.cov, (theta - state.theta) / half, state.fstep
+            )
+        z, xhat, jac, sens, ah = _model_step(
+            cfg, dyn, params, z, w_next, state.xhat, theta, sens, joint
         )
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = _step_cost(cfg, params, state.unit, time, xhat)
-        cov, filtered = _filtered(
+        cov, filtered, dz, fstep = _filtered(
             cfg, params, state.unit, time, xhat.astype(state.xhat.dtype), jac,
-            getattr(state, "cov", None),
+            getattr(state, "cov", None), ah,
         )  # fmt: skip
+        if joint:
+            z = z + dz.astype(z.dtype)
         next_state = make_env_state(
             unit=state.unit,
             time=time,
@@ -334,6 +383,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             theta=theta if cfg.incremental else None,
             sens=None if sens is None else sens.astype(state.sens.dtype),
             cov=cov,
+            fstep=fstep,
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}

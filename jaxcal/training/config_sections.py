@@ -120,7 +120,8 @@ class TrackingConfig:
     filter_prior_std: float = 1.0
     # with gauss_newton=filter: a unit gain is the extended Kalman filter: the
     # feature is its whole step at any residual (the increment's gate divided out)
-    # and a model's state moves with theta (jaxcal.envs.increment.moved_state); the
+    # and on a model with memory it filters the state with theta
+    # (jaxcal.envs.joint_filter); the
     # default preset's. False: the gate's small-residual slope only, the state as
     # simulated, as the runs before it were trained
     filter_whole: bool = False

@@ -279,7 +279,7 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
     """env.gauss_newton on a model with memory: an actor that takes the observed
     Gauss-Newton step (the state's sensitivity carried; with ``gn_filter`` the
     filter's step, which the observation holds last before the age; with
-    ``filter_whole`` its whole step, the state moved with theta) drives theta to
+    ``filter_whole`` the joint filter of state and theta) drives theta to
     the truth on noise-free data, and the deployed calibrator reproduces the env's
     thetas."""
     from jaxcal.calibrators.interface import run_fleet

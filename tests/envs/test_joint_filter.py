@@ -1,0 +1,77 @@
+"""The joint filter of a model with memory (jaxcal.envs.joint_filter) against a numpy
+Kalman reference (the env and the deployed calibrator agree on it:
+tests/training/test_train_stateful.py)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxcal.envs.joint_filter import (
+    conditioned_state,
+    initial_joint_cov,
+    joint_filter_feature,
+    step_with_joint,
+)
+
+
+@struct.dataclass
+class _Params:
+    x_std: jnp.ndarray
+    x_noise: jnp.ndarray
+    theta_low: jnp.ndarray
+    theta_high: jnp.ndarray
+    step_ref: jnp.ndarray
+
+
+def _linear_step(z, theta):
+    # z' = 0.9 z + 0.5 theta_0 ; x = 2 z' + theta_1  (one state, two parameters)
+    z_next = 0.9 * z + 0.5 * theta[:1]
+    return z_next, 2.0 * z_next + theta[1:]
+
+
+def test_joint_update_is_the_kalman_filter_of_state_and_theta():
+    # one update from a correlated prior: the covariance and the state and theta
+    # steps are the linear Kalman filter's on (z, u), u = theta / half, with theta's
+    # random walk before the sample (numpy reference)
+    low, high = jnp.array([-1.0, -2.0]), jnp.array([1.0, 2.0])
+    half = np.array([1.0, 2.0])
+    params = _Params(
+        x_std=jnp.array([0.5]), x_noise=jnp.array([0.1]), theta_low=low,
+        theta_high=high, step_ref=jnp.array([1.0, 1.0]),
+    )  # fmt: skip
+    z, theta, sens = jnp.array([0.3]), jnp.array([0.2, -0.4]), jnp.zeros((1, 2))
+    jac, sens2, ah, z_next, xhat = step_with_joint(
+        _linear_step, z, theta, sens, jnp.asarray(half)
+    )
+    a, h = (np.asarray(m) for m in ah)
+    np.testing.assert_allclose(a, [[0.9, 0.5 * half[0], 0.0]], rtol=1e-6)
+    np.testing.assert_allclose(h, [[1.8, 1.0 * half[0], 1.0 * half[1]]], rtol=1e-6)
+    np.testing.assert_allclose(sens2, [[0.5, 0.0]], rtol=1e-6)
+    cov = np.array([[0.04, 0.01, 0.0], [0.01, 0.25, 0.02], [0.0, 0.02, 0.16]])
+    x_obs, q = 1.1, 0.05
+    resid = (x_obs - np.asarray(xhat)) / 0.5
+    new_cov, feature, dz, du = joint_filter_feature(
+        jnp.asarray(cov), jnp.asarray(resid), ah, params, 0.5, q
+    )
+    pred = cov + np.diag([0.0, q**2, q**2])
+    m = np.array([[0.9, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    s = h @ pred @ h.T + 0.1**2
+    gain = m @ pred @ h.T / s
+    ref_cov = m @ pred @ m.T - gain @ gain.T * s
+    step = gain[:, 0] * (x_obs - float(xhat[0]))
+    np.testing.assert_allclose(new_cov, ref_cov, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([dz, du]), step, rtol=1e-5)
+    assert feature.shape == (2,) and np.all(np.isfinite(feature))
+    # the policy taking the filter's step leaves the corrected state; another step
+    # moves it by the posterior regression on theta
+    z_post = np.asarray(z_next) + np.asarray(dz)
+    same = conditioned_state(jnp.asarray(z_post), new_cov, du, du)
+    np.testing.assert_allclose(same, z_post, rtol=1e-6)
+    other = du + jnp.array([0.1, 0.0])
+    moved = conditioned_state(jnp.asarray(z_post), new_cov, other, du)
+    regress = ref_cov[:1, 1:] @ np.linalg.inv(ref_cov[1:, 1:])
+    np.testing.assert_allclose(moved, z_post + regress @ [0.1, 0.0], rtol=1e-5)
+    prior = initial_joint_cov(1, 2, jnp.float32, 0.5)
+    np.testing.assert_allclose(prior, np.diag([0.0, 0.25, 0.25]))
