@@ -216,23 +216,32 @@ def _predict_first(
     return z, xhat.astype(x_prev.dtype), jac, sens, ah
 
 
-def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov, ah=None):
-    """``(cov', step, dz, du)`` of the filter step at sample ``time`` (``gn_filter``;
+def _prior_cov(cfg: EnvConfig, num_states: int, dtype, joint: bool) -> Array:
+    """A stream's first filter covariance: theta's, or the joint one of state and
+    theta (:mod:`jaxcal.envs.joint_filter`)."""
+    if joint:
+        return initial_joint_cov(num_states, cfg.param_dim, dtype, cfg.filter_prior_std)
+    return initial_filter_cov(cfg.param_dim, dtype, cfg.filter_prior_std)
+
+
+def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov, z, ah):
+    """``(z, cov', step, du)`` of the filter step at sample ``time`` (``gn_filter``;
     :func:`~jaxcal.envs.increment.filter_feature`, or with the joint Jacobians
-    ``ah`` :func:`~jaxcal.envs.joint_filter.joint_filter_feature`, the only one with
-    a state step ``dz`` and a theta step ``du``), else all ``None``."""
+    ``ah`` :func:`~jaxcal.envs.joint_filter.joint_filter_feature`, the only one that
+    corrects the state ``z`` and has a theta step ``du``), else ``z`` and ``None``."""
     if not cfg.gn_filter:
-        return None, None, None, None
+        return z, None, None, None
     resid = (_row(params.x, params, unit, time) - xhat) / params.x_std
     if ah is not None:
         out = joint_filter_feature(
             cov, resid, ah, params, cfg.max_increment, cfg.filter_q
         )
-        return jax.lax.stop_gradient(out)
+        new_cov, feature, dz, du = jax.lax.stop_gradient(out)
+        return z + dz.astype(z.dtype), new_cov, feature, du
     out = filter_feature(
         cov, resid, jac, params, cfg.max_increment, cfg.filter_q, cfg.filter_whole
     )
-    return (*jax.lax.stop_gradient(out), None, None)
+    return (z, *jax.lax.stop_gradient(out), None)
 
 
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
@@ -317,19 +326,10 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             )
         cov = filtered = fstep = None
         if cfg.gn_filter:
-            dtype = params.theta_low.dtype
-            prior = (
-                initial_joint_cov(
-                    dyn.num_states, cfg.param_dim, dtype, cfg.filter_prior_std
-                )
-                if joint
-                else initial_filter_cov(cfg.param_dim, dtype, cfg.filter_prior_std)
+            prior = _prior_cov(cfg, dyn.num_states, params.theta_low.dtype, joint)
+            z, cov, filtered, fstep = _filtered(
+                cfg, params, unit, time, xhat, jac, prior, z, ah
             )
-            cov, filtered, dz, fstep = _filtered(
-                cfg, params, unit, time, xhat, jac, prior, ah
-            )
-            if joint:
-                z = z + dz.astype(z.dtype)
         state = make_env_state(
             unit=unit,
             time=time,
@@ -368,12 +368,10 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = _step_cost(cfg, params, state.unit, time, xhat)
-        cov, filtered, dz, fstep = _filtered(
+        z, cov, filtered, fstep = _filtered(
             cfg, params, state.unit, time, xhat.astype(state.xhat.dtype), jac,
-            getattr(state, "cov", None), ah,
+            getattr(state, "cov", None), z, ah,
         )  # fmt: skip
-        if joint:
-            z = z + dz.astype(z.dtype)
         next_state = make_env_state(
             unit=state.unit,
             time=time,
