@@ -44,6 +44,7 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     PolicyState,
     StartedIncrementPolicyParams,
     counts,
+    filter_settings,
     initial_sensitivity,
     policy_params_from_env,
 )

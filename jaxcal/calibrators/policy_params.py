@@ -125,6 +125,19 @@ class PolicyState:
     cov: Array | None = None  # [P, P] the filter step's covariance (gn_filter)
 
 
+def filter_settings(env_cfg) -> dict:
+    """The static observation and filter fields of :class:`IncrementPolicyParams`
+    from the :class:`~jaxcal.envs.env_config.EnvConfig` a policy was trained in
+    (the one mapping: the scoring during training and the loaded run both use it)."""
+    return dict(
+        gauss_newton=env_cfg.gauss_newton,
+        gn_filter=env_cfg.gn_filter,
+        filter_q=env_cfg.filter_q,
+        filter_whole=env_cfg.filter_whole,
+        filter_prior_std=env_cfg.filter_prior_std,
+    )
+
+
 def policy_params_from_env(
     env_params: EnvParams,
     actor_params: PyTree,

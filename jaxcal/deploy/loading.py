@@ -34,6 +34,7 @@ from jaxcal.calibrators.policy import (
     IncrementPolicyParams,
     PolicyParams,
     StartedIncrementPolicyParams,
+    filter_settings,
 )
 from jaxcal.calibrators.trained import LoadedRun
 from jaxcal.calibrators.uncertainty import load_band
@@ -180,12 +181,8 @@ def _policy_target(cfg: TrainConfig, env_cfg, agent, dims, dtype):
         fields.update(
             step_ref=jnp.ones(dims[2], dtype),
             max_increment=env_cfg.max_increment,
-            gauss_newton=env_cfg.gauss_newton,
-            gn_filter=env_cfg.gn_filter,
             x_noise=jnp.ones(dims[1], dtype) if env_cfg.gn_filter else None,
-            filter_q=env_cfg.filter_q,
-            filter_whole=env_cfg.filter_whole,
-            filter_prior_std=env_cfg.filter_prior_std,
+            **filter_settings(env_cfg),
         )
         if getattr(cfg.env, "start", "centre") == "prior":
             start = jnp.zeros(dims[2], dtype)

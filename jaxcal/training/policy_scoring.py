@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 
 from jaxcal.calibrators.policy import (
     PolicyParams,
+    filter_settings,
     policy_params_from_env,
     range_check,
 )
@@ -94,11 +95,7 @@ def make_policy_scoring(
             actor = getattr(agent_state, "target_actor_params", actor)
         return policy_params_from_env(
             train_params, actor, max_increment=max_increment, theta_start=start,
-            gauss_newton=parts.env.config.gauss_newton,
-            gn_filter=parts.env.config.gn_filter,
-            filter_q=parts.env.config.filter_q,
-            filter_whole=parts.env.config.filter_whole,
-            filter_prior_std=parts.env.config.filter_prior_std,
+            **filter_settings(parts.env.config),
         )  # fmt: skip
 
     def val_scorer(agent_state) -> dict:
