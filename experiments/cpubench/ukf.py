@@ -42,7 +42,7 @@ from cpubench.measure import (
     time_interleaved,
     try_import,
 )
-from jaxcal.calibrators.interface import SensorNorm, measure_declared
+from jaxcal.calibrators.interface import Measurement, measure_declared
 from jaxcal.calibrators.ukf import UKFConfig, ukf_filter
 
 CFG = UKFConfig(posterior_xhat=False)  # q = r = 0.01, alpha 1, beta 2, kappa 0
@@ -76,7 +76,8 @@ class Model:
         measure: jax ``(w [W], theta [P]) -> x [S]``, jittable and vmappable.
         measure_host: numpy ``(w, theta) -> x`` for filterpy.
         theta0: ``[P]`` prior mean; theta_scale: ``[P]`` scale of the filtered state.
-        norm: sensor normalisation.
+        measurement: the outputs' centre and scale (``noise_std``; the noise std is
+            ``r`` times it), the outputs compared as ``(x - centre) / noise_std``.
         sample_w: ``(rng, n) -> w [n, W]`` operating conditions.
         sample_theta: ``(rng, T) -> theta [T, P]``, a slowly drifting truth.
     """
@@ -86,7 +87,7 @@ class Model:
     measure_host: object
     theta0: np.ndarray
     theta_scale: np.ndarray
-    norm: SensorNorm
+    measurement: Measurement
     sample_w: object
     sample_theta: object
 
@@ -108,7 +109,7 @@ def toy_model(seed: int = 0) -> Model:
 
     return Model(
         "toy", measure, measure_host, np.zeros(4), np.ones(4),
-        SensorNorm(jnp.zeros(14), jnp.ones(14)),
+        Measurement(jnp.zeros(14), jnp.ones(14)),
         lambda rng, n: rng.normal(size=(n, 4)), sample_theta,
     )  # fmt: skip
 
@@ -141,12 +142,13 @@ def engine_model() -> Model:
         theta_full[0, declared] = theta
         return np.asarray(evaluate(np.asarray(w)[None], theta_full)[0])[0, sensors]
 
-    # Normalisation from healthy engines over the envelope (a stand-in for training
-    # statistics): host calls of the same jitted function, no extra compilation.
+    # Outputs compared in units of their spread over healthy engines in the envelope
+    # (a stand-in for training statistics; the noise is r = 0.01 of it): host calls
+    # of the same jitted function, no extra compilation.
     rng = np.random.default_rng(7)
     w_ref, _ = envelope_points(64, seed=7)
     x_ref = np.stack([measure_host(w, np.zeros(1)) for w in w_ref])
-    norm = SensorNorm(jnp.asarray(x_ref.mean(0)), jnp.asarray(x_ref.std(0)))
+    measurement = Measurement(jnp.asarray(x_ref.mean(0)), jnp.asarray(x_ref.std(0)))
 
     def sample_theta(rng, steps):
         start = rng.uniform(-0.01, -0.002)
@@ -158,14 +160,14 @@ def engine_model() -> Model:
     del rng
     return Model(
         "engine", measure, measure_host, np.array([-0.008]), np.array([0.005]),
-        norm, sample_w, sample_theta,
+        measurement, sample_w, sample_theta,
     )  # fmt: skip
 
 
 def _records(model: Model, rng, units: int, steps: int):
     """``(w [U, T, W], x [U, T, S])`` with x = F(w, theta) + N(0, (0.01 std)^2)."""
     ws, xs = [], []
-    std = np.asarray(model.norm.std)
+    std = np.asarray(model.measurement.noise_std)
     for _ in range(units):
         w = model.sample_w(rng, steps)
         theta = model.sample_theta(rng, steps)
@@ -183,8 +185,8 @@ def _filterpy_runner(model: Model, w: np.ndarray, x: np.ndarray):
     p, s = model.theta0.shape[0], x.shape[-1]
     scale, mean, std = (
         model.theta_scale,
-        np.asarray(model.norm.mean),
-        np.asarray(model.norm.std),
+        np.asarray(model.measurement.centre),
+        np.asarray(model.measurement.noise_std),
     )
     out = {}
 
@@ -216,7 +218,7 @@ def _dynamax_filter(model: Model, dynamax_ukf):
 
     p = model.theta0.shape[0]
     scale = jnp.asarray(model.theta_scale)
-    s = model.norm.mean.shape[0]
+    s = model.measurement.centre.shape[0]
     params = ParamsNLGSSM(
         initial_mean=jnp.asarray(model.theta0) / scale,
         # dynamax conditions before it predicts: start from our first prediction.
@@ -224,14 +226,15 @@ def _dynamax_filter(model: Model, dynamax_ukf):
         dynamics_function=lambda z, w: z,
         dynamics_covariance=CFG.q**2 * jnp.eye(p),
         emission_function=lambda z, w: (
-            (model.measure(w, scale * z) - model.norm.mean) / model.norm.std
+            (model.measure(w, scale * z) - model.measurement.centre)
+            / model.measurement.noise_std
         ),
         emission_covariance=CFG.r**2 * jnp.eye(s),
     )
     hyper = dynamax_ukf.UKFHyperParams(alpha=CFG.alpha, beta=CFG.beta, kappa=CFG.kappa)
 
     def run(w, x):
-        x_n = (x - model.norm.mean) / model.norm.std
+        x_n = (x - model.measurement.centre) / model.measurement.noise_std
         post = dynamax_ukf.unscented_kalman_filter(
             params, x_n, hyper, inputs=w, output_fields=["filtered_means"]
         )
@@ -259,7 +262,7 @@ def bench_model(model: Model, sizes: UKFSizes, *, peers: bool = True) -> dict:
         # An explicit mask: built inside jit it would be a constant that XLA spends
         # seconds folding (a vmapped argmax over a broadcast of ones).
         return ukf_filter(
-            model.measure, w, x, model.norm, CFG, theta0=theta0,
+            model.measure, w, x, model.measurement, CFG, theta0=theta0,
             theta_scale=scale, mask=np.ones(w.shape[:-1], bool), unroll=sizes.unroll,
         ).theta  # fmt: skip
 
@@ -340,7 +343,7 @@ def bench_model(model: Model, sizes: UKFSizes, *, peers: bool = True) -> dict:
             **dataclasses.asdict(sizes),
             "model": model.name,
             "num_params": int(model.theta0.shape[0]),
-            "num_sensors": int(model.norm.mean.shape[0]),
+            "num_sensors": int(model.measurement.centre.shape[0]),
             "sigma_points": 2 * int(model.theta0.shape[0]) + 1,
             "max_abs_theta_diff_vs_ours": agreement,
         },

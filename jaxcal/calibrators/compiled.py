@@ -11,8 +11,10 @@ compiled program, and because the program holds no call's numbers, JAX's
 persistent compilation cache (:mod:`jaxcal.cache`) finds it in a new process.
 
 The measurement noise is an explicit input, the filter's measurement covariance
-``R = diag(noise_std^2)`` (the outputs are centred on ``x_mean`` and expressed in
-units of ``noise_std``, where ``R`` is the identity; :mod:`jaxcal.calibrators.ukf`).
+``R = diag(noise_std^2)``: :func:`measurement_of` makes the calibrators'
+:class:`~jaxcal.calibrators.interface.Measurement` of it (the outputs centred on
+``x_mean`` and expressed in units of ``noise_std``, where ``R`` is the identity;
+:mod:`jaxcal.calibrators.ukf`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.interface import Calibrator, SensorNorm, run_fleet
+from jaxcal.calibrators.interface import Calibrator, Measurement, run_fleet
 from jaxcal.calibrators.on_disk import kept, serialisable
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array
@@ -179,6 +181,8 @@ def _traced_once(cal: Calibrator) -> Calibrator:
     return cal._replace(step=jax.jit(cal.step))
 
 
-def norm_of(inputs: Inputs) -> SensorNorm:
-    """The outputs centred and in units of their noise std (``R`` the identity)."""
-    return SensorNorm(mean=inputs.x_mean, std=inputs.noise_std)
+def measurement_of(inputs: Inputs) -> Measurement:
+    """The calibration's measurement model: the outputs centred on ``x_mean`` and in
+    units of their noise std (with the configs' ``r = 1``, ``R = diag(noise_std^2)``
+    and the identity in those units)."""
+    return Measurement(centre=inputs.x_mean, noise_std=inputs.noise_std)

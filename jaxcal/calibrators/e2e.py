@@ -170,30 +170,6 @@ def e2e_apply(params: E2EParams, w_t: Array, x_t: Array, x_prev: Array) -> Array
     return _apply(params, jnp.concatenate([w_t, x_t, x_prev], axis=-1), x_t)
 
 
-def e2e_predict(
-    params: E2EParams, w: Array, x: Array, mask: Array | None = None
-) -> Array:
-    """Parameters of whole trajectories: ``theta [..., T, P]`` from ``w``, ``x``.
-
-    Args:
-        params: trained G.
-        w: ``[U, T, W]`` (or ``[T, W]``); x: ``[U, T, S]`` (or ``[T, S]``).
-        mask: optional ``[U, T]`` validity (see :func:`e2e_features`); outputs at
-            invalid samples are meaningless and left to the caller to mask.
-    """
-    if params.window:
-        feats = window_features(jnp.asarray(w), jnp.asarray(x), mask, params.window)
-        return _apply(params, feats, jnp.asarray(x))
-    features = e2e_features(jnp.asarray(w), jnp.asarray(x), mask)
-    s = params.sensor_dim
-    return e2e_apply(
-        params,
-        features[..., : -2 * s],
-        features[..., -2 * s : -s],
-        features[..., -s:],
-    )
-
-
 def fit_e2e(
     key: PRNGKey,
     w: Array,
@@ -315,8 +291,8 @@ def make_e2e_calibrator(
 
     Returns:
         ``Calibrator(init, step)``; ``init`` stores x_{−1} = x_0 (the window holds
-        copies of the first sample), so streaming output equals :func:`e2e_predict`
-        on the same record.
+        copies of the first sample), so streaming output equals the network's
+        prediction over the whole record at once.
     """
     lags = max(params.window - 1, 0)
 

@@ -82,11 +82,21 @@ CalState = Any  # any pytree; each calibrator defines its own state dataclass
 MeasureFn = Callable[[Array, Array], Array]  # (w [Wd], theta [P]) -> x [S]
 
 
-class SensorNorm(NamedTuple):
-    """Per-sensor normalisation ``x_n = (x - mean) / std`` (training statistics)."""
+class Measurement(NamedTuple):
+    """The measurement model of the UKF and least squares: how an output is compared.
 
-    mean: Array  # [S]
-    std: Array  # [S], > 0
+    Both compare an output (measured or predicted) as ``(x - centre) / noise_std``
+    and then assume a noise of std ``r`` (their config's) in those units: the
+    measurement noise std is ``r * noise_std`` per output, the UKF's measurement
+    covariance ``R = diag((r * noise_std)^2)``, the least-squares residual unit
+    ``r * noise_std``. The front door passes the measurement noise std itself with
+    ``r = 1`` (:mod:`jaxcal.calibrators.compiled`); the paper's methods pass the
+    outputs' training std with ``r = 0.01``. ``centre`` only shifts the compared
+    values (residuals are differences), e.g. the outputs' training mean.
+    """
+
+    centre: Array  # [S]
+    noise_std: Array  # [S], > 0
 
 
 class CalStepOutput(NamedTuple):
@@ -340,29 +350,36 @@ def _check_record(w, x, mask):
     return w, x, mask.astype(bool)
 
 
-def check_norm(norm: Any, name: str = "norm") -> SensorNorm:
-    """Validate a normalisation (anything with ``.mean`` and ``.std`` of shape ``[S]``).
+def check_measurement(measurement: Any, name: str = "measurement") -> Measurement:
+    """Validate a :class:`Measurement` (``.centre`` and ``.noise_std``, both ``[S]``).
 
     Args:
-        norm: e.g. :class:`SensorNorm` or a data-set statistics object.
+        measurement: a :class:`Measurement` (or anything with those two fields).
         name: the argument name used in error messages.
 
     Returns:
-        A :class:`SensorNorm` of arrays. Value checks (``std > 0``, finite) run only
-        when the arrays are concrete, so the function is safe under ``jit``/``vmap``.
+        A :class:`Measurement` of arrays. Value checks (``centre`` finite,
+        ``noise_std > 0``) run only when the arrays are concrete, so the function is
+        safe under ``jit``/``vmap``.
     """
-    if not (hasattr(norm, "mean") and hasattr(norm, "std")):
-        raise ValueError(f"{name} must have .mean and .std arrays of shape [S]")
-    mean, std = jnp.asarray(norm.mean), jnp.asarray(norm.std)
-    if mean.ndim != 1 or mean.shape != std.shape:
+    if not (hasattr(measurement, "centre") and hasattr(measurement, "noise_std")):
         raise ValueError(
-            f"{name}.mean and {name}.std must both be [S]; "
-            f"got {mean.shape}, {std.shape}"
+            f"{name} must have .centre and .noise_std arrays of shape [S] "
+            "(a Measurement)"
         )
-    if not isinstance(std, jax.core.Tracer) and not isinstance(mean, jax.core.Tracer):
-        if not (np.all(np.isfinite(np.asarray(mean))) and np.all(np.asarray(std) > 0)):
-            raise ValueError(f"{name}: mean must be finite and std > 0 everywhere")
-    return SensorNorm(mean=mean, std=std)
+    centre = jnp.asarray(measurement.centre)
+    noise_std = jnp.asarray(measurement.noise_std)
+    if centre.ndim != 1 or centre.shape != noise_std.shape:
+        raise ValueError(
+            f"{name}.centre and {name}.noise_std must both be [S]; "
+            f"got {centre.shape}, {noise_std.shape}"
+        )
+    concrete = not any(isinstance(a, jax.core.Tracer) for a in (centre, noise_std))
+    if concrete and not (
+        np.all(np.isfinite(np.asarray(centre))) and np.all(np.asarray(noise_std) > 0)
+    ):
+        raise ValueError(f"{name}: centre must be finite and noise_std > 0 everywhere")
+    return Measurement(centre=centre, noise_std=noise_std)
 
 
 def check_prior(theta0: Array, theta_scale: Array | None) -> tuple[Array, Array]:

@@ -2,15 +2,18 @@
 
 Two uses of one damped Gauss–Newton iteration (Levenberg 1944, Marquardt 1963;
 Nocedal & Wright 2006, sec. 10.3), working in scaled parameters
-``z = theta / theta_scale`` on residuals normalised by each sensor's spread:
+``z = theta / theta_scale`` on residuals in units of each output's noise std
+(the :class:`~jaxcal.calibrators.interface.Measurement`'s ``noise_std``, times the
+config's ``r``):
 
 * :func:`make_least_squares` — a streaming calibrator (the interface of
   :mod:`jaxcal.calibrators.interface`). Its state is a ring buffer of the last
   ``window`` samples; each step inserts the new sample and runs ``num_iters`` LM
   iterations on
-  ``sum_i ||(F(w_i, theta) - x_i) / (std r)||^2 [+ ||(z - z_prev) / prior_std||^2]``,
-  warm-started from the previous estimate ``z_prev``. The optional Gaussian prior
-  (a Tikhonov term towards ``z_prev``) steadies poorly observed directions.
+  ``sum_i ||(F(w_i, theta) - x_i) / (noise_std r)||^2
+  [+ ||(z - z_prev) / prior_std||^2]``, warm-started from the previous estimate
+  ``z_prev``. The optional Gaussian prior (a Tikhonov term towards ``z_prev``)
+  steadies poorly observed directions.
 * :func:`fit_least_squares` — a constant ``theta`` fitted to a whole record (design
   constants of the engine, candidate effects of the closing-the-loop work), iterated
   with ``lax.while_loop`` to a tolerance and reporting cost, gradient norm, iteration
@@ -53,8 +56,8 @@ from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
     MeasureFn,
-    SensorNorm,
-    check_norm,
+    Measurement,
+    check_measurement,
     check_scale,
 )
 from jaxcal.numerics.levenberg_marquardt import (
@@ -74,7 +77,7 @@ class LeastSquaresConfig:
 
     window: int = 32  # samples in the sliding window (ring buffer length)
     num_iters: int = 3  # LM iterations per step (fixed cost per sample)
-    r: float = 0.01  # measurement noise std, normalised units (weighs the prior)
+    r: float = 0.01  # noise std in units of Measurement.noise_std (weighs the prior)
     prior_std: float | None = None  # prior std around the previous z; None: no prior
     damping_init: float = 1e-3  # Marquardt lambda at the start of every step
     damping_factor: float = 10.0  # lambda /= factor on acceptance, *= on rejection
@@ -148,7 +151,7 @@ def damping_of(cfg: LeastSquaresConfig | FitConfig) -> Damping:
 def make_least_squares(
     measure_fn: MeasureFn,
     cfg: LeastSquaresConfig,
-    norm: SensorNorm,
+    measurement: Measurement,
     *,
     theta0: Array,
     theta_scale: Array | None = None,
@@ -158,8 +161,8 @@ def make_least_squares(
     Args:
         measure_fn: ``F(w [Wd], theta [P]) -> x [S]``, differentiable in ``theta``.
         cfg: static settings.
-        norm: sensor normalisation (only ``std [S]`` is used: residuals are
-            differences).
+        measurement: the outputs' ``noise_std [S]`` (times ``cfg.r``) is the
+            residual unit; ``centre`` is not used (residuals are differences).
         theta0: ``[P]`` initial estimate (theta units).
         theta_scale: ``[P]`` positive scales of theta, or ``None``.
 
@@ -172,12 +175,12 @@ def make_least_squares(
         ``r``, widened by the window's lag behind a drifting theta: see
         :func:`drift_std`), ``laplace_std [P]`` (the fit's alone) and ``cost []``.
     """
-    norm = check_norm(norm)
+    measurement = check_measurement(measurement)
     theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
     if theta0.ndim != 1:
         raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
     scale = check_scale(theta_scale, theta0.shape[0], theta0.dtype)
-    sigma = norm.std * cfg.r  # residual unit: one noise std
+    sigma = measurement.noise_std * cfg.r  # residual unit: one noise std
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> LSState:
         del key
@@ -270,13 +273,13 @@ def fit_least_squares(
     cfg: FitConfig | None = None,
     mask: Array | None = None,
     *,
-    norm: SensorNorm | None = None,
+    measurement: Measurement | None = None,
     theta_scale: Array | None = None,
 ) -> tuple[Array, FitInfo]:
     """Fit one constant ``theta`` to a whole record (jitted; vmappable over records).
 
-    Minimises ``0.5 * sum_t,s ((F(w_t, theta) - x_t) / std)_s^2`` over valid rows and
-    observed outputs (a NaN in ``x`` is missing and left out) with
+    Minimises ``0.5 * sum_t,s ((F(w_t, theta) - x_t) / noise_std)_s^2`` over valid
+    rows and observed outputs (a NaN in ``x`` is missing and left out) with
     Levenberg–Marquardt in ``lax.while_loop``. ``measure_fn`` and ``cfg`` are static:
     reuse the same function object to avoid recompiling.
 
@@ -287,7 +290,8 @@ def fit_least_squares(
         theta0: ``[P]`` starting point.
         cfg: tolerances and damping (default :class:`FitConfig`).
         mask: ``[T]`` validity or ``None``.
-        norm: residuals are divided by ``norm.std``; ``None`` keeps raw units.
+        measurement: residuals are divided by ``measurement.noise_std``; ``None``
+            keeps raw units.
         theta_scale: ``[P]`` scales the iteration works in, or ``None``.
 
     Returns:
@@ -304,9 +308,15 @@ def fit_least_squares(
     if theta0.ndim != 1:
         raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
     scale = check_scale(theta_scale, theta0.shape[0], theta0.dtype)
-    std = jnp.ones(x.shape[1], theta0.dtype) if norm is None else check_norm(norm).std
+    std = (
+        jnp.ones(x.shape[1], theta0.dtype)
+        if measurement is None
+        else check_measurement(measurement).noise_std
+    )
     if std.shape != (x.shape[1],):
-        raise ValueError(f"norm.std must be [S] = ({x.shape[1]},), got {std.shape}")
+        raise ValueError(
+            f"measurement.noise_std must be [S] = ({x.shape[1]},), got {std.shape}"
+        )
     mask = jnp.ones(w.shape[:1], bool) if mask is None else jnp.asarray(mask, bool)
     if mask.shape != w.shape[:1]:
         raise ValueError(f"mask must be [T] = {w.shape[:1]}, got {mask.shape}")

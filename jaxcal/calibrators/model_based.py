@@ -47,7 +47,7 @@ def model_based_factory(
     the problem's (a static model only; the paper suite's perturbable model)."""
     ukf = isinstance(cfg, UKF)
     settings = cfg.filter if ukf else cfg.solver
-    norm = compiled.norm_of
+    measurement = compiled.measurement_of
     if measure is not None and problem.model.is_stateful:
         raise ValueError("measure= replaces a static model's F only")
     if not problem.model.is_stateful:
@@ -56,7 +56,7 @@ def model_based_factory(
 
         def static(inputs: Inputs) -> Calibrator:
             return make(
-                measure, settings, norm(inputs), theta0=inputs.theta0,
+                measure, settings, measurement(inputs), theta0=inputs.theta0,
                 theta_scale=inputs.theta_scale,
             )  # fmt: skip
 
@@ -73,11 +73,11 @@ def model_based_factory(
         )  # fmt: skip
         if ukf:
             return make_joint_ukf(
-                tr, settings, norm(inputs), state_std=inputs.state_std,
+                tr, settings, measurement(inputs), state_std=inputs.state_std,
                 state_q=inputs.state_q, **common,
             )  # fmt: skip
         return make_window_least_squares(
-            tr, settings, norm(inputs), state_std=inputs.state_std, **common
+            tr, settings, measurement(inputs), state_std=inputs.state_std, **common
         )
 
     return stateful

@@ -3,14 +3,18 @@
 State-space model of the paper (eq. ukf and appendix "Set-up of the UKF algorithm")::
 
     theta_t = theta_{t-1} + xi_t,        xi ~ N(0, Q),  Q = q^2 I
-    x_t     = F(w_t, theta_t) + eps_t,   eps ~ N(0, R), R = r^2 I  (normalised outputs)
+    x_t     = F(w_t, theta_t) + eps_t,   eps ~ N(0, R), R = r^2 I  (compared outputs)
 
 filtered with the additive-noise UKF of Särkkä (2013), "Bayesian Filtering and
 Smoothing", alg. 5.14 (sigma points and weights of its eqs. for the scaled unscented
 transform). Choices the paper leaves open, fixed here:
 
-* Outputs are normalised, ``x_n = (x - mean) / std`` with the training statistics, so
-  ``r`` is in units of each sensor's spread, as the appendix says.
+* Outputs are compared as ``x_n = (x - centre) / noise_std``, the
+  :class:`~jaxcal.calibrators.interface.Measurement`, so ``R = r^2 I`` there and
+  ``R = diag((r noise_std)^2)`` in output units. The paper's methods take the
+  training statistics (``noise_std`` the training std), so ``r`` is in units of each
+  sensor's spread, as the appendix says; :func:`jaxcal.calibrate` passes the
+  measurement noise std with ``r = 1`` (:mod:`jaxcal.calibrators.compiled`).
 * Parameters may be normalised too: the filter works in ``z = theta / theta_scale``
   (``theta_scale`` e.g. the training std of each parameter), so ``q`` and ``prior_std``
   are in those units. ``theta_scale=None`` means raw ``theta`` units. Outputs are
@@ -60,8 +64,8 @@ from jaxcal.calibrators.interface import (
     CalOutput,
     CalStepOutput,
     MeasureFn,
-    SensorNorm,
-    check_norm,
+    Measurement,
+    check_measurement,
     check_prior,
     check_scale,
     run_calibrator,
@@ -85,7 +89,7 @@ from jaxcal.typedefs import Array, PRNGKey
 def make_ukf(
     measure_fn: MeasureFn,
     cfg: UKFConfig,
-    norm: SensorNorm,
+    measurement: Measurement,
     *,
     theta0: Array,
     theta_scale: Array | None = None,
@@ -96,16 +100,18 @@ def make_ukf(
         measure_fn: ``F(w [Wd], theta [P]) -> x [S]`` (declared parameters only; see
             ``measure_declared``). Must be jittable and vmappable over ``theta``.
         cfg: static settings.
-        norm: sensor normalisation, ``mean``/``std`` ``[S]``.
+        measurement: ``centre``/``noise_std`` ``[S]``: the outputs are compared as
+            ``(x - centre) / noise_std``, with noise std ``cfg.r`` there (``R =
+            diag((cfg.r noise_std)^2)``).
         theta0: ``[P]`` prior mean of the parameters (theta units).
         theta_scale: ``[P]`` positive scales; the filter runs in ``theta / scale``.
 
     Returns:
         ``Calibrator(init, step)``; the state is :class:`UKFState`; ``step`` reports
         ``theta`` (posterior mean), ``xhat`` and ``aux`` with ``theta_std [P]``,
-        ``innovation [S]`` (normalised ``x_n - E[x_n]`` before the update; 0 on a
+        ``innovation [S]`` (compared ``x_n - E[x_n]`` before the update; 0 on a
         missing output), ``innovation_std [S]`` (its predicted std, the root of
-        ``diag S``), ``log_likelihood []`` (of the normalised observed outputs of
+        ``diag S``), ``log_likelihood []`` (of the compared observed outputs of
         ``x_t`` given the past) and, if asked, ``theta_cov [P, P]``. ``x_t`` may
         hold NaN in some outputs (missing): the update uses the observed ones.
     """
@@ -118,7 +124,7 @@ def make_ukf(
         return z, measure_fn(w, theta)
 
     return make_joint_ukf(
-        Transition(init_state, step, 0), cfg, norm, theta0=theta0,
+        Transition(init_state, step, 0), cfg, measurement, theta0=theta0,
         theta_scale=theta_scale,
     )  # fmt: skip
 
@@ -126,7 +132,7 @@ def make_ukf(
 def make_joint_ukf(
     transition: Transition,
     cfg: UKFConfig,
-    norm: SensorNorm,
+    measurement: Measurement,
     *,
     theta0: Array,
     theta_scale: Array | None = None,
@@ -142,7 +148,7 @@ def make_joint_ukf(
             ``init(w0 [Wd], theta [P]) -> z0 [Z]`` is the prior mean of the state
             before the first sample, ``step(z [Z], w [Wd], theta [P]) -> (z', x
             [S])``; with ``Z = 0`` this is the static filter of :func:`make_ukf`.
-        cfg, norm, theta0, theta_scale: as in :func:`make_ukf`.
+        cfg, measurement, theta0, theta_scale: as in :func:`make_ukf`.
         state_std: ``[Z]`` std of the initial state around ``init_state`` (state
             units; 0 = known exactly). Default: ``state_scale``.
         state_q: ``[Z]`` process-noise std added to the state per step (model error
@@ -159,7 +165,8 @@ def make_joint_ukf(
         ``Calibrator(init, step)`` as :func:`make_ukf`, with ``aux["state"] [Z]`` and
         ``aux["state_std"] [Z]`` (the filtered state after the sample) when ``Z > 0``.
     """
-    norm = check_norm(norm)
+    measurement = check_measurement(measurement)
+    centre, noise_std = measurement
     theta0, scale = check_prior(theta0, theta_scale)
     num_params = theta0.shape[0]
     init_state, step_fn, num_states = transition
@@ -187,15 +194,17 @@ def make_joint_ukf(
         def propagate(a: Array):
             z, theta = unpack(a)
             z_next, x = step_fn(z, w_t, admissible(theta))
-            return z_next / s_scale, (x - norm.mean) / norm.std
+            return z_next / s_scale, (x - centre) / noise_std
 
         pred = predict(state, propagate, noise, weights, cfg, num_states)
-        mean, cov, s_cov, innovation, log_lik = update(pred, x_t, norm, weights, cfg.r)
+        mean, cov, s_cov, innovation, log_lik = update(
+            pred, x_t, measurement, weights, cfg.r
+        )
         z_post, theta_post = unpack(mean)
         if cfg.posterior_xhat:  # x_t of the previous posterior state, new theta
             xhat = step_fn(unpack(state.mean)[0], w_t, admissible(theta_post))[1]
         else:  # the predicted measurement mean, free but one step behind the update
-            xhat = norm.mean + norm.std * pred.y_mean
+            xhat = centre + noise_std * pred.y_mean
         aux = step_aux(cfg, cov, s_cov, innovation, log_lik, z_post, scale, s_scale)
         out = CalStepOutput(theta=theta_post, xhat=xhat, aux=aux)
         return UKFState(mean=mean, cov=cov), out
@@ -225,7 +234,7 @@ def ukf_filter(
     measure_fn: MeasureFn,
     w: Array,
     x: Array,
-    norm: SensorNorm,
+    measurement: Measurement,
     cfg: UKFConfig | None = None,
     *,
     theta0: Array,
@@ -242,7 +251,8 @@ def ukf_filter(
         measure_fn: ``F(w [Wd], theta [P]) -> x [S]``.
         w: ``[T, Wd]`` or a fleet ``[U, T, Wd]``.
         x: ``[T, S]`` or ``[U, T, S]``.
-        norm: sensor normalisation ``[S]``.
+        measurement: the outputs' ``centre`` and ``noise_std`` ``[S]``
+            (:func:`make_ukf`).
         cfg: settings (default :class:`UKFConfig`, the paper's q = r = 0.01).
         theta0: ``[P]`` prior mean. theta_scale: ``[P]`` or ``None``.
         mask: ``[T]`` / ``[U, T]`` validity, ``None`` for all valid.
@@ -253,26 +263,29 @@ def ukf_filter(
         :func:`make_ukf`).
     """
     cfg = UKFConfig() if cfg is None else cfg
-    norm = check_norm(norm)
+    measurement = check_measurement(measurement)
     w, x = jnp.asarray(w), jnp.asarray(x)
     if w.ndim not in (2, 3) or x.ndim != w.ndim:
         raise ValueError(f"w, x must be [T, .] or [U, T, .]; got {w.shape}, {x.shape}")
-    if x.shape[-1] != norm.mean.shape[0]:
+    if x.shape[-1] != measurement.centre.shape[0]:
         raise ValueError(
-            f"x has {x.shape[-1]} sensors but norm has {norm.mean.shape[0]}"
+            f"x has {x.shape[-1]} sensors but measurement has "
+            f"{measurement.centre.shape[0]}"
         )
     theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
     if theta0.ndim != 1:
         raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
     check_scale(theta_scale, theta0.shape[0], theta0.dtype)
     return _ukf_filter_jit(
-        measure_fn, cfg, unroll, w, x, norm, theta0, theta_scale, mask
+        measure_fn, cfg, unroll, w, x, measurement, theta0, theta_scale, mask
     )
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
-def _ukf_filter_jit(measure_fn, cfg, unroll, w, x, norm, theta0, theta_scale, mask):
-    ukf = make_ukf(measure_fn, cfg, norm, theta0=theta0, theta_scale=theta_scale)
+def _ukf_filter_jit(
+    measure_fn, cfg, unroll, w, x, measurement, theta0, theta_scale, mask
+):
+    ukf = make_ukf(measure_fn, cfg, measurement, theta0=theta0, theta_scale=theta_scale)
     if w.ndim == 3:
         return run_fleet(ukf, w, x, mask, unroll=unroll)
     return run_calibrator(ukf, w, x, mask, unroll=unroll)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from jaxcal.calibrators.interface import SensorNorm
+from jaxcal.calibrators.interface import Measurement
 from jaxcal.typedefs import Array
 
 
@@ -30,7 +30,7 @@ class UKFConfig:
     :func:`~jaxcal.calibrators.ukf.make_ukf`)."""
 
     q: float = 0.01  # random-walk std per step, scaled-theta units (paper: 0.01)
-    r: float = 0.01  # measurement noise std, normalised-sensor units (paper: 0.01)
+    r: float = 0.01  # noise std in units of Measurement.noise_std (paper: 0.01)
     prior_std: float = 1.0  # std of theta_0 around theta0, scaled-theta units
     alpha: float = 1.0  # sigma-point spread (scaled unscented transform)
     beta: float = 2.0  # prior-knowledge weight on the centre point (2: Gaussian)
@@ -180,16 +180,18 @@ def predict(
     return _Prediction(mean_pred, cov_pred, da, y_mean, dy)
 
 
-def update(pred: _Prediction, x_t: Array, norm: SensorNorm, weights, r: float):
+def update(pred: _Prediction, x_t: Array, measurement: Measurement, weights, r: float):
     """The measurement update on the observed outputs of ``x_t``
     (:func:`_observed_only`): ``(mean, cov, s_cov, innovation, log_likelihood)``,
-    the innovation and its covariance ``S`` normalised."""
+    the innovation and its covariance ``S`` in the compared units
+    ``(x - centre) / noise_std`` of ``measurement``, where ``R = r^2 I``."""
+    centre, noise_std = measurement
     wc, dy = weights[1], pred.dy
     eye_s = jnp.eye(dy.shape[1], dtype=dy.dtype)
     s_cov = dy.T @ (wc[:, None] * dy) + r**2 * eye_s
     cross = pred.da.T @ (wc[:, None] * dy)  # [n, S]
     s_cov, cross, innovation = _observed_only(
-        x_t, s_cov, cross, (x_t - norm.mean) / norm.std - pred.y_mean, eye_s
+        x_t, s_cov, cross, (x_t - centre) / noise_std - pred.y_mean, eye_s
     )
     s_chol = cho_factor(s_cov, lower=True)
     gain = cho_solve(s_chol, cross.T).T  # C S^-1

@@ -10,11 +10,12 @@ the window and an arrival-cost prior on ``z_s``). Each step
    theta (the prior of the new window start, weight ``state_std``);
 2. shifts the new sample in (time order: the model is simulated forwards);
 3. runs ``num_iters`` Levenberg–Marquardt iterations on
-   ``sum_i ||(x_i(theta, z_s) - x_i) / (std r)||^2 + ||(z_s - z_prior) / state_std||^2
-   [+ ||(u - u_prev) / prior_std||^2]``, ``x_i`` simulated by ``lax.scan`` and
-   differentiated by ``jax.jacfwd`` over the ``P + Z`` unknowns; warm-started from
-   the previous estimate. The iteration, its box projection and the covariance are
-   the one solver core's (:mod:`jaxcal.numerics.levenberg_marquardt`).
+   ``sum_i ||(x_i(theta, z_s) - x_i) / (noise_std r)||^2
+   + ||(z_s - z_prior) / state_std||^2 [+ ||(u - u_prev) / prior_std||^2]``,
+   ``x_i`` simulated by ``lax.scan`` and differentiated by ``jax.jacfwd`` over the
+   ``P + Z`` unknowns; warm-started from the previous estimate. The iteration, its
+   box projection and the covariance are the one solver core's
+   (:mod:`jaxcal.numerics.levenberg_marquardt`).
 
 A NaN in ``x_t`` is a missing output: it is left out of the residual (the sample's
 other outputs still count), so the calibrator takes partial rows
@@ -43,8 +44,8 @@ from jaxcal.calibrators.drift_std import (
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
-    SensorNorm,
-    check_norm,
+    Measurement,
+    check_measurement,
     check_prior,
     check_scale,
 )
@@ -70,7 +71,7 @@ class WindowState:
 def make_window_least_squares(
     transition: Transition,
     cfg: LeastSquaresConfig,
-    norm: SensorNorm,
+    measurement: Measurement,
     *,
     theta0: Array,
     theta_scale: Array | None = None,
@@ -85,7 +86,8 @@ def make_window_least_squares(
             ``init(w0, theta [P]) -> z0 [Z]``, ``step(z, w, theta [P]) -> (z', x
             [S])``, differentiable.
         cfg: window, iterations, noise ``r`` and the optional theta prior.
-        norm: output normalisation (``std [S]`` is the residual unit with ``r``).
+        measurement: the outputs' ``noise_std [S]`` (times ``cfg.r``) is the
+            residual unit; ``centre`` is not used.
         theta0: ``[P]`` initial estimate; theta_scale: ``[P]`` scales.
         state_std: ``[Z]`` (or scalar) std of the window-start state around its
             propagated value (the arrival cost); default ``state_scale``.
@@ -101,13 +103,13 @@ def make_window_least_squares(
         ``cost []``, ``state [Z]`` (the state after the sample, simulated over the
         window) and ``state_std [Z]`` (of the window start).
     """
-    norm = check_norm(norm)
+    measurement = check_measurement(measurement)
     theta0, scale = check_prior(theta0, theta_scale)
     num_params = theta0.shape[0]
     init_state, step_fn, num_states = transition
     s_scale = check_scale(state_scale, num_states, theta0.dtype)
     s_std = _arrival_std(state_std, s_scale)
-    sigma = norm.std * cfg.r  # residual unit: one noise std
+    sigma = measurement.noise_std * cfg.r  # residual unit: one noise std
     box = _parameter_box(theta_box, scale, num_states)
     simulate = functools.partial(_simulate, step_fn)
 

@@ -201,7 +201,9 @@ def build_problem(
 
     Args:
         model: the model. source: the data (its ``sample``, ``outputs`` and, for a
-            streamed file, ``x_stats``: the outputs' centre and spread).
+            streamed file, ``x_stats``: the outputs' mean and std over every
+            selected row, which replace the sample's in the problem's
+            normalisation).
         theta: declared parameters. method: the method table's name.
         noise: :func:`parse_noise`'s value (``None``: the module docstring).
         theta0: prior mean per declared parameter (``()``: the nominal values).
@@ -215,11 +217,10 @@ def build_problem(
     problem = Problem.build(
         model, source.sample, theta=theta, outputs=outputs, noise=given
     )
-    stats = source.x_stats
-    if stats is not None:  # a streamed file: the statistics of every selected row
+    if source.x_stats is not None:  # a streamed file
+        x_mean, x_std = source.x_stats  # the outputs' over every selected row
         norm = problem.norm._replace(
-            x_mean=np.asarray(stats.mean, np.float64),
-            x_std=np.asarray(stats.std, np.float64),
+            x_mean=np.asarray(x_mean, np.float64), x_std=np.asarray(x_std, np.float64)
         )
         problem = dataclasses.replace(problem, norm=norm)
     if noise is None and is_turbofan(model):

@@ -5,8 +5,9 @@ up to ~10 M rows), so nothing here reads a whole split: :func:`unit_lengths` sca
 the unit column of ``A_<split>`` in blocks, :func:`iter_ncmapss_chunks` reads one chunk
 of units at a time, padded to the fixed length ``T`` that keeps the compiled program
 unique (:func:`~jaxcal.data.readers.read_ncmapss_padded`, which reads only the rows of
-the requested units), and :func:`sensor_norm` takes the normalisation from the file's
-reference statistics or, failing those, from one blocked pass over the sensor columns.
+the requested units), and :func:`sensor_norm` takes the outputs' normalisation (their
+mean and std) from the file's reference statistics or, failing those, from one
+blocked pass over the sensor columns.
 
 Row selection with ``stride`` keeps file rows ``0, stride, 2 stride, ...`` (the grid of
 ``load_ncmapss`` for a unit selection), here and in the lengths.
@@ -21,7 +22,6 @@ from collections.abc import Iterator, Sequence
 import h5py
 import numpy as np
 
-from jaxcal.calibrators.interface import SensorNorm
 from jaxcal.data.readers import read_ncmapss_padded, read_ncmapss_split
 from jaxcal.fleet.streaming import UnitChunk, plan_chunks
 from jaxcal.physics.constants import health_index
@@ -155,8 +155,11 @@ def sensor_norm(
     *,
     stride: int = 1,
     block_rows: int = _BLOCK_ROWS,
-) -> tuple[SensorNorm, str]:
-    """Per-sensor mean / std for the normalised residuals of the UKF and least squares.
+) -> tuple[tuple[np.ndarray, np.ndarray], str]:
+    """Per-sensor mean / std: the outputs' normalisation (the ``x`` part of the
+    problem's :class:`~jaxcal.data.normalisation.Normalisation`: its mean centres
+    the outputs the UKF and least squares compare, the turbofan's default noise
+    without ``noise=`` is 1 % of its std; :func:`jaxcal.fleet.method.build_problem`).
 
     Uses the file's ``reference_x_names`` / ``reference_x_mean`` / ``reference_x_std``
     root attributes (written by ``jaxcal.generate``: statistics of the noise-free
@@ -164,7 +167,7 @@ def sensor_norm(
     selected units' rows of the split.
 
     Returns:
-        ``(SensorNorm [S], source)`` with ``source`` ``"file attributes"`` or
+        ``((mean [S], std [S]), source)`` with ``source`` ``"file attributes"`` or
         ``"data pass"``.
     """
     stride = _check_stride(stride)
@@ -181,7 +184,7 @@ def sensor_norm(
             cols = [names.index(s) for s in sensors]
             mean = np.asarray(attrs["reference_x_mean"], np.float64)[cols]
             std = np.asarray(attrs["reference_x_std"], np.float64)[cols]
-            return SensorNorm(mean=mean, std=std), "file attributes"
+            return (mean, std), "file attributes"
     block_rows = max(stride, int(block_rows) // stride * stride)
     wanted = None if units is None else np.asarray(list(units), np.int64)
     total, sums, squares = 0, 0.0, 0.0
@@ -201,4 +204,4 @@ def sensor_norm(
     std = np.sqrt(np.maximum(squares / total - np.square(mean), 0.0))
     # A scale-aware floor: constant columns must not blow up after normalisation.
     std = np.maximum(std, 1e-6 * np.maximum(1.0, np.abs(mean)))
-    return SensorNorm(mean=mean, std=std), "data pass"
+    return (mean, std), "data pass"

@@ -27,7 +27,6 @@ from typing import NamedTuple
 import h5py
 import numpy as np
 
-from jaxcal.calibrators.interface import SensorNorm
 from jaxcal.data.dataset import Dataset
 from jaxcal.fleet.streaming import UnitChunk, iter_array_chunks
 from jaxcal.model import Model
@@ -43,7 +42,8 @@ class FleetSource(NamedTuple):
         sample: the rows the problem is built on (the whole table, or the first unit
             of an N-CMAPSS file), columns checked against the model.
         outputs: the outputs used, the columns of the chunks' ``x``.
-        x_stats: the outputs' statistics over every selected row when ``sample`` is
+        x_stats: the outputs' normalisation ``(mean [S], std [S])`` over every
+            selected row (or the file's reference statistics) when ``sample`` is
             only part of the data (N-CMAPSS), else ``None``.
         unit_ids: ``[U]`` selected unit ids, ascending.
         max_len: ``T``, the padded length.
@@ -57,7 +57,7 @@ class FleetSource(NamedTuple):
 
     sample: Dataset
     outputs: tuple[str, ...]
-    x_stats: SensorNorm | None
+    x_stats: tuple[np.ndarray, np.ndarray] | None
     unit_ids: np.ndarray
     max_len: int
     description: str
@@ -151,7 +151,7 @@ def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource
     wanted = list(units) or None
     unit_ids, lengths = unit_lengths(path, split, wanted, stride=stride)
     length = max_len or int(lengths.max())
-    norm, norm_source = sensor_norm(path, split, outputs, wanted, stride=stride)
+    x_stats, norm_source = sensor_norm(path, split, outputs, wanted, stride=stride)
     first = read_ncmapss_split(
         path, split, units=unit_ids[:1], sensors=list(outputs), stride=stride,
         nonfinite="keep",
@@ -167,7 +167,7 @@ def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource
         )  # fmt: skip
 
     return FleetSource(
-        sample=sample, outputs=outputs, x_stats=norm, unit_ids=unit_ids,
+        sample=sample, outputs=outputs, x_stats=x_stats, unit_ids=unit_ids,
         max_len=length, description=f"{path}[{split}]", norm_source=norm_source,
         chunks=chunks, complete=False,
     )  # fmt: skip

@@ -19,7 +19,7 @@ import pytest
 
 import jaxcal
 from jaxcal.calibrators.e2e import E2EConfig
-from jaxcal.calibrators.interface import SensorNorm, run_calibrator
+from jaxcal.calibrators.interface import Measurement, run_calibrator
 from jaxcal.calibrators.least_squares import (
     FitConfig,
     LeastSquaresConfig,
@@ -34,7 +34,7 @@ from jaxcal.problem import Transition
 
 NUM_STEPS, NUM_SENSORS = 12, 4
 RUN = jax.jit(run_calibrator, static_argnums=0)
-NORM = SensorNorm(mean=jnp.array([1.0, 0.5, -0.2, 0.3]), std=jnp.full(4, 0.4))
+MEAS = Measurement(centre=jnp.array([1.0, 0.5, -0.2, 0.3]), noise_std=jnp.full(4, 0.4))
 THETA0, SCALE = jnp.array([0.1, -0.1]), jnp.array([0.5, 1.5])
 
 
@@ -65,13 +65,13 @@ STATEFUL = Transition(init_state, step_state, 1)
 def restricted(observed):
     """The static model and the stateful one on the outputs ``observed`` only."""
     idx = np.flatnonzero(observed)
-    norm = SensorNorm(mean=NORM.mean[idx], std=NORM.std[idx])
+    meas = Measurement(centre=MEAS.centre[idx], noise_std=MEAS.noise_std[idx])
 
     def step(z, w, theta):
         z_next, x = step_state(z, w, theta)
         return z_next, x[idx]
 
-    return (lambda w, th: measure(w, th)[idx]), Transition(init_state, step, 1), norm
+    return (lambda w, th: measure(w, th)[idx]), Transition(init_state, step, 1), meas
 
 
 def record(stateful=False, seed=0):
@@ -99,7 +99,7 @@ def record(stateful=False, seed=0):
 def test_ukf_on_a_partial_row_is_the_ukf_on_its_observed_outputs():
     cfg = UKFConfig(q=0.05, r=0.1, prior_std=0.7, return_cov=True)
     w, x = record()
-    ukf = make_ukf(measure, cfg, NORM, theta0=THETA0, theta_scale=SCALE)
+    ukf = make_ukf(measure, cfg, MEAS, theta0=THETA0, theta_scale=SCALE)
     assert ukf.accepts_partial
     out = RUN(ukf, w, x)
     assert out.valid.all() and out.partial.sum() == 6
@@ -107,8 +107,8 @@ def test_ukf_on_a_partial_row_is_the_ukf_on_its_observed_outputs():
 
     @functools.cache
     def sub_step(observed: tuple):  # one compiled reference step per pattern
-        sub_measure, _, sub_norm = restricted(np.array(observed))
-        sub = make_ukf(sub_measure, cfg, sub_norm, theta0=THETA0, theta_scale=SCALE)
+        sub_measure, _, sub_meas = restricted(np.array(observed))
+        sub = make_ukf(sub_measure, cfg, sub_meas, theta0=THETA0, theta_scale=SCALE)
         return jax.jit(sub.step)
 
     for t in range(NUM_STEPS):
@@ -135,15 +135,15 @@ def test_joint_ukf_on_a_partial_row_is_the_joint_ukf_on_its_observed_outputs():
     cfg = UKFConfig(q=0.05, r=0.1, prior_std=0.7, return_cov=True)
     opts = dict(theta0=THETA0, theta_scale=SCALE, state_std=0.2, state_q=0.01)
     w, x = record(stateful=True, seed=1)
-    ukf = make_joint_ukf(STATEFUL, cfg, NORM, **opts)
+    ukf = make_joint_ukf(STATEFUL, cfg, MEAS, **opts)
     out = RUN(ukf, w, x)
     assert out.valid.all() and out.partial.sum() == 6
     state = ukf.init(None, w[0], jnp.zeros(NUM_SENSORS))
 
     @functools.cache
     def sub_step(observed: tuple):  # one compiled reference step per pattern
-        _, sub_transition, sub_norm = restricted(np.array(observed))
-        return jax.jit(make_joint_ukf(sub_transition, cfg, sub_norm, **opts).step)
+        _, sub_transition, sub_meas = restricted(np.array(observed))
+        return jax.jit(make_joint_ukf(sub_transition, cfg, sub_meas, **opts).step)
 
     for t in range(NUM_STEPS):
         observed = ~np.isnan(x[t])
@@ -156,7 +156,7 @@ def test_joint_ukf_on_a_partial_row_is_the_joint_ukf_on_its_observed_outputs():
 
 
 def test_ukf_step_compiles_once_for_every_missing_pattern():
-    ukf = make_ukf(measure, UKFConfig(), NORM, theta0=THETA0)
+    ukf = make_ukf(measure, UKFConfig(), MEAS, theta0=THETA0)
     w, x = record()
     chex.clear_trace_counter()
     step = jax.jit(chex.assert_max_traces(ukf.step, n=1))
@@ -175,12 +175,12 @@ def test_least_squares_leaves_missing_outputs_out_of_the_residual():
     """Mixed pattern: the window's cost is the masked sum of squares; a column
     missing on every row is the fit of the model without it."""
     cfg = LeastSquaresConfig(window=4, num_iters=3, r=0.1)
-    ls = make_least_squares(measure, cfg, NORM, theta0=THETA0, theta_scale=SCALE)
+    ls = make_least_squares(measure, cfg, MEAS, theta0=THETA0, theta_scale=SCALE)
     assert ls.accepts_partial
     w, x = record(seed=2)
     out = RUN(ls, w, x)
     assert out.valid.all() and np.isfinite(np.asarray(out.theta)).all()
-    sigma = np.asarray(NORM.std) * cfg.r
+    sigma = np.asarray(MEAS.noise_std) * cfg.r
     for t in range(NUM_STEPS):
         rows = slice(max(0, t - cfg.window + 1), t + 1)
         cost = _masked_cost(out.theta[t], w[rows], x[rows], sigma)
@@ -193,9 +193,9 @@ def test_least_squares_leaves_missing_outputs_out_of_the_residual():
     x_drop[:, 2] = np.nan
     observed = np.array([True, True, False, True])
     x_drop[:, observed] = np.nan_to_num(x_drop[:, observed], nan=0.3)
-    sub_measure, _, sub_norm = restricted(observed)
+    sub_measure, _, sub_meas = restricted(observed)
     sub = make_least_squares(
-        sub_measure, cfg, sub_norm, theta0=THETA0, theta_scale=SCALE
+        sub_measure, cfg, sub_meas, theta0=THETA0, theta_scale=SCALE
     )
     got, ref = RUN(ls, w, x_drop), RUN(sub, w, x_drop[:, observed])
     np.testing.assert_allclose(got.theta, ref.theta, rtol=1e-10, atol=1e-12)
@@ -209,10 +209,10 @@ def test_window_least_squares_on_a_missing_column_is_the_fit_without_it():
     observed = np.array([True, False, True, True])
     x[:, ~observed] = np.nan
     x[:, observed] = np.nan_to_num(x[:, observed], nan=0.3)
-    cal = make_window_least_squares(STATEFUL, cfg, NORM, **opts)
+    cal = make_window_least_squares(STATEFUL, cfg, MEAS, **opts)
     assert cal.accepts_partial
-    _, sub_transition, sub_norm = restricted(observed)
-    sub = make_window_least_squares(sub_transition, cfg, sub_norm, **opts)
+    _, sub_transition, sub_meas = restricted(observed)
+    sub = make_window_least_squares(sub_transition, cfg, sub_meas, **opts)
     got, ref = RUN(cal, w, x), RUN(sub, w, x[:, observed])
     assert got.valid.all() and got.partial.all()
     np.testing.assert_allclose(got.theta, ref.theta, rtol=1e-10, atol=1e-12)
@@ -222,16 +222,16 @@ def test_window_least_squares_on_a_missing_column_is_the_fit_without_it():
 
 def test_batch_fit_masks_missing_outputs():
     w, x = record(seed=4)
-    out, info = fit_least_squares(measure, w, x, THETA0, FitConfig(), norm=NORM)
+    out, info = fit_least_squares(measure, w, x, THETA0, FitConfig(), measurement=MEAS)
     assert bool(info.converged) and np.isfinite(np.asarray(out)).all()
-    cost = _masked_cost(out, w, x, np.asarray(NORM.std))
+    cost = _masked_cost(out, w, x, np.asarray(MEAS.noise_std))
     np.testing.assert_allclose(info.cost, cost, rtol=1e-10)
     num_resid = np.sum(~np.isnan(x))  # the noise estimate counts observed values
     expected = (
         2
         * cost
         / (num_resid - 2)
-        * np.linalg.inv(_jtj(out, w, x, np.asarray(NORM.std)))
+        * np.linalg.inv(_jtj(out, w, x, np.asarray(MEAS.noise_std)))
     )
     np.testing.assert_allclose(info.cov, expected, rtol=1e-6)
 

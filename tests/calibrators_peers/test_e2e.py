@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support.e2e_batch import e2e_predict
 
 from jaxcal.calibrators.e2e import (
     E2EConfig,
     e2e_features,
-    e2e_predict,
     fit_e2e,
     init_e2e_params,
     make_e2e_calibrator,

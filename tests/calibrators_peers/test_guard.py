@@ -18,8 +18,8 @@ from jaxcal.calibrators.interface import (
     REASONS,
     Calibrator,
     CalStepOutput,
+    Measurement,
     SampleCheck,
-    SensorNorm,
     count_reasons,
     run_calibrator,
     run_fleet,
@@ -79,12 +79,14 @@ def make_policy() -> Calibrator:
 
 
 def make_method(name: str) -> Calibrator:
-    norm = SensorNorm(mean=jnp.zeros(NUM_SENSORS), std=jnp.full(NUM_SENSORS, 0.5))
+    meas = Measurement(
+        centre=jnp.zeros(NUM_SENSORS), noise_std=jnp.full(NUM_SENSORS, 0.5)
+    )
     if name == "ukf":
-        return make_ukf(toy_measure, UKFConfig(q=0.05, r=0.05), norm, theta0=[0.0, 0])
+        return make_ukf(toy_measure, UKFConfig(q=0.05, r=0.05), meas, theta0=[0.0, 0])
     if name == "least_squares":
         cfg = LeastSquaresConfig(window=3, num_iters=2)
-        return make_least_squares(toy_measure, cfg, norm, theta0=[0.0, 0.0])
+        return make_least_squares(toy_measure, cfg, meas, theta0=[0.0, 0.0])
     if name == "e2e":
         cfg = E2EConfig(hidden_sizes=(8,))
         params = init_e2e_params(jax.random.key(1), 2, NUM_SENSORS, NUM_PARAMS, cfg)

@@ -10,8 +10,8 @@ from flax import struct
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
-    SensorNorm,
-    check_norm,
+    Measurement,
+    check_measurement,
     measure_declared,
     run_calibrator,
     run_fleet,
@@ -177,7 +177,9 @@ def test_bad_shapes_raise_clear_errors():
         run_calibrator(cal, w, x, jnp.ones(3, bool))
     with pytest.raises(ValueError, match=r"\[U, T, Wd\]"):
         run_fleet(cal, w, x)
-    with pytest.raises(ValueError, match="std > 0"):
-        check_norm(SensorNorm(mean=jnp.zeros(2), std=jnp.array([1.0, -1.0])))
-    with pytest.raises(ValueError, match=r"\.mean and \.std"):
-        check_norm(object())
+    with pytest.raises(ValueError, match="noise_std > 0"):
+        check_measurement(
+            Measurement(centre=jnp.zeros(2), noise_std=jnp.array([1.0, -1.0]))
+        )
+    with pytest.raises(ValueError, match=r"\.centre and \.noise_std"):
+        check_measurement(object())

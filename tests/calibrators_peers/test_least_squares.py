@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.interface import SensorNorm, run_calibrator
+from jaxcal.calibrators.interface import Measurement, run_calibrator
 from jaxcal.calibrators.least_squares import (
     FitConfig,
     LeastSquaresConfig,
@@ -68,10 +68,10 @@ def test_fit_ignores_masked_padding():
     w_pad = jnp.concatenate([w, jnp.zeros((5, 1))])
     x_pad = jnp.concatenate([x, jnp.full((5, 4), jnp.nan)])
     mask = jnp.arange(25) < 20
-    norm = SensorNorm(mean=jnp.zeros(4), std=jnp.array([1.0, 2.0, 0.5, 1.0]))
-    theta, info = fit_least_squares(_toy_measure, w, x, jnp.zeros(3), norm=norm)
+    meas = Measurement(centre=jnp.zeros(4), noise_std=jnp.array([1.0, 2.0, 0.5, 1.0]))
+    theta, info = fit_least_squares(_toy_measure, w, x, jnp.zeros(3), measurement=meas)
     theta_pad, info_pad = fit_least_squares(
-        _toy_measure, w_pad, x_pad, jnp.zeros(3), mask=mask, norm=norm
+        _toy_measure, w_pad, x_pad, jnp.zeros(3), mask=mask, measurement=meas
     )
     np.testing.assert_allclose(theta_pad, theta, atol=1e-10)
     np.testing.assert_allclose(info_pad.cov, info.cov, rtol=1e-6)
@@ -93,9 +93,9 @@ def test_sliding_window_tracks_a_step_change():
     num_steps, t_change, window = 40, 20, 6
     theta_seq = jnp.where(jnp.arange(num_steps)[:, None] < t_change, theta_a, theta_b)
     w, x = _record(theta_seq, seed=2)
-    norm = SensorNorm(mean=jnp.zeros(4), std=jnp.ones(4))
+    meas = Measurement(centre=jnp.zeros(4), noise_std=jnp.ones(4))
     cfg = LeastSquaresConfig(window=window, num_iters=4)
-    ls = make_least_squares(_toy_measure, cfg, norm, theta0=jnp.zeros(3))
+    ls = make_least_squares(_toy_measure, cfg, meas, theta0=jnp.zeros(3))
     out = jax.jit(run_calibrator, static_argnums=0)(ls, w, x)
     chex.assert_tree_all_finite(out)
     np.testing.assert_allclose(
@@ -118,19 +118,19 @@ def test_sliding_window_tracks_a_step_change():
 
 def test_tight_prior_holds_the_previous_estimate():
     w, x = _record(jnp.tile(TRUTH, (8, 1)), seed=3)
-    norm = SensorNorm(mean=jnp.zeros(4), std=jnp.ones(4))
+    meas = Measurement(centre=jnp.zeros(4), noise_std=jnp.ones(4))
     theta_scale = jnp.array([0.5, 1.0, 2.0])
     loose = make_least_squares(
         _toy_measure,
         LeastSquaresConfig(window=4, prior_std=10.0),
-        norm,
+        meas,
         theta0=jnp.zeros(3),
         theta_scale=theta_scale,
     )
     tight = make_least_squares(
         _toy_measure,
         LeastSquaresConfig(window=4, prior_std=1e-6),
-        norm,
+        meas,
         theta0=jnp.zeros(3),
         theta_scale=theta_scale,
     )
@@ -142,9 +142,9 @@ def test_tight_prior_holds_the_previous_estimate():
 
 def test_ls_step_eager_equals_jit():
     w, x = _record(jnp.tile(TRUTH, (2, 1)), seed=4)
-    norm = SensorNorm(mean=jnp.zeros(4), std=jnp.ones(4))
+    meas = Measurement(centre=jnp.zeros(4), noise_std=jnp.ones(4))
     ls = make_least_squares(
-        _toy_measure, LeastSquaresConfig(window=3), norm, theta0=jnp.zeros(3)
+        _toy_measure, LeastSquaresConfig(window=3), meas, theta0=jnp.zeros(3)
     )
     state = ls.init(None, w[0], x[0])
     eager = ls.step(state, w[0], x[0])
@@ -153,9 +153,9 @@ def test_ls_step_eager_equals_jit():
 
 def test_ls_step_compiles_once():
     w, x = _record(jnp.tile(TRUTH, (3, 1)), seed=5)
-    norm = SensorNorm(mean=jnp.zeros(4), std=jnp.ones(4))
+    meas = Measurement(centre=jnp.zeros(4), noise_std=jnp.ones(4))
     ls = make_least_squares(
-        _toy_measure, LeastSquaresConfig(window=2), norm, theta0=jnp.zeros(3)
+        _toy_measure, LeastSquaresConfig(window=2), meas, theta0=jnp.zeros(3)
     )
     chex.clear_trace_counter()
     step = jax.jit(chex.assert_max_traces(ls.step, n=1))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from support.kalman import kalman_filter
 
-from jaxcal.calibrators.interface import SensorNorm, run_calibrator
+from jaxcal.calibrators.interface import Measurement, run_calibrator
 from jaxcal.calibrators.ukf import (
     UKFConfig,
     make_ukf,
@@ -23,9 +23,9 @@ def _linear_problem(seed=0):
     rng = np.random.default_rng(seed)
     obs_matrix = rng.normal(size=(NUM_SENSORS, NUM_PARAMS))
     cond_matrix = rng.normal(size=(NUM_SENSORS, NUM_CONDITIONS))
-    norm = SensorNorm(
-        mean=jnp.asarray(rng.normal(size=NUM_SENSORS)),
-        std=jnp.asarray(rng.uniform(0.5, 2.0, NUM_SENSORS)),
+    meas = Measurement(
+        centre=jnp.asarray(rng.normal(size=NUM_SENSORS)),
+        noise_std=jnp.asarray(rng.uniform(0.5, 2.0, NUM_SENSORS)),
     )
     w = rng.normal(size=(NUM_STEPS, NUM_CONDITIONS))
     theta = 0.3 + np.cumsum(0.05 * rng.normal(size=(NUM_STEPS, NUM_PARAMS)), axis=0)
@@ -38,28 +38,28 @@ def _linear_problem(seed=0):
     def measure(w_t, theta_t):
         return jnp.asarray(obs_matrix) @ theta_t + jnp.asarray(cond_matrix) @ w_t
 
-    return measure, obs_matrix, cond_matrix, norm, jnp.asarray(w), jnp.asarray(x)
+    return measure, obs_matrix, cond_matrix, meas, jnp.asarray(w), jnp.asarray(x)
 
 
 @pytest.mark.parametrize(
     "alpha,beta,kappa,jitter", [(1.0, 2.0, 0.0, 1e-10), (0.5, 2.0, 1.0, 0.0)]
 )
 def test_ukf_matches_kalman_filter_on_linear_model(alpha, beta, kappa, jitter):
-    measure, obs_matrix, cond_matrix, norm, w, x = _linear_problem()
+    measure, obs_matrix, cond_matrix, meas, w, x = _linear_problem()
     scale = jnp.array([0.5, 2.0, 1.0])
     theta0 = jnp.array([0.1, -0.2, 0.0])
     cfg = UKFConfig(
         q=0.05, r=0.1, prior_std=0.7, alpha=alpha, beta=beta, kappa=kappa,
         jitter=jitter, return_cov=True,
     )  # fmt: skip
-    out = ukf_filter(measure, w, x, norm, cfg, theta0=theta0, theta_scale=scale)
+    out = ukf_filter(measure, w, x, meas, cfg, theta0=theta0, theta_scale=scale)
     # Cholesky jitter (scaled units) is the only deliberate departure from exactness.
     cov_atol = 1e-12 + 10 * jitter * float(jnp.max(scale)) ** 2
 
     # The same model written for the exact filter, in theta units and normalised y.
-    y = (x - norm.mean) / norm.std
-    h_n = jnp.asarray(obs_matrix) / norm.std[:, None]
-    b_n = (w @ jnp.asarray(cond_matrix).T - norm.mean) / norm.std
+    y = (x - meas.centre) / meas.noise_std
+    h_n = jnp.asarray(obs_matrix) / meas.noise_std[:, None]
+    b_n = (w @ jnp.asarray(cond_matrix).T - meas.centre) / meas.noise_std
     ref = kalman_filter(
         y, h_n, b_n,
         jnp.diag((cfg.q * scale) ** 2), cfg.r**2 * jnp.eye(NUM_SENSORS),
@@ -116,9 +116,9 @@ def test_ukf_tracks_slowly_drifting_nonlinear_parameters_fleet():
     w = jnp.stack([r[0] for r in records])
     x = jnp.stack([r[1] for r in records])
     theta = np.stack([r[2] for r in records])
-    norm = SensorNorm(mean=jnp.zeros(5), std=jnp.full(5, 0.1))
+    meas = Measurement(centre=jnp.zeros(5), noise_std=jnp.full(5, 0.1))
     cfg = UKFConfig(q=0.05, r=0.02, prior_std=1.0)
-    out = ukf_filter(_toy_measure, w, x, norm, cfg, theta0=jnp.zeros(2), unroll=4)
+    out = ukf_filter(_toy_measure, w, x, meas, cfg, theta0=jnp.zeros(2), unroll=4)
     chex.assert_shape(out.theta, (2, num_steps, 2))
     chex.assert_tree_all_finite(out)
     err = np.abs(np.asarray(out.theta) - theta)[:, 30:]
@@ -132,8 +132,8 @@ def test_ukf_tracks_slowly_drifting_nonlinear_parameters_fleet():
 
 def test_ukf_step_eager_equals_jit():
     w, x, _ = _drifting_record(3, seed=2)
-    norm = SensorNorm(mean=jnp.zeros(5), std=jnp.ones(5))
-    ukf = make_ukf(_toy_measure, UKFConfig(), norm, theta0=jnp.zeros(2))
+    meas = Measurement(centre=jnp.zeros(5), noise_std=jnp.ones(5))
+    ukf = make_ukf(_toy_measure, UKFConfig(), meas, theta0=jnp.zeros(2))
     state = ukf.init(None, w[0], x[0])
     eager = ukf.step(state, w[0], x[0])
     chex.assert_trees_all_close(eager, jax.jit(ukf.step)(state, w[0], x[0]), atol=1e-12)
@@ -141,8 +141,8 @@ def test_ukf_step_eager_equals_jit():
 
 def test_ukf_step_compiles_once():
     w, x, _ = _drifting_record(3, seed=3)
-    norm = SensorNorm(mean=jnp.zeros(5), std=jnp.ones(5))
-    ukf = make_ukf(_toy_measure, UKFConfig(), norm, theta0=jnp.zeros(2))
+    meas = Measurement(centre=jnp.zeros(5), noise_std=jnp.ones(5))
+    ukf = make_ukf(_toy_measure, UKFConfig(), meas, theta0=jnp.zeros(2))
     chex.clear_trace_counter()
     step = jax.jit(chex.assert_max_traces(ukf.step, n=1))
     state = ukf.init(None, w[0], x[0])
@@ -153,8 +153,8 @@ def test_ukf_step_compiles_once():
 
 def test_masked_rows_hold_the_filter():
     w, x, _ = _drifting_record(10, seed=4)
-    norm = SensorNorm(mean=jnp.zeros(5), std=jnp.ones(5))
-    ukf = make_ukf(_toy_measure, UKFConfig(), norm, theta0=jnp.zeros(2))
+    meas = Measurement(centre=jnp.zeros(5), noise_std=jnp.ones(5))
+    ukf = make_ukf(_toy_measure, UKFConfig(), meas, theta0=jnp.zeros(2))
     run = jax.jit(run_calibrator, static_argnums=0)
     full = run(ukf, w, x, jnp.ones(10, bool))
     out = run(ukf, w, x, jnp.arange(10) < 6)  # trailing padding, as in [U, T] data
@@ -164,21 +164,21 @@ def test_masked_rows_hold_the_filter():
 
 
 def test_bad_inputs_raise_clear_errors():
-    norm = SensorNorm(mean=jnp.zeros(5), std=jnp.ones(5))
+    meas = Measurement(centre=jnp.zeros(5), noise_std=jnp.ones(5))
     with pytest.raises(ValueError, match="q"):
         UKFConfig(q=0.0)
     with pytest.raises(ValueError, match="std"):
         make_ukf(
             _toy_measure,
             UKFConfig(),
-            SensorNorm(jnp.zeros(5), jnp.zeros(5)),
+            Measurement(jnp.zeros(5), jnp.zeros(5)),
             theta0=jnp.zeros(2),
         )
     with pytest.raises(ValueError, match="theta_scale"):
         make_ukf(
             _toy_measure,
             UKFConfig(),
-            norm,
+            meas,
             theta0=jnp.zeros(2),
             theta_scale=jnp.ones(3),
         )
@@ -187,6 +187,6 @@ def test_bad_inputs_raise_clear_errors():
             _toy_measure,
             jnp.zeros((4, 1)),
             jnp.zeros((4, 3)),
-            norm,
+            meas,
             theta0=jnp.zeros(2),
         )

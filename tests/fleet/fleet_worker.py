@@ -30,7 +30,7 @@ from support.analytic import analytic_dynamics, make_analytic_problem
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
-    SensorNorm,
+    Measurement,
     run_fleet,
 )
 from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
@@ -59,14 +59,16 @@ def problem(num_units: int = NUM_UNITS):
 
 @functools.lru_cache(maxsize=4)
 def ukf(measure) -> Calibrator:
-    norm = SensorNorm(mean=jnp.zeros(NUM_SENSORS), std=jnp.full(NUM_SENSORS, 0.5))
-    return make_ukf(measure, UKFConfig(q=0.02), norm, theta0=jnp.full(NUM_PARAMS, 0.4))
+    meas = Measurement(
+        centre=jnp.zeros(NUM_SENSORS), noise_std=jnp.full(NUM_SENSORS, 0.5)
+    )
+    return make_ukf(measure, UKFConfig(q=0.02), meas, theta0=jnp.full(NUM_PARAMS, 0.4))
 
 
 def least_squares(measure) -> Calibrator:
-    norm = SensorNorm(mean=jnp.zeros(NUM_SENSORS), std=jnp.ones(NUM_SENSORS))
+    meas = Measurement(centre=jnp.zeros(NUM_SENSORS), noise_std=jnp.ones(NUM_SENSORS))
     cfg = LeastSquaresConfig(window=4, num_iters=2, prior_std=1.0)
-    return make_least_squares(measure, cfg, norm, theta0=jnp.full(NUM_PARAMS, 0.4))
+    return make_least_squares(measure, cfg, meas, theta0=jnp.full(NUM_PARAMS, 0.4))
 
 
 def noisy_mean() -> Calibrator:

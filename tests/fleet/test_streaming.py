@@ -257,8 +257,9 @@ def test_ncmapss_chunks_match_whole_file_load(ncmapss_file):
 
 def test_sensor_norm_from_a_data_pass(ncmapss_file):
     sensors = ["T30", "Nf"]
-    norm, source = sensor_norm(ncmapss_file, "test", sensors, [3, 6], block_rows=4)
+    stats, source = sensor_norm(ncmapss_file, "test", sensors, [3, 6], block_rows=4)
+    mean, std = stats
     assert source == "data pass"
     rec = load_ncmapss(ncmapss_file, "test", units=[3, 6], sensors=["T30", "Nf"])
-    np.testing.assert_allclose(norm.mean, rec.x.mean(0), rtol=1e-12)
-    np.testing.assert_allclose(norm.std, rec.x.std(0), rtol=1e-9)
+    np.testing.assert_allclose(mean, rec.x.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(std, rec.x.std(0), rtol=1e-9)
