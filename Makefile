@@ -79,10 +79,13 @@ $(BENCH_STAMP): $(STAMP)
 	touch $(BENCH_STAMP)
 
 # ... and jaxcal.calibrate's first / repeat / new-process times (compile once:
-# experiments/bench_compile.py -> results/bench/compile.json, ~30 min with the turbofan).
+# experiments/bench_compile.py -> results/bench/compile.json, ~30 min with the turbofan),
+# and the policy's time to target on three models from unlabelled data (the default
+# preset against the UKF, ~4 min -> results/bench/policy/results.json "time_to_target").
 bench: $(BENCH_STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_cpu.py $(BENCH_ARGS)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/bench_compile.py out=results/bench/compile.json
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python experiments/policy_any_model.py out=results/bench/policy data=data/bench_policy runs=runs/bench_policy
 
 # The battery example (examples/battery): PyBaMM data, every calibrator, dynamax and
 # PyBOP beside -> results/examples/battery/README.md. The extras are installed with

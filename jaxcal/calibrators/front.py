@@ -35,8 +35,10 @@ so that ``reason != "ok"`` still means "skipped" everywhere: a used partial row 
 not a skipped one. Its ``xhat`` holds the model's prediction of the missing outputs.
 
 Noise: ``noise={output: std}``; when omitted it is estimated from the data, robustly,
-from the post-fit residual of UKF passes (:mod:`jaxcal.calibrators.screen`;
-``result.noise_source`` says so).
+from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.screen`;
+``result.noise_source`` says so). A reported ``theta_std`` is never below the
+estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.jitter_check`: a filter
+given a noise far too small follows it, with a std that says otherwise).
 
 No single bad row decides anything for the other rows:
 
@@ -80,6 +82,7 @@ from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exp
     to_rows,
 )
 from jaxcal.calibrators.guard import REASON_CODE
+from jaxcal.calibrators.jitter_check import jitter_floor, jitter_note
 from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.calibrators.result import CalibrationResult
 from jaxcal.calibrators.skipped import nothing_valid_error
@@ -172,6 +175,12 @@ def calibrate(
         raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
     flagged = flag_notes(result, problem, data, screened, dtype)
     flagged += [] if screened is None else list(screened.notes)
+    if result.theta_std is not None:  # no std below the estimate's own scatter
+        std, factor = jitter_floor(
+            result.unit, result.time, result.theta, result.theta_std, result.valid
+        )
+        result = dataclasses.replace(result, theta_std=std)
+        flagged += jitter_note(factor, result.unit, problem.theta_names)
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))

@@ -22,16 +22,27 @@ off its passes:
   shifts and widens all of them, is not an outlier. With a given noise
   (``noise=``) that scale is at least 1: a row is judged against the given noise,
   or against the data's own spread where that is wider (and a note says so).
-* **The noise** (when not given): the post-fit residual ``x_t - F(w_t, theta_t)`` of
-  each unit's settled rows (each unit's first :data:`SETTLE` share left out) pooled
-  over units with the hard-rejection estimator of
-  :func:`~jaxcal.calibrators.outliers.robust_noise`, outlier rows left out; the
-  posterior fit absorbs about ``P / S`` of the residual variance, which is added
-  back. Schedule: a first level from a pass on a provisional noise (1 % of each
-  output's robust spread), rejecting with Hampel's X84 rule (:data:`X84`) so that
-  a wild row's wake is not averaged in; the outlier passes on that level; where
-  outliers were found, the first level again with them skipped, as if they had not
-  come; the noise from the post-fit residual of the pass on that level.
+* **The noise** (when not given), from the one-step innovations ``nu_t = x_t -
+  E[x_t | past]`` of each unit's settled rows (each unit's first :data:`SETTLE`
+  share left out), pooled over units with the hard-rejection estimator of
+  :func:`~jaxcal.calibrators.outliers.robust_noise`, outlier rows left out. The
+  update moves the prediction of output ``s`` by a share ``k_s`` of its innovation
+  (``k = 1 - R / S``, ``S`` the innovation's predicted variance: the diagonal of
+  the filter's ``HK`` where the outputs' innovations are uncorrelated), and a
+  parameter that follows the noise leaves innovations correlated with the last
+  ones: for a slowly drifting truth, ``var(nu) = 2 R / (2 - k)`` whatever noise the
+  pass assumed (the steady state of ``e_t = (1 - k) e_{t-1} + k n_t``, ``nu_t = n_t -
+  e_{t-1}``), so ``R = var(nu) (2 - k) / 2``. A truth that drifts by ``D`` in
+  variance per row adds ``D / (2k)``, and a model misfit adds its share: both widen
+  the noise, never narrow it. The post-fit residual, used before, is narrowed by
+  the share the update absorbs: where one parameter alone explains an output (the
+  heat exchanger's ``dp_coeff`` and ``dp_hot``) the filter follows the noise, the
+  residual is nearly nothing and the noise came out 60x too small; this estimator
+  gives 0.196 for a true 0.2. Schedule: a first level from a pass on a provisional
+  noise (1 % of each output's robust spread), rejecting with Hampel's X84 rule
+  (:data:`X84`) so that a wild row's wake is not averaged in; the outlier passes on
+  that level; where outliers were found, the first level again with them skipped,
+  as if they had not come; the noise from the innovations of the pass on that level.
 
 The UKF is compiled once per process for all passes and all calls (the noise and
 the outputs' centre are arguments of the compiled program,
@@ -46,6 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -92,7 +104,8 @@ class _Pass(NamedTuple):
     """One UKF pass, per row (``N``)."""
 
     z: np.ndarray  # [N, S] innovation / its predicted std
-    resid: np.ndarray  # [N, S] post-fit residual x - xhat
+    innovation: np.ndarray  # [N, S] x - E[x | past], output units (nan: missing)
+    absorbed: np.ndarray  # [N, S] k: the share of it the update absorbs
     valid: np.ndarray  # [N] used by the pass
     judged: np.ndarray  # [N] used, or skipped as a candidate outlier
     reason: np.ndarray  # [N] int codes (a skipped candidate: masked)
@@ -127,7 +140,7 @@ def screen(
     """
     none = np.zeros(data.num_rows, bool)
     ukf = _pass_function(problem, data, cfg, buckets.dtype)
-    run = functools.partial(_pass, ukf, data=data, buckets=buckets)
+    run = functools.partial(_pass, ukf, data=data, buckets=buckets, r=cfg.filter.r)
     settled = _settled(buckets)
     if estimate:
         spread = np.nan_to_num(robust_scale(data.x))
@@ -145,7 +158,7 @@ def screen(
                 raise nothing_valid_error(
                     problem, data, first.reason, buckets.dtype, "noise estimation"
                 )
-            noise = _noise(problem, first, skip, settled, floor, X84)
+            noise = _noise(first, skip, settled, floor, X84)
             return noise, run(noise, skip)
 
         noise, first = level(none)
@@ -167,8 +180,11 @@ def screen(
         notes = ()
         if found.mask.any():  # the level again, as if the outliers had not come
             noise, last = level(found.mask)
-        noise = _noise(problem, last, found.mask, settled, floor, threshold)
-        source = "estimated (post-fit residual of a UKF pass, outliers left out)"
+        noise = _noise(last, found.mask, settled, floor, threshold)
+        source = (
+            "estimated (one-step innovations of a UKF pass, corrected for the "
+            "share the update absorbs; outliers left out)"
+        )
         problem = problem.with_noise(noise, source)
     if found.mask.any():  # the outputs' centre of the rows used, as without them
         x_mean = np.nanmean(data.x[~found.mask], axis=0)  # a partial row has NaN
@@ -198,9 +214,11 @@ def _pass_function(problem: Problem, data: Dataset, cfg: UKF, dtype):
     return run
 
 
-def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _Pass:
+def _pass(
+    ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets, r: float
+) -> _Pass:
     """The UKF with ``noise`` over every group skipping ``skip [N]``, judged at
-    every row."""
+    every row (the filter's measurement std ``r * noise``)."""
     groups = []  # (reason, xhat, innovation, its std) of each group
     noise = jnp.asarray(noise, buckets.dtype)
     for part, skip_part in zip(
@@ -209,15 +227,18 @@ def _pass(ukf, noise, skip: np.ndarray, *, data: Dataset, buckets: Buckets) -> _
         mask, probe = part.mask & ~skip_part, part.mask & skip_part
         out = ukf(noise, jnp.asarray(part.w), jnp.asarray(part.x), mask, probe)
         groups.append([np.asarray(v) for v in out])
-    reason, xhat, innovation, spread = (
+    reason, _, innovation, spread = (
         buckets.to_rows(values, MASKED if k == 0 else np.nan)
         for k, values in enumerate(zip(*groups, strict=True))
     )
     valid = reason == OK
+    observed = np.isfinite(data.x)  # a missing output's innovation is a 0
     with np.errstate(all="ignore"):
         z = innovation / spread
+        absorbed = np.where(observed, 1.0 - r**2 / spread**2, np.nan)
     return _Pass(
-        z=z, resid=data.x - xhat, valid=valid,
+        z=z, innovation=np.where(observed, innovation * np.asarray(noise), np.nan),
+        absorbed=absorbed, valid=valid,
         judged=valid | (skip & (reason == MASKED)), reason=reason, skip=skip,
     )  # fmt: skip
 
@@ -233,9 +254,10 @@ def _flag(run: _Pass, threshold: float, given: bool) -> OutlierRows:
     return outlier_rows((run.z - centre) / scale, 1.0, run.judged, threshold)
 
 
-def _noise(problem: Problem, run: _Pass, flagged, settled, floor, threshold):
-    """``[S]`` noise std from a pass's post-fit residual, rows beyond ``threshold``
-    robust scales rejected (module docstring)."""
+def _noise(run: _Pass, flagged, settled, floor, threshold):
+    """``[S]`` noise std from a pass's one-step innovations, rows beyond
+    ``threshold`` robust scales rejected, corrected for the share ``k`` the update
+    absorbs: ``R = var(nu) (2 - k) / 2`` (module docstring)."""
     keep = run.valid & ~flagged & settled
     if keep.sum() < 2:
         keep = run.valid & ~flagged
@@ -245,9 +267,11 @@ def _noise(problem: Problem, run: _Pass, flagged, settled, floor, threshold):
             f"{len(keep)} rows could be used (result.reason of a run with noise= "
             "says why the others were skipped); give noise="
         )
-    num_s, num_p = len(problem.output_names), len(problem.theta_names)
-    dof = num_s / max(num_s - num_p, 1)
-    std = robust_noise(run.resid, keep, threshold) * np.sqrt(dof)
+    var = robust_noise(run.innovation, keep, threshold) ** 2
+    with warnings.catch_warnings():  # an output never observed: nan, floored
+        warnings.simplefilter("ignore", RuntimeWarning)
+        k = np.nanmean(np.where(keep[:, None], run.absorbed, np.nan), axis=0)
+    std = np.sqrt(var * (2.0 - np.clip(k, 0.0, 1.0)) / 2.0)
     return np.maximum(np.nan_to_num(std), floor)
 
 
