@@ -28,8 +28,8 @@ import numpy as np
 import pandas as pd
 
 from jaxcal.calibrators.outliers import MAD_TO_STD
+from jaxcal.calibrators.screen import SETTLE  # the screening's: the filter locking on
 
-SETTLE = 0.1  # share of each unit's first rows left out (the filter locking on)
 MIN_DIFFERENCES = 3  # a unit needs this many consecutive used rows to be judged
 # raised only where the scatter is this many times the median std: clearly
 # inconsistent (the normalised MAD of 100 differences scatters by about 8 %)
