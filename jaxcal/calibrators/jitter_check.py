@@ -90,6 +90,6 @@ def jitter_note(factor: np.ndarray, unit: np.ndarray, names) -> list[str]:
         "theta_std raised to the estimate's own row-to-row scatter on "
         + "; ".join(parts)
         + ": the reported std was below what the estimate moves from row to row "
-        "(as when an estimated noise is far too small for an output one parameter "
-        "explains alone); noise= with the sensors' noise gives the filter its own std"
+        "(as when the noise is far too small for an output one parameter explains "
+        "alone, or when the model misfits and the estimate chases the misfit)"
     ]
