@@ -60,7 +60,8 @@ No single bad row decides anything for the other rows:
 Compiled once: the UKF and least squares are compiled once per process and method
 settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
 compiled`), and once per machine through JAX's persistent compilation cache, on by
-default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off).
+default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off). The screening is
+done once per data set in a process (:mod:`jaxcal.calibrators.screen_memo`).
 
 The result in the data's row order, and the console line counting the skipped rows,
 are assembled by :mod:`jaxcal.calibrators.front_rows`.
@@ -294,9 +295,10 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
     """The noise (estimated when not given) and the outlier rows (:mod:`.screen`),
     or ``None`` where there is nothing to screen by: a policy without a noise
     level, or a given noise with outlier flags off. The passes are the method's own
-    UKF, else a default one with the method's state settings."""
+    UKF, else a default one with the method's state settings; the same rows and
+    settings are screened once per process (:mod:`.screen_memo`)."""
     from jaxcal.calibrators.methods import UKF, LeastSquares, Policy
-    from jaxcal.calibrators.screen import screen
+    from jaxcal.calibrators.screen_memo import screened
 
     if noise is None and isinstance(cfg, Policy):
         return None
@@ -305,6 +307,6 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
     if not isinstance(cfg, UKF):
         std = cfg.state_std if isinstance(cfg, LeastSquares) else None
         cfg = UKF(state_std=std)
-    return screen(
+    return screened(  # once per data set in a process (a second method reuses it)
         problem, data, buckets, cfg, estimate=noise is None, threshold=threshold
     )
