@@ -42,6 +42,7 @@ STAGES = {  # JAX's monitoring events -> the stage of a call they time
     "/jax/compilation_cache/cache_retrieval_time_sec": "cache_load_s",
 }
 METHODS = ("ukf", "ls")
+NOTES = "<!-- written by hand: kept when the table is rendered again -->\n"
 
 
 def _tank():
@@ -250,7 +251,9 @@ def main(argv: list[str]) -> None:
         whole.setdefault(opts.get("label", "after"), {}).update(doc)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(path, json.dumps(whole, indent=1) + "\n")
-        write_atomic(path.with_suffix(".md"), render(whole))
+        page = path.with_suffix(".md")
+        kept = page.read_text().partition(NOTES)[2] if page.exists() else ""
+        write_atomic(page, render(whole) + (f"\n{NOTES}{kept}" if kept else ""))
 
 
 if __name__ == "__main__":

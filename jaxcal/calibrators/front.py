@@ -9,6 +9,7 @@ jitted), and returns per-row results in the input's row order::
     result.theta_std    # [N, P] (UKF; None where a method has no uncertainty)
     result.valid        # [N] bool: False where a sample was skipped, result.reason
     result.partial      # [N] bool: some outputs of the row were missing (NaN)
+    result.misfit       # [N] bool: the unit's model misfits, theta_std not calibrated
 
 Methods (peers under the one ``Calibrator(init, step)`` interface):
 
@@ -38,7 +39,11 @@ Noise: ``noise={output: std}``; when omitted it is estimated from the data, robu
 from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.screen`;
 ``result.noise_source`` says so). A reported ``theta_std`` is never below the
 estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.jitter_check`: a filter
-given a noise far too small follows it, with a std that says otherwise).
+given a noise far too small follows it, with a std that says otherwise). Where the
+screening pass's one-step innovations are clearly autocorrelated, the model misfits
+the unit's data and its std, which assumes white noise, is no calibrated uncertainty:
+``result.misfit`` marks those units' rows and a note names them
+(:mod:`jaxcal.calibrators.misfit_check`; not checked without a screening pass).
 
 No single bad row decides anything for the other rows:
 
@@ -84,6 +89,7 @@ from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exp
 )
 from jaxcal.calibrators.guard import REASON_CODE
 from jaxcal.calibrators.jitter_check import jitter_floor, jitter_note
+from jaxcal.calibrators.misfit_check import misfit_note, misfit_rows
 from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.calibrators.result import CalibrationResult
 from jaxcal.calibrators.skipped import nothing_valid_error
@@ -182,6 +188,12 @@ def calibrate(
         )
         result = dataclasses.replace(result, theta_std=std)
         flagged += jitter_note(factor, result.unit, problem.theta_names)
+        if screened is not None and screened.z is not None:  # the innovations' colour
+            misfit, ratio = misfit_rows(
+                result.unit, result.time, screened.z, screened.used
+            )
+            result = dataclasses.replace(result, misfit=misfit)
+            flagged += misfit_note(ratio, result.unit, problem.output_names)
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))

@@ -29,6 +29,7 @@ from jaxcal.runs.atomic import write_atomic_with
 META_KEY = b"jaxcal.result"  # the Parquet schema-metadata key of a saved result
 FORMAT_VERSION = 1
 _ARRAYS = ("theta", "theta_std", "states", "xhat", "unit", "time", "valid", "reason")
+_OPTIONAL = ("partial", "misfit")  # fields that may be None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -50,6 +51,11 @@ class CalibrationResult:
         partial: ``[N]`` bool: some outputs of the row were missing (NaN); used on
             the observed outputs where ``valid`` (UKF, LS), else skipped as
             ``x_partial`` (E2E, policy). ``None``: not recorded.
+        misfit: ``[N]`` bool: the row's unit has one-step innovations so
+            autocorrelated that the model misfits its data, and ``theta_std`` there
+            is not a calibrated uncertainty
+            (:mod:`jaxcal.calibrators.misfit_check`). ``None``: not checked (no
+            ``theta_std``, or no screening pass to read the innovations from).
         theta_names, output_names: column names.
         unit, time: ``[N]`` the rows' unit and time (as read).
         method: the method's name.
@@ -78,6 +84,7 @@ class CalibrationResult:
     problem: Problem
     notes: tuple[str, ...] = ()
     partial: np.ndarray | None = None
+    misfit: np.ndarray | None = None
     stored: Mapping | None = dataclasses.field(default=None, repr=False)
 
     @property
@@ -120,7 +127,7 @@ class CalibrationResult:
 
     def to_frame(self):
         """A pandas DataFrame: unit, time, theta (and ``<name>_std``), x-hat
-        (``<name>_hat``), valid, reason, partial."""
+        (``<name>_hat``), valid, reason, partial, misfit."""
         import pandas as pd
 
         cols = {"unit": self.unit, "time": self.time}
@@ -136,6 +143,8 @@ class CalibrationResult:
         cols["valid"], cols["reason"] = self.valid, self.reason
         if self.partial is not None:
             cols["partial"] = self.partial
+        if self.misfit is not None:
+            cols["misfit"] = self.misfit
         return pd.DataFrame(cols)
 
     # ---------------------------------------------------------------- reading
@@ -225,6 +234,7 @@ class CalibrationResult:
             "valid": "valid",
             "reason": "reason",
             "partial": None if self.partial is None else "partial",
+            "misfit": None if self.misfit is None else "misfit",
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -266,7 +276,7 @@ class CalibrationResult:
             "columns": columns,
             "dtypes": {
                 f: None if getattr(self, f) is None else str(getattr(self, f).dtype)
-                for f in (*_ARRAYS, "partial")
+                for f in (*_ARRAYS, *_OPTIONAL)
             },
         }
         table = pa.Table.from_pandas(frame, preserve_index=False)
@@ -316,6 +326,10 @@ class CalibrationResult:
                 f: _read(table, meta["columns"][f], meta["dtypes"][f])
                 for f in (*_ARRAYS, "partial")
             }
+            # a field added later: absent from the files written before it
+            fields["misfit"] = _read(
+                table, meta["columns"].get("misfit"), meta["dtypes"].get("misfit")
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(
                 f"{path}: not a readable jaxcal result file ({err!r})"

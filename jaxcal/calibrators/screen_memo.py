@@ -30,6 +30,7 @@ from jaxcal.calibrators.screen import Screen, screen
 MAX_KEPT = 8  # screenings kept per process (least recently used dropped)
 _KEPT: collections.OrderedDict = collections.OrderedDict()
 _COUNT = {"screened": 0, "reused": 0}
+_LAST: list = []  # the key of the screening used last
 
 
 def screened(problem, data, buckets, cfg, *, estimate: bool, threshold: float):
@@ -47,7 +48,14 @@ def screened(problem, data, buckets, cfg, *, estimate: bool, threshold: float):
         _COUNT["screened"] += 1
         while len(_KEPT) > MAX_KEPT:
             _KEPT.popitem(last=False)
+    _LAST[:] = [key]
     return _copy(_KEPT[key])
+
+
+def latest() -> Screen | None:
+    """The screening the last call used (a study reads its innovations,
+    ``experiments/misfit_battery.py``), or ``None``."""
+    return _copy(_KEPT[_LAST[0]]) if _LAST and _LAST[0] in _KEPT else None
 
 
 def counts() -> dict:
@@ -58,6 +66,7 @@ def counts() -> dict:
 def clear() -> None:
     """Forget every kept screening (the next call screens again)."""
     _KEPT.clear()
+    _LAST.clear()
 
 
 def _key(problem, data, dtype, cfg, estimate: bool, threshold: float) -> tuple:
@@ -83,6 +92,8 @@ def _copy(kept: Screen) -> Screen:
     found = kept.found
     return kept._replace(
         outlier=kept.outlier.copy(),
+        z=None if kept.z is None else kept.z.copy(),
+        used=None if kept.used is None else kept.used.copy(),
         found=found._replace(mask=found.mask.copy(), z=found.z.copy(),
                              worst=found.worst.copy()),
     )  # fmt: skip

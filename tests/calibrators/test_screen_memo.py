@@ -59,6 +59,7 @@ def test_a_second_method_reuses_the_screening_and_matches_a_fresh_one():
     np.testing.assert_array_equal(ls.problem.noise_std, ukf.problem.noise_std)
     assert ls.noise_source == ukf.noise_source
     assert ukf.reason[37] == "outlier" and ls.reason[37] == "outlier"
+    assert screen_memo.latest().outlier[37]  # what a study reads back
     # the reused screening gives what a fresh one gives, number for number
     screen_memo.clear()
     fresh = _calibrate(frame, "ls")
