@@ -75,7 +75,7 @@ def _case(frame: pd.DataFrame, method: str, noise: str) -> dict:
     doc["cells"] = {
         int(u): {
             "ratio": float(np.nanmax(ratio[res.unit == u])),
-            "factor_needed": _share(
+            "factor_needed": _rounded(
                 np.quantile(err[m] / res.theta_std[m], 0.9, axis=0) / Z90
             ),
         }
@@ -86,7 +86,11 @@ def _case(frame: pd.DataFrame, method: str, noise: str) -> dict:
 
 
 def _share(values) -> list[float]:
-    return [round(float(v), 3) for v in np.mean(values, axis=0)]
+    return _rounded(np.mean(values, axis=0))
+
+
+def _rounded(values) -> list[float]:
+    return [round(float(v), 3) for v in values]
 
 
 def render(doc: dict) -> str:
