@@ -182,21 +182,29 @@ def calibrate(
         raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
     flagged = flag_notes(result, problem, data, screened, dtype)
     flagged += [] if screened is None else list(screened.notes)
-    if result.theta_std is not None:  # no std below the estimate's own scatter
-        std, factor = jitter_floor(
-            result.unit, result.time, result.theta, result.theta_std, result.valid
-        )
-        result = dataclasses.replace(result, theta_std=std)
-        flagged += jitter_note(factor, result.unit, problem.theta_names)
-        if screened is not None and screened.z is not None:  # the innovations' colour
-            misfit, ratio = misfit_rows(
-                result.unit, result.time, screened.z, screened.used
-            )
-            result = dataclasses.replace(result, misfit=misfit)
-            flagged += misfit_note(ratio, result.unit, problem.output_names)
+    result, checked = _checked_std(result, screened, problem)
+    flagged += checked
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))
+
+
+def _checked_std(result: CalibrationResult, screened, problem: Problem):
+    """``(result, notes)``: a reported std never below the estimate's own scatter
+    (:mod:`.jitter_check`), and the units whose innovations are clearly coloured
+    marked in ``result.misfit`` (:mod:`.misfit_check`; where a screening ran)."""
+    if result.theta_std is None:
+        return result, []
+    std, factor = jitter_floor(
+        result.unit, result.time, result.theta, result.theta_std, result.valid
+    )
+    result = dataclasses.replace(result, theta_std=std)
+    notes = jitter_note(factor, result.unit, problem.theta_names)
+    if screened is not None and screened.z is not None:  # the innovations' colour
+        misfit, ratio = misfit_rows(result.unit, result.time, screened.z, screened.used)
+        result = dataclasses.replace(result, misfit=misfit)
+        notes += misfit_note(ratio, result.unit, problem.output_names)
+    return result, notes
 
 
 def _read_problem(model: Model, data, method, theta, noise, outputs, options, dtype):
