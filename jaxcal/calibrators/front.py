@@ -9,7 +9,7 @@ jitted), and returns per-row results in the input's row order::
     result.theta_std    # [N, P] (UKF; None where a method has no uncertainty)
     result.valid        # [N] bool: False where a sample was skipped, result.reason
     result.partial      # [N] bool: some outputs of the row were missing (NaN)
-    result.misfit       # [N] bool: the unit's model misfits, theta_std not calibrated
+    result.misfit       # [N] bool: the unit's innovations coloured: std not honest
 
 Methods (peers under the one ``Calibrator(init, step)`` interface):
 
@@ -40,8 +40,9 @@ from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.screen`;
 ``result.noise_source`` says so). A reported ``theta_std`` is never below the
 estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.jitter_check`: a filter
 given a noise far too small follows it, with a std that says otherwise). Where the
-screening pass's one-step innovations are clearly autocorrelated, the model misfits
-the unit's data and its std, which assumes white noise, is no calibrated uncertainty:
+screening pass's one-step innovations are clearly autocorrelated (a model misfit, a
+drift the filter lags, a quantised output) the unit's std, which assumes white noise,
+is no calibrated uncertainty:
 ``result.misfit`` marks those units' rows and a note names them
 (:mod:`jaxcal.calibrators.misfit_check`; not checked without a screening pass).
 

@@ -52,8 +52,8 @@ class CalibrationResult:
             the observed outputs where ``valid`` (UKF, LS), else skipped as
             ``x_partial`` (E2E, policy). ``None``: not recorded.
         misfit: ``[N]`` bool: the row's unit has one-step innovations so
-            autocorrelated that the model misfits its data, and ``theta_std`` there
-            is not a calibrated uncertainty
+            autocorrelated (a model misfit, a drift the filter lags, a quantised
+            output) that ``theta_std`` there is not a calibrated uncertainty
             (:mod:`jaxcal.calibrators.misfit_check`). ``None``: not checked (no
             ``theta_std``, or no screening pass to read the innovations from).
         theta_names, output_names: column names.

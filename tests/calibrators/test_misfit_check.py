@@ -60,7 +60,7 @@ def test_only_the_coloured_unit_is_flagged_in_any_row_order():
     assert np.all(ratio[unit[order] == 2, 1] > COLOURED)
     assert np.all(ratio[judged & (unit[order] == 1)] < 1.5)
     (note,) = misfit_note(ratio, unit[order], ["flow", "level"])
-    assert "of unit 2 (" in note and "level " in note and "flow" not in note
+    assert "of unit 2 are" in note and "level " in note and "flow" not in note
     assert misfit_note(np.ones((3, 2)), np.arange(3), ["flow", "level"]) == []
     none = misfit_rows(unit, time, z, np.zeros(3 * n, bool))  # no row used
     assert not none[0].any() and np.isnan(none[1]).all()
@@ -118,10 +118,11 @@ def test_a_misfit_tank_is_flagged_and_a_fitting_one_is_not(noise, tmp_path):
     misfit, covered = run(10.0)
     assert covered[0] < 0.3  # leak absorbs the misfit: its std is far too small
     assert misfit.misfit.all()
-    assert any("the model misfits the data of units 1, 2" in n for n in misfit.notes)
+    expected = "the one-step innovations of units 1, 2 are autocorrelated"
+    assert any(expected in n for n in misfit.notes)
     loaded = jaxcal.CalibrationResult.load(misfit.save(tmp_path / "r.parquet"))
     np.testing.assert_array_equal(loaded.misfit, misfit.misfit)
     fitting, covered = run(0.0)
     assert not fitting.misfit.any()
-    assert not any("misfits" in n for n in fitting.notes)
+    assert not any("autocorrelated" in n for n in fitting.notes)
     assert covered.min() >= 0.85  # the tank's own: 0.95-0.99
