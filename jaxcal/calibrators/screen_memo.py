@@ -14,7 +14,9 @@ New rows — another unit, one reading changed — are screened again: the diges
 covers every number the screening reads (conditions, outputs, unit, time; the
 problem's box, noise, normalisation and input range). A kept screening holds its
 problem, hence its model, so the model's id in the key cannot be reused by another
-model while the entry lives.
+model while the entry lives. At most :data:`MAX_KEPT` screenings and
+:data:`MAX_BYTES` of their row arrays are kept (a large fleet's ``[N, S]``
+innovations run to hundreds of MB): a screening larger than that is used once.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ from jaxcal.calibrators.compiled import problem_key
 from jaxcal.calibrators.screen import Screen, screen
 
 MAX_KEPT = 8  # screenings kept per process (least recently used dropped)
+# and their row arrays at most this many bytes in all: a fleet of millions of rows
+# has [N, S] arrays of hundreds of MB; one larger than this is used, not kept
+MAX_BYTES = 512 * 2**20
 _KEPT: collections.OrderedDict = collections.OrderedDict()
 _COUNT = {"screened": 0, "reused": 0}
 _LAST: list = []  # the key of the screening used last
@@ -42,19 +47,29 @@ def screened(problem, data, buckets, cfg, *, estimate: bool, threshold: float):
         _COUNT["reused"] += 1
         _KEPT.move_to_end(key)
     else:
-        _KEPT[key] = screen(
+        found = screen(
             problem, data, buckets, cfg, estimate=estimate, threshold=threshold
         )
         _COUNT["screened"] += 1
-        while len(_KEPT) > MAX_KEPT:
+        if _bytes(found) > MAX_BYTES:  # too large to keep: used once
+            _LAST.clear()
+            return found
+        _KEPT[key] = found
+        while len(_KEPT) > MAX_KEPT or sum(map(_bytes, _KEPT.values())) > MAX_BYTES:
             _KEPT.popitem(last=False)
     _LAST[:] = [key]
     return _copy(_KEPT[key])
 
 
+def _bytes(kept: Screen) -> int:
+    """The bytes of a screening's row arrays."""
+    arrays = (kept.outlier, *kept.found, kept.z, kept.used)
+    return sum(a.nbytes for a in arrays if isinstance(a, np.ndarray))
+
+
 def latest() -> Screen | None:
     """The screening the last call used (a study reads its innovations,
-    ``experiments/misfit_battery.py``), or ``None``."""
+    ``experiments/misfit_battery.py``), or ``None`` (none, or too large to keep)."""
     return _copy(_KEPT[_LAST[0]]) if _LAST and _LAST[0] in _KEPT else None
 
 

@@ -92,3 +92,14 @@ def test_a_caller_cannot_change_the_kept_screening():
     again = _calibrate(frame, "ukf")
     np.testing.assert_array_equal(again.theta, first.theta)
     assert key in screen_memo._KEPT
+
+
+def test_a_screening_too_large_to_keep_is_used_not_kept(monkeypatch):
+    monkeypatch.setattr(screen_memo, "MAX_BYTES", 10)  # every screening is larger
+    frame = _frame()
+    before = screen_memo.counts()["screened"]
+    first = _calibrate(frame, "ukf")
+    again = _calibrate(frame, "ukf")
+    assert screen_memo.counts()["screened"] == before + 2 and not screen_memo._KEPT
+    np.testing.assert_array_equal(again.theta, first.theta)
+    assert screen_memo.latest() is None
