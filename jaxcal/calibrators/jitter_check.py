@@ -36,6 +36,26 @@ MIN_DIFFERENCES = 3  # a unit needs this many consecutive used rows to be judged
 INCONSISTENT = 1.5
 
 
+def settled_rows(unit: np.ndarray, time: np.ndarray, used: np.ndarray):
+    """``(order, keep)``: the rows in (unit, time) order, and ``[N]`` in that order,
+    those used past their unit's first :data:`SETTLE` share (the filter locking on
+    is not the estimate's behaviour)."""
+    order = np.lexsort((time, unit))
+    units = pd.Series(unit[order])
+    position = units.groupby(units).cumcount().to_numpy()
+    length = units.map(units.value_counts()).to_numpy()
+    keep = np.asarray(used, bool)[order] & (position >= np.ceil(SETTLE * length))
+    return order, keep
+
+
+def units_shown(unit: np.ndarray, most: int = 5) -> str:
+    """``"1, 2, 3"`` of the distinct ``unit`` values, ``"... and N more"`` past
+    ``most``."""
+    units = np.unique(unit)
+    more = f" and {len(units) - most} more" if len(units) > most else ""
+    return ", ".join(str(u) for u in units[:most]) + more
+
+
 def jitter_floor(
     unit: np.ndarray, time: np.ndarray, theta: np.ndarray, std: np.ndarray,
     valid: np.ndarray,
@@ -51,11 +71,7 @@ def jitter_floor(
         ``(std, factor)``: ``[N, P]`` the checked std, and ``[N, P]`` the factor by
         which the unit's median std was raised (1 where the std was consistent).
     """
-    order = np.lexsort((time, unit))
-    units = pd.Series(unit[order])
-    position = units.groupby(units).cumcount().to_numpy()
-    length = units.map(units.value_counts()).to_numpy()
-    keep = np.asarray(valid, bool)[order] & (position >= np.ceil(SETTLE * length))
+    order, keep = settled_rows(unit, time, valid)
     kept_unit = unit[order][keep]
     steps = np.diff(theta[order][keep], axis=0)
     same = kept_unit[1:] == kept_unit[:-1]
@@ -82,10 +98,8 @@ def jitter_note(factor: np.ndarray, unit: np.ndarray, names) -> list[str]:
     parts = []
     for p, name in enumerate(names):
         if raised[:, p].any():
-            units = np.unique(unit[raised[:, p]])
-            shown = ", ".join(str(u) for u in units[:5])
-            more = f" and {len(units) - 5} more" if len(units) > 5 else ""
-            parts.append(f"{name} (units {shown}{more}, x{np.max(factor[:, p]):.3g})")
+            shown = units_shown(unit[raised[:, p]])
+            parts.append(f"{name} (units {shown}, x{np.max(factor[:, p]):.3g})")
     return [
         "theta_std raised to the estimate's own row-to-row scatter on "
         + "; ".join(parts)

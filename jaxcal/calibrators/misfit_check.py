@@ -48,7 +48,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from jaxcal.calibrators.screen import SETTLE  # the screening's: the filter locking on
+from jaxcal.calibrators.jitter_check import settled_rows, units_shown
 
 # flagged where the long-run variance is this many times the variance: the std at
 # least 2x too small from the colour alone (measured: <= 1.22 well specified, >= 17
@@ -101,12 +101,8 @@ def misfit_rows(
         ``[N, S]`` the unit's long-run variance ratio per output (``nan`` where
         not judged: fewer than :data:`MIN_ROWS` settled used rows).
     """
-    order = np.lexsort((time, unit))
-    units = pd.Series(unit[order])
-    position = units.groupby(units).cumcount().to_numpy()
-    length = units.map(units.value_counts()).to_numpy()
     # the filter's first rows are its settling, not the model's fit
-    keep = np.asarray(used, bool)[order] & (position >= np.ceil(SETTLE * length))
+    order, keep = settled_rows(unit, time, used)
     if not keep.any():  # nothing to judge by
         return np.zeros(len(unit), bool), np.full(z.shape, np.nan)
     kept_unit, kept_z = unit[order][keep], z[order][keep]
@@ -130,17 +126,15 @@ def misfit_note(ratio: np.ndarray, unit: np.ndarray, outputs) -> list[str]:
     coloured = np.nan_to_num(ratio) > COLOURED
     if not coloured.any():
         return []
-    units = np.unique(unit[coloured.any(axis=1)])
-    shown = ", ".join(str(u) for u in units[:5])
-    shown = f"unit{'s' if len(units) > 1 else ''} {shown}"
-    more = f" and {len(units) - 5} more" if len(units) > 5 else ""
+    flagged = unit[coloured.any(axis=1)]
+    shown = f"unit{'s' if len(np.unique(flagged)) > 1 else ''} {units_shown(flagged)}"
     parts = [
         f"{name} {np.nanmax(ratio[coloured[:, s], s]):.3g}"
         for s, name in enumerate(outputs)
         if coloured[:, s].any()
     ]
     return [
-        f"the one-step innovations of {shown}{more} are autocorrelated (long-run "
+        f"the one-step innovations of {shown} are autocorrelated (long-run "
         f"variance / variance: {', '.join(parts)}; white noise 1; rows marked in "
         "result.misfit): the model misfits the data, the parameters drift faster "
         "than the filter's random walk follows, or an output is quantised or stuck. "
