@@ -17,8 +17,8 @@ turns it on in ``$JAXCAL_CACHE_DIR`` or ``~/.cache/jaxcal/xla``, unless
 
 Importing jaxcal changes nothing (the switch happens at the first call, or at the
 first :func:`jaxcal.models.load` of a built-in model). The traced programs of
-jaxcal's own models are kept beside the compiled ones, under the same switch
-(:mod:`jaxcal.calibrators.on_disk`).
+jaxcal's own models, and of a user's model keyed by what it computes, are kept beside
+the compiled ones, under the same switch (:mod:`jaxcal.calibrators.on_disk`).
 
 Trusting a cache: a cached entry is compiled machine code that the process loads and
 runs. Anyone who can write to the directory can make jaxcal run their code, so keep
@@ -75,7 +75,7 @@ def disable() -> None:
 
 
 def program_directory() -> str:
-    """Where the programs of jaxcal's own models are kept
+    """Where traced programs are kept
     (:mod:`jaxcal.calibrators.on_disk`): ``jaxcal-programs`` inside the active
     compilation cache directory (JAX's cache reads only its own files there)."""
     return os.path.join(jax.config.jax_compilation_cache_dir or directory(),

@@ -98,3 +98,54 @@ def test_only_the_most_recently_used_programs_are_kept(tmp_path):
     on_disk._prune(tmp_path, keep=2)
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == ["other.bin", f"p3{on_disk.SUFFIX}", f"p4{on_disk.SUFFIX}"]
+
+
+USER = """
+import os, sys, warnings, json
+import jax, jax.numpy as jnp, numpy as np, pandas as pd
+import jaxcal
+from jaxcal.calibrators import on_disk
+
+mode, offset = sys.argv[1], float(sys.argv[2])
+if mode == "again":  # a program kept on disk must not be traced again
+    def refuse(*args, **kwargs):
+        print("traced and exported again", file=sys.stderr)
+        os._exit(7)
+    on_disk.export.export = refuse
+def tank(w, theta):
+    return jnp.stack([w[1] / theta[0], offset + w[0] / (w[1] * (1 + theta[1]))])
+model = jaxcal.Model.from_function(
+    tank, conditions=["heat", "inflow"], parameters={"leak": (1.0, 0.5, 2.0),
+    "loss": (0.1, 0.0, 0.5)}, outputs=["level", "temp"])
+rng = np.random.default_rng(0)
+w = rng.uniform([5.0, 0.5], [30.0, 2.0], (60, 2))
+x = np.asarray(jax.vmap(tank)(w, jnp.tile(jnp.array([1.2, 0.2]), (60, 1))))
+frame = pd.DataFrame(np.hstack([w, x + 0.02 * rng.standard_normal(x.shape)]),
+                     columns=["heat", "inflow", "level", "temp"])
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    result = jaxcal.calibrate(model, frame, "ukf", noise={"level": 0.02, "temp": 0.02},
+                              progress=False)
+print(json.dumps(np.asarray(result.theta).tolist()))
+"""
+
+
+def test_a_user_models_program_is_kept_by_what_it_computes(tmp_path):
+    env = {"JAXCAL_CACHE_DIR": str(tmp_path / "xla")}
+
+    def run(mode, offset):
+        probe = USER.replace("sys.argv[1], float(sys.argv[2])", f"{mode!r}, {offset}")
+        return _run(env, probe)
+
+    first = run("first", 20.0)
+    assert list((tmp_path / "xla" / "jaxcal-programs").glob("*.jaxexport"))
+    assert run("again", 20.0) == first  # a new process reads it back, same numbers
+    # the same function with another constant is another program: traced again
+    # (the refused export ends the process), never the kept one's numbers
+    env_all = {k: v for k, v in os.environ.items() if not k.startswith("JAXCAL_CACHE")}
+    probe = USER.replace("sys.argv[1], float(sys.argv[2])", "'again', 21.0")
+    out = subprocess.run(
+        [sys.executable, "-c", probe], env={**env_all, **env, "JAX_PLATFORMS": "cpu"},
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 7, out.stderr

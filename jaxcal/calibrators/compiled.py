@@ -29,6 +29,7 @@ import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, Measurement, run_fleet
 from jaxcal.calibrators.on_disk import kept, serialisable
+from jaxcal.calibrators.traced_key import traced_key
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array
 
@@ -106,12 +107,17 @@ def _remember(key: Hashable, kind: str, keep, build: Callable):
 def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callable):
     """The program ``build()`` made once for (``kind``, ``problem``'s key,
     ``settings``, ``dtype``) in this process; ``build`` returns a jitted function.
-    A built-in model's program is also kept on disk for the next process
-    (:func:`~jaxcal.calibrators.on_disk.kept`)."""
+    It is also kept on disk for the next process
+    (:func:`~jaxcal.calibrators.on_disk.kept`), under the built-in model's name or
+    a user model's traced digest (:mod:`~jaxcal.calibrators.traced_key`)."""
     key = (kind, problem_key(problem, dtype), settings)
-    origin = problem.model.origin
-    disk = None if origin is None else (kind, origin, *key[1][1:], settings)
-    return _remember(key, kind, problem.model, lambda: kept(build(), disk))
+
+    def build_kept():
+        origin = problem.model.origin or traced_key(problem.model, dtype)
+        disk = None if origin is None else (kind, origin, *key[1][1:], settings)
+        return kept(build(), disk)
+
+    return _remember(key, kind, problem.model, build_kept)
 
 
 def cached_value(key: tuple, build: Callable):

@@ -1,4 +1,4 @@
-"""The programs of jaxcal's own models, kept on disk as exported StableHLO.
+"""Traced calibrator programs, kept on disk as exported StableHLO.
 
 JAX's persistent compilation cache (:mod:`jaxcal.cache`) spares a new process the
 XLA compilation, but not the tracing that comes before it: to find the cached
@@ -8,12 +8,13 @@ of every new process, against milliseconds of compute. ``jax.export`` serialises
 traced and lowered program; a later process deserialises it (milliseconds) and
 compiles it, which the persistent cache then answers.
 
-Only a model whose code is jaxcal's own is kept this way (``Model.origin``, set by
-:func:`jaxcal.models.load` for the built-in models): a program on disk is keyed by
-what it was traced from, and for jaxcal's models that is jaxcal's source (every file
-of the package, hashed once per process), the JAX version, the problem's names and
-fixed values, the method's settings, the float type and the arguments' shapes. A
-user's model is traced again in each process (seconds for a small model).
+A program on disk is keyed by what it was traced from: the model, named by jaxcal's
+source for the built-in models (``Model.origin``, set by :func:`jaxcal.models.load`)
+or by the digest of a user model's own jaxprs
+(:mod:`~jaxcal.calibrators.traced_key`; a model whose jaxpr hides behaviour has none
+and is traced again in each process); jaxcal's source (every file of the package,
+hashed once per process), the JAX version, the problem's names and fixed values, the
+method's settings, the float type and the arguments' shapes.
 
 The directory is the cache's (``$JAXCAL_CACHE_DIR/../programs``, by default
 ``~/.cache/jaxcal/programs``), on and off with it (``JAXCAL_CACHE=0``), and trusted
