@@ -62,9 +62,11 @@ def _scores(res, truth: pd.DataFrame, theta) -> dict:
     ok = np.asarray(res.valid, bool)
     rmse = np.sqrt(np.mean(err[ok] ** 2, axis=0))
     out = {"rmse": dict(zip(theta, rmse.tolist(), strict=True))}
-    if res.theta_std is not None:
-        inside = np.abs(err[ok]) <= Z90 * res.theta_std[ok]
+    if res.theta_std is not None:  # over the rows with a std (a misfit withholds it)
+        shown = ok & np.isfinite(res.theta_std).all(axis=1)
+        inside = np.abs(err[shown]) <= Z90 * res.theta_std[shown]
         out["coverage90"] = dict(zip(theta, inside.mean(axis=0).tolist(), strict=True))
+        out["std_withheld"] = float(1 - shown.sum() / max(ok.sum(), 1))
     return out
 
 

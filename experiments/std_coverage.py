@@ -234,12 +234,16 @@ def coverage(result, truth: np.ndarray, burn_in: float = BURN_IN) -> dict:
     if result.theta_std is None:
         return {"theta_std": None}
     keep = result.valid & scored_rows(result.unit, burn_in)
+    # a unit flagged as misfitting has its std withheld (NaN): scored on the rest
+    withheld = keep & ~np.isfinite(result.theta_std).all(axis=1)
+    keep &= ~withheld
     err = np.abs(result.theta - truth)[keep]
     std = result.theta_std[keep]
     inside = err <= Z90 * std
     names = result.theta_names
     return {
         "rows": int(keep.sum()),
+        "rows_withheld": int(withheld.sum()),
         "overall": float(inside.mean()),
         "per_parameter": {
             n: float(v) for n, v in zip(names, inside.mean(0), strict=True)

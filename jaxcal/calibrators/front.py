@@ -42,9 +42,9 @@ estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.jitter_check`: a fil
 given a noise far too small follows it, with a std that says otherwise). Where the
 screening pass's one-step innovations are clearly autocorrelated (a model misfit, a
 drift the filter lags, a quantised output) the unit's std, which assumes white noise,
-is no calibrated uncertainty:
-``result.misfit`` marks those units' rows and a note names them
-(:mod:`jaxcal.calibrators.misfit_check`; not checked without a screening pass).
+is no calibrated uncertainty: it is withheld there (NaN; ``misfit="keep"`` reports
+it anyway), ``result.misfit`` marks those units' rows and a note names them and says
+why (:mod:`jaxcal.calibrators.misfit_check`; not checked without a screening pass).
 
 No single bad row decides anything for the other rows:
 
@@ -104,6 +104,8 @@ from jaxcal.problem import Problem
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
 METHODS = tuple(methods.METHODS)  # the method table's names
 PROGRESS_AFTER = 3.0  # seconds before a call shows its progress line
+# A coloured unit's std: withheld (NaN, the default) or kept with its rows marked.
+MISFIT = ("withhold", "keep")
 
 
 def _dtype(model: Model):
@@ -144,8 +146,9 @@ def calibrate(
             size) and ``state_q`` (UKF process noise on the states per step,
             default 1e-6 of the state's size: the model is trusted);
             ``outlier_z`` (the outlier gate in robust stds, default 6; ``None``:
-            no outlier flags); and the readers' ``rename``, ``ignore``,
-            ``nonfinite``.
+            no outlier flags); ``misfit`` (``"withhold"``, the default: no std for
+            a unit whose innovations are coloured; ``"keep"``: report it, rows
+            marked); and the readers' ``rename``, ``ignore``, ``nonfinite``.
 
     Returns:
         :class:`CalibrationResult`.
@@ -167,6 +170,7 @@ def calibrate(
 
     model = load(model)
     dtype = _dtype(model)
+    misfit = _misfit(options.pop("misfit", "withhold"))
     cfg, data, problem, notes, threshold = _read_problem(
         model, data, method, theta, noise, outputs, options, dtype
     )
@@ -183,17 +187,18 @@ def calibrate(
         raise nothing_valid_error(problem, data, codes, dtype, "calibrate")
     flagged = flag_notes(result, problem, data, screened, dtype)
     flagged += [] if screened is None else list(screened.notes)
-    result, checked = _checked_std(result, screened, problem)
+    result, checked = _checked_std(result, screened, problem, misfit)
     flagged += checked
     for line in flagged:  # the console line (a warning: shown once per message)
         warnings.warn(f"jaxcal.calibrate: {line}", stacklevel=2)
     return dataclasses.replace(result, notes=(*notes, *flagged))
 
 
-def _checked_std(result: CalibrationResult, screened, problem: Problem):
+def _checked_std(result: CalibrationResult, screened, problem: Problem, misfit: str):
     """``(result, notes)``: a reported std never below the estimate's own scatter
     (:mod:`.jitter_check`), and the units whose innovations are clearly coloured
-    marked in ``result.misfit`` (:mod:`.misfit_check`; where a screening ran)."""
+    marked in ``result.misfit`` (:mod:`.misfit_check`; where a screening ran), their
+    std withheld (NaN) unless ``misfit == "keep"``."""
     if result.theta_std is None:
         return result, []
     std, factor = jitter_floor(
@@ -202,9 +207,13 @@ def _checked_std(result: CalibrationResult, screened, problem: Problem):
     result = dataclasses.replace(result, theta_std=std)
     notes = jitter_note(factor, result.unit, problem.theta_names)
     if screened is not None and screened.z is not None:  # the innovations' colour
-        misfit, ratio = misfit_rows(result.unit, result.time, screened.z, screened.used)
-        result = dataclasses.replace(result, misfit=misfit)
-        notes += misfit_note(ratio, result.unit, problem.output_names)
+        rows, ratio = misfit_rows(result.unit, result.time, screened.z, screened.used)
+        kept = misfit == "keep"
+        std = result.theta_std if kept else np.where(rows[:, None], np.nan, std)
+        result = dataclasses.replace(result, misfit=rows, theta_std=std)
+        notes += misfit_note(
+            ratio, result.unit, problem.output_names, withheld=not kept
+        )
     return result, notes
 
 
@@ -296,6 +305,13 @@ def _check_noise_precision(problem: Problem, dtype) -> None:
         f"{info.max:.3g}): give the std in the outputs' units, or enable float64 "
         "(jaxcal.precision.enable_x64()) if so small or large a noise is meant"
     )
+
+
+def _misfit(value) -> str:
+    """The ``misfit`` option, checked: what a coloured unit's std becomes."""
+    if value not in MISFIT:
+        raise ValueError(f"misfit must be one of {MISFIT}, got {value!r}")
+    return value
 
 
 def _threshold(value) -> float:

@@ -121,8 +121,11 @@ def misfit_rows(
     return misfit, ratio
 
 
-def misfit_note(ratio: np.ndarray, unit: np.ndarray, outputs) -> list[str]:
-    """The console line when :func:`misfit_rows` flagged a unit (else nothing)."""
+def misfit_note(
+    ratio: np.ndarray, unit: np.ndarray, outputs, *, withheld: bool = False
+) -> list[str]:
+    """The console line when :func:`misfit_rows` flagged a unit (else nothing);
+    ``withheld``: the caller left those rows' std out."""
     coloured = np.nan_to_num(ratio) > COLOURED
     if not coloured.any():
         return []
@@ -138,6 +141,11 @@ def misfit_note(ratio: np.ndarray, unit: np.ndarray, outputs) -> list[str]:
         f"variance / variance: {', '.join(parts)}; white noise 1; rows marked in "
         "result.misfit): the model misfits the data, the parameters drift faster "
         "than the filter's random walk follows, or an output is quantised or stuck. "
-        "theta_std may be far too small there: it assumes white noise, and a "
+        "theta_std would be far too small there: it assumes white noise, and a "
         "parameter that absorbs a misfit takes on a bias no residual shows"
+        + (
+            "; so it is withheld there (NaN; misfit='keep' reports it anyway)"
+            if withheld
+            else ""
+        )
     ]

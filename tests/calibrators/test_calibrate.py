@@ -71,6 +71,8 @@ def test_front_door_errors_are_clear(frame):
         jaxcal.calibrate(MODEL, frame, method="kalman")
     with pytest.raises(ValueError, match="unknown option"):
         jaxcal.calibrate(MODEL, frame, method="ukf", noise=None, windw=3)
+    with pytest.raises(ValueError, match=r"misfit must be one of \('withhold', 'keep'"):
+        jaxcal.calibrate(MODEL, frame, method="ukf", misfit="drop")
     with pytest.raises(ValueError, match="unknown name"):
         jaxcal.calibrate(MODEL, frame, theta=["leek"])
     with pytest.raises(ValueError, match="run="):

@@ -106,22 +106,29 @@ def test_a_misfit_tank_is_flagged_and_a_fitting_one_is_not(noise, tmp_path):
     )
     given = dict.fromkeys(model.output_names, NOISE) if noise == "given" else None
 
-    def run(misfit):
-        data = _tank_data(misfit)
+    def run(wave, **keep_std):
+        data = _tank_data(wave)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            result = jaxcal.calibrate(model, data, "ukf", noise=given, progress=False)
+            result = jaxcal.calibrate(
+                model, data, "ukf", noise=given, progress=False, **keep_std
+            )
         keep = result.valid & (data.time.to_numpy() >= 30)
         err = np.abs(result.theta - data[["leak", "loss"]].to_numpy())
         return result, (err <= Z90 * result.theta_std)[keep].mean(0)
 
-    misfit, covered = run(10.0)
+    # asked to keep it, the std shows why it is withheld by default
+    kept, covered = run(10.0, misfit="keep")
     assert covered[0] < 0.3  # leak absorbs the misfit: its std is far too small
-    assert misfit.misfit.all()
+    assert kept.misfit.all() and np.isfinite(kept.theta_std).all()
+    misfit, _ = run(10.0)  # the default: withheld on every flagged row, and said
+    assert misfit.misfit.all() and np.isnan(misfit.theta_std).all()
+    np.testing.assert_array_equal(misfit.theta, kept.theta)
     expected = "the one-step innovations of units 1, 2 are autocorrelated"
-    assert any(expected in n for n in misfit.notes)
+    assert any(expected in n and "withheld" in n for n in misfit.notes)
     loaded = jaxcal.CalibrationResult.load(misfit.save(tmp_path / "r.parquet"))
     np.testing.assert_array_equal(loaded.misfit, misfit.misfit)
+    assert np.isnan(loaded.theta_std).all()
     fitting, covered = run(0.0)
     assert not fitting.misfit.any()
     assert not any("autocorrelated" in n for n in fitting.notes)
