@@ -123,7 +123,8 @@ def make_gated_calibrator(
         window: samples of misfit before the anchor takes over (>= 1).
         band: the gated policy's error band while the gate is open
             (``aux["theta_std"]``, fitted on validation units); a closed gate
-            reports the anchor's band. ``None``: the std of the branch in use when
+            reports the anchor's band. ``None`` (or a relative band, which only
+            the feedback calibrator can scale): the std of the branch in use when
             both report one (each policy's own band), else no std.
 
     Returns:
@@ -157,10 +158,12 @@ def make_gated_calibrator(
         is_open = jnp.min(recent) <= tau
         theta = jnp.where(is_open, fb.theta, an.theta.astype(fb.theta.dtype))
         aux = {"gate_open": is_open, "residual": r}
-        if band is not None:  # a closed gate is the anchor's estimate: its band
+        if band is not None and not band.relative:  # closed: the anchor's band
             std = jnp.where(is_open, band_std(band, state.count), halfwidth / Z90)
             aux["theta_std"] = std.astype(theta.dtype)
         elif _std(fb) is not None and _std(an) is not None:  # each branch's own band
+            # (a relative band scales what the feedback's own filter predicts: the
+            # feedback calibrator reports it, band_std alone cannot)
             aux["theta_std"] = jnp.where(
                 is_open, _std(fb), _std(an).astype(theta.dtype)
             )

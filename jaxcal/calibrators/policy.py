@@ -48,7 +48,11 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     initial_sensitivity,
     policy_params_from_env,
 )
-from jaxcal.calibrators.policy_step import make_policy_calibrator
+from jaxcal.calibrators.policy_step import (
+    band_trend,
+    initial_cov,
+    make_policy_calibrator,
+)
 from jaxcal.calibrators.uncertainty import ThetaBand
 from jaxcal.envs.memory import HintedDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics
@@ -152,6 +156,7 @@ def initial_guard_carry(
     state = PolicyState(
         xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count,
         hint=hint, sens=initial_sensitivity(params, num_states, x.dtype),
+        trend=band_trend(params, band), cov=initial_cov(params, num_states),
     )  # fmt: skip
     step = make_policy_calibrator(
         actor, dynamics, params, band, warm_start=warm_start

@@ -123,6 +123,9 @@ class PolicyState:
     # [Z, P] the state's sensitivity to theta (gauss_newton on a model with memory)
     sens: Array | None = None
     cov: Array | None = None  # [P, P] the filter step's covariance (gn_filter)
+    # [2, P] Brown's smoothed theta levels: the drift rate a relative band reads
+    # (jaxcal.calibrators.lag_scale)
+    trend: Array | None = None
 
 
 def filter_settings(env_cfg) -> dict:

@@ -54,6 +54,12 @@ import flax.linen as nn
 import jax.numpy as jnp
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
+from jaxcal.calibrators.lag_scale import (
+    filter_error_scale,
+    initial_trend,
+    trend_rate,
+    update_trend,
+)
 from jaxcal.calibrators.policy_params import (
     IncrementPolicyParams,
     PolicyParams,
@@ -99,7 +105,9 @@ def make_policy_calibrator(
         params: :class:`PolicyParams` (may be traced).
         band: the run's calibrated error band
             (:mod:`jaxcal.calibrators.uncertainty`, fitted on its validation units);
-            ``None``: no uncertainty.
+            ``None``: no uncertainty. A relative band scales the error the policy's
+            filter predicts (:func:`filter_scale`; an incremental policy with the
+            filter feature only).
         warm_start: carry the model's solver hint from sample to sample (a
             :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise). For one
             stream, one sample per call: under ``vmap`` the hinted solve's fall-back
@@ -116,6 +124,11 @@ def make_policy_calibrator(
     """
     dyn = as_stateful(dynamics)
     incremental = isinstance(params, IncrementPolicyParams)
+    if band is not None and band.relative and not getattr(params, "gn_filter", False):
+        raise ValueError(
+            "a relative band scales the error the policy's filter predicts: it needs "
+            "an incremental policy with the filter feature (env.gauss_newton=filter)"
+        )
     hinted = warm_start and isinstance(dynamics, HintedDynamics)
     transition = _make_transition(dyn, dynamics, params, hinted)
     first_state = functools.partial(_first_state, dyn, params)
@@ -137,10 +150,27 @@ def make_policy_calibrator(
             new_state = new_state.replace(count=state.count + 1)
         if band is None:
             return new_state, CalStepOutput(theta=theta, xhat=xhat)
-        aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
-        return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
+        scale = None
+        if band.relative:
+            trend = update_trend(state.trend, state.started, theta)
+            new_state = new_state.replace(trend=trend)
+            scale = filter_scale(params, new_state.cov, trend)
+        std = band_std(band, state.count, scale).astype(theta.dtype)
+        return new_state, CalStepOutput(theta=theta, xhat=xhat, aux={"theta_std": std})
 
     return Calibrator(init, step)
+
+
+def filter_scale(params: PolicyParams, cov: Array, trend: Array) -> Array:
+    """``[P]`` the theta error the policy's filter predicts after a sample: its std
+    and the lag bias of the drift ``trend`` shows
+    (:func:`~jaxcal.calibrators.lag_scale.filter_error_scale`; a joint filter's
+    theta block is its last ``P`` rows)."""
+    num = params.theta_low.shape[-1]
+    half = 0.5 * (params.theta_high - params.theta_low)
+    return filter_error_scale(
+        cov[-num:, -num:], trend_rate(trend), half.astype(cov.dtype), params.filter_q
+    ).astype(trend.dtype)
 
 
 def _make_transition(dyn: StatefulDynamics, dynamics, params: PolicyParams, hinted):
@@ -174,11 +204,18 @@ def _initial_state(
     return PolicyState(
         xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
         hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
-        cov=_initial_cov(params, dyn.num_states),
+        cov=initial_cov(params, dyn.num_states), trend=band_trend(params, band),
     )  # fmt: skip
 
 
-def _initial_cov(params: PolicyParams, num_states: int) -> Array | None:
+def band_trend(params: PolicyParams, band) -> Array | None:
+    """A stream's first drift-rate state for a relative band, else ``None``."""
+    if band is None or not band.relative:
+        return None
+    return initial_trend(params.theta_low.shape[-1], params.theta_low.dtype)
+
+
+def initial_cov(params: PolicyParams, num_states: int) -> Array | None:
     """The filter step's first covariance (``gn_filter``; the joint one on a model
     with memory under ``filter_whole``), else ``None``."""
     if not getattr(params, "gn_filter", False):

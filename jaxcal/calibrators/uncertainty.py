@@ -21,6 +21,13 @@ emit ``theta_std`` and rebuild any symmetric interval it needs.
 half-widths (scores ``|theta_hat - theta|``) and the rescaled std of
 :mod:`jaxcal.calibrators.std_scale` (scores ``|theta_hat - theta| / std``) are both it.
 
+A *relative* band (``fit_band(..., scale=...)``) is the same conformal fit on the
+errors divided by a per-sample scale the calibrator predicts online, and its std is
+that scale times the bucket's value: for a policy built on a random-walk filter, the
+filter's own std and lag bias (:mod:`jaxcal.calibrators.lag_scale`), which vary from
+unit to unit with its drift rate and its conditions where a pooled width does not
+(normalised conformal prediction, Lei et al. 2018, §5.2).
+
 Host-side fitting (numpy, once per run) and a jittable lookup :func:`band_std` for
 the deployed calibrator. Files are written through the one atomic writer.
 """
@@ -53,11 +60,15 @@ class ThetaBand:
             bucket ``k`` starts; ``edges[0] == 0``, strictly increasing.
         std: ``[K, P]`` the bucket's ``level`` half-width of
             ``|theta_hat - theta|`` divided by the Gaussian ``z`` of that level
-            (1.6449 for 90 %).
+            (1.6449 for 90 %); of ``|theta_hat - theta| / scale`` for a relative
+            band.
+        relative: the std is a multiple of the sample's predicted error scale
+            (:mod:`jaxcal.calibrators.lag_scale`), not theta's own.
     """
 
     edges: Array
     std: Array
+    relative: bool = flax.struct.field(pytree_node=False, default=False)
 
 
 def z_value(level: float) -> float:
@@ -183,6 +194,7 @@ def fit_band(
     level: float = 0.9,
     edges=None,
     min_count: int = MIN_BUCKET_SAMPLES,
+    scale=None,
 ) -> ThetaBand:
     """Fits the per-bucket band on held-out units' whole trajectories.
 
@@ -194,6 +206,8 @@ def fit_band(
         edges: bucket starts (``edges[0] == 0``, increasing); ``None``:
             :func:`log_edges` up to the longest unit.
         min_count: buckets with fewer samples merge into a neighbour.
+        scale: ``[U, T, P]`` the calibrator's predicted error scale per sample
+            (> 0 on ``mask``); given, the band is relative to it.
 
     Returns:
         :class:`ThetaBand` with ``K <= len(edges)`` buckets.
@@ -215,29 +229,43 @@ def fit_band(
                          f"got {mask.shape}")  # fmt: skip
     t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
     scores = np.abs(theta_hat - theta_true)[mask]  # [n, P]
+    if scale is not None:
+        scores = scores / np.asarray(scale, np.float64)[mask]
     edges, std = conformal_scale(scores, t, level=level, edges=edges,
                                  min_count=min_count, caller="fit_band")  # fmt: skip
     return ThetaBand(
-        edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, jnp.float32)
+        edges=jnp.asarray(edges, jnp.int32),
+        std=jnp.asarray(std, jnp.float32),
+        relative=scale is not None,
     )
 
 
-def band_std(band: ThetaBand, t) -> Array:
+def band_std(band: ThetaBand, t, scale=None) -> Array:
     """The std of the bucket holding ``t`` (jittable).
 
     Args:
         band: the fitted band.
         t: ``[]`` int32, samples since the unit's first sample (>= 0).
+        scale: ``[P]`` the sample's predicted error scale (a relative band's;
+            ignored by one that is not).
 
     Returns:
         ``[P]`` std of each parameter's error at ``t``.
+
+    Raises:
+        ValueError: a relative band without ``scale``.
     """
     k = jnp.searchsorted(band.edges, jnp.asarray(t, band.edges.dtype), side="right")
-    return band.std[jnp.clip(k - 1, 0, band.std.shape[0] - 1)]
+    std = band.std[jnp.clip(k - 1, 0, band.std.shape[0] - 1)]
+    if not band.relative:
+        return std
+    if scale is None:
+        raise ValueError("band_std: a relative band needs the sample's error scale")
+    return std * scale
 
 
 def band_coverage(
-    band: ThetaBand, theta_hat, theta_true, mask, *, level: float = 0.9
+    band: ThetaBand, theta_hat, theta_true, mask, *, level: float = 0.9, scale=None
 ) -> tuple[float, np.ndarray]:
     """Share of ``mask``ed samples whose error lies inside the ``level`` interval
     ``|theta_hat - theta| <= z std(t)``.
@@ -257,17 +285,24 @@ def band_coverage(
     edges, std = np.asarray(band.edges), np.asarray(band.std, np.float64)
     t = np.broadcast_to(np.arange(mask.shape[1]), mask.shape)[mask]
     half = z_value(level) * std[np.searchsorted(edges, t, side="right") - 1]
+    if band.relative:
+        if scale is None:
+            raise ValueError("band_coverage: a relative band needs the error scale")
+        half = half * np.asarray(scale, np.float64)[mask]
     err = np.abs(np.asarray(theta_hat, np.float64) - np.asarray(theta_true))[mask]
     inside = err <= half
     return float(inside.mean()), inside.mean(axis=0)
 
 
 def band_to_json(band: ThetaBand) -> dict:
-    """``{"edges": [K], "std": [K][P]}``: the band as JSON-ready lists."""
-    return {
+    """``{"edges": [K], "std": [K][P]}``: the band as JSON-ready lists, and
+    ``"relative": true`` for a relative band (absent otherwise: the files of
+    bands that are not read as before)."""
+    doc = {
         "edges": np.asarray(band.edges).tolist(),
         "std": np.asarray(band.std, np.float64).tolist(),
     }
+    return {**doc, "relative": True} if band.relative else doc
 
 
 def band_from_json(doc: dict, source: str, dtype=jnp.float32) -> ThetaBand:
@@ -290,7 +325,16 @@ def band_from_json(doc: dict, source: str, dtype=jnp.float32) -> ThetaBand:
             f"{source}: 'edges' must be [K] starting at 0 and 'std' [K, P], got "
             f"shapes {edges.shape} and {std.shape}"
         )
-    return ThetaBand(edges=jnp.asarray(edges, jnp.int32), std=jnp.asarray(std, dtype))
+    relative = doc.get("relative", False)
+    if not isinstance(relative, bool):
+        raise ValueError(
+            f"{source}: 'relative' must be true or false, not {relative!r}"
+        )
+    return ThetaBand(
+        edges=jnp.asarray(edges, jnp.int32),
+        std=jnp.asarray(std, dtype),
+        relative=relative,
+    )
 
 
 def save_band(path: str | os.PathLike, band: ThetaBand, meta: dict) -> None:

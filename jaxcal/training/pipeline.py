@@ -110,7 +110,7 @@ from jaxcal.training.scoring import describe_units
 from jaxcal.training.simulated import Simulations, parse_noise
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
 from jaxcal.training.train_env import make_training_env
-from jaxcal.training.uncertainty_stage import fit_policy_band
+from jaxcal.training.uncertainty_stage import band_runs, fit_policy_band
 
 
 def run_training(
@@ -230,12 +230,12 @@ def _train(
         wall_start,
     )  # fmt: skip
     band_units, fitted_on = sims.band_units()
-    band_out = None if band_units is None else scoring.run(band_units, kept.selected)
+    band_out, scales = band_runs(scoring.run, band_units, data.test, kept.selected)
     names = tuple(data.theta_names)
     final.update(
         fit_policy_band(
             band_units, band_out, data.test, test_out, run_dir, names,
-            fitted_on=fitted_on, log=log,
+            fitted_on=fitted_on, scales=scales, log=log,
         )
     )  # fmt: skip
     final["simulated"] = sims.report()

@@ -37,7 +37,8 @@ class PolicyScoring(NamedTuple):
     Attributes:
         deployable: ``(agent_state, which=budget.policy) -> PolicyParams``
             (``which``: ``"target"`` or ``"online"``).
-        run: ``(units, params) -> CalOutput``, the deployed policy over the units.
+        run: ``(units, params, band=None) -> CalOutput``, the deployed policy over
+            the units (with ``band``: its ``aux["theta_std"]``).
         score: ``(units, params, out=None) -> dict`` of
             :func:`~jaxcal.training.scoring.score_units` (``out``: a run already
             made).
@@ -70,10 +71,9 @@ def make_policy_scoring(
     check = range_check(problem)  # samples far outside the training range: flagged
     start = problem.theta_prior if cfg.env.start == "prior" else None
 
-    def run(units: Padded, params: PolicyParams):
-        return parts.run_units(
-            params, units.w.astype(dtype), units.x.astype(dtype), units.mask, check
-        )
+    def run(units: Padded, params: PolicyParams, band=None):
+        w, x = units.w.astype(dtype), units.x.astype(dtype)
+        return parts.run_units(params, w, x, units.mask, check, band)
 
     def score(units: Padded, params: PolicyParams, out=None) -> dict:
         out = run(units, params) if out is None else out

@@ -13,6 +13,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
+from jaxcal.calibrators.uncertainty import load_band
 from jaxcal.cli.evaluate import main as evaluate_main
 from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import StreamingCalibrator
@@ -170,6 +171,30 @@ def test_physics_dynamics_on_unlabelled_data(tmp_path):
     argv = _argv(path, tmp_path / "runs", "name=bad", "noise=y1:1e-3")
     assert train_main(argv) == 2
     assert not (tmp_path / "runs" / "bad").exists()
+
+
+def test_a_filter_policy_streams_with_its_relative_band(tmp_path):
+    # the default preset's feature (env.gauss_newton=filter): the band scales the
+    # error the policy's filter predicts (jaxcal.calibrators.lag_scale), so the
+    # streaming calibrator must carry the filter's covariance from its first sample
+    path = tmp_path / "nolabel.csv"
+    _frame(labels=False).to_csv(path, index=False)
+    argv = _argv(path, tmp_path / "runs", "name=filt", "noise=1e-3,1e-3,1e-3",
+                 "env.action=increment", "env.gauss_newton=filter")  # fmt: skip
+    assert train_main(argv) == 0
+    run = tmp_path / "runs" / "filt"
+    assert load_band(run).relative
+    frame = _frame()
+    cal = StreamingCalibrator(run)
+    stds = [
+        cal.step_info(frame.loc[i, ["a", "b"]], frame.loc[i, ["y1", "y2", "y3"]])
+        .theta_std for i in range(5)
+    ]  # fmt: skip
+    assert all(s.shape == (2,) and np.all(s > 0) and np.isfinite(s).all() for s in stds)
+    result = jaxcal.calibrate(MODEL, path, method="policy", run=run, misfit="keep")
+    assert np.isfinite(result.theta_std).all() and (result.theta_std > 0).all()
+    # the std follows each sample's predicted error: not one value per time bucket
+    assert len(np.unique(result.theta_std[:, 0])) > len(load_band(run).edges)
 
 
 @pytest.mark.parametrize(
