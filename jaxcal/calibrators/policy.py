@@ -52,6 +52,7 @@ from jaxcal.calibrators.policy_step import (
     band_trend,
     initial_cov,
     make_policy_calibrator,
+    start_theta,
 )
 from jaxcal.calibrators.uncertainty import ThetaBand
 from jaxcal.envs.memory import HintedDynamics, as_stateful
@@ -147,9 +148,7 @@ def initial_guard_carry(
     x = jnp.zeros_like(params.x_mean)
     num_states = as_stateful(dynamics).num_states
     z = jnp.zeros((num_states,), x.dtype) if num_states else None
-    theta = None
-    if isinstance(params, IncrementPolicyParams):
-        theta = 0.5 * (params.theta_low + params.theta_high)
+    theta = start_theta(params)
     count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hinted = warm_start and isinstance(dynamics, HintedDynamics)
     hint = dynamics.init_hint() if hinted else None

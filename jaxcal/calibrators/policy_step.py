@@ -194,18 +194,25 @@ def _initial_state(
     ``reset_at``), the band's sample count and the model's first solver hint."""
     z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
     z0 = None if z0 is None else z0.astype(x0.dtype)
-    theta0 = None
-    if isinstance(params, IncrementPolicyParams):
-        theta0 = getattr(params, "theta_start", None)
-        if theta0 is None:
-            theta0 = 0.5 * (params.theta_low + params.theta_high)
     count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hint = dynamics.init_hint() if hinted else None
     return PolicyState(
-        xhat=x0, started=jnp.zeros((), bool), z=z0, theta=theta0, count=count,
+        xhat=x0, started=jnp.zeros((), bool), z=z0, theta=start_theta(params),
+        count=count,
         hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
         cov=initial_cov(params, dyn.num_states), trend=band_trend(params, band),
     )  # fmt: skip
+
+
+def start_theta(params: PolicyParams) -> Array | None:
+    """An incremental policy's theta before its first sample: the run's start (the
+    prior under ``env.start=prior``), else the box centre (the env's ``reset_at``);
+    ``None`` for an absolute policy. The batch and the streaming calibrator both
+    start here, so they agree from the first sample."""
+    if not isinstance(params, IncrementPolicyParams):
+        return None
+    theta0 = getattr(params, "theta_start", None)
+    return 0.5 * (params.theta_low + params.theta_high) if theta0 is None else theta0
 
 
 def band_trend(params: PolicyParams, band) -> Array | None:

@@ -180,18 +180,27 @@ def test_a_filter_policy_streams_with_its_relative_band(tmp_path):
     path = tmp_path / "nolabel.csv"
     _frame(labels=False).to_csv(path, index=False)
     argv = _argv(path, tmp_path / "runs", "name=filt", "noise=1e-3,1e-3,1e-3",
-                 "env.action=increment", "env.gauss_newton=filter")  # fmt: skip
+                 "env.action=increment", "env.gauss_newton=filter",
+                 "env.start=prior")  # fmt: skip
     assert train_main(argv) == 0
     run = tmp_path / "runs" / "filt"
     assert load_band(run).relative
     frame = _frame()
     cal = StreamingCalibrator(run)
-    stds = [
+    steps = [
         cal.step_info(frame.loc[i, ["a", "b"]], frame.loc[i, ["y1", "y2", "y3"]])
-        .theta_std for i in range(5)
+        for i in range(5)
     ]  # fmt: skip
+    stds = [s.theta_std for s in steps]
     assert all(s.shape == (2,) and np.all(s > 0) and np.isfinite(s).all() for s in stds)
     result = jaxcal.calibrate(MODEL, path, method="policy", run=run, misfit="keep")
+    # streamed and batched alike from the first sample (both start at the run's start;
+    # float32 and the test session's float64 differ in the 4th digit)
+    first = np.flatnonzero(frame.unit == frame.unit[0])[:5]
+    assert list(first) == list(range(5))
+    streamed = np.stack([s.theta for s in steps])
+    np.testing.assert_allclose(streamed, result.theta[first], rtol=2e-3)
+    np.testing.assert_allclose(np.stack(stds), result.theta_std[first], rtol=2e-3)
     assert np.isfinite(result.theta_std).all() and (result.theta_std > 0).all()
     # the std follows each sample's predicted error: not one value per time bucket
     assert len(np.unique(result.theta_std[:, 0])) > len(load_band(run).edges)
