@@ -98,6 +98,11 @@ def test_only_the_most_recently_used_programs_are_kept(tmp_path):
     on_disk._prune(tmp_path, keep=2)
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == ["other.bin", f"p3{on_disk.SUFFIX}", f"p4{on_disk.SUFFIX}"]
+    on_disk._prune(tmp_path, max_bytes=1)  # and their bytes: the newest alone fits
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "other.bin",
+        f"p4{on_disk.SUFFIX}",
+    ]
 
 
 USER = """

@@ -19,8 +19,8 @@ method's settings, the float type and the arguments' shapes.
 The directory is the cache's (``$JAXCAL_CACHE_DIR/../programs``, by default
 ``~/.cache/jaxcal/programs``), on and off with it (``JAXCAL_CACHE=0``), and trusted
 as it is: a program there is code the process runs. A file that cannot be read is
-traced again and rewritten; at most :data:`MAX_KEPT` programs are kept, the least
-recently used removed first.
+traced again and rewritten; at most :data:`MAX_KEPT` programs and :data:`MAX_BYTES`
+of them are kept, the least recently used removed first.
 """
 
 from __future__ import annotations
@@ -41,9 +41,13 @@ from jaxcal.calibrators.interface import CalOutput
 from jaxcal.runs.atomic import write_atomic
 
 SUFFIX = ".jaxexport"
-# Programs kept at most; past it the least recently used go (a new jaxcal source or
-# JAX version keys new files, so old ones would otherwise pile up, ~0.5 MB each).
-MAX_KEPT = 64
+# Programs kept at most, and their bytes; past either the least recently used go (a
+# new jaxcal source or JAX version keys new files, so old ones would otherwise pile
+# up). A user's model keys programs of its own (6-90 kB for the tests' small
+# models): at 64 programs the suite's few hundred evicted each other, and the
+# turbofan's, on every run, so each was exported (traced and lowered) again.
+MAX_KEPT = 4096
+MAX_BYTES = 512 * 2**20
 
 
 _SERIALISABLE: set[type] = set()
@@ -129,13 +133,18 @@ def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
     return jax.jit(exp.call)
 
 
-def _prune(directory: Path, keep: int = MAX_KEPT) -> None:
-    """Remove all but the ``keep`` most recently used programs in ``directory``."""
+def _prune(directory: Path, keep: int = MAX_KEPT, max_bytes: int = MAX_BYTES) -> None:
+    """Keep only the most recently used programs in ``directory``: at most ``keep``
+    of them and ``max_bytes`` together."""
     files = []
     for f in directory.glob("*" + SUFFIX):
         try:
-            files.append((f.stat().st_mtime, f))
+            stat = f.stat()
         except OSError:  # removed meanwhile by another process
             continue
-    for _, f in sorted(files, reverse=True)[keep:]:
-        f.unlink(missing_ok=True)
+        files.append((stat.st_mtime, stat.st_size, f))
+    total = 0
+    for rank, (_, size, f) in enumerate(sorted(files, reverse=True)):
+        total += size
+        if rank >= keep or total > max_bytes:
+            f.unlink(missing_ok=True)
