@@ -48,12 +48,7 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     initial_sensitivity,
     policy_params_from_env,
 )
-from jaxcal.calibrators.policy_step import (
-    band_trend,
-    initial_cov,
-    make_policy_calibrator,
-    start_theta,
-)
+from jaxcal.calibrators.policy_step import fresh_state, make_policy_calibrator
 from jaxcal.calibrators.uncertainty import ThetaBand
 from jaxcal.envs.memory import HintedDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics
@@ -148,15 +143,9 @@ def initial_guard_carry(
     x = jnp.zeros_like(params.x_mean)
     num_states = as_stateful(dynamics).num_states
     z = jnp.zeros((num_states,), x.dtype) if num_states else None
-    theta = start_theta(params)
-    count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hinted = warm_start and isinstance(dynamics, HintedDynamics)
     hint = dynamics.init_hint() if hinted else None
-    state = PolicyState(
-        xhat=x, started=jnp.zeros((), bool), z=z, theta=theta, count=count,
-        hint=hint, sens=initial_sensitivity(params, num_states, x.dtype),
-        trend=band_trend(params, band), cov=initial_cov(params, num_states),
-    )  # fmt: skip
+    state = fresh_state(params, band, num_states, x, z, hint)
     step = make_policy_calibrator(
         actor, dynamics, params, band, warm_start=warm_start
     ).step

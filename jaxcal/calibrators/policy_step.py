@@ -194,13 +194,21 @@ def _initial_state(
     ``reset_at``), the band's sample count and the model's first solver hint."""
     z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
     z0 = None if z0 is None else z0.astype(x0.dtype)
-    count = jnp.zeros((), jnp.int32) if counts(params, band) else None
     hint = dynamics.init_hint() if hinted else None
+    return fresh_state(params, band, dyn.num_states, x0, z0, hint)
+
+
+def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
+    """A :class:`PolicyState` before a stream's first sample, every field the step
+    carries set in one place (the batch's first state and the streaming
+    calibrator's first carry alike): x-hat and the model state as given, the
+    start theta, the band's count and drift trend, the filter's sensitivity and
+    covariance."""
     return PolicyState(
-        xhat=x0, started=jnp.zeros((), bool), z=z0, theta=start_theta(params),
-        count=count,
-        hint=hint, sens=initial_sensitivity(params, dyn.num_states, x0.dtype),
-        cov=initial_cov(params, dyn.num_states), trend=band_trend(params, band),
+        xhat=xhat, started=jnp.zeros((), bool), z=z, theta=start_theta(params),
+        count=jnp.zeros((), jnp.int32) if counts(params, band) else None,
+        hint=hint, sens=initial_sensitivity(params, num_states, xhat.dtype),
+        cov=initial_cov(params, num_states), trend=band_trend(params, band),
     )  # fmt: skip
 
 
