@@ -38,10 +38,12 @@ import numpy as np
 
 from jaxcal.model_contract import (
     ModelContractError,
+    check_function,
     checked_output,
     checked_state,
     split_output,
     split_step,
+    traced_call,
 )
 from jaxcal.model_spec import (
     DiagnosisHints,
@@ -157,10 +159,21 @@ class Model:
                 "hinted_fn and initial_hint go together: give both or none"
             )
 
+        check_function(fn, model=str(name), field="fn", signature="fn(w, theta)")
+        if hinted_fn is not None:
+            check_function(
+                hinted_fn, model=str(name), field="hinted_fn",
+                signature="hinted_fn(w, theta, hint)",
+            )  # fmt: skip
+            check_function(
+                initial_hint, model=str(name), field="initial_hint",
+                signature="initial_hint()",
+            )  # fmt: skip
         declared = [v.name for v in as_variables(outputs, "outputs")]
 
         def step(state, w, theta):
-            out, call = fn(w, theta), "fn(w, theta)"
+            call = "fn(w, theta)"
+            out = traced_call(fn, (w, theta), model=str(name), call=call)
             x, valid = split_output(out, declared, model=str(name), call=call)
             return state, x, valid
 
@@ -195,8 +208,19 @@ class Model:
         array. (The calibrators' support of hidden states is the next step of the
         roadmap; :func:`jaxcal.calibrate` says so clearly for a stateful model.)
         """
+        check_function(
+            step, model=str(name), field="step", signature="step(state, w, theta)"
+        )
         if callable(init_state):
-            init_fn = init_state
+            check_function(
+                init_state, model=str(name), field="init_state",
+                signature="init_state(w0, theta)",
+            )  # fmt: skip
+
+            def init_fn(w0, theta):
+                call = "init_state(w0, theta)"
+                return traced_call(init_state, (w0, theta), model=str(name), call=call)
+
         else:
             init = np.asarray(init_state, dtype=np.float64)
             names = [v.name for v in as_variables(states, "states")]
@@ -212,7 +236,8 @@ class Model:
 
         def step_fn(state, w, theta):
             call = "step(state, w, theta)"
-            return split_step(step(state, w, theta), model=str(name), call=call)
+            out = traced_call(step, (state, w, theta), model=str(name), call=call)
+            return split_step(out, model=str(name), call=call)
 
         return cls._build(
             name, conditions, parameters, outputs, step_fn, init_fn,
@@ -240,6 +265,12 @@ class Model:
         effects = as_parameters(effects, "effects") if effects else ()
         if effects and effect_fn is None:
             raise ValueError("effects need an effect_fn(w, theta, e) -> x")
+        for field, fn, signature in (
+            ("input_check", input_check, "input_check(w)"),
+            ("effect_fn", effect_fn, "effect_fn(w, theta, e)"),
+        ):
+            if fn is not None:
+                check_function(fn, model=str(name), field=field, signature=signature)
         parameters = as_parameters(parameters)
         outputs = as_variables(outputs, "outputs")
         check_vocabulary(
@@ -323,7 +354,8 @@ class Model:
             low, high = self.condition_range
             ok = ok & jnp.all((w >= low) & (w <= high))
         if self.input_check is not None:
-            ok = ok & self.input_check(w)
+            call = "input_check(w)"
+            ok = ok & traced_call(self.input_check, (w,), model=self.name, call=call)
         return ok
 
     def _info(self, w, theta, x, valid) -> ModelInfo:
@@ -393,7 +425,10 @@ class Model:
         if self.hinted_fn is None:
             x, info = self.evaluate(w, theta)
             return x, info, hint
-        x, valid, next_hint = self.hinted_fn(w, theta, hint)
+        x, valid, next_hint = traced_call(
+            self.hinted_fn, (w, theta, hint), model=self.name,
+            call="hinted_fn(w, theta, hint)",
+        )  # fmt: skip
         x, valid = checked_output(self, x, valid, "hinted_fn(w, theta, hint)")
         return x, self._info(w, theta, x, valid), next_hint
 
@@ -405,9 +440,8 @@ class Model:
         if self.effect_fn is None:
             raise ValueError(f"model {self.name!r} registers no effects")
         call = "effect_fn(w, theta, e)"
-        x, valid = split_output(
-            self.effect_fn(w, theta, e), self.output_names, model=self.name, call=call
-        )
+        out = traced_call(self.effect_fn, (w, theta, e), model=self.name, call=call)
+        x, valid = split_output(out, self.output_names, model=self.name, call=call)
         x, valid = checked_output(self, x, valid, call)
         return x, self._info(w, theta, x, valid)
 

@@ -13,15 +13,27 @@ The checks look only at shapes and dtypes, which JAX knows while it traces: unde
 cost nothing per sample. (A probe evaluation at construction would trace the model
 once more: tens of seconds for the turbofan's Newton solver, and a wasted trace for
 every model only loaded to be asked a question.)
+
+The functions themselves are checked too: at construction, that each is a function
+of the expected arity (:func:`check_function`; a string or a one-argument ``fn``
+would otherwise fail deep inside the first calibration); when traced, JAX's errors
+for what only works on concrete numbers (numpy on a traced value, a Python ``if`` or
+``float()`` on theta, a ``pure_callback`` without ``vmap_method``) are translated
+into one naming the model, the user's line and the fix (:func:`traced_call`).
 """
 
 from __future__ import annotations
 
+import inspect
 import math
+import os
+import traceback
 from collections.abc import Sequence
 from typing import Any
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class ModelContractError(ValueError):
@@ -146,3 +158,112 @@ def split_step(out: Any, *, model: str, call: str) -> tuple[Any, Any, Any]:
             "state too"
         )
     return (out[0], out[1], out[2] if len(out) == 3 else None)
+
+
+# ---------------------------------------------------------------- the functions
+
+
+def check_function(fn: Any, *, model: str, field: str, signature: str) -> None:
+    """``fn`` is a function that takes the positional arguments of ``signature``
+    (e.g. ``"fn(w, theta)"``), checked at construction: a string or an array given
+    in its place, or a function of another arity, would otherwise fail deep inside
+    the first calibration.
+
+    Raises:
+        ModelContractError: naming the model, the field, the expected signature and
+            what was given (a function whose signature Python cannot read, a
+            builtin, is checked when it is called).
+    """
+    if not callable(fn):
+        shown = repr(fn) if len(repr(fn)) <= 60 else repr(fn)[:57] + "..."
+        raise ModelContractError(
+            f"model {model!r}: {field} must be a function {signature}, got a "
+            f"{type(fn).__name__} ({shown})"
+        )
+    try:
+        params = inspect.signature(fn)
+    except (TypeError, ValueError):  # a builtin or C function: no signature to read
+        return
+    inside = signature[signature.index("(") + 1 : signature.rindex(")")]
+    arity = len([a for a in inside.split(",") if a.strip()])
+    try:
+        params.bind(*([None] * arity))
+    except TypeError as err:
+        name = getattr(fn, "__name__", type(fn).__name__)
+        raise ModelContractError(
+            f"model {model!r}: {field} is {name}{params}, which cannot be called as "
+            f"{signature} ({err}); define it with exactly these {arity} positional "
+            "arguments (a lambda or functools.partial fixes the others)"
+        ) from None
+
+
+def traced_call(fn, args: tuple, *, model: str, call: str):
+    """``fn(*args)``, its JAX tracing errors translated: a user's function traced by
+    ``jax.jit`` / ``vmap`` sees abstract values, and what works on concrete numbers
+    (numpy, a Python ``if``, ``float()``) then fails with an error that names
+    nothing of the model's. The translation names the model, the call, the user's
+    line where it failed and the fix; the original error is chained (``from``).
+
+    Raises:
+        ModelContractError: numpy called on a traced value, a Python branch or
+            conversion on one, a ``jax.pure_callback`` without ``vmap_method``.
+    """
+    try:
+        return fn(*args)
+    except jax.errors.TracerArrayConversionError as err:
+        why = (
+            "calls numpy (np.*, np.asarray, or a numpy-based library) on a traced "
+            "value: the calibrators trace the model with jax.jit and vmap, where "
+            "its inputs are abstract arrays; use jax.numpy (jnp.*) instead"
+        )
+        raise ModelContractError(_traced(model, call, why, err)) from err
+    except jax.errors.ConcretizationTypeError as err:  # also bool / int conversion
+        raise ModelContractError(_traced(model, call, _concrete(err), err)) from err
+    except NotImplementedError as err:
+        if "vmap_method" not in str(err):
+            raise
+        why = (
+            "uses jax.pure_callback without vmap_method: the calibrators vmap the "
+            "model over sigma points and units; pass vmap_method='sequential' (a "
+            "Python function of one sample) or 'broadcast_all' / 'expand_dims' (one "
+            "that takes a batch)"
+        )
+        raise ModelContractError(_traced(model, call, why, err)) from err
+
+
+def _concrete(err: BaseException) -> str:
+    """Why and how to fix a Python read of a traced value's number."""
+    if isinstance(err, jax.errors.TracerBoolConversionError):
+        what = "branches in Python on a traced input (an `if`, `while`, `and`/`or`)"
+        fix = "use jnp.where(cond, a, b) or jax.lax.cond for a branch"
+    elif "`float`" in str(err) or "`int`" in str(err) or "`complex`" in str(err):
+        what = "converts a traced input to a Python number (float(), int())"
+        fix = "keep values as arrays: x.astype(float), theta[0] rather than float(..)"
+    else:
+        what = "needs the value of a traced input (a shape, loop bound or index)"
+        fix = "use jax.lax.fori_loop / while_loop or fixed shapes"
+    return (
+        f"{what}: the calibrators trace the model with jax.jit and vmap, where w and "
+        f"theta are abstract arrays with no value yet; {fix}"
+    )
+
+
+def _traced(model: str, call: str, why: str, err: BaseException) -> str:
+    where = _user_line(err)
+    at = f" (at {where})" if where else ""
+    return f"model {model!r}: {call} {why}{at}"
+
+
+def _user_line(err: BaseException) -> str | None:
+    """``"file:line: source"`` of the deepest frame of ``err``'s traceback outside
+    JAX, numpy and this module: the user's line that failed to trace."""
+    skip = tuple(
+        os.path.dirname(m.__file__) + os.sep for m in (jax, np) if m.__file__
+    ) + (__file__, os.path.join("jax", "_src"), os.path.join("jaxlib", ""))
+    frames = [f for f in traceback.extract_tb(err.__traceback__)]
+    users = [f for f in frames if not any(s in f.filename for s in skip)]
+    if not users:
+        return None
+    frame = users[-1]
+    code = f": {frame.line.strip()}" if frame.line else ""
+    return f"{os.path.basename(frame.filename)}:{frame.lineno}{code}"

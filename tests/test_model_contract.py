@@ -199,3 +199,48 @@ def test_accepted_parameter_forms_build_the_same_parameters():
     x, info = jax.jit(model.evaluate)(W, jnp.array([1.2, 0.0]))
     np.testing.assert_allclose(x, _three(W, THETA))
     assert bool(info.valid)
+
+
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: _static("tank"), r"fn must be a function fn\(w, theta\), got a str"),
+        (lambda: _static(None), r"fn must be a function fn\(w, theta\), got a None"),
+        (lambda: _static(lambda theta: theta), r"fn is <lambda>\(theta\).*fn\(w, t"),
+        (lambda: _static(lambda s, w, t: t), r"missing a required argument: 't'"),
+        (
+            lambda: _stateful(lambda w, t: (w, t)),
+            r"step is <lambda>\(w, t\), which cannot be called as step\(state, w, t",
+        ),
+        (
+            lambda: _stateful(lambda s, w, t: (s, s), init_state=lambda w0: w0),
+            r"init_state is <lambda>\(w0\).*init_state\(w0, theta\)",
+        ),
+        (lambda: _static(_three, input_check="w > 0"), r"input_check must be a fun"),
+        (
+            lambda: _static(
+                _three, effects={"e": (0.0, -1.0, 1.0)}, effect_fn=lambda w, t: w
+            ),
+            r"effect_fn is <lambda>\(w, t\).*effect_fn\(w, theta, e\)",
+        ),
+    ],
+    ids=[
+        "string", "none", "one-argument", "three-arguments", "step-two-arguments",
+        "init-one-argument", "check-string", "effect-two-arguments",
+    ],
+)  # fmt: skip
+def test_a_function_that_cannot_be_called_so_is_refused_at_construction(build, match):
+    with pytest.raises(ModelContractError, match=match) as err:
+        build()
+    assert "model 'model'" in str(err.value)
+
+
+def test_defaults_keywords_and_partials_are_accepted_signatures():
+    import functools
+
+    def scaled(w, theta, gain=1.0, *, offset=0.0):
+        return gain * _three(w, theta) + offset
+
+    for fn in (scaled, functools.partial(scaled, gain=2.0), jax.jit(_three)):
+        x, _ = _static(fn).evaluate(W, THETA)
+        assert x.shape == (3,)
