@@ -250,6 +250,9 @@ class CalibrationResult:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
+        from jaxcal.settings import check_output_path
+
+        check_output_path(os.fspath(path), "path")  # a folder, under a file, ...
         columns = self._columns()
         names = [
             c for v in columns.values() if v for c in ([v] if isinstance(v, str) else v)
@@ -339,6 +342,7 @@ class CalibrationResult:
                 f"{path}: result format {version} is newer than this jaxcal's "
                 f"({FORMAT_VERSION}); update jaxcal to read it"
             )
+        _check_stored(meta, path)
         problem = None
         if model is not None:
             problem = _problem(meta, model, path)
@@ -352,6 +356,43 @@ class CalibrationResult:
             notes=tuple(meta["notes"]),
             stored=meta,
         )
+
+
+# the dtype kinds a stored field may have (a tampered file's dtype is not obeyed)
+_KINDS = {"theta": "f", "theta_std": "f", "states": "f", "xhat": "f", "unit": "iu",
+          "time": "iuf", "valid": "b", "reason": "UO", "partial": "b",
+          "misfit": "b"}  # fmt: skip
+_NAMES = {"theta": "theta_names", "states": "state_names", "xhat": "output_names"}
+
+
+def _check_stored(meta: Mapping, path) -> None:
+    """Every stored dtype of the kind its field has, and one column per name:
+    a file edited by hand or by a faulty tool is an error naming the field."""
+    for field, kinds in _KINDS.items():
+        dtype = meta["dtypes"].get(field)
+        if dtype is None:
+            continue
+        try:
+            kind = np.dtype(dtype).kind
+        except TypeError:
+            kind = "?"
+        if kind not in kinds:
+            raise ValueError(
+                f"{path}: field {field!r} is stored with dtype {dtype!r}; a result "
+                f"keeps it as {_KIND_WORDS[kinds]}: the file was altered, save the "
+                "result again"
+            )
+    for field, names in _NAMES.items():
+        columns = meta["columns"].get(field)
+        if columns is not None and len(columns) != len(meta[names]):
+            raise ValueError(
+                f"{path}: field {field!r} has {len(columns)} columns for the "
+                f"{len(meta[names])} {names} {meta[names]}: the file was altered"
+            )
+
+
+_KIND_WORDS = {"f": "floats", "iu": "integers", "iuf": "numbers", "b": "booleans",
+               "UO": "strings"}  # fmt: skip
 
 
 def _read(table, columns, dtype) -> np.ndarray | None:

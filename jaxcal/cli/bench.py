@@ -27,7 +27,7 @@ from jaxcal.physics import load_engine
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.precision import enable_x64, float_dtype
 from jaxcal.runs.atomic import write_atomic
-from jaxcal.settings import parse_overrides
+from jaxcal.settings import check_output_path, parse_overrides
 
 USAGE = (
     "usage: python -m jaxcal.bench engine [engine=cmapss|agtf30] [batch=N] "
@@ -61,7 +61,10 @@ def parse_args(argv: list[str]) -> BenchArgs:
     """
     if not argv or argv[0] != "engine":
         raise ValueError("say what to bench: engine")
-    return parse_overrides(flags_as_overrides(argv[1:], FLAGS), BenchArgs())
+    args = parse_overrides(flags_as_overrides(argv[1:], FLAGS), BenchArgs())
+    if args.out is not None:  # refused now, not after the benchmark
+        check_output_path(args.out, "out")
+    return args
 
 
 def envelope_points(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -55,7 +55,7 @@ import numpy as np
 
 from jaxcal.cli.args import flags_as_overrides, parse_command_line
 from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
-from jaxcal.settings import config_to_dict, parse_overrides
+from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
 
 USAGE = (
     "usage: python -m jaxcal.fleet data=FILE out=OUT.h5 [model=SPEC] "
@@ -178,6 +178,7 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     cfg = dataclasses.replace(cfg, method=method, options=options)
     if not cfg.data or not cfg.out:
         raise ValueError("data=<file> and out=<results.h5> are required")
+    check_output_path(cfg.out, "out")  # refused now, not after the calibration
     if method == "policy" and not cfg.run:
         raise ValueError("method=policy needs run=<runs/...> (training run dir)")
     if method == "e2e" and is_ncmapss(cfg.data):

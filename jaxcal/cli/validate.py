@@ -34,7 +34,7 @@ from jaxcal.physics.engine import Engine, load_engine
 from jaxcal.physics.guess import tra_for_pcn
 from jaxcal.precision import enable_x64
 from jaxcal.runs.atomic import write_atomic
-from jaxcal.settings import parse_overrides
+from jaxcal.settings import check_output_path, parse_overrides
 
 S = {n: i for i, n in enumerate(SENSOR_NAMES)}
 
@@ -353,7 +353,10 @@ def parse_args(argv: list[str]) -> ValidateArgs:
     """
     flags = {"--engine": "engine", "--out": "out", "--quick": "quick"}
     tokens = flags_as_overrides(argv, flags, switches=("--quick",))
-    return parse_overrides(tokens, ValidateArgs())
+    args = parse_overrides(tokens, ValidateArgs())
+    if args.out is not None:  # refused now, not after the checks
+        check_output_path(args.out, "out")
+    return args
 
 
 def main(argv=None) -> int:

@@ -44,6 +44,7 @@ from jaxcal.data.table_checks import (
     check_units_in_one_split,
     index_as_columns,
     numeric_columns,
+    read_csv_table,
     renamed_columns,
     unit_and_time,
 )
@@ -279,7 +280,11 @@ def _read_file(
         if model is None:
             raise ValueError(f"{path}: reading a table needs the model it follows")
         try:
-            frame = pd.read_csv(path) if ext == ".csv" else pd.read_parquet(path)
+            frame = read_csv_table(path) if ext == ".csv" else pd.read_parquet(path)
+        except ValueError as err:
+            if str(err).startswith(path):  # ours: it names the file already
+                raise
+            raise ValueError(f"{path}: not a readable {ext[1:]} file ({err})") from None
         except Exception as err:  # noqa: BLE001 - any parser failure is bad input
             raise ValueError(f"{path}: not a readable {ext[1:]} file ({err})") from None
         return dataset_from_frame(

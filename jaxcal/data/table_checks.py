@@ -1,5 +1,6 @@
 """The checks a table passes before it becomes a :class:`~jaxcal.data.dataset.Dataset`
-(:mod:`jaxcal.data.readers`): how its index, column names and ``ignore=`` are read,
+(:mod:`jaxcal.data.readers`): how a CSV's separator and decimal mark are read, how
+its index, column names and ``ignore=`` are read,
 that its columns fit the model and are numeric, its unit and time ids, and the two
 facts about units that padding relies on (a time is not repeated within a unit; a
 unit lies in one split). Each failure is a ``ValueError`` naming the file
@@ -8,12 +9,67 @@ or frame, the columns, units or times, and what to do.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from jaxcal.model import Model
 from jaxcal.model_spec import TABLE_COLUMNS
+
+# a number written with a decimal comma (``2,5``, ``-0,1e-3``): the European CSV
+_DECIMAL_COMMA = re.compile(r"\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*")
+# a number written with a decimal point, or an integer
+_DECIMAL_POINT = re.compile(r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*")
+INT64_MAX = np.iinfo(np.int64).max
+EXACT_FLOAT = 2**53  # integers above this are not all exact in float64
+
+
+def read_csv_table(path: str):
+    """A CSV file as a DataFrame, ``,`` or ``;`` separated.
+
+    A spreadsheet saved in a European locale separates by ``;`` and writes decimals
+    with a comma (``2,5``); read with the default ``,`` it splits every number in
+    two. The header decides, as it holds names, not numbers: a header with ``;``
+    and no ``,`` is read with ``sep=";"``, and a column whose every value is a
+    number with a decimal comma is read as those numbers (a column mixing ``2,5``
+    and ``2.5`` is an error naming it). A header with both is an error saying so.
+    """
+    import pandas as pd
+
+    with open(path, encoding="utf-8", errors="replace") as f:
+        header = f.readline()
+    if ";" not in header:
+        return pd.read_csv(path)
+    if "," in header:
+        raise ValueError(
+            f"{path}: the header line holds both ';' and ',' ({header.strip()[:80]!r}"
+            "), so the separator is ambiguous; save the file with one separator "
+            "(',' with '.' decimals, or ';' with ',' decimals)"
+        )
+    frame = pd.read_csv(path, sep=";", dtype=str)
+    for name in frame.columns:
+        frame[name] = _number_column(frame[name], str(name), path)
+    return frame
+
+
+def _number_column(values, name: str, path: str):
+    """A ``;``-separated file's text column as numbers (decimal comma or point), or
+    as text when it is not numbers (a ``split`` column)."""
+    import pandas as pd
+
+    text = values.dropna().astype(str)
+    comma = text.str.fullmatch(_DECIMAL_COMMA.pattern)
+    point = text.str.fullmatch(_DECIMAL_POINT.pattern)
+    if len(text) and (comma | point).all():
+        if comma.any() and text.str.contains(r"\.", regex=True).any():
+            rows = (np.flatnonzero(comma.to_numpy())[:3] + 2).tolist()
+            raise ValueError(
+                f"{path}: column {name!r} mixes decimal commas (lines {rows}) and "
+                "decimal points; write every number of a column the same way"
+            )
+        return pd.to_numeric(values.str.replace(",", ".", regex=False))
+    return values
 
 
 def index_as_columns(frame, names: set, source: str):
@@ -175,6 +231,7 @@ def unit_and_time(frame, source: str, row_offset: int):
     n = len(frame)
     columns = [str(c) for c in frame.columns]
     unit = frame["unit"].to_numpy() if "unit" in columns else np.zeros(n, np.int64)
+    unit = _unit_ids(unit, source, row_offset)
     time = frame["time"].to_numpy() if "time" in columns else np.arange(n)
     for name, values in (("unit", unit), ("time", time)):
         try:
@@ -185,3 +242,39 @@ def unit_and_time(frame, source: str, row_offset: int):
             row = int(np.flatnonzero(~finite)[0]) + row_offset
             raise ValueError(f"{source}: column {name!r} is empty or NaN at row {row}")
     return unit, time
+
+
+def _unit_ids(unit: np.ndarray, source: str, row_offset: int) -> np.ndarray:
+    """The unit ids as read, or an error where ``int64`` (the Dataset's unit type)
+    cannot hold them apart: ids beyond its range (read as ``uint64`` or as Python
+    integers) or integers written as floats beyond ``2**53`` would merge distinct
+    units into one."""
+    if unit.dtype.kind == "u":
+        beyond = unit > INT64_MAX
+    elif unit.dtype.kind == "O":
+        ints = [_as_int(v) for v in unit]
+        beyond = np.array([v is not None and abs(v) > INT64_MAX for v in ints], bool)
+    elif unit.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            beyond = np.abs(unit) > EXACT_FLOAT
+    else:
+        return unit
+    if beyond.any():
+        rows = np.flatnonzero(beyond)
+        first = ", ".join(str(int(r) + row_offset) for r in rows[:5])
+        raise ValueError(
+            f"{source}: column 'unit' holds ids too large to keep apart ({rows.size} "
+            f"rows: {first}{', ...' if rows.size > 5 else ''}; e.g. {unit[rows[0]]}):"
+            f" unit ids are int64 (at most {INT64_MAX}) and exact as floats only up "
+            f"to 2**53, so distinct units would merge; map them to smaller ids"
+        )
+    return unit
+
+
+def _as_int(value) -> int | None:
+    """``value`` as a Python integer when it is one (or its digits), else None."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, str) and re.fullmatch(r"\s*[-+]?\d+\s*", value):
+        return int(value)
+    return None

@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxcal.calibrators.interface import REASONS, count_reasons
 from jaxcal.runs.atomic import make_temp, release_temp
+from jaxcal.settings import check_output_path
 
 _CHUNK_ROWS = 8192  # HDF5 chunk length of the growable datasets
 
@@ -51,7 +52,8 @@ class FleetResultWriter:
             writer.append(unit_ids, mask, theta, xhat, aux=aux)
 
     Args:
-        path: destination ``.h5``; its directory must exist.
+        path: destination ``.h5`` (its missing folders are created); a folder, a
+            path under a file or in an unwritable folder is an error at once.
         theta_names: the ``P`` parameter names (columns of ``theta``).
         sensor_names: the ``S`` sensor names (columns of ``xhat``).
         attrs: extra root attributes; dicts and lists are stored as JSON strings.
@@ -66,6 +68,9 @@ class FleetResultWriter:
         attrs: Mapping | None = None,
     ):
         self.path = os.fspath(path)
+        # a folder, a path under a file or an unwritable folder: said before the
+        # work whose results it would hold, not after
+        check_output_path(self.path, "path")
         self._attrs = {
             "theta_names": json.dumps(list(theta_names)),
             "sensor_names": json.dumps(list(sensor_names)),
@@ -84,9 +89,8 @@ class FleetResultWriter:
         self.num_partial = 0  # rows with missing outputs (``partial=`` of append)
 
     def __enter__(self) -> FleetResultWriter:
-        directory = os.path.dirname(os.path.abspath(self.path))
-        if not os.path.isdir(directory):
-            raise FileNotFoundError(f"output directory does not exist: {directory}")
+        check_output_path(self.path, "path")
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         fd, self._tmp = make_temp(self.path)
         os.close(fd)
         self._file = h5py.File(self._tmp, "w")

@@ -141,10 +141,17 @@ class Checkpointer:
             lambda x: jax.eval_shape(jax.random.key_data, x) if _is_typed_key(x) else x,
             abstract,
         )
-        self._check_structure(step, plain_target)
-        restored = self._manager.restore(
-            step, args=ocp.args.StandardRestore(plain_target)
-        )
+        try:
+            self._check_structure(step, plain_target)
+            restored = self._manager.restore(
+                step, args=ocp.args.StandardRestore(plain_target)
+            )
+        except ValueError as err:
+            if str(err).startswith(f"checkpoint {self.directory}"):  # ours
+                raise
+            raise self._unreadable(step, err) from err
+        except Exception as err:  # noqa: BLE001 - TensorStore / Orbax raise many
+            raise self._unreadable(step, err) from err
         return jax.tree.map(
             lambda target, value: (
                 jax.random.wrap_key_data(value, impl=_key_impl(target))
@@ -153,6 +160,19 @@ class Checkpointer:
             ),
             abstract,
             restored,
+        )
+
+    def _unreadable(self, step: int, err: Exception) -> ValueError:
+        """The error of a checkpoint whose files cannot be read (a copy cut short,
+        a disk that filled up): the folder, the file the reader named, the cause."""
+        folder = self.directory / str(step)
+        text = f"{type(err).__name__}: {err}"
+        files = [p for p in folder.rglob("*") if p.is_file() and str(p.name) in text]
+        named = f" (file {files[0]})" if files else ""
+        return ValueError(
+            f"checkpoint {folder}{named} is truncated or corrupt: it cannot be read "
+            f"({_first_line(text)}). Copy the run folder again from its source, or "
+            "train the run again"
         )
 
     def _check_structure(self, step: int, target: Any) -> None:
@@ -195,6 +215,11 @@ class Checkpointer:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def _first_line(text: str, size: int = 300) -> str:
+    line = text.strip().splitlines()[0] if text.strip() else text
+    return line if len(line) <= size else line[: size - 3] + "..."
 
 
 def save_config(run_dir: str | os.PathLike, cfg: Any) -> Path:
