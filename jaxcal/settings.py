@@ -35,6 +35,17 @@ _NONE = frozenset({"none", "null"})
 TYPE_KEY = "_type"
 
 
+class UnknownKeyError(ValueError):
+    """A ``key=value`` key that names nothing: the message lists the valid keys, and
+    ``key`` / ``valid`` carry them so that a command line can suggest the closest
+    (:mod:`jaxcal.cli.args`)."""
+
+    def __init__(self, message: str, key: str, valid: Sequence[str]):
+        super().__init__(message)
+        self.key = key
+        self.valid = tuple(valid)
+
+
 def _field_types(cfg_or_cls: Any) -> dict[str, Any]:
     """Resolved annotations of a dataclass' init fields (handles string annotations)."""
     cls = cfg_or_cls if isinstance(cfg_or_cls, type) else type(cfg_or_cls)
@@ -128,10 +139,12 @@ def _set_path(
     full = prefix + name
     ftypes = _field_types(cfg)
     if name not in ftypes:
-        raise ValueError(
+        raise UnknownKeyError(
             f"unknown key {prefix + '.'.join(path)!r}; valid keys"
             f"{' of ' + prefix[:-1] if prefix else ''} ({type(cfg).__name__}): "
-            + ", ".join(sorted(ftypes))
+            + ", ".join(sorted(ftypes)),
+            key=prefix + ".".join(path),
+            valid=[prefix + n for n in sorted(ftypes)],
         )
     current = getattr(cfg, name)
     if rest:
@@ -199,9 +212,11 @@ def parse_overrides(
         try:
             cfg = _set_path(cfg, key.split("."), text)
         except ValueError as err:
-            if str(err).startswith("unknown key") and "." not in key and groups:
-                raise ValueError(
-                    f"{err} (keys with presets: {', '.join(sorted(groups))})"
+            if isinstance(err, UnknownKeyError) and "." not in key and groups:
+                raise UnknownKeyError(
+                    f"{err} (keys with presets: {', '.join(sorted(groups))})",
+                    key=err.key,
+                    valid=[*err.valid, *groups],
                 ) from None
             raise
     return cfg

@@ -1,13 +1,24 @@
 """The shared front of every ``python -m jaxcal.<tool>`` command line: help, usage and
-exit codes (0 done, 2 bad arguments), and the documented ``--flag value`` spellings as
-``key=value`` tokens. Parsing ``key=value`` overrides and storing configs is library
-work and lives in :mod:`jaxcal.settings`: every command line has that one grammar."""
+exit codes (0 done, 2 bad arguments), the closest valid key suggested for a misspelt
+one, and the documented ``--flag value`` spellings as ``key=value`` tokens. Parsing
+``key=value`` overrides and storing configs is library work and lives in
+:mod:`jaxcal.settings`: every command line has that one grammar."""
 
 from __future__ import annotations
 
+import difflib
+import re
 import typing
 from collections.abc import Sequence
 from typing import Any
+
+from jaxcal.settings import UnknownKeyError
+
+# ``key=`` and ``--flag`` spellings of a usage line: keys a command line takes beyond
+# its config's fields (train's ``outputs=``, ``test_units=``), offered as suggestions.
+_USAGE_KEY = re.compile(
+    r"(?<![\w.<|-])([A-Za-z_][\w.]*)=(?!value)|(?<![\w-])(--[\w-]+)"
+)
 
 
 def parse_command_line(
@@ -20,7 +31,9 @@ def parse_command_line(
 
     ``-h``/``--help``/``help`` prints ``doc`` and ``usage`` (exit code 0); a
     ``ValueError`` from ``parse`` is printed with the usage (exit code 2), so a typo
-    fails before any heavy import.
+    fails before any heavy import. A misspelt key (an :class:`UnknownKeyError`
+    anywhere in the error's chain) close to a valid one gets one line, the error
+    with ``(did you mean 'seed'?)``: the message already lists the valid keys.
 
     Returns:
         ``(parsed, None)`` to go on, or ``(None, exit_code)`` to stop.
@@ -35,8 +48,37 @@ def parse_command_line(
     try:
         return parse(args), None
     except ValueError as err:
-        print(f"error: {err}\n{usage}", file=sys.stderr)
+        message = with_closest_key(err, usage)
+        if "did you mean" in message:
+            print(f"error: {message}", file=sys.stderr)
+        else:
+            print(f"error: {message}\n{usage}", file=sys.stderr)
         return None, 2
+
+
+def with_closest_key(err: ValueError, usage: str = "") -> str:
+    """The message of ``err``, with ``(did you mean 'KEY'?)`` after the unknown key
+    when a valid key is close (:func:`difflib.get_close_matches`).
+
+    The key and the valid keys come from the :class:`UnknownKeyError` in the chain of
+    ``err`` (a wrapper that adds to the message keeps it as its context), plus the
+    ``key=`` and ``--flag`` spellings of ``usage``. A message that already suggests
+    one (``jaxcal.fleet``'s method options) is left as it is.
+    """
+    message = str(err)
+    cause: BaseException | None = err
+    while cause is not None and not isinstance(cause, UnknownKeyError):
+        cause = cause.__cause__ or cause.__context__
+    if cause is None or "did you mean" in message:
+        return message
+    spelled = [a or b for a, b in _USAGE_KEY.findall(usage)]
+    candidates = [k for k in dict.fromkeys([*cause.valid, *spelled]) if k != cause.key]
+    close = difflib.get_close_matches(cause.key, candidates, n=1)
+    if not close:
+        return message
+    said = repr(cause.key)
+    hint = f"{said} (did you mean {close[0]!r}?)"
+    return message.replace(said, hint, 1) if said in message else f"{hint}: {message}"
 
 
 def flags_as_overrides(
@@ -66,9 +108,11 @@ def flags_as_overrides(
             continue
         name, sep, value = token.partition("=")
         if name not in flags:
-            raise ValueError(
+            raise UnknownKeyError(
                 f"unknown flag {name!r}; the flags are {', '.join(flags)} (or "
-                "key=value)"
+                "key=value)",
+                key=name,
+                valid=list(flags),
             )
         if name in switches and not sep:
             value = "true"

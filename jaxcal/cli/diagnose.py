@@ -36,7 +36,14 @@ import os
 import sys
 import time
 
+from jaxcal.cli.args import parse_command_line
 from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
+
+USAGE = (
+    "usage: python -m jaxcal.diagnose data=FILE calibrate=A,B [model=SPEC] [out=DIR] "
+    "[units=1,2] [outputs=A,B] [max_rows=N] [kinds=K,...] [rename=FILE:MODEL,...] "
+    "[ignore=A,B] [key=value ...]"
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,9 +194,12 @@ def run(cfg: DiagnoseConfig) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (0 done, 2 bad arguments or data)."""
-    argv = sys.argv[1:] if argv is None else argv
+    cfg, code = parse_command_line(
+        argv, lambda args: parse_overrides(args, DiagnoseConfig()), __doc__, USAGE
+    )
+    if code is not None:
+        return code
     try:
-        cfg = parse_overrides(argv, DiagnoseConfig())
         rep = run(cfg)
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxcal.diagnose: {err}", file=sys.stderr)

@@ -37,7 +37,7 @@ import sys
 import time
 
 from jaxcal.cli.args import parse_command_line
-from jaxcal.settings import check_output_path
+from jaxcal.settings import UnknownKeyError, check_output_path
 
 USAGE = (
     "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [data=FILE] "
@@ -59,7 +59,9 @@ def parse_args(argv: list[str]) -> dict:
         if not sep or not key:
             raise ValueError(f"malformed argument {token!r}: expected key=value")
         if key not in KEYS:
-            raise ValueError(f"unknown key {key!r}; valid keys: {', '.join(KEYS)}")
+            raise UnknownKeyError(
+                f"unknown key {key!r}; valid keys: {', '.join(KEYS)}", key, KEYS
+            )
         if key in args:
             raise ValueError(f"key {key!r} given twice")
         args[key] = value

@@ -60,11 +60,14 @@ def parse_args(argv: list[str]) -> tuple[DatasetConfig, str]:
         else:
             fields.append(token.removeprefix("dataset."))
     name = special.get("dataset")
-    preset = dataset_preset(name)
+    # the keys are checked first (against any preset when none is named): a misspelt
+    # ``datset=`` is named as such, with the closest key, not as a missing dataset
+    preset = next(iter(DATASETS.values())) if name is None else dataset_preset(name)
     try:
         cfg = parse_overrides(fields, preset)
     except ValueError as err:
         raise ValueError(f"{err} (and: dataset, out)") from None
+    dataset_preset(name)  # no dataset= at all: say so
     out = special["out"] if "out" in special else os.path.join("data", f"{name}.h5")
     return cfg, check_output_path(out, "out")
 
