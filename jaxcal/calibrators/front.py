@@ -90,7 +90,7 @@ from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exp
 )
 from jaxcal.calibrators.guard import REASON_CODE
 from jaxcal.calibrators.jitter_check import jitter_floor, jitter_note
-from jaxcal.calibrators.misfit_check import misfit_note, misfit_rows
+from jaxcal.calibrators.misfit_check import colour_rows, misfit_note, widen_note
 from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.calibrators.result import CalibrationResult
 from jaxcal.calibrators.skipped import nothing_valid_error
@@ -119,7 +119,7 @@ def calibrate(
     data,
     method: str = "ukf",
     theta: Sequence[str] | None = None,
-    noise: Mapping[str, float] | None = None,
+    noise: Mapping[str, float] | float | None = None,
     *,
     outputs: Sequence[str] | None = None,
     seed: int = 0,
@@ -134,7 +134,8 @@ def calibrate(
             :class:`~jaxcal.data.dataset.Dataset`.
         method: one of :data:`METHODS`.
         theta: calibrated parameter names (default: all the model's).
-        noise: output name -> noise standard deviation (default: estimated).
+        noise: output name -> noise standard deviation, or one number for every
+            output (default: estimated).
         outputs: outputs to use (default: every model output in the data).
         seed: PRNG seed (E2E training).
         progress: show a progress line on stderr when the call takes longer than
@@ -169,6 +170,8 @@ def calibrate(
     cache.ensure_default()  # compile once per machine (jaxcal.cache)
 
     model = load(model)
+    theta = _names(theta, "theta", "parameter", model.parameter_names)
+    outputs = _names(outputs, "outputs", "output", model.output_names)
     dtype = _dtype(model)
     misfit = _misfit(options.pop("misfit", "withhold"))
     cfg, data, problem, notes, threshold = _read_problem(
@@ -197,8 +200,9 @@ def calibrate(
 def _checked_std(result: CalibrationResult, screened, problem: Problem, misfit: str):
     """``(result, notes)``: a reported std never below the estimate's own scatter
     (:mod:`.jitter_check`), and the units whose innovations are clearly coloured
-    marked in ``result.misfit`` (:mod:`.misfit_check`; where a screening ran), their
-    std withheld (NaN) unless ``misfit == "keep"``."""
+    or shifted marked in ``result.misfit`` (:mod:`.misfit_check`; where a screening
+    ran), their std withheld (NaN) unless ``misfit == "keep"``; a unit whose noise is
+    coloured, not misfitting, has its std widened by the colour's long-run variance."""
     if result.theta_std is None:
         return result, []
     std, factor = jitter_floor(
@@ -207,13 +211,16 @@ def _checked_std(result: CalibrationResult, screened, problem: Problem, misfit: 
     result = dataclasses.replace(result, theta_std=std)
     notes = jitter_note(factor, result.unit, problem.theta_names)
     if screened is not None and screened.z is not None:  # the innovations' colour
-        rows, ratio = misfit_rows(result.unit, result.time, screened.z, screened.used)
-        kept = misfit == "keep"
-        std = result.theta_std if kept else np.where(rows[:, None], np.nan, std)
+        colour = colour_rows(result.unit, result.time, screened.z, screened.used)
+        rows, kept = colour.misfit, misfit == "keep"
+        std = std * colour.widen[:, None]  # a coloured noise: fewer rows' worth
+        std = std if kept else np.where(rows[:, None], np.nan, std)
         result = dataclasses.replace(result, misfit=rows, theta_std=std)
         notes += misfit_note(
-            ratio, result.unit, problem.output_names, withheld=not kept
-        )
+            colour.ratio, result.unit, problem.output_names, withheld=not kept,
+            shift=colour.shift,
+        )  # fmt: skip
+        notes += widen_note(colour.widen, result.unit)
     return result, notes
 
 
@@ -236,6 +243,7 @@ def _read_problem(model: Model, data, method, theta, noise, outputs, options, dt
     data = read_dataset(data, model, **reader).for_model(model, outputs)
     clipped, notes = clip_jitter(data.w, model)
     data = dataclasses.replace(data, w=clipped)
+    noise = _noise_per_output(noise, data.output_names)
     problem = Problem.build(model, data, theta=theta, noise=noise)
     _check_noise_precision(problem, dtype)
     return cfg, data, problem, notes, threshold
@@ -282,6 +290,26 @@ def _progress(total: int, enabled: bool):
     )  # fmt: skip
 
 
+def _noise_per_output(noise, names: Sequence[str]):
+    """``noise`` as ``{output: std}``: one number is every used output's std (as
+    ``noise=0.02`` on the command line); a mapping or a sequence passes through.
+
+    Raises:
+        ValueError: a number that is not finite and > 0.
+    """
+    if not isinstance(noise, int | float | np.number) and np.ndim(noise) != 0:
+        return noise  # a mapping or one std per output (None: estimated)
+    if noise is None or isinstance(noise, bool | str):
+        return noise  # None: estimated; True or "0.1": refused by Problem.build
+    std = float(noise)
+    if not (np.isfinite(std) and std > 0):
+        raise ValueError(
+            f"noise={noise!r}: expected a finite std > 0 (one number for every "
+            "output, or {output: std})"
+        )
+    return dict.fromkeys(names, std)
+
+
 def _check_noise_precision(problem: Problem, dtype) -> None:
     """A given noise std must be a normal positive number in the calibration's
     float dtype: ``1e-300`` is 0 in float32 (x64 off), ``1e300`` is inf, and XLA
@@ -305,6 +333,39 @@ def _check_noise_precision(problem: Problem, dtype) -> None:
         f"{info.max:.3g}): give the std in the outputs' units, or enable float64 "
         "(jaxcal.precision.enable_x64()) if so small or large a noise is meant"
     )
+
+
+def _names(value, field: str, kind: str, declared: Sequence[str]):
+    """``theta`` / ``outputs``: ``None`` (the default) or a non-empty list of names.
+    An empty list is refused rather than read as "all" (a filter that selected
+    nothing would otherwise calibrate every parameter), and a bare string rather
+    than read letter by letter.
+
+    Raises:
+        ValueError: naming the option, the expected form and the model's names.
+    """
+    if value is None:
+        return None
+    example = f"{field}=[{declared[0]!r}]" if declared else f"{field}=[...]"
+    if isinstance(value, str):
+        raise ValueError(
+            f"{field} must be a list of {kind} names, got the string {value!r}: "
+            f"write {field}=[{value!r}] (the model's {kind}s are {list(declared)})"
+        )
+    try:
+        names = list(value)
+    except TypeError:
+        names = None
+    if names is None or not all(isinstance(n, str) for n in names):
+        raise ValueError(
+            f"{field} must be a list of {kind} names (e.g. {example}), got {value!r}"
+        )
+    if not names:
+        raise ValueError(
+            f"{field}=[] names no {kind}: give at least one of {list(declared)}, or "
+            f"leave {field} out (None) for all of them"
+        )
+    return names
 
 
 def _misfit(value) -> str:

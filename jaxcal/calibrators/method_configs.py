@@ -96,6 +96,108 @@ class Policy:
     name = "policy"
 
 
+# Each option's accepted form: (kind, what it is). Kinds: "positive", "real",
+# "non-negative", "above-one" (finite numbers), "count" (an integer >= 1), "flag"
+# (a bool), "state" (None, a number, [Z] numbers or {state: number}, finite >= 0);
+# "-" options are read by their own loaders. A trailing "?" also accepts None.
+_FORMS: dict[str, tuple[str, str]] = {
+    "q": ("positive", "the parameters' random-walk std per step, in half-box units"),
+    "prior_std": ("positive", "the prior std of theta, in half-box units"),
+    "alpha": ("positive", "the sigma points' spread"),
+    "beta": ("real", "the centre point's covariance weight"),
+    "kappa": ("real", "the secondary spread"),
+    "jitter": ("non-negative", "added to the covariance diagonal"),
+    "posterior_xhat": ("flag", "report xhat at the posterior theta"),
+    "return_cov": ("flag", "also report theta_cov"),
+    "window": ("count", "samples in the sliding window"),
+    "num_iters": ("count", "Levenberg-Marquardt iterations per sample"),
+    "damping_init": ("positive", "the initial Marquardt damping"),
+    "damping_factor": ("above-one", "the damping's factor"),
+    "state_std": ("state", "the initial state's std"),
+    "state_q": ("state", "the states' process noise per step"),
+    "e2e_window": ("count?", "past samples the network reads"),
+    "e2e_copies": ("count", "simulated fleets"),
+}
+_EXPECTED = {
+    "positive": "a finite number > 0",
+    "real": "a finite number",
+    "non-negative": "a finite number >= 0",
+    "above-one": "a finite number > 1",
+    "count": "an integer >= 1",
+    "flag": "True or False",
+    "state": "a finite number >= 0, one per state ([Z]) or {state: number}",
+}
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+
+
+def _form_ok(kind: str, value) -> bool:
+    """``value`` has the form ``kind`` of :data:`_FORMS`."""
+    if kind == "flag":
+        return isinstance(value, (bool, np.bool_))
+    if kind == "count":
+        return _is_number(value) and float(value).is_integer() and value >= 1
+    if kind == "state":
+        values = value.values() if isinstance(value, dict) else np.ravel(value)
+        if isinstance(value, str) or (isinstance(value, dict) and not value):
+            return False
+        return all(_is_number(v) and np.isfinite(v) and v >= 0 for v in values)
+    if not (_is_number(value) and np.isfinite(value)):
+        return False
+    return {
+        "positive": value > 0, "real": True, "non-negative": value >= 0,
+        "above-one": value > 1,
+    }[kind]  # fmt: skip
+
+
+def _plain(name: str, value):
+    """A checked option as a plain Python value (``np.int64(8)`` -> ``8``: a numpy
+    integer window would turn the ring buffer's int32 position into int64)."""
+    kind = _FORMS.get(name, ("-", ""))[0].rstrip("?")
+    if value is None or kind in ("-", "state"):
+        return value
+    return {"count": int, "flag": bool}.get(kind, float)(value)
+
+
+def check_options(method: str, options: dict) -> None:
+    """Every option of ``options`` has its expected form (:data:`_FORMS`): type,
+    finiteness and range, checked before any config is built (``q="0.01"`` or a
+    window of ``32.5`` would otherwise fail inside a comparison, ``q=inf`` run a
+    filter that never settles).
+
+    Raises:
+        ValueError: naming the method, the option, what it is, its expected form
+            and what was given.
+    """
+    for name, value in options.items():
+        kind, what = _FORMS.get(name, ("-", ""))
+        optional = kind.endswith("?") or (name == "prior_std" and method == "ls")
+        kind = kind.rstrip("?")
+        if kind == "-" or (value is None and (optional or kind == "state")):
+            continue
+        if name == "e2e_config":
+            continue
+        if not _form_ok(kind, value):
+            expected = _EXPECTED[kind] + (" or None" if optional else "")
+            raise ValueError(
+                f"method={method!r}: option {name}={value!r} is not {expected} "
+                f"({name}: {what})"
+            )
+    config_ = options.get("e2e_config")
+    if config_ is not None:
+        from jaxcal.calibrators.e2e import E2EConfig
+
+        if not isinstance(config_, E2EConfig):
+            raise ValueError(
+                f"method={method!r}: option e2e_config must be an E2EConfig or None, "
+                f"got a {type(config_).__name__}"
+            )
+
+
 class Built(NamedTuple):
     """A method ready to run: ``run(padded, skip=None) -> CalOutput`` per padded
     group (``skip [U, T]``: cells skipped like padding), and ``prior_std [P]``,
@@ -120,8 +222,9 @@ def config(method: str, options: dict):
     """The config of ``method`` from keyword ``options`` (every one consumed).
 
     Raises:
-        ValueError: an unknown method, or an option the method does not take
-            (listing the valid ones and the closest match).
+        ValueError: an unknown method, an option the method does not take
+            (listing the valid ones and the closest match), or an option of
+            another type or range than it takes (:func:`check_options`).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")
@@ -138,6 +241,8 @@ def config(method: str, options: dict):
             f"unknown option(s) for method={method!r}: {said}; its options are "
             f"{sorted(valid)}"
         )
+    check_options(method, options)
+    options = {k: _plain(k, v) for k, v in options.items()}
     kwargs = {}
     inner = getattr(config_type, "field_type", None)
     if inner is not None:
