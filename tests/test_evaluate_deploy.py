@@ -13,6 +13,7 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.calibrators.interface import REASONS, run_fleet
+from jaxcal.calibrators.policy import stream_start_theta
 from jaxcal.cli.evaluate import main, parse_args
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env
@@ -156,13 +157,17 @@ def test_streaming_skips_a_poisoned_sample_and_flags_it(trained):
             streamed.append(cal.step(w[t], x_t))
             assert cal.last_valid and cal.last_reason == "ok"
         np.testing.assert_array_equal(np.stack(streamed), np.stack(clean))
-    # a NaN in w, and before any valid sample: the prior (zeros), state untouched
+    # a NaN in w, and before any valid sample: the stream's start (inside the
+    # run's box, where its first valid sample steps from), state untouched
     cal.reset()
     w_nan = w[0].copy()
     w_nan[2] = np.nan
     info = cal.step_info(w_nan, x[0])
     assert info.reason == "w_nonfinite"
-    np.testing.assert_array_equal(info.theta, np.zeros(1))
+    params = cal.run_info.params
+    start = np.asarray(stream_start_theta(params))
+    np.testing.assert_array_equal(info.theta, start)
+    assert np.all((params.theta_low <= start) & (start <= params.theta_high))
     np.testing.assert_array_equal(cal.step(w[0], x[0]), clean[0])
 
 

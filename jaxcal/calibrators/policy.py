@@ -48,7 +48,11 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     initial_sensitivity,
     policy_params_from_env,
 )
-from jaxcal.calibrators.policy_step import fresh_state, make_policy_calibrator
+from jaxcal.calibrators.policy_step import (
+    fresh_state,
+    make_policy_calibrator,
+    start_theta,
+)
 from jaxcal.calibrators.uncertainty import ThetaBand
 from jaxcal.envs.memory import HintedDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics
@@ -134,10 +138,11 @@ def initial_guard_carry(
 ) -> GuardCarry:
     """The carry of a guarded stream before its first sample.
 
-    Before any ok sample the outputs are zeros (theta = 0: healthy modifiers, as
-    ``run_calibrator`` outputs on leading padding) and the step, if fed a flagged
-    first sample, sees zeros (its result is discarded). ``warm_start``: as
-    :func:`make_policy_calibrator` (the carry then holds the model's first hint).
+    Before any ok sample the stream reports the theta it starts from
+    (:func:`stream_start_theta`: inside the box, so a stream never reports a value
+    the model cannot take and does not jump at its first valid sample); the step, if
+    fed a flagged first sample, sees zeros (its result is discarded). ``warm_start``:
+    as :func:`make_policy_calibrator` (the carry then holds the model's first hint).
     """
     w = jnp.zeros_like(params.w_mean)
     x = jnp.zeros_like(params.x_mean)
@@ -149,7 +154,22 @@ def initial_guard_carry(
     step = make_policy_calibrator(
         actor, dynamics, params, band, warm_start=warm_start
     ).step
-    return initial_carry(step, state, w, x)
+    carry = initial_carry(step, state, w, x)
+    theta0 = stream_start_theta(params).astype(carry.out.theta.dtype)
+    return carry._replace(out=carry.out._replace(theta=theta0))
+
+
+def stream_start_theta(params: PolicyParams) -> Array:
+    """``[P]`` what a stream reports before its first valid sample: an incremental
+    policy's start (:func:`start_theta`: the run's prior or the box centre); an
+    absolute policy's healthy zeros where the box holds them (the turbofan's
+    modifiers), else the box centre."""
+    theta0 = start_theta(params)
+    if theta0 is not None:
+        return theta0
+    low, high = params.theta_low, params.theta_high
+    inside = jnp.all((low <= 0) & (0 <= high))
+    return jnp.where(inside, jnp.zeros_like(low), 0.5 * (low + high))
 
 
 def make_guarded_stream_step(

@@ -19,11 +19,12 @@ turbofan or any other model::
 
 Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
 training range (:func:`jaxcal.calibrators.policy.range_check`), is *skipped*: the
-carried state is left exactly as it was, ``step`` returns the last valid theta
-(zeros, the healthy prior, before any valid sample) and the flag is readable
-(``cal.last_valid``, ``cal.last_reason``, :meth:`StreamingCalibrator.step_info`;
-``run(..., return_flags=True)``). The stream then continues as if the sample had
-never arrived. Runs trained before the range was stored check finiteness only.
+carried state is left exactly as it was, ``step`` returns the last valid theta (before
+any valid sample the theta the stream starts from, inside the box) and the flag is
+readable (``cal.last_valid``, ``cal.last_reason``,
+:meth:`StreamingCalibrator.step_info`; ``run(..., return_flags=True)``). The stream then
+continues as if the sample had never arrived. Runs trained before the range was stored
+check finiteness only.
 
 Semantics (:mod:`jaxcal.calibrators.policy`): the calibrator carries the model output
 x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),

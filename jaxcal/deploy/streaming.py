@@ -2,15 +2,16 @@
 
 Host numpy in and out, one jitted call per sample (or one per batch of whole
 trajectories). Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far
-outside the run's training range (:func:`jaxcal.calibrators.policy.range_check` of
-the run's problem), is *skipped*: the carried state is left exactly as it was,
-``step`` returns the last valid theta (zeros before any valid sample) and the flag is
+outside the run's training range (:func:`jaxcal.calibrators.policy.range_check` of the
+run's problem), is *skipped*: the carried state is left exactly as it was, ``step``
+returns the last valid theta (before any valid sample the theta the stream starts from,
+inside the box: :func:`~jaxcal.calibrators.policy.stream_start_theta`) and the flag is
 readable (``last_valid``, ``last_reason``, :meth:`StreamingCalibrator.step_info`;
 ``run(..., return_flags=True)``). A sample with some outputs missing (NaN in some of
 ``x``, the others finite) is skipped the same way with reason ``x_partial``: a policy
-needs every output (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); the
-UKF and least squares of :func:`jaxcal.calibrate` and :mod:`jaxcal.fleet` use such
-samples. Users import it from :mod:`jaxcal.deploy`.
+needs every output (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); the UKF
+and least squares of :func:`jaxcal.calibrate` and :mod:`jaxcal.fleet` use such samples.
+Users import it from :mod:`jaxcal.deploy`.
 """
 
 from __future__ import annotations
@@ -108,7 +109,10 @@ class StreamingCalibrator:
             an.actor, an.dynamics, an.params, an.band, warm_start=True
         ).state
         state = gate_state(carry.state, an_state, DEFAULT_WINDOW, carry.x.dtype)
-        self._carry0 = initial_carry(stream.step, state, carry.w, carry.x)
+        carry0 = initial_carry(stream.step, state, carry.w, carry.x)
+        # before any valid sample: the policy's start theta, as the ungated stream
+        out0 = carry0.out._replace(theta=carry.out.theta.astype(carry0.out.theta.dtype))
+        self._carry0 = carry0._replace(out=out0)
 
         @jax.jit
         def step(carry, w, x, check):

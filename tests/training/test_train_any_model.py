@@ -187,6 +187,12 @@ def test_a_filter_policy_streams_with_its_relative_band(tmp_path):
     assert load_band(run).relative
     frame = _frame()
     cal = StreamingCalibrator(run)
+    # issue 41 item 5: before its first valid row a stream reports the run's start
+    # (the prior, env.start=prior), inside the box; never zeros outside it
+    info = cal.step_info(np.array([np.nan, 0.5]), frame.loc[0, ["y1", "y2", "y3"]])
+    assert info.reason == "w_nonfinite"
+    np.testing.assert_allclose(info.theta, [1.0, 0.5])
+    cal.reset()
     steps = [
         cal.step_info(frame.loc[i, ["a", "b"]], frame.loc[i, ["y1", "y2", "y3"]])
         for i in range(5)
