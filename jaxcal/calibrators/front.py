@@ -297,7 +297,9 @@ def _noise_per_output(noise, names: Sequence[str]):
     Raises:
         ValueError: a number that is not finite and > 0.
     """
-    if not isinstance(noise, int | float | np.number) and np.ndim(noise) != 0:
+    if isinstance(noise, Mapping) or (
+        not isinstance(noise, int | float | np.number) and np.ndim(noise) != 0
+    ):  # np.ndim of a dict is 0: a mapping is told apart first
         return noise  # a mapping or one std per output (None: estimated)
     if noise is None or isinstance(noise, bool | str):
         return noise  # None: estimated; True or "0.1": refused by Problem.build
