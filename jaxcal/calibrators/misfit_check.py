@@ -45,10 +45,13 @@ Nf 11.6, epr 9.0 (read to two decimals).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pandas as pd
 
 from jaxcal.calibrators.jitter_check import settled_rows, units_shown
+from jaxcal.calibrators.outliers import MAD_TO_STD
 
 # flagged where the long-run variance is this many times the variance: the std at
 # least 2x too small from the colour alone (measured: <= 1.22 well specified, >= 17
@@ -57,6 +60,16 @@ COLOURED = 4.0
 MIN_ROWS = 30  # a unit's output needs this many settled used rows to be judged
 ANDREWS = 1.1447  # Andrews (1991): the Bartlett kernel's plug-in constant
 RHO_MAX = 0.97  # the AR(1) coefficient of the plug-in, kept off 1 (Andrews 1991)
+MAX_AR = 6  # the highest AR order fitted to a unit's innovations
+# Page's CUSUM: the drift is half the shift of one std it is tuned to; flagged past
+# SHIFTED stds (measured: the well-specified cases of experiments/std_coverage.py
+# and the reactor with white or AR(1) noise <= 7.7; the reactor's 1.5 K sensor bias
+# from row 300 of 500 11.3-18; Basseville & Nikiforov 1993, sec. 2.2)
+CUSUM_DRIFT = 0.5
+SHIFTED = 10.0
+# a unit's std is widened by sqrt(AR long-run variance ratio) where that is above
+# this (the std at least 1.22x too small from the colour)
+WIDEN_FROM = 1.5
 
 
 def autocorrelation(series: np.ndarray) -> np.ndarray:
@@ -85,67 +98,183 @@ def long_run_ratio(series: np.ndarray) -> float:
     return max(0.0, 1 + 2 * float(np.sum(weights * rho[1 : bandwidth + 1])))
 
 
-def misfit_rows(
+def ar_long_run_ratio(series: np.ndarray) -> float:
+    """Long-run variance over variance of the AR(p) fitted to ``series [T]``.
+
+    Yule-Walker fits of every order up to :data:`MAX_AR` (Levinson's Toeplitz
+    solve), the order by BIC (order 0, white: 1). For AR coefficients ``phi`` and
+    innovation variance ``v`` (a share of the variance) the ratio is ``v / (1 -
+    sum(phi))^2``: ``(1 + phi) / (1 - phi)`` for an AR(1). Unlike the Bartlett
+    estimate (:func:`long_run_ratio`), whose bandwidth truncates a slowly decaying
+    autocorrelation, it is not biased low for a persistent noise."""
+    from scipy.linalg import solve_toeplitz
+
+    n = len(series)
+    rho = autocorrelation(series)
+    if rho[0] <= 0:
+        return 1.0
+    best_bic, ratio = 0.0, 1.0
+    for p in range(1, min(MAX_AR, n // 10) + 1):
+        phi = solve_toeplitz(rho[:p], rho[1 : p + 1])
+        share = 1.0 - float(phi @ rho[1 : p + 1])
+        if not 0.0 < share <= 1.0 or abs(1.0 - phi.sum()) < 1e-6:
+            break  # not a stationary fit: keep the last one that was
+        bic = n * np.log(share) + p * np.log(n)
+        if bic < best_bic:
+            best_bic, ratio = bic, share / (1.0 - float(phi.sum())) ** 2
+    return ratio
+
+
+def shift_statistic(series: np.ndarray) -> float:
+    """Page's two-sided CUSUM (drift :data:`CUSUM_DRIFT`) of ``series [T]`` about its
+    median, over its robust std times the square root of its AR long-run variance
+    ratio (so that a coloured but stationary noise does not count as a shift): the
+    largest excursion, in those stds."""
+    centred = series - np.median(series)
+    scale = MAD_TO_STD * np.median(np.abs(centred))
+    if not scale > 0:
+        return 0.0
+    scale *= np.sqrt(max(1.0, ar_long_run_ratio(centred)))
+    high = low = best = 0.0
+    for value in centred / scale:  # a few hundred rows a unit: a loop is cheap
+        high = max(0.0, high + value - CUSUM_DRIFT)
+        low = max(0.0, low - value - CUSUM_DRIFT)
+        best = max(best, high, low)
+    return best
+
+
+class Colour(NamedTuple):
+    """What :func:`colour_rows` reads off the innovations, per row of the data.
+
+    Attributes:
+        misfit: ``[N]`` True on every row of a unit flagged as misfitting.
+        ratio: ``[N, S]`` the unit's Bartlett long-run variance ratio per output.
+        shift: ``[N, S]`` the unit's CUSUM statistic per output.
+        widen: ``[N]`` the factor the unit's std is widened by for a coloured
+            noise (1 where white, or flagged: nothing to widen).
+        (``nan`` in ``ratio`` and ``shift`` where not judged: fewer than
+        :data:`MIN_ROWS` settled used rows.)
+    """
+
+    misfit: np.ndarray
+    ratio: np.ndarray
+    shift: np.ndarray
+    widen: np.ndarray
+
+
+def colour_rows(
     unit: np.ndarray, time: np.ndarray, z: np.ndarray, used: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of the units whose innovations are clearly coloured (module doc).
+) -> Colour:
+    """The units whose innovations show a misfit, and the others' colour (module
+    doc).
 
     Args:
         unit, time: ``[N]`` each row's unit and time (any row order).
         z: ``[N, S]`` the one-step innovations over their predicted std (``nan``
             where an output is missing).
         used: ``[N]`` bool, the rows the pass used (outliers and skipped rows not).
-
-    Returns:
-        ``(misfit, ratio)``: ``[N]`` bool, True on every row of a flagged unit, and
-        ``[N, S]`` the unit's long-run variance ratio per output (``nan`` where
-        not judged: fewer than :data:`MIN_ROWS` settled used rows).
     """
+    nothing = np.full(z.shape, np.nan)
     # the filter's first rows are its settling, not the model's fit
     order, keep = settled_rows(unit, time, used)
     if not keep.any():  # nothing to judge by
-        return np.zeros(len(unit), bool), np.full(z.shape, np.nan)
+        return Colour(np.zeros(len(unit), bool), nothing, nothing, np.ones(len(unit)))
     kept_unit, kept_z = unit[order][keep], z[order][keep]
     starts = np.flatnonzero(np.r_[True, kept_unit[1:] != kept_unit[:-1]])
-    ratios = {}  # a unit with no kept row is not judged (nan)
+    stats = {}  # a unit with no kept row is not judged (nan)
     for u, rows in zip(kept_unit[starts], np.split(kept_z, starts[1:]), strict=True):
-        ratios[u] = [
-            long_run_ratio(col[np.isfinite(col)])
-            if np.isfinite(col).sum() >= MIN_ROWS
-            else np.nan
-            for col in rows.T
+        cols = [col[np.isfinite(col)] for col in rows.T]
+        judged = [len(col) >= MIN_ROWS for col in cols]
+        stats[u] = [
+            [f(col) if ok else np.nan for col, ok in zip(cols, judged, strict=True)]
+            for f in (long_run_ratio, shift_statistic, ar_long_run_ratio)
         ]
-    table = pd.DataFrame.from_dict(ratios, orient="index", columns=range(z.shape[1]))
-    ratio = table.reindex(unit).to_numpy(np.float64)
+
+    def per_row(k: int) -> np.ndarray:
+        table = pd.DataFrame.from_dict(
+            {u: v[k] for u, v in stats.items()}, orient="index",
+            columns=range(z.shape[1]),
+        )  # fmt: skip
+        return table.reindex(unit).to_numpy(np.float64)
+
+    ratio, shift, ar_ratio = per_row(0), per_row(1), per_row(2)
     misfit = np.any(np.nan_to_num(ratio) > COLOURED, axis=1)
-    return misfit, ratio
+    misfit |= np.any(np.nan_to_num(shift) > SHIFTED, axis=1)
+    largest = np.max(np.nan_to_num(ar_ratio, nan=1.0), axis=1)
+    widen = np.where(~misfit & (largest > WIDEN_FROM), np.sqrt(largest), 1.0)
+    return Colour(misfit, ratio, shift, widen)
+
+
+def misfit_rows(
+    unit: np.ndarray, time: np.ndarray, z: np.ndarray, used: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(misfit [N], ratio [N, S])`` of :func:`colour_rows` (the flag and the
+    Bartlett ratio per output)."""
+    colour = colour_rows(unit, time, z, used)
+    return colour.misfit, colour.ratio
 
 
 def misfit_note(
-    ratio: np.ndarray, unit: np.ndarray, outputs, *, withheld: bool = False
-) -> list[str]:
-    """The console line when :func:`misfit_rows` flagged a unit (else nothing);
-    ``withheld``: the caller left those rows' std out."""
+    ratio: np.ndarray, unit: np.ndarray, outputs, *, withheld: bool = False,
+    shift: np.ndarray | None = None,
+) -> list[str]:  # fmt: skip
+    """The console line when :func:`colour_rows` flagged a unit (else nothing);
+    ``withheld``: the caller left those rows' std out; ``shift``: the CUSUM
+    statistics (a unit flagged by them alone is named for its shift)."""
     coloured = np.nan_to_num(ratio) > COLOURED
-    if not coloured.any():
+    shifted = np.zeros_like(coloured) if shift is None else np.nan_to_num(shift)
+    shifted = shifted > SHIFTED
+    if not (coloured.any() or shifted.any()):
         return []
-    flagged = unit[coloured.any(axis=1)]
+    flagged = unit[(coloured | shifted).any(axis=1)]
     shown = f"unit{'s' if len(np.unique(flagged)) > 1 else ''} {units_shown(flagged)}"
     parts = [
         f"{name} {np.nanmax(ratio[coloured[:, s], s]):.3g}"
         for s, name in enumerate(outputs)
         if coloured[:, s].any()
     ]
+    moved = [
+        f"{name} {np.nanmax(shift[shifted[:, s], s]):.3g}"
+        for s, name in enumerate(outputs)
+        if shifted[:, s].any()
+    ]
+    found = []
+    if parts:
+        found.append(
+            f"autocorrelated (long-run variance / variance: {', '.join(parts)}; "
+            "white noise 1)"
+        )
+    if moved:
+        found.append(
+            f"shifted from some row on (CUSUM of the innovations, in stds: "
+            f"{', '.join(moved)}; flagged past {SHIFTED:g}: a sensor bias or a "
+            "change the model lacks, which the parameters then absorb)"
+        )
     return [
-        f"the one-step innovations of {shown} are autocorrelated (long-run "
-        f"variance / variance: {', '.join(parts)}; white noise 1; rows marked in "
-        "result.misfit): the model misfits the data, the parameters drift faster "
-        "than the filter's random walk follows, or an output is quantised or stuck. "
-        "theta_std would be far too small there: it assumes white noise, and a "
-        "parameter that absorbs a misfit takes on a bias no residual shows"
+        f"the one-step innovations of {shown} are {' and '.join(found)}; rows "
+        "marked in result.misfit: the model misfits the data, the parameters drift "
+        "faster than the filter's random walk follows, or an output is quantised, "
+        "stuck or biased. theta_std would be far too small there: it assumes white "
+        "noise, and a parameter that absorbs a misfit takes on a bias no residual "
+        "shows"
         + (
             "; so it is withheld there (NaN; misfit='keep' reports it anyway)"
             if withheld
             else ""
         )
+    ]
+
+
+def widen_note(widen: np.ndarray, unit: np.ndarray) -> list[str]:
+    """The console line when :func:`colour_rows` widened a unit's std (else
+    nothing)."""
+    widened = widen > 1
+    if not widened.any():
+        return []
+    return [
+        f"the measurement noise of units {units_shown(unit[widened])} is coloured "
+        "(their one-step innovations fit an AR noise; no shift, no strong colour): "
+        "theta_std widened by the square root of its long-run variance ratio (up "
+        f"to x{np.max(widen):.3g}), since autocorrelated rows carry less "
+        "information than the white noise the std assumes"
     ]
