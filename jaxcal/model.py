@@ -205,8 +205,12 @@ class Model:
         """A stateful model from ``step(state [Z], w, theta) -> (next_state, x)``.
 
         ``init_state`` is ``init_state(w0, theta) -> state [Z]`` or a fixed ``[Z]``
-        array. (The calibrators' support of hidden states is the next step of the
-        roadmap; :func:`jaxcal.calibrate` says so clearly for a stateful model.)
+        array. Every method of :func:`jaxcal.calibrate` takes such a model: the UKF
+        filters the states jointly with the parameters, least squares fits the
+        window's initial state too, E2E reads a window of past samples, a policy
+        trains on the model's own step (``dynamics=physics``); ``result.states``
+        holds the estimated states (docs/memory.md). A state observed directly as an
+        output may share its name (an output ``T_air`` that is the state ``T_air``).
         """
         check_function(
             step, model=str(name), field="step", signature="step(state, w, theta)"

@@ -185,31 +185,49 @@ RESULT_COLUMNS = ("valid", "reason")
 RESERVED_NAMES = TABLE_COLUMNS + RESULT_COLUMNS
 
 
+# Kinds that may share a name: a state observed directly as an output is one
+# quantity, and its columns differ (the output's data column ``T``, its estimate
+# ``T_hat``; the state's result column ``T``; states are never data columns).
+SHAREABLE = frozenset({"output", "state"})
+
+
 def check_vocabulary(**groups: Sequence[Variable | Parameter]) -> None:
     """Each name of a model names one thing: a data column is a condition, an output
     or a true parameter, and a result column a parameter, a state or an output, so a
     name in two groups (a parameter named like a condition) or a reserved name
-    (:data:`RESERVED_NAMES`) is an error naming both uses.
+    (:data:`RESERVED_NAMES`) is an error naming both uses. An output and a state may
+    share a name (:data:`SHAREABLE`: the output is that state), with one unit
+    where both give one.
 
     Args:
         groups: kind (``condition=``, ``parameter=``, ...) -> its variables.
     """
-    owner: dict[str, str] = {}
+    owner: dict[str, tuple[str, Variable | Parameter]] = {}
     for kind, variables in groups.items():
-        for name in (v.name for v in variables):
+        for var in variables:
+            name = var.name
             if name in RESERVED_NAMES:
                 raise ValueError(
                     f"{kind} {name!r}: the name is reserved ({', '.join(TABLE_COLUMNS)}"
                     f" are data columns, {', '.join(RESULT_COLUMNS)} result columns); "
                     f"give the {kind} another name, e.g. {name + '_' + kind!r}"
                 )
-            if name in owner:
+            first, first_var = owner.get(name, (None, None))
+            if first is not None and {first, kind} == SHAREABLE:
+                if "-" not in (first_var.unit, var.unit) and first_var.unit != var.unit:
+                    raise ValueError(
+                        f"{name!r} is {_a(first)} in {first_var.unit!r} and {_a(kind)}"
+                        f" in {var.unit!r}: an output that is a state has its unit"
+                    )
+                continue
+            if first is not None:
                 raise ValueError(
-                    f"{name!r} is both {_a(owner[name])} and {_a(kind)}: the names of "
+                    f"{name!r} is both {_a(first)} and {_a(kind)}: the names of "
                     "conditions, parameters, outputs, states and effects must differ "
-                    "(each names one data or result column)"
+                    "(each names one data or result column; only an output that is "
+                    "a state may share its name)"
                 )
-            owner[name] = kind
+            owner[name] = (kind, var)
 
 
 def _a(word: str) -> str:

@@ -161,9 +161,11 @@ def test_name_clashes_and_reserved_names_are_refused_at_construction(kwargs, mat
         jaxcal.Model.from_function(_three, **spec)
 
 
-def test_a_state_named_like_an_output_is_refused():
-    with pytest.raises(ValueError, match=r"'y1' is both an output and a state"):
-        _stateful(lambda s, w, t: (s, s), states=("y1",))
+def test_a_state_named_like_a_condition_is_refused_like_an_output_is_not():
+    with pytest.raises(ValueError, match=r"'a' is both a condition and a state"):
+        _stateful(lambda s, w, t: (s, s), states=("a",))
+    # an output that is the state it measures keeps the state's name (issue 42)
+    assert _stateful(lambda s, w, t: (s, s), states=("y1",)).state_names == ("y1",)
 
 
 @pytest.mark.parametrize(

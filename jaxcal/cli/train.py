@@ -11,13 +11,14 @@ Usage::
         data=<file .csv/.parquet/.h5/.txt> theta=<names> [outputs=<names>] \
         [test_units=<ids>] [val_units=<ids>] [dynamics=surrogate|physics]
 
-Any static :class:`jaxcal.Model` trains the same way: the file's columns are named
-as the model's conditions and outputs (optional ``unit``, ``time``, ``split`` and
-true-parameter columns). Without a ``split`` column whole units are held out: the
-last ~20 % for test (``test_units=`` chooses), ~15 % of the rest for validation
-(``val_units=``). ``dynamics=surrogate`` needs the true parameters of the training
-units; ``dynamics=physics`` runs the model itself (float64 only for a model that
-needs it, which this command enables).
+Any :class:`jaxcal.Model`, static or with hidden states, trains the same way (a
+model with memory on its own step, ``dynamics=physics``: the surrogate cannot carry
+its states): the file's columns are named as the model's conditions and outputs
+(optional ``unit``, ``time``, ``split`` and true-parameter columns). Without a
+``split`` column whole units are held out: the last ~20 % for test (``test_units=``
+chooses), ~15 % of the rest for validation (``val_units=``). ``dynamics=surrogate``
+needs the true parameters of the training units; ``dynamics=physics`` runs the model
+itself (float64 only for a model that needs it, which this command enables).
 
 Generates the data set if its file is missing, fits the surrogate D (``dynamics=
 surrogate``; the default preset trains on the model itself), trains the policy
