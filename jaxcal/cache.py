@@ -21,15 +21,21 @@ jaxcal's own models, and of a user's model keyed by what it computes, are kept b
 the compiled ones, under the same switch (:mod:`jaxcal.calibrators.on_disk`).
 
 Trusting a cache: a cached entry is compiled machine code that the process loads and
-runs. Anyone who can write to the directory can make jaxcal run their code, so keep
-it private to your user (it is created with mode 0700) and never point
-``JAXCAL_CACHE_DIR`` at a shared or downloaded directory. Deleting it is always safe:
-the next call compiles again.
+runs, so anyone who can write to the directory can make jaxcal run their code (a
+rewritten program returns wrong numbers without a word). The directory must be the
+user's own: it is created with mode 0700, and an existing one that is owned by
+another user, writable by its group or by others, or inside a folder others can
+rename entries of (group/world-writable without the sticky bit) is not used: the
+process runs without the on-disk cache, with one warning naming the folder and why
+(:func:`private_problem`; ``docs/trust.md``). Deleting the cache is always safe: the
+next call compiles again.
 """
 
 from __future__ import annotations
 
 import os
+import stat
+import warnings
 
 import jax
 
@@ -51,7 +57,15 @@ def enable_compilation_cache(path: str | None = None) -> None:
     if _state["disabled"] or os.environ.get("JAXCAL_CACHE", "").lower() in _OFF:
         return
     path = path or directory()
-    os.makedirs(path, mode=0o700, exist_ok=True)
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        problem = private_problem(path)
+    except OSError as err:
+        problem = f"it cannot be created or read ({err})"
+    if problem is not None:
+        _state["done"] = True  # one warning per process, not one per call
+        warn_bypassed(path, problem, stacklevel=3)
+        return
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
     _state["done"] = True
@@ -80,6 +94,47 @@ def program_directory() -> str:
     compilation cache directory (JAX's cache reads only its own files there)."""
     return os.path.join(jax.config.jax_compilation_cache_dir or directory(),
                         "jaxcal-programs")  # fmt: skip
+
+
+def private_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` (an existing file or directory) is not private to this user, or
+    ``None`` when it is: it must be owned by this user and not writable by its group
+    or others, and no folder above it may let others replace it (group/world-
+    writable without the sticky bit, as ``/tmp`` has).
+
+    Raises:
+        OSError: ``path`` cannot be read.
+    """
+    path = os.path.abspath(path)
+    info = os.stat(path)
+    uid = os.getuid()
+    if info.st_uid != uid:
+        return f"it is owned by user id {info.st_uid}, not by this user ({uid})"
+    mode = stat.S_IMODE(info.st_mode)
+    if mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"it is writable by other users (mode {mode:o}; expected 700)"
+    parent = os.path.dirname(path)
+    while parent and parent != path:
+        mode = os.stat(parent).st_mode
+        if mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
+            return (
+                f"the folder {parent} above it is writable by other users without "
+                f"the sticky bit (mode {stat.S_IMODE(mode):o}): they could replace it"
+            )
+        path, parent = parent, os.path.dirname(parent)
+    return None
+
+
+def warn_bypassed(path: str | os.PathLike, problem: str, stacklevel: int = 2) -> None:
+    """The one warning of an on-disk cache folder that is not used (``problem``:
+    :func:`private_problem`'s reason)."""
+    warnings.warn(
+        f"jaxcal: the cache folder {path} is not used, {problem}; anyone who can "
+        "write there could make jaxcal run their code. Running without the on-disk "
+        "cache: make it yours alone (chmod 700, owned by you), or set "
+        "JAXCAL_CACHE_DIR to a private folder (JAXCAL_CACHE=0 turns the cache off)",
+        stacklevel=stacklevel + 1,
+    )
 
 
 def is_enabled() -> bool:

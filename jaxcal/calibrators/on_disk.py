@@ -16,11 +16,15 @@ and is traced again in each process); jaxcal's source (every file of the package
 hashed once per process), the JAX version, the problem's names and fixed values, the
 method's settings, the float type and the arguments' shapes.
 
-The directory is the cache's (``$JAXCAL_CACHE_DIR/../programs``, by default
-``~/.cache/jaxcal/programs``), on and off with it (``JAXCAL_CACHE=0``), and trusted
-as it is: a program there is code the process runs. A file that cannot be read is
-traced again and rewritten; at most :data:`MAX_KEPT` programs and :data:`MAX_BYTES`
-of them are kept, the least recently used removed first.
+The directory is the cache's (``jaxcal-programs`` inside the compilation cache
+directory, by default ``~/.cache/jaxcal/xla/jaxcal-programs``), on and off with it
+(``JAXCAL_CACHE=0``). A program there is code the process runs, so it is read only
+from a folder and a file private to this user (:func:`jaxcal.cache.private_problem`:
+owned by the user, writable by no one else): otherwise the program is run as traced,
+without the disk, with one warning naming the folder (a planted program could return
+wrong numbers without a word). A file that cannot be read is traced again and
+rewritten; at most :data:`MAX_KEPT` programs and :data:`MAX_BYTES` of them are kept,
+the least recently used removed first.
 """
 
 from __future__ import annotations
@@ -96,9 +100,7 @@ def kept(fn: Callable, key: tuple | None) -> Callable:
         if not cache.is_enabled():
             return fn(*args)
         leaves, tree = jax.tree.flatten(args)
-        signature = (str(tree),) + tuple(
-            (np.shape(a), np.result_type(a).name) for a in leaves
-        )
+        signature = (str(tree),) + tuple((np.shape(a), _dtype_name(a)) for a in leaves)
         call = calls.get(signature)
         if call is None:
             call = calls[signature] = _exported(fn, key, signature, args)
@@ -107,12 +109,42 @@ def kept(fn: Callable, key: tuple | None) -> Callable:
     return run
 
 
+def _dtype_name(leaf) -> str:
+    """A leaf's dtype name; read from ``.dtype`` when it has one (``np.result_type``
+    of a jax array is deprecated: a DeprecationWarning, an error under -W error)."""
+    dtype = getattr(leaf, "dtype", None)
+    return np.dtype(dtype).name if dtype is not None else np.result_type(leaf).name
+
+
+_BYPASSED: set[str] = set()  # program folders already warned about: one warning each
+
+
+def _not_private(path: Path) -> str | None:
+    """Why the program folder, or the program file ``path`` in it, is not this
+    user's alone (:func:`jaxcal.cache.private_problem`), or ``None``."""
+    try:
+        for where in (path.parent, path):
+            if where.exists():
+                problem = cache.private_problem(where)
+                if problem is not None:
+                    return problem if where == path.parent else f"{path}: {problem}"
+    except OSError as err:
+        return f"it cannot be read ({err})"
+    return None
+
+
 def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
     """The jitted call of ``fn``'s exported program, read from disk or exported and
-    written there."""
+    written there; ``fn`` itself when the program folder is not private."""
     text = repr((key, signature, source_digest(), jax.__version__))
     name = hashlib.sha256(text.encode()).hexdigest()[:32] + SUFFIX
     path = Path(cache.program_directory()) / name
+    problem = _not_private(path)
+    if problem is not None:
+        if str(path.parent) not in _BYPASSED:
+            _BYPASSED.add(str(path.parent))
+            cache.warn_bypassed(path.parent, problem, stacklevel=4)
+        return fn
     exp = None
     if path.is_file():
         try:
