@@ -1179,6 +1179,625 @@ def partial_cases() -> list[Case]:
     ]
 
 
+# ------------------------------------------------------------------ issue 42 cases
+# Issue 42 lists more hostile inputs, by class; they are probed by ``issue=42`` into
+# ``<label>_issue42.json`` and tabled beside issue 25's.
+
+CLASSES_42 = (
+    "user functions",
+    "options",
+    "files",
+    "warnings",
+    "globals",
+    "bounds",
+    "screening",
+    "security",
+)
+TESTS_42 = {
+    "user functions": ["tests/calibrators/test_hostile_functions.py",
+                       "tests/test_model_contract.py"],
+    "options": ["tests/calibrators/test_hostile_functions.py"],
+    "files": ["tests/data/test_hostile_files.py"],
+    "warnings": ["tests/test_trust.py"],
+    "globals": ["tests/calibrators/test_hostile_functions.py"],
+    "bounds": ["tests/calibrators/test_hostile_functions.py"],
+    "screening": ["tests/calibrators/test_hostile_screening.py"],
+    "security": ["tests/test_trust.py"],
+}  # fmt: skip
+USER = ("'user'",)  # a clear error about a user's function names its model
+
+
+def _user_fn_case(make_model):
+    """A user function jaxcal cannot trace, or not a function at all: only an error
+    naming the model (or the argument) is right."""
+
+    def run(ctx: Context) -> Seen:
+        model = make_model()
+        result, words = calibrate(model, ctx.frame, "ukf", GIVEN)
+        return Seen(correct=False, message=words)
+
+    return run
+
+
+def _numpy_on_tracer(w, theta):
+    return jnp.asarray(np.exp(np.asarray(theta))) * tank(w, theta)
+
+
+def _if_on_theta(w, theta):
+    if theta[0] > 1.0:
+        return tank(w, theta)
+    return 2.0 * tank(w, theta)
+
+
+def _float_theta(w, theta):
+    return float(theta[0]) * tank(w, theta) / float(theta[0])
+
+
+def _callback(w, theta):
+    out = jax.ShapeDtypeStruct((3,), w.dtype)
+    host = lambda a, b: np.asarray(tank(a, b), a.dtype)  # noqa: E731
+    return jax.pure_callback(host, out, w, theta)
+
+
+def _callback_case(ctx: Context) -> Seen:
+    """``pure_callback`` without ``vmap_method``: a correct result (the callback
+    run row by row) or an error naming the model and the fix."""
+    model = tank_model(_callback, name="user")
+    result, words = calibrate(model, ctx.frame, "ukf", GIVEN)
+    change = _close(result, ctx.reference)
+    return Seen(correct=bool(change < 0.1), needs_flag=False, message=words,
+                detail={"largest theta change (ref stds)": change})  # fmt: skip
+
+
+def user_function_cases() -> list[Case]:
+    k = "user functions"
+    return [
+        Case(k, "numpy called on a traced theta", USER,
+             _user_fn_case(lambda: tank_model(_numpy_on_tracer, name="user"))),
+        Case(k, "a Python if on theta", USER,
+             _user_fn_case(lambda: tank_model(_if_on_theta, name="user"))),
+        Case(k, "float(theta)", USER,
+             _user_fn_case(lambda: tank_model(_float_theta, name="user"))),
+        Case(k, "jax.pure_callback without vmap_method", USER, _callback_case),
+        Case(k, "fn(w) of one argument", USER + ("fn(w, theta)",),
+             _user_fn_case(lambda: tank_model(lambda w: tank(w, w), name="user"))),
+        Case(k, "a string instead of a function", ("callable", "'tank'"),
+             _user_fn_case(lambda: tank_model("tank", name="user"))),
+    ]  # fmt: skip
+
+
+def _option_case(method: str, names=None, **options):
+    """An option of the wrong type or value: only an error naming it is right (a
+    result computed with it, or with a guess of what was meant, is not)."""
+
+    def run(ctx: Context) -> Seen:
+        if names is not None:
+            result, words = calibrate(ctx.model, ctx.frame, method, GIVEN,
+                                      theta=names, **options)  # fmt: skip
+            detail = {"parameters calibrated": list(result.theta_names)}
+        else:
+            result, words = calibrate(ctx.model, ctx.frame, method, GIVEN, **options)
+            detail = {"finite theta": bool(np.isfinite(result.theta).all())}
+        return Seen(correct=False, message=words, detail=detail)
+
+    return run
+
+
+def option_cases() -> list[Case]:
+    k = "options"
+    q = ("q=", "'q'", "option q", "q must")
+    return [
+        Case(k, "q=inf (UKF)", q, _option_case("ukf", q=float("inf"))),
+        Case(k, "q='0.01', a string (UKF)", q, _option_case("ukf", q="0.01")),
+        Case(k, "window=8.5, a float (LS)", ("window",),
+             _option_case("ls", window=8.5)),
+        Case(k, "theta=[] (UKF)", ("theta",), _option_case("ukf", names=[])),
+    ]  # fmt: skip
+
+
+def _european_csv(ctx: Context) -> Seen:
+    """A CSV saved in a European locale: ';' between fields, ',' as the decimal
+    mark. Read as the same numbers (same result) or an error saying so."""
+    path = ctx.root / "european.csv"
+    ctx.frame.to_csv(path, index=False, sep=";", decimal=",")
+    result, words = calibrate(ctx.model, path, "ukf", GIVEN)
+    change = _close(result, ctx.reference)
+    return Seen(correct=bool(change < 1e-3), needs_flag=False, message=words,
+                detail={"largest theta change (ref stds)": change})  # fmt: skip
+
+
+def _huge_units(ctx: Context) -> Seen:
+    """Three units whose ids are beyond int64 (2**63 + k): kept apart, or an error
+    naming the column and rows."""
+    frame = ctx.frame.copy()
+    path = ctx.root / "huge_units.csv"
+    text = frame.assign(unit=[str(2**63 + int(u)) for u in frame.unit]).to_csv(
+        index=False
+    )
+    path.write_text(text)
+    result, words = calibrate(ctx.model, path, "ukf", GIVEN)
+    read = sorted({str(u) for u in np.asarray(result.unit).tolist()})
+    written = sorted({str(2**63 + int(u)) for u in frame.unit})
+    return Seen(correct=read == written, needs_flag=False, message=words,
+                detail={"unit ids read": read})  # fmt: skip
+
+
+def _tampered_result(ctx: Context) -> Seen:
+    """A saved result whose stored dtype of theta was edited to int8: read back
+    as the floats saved, or refused naming the field."""
+    import pyarrow.parquet as pq
+
+    from jaxcal.calibrators.result import META_KEY, CalibrationResult
+
+    path = ctx.reference.save(ctx.root / "tampered.parquet")
+    table = pq.read_table(path)
+    meta = json.loads(table.schema.metadata[META_KEY])
+    meta["dtypes"]["theta"] = "int8"
+    table = table.replace_schema_metadata({META_KEY: json.dumps(meta).encode()})
+    pq.write_table(table, path)
+    loaded = CalibrationResult.load(path)
+    same = np.array_equal(loaded.theta, ctx.reference.theta)
+    return Seen(correct=bool(same), needs_flag=False,
+                detail={"theta dtype read": str(loaded.theta.dtype)})  # fmt: skip
+
+
+def _truncated_checkpoint(ctx: Context) -> Seen:
+    """A copied run whose policy checkpoints were cut short (the largest file of
+    every saved step, ``policy/`` and ``policy_best/``, cut in half): a result
+    from them, or an error not naming the damage, is not right."""
+    copy = ctx.root / "truncated_run"
+    shutil.copytree(ctx.toy["run"], copy)
+    cut = []
+    for step in [*copy.glob("policy/*"), *copy.glob("policy_best/*")]:
+        files = [p for p in step.rglob("*") if p.is_file()]
+        if step.is_dir() and files:
+            biggest = max(files, key=lambda p: p.stat().st_size)
+            data = biggest.read_bytes()
+            biggest.write_bytes(data[: len(data) // 2])
+            cut.append(str(biggest.relative_to(copy)))
+    result, words = _policy(ctx, _toy_model(ctx), run=copy)
+    return Seen(correct=False, message=words, detail={"files cut": cut})
+
+
+def _out_path(kind: str):
+    """``jaxcal.fleet out=`` that cannot be written: a path under a file, or a
+    folder. A clear error before the work (exit 2, naming out=), not a traceback
+    after it."""
+
+    def run(ctx: Context) -> Seen:
+        toy = ctx.toy
+        a_file = ctx.root / "a_file"
+        a_file.write_text("not a folder")
+        out = a_file / "out.h5" if kind == "under a file" else ctx.root
+        proc = ctx.cli(
+            "jaxcal.fleet", f"model={toy['file']}:MODEL", f"data={toy['csv']}",
+            "method=ukf", "noise=0.01", f"out={out}",
+        )  # fmt: skip
+        outcome = classify_cli(proc, ("out=",)) or "silent wrong"
+        return Seen(correct=False, outcome=outcome, message=_stderr_excerpt(
+            proc.stderr), detail={"exit code": proc.returncode})  # fmt: skip
+
+    return run
+
+
+def _save_path(kind: str):
+    """``result.save(path)`` where ``path`` is a folder, or under a file."""
+
+    def run(ctx: Context) -> Seen:
+        a_file = ctx.root / "b_file"
+        a_file.write_text("not a folder")
+        path = ctx.root if kind == "a folder" else a_file / "r.parquet"
+        ctx.reference.save(path)
+        return Seen(correct=False)
+
+    return run
+
+
+def _read_only(ctx: Context) -> Seen:
+    """``result.save`` into a read-only folder: refused naming it, or (as root,
+    who may write anywhere) written."""
+    folder = ctx.root / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        path = ctx.reference.save(folder / "r.parquet")
+        written = Path(path).is_file()
+    finally:
+        folder.chmod(0o755)
+    return Seen(correct=written, needs_flag=False,
+                detail={"written (root may)": written,
+                        "uid": os.getuid()})  # fmt: skip
+
+
+def file_cases_42() -> list[Case]:
+    k = "files"
+    return [
+        Case(k, "a ';' CSV with decimal commas", ("european.csv",), _european_csv),
+        Case(k, "unit ids beyond int64", ("'unit'",), _huge_units),
+        Case(k, "a result file whose theta dtype was edited", ("'theta'",),
+             _tampered_result),
+        Case(k, "a truncated policy checkpoint", ("truncated", "corrupt"),
+             _truncated_checkpoint),
+        Case(k, "jaxcal.fleet out= under a file", (), _out_path("under a file")),
+        Case(k, "jaxcal.fleet out= naming a folder", (), _out_path("a folder")),
+        Case(k, "result.save(path) naming a folder", ("folder",),
+             _save_path("a folder")),
+        Case(k, "result.save(path) under a file", ("b_file",),
+             _save_path("under a file")),
+        Case(k, "result.save(path) in a read-only folder", ("read_only",),
+             _read_only),
+    ]  # fmt: skip
+
+
+CHILD_CALIBRATE = """
+import json, sys, warnings
+sys.path.insert(0, {here!r})
+import numpy as np
+import hostile_probe as hp
+import jaxcal
+{setup}
+frame = hp.tank_frame()
+result = jaxcal.calibrate(hp.tank_model(), frame, "ukf", noise=hp.GIVEN,
+                          progress=False)
+print(json.dumps({{"theta": result.theta[-1].tolist()}}))
+"""
+
+
+def _child(ctx: Context, code: str, env: dict | None = None, flags=(), cwd=None):
+    return subprocess.run(
+        [sys.executable, *flags, "-c", code], capture_output=True, text=True,
+        env={**ctx.env(), **(env or {})}, cwd=cwd or ctx.root, timeout=900,
+        check=False,
+    )  # fmt: skip
+
+
+def _deprecation(ctx: Context) -> Seen:
+    """A clean call under ``-W error::DeprecationWarning`` (with the on-disk cache
+    on, a fresh one): it must run."""
+    code = CHILD_CALIBRATE.format(here=os.path.dirname(__file__), setup="")
+    env = {"JAXCAL_CACHE_DIR": str(ctx.root / "dep_cache" / "xla"),
+           "JAXCAL_CACHE": "1"}  # fmt: skip
+    proc = _child(ctx, code, env, flags=("-W", "error::DeprecationWarning"))
+    ok = proc.returncode == 0
+    return Seen(correct=ok, needs_flag=False, outcome=None if ok else "raw crash",
+                message="" if ok else _stderr_excerpt(proc.stderr),
+                detail={"exit code": proc.returncode})  # fmt: skip
+
+
+GAIN = {"value": 1.0}
+
+
+def _gained(w, theta):
+    """The tank with every output times a gain read from a global."""
+    return GAIN["value"] * tank(w, theta)
+
+
+def _changing_global(ctx: Context) -> Seen:
+    """A function reading a global that changes between two calls: the second call
+    must use the new value (as a fresh function with it does), or refuse."""
+    model = tank_model(_gained, name="user")
+    GAIN["value"] = 1.0
+    calibrate(model, ctx.frame, "ukf", GIVEN)
+    frame = ctx.frame.copy()
+    for name in OUTPUTS:
+        frame[name] = 1.5 * frame[name]
+    GAIN["value"] = 1.5
+    try:
+        result, words = calibrate(model, frame, "ukf", GIVEN)
+        fresh = tank_model(lambda w, t: 1.5 * tank(w, t), name="fresh")
+        reference, _ = calibrate(fresh, frame, "ukf", GIVEN)
+    finally:
+        GAIN["value"] = 1.0
+    change = _close(result, reference)
+    return Seen(correct=bool(change < 0.1), needs_flag=False, message=words,
+                detail={"largest theta change against a fresh function (its "
+                        "stds)": change})  # fmt: skip
+
+
+def _infinite_at_bound(w, theta):
+    """The tank whose level is infinite at the leak's lower bound (0.5)."""
+    heat, inflow = w[0], w[1]
+    leak, loss = theta[0], theta[1]
+    level = inflow / (leak - 0.5)
+    temp = 20.0 + heat / (inflow * (1.0 + loss))
+    return jnp.stack([level, temp, leak * inflow * (1.0 - 0.1 * loss)])
+
+
+def _bound_case(method: str, **options):
+    """Data whose true leak (0.55) is near the bound where an output is infinite:
+    theta must stay inside the box (a row at the bound flagged)."""
+
+    def run(ctx: Context) -> Seen:
+        model = tank_model(_infinite_at_bound, name="user")
+        rng = np.random.default_rng(3)
+        frame = ctx.frame.copy()
+        theta = np.tile([0.55, 0.2], (len(frame), 1))
+        x = np.asarray(jax.vmap(_infinite_at_bound)(
+            frame[["heat", "inflow"]].to_numpy(), theta))  # fmt: skip
+        x = x + NOISE * rng.standard_normal(x.shape)
+        for j, name in enumerate(OUTPUTS):
+            frame[name] = x[:, j]
+        result, words = calibrate(model, frame, method, GIVEN, **options)
+        low = np.array([p.low for p in model.parameters])
+        high = np.array([p.high for p in model.parameters])
+        inside = bool(
+            np.all(np.isfinite(result.theta))
+            and np.all((result.theta >= low) & (result.theta <= high))
+        )
+        return Seen(
+            correct=inside,
+            flagged="bound" in words.lower() or not result.valid.all(),
+            message=words,
+            detail={
+                "theta range": [
+                    np.nanmin(result.theta, 0).tolist(),
+                    np.nanmax(result.theta, 0).tolist(),
+                ]
+            },
+        )
+
+    return run  # fmt: skip
+
+
+def _stuck_sensor(ctx: Context) -> Seen:
+    """Unit 1's outflow stuck at one value from time 10 on: the other outputs'
+    rows must not be dropped as outliers, and the stuck output must be said."""
+    model = ctx.cached("open", lambda: tank_model(name="open", box=False))
+    frame = ctx.cached("frame4", lambda: tank_frame(num_units=4)).copy()
+    rows = frame.index[(frame.unit == 1) & (frame.time >= 10)].to_numpy()
+    frame.loc[rows, "outflow"] = frame.loc[rows[0], "outflow"]
+    result, words = calibrate(model, frame, "ukf")
+    dropped = int((result.reason[rows] == "outlier").sum())
+    flagged = "outflow" in words and ("stuck" in words or "constant" in words)
+    return Seen(
+        correct=dropped == 0,
+        flagged=flagged,
+        message=words,
+        detail={"rows of the good outputs dropped as outliers": dropped},
+    )
+
+
+def _three_rows(ctx: Context) -> Seen:
+    """The noise estimated from three rows: refused (naming noise=) or flagged in
+    the result's notes; a result without a word is silent."""
+    frame = tank_frame(num_units=1, length=3)
+    result, words = calibrate(ctx.model, frame, "ukf")
+    ratio = np.asarray(result.problem.noise_std) / NOISE
+    flagged = "noise=" in words and "rows" in words
+    return Seen(
+        correct=flagged,
+        flagged=flagged,
+        message=words,
+        detail={"noise estimate / true": ratio.round(2).tolist()},
+    )
+
+
+def screening_cases() -> list[Case]:
+    k = "screening"
+    return [
+        Case(k, "a stuck sensor (unit 1's outflow constant from time 10)", (),
+             _stuck_sensor),
+        Case(k, "the noise estimated from three rows", ("noise=",), _three_rows),
+    ]  # fmt: skip
+
+
+PLANT = """
+import sys, pathlib
+import jax, jax.numpy as jnp
+from jax import export
+import jaxcal.calibrators.on_disk  # registers the programs' named tuples
+folder = pathlib.Path(sys.argv[1])
+for path in folder.rglob("*.jaxexport"):
+    exp = export.deserialize(bytearray(path.read_bytes()))
+    args, kwargs = jax.tree.unflatten(exp.in_tree, exp.in_avals)
+    def planted(*a, **k):
+        out = exp.call(*a, **k)
+        return jax.tree.map(lambda o: o + 0.25 if jnp.issubdtype(o.dtype,
+                            jnp.floating) else o, out)
+    new = export.export(jax.jit(planted))(*args, **kwargs)
+    path.write_bytes(bytes(new.serialize()))
+    print("planted", path.name)
+"""
+
+
+def _planted_cache(ctx: Context) -> Seen:
+    """A world-writable ``JAXCAL_CACHE_DIR`` whose stored programs another user
+    rewrote to add 0.25 to every output: the next call must not use them (the
+    same theta as before the planting; a warning naming the folder)."""
+    cache = ctx.root / "shared_cache"
+    (cache / "xla").mkdir(parents=True)
+    for folder in (cache, cache / "xla"):
+        folder.chmod(0o777)
+    env = {"JAXCAL_CACHE_DIR": str(cache / "xla"), "JAXCAL_CACHE": "1"}
+    code = CHILD_CALIBRATE.format(here=os.path.dirname(__file__), setup="")
+    first = _child(ctx, code, env)
+    if first.returncode != 0:
+        return Seen(correct=False, outcome="raw crash",
+                    message=_stderr_excerpt(first.stderr))  # fmt: skip
+    plant = subprocess.run(
+        [sys.executable, "-c", PLANT, str(cache)], capture_output=True, text=True,
+        env={**ctx.env(), **env}, timeout=900, check=False,
+    )  # fmt: skip
+    planted = plant.stdout.count("planted")
+    second = _child(ctx, code, env)
+    if second.returncode != 0:
+        outcome = "clear error" if "shared_cache" in second.stderr else "raw crash"
+        return Seen(correct=False, outcome=outcome,
+                    message=_stderr_excerpt(second.stderr))  # fmt: skip
+    before = json.loads(first.stdout.strip().splitlines()[-1])["theta"]
+    after = json.loads(second.stdout.strip().splitlines()[-1])["theta"]
+    change = float(np.max(np.abs(np.subtract(after, before))))
+    warned = "shared_cache" in second.stderr or "writable" in second.stderr
+    return Seen(correct=change < 1e-6, flagged=warned,
+                message=_stderr_excerpt(second.stderr) if warned else "",
+                detail={"programs planted": planted,
+                        "largest theta change": change})  # fmt: skip
+
+
+def _edit_source(copy: Path, record: dict) -> None:
+    data = json.loads((copy / "data.json").read_text())
+    data["model_source"] = record
+    (copy / "data.json").write_text(json.dumps(data))
+
+
+def _load_run_child(ctx: Context, run: Path, cwd: Path, marker: Path):
+    """``StreamingCalibrator(run)`` in a fresh process started in ``cwd`` (as a
+    user would, ``python`` there): the outcome by the marker and the exit."""
+    code = (
+        "from jaxcal.deploy.streaming import StreamingCalibrator\n"
+        f"StreamingCalibrator({str(run)!r})\n"
+    )
+    proc = _child(ctx, code, cwd=cwd)
+    ran = marker.exists()
+    if ran:
+        return Seen(correct=False, outcome="silent wrong",
+                    detail={"outside code ran": True})  # fmt: skip
+    if proc.returncode == 0:
+        return Seen(correct=True, needs_flag=False, detail={"outside code ran": False})
+    last = [line for line in proc.stderr.splitlines() if line.strip()][-1:]
+    frames = [line for line in proc.stderr.splitlines() if 'File "' in line]
+    ours = bool(frames) and LIBRARY in frames[-1]
+    named = any(w in proc.stderr for w in ("trust_code", "module", "outside"))
+    kind = bool(last) and (last[0].startswith("ValueError") or "jaxcal" in last[0])
+    outcome = "clear error" if (ours and named and kind) else "raw crash"
+    return Seen(correct=False, outcome=outcome, message=_stderr_excerpt(proc.stderr),
+                detail={"outside code ran": False})  # fmt: skip
+
+
+def _module_from_cwd(ctx: Context) -> Seen:
+    """A run whose data.json names a model module ``evil_mod`` that sits in the
+    working directory, not in the run: loading it must not import it."""
+    copy = ctx.root / "module_run"
+    shutil.copytree(ctx.toy["run"], copy)
+    cwd = ctx.root / "work_dir"
+    cwd.mkdir()
+    marker = ctx.root / "evil_mod_ran"
+    (cwd / "evil_mod.py").write_text(
+        f"import pathlib\npathlib.Path({str(marker)!r}).write_text('ran')\n"
+        + TOY_SOURCE.split('"""', 2)[2]
+    )
+    _edit_source(copy, {"kind": "module", "module": "evil_mod", "attr": "MODEL",
+                        "sha256": None})  # fmt: skip
+    return _load_run_child(ctx, copy, cwd, marker)
+
+
+def _os_getpid(ctx: Context) -> Seen:
+    """A run whose data.json names ``os:getpid`` as its model: the callable must not
+    be called."""
+    copy = ctx.root / "getpid_run"
+    shutil.copytree(ctx.toy["run"], copy)
+    _edit_source(copy, {"kind": "module", "module": "os", "attr": "getpid",
+                        "sha256": None})  # fmt: skip
+    calls = []
+    real = os.getpid
+
+    def counted():
+        calls.append(1)
+        return real()
+
+    from jaxcal.deploy.streaming import StreamingCalibrator
+
+    os.getpid = counted
+    try:
+        StreamingCalibrator(str(copy))
+    except Exception as err:
+        if calls:
+            return Seen(correct=False, outcome="silent wrong",
+                        message=_excerpt(f"{type(err).__name__}: {err}"),
+                        detail={"os.getpid called": len(calls)})  # fmt: skip
+        raise
+    finally:
+        os.getpid = real
+    return Seen(correct=not calls, needs_flag=False,
+                detail={"os.getpid called": len(calls)})  # fmt: skip
+
+
+def _received_run(ctx: Context) -> Seen:
+    """A run received from someone else whose model/ copy (and its digest in
+    data.json) was rewritten: loading it must not run the copy without consent."""
+    import hashlib
+
+    copy = ctx.root / "received_run"
+    shutil.copytree(ctx.toy["run"], copy)
+    data = json.loads((copy / "data.json").read_text())
+    record = data.get("model_source") or {}
+    marker = ctx.root / "received_copy_ran"
+    if record.get("kind") != "file":
+        return Seen(correct=False, outcome="raw crash",
+                    message=f"no model copy in the run: {record}")  # fmt: skip
+    path = copy / record["file"]
+    text = (f"import pathlib\npathlib.Path({str(marker)!r}).write_text('ran')\n"
+            + TOY_SOURCE.split('"""', 2)[2])  # fmt: skip
+    path.write_text(text)
+    record["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
+    _edit_source(copy, record)
+    return _load_run_child(ctx, copy, ctx.root, marker)
+
+
+def _json_base(ctx: Context) -> Seen:
+    """An extended-model JSON whose base is a .py file elsewhere: loading the JSON
+    must not run that file without consent."""
+    from jaxcal.models.extended import FORMAT
+
+    elsewhere = ctx.root / "elsewhere"
+    elsewhere.mkdir()
+    marker = ctx.root / "json_base_ran"
+    (elsewhere / "base.py").write_text(
+        f"import pathlib\npathlib.Path({str(marker)!r}).write_text('ran')\n"
+        + TOY_SOURCE.split('"""', 2)[2]
+    )
+    specs = ctx.root / "specs"
+    specs.mkdir()
+    spec = {"format": FORMAT, "base": "../elsewhere/base.py:MODEL",
+            "declared": ["p", "q"], "added": []}  # fmt: skip
+    (specs / "ext.json").write_text(json.dumps(spec))
+    try:
+        jaxcal.models.load(str(specs / "ext.json"))
+    except Exception as err:
+        if marker.exists():
+            return Seen(correct=False, outcome="silent wrong",
+                        message=_excerpt(f"{type(err).__name__}: {err}"),
+                        detail={"base file ran": True})  # fmt: skip
+        raise
+    ran = marker.exists()
+    return Seen(correct=not ran, needs_flag=False, detail={"base file ran": ran})
+
+
+def security_cases() -> list[Case]:
+    k = "security"
+    consent = ("trust_code",)
+    return [
+        Case(k, "a world-writable JAXCAL_CACHE_DIR with planted programs", (),
+             _planted_cache),
+        Case(k, "data.json model source 'module' naming a module in the cwd", (),
+             _module_from_cwd),
+        Case(k, "data.json model source 'os:getpid'", ("os", "getpid", "module"),
+             _os_getpid),
+        Case(k, "a received run's model/ copy (digest rewritten too)", (),
+             _received_run),
+        Case(k, "a JSON spec whose base is a .py elsewhere", consent + ("base.py",),
+             _json_base),
+    ]  # fmt: skip
+
+
+def issue42_cases() -> list[Case]:
+    return [
+        *user_function_cases(),
+        *option_cases(),
+        *file_cases_42(),
+        Case("warnings", "a clean call under -W error::DeprecationWarning", (),
+             _deprecation),
+        Case("globals", "fn reads a global that changes between calls", USER,
+             _changing_global),
+        Case("bounds", "an output infinite at a bound (UKF)", (),
+             _bound_case("ukf")),
+        Case("bounds", "an output infinite at a bound (LS)", (),
+             _bound_case("ls", window=8)),
+        *screening_cases(),
+        *security_cases(),
+    ]  # fmt: skip
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -1239,13 +1858,18 @@ def _commit() -> str:
     return (head or "unknown") + ("+changes" if dirty else "")
 
 
-def probe(out: Path, label: str, only: str | None) -> None:
+def probe(out: Path, label: str, only: str | None, issue: str = "25") -> None:
+    """Run the cases of ``issue`` (25: :func:`all_cases`, 42:
+    :func:`issue42_cases`) and write ``<out>/<label>[_issue42].json``."""
     out.mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix=f"hostile_{label}_"))
     ctx = Context(root)
     records = []
+    cases, classes = (
+        (issue42_cases(), CLASSES_42) if issue == "42" else (all_cases(), CLASSES)
+    )
     try:
-        for case in all_cases():
+        for case in cases:
             if only and only not in case.name and only != case.klass:
                 continue
             record = run_one(case, ctx)
@@ -1258,7 +1882,7 @@ def probe(out: Path, label: str, only: str | None) -> None:
     counts = {
         k: {o: sum(r["outcome"] == o for r in records if r["class"] == k)
             for o in OUTCOMES}
-        for k in CLASSES
+        for k in classes
     }  # fmt: skip
     report = {
         "label": label,
@@ -1268,8 +1892,21 @@ def probe(out: Path, label: str, only: str | None) -> None:
         "counts": counts,
         "cases": records,
     }
-    (out / f"{label}.json").write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {out / f'{label}.json'}")
+    name = f"{label}_issue42.json" if issue == "42" else f"{label}.json"
+    if only and (out / name).exists():  # a re-run of some cases: merged in
+        kept = json.loads((out / name).read_text())
+        new = {(r["class"], r["case"]): r for r in records}
+        records = [new.pop((r["class"], r["case"]), r) for r in kept["cases"]]
+        records += list(new.values())
+        report["cases"] = records
+        report["counts"] = {
+            k: {o: sum(r["outcome"] == o for r in records if r["class"] == k)
+                for o in OUTCOMES}
+            for k in classes
+        }  # fmt: skip
+        report["command"] = kept["command"] + " ; " + report["command"]
+    (out / name).write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {out / name}")
 
 
 # -------------------------------------------------------------------------- report
@@ -1362,36 +1999,28 @@ def _counts_cell(counts: dict) -> str:
     return ", ".join(f"{SHORT_NAMES[o]} {n}" for o, n in counts.items() if n) or "-"
 
 
-def write_report(folder: Path) -> None:
-    """``folder/README.md`` from ``before.json`` and ``after.json``."""
-    runs = {k: json.loads((folder / f"{k}.json").read_text())
-            for k in ("before", "after")}  # fmt: skip
-    before, after = runs["before"], runs["after"]
+def _tables(before: dict, after: dict, classes, tests: dict) -> list[str]:
+    """The class table (counts before and after, the tests) and every case."""
     lines = [
-        README_HEAD.format(
-            before=before["commit"],
-            before_lib=before["library"],
-            after=after["commit"],
-        ).rstrip("\n")
+        "| class | cases | before | after | test (file::test) |",
+        "|---|---|---|---|---|",
     ]
-    for klass in CLASSES:
+    for klass in classes:
         n = sum(r["class"] == klass for r in after["cases"])
-        tests = "<br>".join(f"`{t}`" for t in TESTS[klass])
+        held = "<br>".join(f"`{t}`" for t in tests[klass])
         lines.append(
             f"| {klass} | {n} | {_counts_cell(before['counts'][klass])} | "
-            f"{_counts_cell(after['counts'][klass])} | {tests} |"
+            f"{_counts_cell(after['counts'][klass])} | {held} |"
         )
     total = {
         label: {o: sum(r["outcome"] == o for r in run["cases"]) for o in OUTCOMES}
-        for label, run in runs.items()
+        for label, run in (("before", before), ("after", after))
     }
     lines.append(
         f"| **all** | {len(after['cases'])} | {_counts_cell(total['before'])} | "
         f"{_counts_cell(total['after'])} | |"
     )
     lines += [
-        "",
-        "## Every case",
         "",
         "| class | case | before | what it gave | after | what it gives |",
         "|---|---|---|---|---|---|",
@@ -1403,14 +2032,78 @@ def write_report(folder: Path) -> None:
             f"| {r['class']} | {r['case']} | {b['outcome']} | {_cell(b)} "
             f"| {r['outcome']} | {_cell(r)} |"
         )
+    return lines
+
+
+def write_report(folder: Path) -> None:
+    """``folder/README.md`` from ``before.json`` and ``after.json`` (issue 25) and,
+    where they exist, ``before_issue42.json`` and ``after_issue42.json``."""
+    runs = {k: json.loads((folder / f"{k}.json").read_text())
+            for k in ("before", "after")}  # fmt: skip
+    before, after = runs["before"], runs["after"]
+    lines = [
+        README_HEAD.format(
+            before=before["commit"],
+            before_lib=before["library"],
+            after=after["commit"],
+        ).rstrip("\n")
+    ]
+    table = _tables(before, after, CLASSES, TESTS)
+    cut = table.index("")  # the class table, then every case under its heading
+    lines += table[2:cut] + ["", "## Every case", ""] + table[cut + 1 :]
     lines.append(README_NOTES.format(budget=MEMORY_BUDGET / 1e9))
+    if (folder / "after_issue42.json").exists():
+        new = {k: json.loads((folder / f"{k}_issue42.json").read_text())
+               for k in ("before", "after")}  # fmt: skip
+        lines.append(README_42.format(before=new["before"]["commit"],
+                                      after=new["after"]["commit"]))  # fmt: skip
+        table = _tables(new["before"], new["after"], CLASSES_42, TESTS_42)
+        cut = table.index("")
+        lines += table[:cut] + ["", "### Every case of issue 42", ""]
+        lines += table[cut + 1 :] + [README_42_NOTES]
     (folder / "README.md").write_text("\n".join(lines))
     print(f"wrote {folder / 'README.md'}")
 
 
+README_42 = """
+## Issue 42: functions, options, files, warnings, globals, bounds, screening, security
+
+The same script with `issue=42` (`before_issue42.json`, `after_issue42.json`):
+
+```bash
+git worktree add /tmp/before 8980d6e
+(cd /tmp/before && JAX_PLATFORMS=cpu PYTHONPATH=/tmp/before \\
+  /work/main/.venv/bin/python /work/main/experiments/hostile_probe.py \\
+  out=/work/main/results/hostile label=before issue=42)
+JAX_PLATFORMS=cpu .venv/bin/python experiments/hostile_probe.py \\
+  out=results/hostile label=after issue=42
+.venv/bin/python experiments/hostile_probe.py report=results/hostile
+```
+
+Before: {before}; after: {after}. The outcomes follow the rules above; a case that
+loads a run or runs a command does so in a child process where the harm (a marker
+file written by code that should not have run, a planted program used) is read
+from the disk, so code that ran and then failed is counted as silent wrong.
+"""
+
+README_42_NOTES = """
+Reading the numbers:
+
+- Security: a clear error must come from jaxcal (its own frame), be a
+  `ValueError` or jaxcal's own class and name the consent (`trust_code`), the
+  module or the folder; "correct" means nothing outside the installed package ran
+  and the right model or program was used.
+- Files, read-only folder: the probe runs as root here, who may write into a
+  folder of mode 0555, so the write succeeding is the correct result.
+- Screening: the stuck sensor is correct when no row of the unit's good outputs is
+  skipped as an outlier, flagged when the stuck output is named; the three-row
+  noise is right only with a word asking for `noise=`.
+"""
+
+
 def main(argv: list[str]) -> int:
     args = dict(a.split("=", 1) for a in argv)
-    unknown = set(args) - {"out", "label", "only", "report", "child"}
+    unknown = set(args) - {"out", "label", "only", "report", "child", "issue"}
     if unknown:
         print(f"unknown arguments {sorted(unknown)}; use out=DIR label=before|after "
               "[only=CASE] or report=DIR", file=sys.stderr)  # fmt: skip
@@ -1424,7 +2117,12 @@ def main(argv: list[str]) -> int:
         if label not in ("before", "after"):
             print(f"label must be before or after, got {label!r}", file=sys.stderr)
             return 2
-        probe(Path(args.get("out", "results/hostile")), label, args.get("only"))
+        issue = args.get("issue", "25")
+        if issue not in ("25", "42"):
+            print(f"issue must be 25 or 42, got {issue!r}", file=sys.stderr)
+            return 2
+        probe(Path(args.get("out", "results/hostile")), label, args.get("only"),
+              issue)  # fmt: skip
     return 0
 
 
