@@ -23,7 +23,8 @@ SHIMS = {
 # a package above it; it may import its own layer and the layers below, never above
 # (function-level imports count). Every module must have a layer.
 LAYERS = (
-    # host-only leaves: types, precision, settings, caches, run-folder files, figures
+    # host-only leaves: types, precision, settings, caches, run-folder files, figures,
+    # progress lines
     (
         "jaxcal.typedefs",
         "jaxcal.version",
@@ -33,6 +34,7 @@ LAYERS = (
         "jaxcal.numerics",
         "jaxcal.runs",
         "jaxcal.plotting",
+        "jaxcal.progress",
     ),
     ("jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.model"),
     ("jaxcal.physics",),

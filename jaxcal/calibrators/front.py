@@ -280,10 +280,11 @@ def _run_groups(built, buckets, skip: np.ndarray, method: str, bar) -> list:
 def _progress(total: int, enabled: bool):
     """A progress line on stderr, shown only once a call has taken
     :data:`PROGRESS_AFTER` seconds (a first call compiles; E2E trains; the
-    turbofan's filter passes take seconds each)."""
-    from tqdm.auto import tqdm
+    turbofan's filter passes take seconds each); in a log file, a line per stage
+    (:mod:`jaxcal.progress`)."""
+    from jaxcal.progress import progress_bar
 
-    return tqdm(
+    return progress_bar(
         total=total, desc="jaxcal.calibrate", delay=PROGRESS_AFTER, leave=False,
         disable=not enabled, file=sys.stderr,
         bar_format="{desc} ({n}/{total} steps, {elapsed})",

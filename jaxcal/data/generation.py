@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import jax
 
 from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
+from jaxcal.progress import progress_bar
 
 if TYPE_CHECKING:  # the builders (the engine's solve) load on the first generation
     from jaxcal.data.builders import BuildSummary
@@ -57,12 +58,10 @@ def generate_dataset(
         ValueError: engine samples that do not converge
             (:func:`~jaxcal.data.builders.build_dataset`).
     """
-    from tqdm import tqdm
-
     from jaxcal.data.builders import build_dataset
 
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    bar = tqdm(
+    bar = progress_bar(
         unit="block", desc="solving reference", dynamic_ncols=True,
         disable=not progress,
     )  # fmt: skip

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from tqdm.auto import tqdm
 
+from jaxcal.progress import progress_bar
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
 EVAL_CHUNK = 8192  # rows per chunk when scoring large sets, to bound activation memory
@@ -111,7 +111,7 @@ def run_epochs(
     """
     train_hist, val_hist = [], []
     best_net, best_val, best_epoch, since_best = state.net, math.inf, 0, 0
-    bar = tqdm(range(num_epochs), disable=not progress, desc="fit", leave=False)
+    bar = progress_bar(range(num_epochs), disable=not progress, desc="fit", leave=False)
     for epoch in bar:
         state, train_loss = train_epoch(state, epoch, *train)
         record = {"train_loss": float(train_loss)}

@@ -22,6 +22,7 @@ from pathlib import Path
 import jax
 from flax import serialization
 
+from jaxcal.progress import progress_bar
 from jaxcal.runs.folder import read_json, write_atomic, write_json
 from jaxcal.settings import config_to_dict
 
@@ -130,12 +131,12 @@ def ensure_dataset(cfg, path: str | os.PathLike, *, progress: bool = True) -> di
             "rows": {s: v["rows"] for s, v in info["splits"].items()},
             "units": {s: v["units"] for s, v in info["splits"].items()},
         }
-    from tqdm import tqdm
-
     path.parent.mkdir(parents=True, exist_ok=True)
     with (
         jax.enable_x64(True),
-        tqdm(desc=f"generate {cfg.name}", unit="block", disable=not progress) as bar,
+        progress_bar(
+            desc=f"generate {cfg.name}", unit="block", disable=not progress
+        ) as bar,
     ):
 
         def on_block(done: int, total: int, rows: int) -> None:

@@ -26,11 +26,11 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
-from tqdm.auto import tqdm
 
 from jaxcal.agents.buffer import init_buffer
 from jaxcal.agents.common import Agent
 from jaxcal.envs.tracking import Env, EnvParams
+from jaxcal.progress import progress_bar
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import CHECKPOINT_DIR, METRICS_FILE, truncate_metrics
 from jaxcal.runs.metrics_log import MetricsWriter
@@ -284,7 +284,7 @@ def _earlier_marks(records: list[dict], scoring: ChunkScoring):
 
 def _progress_bar(num_chunks: int, start: int, progress: bool):
     """The chunks' tqdm bar (off with ``progress=False``)."""
-    return tqdm(
+    return progress_bar(
         total=num_chunks,
         initial=start,
         desc="policy",
