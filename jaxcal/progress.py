@@ -49,7 +49,7 @@ class LogLines(std_tqdm):
     def set_description_str(self, desc: str | None = None, refresh: bool = True):
         """A new description is a new stage: its line is written now (once the bar's
         ``delay`` has passed), whatever ``refresh`` asks."""
-        started = (desc or "") != self.desc
+        started = (desc or "") != getattr(self, "desc", "")  # a disabled bar has none
         super().set_description_str(desc, refresh=False)
         if (started or refresh) and self._shown():
             self.refresh()

@@ -65,6 +65,10 @@ def test_a_disabled_bar_is_silent():
     log = io.StringIO()
     for _ in progress_bar(range(3), file=log, disable=True):
         pass
+    bar = progress_bar(total=2, file=log, disable=True)  # calibrate(progress=False)
+    bar.set_description_str("stage", False)
+    bar.update()
+    bar.close()
     assert log.getvalue() == ""
 
 
