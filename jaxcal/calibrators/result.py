@@ -100,6 +100,22 @@ class CalibrationResult:
             "with CalibrationResult.load(path, model=...) to restore it)"
         )
 
+    @property
+    def noise(self) -> dict[str, float]:
+        """``{output: std}``: the measurement noise the calibration used, given or
+        estimated (:attr:`noise_source`), in the form ``jaxcal.calibrate(noise=)``
+        takes and ``noise=name:std,...`` spells on a command line: to pass on."""
+        if self.problem is not None:
+            stds = self.problem.noise_std
+        elif self.stored and (self.stored.get("problem") or {}).get("noise_std"):
+            stds = self.stored["problem"]["noise_std"]
+        else:
+            raise ValueError(
+                "CalibrationResult.noise: this result has no problem (load it with "
+                "CalibrationResult.load(path, model=...) to restore it)"
+            )
+        return {n: float(s) for n, s in zip(self.output_names, stds, strict=True)}
+
     def variable_units(self) -> dict[str, str]:
         """``{name: unit}`` of the parameters, outputs and states (the model's; for
         a result loaded without its model, the file's; ``{}`` if neither)."""

@@ -53,11 +53,16 @@ def test_an_output_may_be_the_state_of_the_same_name():
         _model(outputs=(("T_air", "K"),))
 
 
-def test_state_named_output_calibrates_end_to_end_with_one_noise_number():
+def test_state_named_output_calibrates_end_to_end_with_one_noise_number(tmp_path):
     result = jaxcal.calibrate(
         _model(), _data(), method="ukf", noise=0.02, progress=False, q=1e-6
     )
     np.testing.assert_array_equal(result.problem.noise_std, [0.02])
+    # the noise to pass on (docs/fleet.md), kept by a result loaded without its model
+    assert result.noise == {"T_air": 0.02}
+    assert jaxcal.CalibrationResult.load(result.save(tmp_path / "r.parquet")).noise == {
+        "T_air": 0.02
+    }
     frame = result.to_frame()
     assert {"T_air", "T_air_hat", "tau", "gain"} <= set(frame.columns)
     last = frame.iloc[-1]
