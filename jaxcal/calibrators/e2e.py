@@ -271,11 +271,13 @@ class E2EState:
     w_hist: Array  # [K - 1, W] the samples before t, most recent first ([0, W]: none)
     x_hist: Array  # [K - 1, S]
     z: Array  # [Z] model state of x-hat ([0] for a static model)
+    count: Array  # [] int32 samples used before this one (the band's bucket)
 
 
 def make_e2e_calibrator(
     params: E2EParams, measure: MeasureFn | None = None, *, transition=None,
-    theta0: Array | None = None,
+    theta0: Array | None = None, box: tuple[Array, Array] | None = None,
+    band=None,
 ) -> Calibrator:  # fmt: skip
     """The E2E network as a :class:`Calibrator` (``init``/``step`` pure functions).
 
@@ -288,6 +290,12 @@ def make_e2e_calibrator(
             ``measure``: ``xhat`` is the model run with the estimated θ, its state
             starting at ``init(w0, theta0)``.
         theta0: ``[P]`` parameters of that initial state.
+        box: ``(low [P], high [P])``: G's output is projected into the declared
+            box (a network extrapolates past the labels it was trained on).
+        band: a :class:`~jaxcal.calibrators.uncertainty.ThetaBand` fitted on
+            held-out simulated units (:func:`jaxcal.calibrators.e2e_sim.
+            held_out_band`): ``aux["theta_std"]`` is its std at the sample's
+            count since the unit's first one; ``None``: no std.
 
     Returns:
         ``Calibrator(init, step)``; ``init`` stores x_{−1} = x_0 (the window holds
@@ -304,7 +312,7 @@ def make_e2e_calibrator(
             z = transition.init(w0, jnp.asarray(theta0, x0.dtype))
         return E2EState(
             x_prev=x0, w_hist=jnp.tile(w0, (lags, 1)), x_hist=jnp.tile(x0, (lags, 1)),
-            z=z,
+            z=z, count=jnp.zeros((), jnp.int32),
         )  # fmt: skip
 
     def step(state, w_t, x_t):
@@ -316,6 +324,8 @@ def make_e2e_calibrator(
             theta = _apply(params, jnp.concatenate(blocks), x_t)
         else:
             theta = e2e_apply(params, w_t, x_t, state.x_prev)
+        if box is not None:
+            theta = jnp.clip(theta, *(jnp.asarray(b, theta.dtype) for b in box))
         z = state.z
         if transition is not None:
             z, xhat = transition.step(state.z, w_t, theta)
@@ -328,7 +338,13 @@ def make_e2e_calibrator(
             w_hist=jnp.concatenate([w_t[None], state.w_hist])[:lags],
             x_hist=jnp.concatenate([x_t[None], state.x_hist])[:lags],
             z=z,
+            count=state.count + 1,
         )
-        return new_state, CalStepOutput(theta=theta, xhat=xhat)
+        aux = None
+        if band is not None:
+            from jaxcal.calibrators.uncertainty import band_std
+
+            aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
+        return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
 
     return Calibrator(init=init, step=step)

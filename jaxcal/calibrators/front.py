@@ -90,7 +90,12 @@ from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exp
 )
 from jaxcal.calibrators.guard import REASON_CODE
 from jaxcal.calibrators.jitter_check import jitter_floor, jitter_note
-from jaxcal.calibrators.misfit_check import colour_rows, misfit_note, widen_note
+from jaxcal.calibrators.misfit_check import (
+    colour_rows,
+    misfit_note,
+    widen_note,
+    widening,
+)
 from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.calibrators.result import CalibrationResult
 from jaxcal.calibrators.skipped import nothing_valid_error
@@ -213,14 +218,15 @@ def _checked_std(result: CalibrationResult, screened, problem: Problem, misfit: 
     if screened is not None and screened.z is not None:  # the innovations' colour
         colour = colour_rows(result.unit, result.time, screened.z, screened.used)
         rows, kept = colour.misfit, misfit == "keep"
-        std = std * colour.widen[:, None]  # a coloured noise: fewer rows' worth
+        widen = widening(colour, result.method)  # a coloured noise: fewer rows' worth
+        std = std * widen[:, None]
         std = std if kept else np.where(rows[:, None], np.nan, std)
         result = dataclasses.replace(result, misfit=rows, theta_std=std)
         notes += misfit_note(
             colour.ratio, result.unit, problem.output_names, withheld=not kept,
             shift=colour.shift,
         )  # fmt: skip
-        notes += widen_note(colour.widen, result.unit)
+        notes += widen_note(widen, result.unit)
     return result, notes
 
 

@@ -54,7 +54,7 @@ def e2e_calibrator(
 ) -> Calibrator:
     """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
     from jaxcal.calibrators.e2e import E2EConfig, make_e2e_calibrator
-    from jaxcal.calibrators.e2e_sim import fit_e2e_sim
+    from jaxcal.calibrators.e2e_sim import fit_e2e_sim, held_out_band
     from jaxcal.nets.mlp import RegressorConfig
 
     params = cfg.e2e
@@ -71,11 +71,15 @@ def e2e_calibrator(
         )  # fmt: skip
         copies = int(cfg.e2e_copies)
         params = fit_e2e_sim(problem, buckets, fit, seed, copies, window)[0]
+    # a std only where held-out simulations say what G's error is (not for given
+    # weights); every estimate projected into the declared box
+    band = held_out_band(problem, buckets, params, seed) if cfg.e2e is None else None
+    box = (problem.theta_low, problem.theta_high)
     if measure is not None:
-        return make_e2e_calibrator(params, measure)
+        return make_e2e_calibrator(params, measure, box=box, band=band)
     return make_e2e_calibrator(
         params, transition=problem.transition(),
-        theta0=jnp.asarray(problem.theta_prior, buckets.dtype),
+        theta0=jnp.asarray(problem.theta_prior, buckets.dtype), box=box, band=band,
     )  # fmt: skip
 
 

@@ -76,7 +76,7 @@ def runs():
         frame = small_fleet(0, **scenario)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            result = jaxcal.calibrate(MODEL, frame, "ukf", theta=THETA, progress=False)
+            result = jaxcal.calibrate(MODEL, frame, "ukf", theta=THETA)
         return frame, result
 
     return run
@@ -96,3 +96,32 @@ def test_the_reactor_with_a_late_sensor_bias_withholds_those_units_std(runs):
     assert np.isnan(result.theta_std[result.misfit]).all()
     assert np.isfinite(result.theta_std[~result.misfit]).all()
     assert any("shifted from some row on" in n for n in result.notes)
+
+
+def test_e2e_stays_in_the_box_with_a_held_out_std():
+    from jaxcal.calibrators.e2e import E2EConfig
+    from jaxcal.nets.mlp import RegressorConfig
+    from tests.support.tank import MODEL as TANK
+    from tests.support.tank import NOISE as TANK_NOISE
+    from tests.support.tank import make_frame
+
+    frame = make_frame(num_units=3, length=80, seed=3)
+    cfg = E2EConfig(
+        hidden_sizes=(32, 32),
+        fit=RegressorConfig(learning_rate=3e-3, batch_size=128, num_epochs=30,
+                            validation_fraction=0.1, patience=10),
+    )  # fmt: skip
+    noise = dict(zip(TANK.output_names, TANK_NOISE, strict=True))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = jaxcal.calibrate(
+            TANK, frame, "e2e", noise=noise, e2e_config=cfg,
+            e2e_copies=2,
+        )  # fmt: skip
+    assert np.all((result.theta >= [0.5, 0.0]) & (result.theta <= [2.0, 0.5]))
+    std = result.theta_std[result.valid]
+    assert np.all(np.isfinite(std) & (std > 0))
+    # nothing dishonest in it: about 90 % of the (white-noise) rows inside
+    truth = frame[["leak", "loss"]].to_numpy()
+    inside = np.abs(result.theta - truth) <= Z90 * result.theta_std
+    assert 0.75 <= inside[result.valid].mean() <= 1.0
