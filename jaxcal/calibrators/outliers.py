@@ -18,6 +18,11 @@ deviation one of 50 %. The statistics here are the textbook robust ones:
   value does so with probability 2e-9, about once in 10^8 rows of 5 outputs, so
   clean data are not flagged, while a reading off by orders of magnitude always is).
 
+* :func:`stuck_runs`: runs of at least :data:`STUCK_RUN` identical readings of one
+  output in a unit, on an output whose readings otherwise change from row to row (a
+  quantised output, which repeats most of its values, has none): a sensor that
+  froze, or a logger that repeats its last value.
+
 The residual is whatever the caller standardises: the front door
 (:mod:`jaxcal.calibrators.screen`) passes the UKF's innovation over its predicted
 std, the diagnosis a fit's residual over the noise. Shapes: ``N`` rows, ``S``
@@ -32,6 +37,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+STUCK_RUN = 8  # identical readings in a row that make a stuck sensor
+QUANTISED = 0.5  # an output repeating more of its readings than this is quantised
 OUTLIER_Z = 6.0  # |standardised residual| beyond which a reading is an outlier
 MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): the MAD of a Gaussian is 0.6745 std
 
@@ -163,6 +170,63 @@ def describe_outliers(
         f"{top(np.asarray(unit)[rows])}; outputs "
         f"{top(found.worst[rows], list(output_names))}; largest |z| {largest:.3g})"
     )
+
+
+class StuckRun(NamedTuple):
+    """One run of identical readings (:func:`stuck_runs`).
+
+    Attributes:
+        output: the output's column.
+        unit: the unit id.
+        rows: ``[k]`` the run's rows (positions in the data), in time order.
+    """
+
+    output: int
+    unit: int
+    rows: np.ndarray
+
+
+def stuck_runs(
+    x: np.ndarray, unit: np.ndarray, time: np.ndarray, min_run: int = STUCK_RUN
+) -> list[StuckRun]:
+    """Runs of at least ``min_run`` identical finite readings of one output within a
+    unit (rows in time order), on outputs that are not quantised: an output whose
+    readings outside the runs repeat the previous one more often than
+    :data:`QUANTISED` (rounded readings, a setpoint) has no run.
+
+    Args:
+        x: ``[N, S]`` readings (``nan``: missing, never part of a run).
+        unit, time: ``[N]`` the rows' unit and time.
+        min_run: the shortest run that counts.
+
+    Returns:
+        The runs, by output then unit.
+    """
+    x = np.asarray(x, np.float64)
+    order = np.lexsort((np.asarray(time), np.asarray(unit)))
+    u, xs = np.asarray(unit)[order], x[order]
+    same_unit = u[1:] == u[:-1]
+    runs = []
+    for s in range(x.shape[1]):
+        col = xs[:, s]
+        repeat = same_unit & (col[1:] == col[:-1])  # NaN never repeats
+        # run starts: a row that does not repeat the one before it
+        start = np.flatnonzero(np.concatenate([[True], ~repeat]))
+        length = np.diff(np.concatenate([start, [len(col)]]))
+        long = (length >= min_run) & np.isfinite(col[start])
+        if not long.any():
+            continue
+        in_run = np.zeros(len(col), bool)
+        for a, n in zip(start[long], length[long], strict=True):
+            in_run[a : a + n] = True
+        pairs = same_unit & ~in_run[1:] & np.isfinite(col[1:]) & np.isfinite(col[:-1])
+        if pairs.sum() and (repeat & pairs).sum() / pairs.sum() > QUANTISED:
+            continue
+        runs += [
+            StuckRun(s, int(u[a]), order[a : a + n])
+            for a, n in zip(start[long], length[long], strict=True)
+        ]
+    return runs
 
 
 def _median(values: np.ndarray) -> np.ndarray:

@@ -56,6 +56,23 @@ the outputs' centre are arguments of the compiled program,
 
 So a few wild rows change neither the noise of the other units nor their results,
 and their own unit's stream skips them (reason ``outlier``).
+
+Two faults are judged per output, not per row:
+
+* **A stuck sensor.** An output that repeats one reading for
+  :data:`~jaxcal.calibrators.outliers.STUCK_RUN` rows or more (a quantised output,
+  which repeats most of its readings, excepted:
+  :func:`~jaxcal.calibrators.outliers.stuck_runs`) while the filter expects it to
+  move (a value of the run beyond the gate) is a frozen sensor, not a row of wild
+  readings: judged per row, every row of the run would be skipped, its good outputs
+  with it (a stuck outflow cost the tank's level and temperature 18 rows of one
+  unit). The run's readings of that output are left out (missing: the rows are
+  partial, used on their other outputs; :attr:`Screen.data`), the screening starts
+  again without them, and a note names the output, unit and rows.
+* **Too few rows for the noise.** The noise estimated from fewer than
+  :data:`MIN_NOISE_ROWS` settled readings of an output can be far off (three rows
+  of the tank gave 190x the true noise of its level): a note names the outputs and
+  their counts and asks for ``noise=``.
 """
 
 from __future__ import annotations
@@ -72,13 +89,15 @@ from jaxcal.calibrators.guard import MASKED, OK
 from jaxcal.calibrators.methods import UKF, model_inputs, ukf_program
 from jaxcal.calibrators.outliers import (
     OutlierRows,
+    StuckRun,
     outlier_rows,
     robust_centre,
     robust_noise,
     robust_scale,
+    stuck_runs,
 )
 from jaxcal.calibrators.skipped import nothing_valid_error
-from jaxcal.data.buckets import Buckets
+from jaxcal.data.buckets import Buckets, bucket_units
 from jaxcal.data.dataset import Dataset
 from jaxcal.problem import Problem
 
@@ -87,6 +106,7 @@ NOISE_FLOOR_REL = 1e-6  # noise floor relative to the output's robust spread (or
 PROVISIONAL_REL = 0.01  # first pass's noise relative to the output's robust spread
 X84 = 3.5  # Hampel's X84 rejection rule: 5.2 MADs, i.e. 3.5 Gaussian std
 WIDE_INNOVATIONS = 3.0  # typical |innovation| / predicted std worth a note
+MIN_NOISE_ROWS = 20  # settled readings of an output below which its noise is noted
 
 
 class Screen(NamedTuple):
@@ -101,6 +121,9 @@ class Screen(NamedTuple):
             std (``nan``: a missing output), or ``None`` (no row used); their
             colour is the model's misfit (:mod:`jaxcal.calibrators.misfit_check`).
         used: ``[N]`` bool, the rows that pass used (outliers skipped), or ``None``.
+        data: the rows with a stuck sensor's readings left out (``nan``), which the
+            method must calibrate on, and ``buckets`` them padded; ``None``: the
+            rows as given.
     """
 
     problem: Problem
@@ -109,6 +132,8 @@ class Screen(NamedTuple):
     notes: tuple[str, ...]
     z: np.ndarray | None = None
     used: np.ndarray | None = None
+    data: Dataset | None = None
+    buckets: Buckets | None = None
 
 
 class _Pass(NamedTuple):
@@ -149,6 +174,20 @@ def screen(
         ValueError: no row could be used (with the cause), or fewer than two rows
             to estimate the noise from.
     """
+    runs = stuck_runs(data.x, data.unit, data.time) if threshold < np.inf else []
+    found = _screen(problem, data, buckets, cfg, estimate, threshold, runs)
+    if isinstance(found, Screen):
+        return found
+    data, notes = found  # a stuck sensor's readings left out: screened again
+    buckets = bucket_units(data, buckets.dtype)
+    found = _screen(problem, data, buckets, cfg, estimate, threshold, [])
+    return found._replace(notes=(*notes, *found.notes), data=data, buckets=buckets)
+
+
+def _screen(problem, data, buckets, cfg, estimate, threshold, runs):
+    """:func:`screen` on these rows, or, where the first pass finds some of the
+    stuck ``runs`` beyond the gate, ``(data, notes)``: the rows with those runs
+    left out, to be screened again."""
     none = np.zeros(data.num_rows, bool)
     ukf = _pass_function(problem, data, cfg, buckets.dtype)
     run = functools.partial(_pass, ukf, data=data, buckets=buckets, r=cfg.filter.r)
@@ -169,7 +208,7 @@ def screen(
                 raise nothing_valid_error(
                     problem, data, first.reason, buckets.dtype, "noise estimation"
                 )
-            noise = _noise(first, skip, settled, floor, X84)
+            noise = _noise(first, skip, settled, floor, X84)[0]
             return noise, run(noise, skip)
 
         noise, first = level(none)
@@ -178,6 +217,10 @@ def screen(
         if not first.valid.any():  # the method's own run reports it (or copes)
             return Screen(problem, none, _flag(first, np.inf, True), ())
     candidates = _flag(first, threshold, not estimate)
+    wild = np.abs(candidates.z) > threshold  # nan (not judged) is not wild
+    stuck = [r for r in runs if wild[r.rows, r.output].any()]
+    if stuck:
+        return _without_runs(data, stuck)
     last, found = first, candidates
     if candidates.mask.any():  # judged again with the candidates skipped
         last = run(noise, candidates.mask)
@@ -194,7 +237,8 @@ def screen(
             # level it runs on matters little: R = var(nu) (2 - k) / 2 holds for
             # any noise a pass assumes)
             last = run(noise, found.mask)
-        noise = _noise(last, found.mask, settled, floor, threshold)
+        noise, counts = _noise(last, found.mask, settled, floor, threshold)
+        notes = _few_rows_note(problem.output_names, counts, noise)
         source = (
             "estimated (one-step innovations of a UKF pass, corrected for the "
             "share the update absorbs; outliers left out)"
@@ -269,9 +313,10 @@ def _flag(run: _Pass, threshold: float, given: bool) -> OutlierRows:
 
 
 def _noise(run: _Pass, flagged, settled, floor, threshold):
-    """``[S]`` noise std from a pass's one-step innovations, rows beyond
-    ``threshold`` robust scales rejected, corrected for the share ``k`` the update
-    absorbs: ``R = var(nu) (2 - k) / 2`` (module docstring)."""
+    """``([S] noise std, [S] readings it rests on)`` from a pass's one-step
+    innovations, rows beyond ``threshold`` robust scales rejected, corrected for the
+    share ``k`` the update absorbs: ``R = var(nu) (2 - k) / 2`` (module
+    docstring)."""
     keep = run.valid & ~flagged & settled
     if keep.sum() < 2:
         keep = run.valid & ~flagged
@@ -286,7 +331,48 @@ def _noise(run: _Pass, flagged, settled, floor, threshold):
         warnings.simplefilter("ignore", RuntimeWarning)
         k = np.nanmean(np.where(keep[:, None], run.absorbed, np.nan), axis=0)
     std = np.sqrt(var * (2.0 - np.clip(k, 0.0, 1.0)) / 2.0)
-    return np.maximum(np.nan_to_num(std), floor)
+    counts = np.sum(keep[:, None] & np.isfinite(run.innovation), axis=0)
+    return np.maximum(np.nan_to_num(std), floor), counts
+
+
+def _few_rows_note(names, counts, noise) -> tuple[str, ...]:
+    """A note where an output's noise rests on fewer than :data:`MIN_NOISE_ROWS`
+    readings (module docstring)."""
+    few = counts < MIN_NOISE_ROWS
+    if not few.any():
+        return ()
+    listed = ", ".join(
+        f"{n} ({int(c)} rows: {s:.3g})"
+        for n, c, s, f in zip(names, counts, noise, few, strict=True)
+        if f
+    )
+    return (
+        f"the noise was estimated from too few rows on {listed}, fewer than "
+        f"{MIN_NOISE_ROWS} settled rows per output: it can be off by orders of "
+        "magnitude, and the std and outlier flags with it; give noise={output: "
+        "std} (e.g. from the sensors' data sheets)",
+    )
+
+
+def _without_runs(data: Dataset, runs: list[StuckRun]) -> tuple[Dataset, tuple]:
+    """``(data, notes)``: the rows with the readings of the stuck ``runs`` left
+    out (``nan``: the rows become partial) and a note naming each."""
+    x = np.array(data.x, copy=True)
+    lines = []
+    for run in runs:
+        x[run.rows, run.output] = np.nan
+        times = data.time[run.rows]
+        lines.append(
+            f"{data.output_names[run.output]} of unit {run.unit} reads "
+            f"{data.x[run.rows[0], run.output]:.6g} on {len(run.rows)} rows in a "
+            f"row (time {times.min():g} to {times.max():g})"
+        )
+    note = (
+        "a stuck sensor: " + "; ".join(lines[:5]) + ("; ..." if len(lines) > 5 else "")
+        + ", a constant reading the model does not follow. Those readings are left "
+        "out (the rows are partial, used on their other outputs; result.partial)"
+    )  # fmt: skip
+    return dataclasses.replace(data, x=x), (note,)
 
 
 def _settled(buckets: Buckets) -> np.ndarray:
