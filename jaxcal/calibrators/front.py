@@ -187,6 +187,8 @@ def calibrate(
     screened, problem, built = _screen_and_build(
         cfg, problem, data, buckets, noise, threshold, seed, bar
     )
+    if screened is not None and screened.data is not None:  # a stuck sensor's
+        data, buckets = screened.data, screened.buckets  # readings left out
     skip = np.zeros(data.num_rows, bool) if screened is None else screened.outlier
     outs = _run_groups(built, buckets, skip, method, bar)
     result = to_rows(outs, buckets, data, problem, method, built.prior_std, skip)
@@ -263,6 +265,7 @@ def _screen_and_build(cfg, problem, data, buckets, noise, threshold, seed, bar):
     screened = _screen(cfg, problem, data, buckets, noise, threshold)
     if screened is not None:
         problem = screened.problem
+        buckets = screened.buckets or buckets  # a stuck sensor's readings left out
     bar.update()
     bar.set_description_str(f"jaxcal.calibrate: building {cfg.name}", False)
     built = methods.build(problem, cfg, buckets, seed)
