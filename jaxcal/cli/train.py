@@ -100,6 +100,9 @@ def format_final(final: dict) -> str:
         f"(select={final['select']})"
         + ("" if last is None else f"; last chunk's theta RMSE {last:.3e}"),
     ]
+    gain = final.get("training_gain") or {}
+    if gain:
+        lines.append(_gain_line(gain))
     if final.get("updates_per_s"):
         lines.append(
             f"throughput {final['updates_per_s']:.0f} updates/s, "
@@ -134,6 +137,28 @@ def format_final(final: dict) -> str:
             + (f" ({total:.0f} s over {sessions} sessions)" if sessions > 1 else "")
         )
     return "\n".join(lines)
+
+
+def _gain_line(gain: dict) -> str:
+    """One plain line: did training improve on the untrained start?"""
+    what = gain["key"].removeprefix("val_").replace("_", " ")
+    if gain["kept_start"]:
+        best = gain["best_trained"]
+        return (
+            "training did not improve on its untrained start (the filter's step): "
+            f"the run keeps the start (validation {what} {gain['start']:.3e}"
+            + (
+                ""
+                if best is None
+                else f"; the best trained chunk, {gain['best_trained_chunk']}, "
+                f"{best:.3e}"
+            )
+            + ")"
+        )
+    return (
+        f"training improved on its untrained start: validation {what} "
+        f"{gain['start']:.3e} -> {gain['kept']:.3e} ({gain['ratio']:.2f}x)"
+    )
 
 
 def _previous_final(path: str) -> dict:

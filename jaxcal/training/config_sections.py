@@ -185,6 +185,11 @@ class BudgetConfig:
     # "sim_theta": the lowest theta RMSE (in box widths) on units simulated along the
     # validation units' conditions (jaxcal.training.simulated; no label either).
     select: Literal["last", "val_tracking", "sim_theta"] = "val_tracking"
+    # Early stopping: the session ends after this many scored chunks in a row that
+    # do not lower the selection's score (scored every eval_every chunks; None:
+    # never). A training that cannot improve on its best, often the untrained
+    # start of an actor with a prior, then stops instead of spending its budget.
+    patience: int | None = None
     # The actor that is deployed: "target", the Polyak-averaged policy of Algorithm 1
     # (theta-bar <- tau theta + (1 - tau) theta-bar; LAC and CLAC keep one, SAC has
     # none and falls back to its online actor), or "online", the last gradient iterate.
@@ -200,6 +205,13 @@ class BudgetConfig:
             raise ValueError(
                 "budget.target_theta_rmse must be > 0 or None, got "
                 f"{self.target_theta_rmse!r}"
+            )
+        if self.patience is not None and not (
+            isinstance(self.patience, int) and self.patience >= 1
+        ):
+            raise ValueError(
+                "budget.patience must be an integer >= 1 or None, got "
+                f"{self.patience!r}"
             )
         if self.num_chunks < 0 or self.eval_every < 0 or self.ckpt_every < 1:
             raise ValueError(

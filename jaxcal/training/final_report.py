@@ -36,6 +36,34 @@ def throughput(records: list[dict]) -> dict:
     }
 
 
+def training_gain(records: list[dict], selected: int, cfg: TrainConfig) -> dict:
+    """What training added to its untrained start, on the selection's score
+    (``budget.select``: lower is better): the start's (chunk 0, scored only for an
+    actor with a prior), the kept chunk's and the best trained chunk's, and
+    ``ratio`` kept / start (1.0: the start kept). ``{}`` when the start was not
+    scored."""
+    key = (
+        "val_sim_theta_rmse"
+        if cfg.budget.select == "sim_theta"
+        else ("val_tracking_rmse_norm")
+    )
+    scores = {r["step"]: r[key] for r in records if key in r}
+    if 0 not in scores:
+        return {}
+    trained = {k: v for k, v in scores.items() if k > 0}
+    best_chunk = min(trained, key=trained.get) if trained else None
+    kept = scores.get(selected, scores[0])
+    return {
+        "key": key,
+        "start": scores[0],
+        "kept": kept,
+        "ratio": kept / scores[0] if scores[0] > 0 else None,
+        "best_trained_chunk": best_chunk,
+        "best_trained": None if best_chunk is None else trained[best_chunk],
+        "kept_start": selected == 0,
+    }
+
+
 def final_report(
     cfg: TrainConfig,
     run_dir: Path,
@@ -88,6 +116,7 @@ def final_report(
         "val_selected": {
             k[4:]: v for k, v in val_record.items() if k.startswith("val_")
         },
+        "training_gain": training_gain(records, kept.selected_step, cfg),
         "chunks": policy.chunks_done,
         "stopped_early": policy.stopped_early,
         "env_steps": int(policy.runner.env_steps),

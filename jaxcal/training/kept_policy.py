@@ -113,6 +113,7 @@ def train_kept_policy(
                 target=target,
                 clock=clock,
                 score_start=getattr(parts.actor, "prior", None) is not None,
+                patience=cfg.budget.patience,
             ),
             on_checkpoint=save_latest,
             progress=cfg.output.progress,

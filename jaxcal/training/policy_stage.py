@@ -134,6 +134,10 @@ class ChunkScoring(NamedTuple):
             chunk beats it: an actor with a prior
             (:attr:`~jaxcal.agents.configs._ActorCriticConfig.actor_prior`) is a
             working calibrator before its first update.
+        patience: end the session after this many scored chunks in a row that do
+            not lower ``best_key`` (``None``: never): a training that does not
+            improve on its best, often its untrained start, stops instead of
+            spending its whole budget (:func:`_out_of_patience`).
     """
 
     scorer: Scorer | None = None
@@ -143,6 +147,7 @@ class ChunkScoring(NamedTuple):
     target: float | None = None
     clock: Callable[[], float] | None = None
     score_start: bool = False
+    patience: int | None = None
 
 
 def train_policy(
@@ -214,11 +219,13 @@ def train_policy(
                 runner, record = _timed_chunk(
                     train_chunk, runner, train_params, runner_cfg, chunk == start + 1
                 )
-                last = chunk == num_chunks or _past(deadline)
-                if last or bool(eval_every and chunk % eval_every == 0):
+                scored = chunk == num_chunks or _past(deadline)
+                if scored or bool(eval_every and chunk % eval_every == 0):
                     reached = _score(record, runner, chunk, scoring, reached, log)
                 writer.write(chunk, record)
                 records.append({"step": chunk, **record})
+                patience_out = _out_of_patience(records, scoring)
+                last = scored or patience_out
                 if chunk % ckpt_every == 0 or last:
                     _save(ckpt, chunk, runner, save_buffer, on_checkpoint)
                 best = _select(record, best, chunk, runner, scoring)
@@ -226,7 +233,9 @@ def train_policy(
                 bar.update(1)
                 bar.set_postfix(_postfix(record, last_val), refresh=False)
                 if last:
-                    stopped_early = _stopped_early(chunk, num_chunks, log)
+                    stopped_early = _stopped_early(
+                        chunk, num_chunks, log, patience_out and scoring.patience
+                    )
                     break
         ckpt.wait_until_finished()
     return PolicyResult(runner, records, chunk, stopped_early)
@@ -261,12 +270,30 @@ def _save(ckpt, chunk: int, runner, save_buffer: bool, on_checkpoint) -> None:
         on_checkpoint(chunk, runner)
 
 
-def _stopped_early(chunk: int, num_chunks: int, log) -> bool:
-    """Whether the session ended before the run's last chunk (said in the log)."""
+def _stopped_early(chunk: int, num_chunks: int, log, patience=None) -> bool:
+    """Whether the session ended before the run's last chunk (said in the log:
+    the time limit, or ``patience`` scorings without a better policy)."""
     stopped_early = chunk < num_chunks
-    if stopped_early:
+    if stopped_early and patience:
+        log(
+            f"stopped after chunk {chunk} of {num_chunks}: {patience} scored "
+            "chunks in a row without a better policy (budget.patience)"
+        )
+    elif stopped_early:
         log(f"time limit reached after chunk {chunk} of {num_chunks}")
     return stopped_early
+
+
+def _out_of_patience(records: list[dict], scoring: ChunkScoring) -> bool:
+    """Whether the last ``scoring.patience`` scored records (earlier sessions
+    included) all fail to lower the best ``best_key`` scored before them."""
+    if not scoring.patience:
+        return False
+    scores = [r[scoring.best_key] for r in records if scoring.best_key in r]
+    if len(scores) <= scoring.patience:
+        return False
+    before = min(scores[: -scoring.patience])
+    return min(scores[-scoring.patience :]) >= before
 
 
 def _earlier_marks(records: list[dict], scoring: ChunkScoring):

@@ -15,6 +15,7 @@ import pytest
 import jaxcal
 from jaxcal.calibrators.uncertainty import load_band
 from jaxcal.cli.evaluate import main as evaluate_main
+from jaxcal.cli.train import format_final
 from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import StreamingCalibrator
 from jaxcal.training.tables import hold_out_units, load_table_data
@@ -315,3 +316,12 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
     assert loaded.actor.prior == (obs_size - 2 - 1, 1.0)
     result = jaxcal.calibrate(MODEL, path, method="policy", run=run_dir)
     assert result.valid.all() and np.isfinite(result.theta_std).all()
+    # issue 41: what training added to its start, in final.json and one plain line
+    final = json.loads((run_dir / "final.json").read_text())
+    gain = final["training_gain"]
+    assert gain["start"] == records[0]["val_sim_theta_rmse"]
+    assert gain["kept_start"] == (final["selected_chunk"] == 0)
+    assert gain["kept"] == records[final["selected_chunk"]]["val_sim_theta_rmse"]
+    line = [ln for ln in format_final(final).splitlines() if "untrained start" in ln]
+    assert len(line) == 1
+    assert ("did not improve" in line[0]) == gain["kept_start"]
