@@ -70,6 +70,11 @@ class EnvConfig:
             divided out), and on a model with memory the filter is the joint one of
             state and theta (:mod:`~jaxcal.envs.joint_filter`); ``False``: the
             gate's small-residual slope and theta alone, the runs before it.
+        theta_cost: weight of the theta error in the cost, where the true theta is
+            known (``EnvParams.theta_target``, simulated units): the cost adds
+            ``theta_cost * mean_P(((theta - theta*) / h)^2)`` (``h`` the box's
+            half-widths) to the tracking cost before the log; 0: tracking alone
+            (the paper's).
     """
 
     sensor_dim: int
@@ -86,6 +91,7 @@ class EnvConfig:
     filter_q: float = FILTER_Q
     filter_whole: bool = False
     filter_prior_std: float = FILTER_PRIOR_STD
+    theta_cost: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):

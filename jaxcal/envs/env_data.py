@@ -42,6 +42,9 @@ class EnvParams:
         x_noise: [S] the problem's measurement noise std (output units), which the
             filter step of ``EnvConfig.gn_filter`` weighs the outputs by; ``None``
             without it.
+        theta_target: [U, T, P] the true theta of each row where it is known (a
+            simulated unit's), NaN where not (a real unit's); the cost's theta term
+            (``EnvConfig.theta_cost``) reads it. ``None``: no theta term.
     """
 
     w: Array
@@ -58,6 +61,7 @@ class EnvParams:
     step_ref: Array | None = None
     x_target: Array | None = None
     x_noise: Array | None = None
+    theta_target: Array | None = None
 
 
 def make_env_params(
@@ -72,6 +76,7 @@ def make_env_params(
     z_ref: Array | None = None,
     step_ref: Array | None = None,
     x_target: Array | None = None,
+    theta_target: Array | None = None,
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
@@ -89,6 +94,8 @@ def make_env_params(
             absolute actions.
         x_target: ``[U, T, S]`` the cost's target, finite on valid rows; ``None``:
             ``x`` itself.
+        theta_target: ``[U, T, P]`` the true theta where known, NaN elsewhere
+            (the cost's theta term); ``None``: none.
 
     Returns:
         :class:`EnvParams`.
@@ -128,7 +135,21 @@ def make_env_params(
         z_ref=None if z_ref_np is None else jnp.asarray(z_ref_np),
         step_ref=step_ref,
         x_target=x_target,
+        theta_target=_checked_theta_target(theta_target, x_np, low),
     )
+
+
+def _checked_theta_target(theta_target, x_np: np.ndarray, low: np.ndarray):
+    """``theta_target`` in the data's dtype, shaped ``[U, T, P]`` (NaN: unknown)."""
+    if theta_target is None:
+        return None
+    theta_target = np.asarray(theta_target, x_np.dtype)
+    if theta_target.shape != (*x_np.shape[:2], low.shape[0]):
+        raise ValueError(
+            f"theta_target must be shaped [U, T, P] {(*x_np.shape[:2], low.shape[0])},"
+            f" got {theta_target.shape}"
+        )
+    return jnp.asarray(theta_target)
 
 
 def _check_padded_data(w_np, x_np, lengths_np) -> np.ndarray:

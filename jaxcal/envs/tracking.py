@@ -283,14 +283,30 @@ def _next_theta(cfg: EnvConfig, state: EnvState, action, params: EnvParams):
     )
 
 
-def _step_cost(cfg: EnvConfig, params: EnvParams, unit, time, xhat) -> Array:
+def _step_cost(
+    cfg: EnvConfig, params: EnvParams, unit, time, xhat, theta=None
+) -> Array:
     """The cost of x-hat at sample ``time`` against the target (x unless
-    ``EnvParams.x_target``), squared or log (:class:`EnvConfig`)."""
+    ``EnvParams.x_target``), with the theta term where the true theta is known
+    (``EnvConfig.theta_cost``), squared or log (:class:`EnvConfig`)."""
     target = params.x if params.x_target is None else params.x_target
     cost = tracking_cost(_row(target, params, unit, time), xhat, params.x_std)
+    if cfg.theta_cost and params.theta_target is not None and theta is not None:
+        cost = cost + cfg.theta_cost * theta_error_cost(
+            theta, _row(params.theta_target, params, unit, time), params
+        )
     if cfg.cost == "log":
         cost = jnp.log1p(cost / cfg.cost_floor**2)
     return cost
+
+
+def theta_error_cost(theta: Array, truth: Array, params: EnvParams) -> Array:
+    """``mean_P(((theta - truth) / h)^2)`` over the parameters whose truth is known
+    (finite), ``h`` the box's half-widths; 0 where none is."""
+    half = 0.5 * (params.theta_high - params.theta_low)
+    known = jnp.isfinite(truth)
+    err = jnp.where(known, (theta - jnp.where(known, truth, 0.0)) / half, 0.0)
+    return jnp.sum(jnp.square(err)) / jnp.maximum(jnp.sum(known), 1)
 
 
 def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> Env:
@@ -367,7 +383,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         )
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
-        cost = _step_cost(cfg, params, state.unit, time, xhat)
+        cost = _step_cost(cfg, params, state.unit, time, xhat, theta)
         z, cov, filtered, fstep = _filtered(
             cfg, params, state.unit, time, xhat.astype(state.xhat.dtype), jac,
             getattr(state, "cov", None), z, ah,

@@ -7,6 +7,7 @@ own fields.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 from jaxcal.envs.tracking import check_action_options
@@ -125,8 +126,15 @@ class TrackingConfig:
     # default preset's. False: the gate's small-residual slope only, the state as
     # simulated, as the runs before it were trained
     filter_whole: bool = False
+    # weight of the theta error in the cost where the true theta is known (the
+    # simulated training units; jaxcal.envs.tracking.theta_error_cost): the policy
+    # is rewarded for the parameters themselves, not only for tracking through
+    # them. 0: tracking alone (the paper's)
+    theta_cost: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.theta_cost) and self.theta_cost >= 0):
+            raise ValueError(f"env.theta_cost must be >= 0, got {self.theta_cost!r}")
         check_action_options(
             self.action, self.max_increment, self.cost, self.cost_floor
         )
@@ -254,8 +262,15 @@ class SimulationConfig:
     # the log cost's floor when training on simulated units: "noise" (the noise
     # std's RMS in the cost's normalised units) or "env" (env.cost_floor as given)
     cost_floor: Literal["noise", "env"] = "env"
+    # share of the simulated training units that carry one undeclared effect on
+    # their outputs (a sensor bias, step, drift, gain error or AR(1)-coloured
+    # noise, 1-4 noise stds: jaxcal.training.sim_effects), their cost still on the
+    # noise-free outputs: the policy learns to hold under model error. 0: none
+    effects: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.effects <= 1.0:
+            raise ValueError(f"simulate.effects must be in [0, 1], got {self.effects}")
         if self.train not in ("data", "simulated", "both"):
             raise ValueError(
                 "simulate.train must be 'data', 'simulated' or 'both', got "

@@ -30,6 +30,7 @@ from jaxcal.calibrators.e2e_sim import simulate_fleet
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 from jaxcal.training.calibration_data import output_spread
+from jaxcal.training.sim_effects import add_effects
 from jaxcal.training.sim_paths import (
     drift_paths,
     estimated_drifts,
@@ -46,10 +47,13 @@ def simulate_units(
     copies: int = 1,
     constant_share: float = 0.25,
     drifts: np.ndarray | None = None,
+    effects: float = 0.0,
 ) -> tuple[Padded, np.ndarray]:
     """``copies`` simulated fleets along ``units``' conditions (module doc), theta
     along the ``drifts`` where given (:func:`estimated_drifts`, in turn over the
-    copies' units: :func:`drift_paths`), else drawn (:func:`theta_paths`).
+    copies' units: :func:`drift_paths`), else drawn (:func:`theta_paths`); a share
+    ``effects`` of them with an undeclared effect on their noisy outputs
+    (:func:`~jaxcal.training.sim_effects.add_effects`; ``x_clean`` stays clean).
 
     Returns:
         ``(simulated, x_clean)``: the simulated units (noisy outputs, theta labels,
@@ -89,6 +93,13 @@ def simulate_units(
     clean = np.where(mask[..., None], clean, 0.0).astype(units.x.dtype)
     noise = np.asarray(jax.random.normal(k_noise, clean.shape), clean.dtype)
     noisy = clean + (problem.noise_std.astype(clean.dtype) * noise) * mask[..., None]
+    if effects:  # a share of the units with an undeclared effect on their outputs
+        seed = np.asarray(jax.random.key_data(k_noise)).ravel().tolist()
+        noisy, _ = add_effects(
+            np.random.default_rng(seed), noisy, clean, lengths,
+            np.asarray(problem.noise_std, np.float64), effects,
+        )  # fmt: skip
+        noisy = np.where(mask[..., None], noisy, 0.0).astype(clean.dtype)
     ids = -1 - np.arange(len(lengths), dtype=np.int64)
     return Padded(w, noisy, theta, lengths.astype(np.int32), ids), clean
 
@@ -202,6 +213,7 @@ class Simulations:
                 jax.random.fold_in(self.key, 0),
                 copies=self.cfg.copies,
                 constant_share=self.cfg.constant_share,
+                effects=self.cfg.effects,
             )
         return self._train
 
@@ -225,6 +237,18 @@ class Simulations:
         if self.cfg.train == "simulated":
             return sim, clean
         return _joined(real, sim), np.concatenate([real.x, clean])
+
+    def training_theta(self) -> np.ndarray | None:
+        """``[U, T, P]`` the true theta of :meth:`training_fleet`'s rows where it
+        is known (the simulated units'; NaN on the real units, whose labels, if
+        any, only score), ``None`` when it trains on the data alone."""
+        if self.cfg.train == "data":
+            return None
+        sim = self._train_sims()[0]
+        if self.cfg.train == "simulated":
+            return sim.theta
+        unknown = np.full(self.data.train.x.shape[:2] + sim.theta.shape[2:], np.nan)
+        return np.concatenate([unknown.astype(sim.theta.dtype), sim.theta])
 
     def _drifts(self) -> tuple[Padded, np.ndarray]:
         """``(units, drifts)``: every unit but the test ones and the theta drifts

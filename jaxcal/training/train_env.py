@@ -44,10 +44,17 @@ def make_training_env(
     outputs, params = len(data.problem.output_names), len(data.problem.theta_names)
     filtered = uses_filter(cfg.env)
     fleet, target = sims.training_fleet()
+    theta_target = sims.training_theta() if cfg.env.theta_cost else None
+    if cfg.env.theta_cost and theta_target is None:
+        raise ValueError(
+            "env.theta_cost needs simulated training units, whose theta is known "
+            "(simulate.train=simulated or both), got simulate.train="
+            f"{cfg.simulate.train}"
+        )
     train_params = training_env_params(
         fleet, data.problem, dyn_params, dtype, cfg.dynamics,
         cfg.env.max_increment if incremental else None,
-        x_target=target,
+        x_target=target, theta_target=theta_target,
         # the filter's R: the noise the simulated units carry (given, else
         # estimated), so that its step is the extended Kalman filter's
         x_noise=sims.problem().noise_std if filtered else None,
@@ -85,12 +92,14 @@ def training_env_params(
     max_increment: float | None = None,
     x_target: np.ndarray | None = None,
     x_noise: np.ndarray | None = None,
+    theta_target: np.ndarray | None = None,
 ) -> EnvParams:
     """The :class:`EnvParams` of ``units`` for ``dynamics_kind`` with ``dyn_params``
     (``max_increment``: incremental actions' largest step, ``None``: absolute
     actions; ``x_target [U, T, S]``: the cost's target, ``None``: ``units.x``;
     ``x_noise [S]``: the filter step's measurement noise, ``None``: the
-    problem's), normalised with ``problem.norm`` cast to ``dtype``: the run's
+    problem's; ``theta_target [U, T, P]``: the true theta where known, for the
+    cost's theta term), normalised with ``problem.norm`` cast to ``dtype``: the run's
     normalisation, computed in ``dtype`` when the problem was made, so the cast is
     exact and the environment, the deployed policy and ``data.json`` share it bit
     for bit."""
@@ -113,6 +122,7 @@ def training_env_params(
         stats=problem.norm,
         z_ref=z_ref,
         x_target=None if x_target is None else x_target.astype(dtype),
+        theta_target=None if theta_target is None else theta_target.astype(dtype),
     )
     if max_increment is None:
         return params

@@ -229,3 +229,48 @@ def test_cost_compares_with_x_target_when_given(tiny):
             w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
             params.dyn_params, stats=own_norm(w, x, LENGTHS), x_target=target[:, :5],
         )  # fmt: skip
+
+
+def test_theta_cost_adds_the_known_theta_error_to_the_cost(tiny):
+    """env.theta_cost (issue 41): where the true theta is known (a simulated unit's),
+    the cost adds theta_cost * mean_P(((theta - truth) / h)^2); rows of unknown
+    truth (NaN: a real unit's) cost what tracking costs."""
+    _, params, w, x = tiny
+    truth = np.zeros((U, T, P))
+    truth[0] = [0.25, 0.5]  # unit 0 known; unit 1 half known; unit 2 unknown
+    truth[1, :, 1] = np.nan
+    truth[2] = np.nan
+    cfg = EnvConfig(sensor_dim=S, condition_dim=W, param_dim=P, episode_length=EPISODE)
+    weighted = EnvConfig(**{**cfg.__dict__, "theta_cost": 2.0})
+    with_truth = make_env_params(
+        w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]), params.dyn_params,
+        stats=own_norm(w, x, LENGTHS), theta_target=truth,
+    )  # fmt: skip
+    action = jnp.array([0.5, -0.5])  # the same theta in every case
+    costs = {}
+    for name, conf, prm in [
+        ("plain", cfg, with_truth),
+        ("weighted", weighted, with_truth),
+        ("no truth", weighted, params),
+    ]:
+        env = make_tracking_env(dynamics, conf)
+        for unit in range(2):
+            _, state = env.reset_at(prm, unit, 1)
+            _, _, cost, _, info = env.step(jax.random.key(0), state, action, prm)
+            costs[name, unit] = (float(cost), np.asarray(info["theta"]))
+    half = np.array([0.5, 2.0])
+    for unit, known in [(0, [0, 1]), (1, [0])]:
+        theta = costs["plain", unit][1]
+        err = ((theta - truth[unit, 2]) / half)[known]
+        extra = 2.0 * float(np.mean(err**2))
+        assert extra > 0
+        np.testing.assert_allclose(
+            costs["weighted", unit][0], costs["plain", unit][0] + extra, rtol=1e-5
+        )
+        assert costs["no truth", unit][0] == pytest.approx(costs["plain", unit][0])
+    with pytest.raises(ValueError, match="theta_target must be shaped"):
+        make_env_params(
+            w, x, LENGTHS, np.array([0.0, -1.0]), np.array([1.0, 3.0]),
+            params.dyn_params, stats=own_norm(w, x, LENGTHS),
+            theta_target=truth[:, :, :1],
+        )  # fmt: skip

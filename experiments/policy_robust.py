@@ -1,0 +1,237 @@
+"""What training adds to the policy's untrained start, clean and under model error
+(issue 41): each lever measured on its own against the untrained start and the UKF.
+
+    python experiments/policy_robust.py [cases=heat_exchanger,pump,motor]
+        [variants=start,default,theta,effects,both] [out=results/policy_robust]
+        [data=data/policy_robust] [runs=runs/policy_robust] [seed=0]
+
+Per case (a fleet of ``experiments/policy_any_model.py``: 12 units, test units
+10-12, trained from the file without parameter columns, ``noise=`` given), each
+variant is one ``python -m jaxcal.train`` with the default preset and:
+
+* ``start``: ``budget.num_chunks=0``: the untrained policy (the extended Kalman
+  filter's step the actor starts as), kept as chunk 0;
+* ``default``: the default preset as it is;
+* ``theta``: ``env.theta_cost=<theta_cost>``: the cost adds the theta error where the
+  truth is known (the simulated training units);
+* ``effects``: ``simulate.effects=<effects>``: that share of the simulated training
+  units carries an undeclared effect (a bias, step, drift, gain or AR(1) noise);
+* ``both``: the two together.
+
+Every kept policy and the UKF (``jaxcal.calibrate``, the same noise) then run on the
+test units clean and with one effect in every test unit (:data:`EFFECTS`, in units
+of the noisiest-relative output's noise std), scored by theta RMSE against the labels
+in box half-widths (one number per model: the mean over parameters). Writes
+``<out>/results.json`` and ``<out>/README.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+from policy_any_model import TEST_UNITS, _case, _params  # noqa: E402
+
+# (kind, size in noise stds): the test units' effects, on one output from a third of
+# each unit (ar1: every output, the whole unit)
+EFFECTS = {
+    "clean": ("none", 0.0),
+    "bias 3σ": ("bias", 3.0),
+    "drift 4σ": ("drift", 4.0),
+    "gain 3σ": ("gain", 3.0),
+    "AR(1) 0.8": ("ar1", 0.8),
+}
+VARIANTS = {
+    "start": ["budget.num_chunks=0"],
+    "default": [],
+    "theta": ["env.theta_cost={theta_cost}"],
+    "effects": ["simulate.effects={effects}"],
+    "both": ["env.theta_cost={theta_cost}", "simulate.effects={effects}"],
+}
+
+
+def with_effect(frame, outputs, noise: dict, kind: str, size: float, rng):
+    """The test frame with ``kind`` in every unit (on its first output whose noise is
+    given, from a third of each unit's rows)."""
+    frame = frame.copy()
+    out = outputs[0]
+    sd = float(noise[out])
+    for _, rows in frame.groupby("unit").groups.items():
+        n = len(rows)
+        ramp = np.zeros(n)
+        ramp[n // 3 :] = 1.0
+        if kind == "bias":
+            frame.loc[rows, out] += size * sd * ramp
+        elif kind == "drift":
+            ramp[n // 3 :] = np.linspace(0, 1, n - n // 3)
+            frame.loc[rows, out] += size * sd * ramp
+        elif kind == "gain":
+            level = float(np.mean(np.abs(frame.loc[rows, out])))
+            frame.loc[rows, out] += size * sd / level * frame.loc[rows, out] * ramp
+        elif kind == "ar1":  # re-colour: add an AR(1) of the noise's std on top
+            for o in outputs:
+                e = rng.normal(size=n) * float(noise[o])
+                ar = np.empty(n)
+                ar[0] = e[0]
+                for t in range(1, n):  # an experiment's data, host side
+                    ar[t] = size * ar[t - 1] + np.sqrt(1 - size**2) * e[t]
+                frame.loc[rows, o] += ar
+    return frame
+
+
+def _score(res, test: pd.DataFrame, theta, half) -> float:
+    err = (res.theta - test[theta].to_numpy()) / half
+    ok = np.asarray(res.valid, bool)
+    return float(np.mean(np.sqrt(np.mean(err[ok] ** 2, axis=0))))
+
+
+def run_case(name: str, opts: dict) -> dict:
+    import jaxcal
+
+    spec, fleet, theta, noise = _case(name, int(opts["seed"]))
+    model = jaxcal.models.load(spec)
+    low, high = model.bounds
+    index = [model.parameter_names.index(t) for t in theta]
+    half = 0.5 * (high[index] - low[index])
+    folder = os.path.join(opts["data"], name)
+    os.makedirs(folder, exist_ok=True)
+    unlabelled = os.path.join(folder, "fleet_unlabelled.csv")
+    fleet.drop(columns=[c for c in fleet.columns if c in _params(spec)]).to_csv(
+        unlabelled, index=False
+    )
+    test = fleet[fleet.unit.isin(TEST_UNITS)].reset_index(drop=True)
+    outputs = [o for o in model.output_names if o in noise]
+    tests = {
+        label: with_effect(test, outputs, noise, kind, size, np.random.default_rng(7))
+        for label, (kind, size) in EFFECTS.items()
+    }
+    result = {"model": spec, "theta": theta, "noise": noise, "ukf": {}, "runs": {}}
+    for label, frame in tests.items():
+        res = jaxcal.calibrate(
+            spec, frame, method="ukf", theta=theta, noise=noise, progress=False,
+            misfit="keep",
+        )  # fmt: skip
+        result["ukf"][label] = _score(res, frame, theta, half)
+    noise_arg = ",".join(f"{k}:{v}" for k, v in noise.items())
+    for variant in opts["variants"]:
+        extra = [
+            a.format(theta_cost=opts["theta_cost"], effects=opts["effects"])
+            for a in VARIANTS[variant]
+        ]
+        run_dir = os.path.join(opts["runs"], f"{name}-{variant}")
+        if os.path.isdir(run_dir):
+            shutil.rmtree(run_dir)
+        cmd = [
+            sys.executable, "-m", "jaxcal.train", f"model={spec}",
+            f"data={unlabelled}", f"theta={','.join(theta)}",
+            f"test_units={','.join(map(str, TEST_UNITS))}", f"noise={noise_arg}",
+            f"name={name}-{variant}", f"output.runs_dir={opts['runs']}",
+            "output.progress=false", *extra,
+        ]  # fmt: skip
+        tic = time.perf_counter()
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        job = time.perf_counter() - tic
+        with open(os.path.join(run_dir, "final.json")) as f:
+            final = json.load(f)
+        scores = {}
+        for label, frame in tests.items():
+            res = jaxcal.calibrate(
+                spec, frame, method="policy", theta=theta, run=run_dir,
+                progress=False, misfit="keep",
+            )  # fmt: skip
+            scores[label] = _score(res, frame, theta, half)
+        result["runs"][variant] = {
+            "args": extra,
+            "job_seconds": job,
+            "selected_chunk": final["selected_chunk"],
+            "training_gain": final.get("training_gain"),
+            "theta_rmse": scores,
+        }
+        print(name, variant, json.dumps(result["runs"][variant]), flush=True)
+    return result
+
+
+def _page(results: dict, opts: dict) -> str:
+    labels = list(EFFECTS)
+    lines = [
+        "# What training adds to the policy, clean and under model error",
+        "",
+        f"`python experiments/policy_robust.py cases={','.join(results)} "
+        f"variants={','.join(opts['variants'])} theta_cost={opts['theta_cost']} "
+        f"effects={opts['effects']} seed={opts['seed']}` (this machine, 2 cores). "
+        "Theta RMSE in box half-widths (mean over parameters) on the test units "
+        "(10-12), clean and with one effect in every test unit on the first output "
+        "from a third of each unit; `policy / UKF` beside each. `start`: the "
+        "untrained policy (the extended Kalman filter's step), the others trained "
+        "by the default preset (see the script's docstring).",
+        "",
+    ]
+    for name, res in results.items():
+        lines += [
+            f"## {name}",
+            "",
+            "| variant | job s | kept chunk | "
+            + " | ".join(f"{lab} (x UKF)" for lab in labels)
+            + " |",
+            "|---|---|---|" + "---|" * len(labels),
+            "| UKF | - | - | "
+            + " | ".join(f"{res['ukf'][lab]:.4g}" for lab in labels)
+            + " |",
+        ]
+        for variant, run in res["runs"].items():
+            cells = [
+                f"{run['theta_rmse'][lab]:.4g} "
+                f"({run['theta_rmse'][lab] / res['ukf'][lab]:.2f})"
+                for lab in labels
+            ]
+            lines.append(
+                f"| {variant} | {run['job_seconds']:.0f} | {run['selected_chunk']} | "
+                + " | ".join(cells)
+                + " |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    opts = {
+        "cases": "heat_exchanger,pump,motor",
+        "variants": "start,default,theta,effects,both",
+        "out": "results/policy_robust",
+        "data": "data/policy_robust",
+        "runs": "runs/policy_robust",
+        "seed": "0",
+        "theta_cost": "30",
+        "effects": "0.5",
+    }
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        if key not in opts:
+            print(f"unknown key {key!r}; valid: {sorted(opts)}", file=sys.stderr)
+            return 2
+        opts[key] = value
+    opts["variants"] = opts["variants"].split(",")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # entry point: the UKF wants float64
+    results = {name: run_case(name, opts) for name in opts["cases"].split(",")}
+    os.makedirs(opts["out"], exist_ok=True)
+    with open(os.path.join(opts["out"], "results.json"), "w") as f:
+        json.dump({"options": opts, "results": results}, f, indent=1)
+    with open(os.path.join(opts["out"], "README.md"), "w") as f:
+        f.write(_page(results, opts) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
