@@ -29,7 +29,7 @@ import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, Measurement, run_fleet
 from jaxcal.calibrators.on_disk import kept, serialisable
-from jaxcal.calibrators.traced_key import traced_key
+from jaxcal.calibrators.traced_key import fingerprint, traced_key
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array
 
@@ -81,9 +81,13 @@ _COUNTS = collections.Counter()  # builds per kind (tests read it)
 
 def problem_key(problem: Problem, dtype) -> tuple:
     """What a program depends on in ``problem`` beyond its :class:`Inputs`: the model
-    (by identity), the names and the undeclared parameters' values."""
+    (by identity, and for a user's model what its functions computed when last
+    traced: a global they read may have changed, :func:`~jaxcal.calibrators.
+    traced_key.refresh`), the names and the undeclared parameters' values."""
+    model = problem.model
     return (
-        id(problem.model),
+        id(model),
+        model.origin or fingerprint(model, dtype),
         problem.theta_names,
         problem.output_names,
         np.asarray(problem.theta_base, np.float64).tobytes(),
@@ -114,7 +118,8 @@ def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callab
 
     def build_kept():
         origin = problem.model.origin or traced_key(problem.model, dtype)
-        disk = None if origin is None else (kind, origin, *key[1][1:], settings)
+        # the disk key: the model named by origin or digest instead of id/fingerprint
+        disk = None if origin is None else (kind, origin, *key[1][2:], settings)
         return kept(build(), disk)
 
     return _remember(key, kind, problem.model, build_kept)

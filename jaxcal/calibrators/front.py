@@ -60,6 +60,10 @@ No single bad row decides anything for the other rows:
   ``nan``), with ``valid`` False. Every flag is counted on one console line (a
   ``UserWarning``, also in ``result.notes``); a calibration that keeps no row is an
   error that says why (:mod:`jaxcal.calibrators.skipped`).
+* **Bounds.** Every method's ``theta`` lies inside the declared box: the UKF's mean
+  and least squares' steps are projected onto it, any other method's estimate is
+  clipped, and the rows whose estimate reached a bound are marked
+  (``result.at_bound``) and named in a note (:mod:`jaxcal.calibrators.front_rows`).
 * **Memory** grows with the rows: units are padded in groups of similar length
   (:mod:`jaxcal.data.buckets`), one compiled program per group shape.
 
@@ -67,7 +71,10 @@ Compiled once: the UKF and least squares are compiled once per process and metho
 settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
 compiled`), and once per machine through JAX's persistent compilation cache, on by
 default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off). The screening is
-done once per data set in a process (:mod:`jaxcal.calibrators.screen_memo`).
+done once per data set in a process (:mod:`jaxcal.calibrators.screen_memo`). A
+user's model is traced again on every call (milliseconds): where a global its
+function reads has changed, the programs are built anew, never reused with the old
+value (:mod:`jaxcal.calibrators.traced_key`).
 
 The result in the data's row order, and the console line counting the skipped rows,
 are assembled by :mod:`jaxcal.calibrators.front_rows`.
@@ -82,7 +89,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from jaxcal.calibrators import methods
+from jaxcal.calibrators import methods, traced_key
 from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
     MANY_OUTLIERS,
     flag_notes,
@@ -175,9 +182,11 @@ def calibrate(
     cache.ensure_default()  # compile once per machine (jaxcal.cache)
 
     model = load(model)
+    dtype = _dtype(model)
+    if model.origin is None:  # a user's function may read a global changed since
+        traced_key.refresh(model, dtype)  # new programs if it did (15-40 ms)
     theta = _names(theta, "theta", "parameter", model.parameter_names)
     outputs = _names(outputs, "outputs", "output", model.output_names)
-    dtype = _dtype(model)
     misfit = _misfit(options.pop("misfit", "withhold"))
     cfg, data, problem, notes, threshold = _read_problem(
         model, data, method, theta, noise, outputs, options, dtype

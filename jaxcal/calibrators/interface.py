@@ -390,6 +390,22 @@ def check_prior(theta0: Array, theta_scale: Array | None) -> tuple[Array, Array]
     return theta0, check_scale(theta_scale, theta0.shape[0], theta0.dtype)
 
 
+# A projected estimate stays this share of the box's width inside it: a model
+# singular at its bound (a division by theta - low) is still finite there.
+BOX_MARGIN = 1e-6
+
+
+def inner_box(theta_box: tuple[Array, Array] | None, scale: Array):
+    """``(low [P], high [P])`` in scaled units (``theta / scale``), each
+    :data:`BOX_MARGIN` of the width inside ``theta_box``; ``None`` without a box.
+    The UKF's mean and least squares' steps are projected onto it."""
+    if theta_box is None:
+        return None
+    low, high = (jnp.asarray(b, scale.dtype) / scale for b in theta_box)
+    margin = BOX_MARGIN * (high - low)
+    return low + margin, high - margin
+
+
 def check_scale(theta_scale: Array | None, num_params: int, dtype: Any) -> Array:
     """``theta_scale`` -> a positive ``[P]`` array (ones when ``None``).
 

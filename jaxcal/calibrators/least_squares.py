@@ -59,6 +59,7 @@ from jaxcal.calibrators.interface import (
     Measurement,
     check_measurement,
     check_scale,
+    inner_box,
 )
 from jaxcal.numerics.levenberg_marquardt import (
     Damping,
@@ -155,6 +156,7 @@ def make_least_squares(
     *,
     theta0: Array,
     theta_scale: Array | None = None,
+    theta_box: tuple[Array, Array] | None = None,
 ) -> Calibrator:
     """Sliding-window Levenberg–Marquardt calibrator.
 
@@ -165,6 +167,11 @@ def make_least_squares(
             residual unit; ``centre`` is not used (residuals are differences).
         theta0: ``[P]`` initial estimate (theta units).
         theta_scale: ``[P]`` positive scales of theta, or ``None``.
+        theta_box: ``(low [P], high [P])``: each LM step's point is projected
+            onto it, a hair inside (:func:`~jaxcal.calibrators.interface.
+            inner_box`), so the estimate stays inside the declared bounds
+            (``None``: free; :func:`~jaxcal.numerics.levenberg_marquardt.
+            lm_iterate`).
 
     Returns:
         ``Calibrator(init, step)`` with :class:`LSState`; ``step`` takes ``x_t`` with
@@ -181,6 +188,7 @@ def make_least_squares(
         raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
     scale = check_scale(theta_scale, theta0.shape[0], theta0.dtype)
     sigma = measurement.noise_std * cfg.r  # residual unit: one noise std
+    box = inner_box(theta_box, scale)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> LSState:
         del key
@@ -199,7 +207,9 @@ def make_least_squares(
                 r = jnp.concatenate([r, (z - z_prev) / cfg.prior_std])
             return r
 
-        fit = lm_run(linearize(residual), z_prev, cfg.num_iters, damping_of(cfg))
+        fit = lm_run(
+            linearize(residual), z_prev, cfg.num_iters, damping_of(cfg), box=box
+        )
         num_sensors = x_t.shape[0]
         r_now = lax.dynamic_slice(fit.resid, (state.pos * num_sensors,), (num_sensors,))
         std, laplace_std, history = _lagged_std(fit, state, cfg, num_sensors)

@@ -58,6 +58,7 @@ def model_based_factory(
             return make(
                 measure, settings, measurement(inputs), theta0=inputs.theta0,
                 theta_scale=inputs.theta_scale,
+                theta_box=(inputs.theta_low, inputs.theta_high),  # stays inside
             )  # fmt: skip
 
         return static

@@ -29,7 +29,7 @@ from jaxcal.runs.atomic import write_atomic_with
 META_KEY = b"jaxcal.result"  # the Parquet schema-metadata key of a saved result
 FORMAT_VERSION = 1
 _ARRAYS = ("theta", "theta_std", "states", "xhat", "unit", "time", "valid", "reason")
-_OPTIONAL = ("partial", "misfit")  # fields that may be None
+_OPTIONAL = ("partial", "misfit", "at_bound")  # fields that may be None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -56,6 +56,10 @@ class CalibrationResult:
             output) that ``theta_std`` there is not a calibrated uncertainty
             (:mod:`jaxcal.calibrators.misfit_check`). ``None``: not checked (no
             ``theta_std``, or no screening pass to read the innovations from).
+        at_bound: ``[N]`` bool: the row's estimate reached a bound of the declared
+            box (every method's ``theta`` is kept inside it; the data may call for
+            a value beyond it, or the model misfits there). ``None``: not
+            recorded.
         theta_names, output_names: column names.
         unit, time: ``[N]`` the rows' unit and time (as read).
         method: the method's name.
@@ -85,6 +89,7 @@ class CalibrationResult:
     notes: tuple[str, ...] = ()
     partial: np.ndarray | None = None
     misfit: np.ndarray | None = None
+    at_bound: np.ndarray | None = None
     stored: Mapping | None = dataclasses.field(default=None, repr=False)
 
     @property
@@ -143,7 +148,7 @@ class CalibrationResult:
 
     def to_frame(self):
         """A pandas DataFrame: unit, time, theta (and ``<name>_std``), x-hat
-        (``<name>_hat``), valid, reason, partial, misfit."""
+        (``<name>_hat``), valid, reason, partial, misfit, at_bound."""
         import pandas as pd
 
         cols = {"unit": self.unit, "time": self.time}
@@ -161,6 +166,8 @@ class CalibrationResult:
             cols["partial"] = self.partial
         if self.misfit is not None:
             cols["misfit"] = self.misfit
+        if self.at_bound is not None:
+            cols["at_bound"] = self.at_bound
         return pd.DataFrame(cols)
 
     # ---------------------------------------------------------------- reading
@@ -251,6 +258,7 @@ class CalibrationResult:
             "reason": "reason",
             "partial": None if self.partial is None else "partial",
             "misfit": None if self.misfit is None else "misfit",
+            "at_bound": None if self.at_bound is None else "at_bound",
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -345,10 +353,11 @@ class CalibrationResult:
                 f: _read(table, meta["columns"][f], meta["dtypes"][f])
                 for f in (*_ARRAYS, "partial")
             }
-            # a field added later: absent from the files written before it
-            fields["misfit"] = _read(
-                table, meta["columns"].get("misfit"), meta["dtypes"].get("misfit")
-            )
+            # fields added later: absent from the files written before them
+            for field in ("misfit", "at_bound"):
+                fields[field] = _read(
+                    table, meta["columns"].get(field), meta["dtypes"].get(field)
+                )
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(
                 f"{path}: not a readable jaxcal result file ({err!r})"
@@ -377,7 +386,7 @@ class CalibrationResult:
 # the dtype kinds a stored field may have (a tampered file's dtype is not obeyed)
 _KINDS = {"theta": "f", "theta_std": "f", "states": "f", "xhat": "f", "unit": "iu",
           "time": "iuf", "valid": "b", "reason": "UO", "partial": "b",
-          "misfit": "b"}  # fmt: skip
+          "misfit": "b", "at_bound": "b"}  # fmt: skip
 _NAMES = {"theta": "theta_names", "states": "state_names", "xhat": "output_names"}
 
 

@@ -18,6 +18,17 @@ primal jaxpr (printed by name only), and the calibrators use first derivatives
 does not show refuses a digest (the model is then traced in every process, as
 before): a host callback, a ``custom_vjp`` (its backward pass is a Python
 function), a warm-started ``hinted_fn``, or any function that fails to trace.
+
+The same digest tells a model whose function changed within a process: a function
+reading a global that was reassigned traces to other constants, while the model
+object, and so the in-process programs keyed by its identity, stay the same.
+:func:`refresh` traces the model again (milliseconds: 15-40 ms for a small model,
+against a compilation of seconds) and :func:`fingerprint` gives the result, which
+:func:`~jaxcal.calibrators.compiled.problem_key` holds: a changed function gets new
+programs, never the old one's answers. The fingerprint reads what a jaxpr shows and
+passes over what it does not (a host callback's Python function runs at every call,
+so it reads its globals afresh; a ``custom_vjp``'s backward pass is not used by the
+forward-mode calibrators), so every model that traces has one.
 """
 
 from __future__ import annotations
@@ -31,28 +42,49 @@ from jax.extend import core as jcore
 
 from jaxcal.model import Model
 
-_MEMO: dict = {}  # (id(model), dtype, x64) -> (model, digest): model held, id kept
+# (id(model), dtype, x64) -> (model, digest, opaque): the model held, its id kept
+_MEMO: dict = {}
 _MEMO_MAX = 64
-
-
-class _Opaque(Exception):
-    """The jaxpr holds behaviour its text does not show."""
 
 
 def traced_key(model: Model, dtype) -> str | None:
     """``"traced:<sha256>"`` naming what ``model`` computes in ``dtype``, or None
     when that cannot be read off its jaxprs (see the module docstring)."""
-    key = (id(model), np.dtype(dtype).name, bool(jax.config.jax_enable_x64))
+    _, digest, opaque = _memo(model, dtype)
+    return None if opaque else digest
+
+
+def fingerprint(model: Model, dtype) -> str | None:
+    """What ``model`` computes in ``dtype`` as of its last :func:`refresh` (or first
+    use): its traced digest, opaque parts passed over; None when it does not trace
+    (the calibrator's own trace then raises the model's error)."""
+    return _memo(model, dtype)[1]
+
+
+def refresh(model: Model, dtype) -> str | None:
+    """Trace ``model`` again and keep the result (:func:`fingerprint`,
+    :func:`traced_key`): a global its function reads may have changed since."""
+    _MEMO.pop(_memo_key(model, dtype), None)
+    return fingerprint(model, dtype)
+
+
+def _memo_key(model: Model, dtype) -> tuple:
+    return (id(model), np.dtype(dtype).name, bool(jax.config.jax_enable_x64))
+
+
+def _memo(model: Model, dtype) -> tuple:
+    key = _memo_key(model, dtype)
     if key not in _MEMO:
         if len(_MEMO) >= _MEMO_MAX:
             _MEMO.pop(next(iter(_MEMO)))
-        _MEMO[key] = (model, _digest(model, np.dtype(dtype)))
-    return _MEMO[key][1]
+        _MEMO[key] = (model, *_digest(model, np.dtype(dtype)))
+    return _MEMO[key]
 
 
-def _digest(model: Model, dtype: np.dtype) -> str | None:
-    if model.hinted_fn is not None:
-        return None
+def _digest(model: Model, dtype: np.dtype) -> tuple[str | None, bool]:
+    """``(digest, opaque)``: the digest of the model's jaxprs, and whether they hold
+    behaviour their text does not show (then no key on disk)."""
+    opaque: list[str] = [] if model.hinted_fn is None else ["hinted_fn"]
     digest = hashlib.sha256()
     digest.update(repr(_declared(model)).encode())
     for bound in model.condition_range or ():
@@ -69,12 +101,12 @@ def _digest(model: Model, dtype: np.dtype) -> str | None:
     try:
         for label, fn, args in calls:
             digest.update(label.encode())
-            _absorb(digest, jax.make_jaxpr(fn)(*args))
+            _absorb(digest, jax.make_jaxpr(fn)(*args), opaque)
             if label != "check":  # a predicate has no derivative
-                _absorb(digest, jax.make_jaxpr(_tangent(fn))(*args, *args))
-    except Exception:  # noqa: BLE001 - opaque or untraceable: no digest, traced again
-        return None
-    return "traced:" + digest.hexdigest()
+                _absorb(digest, jax.make_jaxpr(_tangent(fn))(*args, *args), opaque)
+    except Exception:  # noqa: BLE001 - untraceable: no digest, traced again
+        return None, True
+    return "traced:" + digest.hexdigest(), bool(opaque)
 
 
 def _declared(model: Model) -> tuple:
@@ -99,11 +131,12 @@ def _tangent(fn):
     return jvp
 
 
-def _absorb(digest, closed) -> None:
-    """Fold a closed jaxpr's text and every constant's value into ``digest``."""
+def _absorb(digest, closed, opaque: list) -> None:
+    """Fold a closed jaxpr's text and every constant's value into ``digest``; what
+    its text does not show is named in ``opaque``."""
     digest.update(str(closed.jaxpr).encode())
     _constants(digest, closed.consts)
-    _walk(digest, closed.jaxpr)
+    _walk(digest, closed.jaxpr, opaque)
 
 
 def _constants(digest, consts) -> None:
@@ -112,29 +145,29 @@ def _constants(digest, consts) -> None:
         digest.update(f"{a.dtype}{a.shape}".encode() + a.tobytes())
 
 
-def _walk(digest, jaxpr) -> None:
-    """Inlined literals' values, sub-programs' constants; :class:`_Opaque` where a
-    parameter holds a Python function the text shows only by name."""
+def _walk(digest, jaxpr, opaque: list) -> None:
+    """Inlined literals' values, sub-programs' constants; ``opaque`` names each
+    parameter holding a Python function the text shows only by name."""
     for eqn in jaxpr.eqns:
         if eqn.primitive.name.startswith("custom_vjp"):
-            raise _Opaque(eqn.primitive.name)
+            opaque.append(eqn.primitive.name)
         for var in eqn.invars:
             if isinstance(var, jcore.Literal):
                 _constants(digest, [var.val])
         for name, value in eqn.params.items():
-            _param(digest, eqn.primitive.name, name, value)
+            _param(digest, eqn.primitive.name, name, value, opaque)
 
 
-def _param(digest, primitive: str, name: str, value) -> None:
+def _param(digest, primitive: str, name: str, value, opaque: list) -> None:
     if isinstance(value, jcore.ClosedJaxpr):
         _constants(digest, value.consts)
-        _walk(digest, value.jaxpr)
+        _walk(digest, value.jaxpr, opaque)
     elif isinstance(value, jcore.Jaxpr):
-        _walk(digest, value)
+        _walk(digest, value, opaque)
     elif isinstance(value, (tuple, list)):
         for v in value:
-            _param(digest, primitive, name, v)
+            _param(digest, primitive, name, v, opaque)
     elif callable(value) and not type(value).__module__.startswith("jax._src.mesh"):
         # a custom_jvp's rule is read through the traced derivative instead
         if not (primitive == "custom_jvp_call" and name == "jvp_jaxpr_fun"):
-            raise _Opaque(f"{primitive}.{name}")
+            opaque.append(f"{primitive}.{name}")

@@ -68,6 +68,7 @@ from jaxcal.calibrators.interface import (
     check_measurement,
     check_prior,
     check_scale,
+    inner_box,
     run_calibrator,
     run_fleet,
 )
@@ -93,6 +94,7 @@ def make_ukf(
     *,
     theta0: Array,
     theta_scale: Array | None = None,
+    theta_box: tuple[Array, Array] | None = None,
 ) -> Calibrator:
     """Build the paper's UKF as a :class:`~jaxcal.calibrators.interface.Calibrator`.
 
@@ -105,6 +107,13 @@ def make_ukf(
             diag((cfg.r noise_std)^2)``).
         theta0: ``[P]`` prior mean of the parameters (theta units).
         theta_scale: ``[P]`` positive scales; the filter runs in ``theta / scale``.
+        theta_box: ``(low [P], high [P])``: the posterior mean is projected onto
+            it after each update (the estimate projection of constrained Kalman
+            filtering, Simon 2010, IET Control Theory Appl. 4(8)), a hair inside
+            (``BOX_MARGIN`` of its width: a model singular at its bound stays
+            finite), so the estimate stays inside the declared bounds; the sigma
+            points are evaluated where
+            they fall, the unscented transform undistorted (``None``: free).
 
     Returns:
         ``Calibrator(init, step)``; the state is :class:`UKFState`; ``step`` reports
@@ -125,7 +134,7 @@ def make_ukf(
 
     return make_joint_ukf(
         Transition(init_state, step, 0), cfg, measurement, theta0=theta0,
-        theta_scale=theta_scale,
+        theta_scale=theta_scale, theta_box=theta_box, clip_points=False,
     )  # fmt: skip
 
 
@@ -140,6 +149,7 @@ def make_joint_ukf(
     state_q: Array | None = None,
     state_scale: Array | None = None,
     theta_box: tuple[Array, Array] | None = None,
+    clip_points: bool = True,
 ) -> Calibrator:
     """The joint (augmented) state-and-parameter UKF of a model with memory.
 
@@ -159,7 +169,11 @@ def make_joint_ukf(
             point's parameters clipped into this box. Sigma points spread
             ``sqrt(Z + P)`` standard deviations; with a broad prior they leave the
             range where a dynamic model is stable (a time constant below zero),
-            and one non-finite point stalls the filter for good.
+            and one non-finite point stalls the filter for good. The posterior
+            mean's parameters are projected onto the box after each update (see
+            :func:`make_ukf`).
+        clip_points: clip the sigma points' parameters into ``theta_box`` (False:
+            only the posterior mean is projected; :func:`make_ukf`).
 
     Returns:
         ``Calibrator(init, step)`` as :func:`make_ukf`, with ``aux["state"] [Z]`` and
@@ -176,7 +190,8 @@ def make_joint_ukf(
     weights = unscented_weights(num_states + num_params, cfg)  # (wm, wc, spread)
     eye = jnp.eye(num_params, dtype=theta0.dtype)
     noise = process_noise(cfg, eye, s_q, s_scale)  # (q_theta, q_state)
-    admissible = _clip_to_box(theta_box, theta0.dtype)
+    admissible = _clip_to_box(theta_box if clip_points else None, theta0.dtype)
+    project = _project_mean(theta_box, scale, num_states)
 
     def unpack(a):
         return s_scale * a[:num_states], scale * a[num_states:]
@@ -200,6 +215,7 @@ def make_joint_ukf(
         mean, cov, s_cov, innovation, log_lik = update(
             pred, x_t, measurement, weights, cfg.r
         )
+        mean = project(mean)
         z_post, theta_post = unpack(mean)
         if cfg.posterior_xhat:  # x_t of the previous posterior state, new theta
             xhat = step_fn(unpack(state.mean)[0], w_t, admissible(theta_post))[1]
@@ -218,6 +234,16 @@ def _clip_to_box(theta_box: tuple[Array, Array] | None, dtype):
         return lambda theta: theta
     low, high = (jnp.asarray(b, dtype) for b in theta_box)
     return lambda theta: jnp.clip(theta, low, high)
+
+
+def _project_mean(theta_box: tuple[Array, Array] | None, scale: Array, num_states):
+    """``a -> a`` with its scaled parameters ``a[Z:]`` clipped into ``theta_box``,
+    a hair inside (:func:`~jaxcal.calibrators.interface.inner_box`); the identity
+    without a box."""
+    if theta_box is None:
+        return lambda a: a
+    low, high = inner_box(theta_box, scale)
+    return lambda a: a.at[num_states:].set(jnp.clip(a[num_states:], low, high))
 
 
 def _state_vector(value, num_states: int, default: Array, field: str) -> Array:

@@ -152,3 +152,122 @@ def test_options_of_the_accepted_forms_calibrate(frame):
 def test_theta_and_outputs_are_lists_of_names_never_read_as_all(frame, kwargs, match):
     with pytest.raises(ValueError, match=match):
         _calibrate(tank_model(), frame, "ukf", noise=GIVEN, **kwargs)
+
+
+# ---------------------------------------------------------------- globals
+
+GAIN = {"level": 1.0}  # a global the model reads (a dict: reassigned in place)
+
+
+def _reads_a_global(w, theta):
+    return tank(w, theta) * jnp.array([GAIN["level"], 1.0, 1.0])
+
+
+def test_a_changed_global_gets_a_new_program_not_the_old_answer(frame):
+    from jaxcal.calibrators import compiled
+
+    model = tank_model(_reads_a_global, name="reads_a_global")
+    try:
+        first = _calibrate(model, frame, "ls", noise=GIVEN, window=4)
+        builds = compiled.builds()
+        again = _calibrate(model, frame, "ls", noise=GIVEN, window=4)
+        assert compiled.builds() == builds  # unchanged: the program is reused
+        GAIN["level"] = 0.8  # the level reads lower: the leak 0.8 times its value
+        changed = _calibrate(model, frame, "ls", noise=GIVEN, window=4)
+        fresh = _calibrate(
+            tank_model(_reads_a_global, name="fresh"), frame, "ls", noise=GIVEN,
+            window=4,
+        )  # fmt: skip
+    finally:
+        GAIN["level"] = 1.0
+    np.testing.assert_array_equal(again.theta, first.theta)
+    np.testing.assert_allclose(changed.theta, fresh.theta, rtol=1e-5)
+    leak = first.theta[:, 0]
+    assert np.median(changed.theta[:, 0] / leak) == pytest.approx(0.8, rel=0.05)
+
+
+# ---------------------------------------------------------------- bounds
+
+
+def _infinite_at_bound(w, theta):
+    """The tank whose level is infinite at the leak's lower bound (0.5)."""
+    heat, inflow = w[0], w[1]
+    leak, loss = theta[0], theta[1]
+    level = inflow / (leak - 0.5)
+    temp = 20.0 + heat / (inflow * (1.0 + loss))
+    return jnp.stack([level, temp, leak * inflow * (1.0 - 0.1 * loss)])
+
+
+def _frame_of(fn, frame, leak, seed=3):
+    """``frame``'s conditions with outputs of ``fn`` at ``leak`` (loss 0.2)."""
+    rng = np.random.default_rng(seed)
+    theta = np.tile([leak, 0.2], (len(frame), 1))
+    x = np.asarray(jax.vmap(fn)(frame[["heat", "inflow"]].to_numpy(), theta))
+    out = frame.copy()
+    out[list(GIVEN)] = x + NOISE * rng.standard_normal(x.shape)
+    return out
+
+
+def _last(result):
+    """The last row's theta of each unit."""
+    order = np.lexsort((result.time, result.unit))
+    ends = np.flatnonzero(np.diff(result.unit[order], append=-1) != 0)
+    return result.theta[order][ends]
+
+
+def _inside(result):
+    low, high = result.problem.theta_low, result.problem.theta_high
+    return bool(np.all((result.theta >= low) & (result.theta <= high)))
+
+
+def test_an_output_infinite_at_a_bound_keeps_the_ukf_inside_and_converging(frame):
+    data = _frame_of(_infinite_at_bound, frame, leak=0.55)
+    model = tank_model(_infinite_at_bound, name="infinite_at_bound")
+    result = _calibrate(model, data, "ukf", noise=GIVEN, outlier_z=None)
+    assert _inside(result) and np.isfinite(result.theta).all()
+    np.testing.assert_allclose(_last(result)[:, 0], 0.55, atol=0.01)
+
+
+@pytest.mark.parametrize("method", ["ukf", "ls"])
+def test_data_beyond_the_box_keep_theta_inside_and_mark_the_rows(frame, method):
+    data = _frame_of(tank, frame, leak=2.6)  # the box is [0.5, 2]
+    with pytest.warns(UserWarning, match=r"leak at its upper bound 2 on \d+ rows"):
+        result = jaxcal.calibrate(
+            tank_model(), data, method, noise=GIVEN, outlier_z=None, progress=False
+        )
+    assert _inside(result)
+    at = result.at_bound
+    np.testing.assert_array_equal(at, result.theta[:, 0] >= 2.0 - 1e-5 * 1.5)
+    assert at[result.valid].mean() > 0.5  # most rows: the data want leak 2.6
+    note = next(n for n in result.notes if "reached a bound" in n)
+    assert f"on {int((at & result.valid).sum())} of {len(at)} rows" in note
+    assert result.to_frame()["at_bound"].tolist() == at.tolist()
+
+
+def test_a_result_inside_its_box_marks_no_row(frame):
+    result = _calibrate(tank_model(), frame, "ls", noise=GIVEN, window=4)
+    assert _inside(result) and not result.at_bound.any()
+    assert not any("reached a bound" in n for n in result.notes)
+
+
+def test_any_method_s_theta_is_clipped_into_the_box_and_marked():
+    from jaxcal.calibrators.front_rows import inside_box
+
+    class Box:  # the problem's box, all inside_box reads
+        theta_low, theta_high = np.array([0.5, 0.0]), np.array([2.0, 0.5])
+
+    theta = np.array([[1.0, 0.1], [2.7, 0.1], [1.0, -0.3], [np.nan, 0.2], [2.0, 0.5]])
+    before = np.array([False, False, False, False, True])  # the prior's row
+    clipped, at = inside_box(theta, Box, before)
+    np.testing.assert_array_equal(
+        clipped, [[1.0, 0.1], [2.0, 0.1], [1.0, 0.0], [np.nan, 0.2], [2.0, 0.5]]
+    )
+    np.testing.assert_array_equal(at, [False, True, True, False, False])
+
+
+def test_at_bound_is_saved_and_loaded(frame, tmp_path):
+    data = _frame_of(tank, frame, leak=2.6)
+    result = _calibrate(tank_model(), data, "ls", noise=GIVEN, window=4)
+    loaded = jaxcal.CalibrationResult.load(result.save(tmp_path / "r.parquet"))
+    np.testing.assert_array_equal(loaded.at_bound, result.at_bound)
+    assert loaded.at_bound.any()
