@@ -7,6 +7,7 @@ folder or a JSON spec never makes jaxcal import from the working directory or
 ``trust_code=True``; the NPE posterior loads with ``torch.load(weights_only=True)``.
 """
 
+import json
 import os
 import stat
 import subprocess
@@ -140,3 +141,175 @@ def test_a_clean_calibrate_raises_no_deprecation_warning(own_cache):
     assert np.isfinite(np.asarray(result.theta)).all()
     # the program went through the on-disk path (where the warning was raised)
     assert list((own_cache / "jaxcal-programs").glob("*" + on_disk.SUFFIX))
+
+
+# ------------------------------------------------------------------ code: runs, specs
+
+MODEL_SOURCE = """
+import jax.numpy as jnp
+import jaxcal
+
+open({marker!r}, "a").write("ran\\n")  # what a planted file would do
+
+def toy(w, theta):
+    return jnp.stack([theta[0] * w[0], theta[1] + w[1]])
+
+MODEL = jaxcal.Model.from_function(
+    toy, conditions=("a", "b"), outputs=("y1", "y2"), name="toy",
+    parameters={{"p": (1.0, 0.5, 2.0), "q": (0.5, 0.1, 1.0)}},
+)
+"""
+
+
+def _run_folder(tmp_path, source: dict, copy: str | None = None):
+    """A run folder whose data.json names ``source`` (and a model copy ``copy``):
+    enough for the loaders to reach the model, which they must refuse first."""
+    from jaxcal.runs.checkpoint import save_config
+    from jaxcal.training.config import TrainConfig
+
+    run = tmp_path / "received_run"
+    (run / "model").mkdir(parents=True)
+    save_config(run, TrainConfig())
+    if copy is not None:
+        (run / "model" / "toy_model.py").write_text(copy)
+    (run / "data.json").write_text(json.dumps({"model_source": source, "x64": False}))
+    return run
+
+
+def _file_record(content: str) -> dict:
+    import hashlib
+
+    return {
+        "kind": "file", "file": "model/toy_model.py", "attr": "MODEL",
+        "sha256": hashlib.sha256(content.encode()).hexdigest(), "origin": "elsewhere",
+    }  # fmt: skip
+
+
+def test_a_runs_model_copy_runs_only_with_consent(tmp_path):
+    from jaxcal.deploy import StreamingCalibrator
+    from jaxcal.training.model_source import load_run_model
+    from jaxcal.trust import UntrustedCodeError
+
+    marker = tmp_path / "ran"
+    content = MODEL_SOURCE.format(marker=str(marker))
+    run = _run_folder(tmp_path, _file_record(content), copy=content)
+    copy = run / "model" / "toy_model.py"
+    with pytest.raises(UntrustedCodeError) as err:
+        StreamingCalibrator(run)
+    message = str(err.value)
+    assert str(copy) in message and "trust_code=True" in message
+    assert "trust_code=true" in message  # the command lines' spelling
+    assert not marker.exists()  # nothing of it ran
+    data = json.loads((run / "data.json").read_text())
+    model = load_run_model(run, data, trust_code=True)  # consent: it runs
+    assert model.name == "toy" and marker.exists()
+
+
+def test_a_file_the_user_named_is_consent_for_the_same_bytes(tmp_path):
+    from jaxcal.training.model_source import load_run_model
+    from jaxcal.trust import UntrustedCodeError
+
+    marker = tmp_path / "ran"
+    content = MODEL_SOURCE.format(marker=str(marker))
+    mine = tmp_path / "mine.py"
+    mine.write_text(content)
+    run = _run_folder(tmp_path, _file_record(content), copy=content)
+    data = json.loads((run / "data.json").read_text())
+    jaxcal.models.load(f"{mine}:MODEL")  # the user names the file: consent
+    assert load_run_model(run, data).name == "toy"
+    # other bytes (one more line) were not named: refused
+    other = content + "\n# another file\n"
+    run2 = _run_folder(tmp_path / "2", _file_record(other), copy=other)
+    with pytest.raises(UntrustedCodeError, match="trust_code"):
+        load_run_model(run2, json.loads((run2 / "data.json").read_text()))
+
+
+def test_a_runs_module_is_never_imported_from_the_working_directory(
+    tmp_path, monkeypatch
+):
+    from jaxcal.deploy import StreamingCalibrator
+    from jaxcal.trust import UntrustedCodeError
+
+    marker = tmp_path / "ran"
+    (tmp_path / "planted_model_h42.py").write_text(
+        MODEL_SOURCE.format(marker=str(marker))
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))  # as `python -m` puts the cwd first
+    source = {"kind": "module", "module": "planted_model_h42", "attr": "MODEL",
+              "sha256": "0" * 64}  # fmt: skip
+    run = _run_folder(tmp_path, source)
+    with pytest.raises(UntrustedCodeError, match="planted_model_h42:MODEL.*trust_code"):
+        StreamingCalibrator(run)
+    assert not marker.exists() and "planted_model_h42" not in sys.modules
+
+
+@pytest.mark.parametrize(
+    "source, spec",
+    [
+        ({"kind": "module", "module": "os", "attr": "getpid", "sha256": "0"}, None),
+        ({"kind": "registered", "name": "os:getpid"}, None),
+        (None, "os:getpid"),  # the older layout: a bare model_spec
+    ],
+)
+def test_a_run_never_calls_an_arbitrary_callable(tmp_path, monkeypatch, source, spec):
+    from jaxcal.training.model_source import load_run_model
+
+    calls = []
+    monkeypatch.setattr(os, "getpid", lambda: calls.append(1) or 1)
+    data = {"model_source": source} if source else {"model_spec": spec}
+    with pytest.raises(ValueError, match="trust_code|not a model this jaxcal"):
+        load_run_model(tmp_path, data)
+    assert calls == []
+
+
+def test_a_json_specs_python_base_runs_only_with_consent(tmp_path):
+    from jaxcal.trust import UntrustedCodeError
+
+    marker = tmp_path / "ran"
+    (tmp_path / "base.py").write_text(MODEL_SOURCE.format(marker=str(marker)))
+    spec = {
+        "format": "jaxcal.extended_model/1", "base": "base.py:MODEL",
+        "declared": ["p"],
+        "added": [{"name": "bias", "channel": "additive", "target": "y1",
+                   "nominal": 0.0, "low": -1.0, "high": 1.0, "unit": "-",
+                   "scale": 0.1}],
+    }  # fmt: skip
+    path = tmp_path / "extended_model.json"
+    path.write_text(json.dumps(spec))
+    with pytest.raises(UntrustedCodeError) as err:
+        jaxcal.models.load(str(path))
+    assert str(path) in str(err.value) and "trust_code=True" in str(err.value)
+    assert not marker.exists()
+    model = jaxcal.models.load(str(path), trust_code=True)
+    assert model.parameter_names == ("p", "bias") and marker.exists()
+
+
+def test_a_data_files_engine_attribute_names_only_a_registered_model():
+    from jaxcal.training.data import file_model
+
+    with pytest.raises(ValueError, match="never names code to run"):
+        file_model({"attrs": {"engine": "os:getpid"}})
+
+
+def test_the_npe_posterior_loads_with_weights_only(tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("sbi")
+    import torch
+
+    from jaxcal.paper import npe
+
+    cfg = npe.NPEConfig(
+        max_samples=200, batch_size=50, max_epochs=2, stop_after_epochs=1,
+        hidden_features=8, num_transforms=1, num_posterior_samples=20,
+    )  # fmt: skip
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(0, 1, (200, 1)).astype(np.float32)
+    feats = (theta + 0.1 * rng.standard_normal((200, 1))).astype(np.float32)
+    posterior, _ = npe.fit_npe(theta, feats, [0.0], [1.0], cfg, seed=0)
+    path = npe.save_posterior(tmp_path / "post.pt", posterior, cfg)
+    torch.load(path, weights_only=True)  # data only: no pickled code
+    loaded = npe.load_posterior(path)
+    a = npe.posterior_summary(posterior, feats[:10], cfg, seed=1)
+    b = npe.posterior_summary(loaded, feats[:10], cfg, seed=1)
+    np.testing.assert_array_equal(a["mean"], b["mean"])

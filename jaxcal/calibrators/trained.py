@@ -74,17 +74,20 @@ def load_run(
     *,
     which: str = "selected",
     step: int | None = None,
+    trust_code: bool = False,
 ) -> LoadedRun:
-    """A run's policy, read by :func:`jaxcal.deploy.loading.load_run` (see there);
-    a :class:`LoadedRun` passes through unchanged."""
+    """A run's policy, read by :func:`jaxcal.deploy.loading.load_run` (see there,
+    and ``trust_code``); a :class:`LoadedRun` passes through unchanged."""
     if isinstance(run_dir, LoadedRun):
         return run_dir
-    return read_run(run_dir, which=which, step=step)
+    return read_run(run_dir, which=which, step=step, trust_code=trust_code)
 
 
-def as_loaded(run: str | os.PathLike | LoadedRun) -> LoadedRun:
+def as_loaded(
+    run: str | os.PathLike | LoadedRun, *, trust_code: bool = False
+) -> LoadedRun:
     """``run`` loaded (a :class:`LoadedRun` passes through)."""
-    return load_run(run)
+    return load_run(run, trust_code=trust_code)
 
 
 def run_check(run: LoadedRun) -> SampleCheck | None:

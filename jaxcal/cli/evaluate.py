@@ -5,6 +5,7 @@ Usage::
     python -m jaxcal.evaluate run=runs/<name> [split=test|val] [repeats=500]
     python -m jaxcal.evaluate run=runs/<name> data=<file>
     python -m jaxcal.evaluate run=runs/<feedback run> anchor=runs/<absolute run>
+    python -m jaxcal.evaluate run=<received run> trust_code=true
 
 Runs the run's deterministic policy through every unit of the split (the held-out
 units the run recorded in ``data.json``; with ``data=``, every unit of that file, whose
@@ -27,7 +28,9 @@ when the run's model needs it. With ``anchor=`` the run (an incremental policy) 
 scored gated by that absolute policy's run (:mod:`jaxcal.calibrators.gated`; the
 report gets ``_gated`` in its name and the anchor's folder). The data file named in
 the run's config must be readable, and the run folder writable: a folder that cannot
-take the report is an error (exit code 2) before the evaluation starts.
+take the report is an error (exit code 2) before the evaluation starts. A run whose
+model is a copy of a model file (or a module) runs that code only with
+``trust_code=true``: you trust the folder (``docs/trust.md``).
 """
 
 from __future__ import annotations
@@ -37,17 +40,18 @@ import sys
 import time
 
 from jaxcal.cli.args import parse_command_line
-from jaxcal.settings import UnknownKeyError, check_output_path
+from jaxcal.settings import UnknownKeyError, check_output_path, coerce
 
 USAGE = (
     "usage: python -m jaxcal.evaluate run=runs/<name> [split=test|val] [data=FILE] "
-    "[repeats=N] [anchor=runs/<absolute run>]"
+    "[repeats=N] [anchor=runs/<absolute run>] [trust_code=true]"
 )
-KEYS = ("run", "split", "repeats", "data", "anchor")
+KEYS = ("run", "split", "repeats", "data", "anchor", "trust_code")
 
 
 def parse_args(argv: list[str]) -> dict:
-    """``{"run", "split", "repeats", "data", "anchor"}`` from ``key=value`` tokens.
+    """``{"run", "split", "repeats", "data", "anchor", "trust_code"}`` from
+    ``key=value`` tokens.
 
     Raises:
         ValueError: malformed token, unknown key (lists the valid ones), missing run,
@@ -86,6 +90,7 @@ def parse_args(argv: list[str]) -> dict:
         "repeats": repeats,
         "data": args.get("data") or None,
         "anchor": args.get("anchor") or None,
+        "trust_code": coerce(args.get("trust_code", "false"), bool, "trust_code"),
     }
 
 
@@ -154,17 +159,19 @@ def evaluate_run(
     repeats: int = 500,
     data: str | None = None,
     anchor: str | None = None,
+    trust_code: bool = False,
 ) -> dict:
     """Scores and deployment cost of a run on one split, or on every unit of the
-    file ``data``, gated by the run ``anchor`` if given (see the module docstring)."""
+    file ``data``, gated by the run ``anchor`` if given (see the module docstring);
+    ``trust_code``: run the runs' model code (``docs/trust.md``)."""
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
     from jaxcal.training.scoring import score_units
 
-    run = load_run(run_dir)
+    run = load_run(run_dir, trust_code=trust_code)
     units = _split_units(run, split, data)
-    calibrator = StreamingCalibrator(run, anchor=anchor)
+    calibrator = StreamingCalibrator(run, anchor=anchor, trust_code=trust_code)
     theta, xhat, _, reason = calibrator.run(
         units.w, units.x, units.mask, return_flags=True
     )  # compiles
@@ -273,7 +280,12 @@ def main(argv: list[str] | None = None) -> int:
         if needs_x64(args["run"]):
             enable_x64()  # before the model loads: its constants take the dtype
         report = evaluate_run(
-            args["run"], args["split"], args["repeats"], args["data"], args["anchor"]
+            args["run"],
+            args["split"],
+            args["repeats"],
+            args["data"],
+            args["anchor"],
+            trust_code=args["trust_code"],
         )
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -17,7 +17,9 @@ Usage::
 
 ``model=`` is any :func:`jaxcal.models.load` spec (a registered name such as
 ``cmapss``, ``heat_exchanger``, ``thermal``; ``path/to/file.py:attr``; an
-``extended_model.json``), default ``cmapss`` (``engine=`` is its old name). ``data=``
+``extended_model.json``; its ``.py`` base, and a policy run's model copy, run only
+with ``trust_code=true``, ``docs/trust.md``), default ``cmapss`` (``engine=`` is its
+old name). ``data=``
 is an N-CMAPSS ``.h5`` file (the turbofan's layout, streamed: never read whole) or any
 table the front door reads (``.csv``, ``.parquet``, C-MAPSS ``.txt``; held in memory),
 its columns named as the model's (:mod:`jaxcal.fleet.sources`). The method is built
@@ -89,6 +91,7 @@ class FleetConfig:
     theta0: tuple[float, ...] = ()  # prior mean / start per parameter; () = nominal
     unroll: int = 1  # lax.scan unroll factor
     seed: int = 0  # method=e2e: training seed
+    trust_code: bool = False  # run a run's model copy / a JSON spec's .py base
     options: tuple[tuple[str, Any], ...] = ()  # the method's (name, value) options
 
 
@@ -237,7 +240,7 @@ def run(cfg: FleetConfig) -> dict:
     from jaxcal.fleet.streaming import calibrate_stream, units_per_chunk
     from jaxcal.models import load
 
-    model = load(cfg.model or cfg.engine)
+    model = load(cfg.model or cfg.engine, trust_code=cfg.trust_code)
     noise = parse_noise(cfg.noise)
     require_noise(model, cfg.method, noise)
     theta, outputs, loaded = _names(cfg, model)
@@ -307,7 +310,7 @@ def _names(cfg: FleetConfig, model):
     if cfg.method == "policy":  # a trained policy fixes its names: default to them
         from jaxcal.deploy import load_run
 
-        loaded = load_run(cfg.run)
+        loaded = load_run(cfg.run, trust_code=cfg.trust_code)
         theta = theta or loaded.problem.theta_names
         outputs = outputs or loaded.problem.output_names
     return tuple(theta) or default_theta(model), outputs, loaded

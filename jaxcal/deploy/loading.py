@@ -7,8 +7,10 @@ training input range) and ``policy/`` (actor weights, surrogate weights,
 normalisation and action box, saved at every checkpoint) and ``model/`` (the copy of
 a model file). No data file and no training code path is needed. :func:`load_run`
 rebuilds the run's own model (:mod:`jaxcal.training.model_source`), never importing
-a path outside the folder; ``data.json`` files of the older layout (the turbofan's
-``RunMeta`` fields) are read too.
+a path outside the folder, and running the folder's model copy only with the user's
+consent (``trust_code=True``, or the same file named by the user in this process:
+:mod:`jaxcal.trust`, ``docs/trust.md``); ``data.json`` files of the older layout (the
+turbofan's ``RunMeta`` fields) are read too.
 
 The record it returns, :class:`~jaxcal.calibrators.trained.LoadedRun`, and what
 turns it into a calibrator live with the calibrators, which cannot import this
@@ -66,7 +68,13 @@ def needs_x64(run_dir: str | os.PathLike) -> bool:
     return bool(data.get("x64", _LEGACY_X64))
 
 
-def run_problem(data: dict, model=None, run_dir: str | os.PathLike = ".") -> Problem:
+def run_problem(
+    data: dict,
+    model=None,
+    run_dir: str | os.PathLike = ".",
+    *,
+    trust_code: bool = False,
+) -> Problem:
     """The :class:`Problem` of a ``data.json`` dict (either layout).
 
     Args:
@@ -74,8 +82,9 @@ def run_problem(data: dict, model=None, run_dir: str | os.PathLike = ".") -> Pro
         model: the model (``None``: the run's own,
             :func:`~jaxcal.training.model_source.load_run_model`).
         run_dir: the run folder ``data`` comes from (where its model copy lies).
+        trust_code: consent to run the run's model copy or module.
     """
-    model = model or load_run_model(run_dir, data)
+    model = model or load_run_model(run_dir, data, trust_code=trust_code)
     if "problem" in data:
         return Problem.from_json(data["problem"], model)
     # the older layout: RunMeta fields + the box and normalisation beside them,
@@ -98,7 +107,11 @@ def run_problem(data: dict, model=None, run_dir: str | os.PathLike = ".") -> Pro
 
 
 def load_run(
-    run_dir: str | os.PathLike, *, which: str = "selected", step: int | None = None
+    run_dir: str | os.PathLike,
+    *,
+    which: str = "selected",
+    step: int | None = None,
+    trust_code: bool = False,
 ) -> LoadedRun:
     """Load a run's policy.
 
@@ -108,17 +121,21 @@ def load_run(
             validation tracking RMSE, or the last one); ``"last"``: the latest
             checkpoint.
         step: a specific checkpoint step of ``which`` (``None``: the newest).
+        trust_code: run the run's model code (its copy of a model file, or its
+            module): the user trusts the folder. Not needed for a registered model,
+            nor for a file the user named in this process (``docs/trust.md``).
 
     The model is the run's own (:mod:`jaxcal.training.model_source`: the copy of a
     model file kept in the folder, or a registered or installed module's by name),
-    never a path outside the folder. Loading a run runs its model's code: load only
-    run folders you trust.
+    never a path outside the folder.
 
     Raises:
         FileNotFoundError: the folder is not a run, or it has no policy checkpoint.
         ValueError: the checkpoint does not match the run's config, the model
             cannot be loaded (its copy edited, or a file outside the folder), or it
-            needs x64 and x64 is off.
+            needs x64 and x64 is off; :class:`~jaxcal.trust.UntrustedCodeError` (a
+            ValueError) naming the model copy and ``trust_code`` when its code needs
+            the user's consent.
     """
     if which not in ("selected", "last"):
         raise ValueError(f"which must be 'selected' or 'last', got {which!r}")
@@ -127,7 +144,8 @@ def load_run(
     if needs_x64(run_dir):
         require_x64(f"run {run_dir}: dynamics=physics on a model that needs float64")
     data = read_json(run_dir / DATA_FILE)
-    problem = run_problem(data, run_dir=run_dir)  # its own model: never a path outside
+    # its own model: never a path outside, its code only with the user's consent
+    problem = run_problem(data, run_dir=run_dir, trust_code=trust_code)
     physics64 = cfg.dynamics == "physics" and problem.model.x64
     dtype = jnp.float64 if physics64 else jnp.float32
     dims = (

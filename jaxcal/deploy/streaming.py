@@ -60,6 +60,8 @@ class StreamingCalibrator:
         anchor: an absolute policy's run (with its ``uncertainty.json``) that takes
             over where the model misfits the data; ``run`` must then be an
             incremental policy (:mod:`jaxcal.calibrators.gated`).
+        trust_code: run the runs' model code (a copy of a model file, a module)
+            given as folders: the user trusts them (``docs/trust.md``).
 
     Attributes:
         conditions: the W condition names ``w`` must follow, in order.
@@ -74,13 +76,18 @@ class StreamingCalibrator:
         self,
         run: str | os.PathLike | LoadedRun,
         anchor: str | os.PathLike | LoadedRun | None = None,
+        *,
+        trust_code: bool = False,
     ):
-        self.run_info = as_loaded(run)
+        self.run_info = as_loaded(run, trust_code=trust_code)
         problem = self.run_info.problem
         self.sensors = problem.output_names
         self.theta_names = problem.theta_names
         self.conditions = problem.model.condition_names
-        self._params = self.run_info.params
+        # placed on the device once: a checkpoint's leaves are host numpy, and a
+        # numpy argument is copied to the device on every call (the actor's weights,
+        # ~0.3 MB, at every sample: most of a small model's step)
+        self._params = jax.device_put(self.run_info.params)
         self._dtype = np.dtype(self._params.x_mean.dtype)
         self.check = run_check(self.run_info)
         # placed once: a numpy box would be copied to the device on every step
@@ -90,11 +97,13 @@ class StreamingCalibrator:
         # solution (a turbofan's Newton solve); whole trajectories keep the cold solve
         self._step = make_guarded_stream_step(actor, dynamics, warm_start=True)
         self._run = make_fleet_runner(actor, dynamics)
-        self._band = self.run_info.band
+        self._band = jax.device_put(self.run_info.band)
         self._carry0 = initial_guard_carry(
             actor, dynamics, self._params, self._band, warm_start=True
         )
-        self.anchor_info = None if anchor is None else as_loaded(anchor)
+        self.anchor_info = (
+            None if anchor is None else as_loaded(anchor, trust_code=trust_code)
+        )
         if self.anchor_info is not None:
             self._gated(self._carry0)
         self.reset()
@@ -161,14 +170,16 @@ class StreamingCalibrator:
         self._carry, out, reason = self._step(
             self._params, self._carry, w, x, self._check_dev, self._band
         )
+        aux = out.aux if isinstance(out.aux, dict) else {}
+        # one transfer to the host for everything the caller reads (each separate
+        # read would wait on the device and copy on its own)
+        theta, reason, std, gate = jax.device_get(
+            (out.theta, reason, aux.get("theta_std"), aux.get("gate_open"))
+        )
         self.last_reason = REASONS[int(reason)]
         self.last_valid = self.last_reason == "ok"
-        aux = out.aux if isinstance(out.aux, dict) else {}
-        std = aux.get("theta_std")
-        gate = aux.get("gate_open")
         return StepInfo(
-            np.asarray(out.theta), self.last_valid, self.last_reason,
-            theta_std=None if std is None else np.asarray(std),
+            theta, self.last_valid, self.last_reason, theta_std=std,
             gate_open=None if gate is None else bool(gate),
         )  # fmt: skip
 

@@ -8,8 +8,12 @@ callable returning one, or an ``extended_model.json`` written by the diagnosis
 (:mod:`jaxcal.models.extended`). The command lines take the same spec as ``model=``.
 
 Loading a module or a file runs its code, as unpickling does: load only models you
-trust. Whatever goes wrong in it (a syntax error, an exception at import or in the
-factory, a missing attribute, something that is not a model) is a ``ValueError``
+trust. Naming a file or a module here is the user's consent to run it
+(:func:`jaxcal.trust.consent`: a run's copy of the same bytes then loads too); an
+``extended_model.json`` whose base is a ``.py`` or a module runs that base only with
+``trust_code=True`` or the base named here before (``docs/trust.md``). Whatever goes
+wrong in it (a syntax error, an exception at import or in the factory, a missing
+attribute, something that is not a model) is a ``ValueError``
 naming the spec, the file and the line, so a command line exits 2 with one line.
 """
 
@@ -23,7 +27,7 @@ import sys
 import traceback
 from collections.abc import Callable
 
-from jaxcal import cache
+from jaxcal import cache, trust
 from jaxcal.model import Model
 from jaxcal.precision import is_x64
 
@@ -94,8 +98,9 @@ def _load_file(path: str, spec: str):
     return module
 
 
-def load(spec: str | Model) -> Model:
-    """The model named by ``spec`` (see the module docstring).
+def load(spec: str | Model, *, trust_code: bool = False) -> Model:
+    """The model named by ``spec`` (see the module docstring); ``trust_code``: run
+    the ``.py`` or module base an ``extended_model.json`` names.
 
     Raises:
         ValueError: an unknown name, a missing file or attribute, an attribute
@@ -114,7 +119,7 @@ def load(spec: str | Model) -> Model:
 
         if not os.path.isfile(spec):
             raise ValueError(f"model={spec!r}: file not found")
-        return load_extended(spec)
+        return load_extended(spec, trust_code=trust_code)
     if ":" not in spec:
         raise ValueError(
             f"model={spec!r}: unknown model; registered: {list(available())}, or "
@@ -132,7 +137,17 @@ def load(spec: str | Model) -> Model:
             raise ValueError(_failure(err, spec, None, f"importing {where}")) from err
     if not hasattr(module, attr):
         raise ValueError(f"model={spec!r}: {where} has no attribute {attr!r}")
+    _consent(module, attr if where.endswith(".py") or os.sep in where else spec)
     return _from_attr(getattr(module, attr), spec, getattr(module, "__file__", None))
+
+
+def _consent(module, name: str) -> None:
+    """The user named this module's file (jaxcal.trust): its bytes may load again
+    from a run's copy or an extension's base without ``trust_code``."""
+    origin = getattr(module, "__file__", None)
+    if origin and os.path.isfile(origin):
+        with open(origin, "rb") as f:
+            trust.consent(f.read(), name)
 
 
 def _builtin(name: str) -> Model:

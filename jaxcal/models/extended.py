@@ -8,9 +8,11 @@ and ``model=`` on every command line accept it. Each added parameter enters thro
 one channel: a base ``parameter`` (undeclared until now), a registered ``effect``
 input, a ``condition`` offset (the model sees ``w + offset``), or the measurement
 layer, ``additive`` (``x + a``) or ``multiplicative`` (``x (1 + m)``) on one output.
-The base model's other parameters are held at their nominal values. Loading the file
-loads the base model; a base given as a Python file runs that file's code, as loading
-a pickle does: load only files you trust.
+The base model's other parameters are held at their nominal values. The JSON is data;
+its base is code when it names a ``.py`` file or a module, which runs only with the
+user's consent (:mod:`jaxcal.trust`, ``docs/trust.md``): ``trust_code=True``, or the
+same file (same bytes) named by the user in this process. A base that is a registered
+name loads without asking.
 """
 
 from __future__ import annotations
@@ -128,9 +130,52 @@ def resolve_base(spec: dict, path: str) -> str:
     return base
 
 
-def load_extended(path: str) -> Model:
+def _check_base_consent(base: str, path: str, trust_code: bool) -> None:
+    """Refuse a ``.py`` or module base the user did not consent to run
+    (:func:`jaxcal.trust.require_consent`); a registered name passes."""
+    import sys
+
+    from jaxcal import trust
+    from jaxcal.models import available
+
+    where, sep, attr = base.rpartition(":")
+    if base in available() or not sep:
+        return
+    what = f"{path}: its base {base!r}"
+    if where.endswith(".py") or os.sep in where:
+        try:
+            with open(where, "rb") as f:
+                content = f.read()
+        except OSError as err:
+            raise ValueError(f"{what} cannot be read ({err})") from None
+        trust.require_consent(content, attr, what, trust_code)
+        return
+    if trust_code:
+        return
+    # a module: only one the user named (and so imported) before; never a search
+    # of sys.path on the file's say-so
+    module = sys.modules.get(where)
+    origin = getattr(module, "__file__", None) if module is not None else None
+    content = b""
+    if origin and os.path.isfile(origin):
+        with open(origin, "rb") as f:
+            content = f.read()
+    trust.require_consent(content, base, what, trust_code)
+
+
+def load_extended(path: str, *, trust_code: bool = False) -> Model:
     """The model of an ``extended_model.json`` (a relative ``.py`` base is resolved
-    against the file's folder)."""
+    against the file's folder).
+
+    Args:
+        path: the file.
+        trust_code: run its base when it is a ``.py`` file or a module (without:
+            only a registered name, or a file the user named in this process).
+
+    Raises:
+        ValueError: the file is not an extended model; UntrustedCodeError (a
+            ValueError) naming the file and the flag when the base needs consent.
+    """
     from jaxcal.models import load
 
     try:
@@ -142,9 +187,14 @@ def load_extended(path: str) -> Model:
         ) from None
     if not isinstance(spec, dict) or spec.get("format") != FORMAT:
         raise ValueError(f"{path}: not an extended model (expected format {FORMAT!r})")
-    base = resolve_base(spec, path)
     try:
+        base = resolve_base(spec, path)
         added = [Added(**a) for a in spec["added"]]
+        declared = list(spec["declared"])
     except (KeyError, TypeError) as err:
-        raise ValueError(f"{path}: bad 'added' entry ({err})") from None
-    return build_extended(load(base), spec["declared"], added)
+        raise ValueError(
+            f"{path}: bad extended model, field {err} missing or malformed (expected "
+            "'base', 'declared' and 'added' as written by jaxcal.diagnose)"
+        ) from None
+    _check_base_consent(base, path, trust_code)
+    return build_extended(load(base, trust_code=trust_code), declared, added)

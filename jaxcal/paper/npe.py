@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import io
+import json
 import time
 import warnings
 from pathlib import Path
@@ -322,18 +323,80 @@ def interval_scores(summary: dict, theta, names) -> dict:
     }
 
 
-def save_posterior(path, posterior) -> Path:
-    """Store a fitted posterior (pickled by ``torch.save``) atomically."""
+POSTERIOR_FORMAT = "jaxcal.npe_posterior/1"
+
+
+def save_posterior(path, posterior, cfg: NPEConfig) -> Path:
+    """Store a fitted posterior atomically as data, not as a pickle: its density
+    estimator's weights (``state_dict``, tensors) and, as JSON text, what rebuilds
+    it (``cfg``'s estimator settings, the prior's box, the features' size), so that
+    :func:`load_posterior` reads it with ``torch.load(weights_only=True)``, which
+    runs no code from the file (``docs/trust.md``)."""
     torch, *_ = require_sbi()
+    estimator = posterior.posterior_estimator
+    box = posterior.prior.base_dist  # BoxUniform: Independent(Uniform(low, high))
+    meta = {
+        "format": POSTERIOR_FORMAT,
+        "density_estimator": cfg.density_estimator,
+        "hidden_features": cfg.hidden_features,
+        "num_transforms": cfg.num_transforms,
+        "low": box.low.tolist(),
+        "high": box.high.tolist(),
+        "num_features": int(np.prod(tuple(_condition_shape(estimator)))),
+    }
+    payload = {"meta": json.dumps(meta), "state_dict": dict(estimator.state_dict())}
     buf = io.BytesIO()
-    torch.save(posterior, buf)
+    torch.save(payload, buf)
     return write_atomic(path, buf.getvalue())
 
 
+def _condition_shape(estimator):
+    """The features' shape an sbi density estimator is conditioned on."""
+    shape = getattr(estimator, "condition_shape", None)
+    return estimator._condition_shape if shape is None else shape
+
+
 def load_posterior(path):
-    """A posterior stored by :func:`save_posterior` (a pickle: trusted files only)."""
-    torch, *_ = require_sbi()
+    """A posterior stored by :func:`save_posterior`: read with
+    ``torch.load(weights_only=True)`` (tensors and plain values only), its estimator
+    rebuilt from the stored settings and its weights loaded into it.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: the file is not a posterior of this format (naming it).
+    """
+    torch, inference, neural_nets, utils = require_sbi()
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no NPE posterior at {path} (run its fit step first)")
-    return torch.load(path, weights_only=False)
+    try:
+        payload = torch.load(path, weights_only=True)
+        meta = json.loads(payload["meta"])
+        state = payload["state_dict"]
+    except Exception as err:  # noqa: BLE001 - an old pickle, a damaged file
+        raise ValueError(
+            f"{path}: not an NPE posterior of format {POSTERIOR_FORMAT} ({err}); "
+            "run its fit step again"
+        ) from None
+    if meta.get("format") != POSTERIOR_FORMAT:
+        raise ValueError(
+            f"{path}: format {meta.get('format')!r}, not {POSTERIOR_FORMAT}"
+        )
+    low = torch.as_tensor(meta["low"], dtype=torch.float32)
+    high = torch.as_tensor(meta["high"], dtype=torch.float32)
+    builder = neural_nets.posterior_nn(
+        model=meta["density_estimator"],
+        hidden_features=meta["hidden_features"],
+        num_transforms=meta["num_transforms"],
+    )
+    # the builder needs example batches for its shapes; the z-scoring they would
+    # set is part of the stored weights and is overwritten by them
+    gen = torch.Generator().manual_seed(0)
+    theta = low + (high - low) * torch.rand((64, low.numel()), generator=gen)
+    feats = torch.randn((64, meta["num_features"]), generator=gen)
+    estimator = builder(theta, feats)
+    estimator.load_state_dict(state)
+    estimator.eval()
+    return inference.DirectPosterior(
+        posterior_estimator=estimator, prior=utils.BoxUniform(low, high)
+    )

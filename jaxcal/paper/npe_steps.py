@@ -69,7 +69,7 @@ def fit_step(suite, cfg: npe.NPEConfig, *, seed: int) -> dict:
         theta, feats, suite.problem.theta_low, suite.problem.theta_high, cfg,
         seed=seed,
     )  # fmt: skip
-    path = npe.save_posterior(_posterior_path(suite), posterior)
+    path = npe.save_posterior(_posterior_path(suite), posterior, cfg)
     return {
         "method": "NPE",
         **info,

@@ -28,12 +28,15 @@ _READER: list[Callable[..., Any]] = []  # the one registered reader, if any
 
 
 def register_run_reader(reader: Callable[..., Any]) -> None:
-    """Make ``reader(run_dir, *, which, step)`` the reader of :func:`read_run`
-    (the package root registers :func:`jaxcal.deploy.loading.load_run`)."""
+    """Make ``reader(run_dir, *, which, step, trust_code)`` the reader of
+    :func:`read_run` (the package root registers
+    :func:`jaxcal.deploy.loading.load_run`)."""
     _READER[:] = [reader]
 
 
-def read_run(run_dir: str | os.PathLike, *, which: str = "selected", step=None):
+def read_run(
+    run_dir: str | os.PathLike, *, which: str = "selected", step=None, trust_code=False
+):
     """A trained run's policy, read by the registered reader
     (:func:`jaxcal.deploy.loading.load_run`: its arguments and errors).
 
@@ -46,4 +49,4 @@ def read_run(run_dir: str | os.PathLike, *, which: str = "selected", step=None):
             "no run reader registered: jaxcal/__init__ registers "
             "jaxcal.deploy.loading.load_run when the package is imported"
         )
-    return _READER[0](run_dir, which=which, step=step)
+    return _READER[0](run_dir, which=which, step=step, trust_code=trust_code)

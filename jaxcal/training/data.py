@@ -286,11 +286,19 @@ def _take(fleet: Padded, mask: np.ndarray) -> Padded:
 
 def file_model(info: dict) -> Model:
     """The turbofan the file (its :func:`~jaxcal.data.ncmapss_io.ncmapss_info`)
-    names (its ``engine`` attribute), else ``cmapss``."""
-    from jaxcal.models import load
+    names (its ``engine`` attribute), else ``cmapss``; only a registered name: a
+    data file never names code to run (``docs/trust.md``)."""
+    from jaxcal.models import available, load
 
     engine = _json_attr(info["attrs"], "engine")
-    return load(str(engine) if engine else "cmapss")
+    name = str(engine) if engine else "cmapss"
+    if name not in available():
+        raise ValueError(
+            f"the data file's 'engine' attribute names the model {name!r}, not a "
+            f"registered model ({', '.join(available())}): a data file never names "
+            "code to run; give the model yourself (model=)"
+        )
+    return load(name)
 
 
 def _provenance(path, info: dict, stride: int, dev, test, units, dropped) -> dict:

@@ -12,8 +12,10 @@ job stores (``data.json`` ``"model_source"``), by the kind of spec:
   name and the jaxcal version; the installed jaxcal's model is loaded, with a
   warning when the version differs.
 * ``package.module:attr`` (``"module"``): the module name, and the sha256 of its
-  source file; the installed module is imported by name (never by path), with a
-  warning when its source changed since training.
+  source file. It loads only with the user's consent: the same ``module:attr``
+  named by the user in this process (then nothing new is imported), or
+  ``trust_code=True`` (imported by name, as Python finds it), with a warning when
+  its source changed since training.
 * an ``extended_model.json`` of the diagnosis (``"extended"``): a copy of the file
   and its sha256, with its base model stored by the same rules (a base file copied
   beside it), so the extension loads from the run alone.
@@ -24,9 +26,14 @@ older layout (a bare ``model_spec``) still loads a registered or module model; o
 naming a file outside the folder is refused, as loading it would run that file:
 :func:`adopt_model_file` copies a file you trust into the run.
 
-Loading a run folder runs its model's code, as loading a pickle does: load only run
-folders you trust. :mod:`jaxcal.calibrators.run_model` compares a model passed to a
-run with the run's own.
+What a run says is data, its model copy code (``docs/trust.md``): a copy runs only
+with the user's consent (:mod:`jaxcal.trust`): ``trust_code=True``, or the same file
+(same bytes and attribute) named by the user in this process, e.g. trained on in this
+session. Without it the load is refused with an error naming the copy and the flag.
+A run never makes jaxcal import a module from the working directory or ``sys.path``
+on its own say-so, nor call any function but the one its consented copy names.
+:mod:`jaxcal.calibrators.run_model` compares a model passed to a run with the run's
+own.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
+from jaxcal import trust
 from jaxcal.model import Model
 from jaxcal.models import available, load
 from jaxcal.runs.atomic import write_atomic
@@ -209,7 +217,7 @@ def _copy_path(run_dir: Path, record: dict) -> Path:
     return path
 
 
-def _load_copy(run_dir: Path, record: dict) -> Model:
+def _load_copy(run_dir: Path, record: dict, trust_code: bool) -> Model:
     path = _copy_path(run_dir, record)
     attr = str(record.get("attr", ""))
     if not _IDENTIFIER.fullmatch(attr):
@@ -225,6 +233,8 @@ def _load_copy(run_dir: Path, record: dict) -> Model:
             f"the {str(record.get('sha256'))[:12]}... it was trained on: the copy was "
             "edited after training; restore it or retrain the run"
         )
+    what = f"run {run_dir}: its model copy {path} ({attr})"
+    trust.require_consent(content, attr, what, trust_code)
     # Run from the bytes just hashed (no import machinery: no stale bytecode, no
     # __pycache__ written into the run), under a module name of its own.
     name = f"_jaxcal_run_model_{digest[:16]}"
@@ -252,23 +262,38 @@ def _changed(what: str, run_dir: Path, detail: str) -> None:
     )
 
 
-def load_run_model(run_dir: str | os.PathLike, data: dict) -> Model:
+def load_run_model(
+    run_dir: str | os.PathLike, data: dict, *, trust_code: bool = False
+) -> Model:
     """The model of a run folder (its ``data.json`` ``data``); see the module
     docstring for what is loaded and when it warns.
 
+    Args:
+        run_dir: the run folder.
+        data: its parsed ``data.json``.
+        trust_code: the user's consent to run the run's model copy or module
+            (:mod:`jaxcal.trust`); a registered model needs none.
+
     Raises:
         ValueError: the copy is missing, outside the folder or edited, the record is
-            malformed, or (older layout) the model is a file outside the folder.
+            malformed, or (older layout) the model is a file outside the folder;
+            :class:`~jaxcal.trust.UntrustedCodeError` (a ValueError) naming the
+            copy or module and the flag when it needs the user's consent.
     """
     run_dir = Path(run_dir)
     record = data.get("model_source")
     if record is None:
-        return _load_legacy(run_dir, str(data.get("model_spec", data.get("engine"))))
+        spec = str(data.get("model_spec", data.get("engine")))
+        return _load_legacy(run_dir, spec, trust_code)
+    if not isinstance(record, dict):
+        raise ValueError(
+            f"run {run_dir}: data.json's model_source is {record!r}, not an object"
+        )
     kind = record.get("kind")
     if kind == "file":
-        return _load_copy(run_dir, record)
+        return _load_copy(run_dir, record, trust_code)
     if kind == "extended":
-        return _load_extended(run_dir, record)
+        return _load_extended(run_dir, record, trust_code)
     if kind == "registered" and record.get("name") in available():
         if record.get("version") != __version__:
             _changed(f"jaxcal {record.get('version')}'s {record['name']!r}", run_dir,
@@ -276,6 +301,7 @@ def load_run_model(run_dir: str | os.PathLike, data: dict) -> Model:
         return load(record["name"])
     module, attr = str(record.get("module")), str(record.get("attr"))
     if kind == "module" and _MODULE.fullmatch(module) and _IDENTIFIER.fullmatch(attr):
+        _module_consent(run_dir, module, attr, trust_code)
         model = load(f"{module}:{attr}")  # a module name: never a path
         origin = getattr(sys.modules.get(module), "__file__", None)
         digest = _sha256(Path(origin).read_bytes()) if origin else None
@@ -290,7 +316,19 @@ def load_run_model(run_dir: str | os.PathLike, data: dict) -> Model:
     )
 
 
-def _load_extended(run_dir: Path, record: dict) -> Model:
+def _module_consent(run_dir: Path, module: str, attr: str, trust_code: bool) -> None:
+    """A run's module model loads with ``trust_code``, or when the user named the
+    same ``module:attr`` in this process (already imported: nothing is searched
+    for on ``sys.path``, the working directory included, on the run's say-so)."""
+    if trust_code:
+        return
+    origin = getattr(sys.modules.get(module), "__file__", None)
+    content = Path(origin).read_bytes() if origin and os.path.isfile(origin) else b""
+    what = f"run {run_dir}: its model, the module {module}:{attr},"
+    trust.require_consent(content, f"{module}:{attr}", what, trust_code)
+
+
+def _load_extended(run_dir: Path, record: dict, trust_code: bool) -> Model:
     """An extension from its checked copy, over its base loaded from the run."""
     import json
 
@@ -303,7 +341,8 @@ def _load_extended(run_dir: Path, record: dict) -> Model:
             f"run {run_dir}: its extended-model copy {path} was edited after training"
         )
     ext = json.loads(content)
-    base = load_run_model(run_dir, {"model_source": record.get("base")})
+    base_record = {"model_source": record.get("base")}
+    base = load_run_model(run_dir, base_record, trust_code=trust_code)
     return build_extended(base, ext["declared"], [Added(**a) for a in ext["added"]])
 
 
@@ -316,7 +355,7 @@ def recorded_source(data: dict) -> dict | None:
     return {"kind": "registered", "name": spec} if spec in available() else None
 
 
-def _load_legacy(run_dir: Path, spec: str) -> Model:
+def _load_legacy(run_dir: Path, spec: str, trust_code: bool) -> Model:
     where, sep, _ = spec.rpartition(":")
     if sep and _is_file_spec(where):
         raise ValueError(
@@ -325,7 +364,11 @@ def _load_legacy(run_dir: Path, spec: str) -> Model:
             "would run that file. If you trust it: jaxcal.deploy.adopt_model_file("
             f"{str(run_dir)!r}, {where!r}) copies it into the run; else retrain"
         )
-    if spec in available() or (sep and _MODULE.fullmatch(where)):
+    if spec in available():
+        return load(spec)
+    attr = spec.rpartition(":")[2]
+    if sep and _MODULE.fullmatch(where) and _IDENTIFIER.fullmatch(attr):
+        _module_consent(run_dir, where, attr, trust_code)
         return load(spec)
     raise ValueError(f"run {run_dir}: data.json names no loadable model ({spec!r})")
 
@@ -351,6 +394,6 @@ def adopt_model_file(run_dir: str | os.PathLike, path: str | os.PathLike) -> Mod
     source = model_source(f"{Path(path).absolute()}:{attr}")
     with hold_run(run_dir):
         store_model_source(run_dir, source)
-        model = _load_copy(run_dir, source.record)
+        model = _load_copy(run_dir, source.record, trust_code=True)  # named by you
         write_json(run_dir / DATA_FILE, {**data, "model_source": source.record})
     return model

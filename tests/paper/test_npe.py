@@ -72,7 +72,7 @@ def test_npe_recovers_a_known_posterior(toy_posterior):
 def test_npe_is_reproducible_and_round_trips(toy_posterior, tmp_path):
     posterior, _ = toy_posterior
     _, feats = _toy(2, 50)
-    path = npe.save_posterior(tmp_path / "post.pt", posterior)
+    path = npe.save_posterior(tmp_path / "post.pt", posterior, TINY)
     loaded = npe.load_posterior(path)
     a = npe.posterior_summary(posterior, feats, TINY, seed=3)
     b = npe.posterior_summary(loaded, feats, TINY, seed=3)

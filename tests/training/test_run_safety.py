@@ -352,8 +352,11 @@ def test_what_a_run_records_of_a_registered_or_module_model():
     spec = "jaxcal.models.heat_exchanger:heat_exchanger_model"
     record = model_source(spec).record
     assert record["kind"] == "module" and len(record["sha256"]) == 64
+    changed = {"model_source": {**record, "sha256": "0" * 64}}
+    with pytest.raises(ValueError, match="trust_code=True"):  # code: needs consent
+        load_run_model(".", changed)
     with pytest.warns(UserWarning, match="differs"):
-        load_run_model(".", {"model_source": {**record, "sha256": "0" * 64}})
+        load_run_model(".", changed, trust_code=True)
     with pytest.raises(ValueError, match="put the model in a file"):
         model_source("__main__:MODEL")
     # a run of the older layout: a registered name is its record, a file none
