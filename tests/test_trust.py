@@ -313,3 +313,20 @@ def test_the_npe_posterior_loads_with_weights_only(tmp_path):
     a = npe.posterior_summary(posterior, feats[:10], cfg, seed=1)
     b = npe.posterior_summary(loaded, feats[:10], cfg, seed=1)
     np.testing.assert_array_equal(a["mean"], b["mean"])
+
+
+def test_the_evaluate_command_line_refuses_a_received_run_without_trust_code(
+    tmp_path, capsys
+):
+    from jaxcal.cli import evaluate
+
+    marker = tmp_path / "ran"
+    content = MODEL_SOURCE.format(marker=str(marker))
+    run = _run_folder(tmp_path, _file_record(content), copy=content)
+    assert evaluate.main([f"run={run}"]) == 2
+    err = capsys.readouterr().err
+    assert "toy_model.py" in err and "trust_code=true" in err
+    assert not marker.exists()
+    assert evaluate.parse_args([f"run={run}", "trust_code=true"])["trust_code"] is True
+    with pytest.raises(ValueError, match="trust_code='maybe': expected a bool"):
+        evaluate.parse_args([f"run={run}", "trust_code=maybe"])
