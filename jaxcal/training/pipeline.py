@@ -68,6 +68,7 @@ does).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -181,6 +182,27 @@ def run_training(
     return final
 
 
+def fit_episode(cfg: TrainConfig, longest: int, log: Callable[[str], None]):
+    """``cfg`` with its training windows fitted to the data: a window of
+    ``env.episode_length`` steps needs that many rows plus two, and where no unit
+    has them every episode would start on the first unit (the draw among no
+    eligible unit) and run past its end. Shorter windows then, said in the log."""
+    if cfg.env.episode_length + 2 <= longest:
+        return cfg
+    if longest < 3:
+        raise ValueError(
+            f"the longest training unit has {longest} rows: a training window "
+            "needs at least 3"
+        )
+    log(
+        f"env.episode_length {cfg.env.episode_length} needs units of "
+        f"{cfg.env.episode_length + 2} rows, the longest training unit has "
+        f"{longest}: training windows of {longest - 2} steps"
+    )
+    env = dataclasses.replace(cfg.env, episode_length=longest - 2)
+    return dataclasses.replace(cfg, env=env)
+
+
 def _train(
     cfg: TrainConfig,
     run_dir: Path,
@@ -202,6 +224,7 @@ def _train(
         cfg, key_surrogate, data, sims, run_dir, log
     )
     train_params = make_training_env(cfg, data, sims, dyn_params, dtype, log)
+    cfg = fit_episode(cfg, int(jax.device_get(train_params.lengths).max()), log)
     write_json(run_dir / DATA_FILE, _data_record(cfg, problem, data, model_record))
     env_cfg = env_config(
         sims.with_noise_floor(cfg),

@@ -68,3 +68,18 @@ def _final(gain: dict) -> dict:
         "test_last": {"theta_rmse": None}, "policy": "target", "selected_chunk": 0,
         "select": "sim_theta", "training_gain": gain,
     }  # fmt: skip
+
+
+def test_training_windows_fit_the_longest_unit():
+    """A unit of 200 rows holds no window of the default 200 steps (202 rows): the
+    episodes were all drawn on the first unit and ran past its end. The windows are
+    shortened instead, and the log says so."""
+    from jaxcal.training.pipeline import fit_episode
+
+    cfg = resolve_config(["dataset=tiny", "env.episode_length=200"])
+    said = []
+    fitted = fit_episode(cfg, 200, said.append)
+    assert fitted.env.episode_length == 198 and "198 steps" in said[0]
+    assert fit_episode(cfg, 202, said.append) is cfg and len(said) == 1
+    with pytest.raises(ValueError, match="needs at least 3"):
+        fit_episode(cfg, 2, said.append)
