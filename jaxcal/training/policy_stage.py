@@ -203,7 +203,9 @@ def train_policy(
             ckpt, run_dir, key, env, agent, train_params, runner_cfg, save_buffer, log
         )
         records = truncate_metrics(run_dir / METRICS_FILE, start)
-        if start >= num_chunks:
+        # num_chunks=0 with a prior: the untrained policy is scored and kept
+        untrained_only = num_chunks == 0 and start == 0 and scoring.score_start
+        if start >= num_chunks and not untrained_only:
             return PolicyResult(runner, records, start, False)
         best, reached, last_val = _earlier_marks(records, scoring)
         bar = _progress_bar(num_chunks, start, progress)
@@ -215,6 +217,7 @@ def train_policy(
                 writer.write(0, record)
                 records.append({"step": 0, **record})
                 best = _select(record, best, 0, runner, scoring)
+            chunk, stopped_early = start, False
             for chunk in range(start + 1, num_chunks + 1):
                 runner, record = _timed_chunk(
                     train_chunk, runner, train_params, runner_cfg, chunk == start + 1

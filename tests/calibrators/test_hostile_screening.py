@@ -5,32 +5,15 @@ few rows is said, with how to give it."""
 import warnings
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
+from support.tank import NOISE, tank, tank_model
 
 import jaxcal
 from jaxcal.calibrators.outliers import STUCK_RUN, stuck_runs
 
-NOISE = np.array([0.02, 0.02, 0.05])
-
-
-def tank(w, theta):
-    heat, inflow = w[0], w[1]
-    leak, loss = theta[0], theta[1]
-    level = inflow / leak
-    temp = 20.0 + heat / (inflow * (1.0 + loss))
-    return jnp.stack([level, temp, leak * level * (1.0 - 0.1 * loss)])
-
-
-MODEL = jaxcal.Model.from_function(
-    tank,
-    conditions=("heat", "inflow"),
-    parameters={"leak": (1.0, 0.5, 2.0), "loss": (0.1, 0.0, 0.5)},
-    outputs=("level", "temp", "outflow"),
-    name="tank",
-)
+MODEL = tank_model(condition_range=None)
 
 
 def tank_frame(num_units=4, length=40, seed=0):

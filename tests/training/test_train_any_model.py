@@ -325,3 +325,15 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
     line = [ln for ln in format_final(final).splitlines() if "untrained start" in ln]
     assert len(line) == 1
     assert ("did not improve" in line[0]) == gain["kept_start"]
+    # budget.num_chunks=0: the untrained policy (the filter's step) is the run's
+    start_argv = [*argv, "preset=default", *small[1:], "budget.num_chunks=0"]
+    start_argv = [a.replace("name=filt", "name=start") for a in start_argv]
+    assert train_main(start_argv) == 0
+    start = json.loads((tmp_path / "runs" / "start" / "final.json").read_text())
+    assert start["selected_chunk"] == 0 and start["chunks"] == 0
+    assert start["training_gain"]["start"] == gain["start"]
+    assert np.isfinite(
+        jaxcal.calibrate(
+            MODEL, path, method="policy", run=tmp_path / "runs" / "start"
+        ).theta
+    ).all()
