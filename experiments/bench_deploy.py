@@ -1,0 +1,123 @@
+"""The deployed policy's cost per row against the UKF's, one stream and a fleet
+(issue 41 item 2), on trained runs of any model.
+
+    python experiments/bench_deploy.py runs=<run>[,<run>...] [rows=400] [units=100]
+        [out=results/bench/deploy.json]
+
+Per run, second calls (compiled), this machine's 2 cores, as ratios in one process:
+
+* one stream: ``StreamingCalibrator.step`` (host numpy in and out, the guarded
+  step) and the UKF's guarded step of :func:`jaxcal.calibrate` on the same
+  problem, jitted and fed one row at a time the same way (host numpy in and out);
+  median and 95th percentile microseconds per row;
+* a fleet: ``StreamingCalibrator.run`` over ``units`` streams of ``rows`` rows and
+  the UKF's fleet runner over the same arrays; microseconds per row.
+
+The rows are the run's normalisation's mean plus 0.3 of its spread times Gaussian
+draws (the costs do not depend on the values). Prints and writes JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+
+def _per_row(fn, rows: int) -> dict:
+    fn(0)  # compiled
+    times = np.empty(rows - 1)
+    for t in range(1, rows):
+        tic = time.perf_counter()
+        fn(t)
+        times[t - 1] = time.perf_counter() - tic
+    return {
+        "median_us": 1e6 * float(np.median(times)),
+        "p95_us": 1e6 * float(np.percentile(times, 95)),
+    }
+
+
+def bench_run(run: str, rows: int, units: int) -> dict:
+    import jax
+
+    from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
+    from jaxcal.calibrators.interface import run_fleet
+    from jaxcal.calibrators.method_configs import config
+    from jaxcal.calibrators.methods import make
+    from jaxcal.deploy import StreamingCalibrator
+
+    cal = StreamingCalibrator(run, trust_code=True)
+    problem = cal.run_info.problem
+    norm, rng = problem.norm, np.random.default_rng(0)
+    shape = (units, rows)
+    w = np.asarray(norm.w_mean) + 0.3 * np.asarray(norm.w_std) * rng.normal(
+        size=(*shape, len(cal.conditions))
+    )
+    x = np.asarray(norm.x_mean) + 0.3 * np.asarray(norm.x_std) * rng.normal(
+        size=(*shape, len(cal.sensors))
+    )
+    w, x = w.astype(cal._dtype), x.astype(cal._dtype)
+    out = {"run": run, "model": problem.model.name, "rows": rows, "units": units}
+    out["policy_stream"] = _per_row(lambda t: cal.step(w[0, t], x[0, t]), rows)
+
+    ukf = make(problem, config("ukf", {}))
+    check = cal._check_dev
+
+    @jax.jit
+    def ukf_step(carry, w_t, x_t):
+        return guarded_update(ukf.step, carry, w_t, x_t, sample_reason(check, w_t, x_t))
+
+    w0, x0 = jax.numpy.asarray(w[0, 0]), jax.numpy.asarray(x[0, 0])
+    carry = [initial_carry(ukf.step, ukf.init(None, w0, x0), w0, x0)]
+
+    def one(t):
+        carry[0], res, reason = ukf_step(carry[0], w[0, t], x[0, t])
+        jax.device_get((res.theta, reason))
+
+    out["ukf_stream"] = _per_row(one, rows)
+    mask = np.ones(shape, bool)
+    fleet_ukf = jax.jit(lambda w_, x_, m_: run_fleet(ukf, w_, x_, m_, check=check))
+    for name, fn in (
+        ("policy_fleet_us_per_row", lambda: cal.run(w, x, mask)),
+        ("ukf_fleet_us_per_row", lambda: jax.block_until_ready(fleet_ukf(w, x, mask))),
+    ):
+        fn()  # compiled
+        tic = time.perf_counter()
+        fn()
+        out[name] = 1e6 * (time.perf_counter() - tic) / (units * rows)
+    out["stream_ratio"] = (
+        out["policy_stream"]["median_us"] / out["ukf_stream"]["median_us"]
+    )
+    out["fleet_ratio"] = out["policy_fleet_us_per_row"] / out["ukf_fleet_us_per_row"]
+    return out
+
+
+def main(argv: list[str]) -> int:
+    opts = {"runs": "", "rows": "400", "units": "100", "out": ""}
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        if key not in opts:
+            print(f"unknown key {key!r}; valid: {sorted(opts)}", file=sys.stderr)
+            return 2
+        opts[key] = value
+    if not opts["runs"]:
+        print("runs=<run folder>[,...] is required", file=sys.stderr)
+        return 2
+    results = [
+        bench_run(r, int(opts["rows"]), int(opts["units"]))
+        for r in opts["runs"].split(",")
+    ]
+    text = json.dumps(results, indent=1)
+    print(text)
+    if opts["out"]:
+        os.makedirs(os.path.dirname(opts["out"]) or ".", exist_ok=True)
+        with open(opts["out"], "w") as f:
+            f.write(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
