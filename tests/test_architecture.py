@@ -24,9 +24,10 @@ SHIMS = {
 # (function-level imports count). Every module must have a layer.
 LAYERS = (
     # host-only leaves: types, precision, settings, caches, run-folder files, figures,
-    # progress lines
+    # progress lines, the consent to run code from outside the package
     (
         "jaxcal.typedefs",
+        "jaxcal.trust",
         "jaxcal.version",
         "jaxcal.precision",
         "jaxcal.settings",

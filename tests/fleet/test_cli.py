@@ -50,7 +50,7 @@ def test_overrides_and_cluster_flags():
         (["data=a.h5", "out=o.h5", "method=kalman"], "expected one of ukf"),
         (["data=a.h5", "out=o.h5", "method=policy"], "needs run="),
         (["data=a.h5", "out=o.h5", "bogus=1"], "unknown key 'bogus'"),
-        (["data=a.h5", "out=o.h5", "ukf.q=-1"], "UKFConfig.q must be > 0"),
+        (["data=a.h5", "out=o.h5", "ukf.q=-1"], "q=-1.0 is not a finite number > 0"),
         (["data=a.h5", "out=o.h5", "least_squares.window=4"], "method='ls', but"),
         (["data=a.h5", "out=o.h5", "ukf.r=0.1"], "the measurement noise is noise="),
         (["data=a.h5", "out=o.h5", "theta_scale=0.01"], "theta_scale= is gone"),
