@@ -224,7 +224,12 @@ def main(argv: list[str]) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # entry point: the UKF wants float64
-    results = {name: run_case(name, opts) for name in opts["cases"].split(",")}
+    results = {}
+    kept = os.path.join(opts["out"], "results.json")
+    if os.path.exists(kept):  # other cases of an earlier call are kept beside
+        with open(kept) as f:
+            results = json.load(f)["results"]
+    results.update({name: run_case(name, opts) for name in opts["cases"].split(",")})
     os.makedirs(opts["out"], exist_ok=True)
     with open(os.path.join(opts["out"], "results.json"), "w") as f:
         json.dump({"options": opts, "results": results}, f, indent=1)

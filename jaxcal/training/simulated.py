@@ -262,13 +262,14 @@ class Simulations:
             self._paths = units, estimated_drifts(self.problem(), units)
         return self._paths
 
-    def _held_out_sims(self, salt: int) -> tuple[Padded, str]:
+    def _held_out_sims(self, salt: int, effects: float = 0.0) -> tuple[Padded, str]:
         """``(simulated units, what they follow)`` for selection and the band:
         ``band_copies`` copies along the validation units' conditions (the training
         units' without them) with theta drawn across the box, or
         (``simulate.paths=data``) along every non-test unit's conditions with the
         theta drifts the UKF finds in the data, each copy of a unit with another
-        unit's drift (conditions and drift: a pair the policy never trained on)."""
+        unit's drift (conditions and drift: a pair the policy never trained on);
+        a share ``effects`` of them with an undeclared effect on their outputs."""
         key = jax.random.fold_in(self.key, salt)
         copies = self.cfg.band_copies
         if self.cfg.paths == "data":
@@ -276,8 +277,9 @@ class Simulations:
             turn = np.arange(units.w.shape[0])[None] + np.arange(copies)[:, None] + 1
             drifts = drifts[(turn % len(drifts)).ravel()]  # copy c, unit u: u + c + 1
             sim, _ = simulate_units(
-                self.problem(), units, key, copies=copies, drifts=drifts
-            )
+                self.problem(), units, key, copies=copies, drifts=drifts,
+                effects=effects,
+            )  # fmt: skip
             what = "the training and validation units' conditions, each with another's"
             return sim, f"{what} theta drift"
         val = self.data.val
@@ -289,14 +291,22 @@ class Simulations:
             key,
             copies=copies,
             constant_share=self.cfg.constant_share,
+            effects=effects,
         )
         return sim, f"the {which} units' conditions"
 
     def selection_units(self) -> Padded:
         """Simulated units (:meth:`_held_out_sims`) on which
-        ``budget.select=sim_theta`` scores theta."""
-        sim, _ = self._held_out_sims(2)
-        self.used["selection"] = "theta RMSE on simulated units"
+        ``budget.select=sim_theta`` scores theta; with ``simulate.effects`` the
+        same share of them carries an undeclared effect, so that the policy kept
+        is the one that holds under model error too (the band's units stay
+        clean)."""
+        sim, _ = self._held_out_sims(2, self.cfg.effects)
+        self.used["selection"] = "theta RMSE on simulated units" + (
+            f", a share {self.cfg.effects:g} with an undeclared effect"
+            if self.cfg.effects
+            else ""
+        )
         return sim
 
     def band_units(self) -> tuple[Padded | None, str]:

@@ -1,5 +1,6 @@
 """Undeclared effects in simulated training units (issue 41 item 3)."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -47,3 +48,28 @@ def test_no_share_changes_nothing_and_a_bad_share_is_refused():
     assert set(kinds) == {"none"}
     with pytest.raises(ValueError, match="simulate.effects"):
         add_effects(np.random.default_rng(1), noisy, clean, lengths, SD, 1.5)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5])
+def test_the_selection_units_carry_the_training_share_of_effects(monkeypatch, share):
+    """With simulate.effects the policy is selected on units with the same share of
+    effects (kept for holding under model error too); the band's units stay clean."""
+    import types
+
+    import jaxcal.training.simulated as simulated
+    from jaxcal.training.config import resolve_config
+
+    seen = []
+    monkeypatch.setattr(
+        simulated, "simulate_units",
+        lambda *a, **k: seen.append(k.get("effects", 0.0)) or (a[1], None),
+    )  # fmt: skip
+    cfg = resolve_config(["dataset=tiny", f"simulate.effects={share}"])
+    sims = simulated.Simulations.__new__(simulated.Simulations)
+    sims.cfg, sims.key, sims.used = cfg.simulate, jax.random.key(0), {}
+    sims.data = types.SimpleNamespace(val=None, train="units")
+    sims.problem = lambda: None
+    sims.selection_units()
+    sims.band_units()
+    assert seen == [share, 0.0]
+    assert ("undeclared effect" in sims.used["selection"]) == bool(share)
