@@ -229,7 +229,11 @@ def main(argv: list[str]) -> int:
     if os.path.exists(kept):  # other cases of an earlier call are kept beside
         with open(kept) as f:
             results = json.load(f)["results"]
-    results.update({name: run_case(name, opts) for name in opts["cases"].split(",")})
+    for name in opts["cases"].split(","):
+        new = run_case(name, opts)
+        if name in results:  # the variants of an earlier call kept, these replaced
+            new["runs"] = {**results[name]["runs"], **new["runs"]}
+        results[name] = new
     os.makedirs(opts["out"], exist_ok=True)
     with open(os.path.join(opts["out"], "results.json"), "w") as f:
         json.dump({"options": opts, "results": results}, f, indent=1)
