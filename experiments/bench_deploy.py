@@ -19,6 +19,7 @@ draws (the costs do not depend on the values). Prints and writes JSON.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -95,16 +96,25 @@ def bench_run(run: str, rows: int, units: int) -> dict:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The script's ``key=value`` options (module docstring)."""
+
+    runs: str = ""
+    rows: int = 400
+    units: int = 100
+    out: str = ""
+
+
 def main(argv: list[str]) -> int:
-    opts = {"runs": "", "rows": "400", "units": "100", "out": ""}
-    for arg in argv:
-        key, _, value = arg.partition("=")
-        if key not in opts:
-            print(f"unknown key {key!r}; valid: {sorted(opts)}", file=sys.stderr)
-            return 2
-        opts[key] = value
-    if not opts["runs"]:
-        print("runs=<run folder>[,...] is required", file=sys.stderr)
+    from jaxcal.settings import parse_overrides
+
+    try:
+        opts = dataclasses.asdict(parse_overrides(argv, Options()))
+        if not opts["runs"]:
+            raise ValueError("runs=<run folder>[,...] is required")
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
         return 2
     results = [
         bench_run(r, int(opts["rows"]), int(opts["units"]))

@@ -27,6 +27,7 @@ in box half-widths (one number per model: the mean over parameters). Writes
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -203,23 +204,28 @@ def _page(results: dict, opts: dict) -> str:
     return "\n".join(lines)
 
 
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The script's ``key=value`` options (module docstring)."""
+
+    cases: str = "heat_exchanger,pump,motor"
+    variants: str = "start,default,theta,effects,both"
+    out: str = "results/policy_robust"
+    data: str = "data/policy_robust"
+    runs: str = "runs/policy_robust"
+    seed: int = 0
+    theta_cost: float = 30.0
+    effects: float = 0.5
+
+
 def main(argv: list[str]) -> int:
-    opts = {
-        "cases": "heat_exchanger,pump,motor",
-        "variants": "start,default,theta,effects,both",
-        "out": "results/policy_robust",
-        "data": "data/policy_robust",
-        "runs": "runs/policy_robust",
-        "seed": "0",
-        "theta_cost": "30",
-        "effects": "0.5",
-    }
-    for arg in argv:
-        key, _, value = arg.partition("=")
-        if key not in opts:
-            print(f"unknown key {key!r}; valid: {sorted(opts)}", file=sys.stderr)
-            return 2
-        opts[key] = value
+    from jaxcal.settings import parse_overrides
+
+    try:
+        opts = dataclasses.asdict(parse_overrides(argv, Options()))
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     opts["variants"] = opts["variants"].split(",")
     import jax
 
