@@ -24,7 +24,8 @@ import hashlib
 
 HOW_TO_CONSENT = (
     "if you trust it, pass trust_code=True (Python: jaxcal.deploy.load_run, "
-    "StreamingCalibrator, jaxcal.models.load) or trust_code=true (command lines), "
+    "StreamingCalibrator, jaxcal.models.load) or trust_code=true (jaxcal.evaluate, "
+    "jaxcal.fleet), "
     "or name the same model yourself in this process (jaxcal.models.load("
     "'path/to/file.py:attr' or 'package.module:attr'), model= on a command line)"
 )
