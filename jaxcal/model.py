@@ -38,7 +38,7 @@ import numpy as np
 
 from jaxcal.model_contract import (
     ModelContractError,
-    check_function,
+    check_functions,
     checked_output,
     checked_state,
     split_output,
@@ -159,16 +159,10 @@ class Model:
                 "hinted_fn and initial_hint go together: give both or none"
             )
 
-        check_function(fn, model=str(name), field="fn", signature="fn(w, theta)")
-        if hinted_fn is not None:
-            check_function(
-                hinted_fn, model=str(name), field="hinted_fn",
-                signature="hinted_fn(w, theta, hint)",
-            )  # fmt: skip
-            check_function(
-                initial_hint, model=str(name), field="initial_hint",
-                signature="initial_hint()",
-            )  # fmt: skip
+        check_functions(
+            str(name), (fn, "fn(w, theta)"),
+            (hinted_fn, "hinted_fn(w, theta, hint)"), (initial_hint, "initial_hint()"),
+        )  # fmt: skip
         declared = [v.name for v in as_variables(outputs, "outputs")]
 
         def step(state, w, theta):
@@ -212,14 +206,11 @@ class Model:
         holds the estimated states (docs/memory.md). A state observed directly as an
         output may share its name (an output ``T_air`` that is the state ``T_air``).
         """
-        check_function(
-            step, model=str(name), field="step", signature="step(state, w, theta)"
-        )
+        check_functions(
+            str(name), (step, "step(state, w, theta)"),
+            (init_state if callable(init_state) else None, "init_state(w0, theta)"),
+        )  # fmt: skip
         if callable(init_state):
-            check_function(
-                init_state, model=str(name), field="init_state",
-                signature="init_state(w0, theta)",
-            )  # fmt: skip
 
             def init_fn(w0, theta):
                 call = "init_state(w0, theta)"
@@ -269,12 +260,10 @@ class Model:
         effects = as_parameters(effects, "effects") if effects else ()
         if effects and effect_fn is None:
             raise ValueError("effects need an effect_fn(w, theta, e) -> x")
-        for field, fn, signature in (
-            ("input_check", input_check, "input_check(w)"),
-            ("effect_fn", effect_fn, "effect_fn(w, theta, e)"),
-        ):
-            if fn is not None:
-                check_function(fn, model=str(name), field=field, signature=signature)
+        check_functions(
+            str(name), (input_check, "input_check(w)"),
+            (effect_fn, "effect_fn(w, theta, e)"), required=0,
+        )  # fmt: skip
         parameters = as_parameters(parameters)
         outputs = as_variables(outputs, "outputs")
         check_vocabulary(

@@ -163,6 +163,16 @@ def split_step(out: Any, *, model: str, call: str) -> tuple[Any, Any, Any]:
 # ---------------------------------------------------------------- the functions
 
 
+def check_functions(model: str, *given: tuple[Any, str], required: int = 1) -> None:
+    """:func:`check_function` on each ``(fn, signature)``, its field the signature's
+    name (``"fn(w, theta)"``: ``fn``); the first ``required`` ones must be given,
+    the others are skipped where ``None`` (optional)."""
+    for i, (fn, signature) in enumerate(given):
+        if fn is not None or i < required:
+            field = signature[: signature.index("(")]
+            check_function(fn, model=model, field=field, signature=signature)
+
+
 def check_function(fn: Any, *, model: str, field: str, signature: str) -> None:
     """``fn`` is a function that takes the positional arguments of ``signature``
     (e.g. ``"fn(w, theta)"``), checked at construction: a string or an array given
