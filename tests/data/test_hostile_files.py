@@ -20,16 +20,6 @@ from jaxcal.fleet.results import FleetResultWriter
 from jaxcal.runs.checkpoint import Checkpointer
 
 
-@pytest.fixture(scope="module")
-def model():
-    return jaxcal.Model.from_function(
-        lambda w, t: jnp.stack([w[0] * t[0], w[1] + t[0]]),
-        conditions=("a", "b"),
-        parameters={"p": (1.0, 0.5, 2.0)},
-        outputs=("y1", "y2"),
-    )
-
-
 def _frame():
     return pd.DataFrame(
         {

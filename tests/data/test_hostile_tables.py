@@ -4,23 +4,11 @@ used column, repeated times, a unit in two splits. Each is read correctly or is 
 error naming the columns, units or times; never a silent single unit or a raw
 numpy error."""
 
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
 
-import jaxcal
 from jaxcal.data.readers import dataset_from_arrays, read_dataset
-
-
-@pytest.fixture(scope="module")
-def model():
-    return jaxcal.Model.from_function(
-        lambda w, t: jnp.stack([w[0] * t[0], w[1] + t[0]]),
-        conditions=("a", "b"),
-        parameters={"p": (1.0, 0.5, 2.0)},
-        outputs=("y1", "y2"),
-    )
 
 
 def _frame():
