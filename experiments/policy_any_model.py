@@ -70,17 +70,23 @@ def _scores(res, truth: pd.DataFrame, theta) -> dict:
     return out
 
 
-def run_case(name: str, opts: dict) -> dict:
-    import jaxcal
-
-    spec, fleet, theta, noise = _case(name, int(opts["seed"]))
-    folder = os.path.join(opts["data"], name)
+def split_files(name: str, spec: str, fleet: pd.DataFrame, data: str):
+    """``(unlabelled csv, test frame)``: the fleet without its parameter columns,
+    written under ``<data>/<name>/`` (what training reads), and its test units."""
+    folder = os.path.join(data, name)
     os.makedirs(folder, exist_ok=True)
     unlabelled = os.path.join(folder, "fleet_unlabelled.csv")
     fleet.drop(columns=[c for c in fleet.columns if c in _params(spec)]).to_csv(
         unlabelled, index=False
     )
-    test = fleet[fleet.unit.isin(TEST_UNITS)].reset_index(drop=True)
+    return unlabelled, fleet[fleet.unit.isin(TEST_UNITS)].reset_index(drop=True)
+
+
+def run_case(name: str, opts: dict) -> dict:
+    import jaxcal
+
+    spec, fleet, theta, noise = _case(name, int(opts["seed"]))
+    unlabelled, test = split_files(name, spec, fleet, opts["data"])
     result = {"model": spec, "theta": theta, "noise": noise, "methods": {}}
     for method in ("ukf", "ls"):
         tic = time.perf_counter()

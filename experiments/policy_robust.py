@@ -41,7 +41,7 @@ import pandas as pd
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-from policy_any_model import TEST_UNITS, _case, _params  # noqa: E402
+from policy_any_model import TEST_UNITS, _case, split_files  # noqa: E402
 
 # (kind, size in noise stds): the test units' effects, on one output from a third of
 # each unit (ar1: every output, the whole unit)
@@ -104,13 +104,7 @@ def run_case(name: str, opts: dict) -> dict:
     low, high = model.bounds
     index = [model.parameter_names.index(t) for t in theta]
     half = 0.5 * (high[index] - low[index])
-    folder = os.path.join(opts["data"], name)
-    os.makedirs(folder, exist_ok=True)
-    unlabelled = os.path.join(folder, "fleet_unlabelled.csv")
-    fleet.drop(columns=[c for c in fleet.columns if c in _params(spec)]).to_csv(
-        unlabelled, index=False
-    )
-    test = fleet[fleet.unit.isin(TEST_UNITS)].reset_index(drop=True)
+    unlabelled, test = split_files(name, spec, fleet, opts["data"])
     outputs = [o for o in model.output_names if o in noise]
     tests = {
         label: with_effect(test, outputs, noise, kind, size, np.random.default_rng(7))
