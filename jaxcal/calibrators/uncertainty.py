@@ -255,7 +255,9 @@ def band_std(band: ThetaBand, t, scale=None) -> Array:
     Raises:
         ValueError: a relative band without ``scale``.
     """
-    k = jnp.searchsorted(band.edges, jnp.asarray(t, band.edges.dtype), side="right")
+    # the count of edges <= t: one fused comparison (searchsorted's default is a
+    # while loop, several thunks per deployed sample)
+    k = jnp.sum(band.edges <= jnp.asarray(t, band.edges.dtype))
     std = band.std[jnp.clip(k - 1, 0, band.std.shape[0] - 1)]
     if not band.relative:
         return std

@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.numerics.small_solve import spd_solve
 from jaxcal.typedefs import Array
 
 # |r| below this counts as zero in the direction r / |r| (float32 observations)
@@ -155,7 +156,7 @@ def filter_feature(
     pred = cov + q**2 * eye
     noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
     s = j @ pred @ j.T + noise
-    gain = jnp.linalg.solve(s, j @ pred).T  # S symmetric: P- J^T S^-1
+    gain = spd_solve(s, j @ pred).T  # S symmetric: P- J^T S^-1
     keep = eye - gain @ j
     new_cov = keep @ pred @ keep.T + gain @ noise @ gain.T
     new_cov = 0.5 * (new_cov + new_cov.T)
@@ -205,7 +206,7 @@ def gauss_newton_feature(
     j = jac / x_std[:, None]
     curvature = j.T @ j
     damping = 1e-6 * jnp.trace(curvature) / j.shape[1] + 1e-30
-    delta = jnp.linalg.solve(
+    delta = spd_solve(
         curvature + damping * jnp.eye(j.shape[1], dtype=j.dtype), j.T @ resid
     )
     norm = jnp.sqrt(jnp.mean(jnp.square(resid)))

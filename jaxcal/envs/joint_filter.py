@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcal.envs.increment import step_feature
+from jaxcal.numerics.small_solve import spd_solve
 from jaxcal.typedefs import Array
 
 
@@ -87,7 +88,7 @@ def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: flo
     m = jnp.concatenate([a, lower], axis=0)
     noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
     s = h @ pred @ h.T + noise
-    gain = jnp.linalg.solve(s, (m @ pred @ h.T).T).T
+    gain = spd_solve(s, (m @ pred @ h.T).T).T
     new_cov = m @ pred @ m.T - gain @ s @ gain.T
     new_cov = 0.5 * (new_cov + new_cov.T)
     d = gain @ (resid * params.x_std).astype(cov.dtype)
@@ -102,6 +103,6 @@ def conditioned_state(z: Array, cov: Array, du_taken: Array, du_filter: Array):
     filter's was ``du_filter``: ``z + C_zu C_uu^-1 (du_taken - du_filter)``."""
     num_states = z.shape[0]
     c_uu, c_uz = cov[num_states:, num_states:], cov[num_states:, :num_states]
-    regress = jnp.linalg.solve(c_uu, c_uz).T  # C_zu C_uu^-1 (C symmetric)
+    regress = spd_solve(c_uu, c_uz).T  # C_zu C_uu^-1 (C symmetric)
     gap = (du_taken - du_filter).astype(cov.dtype)
     return z + (regress @ gap).astype(z.dtype)

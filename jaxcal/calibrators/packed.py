@@ -1,0 +1,74 @@
+"""A pytree carried between jitted calls as one flat buffer per dtype.
+
+A stream's carry (the policy's state, the guard's last outputs and rows) has a dozen
+or more small leaves. Passed as they are, every sample pays for each leaf three times
+on XLA's CPU runtime: parsing it as an argument, selecting it in the guard (one
+kernel per leaf) and allocating it as an output. Packed into one buffer per dtype
+(float, int, bool: at most a few), the leaves become slices of an argument, which
+fuse into their consumers, and a select of the whole carry (the guard's) is one kernel
+per dtype. Values are unchanged (no dtype is converted); a leaf of an extended dtype
+(a typed PRNG key) keeps a buffer of its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.typedefs import Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Packing:
+    """Where each leaf of a pytree lives in the per-dtype buffers."""
+
+    treedef: jax.tree_util.PyTreeDef
+    dtypes: tuple[np.dtype, ...]  # one buffer per dtype, in first-seen order
+    # per leaf: (buffer, start, size, shape); start -1: the leaf is its buffer
+    slots: tuple[tuple[int, int, int, tuple[int, ...]], ...]
+
+    @classmethod
+    def of(cls, tree) -> Packing:
+        """The packing of trees shaped as ``tree`` (its leaves' shapes and dtypes)."""
+        leaves, treedef = jax.tree.flatten(tree)
+        dtypes: list[np.dtype] = []
+        sizes: list[int] = []
+        slots = []
+        for leaf in leaves:
+            dtype, shape = leaf.dtype, tuple(np.shape(leaf))
+            if jax.dtypes.issubdtype(dtype, jax.dtypes.extended):
+                slots.append((len(dtypes), -1, 0, shape))
+                dtypes.append(dtype)
+                sizes.append(0)
+                continue
+            dtype = np.dtype(dtype)
+            if dtype not in dtypes:
+                dtypes.append(dtype)
+                sizes.append(0)
+            k = dtypes.index(dtype)
+            size = math.prod(shape)
+            slots.append((k, sizes[k], size, shape))
+            sizes[k] += size
+        return cls(treedef, tuple(dtypes), tuple(slots))
+
+    def pack(self, tree) -> tuple[Array, ...]:
+        """The buffers holding ``tree``'s leaves (jittable)."""
+        leaves = self.treedef.flatten_up_to(tree)
+        parts: list[list[Array]] = [[] for _ in self.dtypes]
+        for leaf, (k, start, _, _) in zip(leaves, self.slots, strict=True):
+            parts[k].append(
+                leaf if start < 0 else jnp.ravel(jnp.asarray(leaf, self.dtypes[k]))
+            )
+        return tuple(p[0] if len(p) == 1 else jnp.concatenate(p) for p in parts)
+
+    def unpack(self, buffers: tuple[Array, ...]):
+        """The tree the buffers hold (jittable)."""
+        leaves = [
+            buffers[k] if start < 0 else buffers[k][start : start + size].reshape(shape)
+            for k, start, size, shape in self.slots
+        ]
+        return self.treedef.unflatten(leaves)
