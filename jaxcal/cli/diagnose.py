@@ -172,6 +172,7 @@ def run(cfg: DiagnoseConfig) -> dict:
         loop_cfg,
         sensors=cfg.residual_outputs,
         max_rows=cfg.max_rows or None,
+        progress=True,
     )
     config = {
         **config_to_dict(cfg),

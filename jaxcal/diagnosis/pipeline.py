@@ -44,6 +44,7 @@ from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from jaxcal.calibrators.outliers import OUTLIER_Z
 from jaxcal.data.dataset import Dataset
@@ -61,11 +62,22 @@ from jaxcal.diagnosis.ranking import effect_sizes
 from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import init_from, spec_for
 from jaxcal.diagnosis.terms import ModelSpec
+from jaxcal.diagnosis.timing import StageClock
 from jaxcal.diagnosis.units import unit_effects, unit_trajectories
 from jaxcal.model import Model
 
 NOISE_ROUNDS = 2  # noise model <-> declared-only fit alternations
 LEVEL_MOVE = 1.25  # a best candidate that lowers a noise level this much: retrace
+# BLAS threads of the host algebra. Its products are small and per unit (a unit's
+# Gram blocks, its projections); OpenBLAS threads that spin beside JAX's own pool
+# on a loaded machine made them up to 20x slower (the onset scan of 30 FD001
+# units: 33 s with the machine's 2 threads, 1.7 s with 1).
+BLAS_THREADS = 1
+# the stages timed in DiagnosisResult.timings / report.json (.timing), in run order
+STAGES = (
+    "prepare", "calibrate", "outliers", "noise", "screen", "noise passes",
+    "fallback", "per unit",
+)  # fmt: skip
 VERDICTS = (
     "none",
     "identified",
@@ -126,6 +138,7 @@ class DiagnosisResult(NamedTuple):
     flags: tuple = ()  # plausibility flags (dicts, plausibility.FLAGS)
     fallback_note: str = ""  # what the fallback kept or dropped, and why
     alpha: float = 0.01  # level of the per-unit test and bands
+    timings: dict = {}  # stage -> wall seconds, and "total" (.timing)
 
     @property
     def extended_model(self):
@@ -228,6 +241,7 @@ def diagnose(
     units: Sequence[int] | None = None,
     max_rows: int | None = None,
     noise_std: Mapping[str, float] | None = None,
+    progress: bool = False,
 ) -> DiagnosisResult:
     """Find the residual, trace it to an effect, add it and compare (module docstring).
 
@@ -242,42 +256,65 @@ def diagnose(
         max_rows: subsample to about this many rows (a static model).
         noise_std: known marginal noise std by output (default: estimated); the
             colour is estimated either way (``cfg.noise_order``).
+        progress: write a progress line per stage and per batch of the fleet's
+            rows (stderr, :mod:`.timing`).
 
     Returns:
-        :class:`DiagnosisResult`.
+        :class:`DiagnosisResult`; ``timings`` holds each stage's wall seconds.
     """
     model, declared = _checked_request(model, declared)
     dataset, dropped_rows = _as_dataset(data)
-    data = prepare_data(
-        dataset, model, sensors=sensors, units=units, max_rows=max_rows,
-        knots=cfg.knots, candidate_knots=cfg.candidate_knots, noise_std=noise_std,
-        dropped_rows=dropped_rows,
-    )  # fmt: skip
+    clock = StageClock(progress)
+    try:
+        with threadpool_limits(BLAS_THREADS, user_api="blas"):
+            res = _run(
+                model, dataset, declared, cfg, clock, sensors=sensors, units=units,
+                max_rows=max_rows, noise_std=noise_std, dropped_rows=dropped_rows,
+            )  # fmt: skip
+    finally:
+        clock.close()
+    return res._replace(timings=clock.timings())
+
+
+def _run(model, dataset, declared, cfg, clock: StageClock, *, sensors, units,
+         max_rows, noise_std, dropped_rows) -> DiagnosisResult:  # fmt: skip
+    """The stages of :func:`diagnose`, each timed by ``clock``."""
+    with clock.stage("prepare"):
+        data = prepare_data(
+            dataset, model, sensors=sensors, units=units, max_rows=max_rows,
+            knots=cfg.knots, candidate_knots=cfg.candidate_knots,
+            noise_std=noise_std, dropped_rows=dropped_rows,
+        )  # fmt: skip
     spec0 = ModelSpec(declared, initial_state=model.is_stateful)
-    data, null = _valid_rows_fit(model, data, spec0, cfg)
-    data, null = drop_outliers(model, data, spec0, null, cfg)
+    with clock.stage("calibrate"):
+        data, null = _valid_rows_fit(model, data, spec0, cfg)
+    with clock.stage("outliers"):
+        data, null = drop_outliers(model, data, spec0, null, cfg)
     given = None if noise_std is None else data.noise_std
-    for _ in range(NOISE_ROUNDS):  # the fit and its noise model, to a fixed point
-        num_s = data.num_sensors
-        data = _fit_noise(data, null, given, cfg)
-        init = null.params if data.num_sensors == num_s else None
-        null = fit_model(model, data, spec0, init, max_iters=cfg.max_iters)
-    library = _library(model, data, declared, cfg)
-    ident = identify(model, data, declared, library, cfg.identify, null)
-    for _ in range(cfg.noise_passes - 1):
-        basis = _noise_basis(model, data, declared, ident, null, cfg)
-        if basis is None:
-            break
-        refit = _fit_noise(data, basis, given, cfg)
-        if refit.num_sensors != data.num_sensors:
-            break
-        if ident.winner is None and not _level_moved(data.noise, refit.noise):
-            break
-        data = refit
-        null = fit_model(model, data, spec0, null.params, max_iters=cfg.max_iters)
+    with clock.stage("noise"):
+        for _ in range(NOISE_ROUNDS):  # the fit and its noise model, to a fixed point
+            num_s = data.num_sensors
+            data = _fit_noise(data, null, given, cfg)
+            init = null.params if data.num_sensors == num_s else None
+            null = fit_model(model, data, spec0, init, max_iters=cfg.max_iters)
+    with clock.stage("screen"):
         library = _library(model, data, declared, cfg)
         ident = identify(model, data, declared, library, cfg.identify, null)
-    return _finish(model, data, declared, library, ident, null, cfg)
+    with clock.stage("noise passes"):
+        for _ in range(cfg.noise_passes - 1):
+            basis = _noise_basis(model, data, declared, ident, null, cfg)
+            if basis is None:
+                break
+            refit = _fit_noise(data, basis, given, cfg)
+            if refit.num_sensors != data.num_sensors:
+                break
+            if ident.winner is None and not _level_moved(data.noise, refit.noise):
+                break
+            data = refit
+            null = fit_model(model, data, spec0, null.params, max_iters=cfg.max_iters)
+            library = _library(model, data, declared, cfg)
+            ident = identify(model, data, declared, library, cfg.identify, null)
+    return _finish(model, data, declared, library, ident, null, cfg, clock)
 
 
 def _checked_request(model: Model | str, declared) -> tuple[Model, tuple[str, ...]]:
@@ -387,11 +424,20 @@ def _library(model, data: LoopData, declared, cfg: LoopConfig):
     return library
 
 
-def _finish(model, data, declared, library, ident, null, cfg: LoopConfig):
+def _finish(model, data, declared, library, ident, null, cfg: LoopConfig, clock):
     """Fallback, the added model, the stages, per-unit verdicts and flags."""
-    best, offset, disc, final_ident, rescreen, note = fallback(
-        model, data, declared, library, ident, null, cfg
-    )
+    with clock.stage("fallback"):
+        best, offset, disc, final_ident, rescreen, note = fallback(
+            model, data, declared, library, ident, null, cfg
+        )
+    with clock.stage("per unit"):
+        return _verdicts(model, data, declared, library, ident, null, cfg,
+                         (best, offset, disc, final_ident, rescreen, note))  # fmt: skip
+
+
+def _verdicts(model, data, declared, library, ident, null, cfg, fell_back):
+    """The verdict, the stages before and after, per-unit verdicts and flags."""
+    best, offset, disc, final_ident, rescreen, note = fell_back
     identified, confounded, added, members = [], [], [], []
     if final_ident.winner is not None:
         members = list(final_ident.winner.members)

@@ -206,6 +206,8 @@ def report_dict(
         "after": _stage(res.after, d.sensor_names, d.condition_names),
         "truth": truth,
         "config": config,
+        # wall seconds of each stage of the diagnosis (jaxcal.diagnosis.timing)
+        "timings": dict(res.timings),
     }
     return json_safe(out)
 
