@@ -50,6 +50,14 @@ def _case(name: str, seed: int = 0):
         from make_data import NOISE, make_fleet
 
         return "heat_exchanger", make_fleet(seed), ["fouling", "dp_coeff"], NOISE
+    if name == "reactor":  # the newcomer's model with memory (issue 42)
+        from reactor import NOISE as REACTOR_NOISE
+        from reactor import THETA
+        from reactor import make_fleet as reactor_fleet
+
+        spec = f"{os.path.join(HERE, 'reactor.py')}:reactor_model"
+        fleet = reactor_fleet(seed, units=12, rows=300)
+        return spec, fleet, list(THETA), REACTOR_NOISE
     from unseen_models import MODELS, NOISE, make_fleet
 
     spec = f"{os.path.join(HERE, 'unseen_models.py')}:{name}_model"

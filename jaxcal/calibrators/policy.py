@@ -104,7 +104,9 @@ def make_fleet_runner(
         check: SampleCheck | None = None,
         band: ThetaBand | None = None,
     ) -> CalOutput:
-        calibrator = make_policy_calibrator(actor, dynamics, params, band)
+        calibrator = make_policy_calibrator(
+            actor, dynamics, params, band, start_at_first_sample=False
+        )  # run_fleet's init is given each unit's first ok row
         return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
 
     return jax.jit(run)

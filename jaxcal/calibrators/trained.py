@@ -124,16 +124,19 @@ def load_calibrator(
             run is not an incremental policy.
     """
     run = as_loaded(run_dir)
+    # run_fleet gives init the first ok row; a stream (warm_start) makes its first
+    # state before any row and starts the model's state at its first sample
     cal = make_policy_calibrator(
-        run.actor, run.dynamics, run.params, run.band, warm_start=warm_start
-    )
+        run.actor, run.dynamics, run.params, run.band, warm_start=warm_start,
+        start_at_first_sample=warm_start,
+    )  # fmt: skip
     if anchor is None:
         return cal
     anchor = as_loaded(anchor)
     check_anchor(run, anchor)
     anchor_cal = make_policy_calibrator(
         anchor.actor, anchor.dynamics, anchor.params, anchor.band,
-        warm_start=warm_start,
+        warm_start=warm_start, start_at_first_sample=warm_start,
     )  # fmt: skip
     return make_gated_calibrator(
         cal,

@@ -189,6 +189,10 @@ ANY_MODEL_CHUNKS = 6
 # learnt the paths, not the feedback (simulated theta RMSE rising from the first chunk
 # on the pump; 16 copies: falling)
 ANY_MODEL_COPIES = 16
+# the deployed network's widths on any model: a 256-wide actor costs about 3 us a
+# row on a fleet of 100 units (its 256 x 256 product), above a small model's whole
+# UKF step (1.2-3.9 us); 64 wide: 0.7-1.1 us (results/bench/deploy.json)
+ANY_MODEL_ACTOR = (64, 64)
 
 _TUNED_AGENT = dict(
     actor_lr=3e-4,
@@ -317,7 +321,8 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     on theta (and, where the outputs determine theta, the residual's Gauss-Newton
     step) and the stream's age, and its untrained action is the filter's step
     whole (``env.gauss_newton=filter``, ``env.filter_gain=1``,
-    ``env.filter_whole``; measured: ``results/policy_any_model/README.md``). The
+    ``env.filter_whole``; measured: ``results/policy_any_model/README.md``); its
+    actor is :data:`ANY_MODEL_ACTOR` wide, for a deployed step below the UKF's. The
     other
     presets keep their formulation; without labels they fit D and the band on
     simulated units as well.
@@ -327,6 +332,7 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     return dataclasses.replace(
         cfg,
         dataset=dataclasses.replace(cfg.dataset, labels="score"),
+        agent=dataclasses.replace(cfg.agent, actor_hidden_sizes=ANY_MODEL_ACTOR),
         env=dataclasses.replace(
             cfg.env, start="prior", gauss_newton="filter", filter_whole=True
         ),
