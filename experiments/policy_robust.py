@@ -16,7 +16,10 @@ variant is one ``python -m jaxcal.train`` with the default preset and:
   truth is known (the simulated training units);
 * ``effects``: ``simulate.effects=<effects>``: that share of the simulated training
   units carries an undeclared effect (a bias, step, drift, gain or AR(1) noise);
-* ``both``: the two together.
+* ``both``: the two together;
+* ``adapt_start``, ``adapt``, ``adapt_effects``: ``env.filter_adapt=<adapt>`` (the
+  filter weighs each output by the noise its innovations show beyond what theta
+  explains), untrained, with the default training, and with ``effects``.
 
 Every kept policy and the UKF (``jaxcal.calibrate``, the same noise) then run on the
 test units clean and with one effect in every test unit (:data:`EFFECTS`, in units
@@ -58,6 +61,9 @@ VARIANTS = {
     "theta": ["env.theta_cost={theta_cost}"],
     "effects": ["simulate.effects={effects}"],
     "both": ["env.theta_cost={theta_cost}", "simulate.effects={effects}"],
+    "adapt_start": ["env.filter_adapt={adapt}", "budget.num_chunks=0"],
+    "adapt": ["env.filter_adapt={adapt}"],
+    "adapt_effects": ["env.filter_adapt={adapt}", "simulate.effects={effects}"],
 }
 
 
@@ -120,7 +126,11 @@ def run_case(name: str, opts: dict) -> dict:
     noise_arg = ",".join(f"{k}:{v}" for k, v in noise.items())
     for variant in opts["variants"]:
         extra = [
-            a.format(theta_cost=opts["theta_cost"], effects=opts["effects"])
+            a.format(
+                theta_cost=opts["theta_cost"],
+                effects=opts["effects"],
+                adapt=opts["adapt"],
+            )  # fmt: skip
             for a in VARIANTS[variant]
         ]
         run_dir = os.path.join(opts["runs"], f"{name}-{variant}")
@@ -163,7 +173,8 @@ def _page(results: dict, opts: dict) -> str:
         "",
         f"`python experiments/policy_robust.py cases={','.join(results)} "
         f"variants={','.join(opts['variants'])} theta_cost={opts['theta_cost']} "
-        f"effects={opts['effects']} seed={opts['seed']}` (this machine, 2 cores). "
+        f"effects={opts['effects']} adapt={opts['adapt']} seed={opts['seed']}` "
+        "(this machine, 2 cores). "
         "Theta RMSE in box half-widths (mean over parameters) on the test units "
         "(10-12), clean and with one effect in every test unit on the first output "
         "from a third of each unit; `policy / UKF` beside each. `start`: the "
@@ -210,6 +221,7 @@ class Options:
     seed: int = 0
     theta_cost: float = 30.0
     effects: float = 0.5
+    adapt: int = 32
 
 
 def main(argv: list[str]) -> int:

@@ -57,7 +57,9 @@ class IncrementPolicyParams(PolicyParams):
         filter_q: the filter's random walk per sample, half-widths of the box
             (static; ``EnvConfig.filter_q``); ``filter_whole``: its feature is the
             whole step (static; ``EnvConfig.filter_whole``); ``filter_prior_std``:
-            its prior std, half-widths of the box (static).
+            its prior std, half-widths of the box (static); ``filter_adapt``:
+            the samples the filter on theta alone averages its noise over
+            (static; ``EnvConfig.filter_adapt``, 0: the declared noise).
     """
 
     step_ref: Array
@@ -68,6 +70,7 @@ class IncrementPolicyParams(PolicyParams):
     filter_q: float = struct.field(pytree_node=False, default=FILTER_Q)
     filter_whole: bool = struct.field(pytree_node=False, default=False)
     filter_prior_std: float = struct.field(pytree_node=False, default=FILTER_PRIOR_STD)
+    filter_adapt: int = struct.field(pytree_node=False, default=0)
 
 
 @struct.dataclass
@@ -126,6 +129,8 @@ class PolicyState:
     # [2, P] Brown's smoothed theta levels: the drift rate a relative band reads
     # (jaxcal.calibrators.lag_scale)
     trend: Array | None = None
+    # [S] the adaptive filter's noise variance over the declared one (filter_adapt)
+    noise_scale: Array | None = None
 
 
 def filter_settings(env_cfg) -> dict:
@@ -138,6 +143,7 @@ def filter_settings(env_cfg) -> dict:
         filter_q=env_cfg.filter_q,
         filter_whole=env_cfg.filter_whole,
         filter_prior_std=env_cfg.filter_prior_std,
+        filter_adapt=env_cfg.filter_adapt,
     )
 
 
@@ -152,6 +158,7 @@ def policy_params_from_env(
     filter_q: float = FILTER_Q,
     filter_whole: bool = False,
     filter_prior_std: float = FILTER_PRIOR_STD,
+    filter_adapt: int = 0,
 ) -> PolicyParams:
     """The deployment parameters of a policy trained on ``env_params``
     (``max_increment``: the env's, for incremental actions; ``theta_start``: where
@@ -179,6 +186,7 @@ def policy_params_from_env(
         filter_q=filter_q,
         filter_whole=filter_whole,
         filter_prior_std=filter_prior_std,
+        filter_adapt=filter_adapt,
     )
     if theta_start is None:
         return IncrementPolicyParams(**fields)

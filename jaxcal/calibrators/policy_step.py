@@ -71,6 +71,7 @@ from jaxcal.calibrators.policy_params import (
 )
 from jaxcal.calibrators.uncertainty import ThetaBand, band_std
 from jaxcal.envs.increment import (
+    adapted_noise_scale,
     apply_increment,
     filter_feature,
     gauss_newton_features,
@@ -220,6 +221,7 @@ def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
         count=jnp.zeros((), jnp.int32) if counts(params, band) else None,
         hint=hint, sens=initial_sensitivity(params, num_states, xhat.dtype),
         cov=initial_cov(params, num_states), trend=band_trend(params, band),
+        noise_scale=initial_noise_scale(params, num_states, xhat),
     )  # fmt: skip
 
 
@@ -232,6 +234,15 @@ def start_theta(params: PolicyParams) -> Array | None:
         return None
     theta0 = getattr(params, "theta_start", None)
     return 0.5 * (params.theta_low + params.theta_high) if theta0 is None else theta0
+
+
+def initial_noise_scale(params: PolicyParams, num_states: int, xhat) -> Array | None:
+    """The adaptive filter's first noise scale (ones: the declared noise) where it
+    adapts (``filter_adapt`` on the filter of theta alone, a static model's), else
+    ``None``: the training environment's rule (``tracking._first_noise_scale``)."""
+    if not (getattr(params, "gn_filter", False) and getattr(params, "filter_adapt", 0)):
+        return None
+    return None if num_states else jnp.ones_like(xhat)
 
 
 def band_trend(params: PolicyParams, band) -> Array | None:
@@ -301,7 +312,7 @@ def _increment_step(
     ``joint``: the state too, :mod:`jaxcal.envs.joint_filter`)."""
     xhat_prev = jnp.where(state.started, state.xhat, x_t)
     z_prev = first_state(state, state.z, w_t, x_t)
-    extra = sens = cov = joint_step = None
+    extra = sens = cov = joint_step = noise_scale = None
     half = 0.5 * (params.theta_high - params.theta_low)
     if uses_jacobian(params):  # the environment's observation (jaxcal.envs.increment)
 
@@ -326,8 +337,12 @@ def _increment_step(
         elif params.gn_filter:
             cov, filtered = filter_feature(
                 state.cov, resid, jac, params, params.max_increment,
-                params.filter_q, params.filter_whole,
+                params.filter_q, params.filter_whole, state.noise_scale,
             )  # fmt: skip
+            if state.noise_scale is not None:
+                noise_scale = adapted_noise_scale(
+                    state.noise_scale, resid, jac, params, params.filter_adapt
+                )
         extra = gauss_newton_features(
             resid, jac, state.count, params, params.max_increment,
             one_sample=params.gauss_newton, filtered=filtered,
@@ -366,5 +381,8 @@ def _increment_step(
         hint=hint,
         sens=None if sens is None else sens.astype(state.sens.dtype),
         cov=None if cov is None else cov.astype(state.cov.dtype),
+        noise_scale=None
+        if noise_scale is None
+        else noise_scale.astype(state.noise_scale.dtype),
     )
     return new_state, theta, xhat

@@ -75,6 +75,11 @@ class EnvConfig:
             ``theta_cost * mean_P(((theta - theta*) / h)^2)`` (``h`` the box's
             half-widths) to the tracking cost before the log; 0: tracking alone
             (the paper's).
+        filter_adapt: with ``gn_filter``, the filter on theta alone (a static
+            model's; not the joint filter of a model with memory) weighs
+            each output by the noise its innovations show, averaged over this many
+            samples (:func:`~jaxcal.envs.increment.adapted_noise_scale`); 0: the
+            declared noise (the runs before it).
     """
 
     sensor_dim: int
@@ -92,6 +97,7 @@ class EnvConfig:
     filter_whole: bool = False
     filter_prior_std: float = FILTER_PRIOR_STD
     theta_cost: float = 0.0
+    filter_adapt: int = 0
 
     def __post_init__(self) -> None:
         for name in ("sensor_dim", "condition_dim", "param_dim", "episode_length"):

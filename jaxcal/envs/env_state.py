@@ -83,6 +83,15 @@ class FilteredEnvState(IncrementEnvState):
 
 
 @struct.dataclass
+class AdaptiveFilteredEnvState(FilteredEnvState):
+    """:class:`FilteredEnvState` of a filter that adapts its noise
+    (``EnvConfig.filter_adapt``): ``noise_scale`` [S] each output's noise variance
+    over the declared one (:func:`~jaxcal.envs.increment.adapted_noise_scale`)."""
+
+    noise_scale: Array
+
+
+@struct.dataclass
 class FilteredSensitiveEnvState(SensitiveEnvState):
     """:class:`SensitiveEnvState` with the filter step's covariance ``cov``
     [P, P]."""
@@ -101,8 +110,9 @@ class JointFilteredEnvState(FilteredSensitiveEnvState):
 
 
 def make_env_state(
-    unit, time, step, xhat, z, theta=None, sens=None, cov=None, fstep=None
-) -> EnvState:
+    unit, time, step, xhat, z, theta=None, sens=None, cov=None, fstep=None,
+    noise_scale=None,
+) -> EnvState:  # fmt: skip
     """The state of a static model (``z is None``) or of one with memory, with
     theta when the actions are incremental, the state's sensitivity with a
     Gauss-Newton observation and the filter's covariance with its step (each its
@@ -116,6 +126,10 @@ def make_env_state(
         if sens is not None:
             return FilteredSensitiveEnvState(
                 **fields, z=z, theta=theta, sens=sens, cov=cov
+            )
+        if noise_scale is not None:
+            return AdaptiveFilteredEnvState(
+                **fields, theta=theta, cov=cov, noise_scale=noise_scale
             )
         return FilteredEnvState(**fields, theta=theta, cov=cov)
     if sens is not None:

@@ -134,6 +134,7 @@ def filter_feature(
     max_increment: float,
     q: float = FILTER_Q,
     whole: bool = False,
+    noise_scale: Array | None = None,
 ) -> tuple[Array, Array]:
     """``(cov', step [P])``: one extended Kalman filter update of theta, its step
     in the action's scale (as :func:`gauss_newton_feature`'s).
@@ -149,12 +150,17 @@ def filter_feature(
     Filtering and Smoothing", alg. 5.4. ``J`` is the prediction's Jacobian
     ``jac`` ``[S, P]`` and ``r`` the raw residual ``resid * x_std``. The filter's
     mean is the policy's theta: the step is the filter's from where the policy is.
+    ``noise_scale`` ``[S]``: each output's noise variance is taken ``max(1,
+    noise_scale)`` times its own (:func:`adapted_noise_scale`); ``None``: as given.
     """
     half = 0.5 * (params.theta_high - params.theta_low)
     j = (jac * half[None, :]).astype(cov.dtype)
     eye = jnp.eye(cov.shape[0], dtype=cov.dtype)
     pred = cov + q**2 * eye
-    noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
+    variance = jnp.square(params.x_noise)
+    if noise_scale is not None:
+        variance = variance * jnp.maximum(noise_scale, 1.0)
+    noise = jnp.diag(variance.astype(cov.dtype))
     s = j @ pred @ j.T + noise
     gain = spd_solve(s, j @ pred).T  # S symmetric: P- J^T S^-1
     keep = eye - gain @ j
@@ -162,6 +168,42 @@ def filter_feature(
     new_cov = 0.5 * (new_cov + new_cov.T)
     delta = half * (gain @ (resid * params.x_std).astype(cov.dtype))
     return new_cov, step_feature(delta, resid, params, max_increment, whole)
+
+
+def adapted_noise_scale(scale: Array, resid: Array, jac: Array, params, horizon: int):
+    """``[S]`` each output's noise variance over its declared one, as the
+    innovations show it, updated by one sample (the filter's adaptive measurement
+    noise; Mehra (1972), "Approaches to adaptive filtering", IEEE TAC 17(5)).
+
+    Only the part of the innovation no change of theta explains is read: with the
+    whitened innovation ``e = r / sigma`` and Jacobian ``A = J / sigma``, its
+    least-squares remainder ``e_perp = (I - A (A^T A)^-1 A^T) e`` has
+    ``E[e_perp_k^2] = (1 - h_k) v_k`` for an output of noise variance ``v_k``
+    declared ones (``h_k`` the leverage, ``diag A (A^T A)^-1 A^T``), whatever theta
+    does, so a parameter that moves fast (a fault) does not read as noise. A bias,
+    a drift or a gain error on one output shows in it (the others cannot follow),
+    and the filter weighs that output less as its ``v`` grows:
+    ``v <- v + (e_perp^2 - (1 - h) v) / horizon``, an exponential average over
+    ``horizon`` samples. Where the outputs are no more than the parameters the
+    remainder is zero and ``v`` stays where it is (nothing to compare with).
+    ``resid`` is the normalised innovation ``(x - x-hat) / x_std`` ``[S]``, ``jac``
+    ``[S, P]`` the prediction's Jacobian in output units; ``params`` as
+    :func:`filter_feature`'s.
+    """
+    sigma = params.x_noise.astype(jac.dtype)
+    a = jac * (0.5 * (params.theta_high - params.theta_low))[None, :] / sigma[:, None]
+    e = (resid * params.x_std).astype(jac.dtype) / sigma
+    gram = a.T @ a
+    damping = 1e-9 * jnp.trace(gram) / a.shape[1] + 1e-30
+    solve = spd_solve(
+        gram + damping * jnp.eye(a.shape[1], dtype=a.dtype),
+        jnp.concatenate([a.T, (a.T @ e)[:, None]], axis=1),
+    )
+    leverage = jnp.clip(jnp.sum(a * solve[:, :-1].T, axis=1), 0.0, 1.0)
+    remainder = e - a @ solve[:, -1]
+    scale = scale.astype(jac.dtype)
+    new = scale + (jnp.square(remainder) - (1.0 - leverage) * scale) / horizon
+    return jnp.clip(new, 1e-3, 1e6).astype(resid.dtype)
 
 
 def step_feature(delta, resid, params, max_increment: float, whole: bool) -> Array:

@@ -56,6 +56,7 @@ from jaxcal.envs.env_state import (  # noqa: F401 (re-exported: the env's state)
     make_env_state,
 )
 from jaxcal.envs.increment import (
+    adapted_noise_scale,
     apply_increment,
     filter_feature,
     gauss_newton_features,
@@ -224,24 +225,43 @@ def _prior_cov(cfg: EnvConfig, num_states: int, dtype, joint: bool) -> Array:
     return initial_filter_cov(cfg.param_dim, dtype, cfg.filter_prior_std)
 
 
-def _filtered(cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov, z, ah):
-    """``(z, cov', step, du)`` of the filter step at sample ``time`` (``gn_filter``;
-    :func:`~jaxcal.envs.increment.filter_feature`, or with the joint Jacobians
-    ``ah`` :func:`~jaxcal.envs.joint_filter.joint_filter_feature`, the only one that
-    corrects the state ``z`` and has a theta step ``du``), else ``z`` and ``None``."""
+def _filtered(
+    cfg: EnvConfig, params: EnvParams, unit, time, xhat, jac, cov, z, ah, scale=None
+):
+    """``(z, cov', step, du, scale')`` of the filter step at sample ``time``
+    (``gn_filter``; :func:`~jaxcal.envs.increment.filter_feature`, or with the joint
+    Jacobians ``ah`` :func:`~jaxcal.envs.joint_filter.joint_filter_feature`, the
+    only one that corrects the state ``z`` and has a theta step ``du``), else ``z``
+    and ``None``. ``scale``: the adaptive filter's noise scale
+    (``EnvConfig.filter_adapt``, the filter on theta alone), ``scale'`` its update
+    by this sample."""
     if not cfg.gn_filter:
-        return z, None, None, None
+        return z, None, None, None, None
     resid = (_row(params.x, params, unit, time) - xhat) / params.x_std
     if ah is not None:
         out = joint_filter_feature(
             cov, resid, ah, params, cfg.max_increment, cfg.filter_q
         )
         new_cov, feature, dz, du = jax.lax.stop_gradient(out)
-        return z + dz.astype(z.dtype), new_cov, feature, du
+        return z + dz.astype(z.dtype), new_cov, feature, du, None
     out = filter_feature(
-        cov, resid, jac, params, cfg.max_increment, cfg.filter_q, cfg.filter_whole
-    )
-    return (z, *jax.lax.stop_gradient(out), None)
+        cov, resid, jac, params, cfg.max_increment, cfg.filter_q, cfg.filter_whole,
+        scale,
+    )  # fmt: skip
+    if scale is not None:
+        scale = jax.lax.stop_gradient(
+            adapted_noise_scale(scale, resid, jac, params, cfg.filter_adapt)
+        )
+    return (z, *jax.lax.stop_gradient(out), None, scale)
+
+
+def _first_noise_scale(cfg: EnvConfig, dyn, xhat: Array) -> Array | None:
+    """The adaptive filter's noise scale before a stream's first sample (ones: the
+    declared noise), ``None`` where it does not adapt: ``filter_adapt`` 0, or the
+    filter not on theta alone (a model with memory)."""
+    if not (cfg.gn_filter and cfg.filter_adapt) or dyn.num_states:
+        return None
+    return jnp.ones_like(xhat)
 
 
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
@@ -340,12 +360,13 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             z, xhat, jac, sens, ah = _predict_first(
                 cfg, dyn, params, unit, time, theta, joint
             )
-        cov = filtered = fstep = None
+        cov = filtered = fstep = scale = None
         if cfg.gn_filter:
             prior = _prior_cov(cfg, dyn.num_states, params.theta_low.dtype, joint)
-            z, cov, filtered, fstep = _filtered(
-                cfg, params, unit, time, xhat, jac, prior, z, ah
-            )
+            z, cov, filtered, fstep, scale = _filtered(
+                cfg, params, unit, time, xhat, jac, prior, z, ah,
+                _first_noise_scale(cfg, dyn, xhat),
+            )  # fmt: skip
         state = make_env_state(
             unit=unit,
             time=time,
@@ -356,6 +377,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             sens=sens,
             cov=cov,
             fstep=fstep,
+            noise_scale=scale,
         )
         return _observe(cfg, state, params, jac, filtered), state
 
@@ -384,9 +406,9 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         if not cfg.differentiable:
             z, xhat = jax.lax.stop_gradient((z, xhat))
         cost = _step_cost(cfg, params, state.unit, time, xhat, theta)
-        z, cov, filtered, fstep = _filtered(
+        z, cov, filtered, fstep, scale = _filtered(
             cfg, params, state.unit, time, xhat.astype(state.xhat.dtype), jac,
-            getattr(state, "cov", None), z, ah,
+            getattr(state, "cov", None), z, ah, getattr(state, "noise_scale", None),
         )  # fmt: skip
         next_state = make_env_state(
             unit=state.unit,
@@ -398,6 +420,7 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             sens=None if sens is None else sens.astype(state.sens.dtype),
             cov=cov,
             fstep=fstep,
+            noise_scale=scale,
         )
         done = next_state.step >= cfg.episode_length
         info = {"theta": theta, "terminated": jnp.zeros((), bool), "truncated": done}

@@ -74,6 +74,7 @@ def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvC
         filter_whole=cfg.env.filter_whole,
         filter_prior_std=cfg.env.filter_prior_std,
         theta_cost=cfg.env.theta_cost,
+        filter_adapt=cfg.env.filter_adapt,
     )
 
 

@@ -193,6 +193,12 @@ ANY_MODEL_COPIES = 16
 # row on a fleet of 100 units (its 256 x 256 product), above a small model's whole
 # UKF step (1.2-3.9 us); 64 wide: 0.7-1.1 us (results/bench/deploy.json)
 ANY_MODEL_ACTOR = (64, 64)
+# the samples the filter step's noise is averaged over on any model
+# (env.filter_adapt): a biased or drifting sensor is weighed less where spare
+# outputs show it (the heat exchanger's untrained policy under a 3-sigma bias on a
+# sensor: 0.75x the declared noise's theta error, clean unchanged;
+# results/policy_robust)
+ANY_MODEL_FILTER_ADAPT = 32
 
 _TUNED_AGENT = dict(
     actor_lr=3e-4,
@@ -322,8 +328,9 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     step) and the stream's age, and its untrained action is the filter's step
     whole (``env.gauss_newton=filter``, ``env.filter_gain=1``,
     ``env.filter_whole``; measured: ``results/policy_any_model/README.md``); its
-    actor is :data:`ANY_MODEL_ACTOR` wide, for a deployed step below the UKF's. The
-    other
+    actor is :data:`ANY_MODEL_ACTOR` wide, for a deployed step below the UKF's, and
+    its filter weighs each output by the noise its innovations show
+    (``env.filter_adapt``, :data:`ANY_MODEL_FILTER_ADAPT` samples). The other
     presets keep their formulation; without labels they fit D and the band on
     simulated units as well.
     """
@@ -334,8 +341,12 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
         dataset=dataclasses.replace(cfg.dataset, labels="score"),
         agent=dataclasses.replace(cfg.agent, actor_hidden_sizes=ANY_MODEL_ACTOR),
         env=dataclasses.replace(
-            cfg.env, start="prior", gauss_newton="filter", filter_whole=True
-        ),
+            cfg.env,
+            start="prior",
+            gauss_newton="filter",
+            filter_whole=True,
+            filter_adapt=ANY_MODEL_FILTER_ADAPT,
+        ),  # fmt: skip
         simulate=SimulationConfig(
             train="both",
             band="simulated",

@@ -131,8 +131,18 @@ class TrackingConfig:
     # is rewarded for the parameters themselves, not only for tracking through
     # them. 0: tracking alone (the paper's)
     theta_cost: float = 0.0
+    # with gauss_newton=filter on a static model: the filter weighs each output by
+    # the noise its innovations show beyond what theta explains, averaged over this
+    # many samples (jaxcal.envs.increment.adapted_noise_scale): a biased, drifting
+    # or mis-scaled sensor is weighed less. 0: the declared noise throughout
+    filter_adapt: int = 0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.filter_adapt, int) and self.filter_adapt >= 0):
+            raise ValueError(
+                f"env.filter_adapt must be an int >= 0 (samples), got "
+                f"{self.filter_adapt!r}"
+            )
         if not (math.isfinite(self.theta_cost) and self.theta_cost >= 0):
             raise ValueError(f"env.theta_cost must be >= 0, got {self.theta_cost!r}")
         check_action_options(
