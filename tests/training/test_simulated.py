@@ -202,6 +202,7 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
         "filter_q",
         "filter_whole",
         "filter_prior_std",
+        "filter_adapt",
     ]
     fields = dict(
         actor=None, dyn_params=None, w_mean=jnp.zeros(2), w_std=jnp.ones(2),
