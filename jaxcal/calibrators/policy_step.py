@@ -83,6 +83,7 @@ from jaxcal.envs.joint_filter import (
     conditioned_state,
     initial_joint_cov,
     joint_filter_feature,
+    joint_prior,
     step_with_joint,
 )
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, as_stateful
@@ -147,7 +148,12 @@ def make_policy_calibrator(
     sample_step = _absolute_step
     if incremental:  # a model with memory under the whole filter: the joint filter
         joint = params.gn_filter and params.filter_whole and dyn.num_states > 0
-        sample_step = functools.partial(_increment_step, joint=joint)
+        first_cov = _kept_cov
+        if joint and start_at_first_sample:
+            first_cov = functools.partial(_first_cov, dyn, params)
+        sample_step = functools.partial(
+            _increment_step, joint=joint, first_cov=first_cov
+        )
     advance = functools.partial(sample_step, actor, params, transition, first_state)
 
     def init(key: PRNGKey | None, w0: Array, x0: Array) -> PolicyState:
@@ -207,7 +213,18 @@ def _initial_state(
     z0 = dyn.init(params.dyn_params, w0.astype(x0.dtype))
     z0 = None if z0 is None else z0.astype(x0.dtype)
     hint = dynamics.init_hint() if hinted else None
-    return fresh_state(params, band, dyn.num_states, x0, z0, hint)
+    state = fresh_state(params, band, dyn.num_states, x0, z0, hint)
+    if state.cov is None or not (params.filter_whole and dyn.num_states):
+        return state
+    return state.replace(cov=_joint_prior_at(dyn, params, state.cov, w0))
+
+
+def _joint_prior_at(dyn, params: PolicyParams, cov, w):
+    """The joint filter's first covariance at a stream's first conditions ``w``
+    (:func:`~jaxcal.envs.joint_filter.joint_prior`, around the start theta)."""
+    half = 0.5 * (params.theta_high - params.theta_low)
+    theta0 = start_theta(params).astype(cov.dtype)
+    return joint_prior(dyn, params.dyn_params, w.astype(cov.dtype), theta0, cov, half)
 
 
 def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
@@ -263,6 +280,22 @@ def initial_cov(params: PolicyParams, num_states: int) -> Array | None:
     return initial_filter_cov(*dims)
 
 
+def _kept_cov(state: PolicyState, w_t):
+    """The filter's covariance as carried."""
+    return state.cov
+
+
+def _first_cov(dyn, params: PolicyParams, state: PolicyState, w_t):
+    """The joint filter's covariance, or at a stream's first sample its prior at
+    that sample's conditions (the state's start, :func:`_first_state`, is made
+    there too)."""
+
+    def first():
+        return _joint_prior_at(dyn, params, initial_cov(params, dyn.num_states), w_t)
+
+    return jax.lax.cond(state.started, lambda: state.cov, first)
+
+
 def _kept_state(state: PolicyState, z, w_t, x_t):
     """``z`` as carried (``init`` made the start from the first ok row)."""
     return z
@@ -305,8 +338,9 @@ def _absolute_step(actor, params, transition, first_state, state, w_t, x_t):
 
 
 def _increment_step(
-    actor, params, transition, first_state, state, w_t, x_t, joint=False
-):
+    actor, params, transition, first_state, state, w_t, x_t, joint=False,
+    first_cov=_kept_cov,
+):  # fmt: skip
     """``(state, theta_t, x-hat_t)`` of an incremental action: predict sample t with
     theta_{t-1}, then correct theta on its error (:mod:`jaxcal.envs.increment`;
     ``joint``: the state too, :mod:`jaxcal.envs.joint_filter`)."""
@@ -323,6 +357,7 @@ def _increment_step(
             jac, sens, ah, z, xhat, hint = step_with_joint(
                 one, z_prev, state.theta, state.sens, half
             )
+            state = state.replace(cov=first_cov(state, w_t))
         else:
             jac, sens, z, xhat, hint = step_with_sensitivity(
                 one, z_prev, state.theta, state.sens

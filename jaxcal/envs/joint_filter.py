@@ -46,6 +46,30 @@ def initial_joint_cov(num_states: int, param_dim: int, dtype, prior_std: float):
     return jnp.diag(diag)
 
 
+def joint_prior(dyn, dyn_params, w0: Array, theta0: Array, cov: Array, half: Array):
+    """``[Z + P, Z + P]``: a joint filter's first covariance with the first state's
+    dependence on theta: the state ``init_at(w0, theta)`` moves with theta by
+    ``S = dz / du`` (forward mode, ``u = theta / half``), so theta's prior
+    ``C_uu`` (``cov``'s theta block) gives the state ``S C_uu S^T`` and the cross
+    term ``S C_uu``, the linearised form of the UKF's joint prior
+    (:func:`~jaxcal.calibrators.ukf_steps.joint_prior`). Without them the filter
+    took the first state as known and read its error as theta's (the reactor,
+    untrained: 1.54x the UKF's theta error). ``cov`` as it is where the dynamics
+    cannot say (``dyn.init_at`` is ``None``)."""
+    if getattr(dyn, "init_at", None) is None:
+        return cov
+    num_states = dyn.num_states
+
+    def first(u):
+        theta = theta0 + (u * half).astype(theta0.dtype)
+        return dyn.init_at(dyn_params, w0, theta).astype(cov.dtype)
+
+    sens = jax.jacfwd(first)(jnp.zeros(theta0.shape, cov.dtype))  # [Z, P]
+    c_uu = cov[num_states:, num_states:]
+    cross = sens @ c_uu
+    return jnp.block([[cross @ sens.T, cross], [cross.T, c_uu]])
+
+
 def step_with_joint(step, z: Array, theta: Array, sens: Array, half: Array):
     """``(J [S, P], sens' [Z, P], (A [Z, n], H [S, n]), *out)`` of one model step
     ``step(z, theta) -> (z', x-hat, ...)``, its Jacobians in ``(z, u)`` by forward

@@ -47,11 +47,16 @@ class StatefulDynamics(NamedTuple):
         init: ``init(dyn_params, w0 [W]) -> z [Z]``: the state after a stream's first
             sample, with the prior theta closed over (``None`` when ``Z = 0``).
         num_states: ``Z``.
+        init_at: ``init_at(dyn_params, w0, theta [P]) -> z [Z]``: the same state at
+            any theta (``init`` is it at the prior), from which a joint filter
+            learns how the first state moves with theta
+            (:func:`~jaxcal.envs.joint_filter.joint_prior`); ``None``: unknown.
     """
 
     step: Callable
     init: Callable
     num_states: int
+    init_at: Callable | None = None
 
 
 def as_stateful(dynamics) -> StatefulDynamics:
@@ -104,15 +109,18 @@ def transition_dynamics(
         )
         return z_next.astype(z.dtype), x.astype(xhat.dtype)
 
-    def init(dyn_params, w0):
+    def init_at(dyn_params, w0, theta):
         # The state *after* the first sample: z_0 = init(w_0), then one step on w_0.
         del dyn_params
         dtype = cast(jnp.result_type(w0))
-        w0_, theta = w0.astype(dtype), jnp.asarray(prior, dtype)
+        w0_, theta = w0.astype(dtype), jnp.asarray(theta, dtype)
         z_next, _ = transition.step(transition.init(w0_, theta), w0_, theta)
         return z_next.astype(jnp.result_type(w0))
 
-    return StatefulDynamics(step=step, init=init, num_states=transition.num_states)
+    def init(dyn_params, w0):
+        return init_at(dyn_params, w0, prior)
+
+    return StatefulDynamics(step, init, transition.num_states, init_at)
 
 
 def reference_states(

@@ -68,6 +68,7 @@ from jaxcal.envs.joint_filter import (
     conditioned_state,
     initial_joint_cov,
     joint_filter_feature,
+    joint_prior,
     step_with_joint,
 )
 from jaxcal.envs.memory import StatefulDynamics, as_stateful  # noqa: F401 (re-export)
@@ -363,6 +364,12 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
         cov = filtered = fstep = scale = None
         if cfg.gn_filter:
             prior = _prior_cov(cfg, dyn.num_states, params.theta_low.dtype, joint)
+            if joint:  # the first state's dependence on theta, as a stream's
+                half = 0.5 * (params.theta_high - params.theta_low)
+                w_t = _row(params.w, params, unit, time).astype(prior.dtype)
+                prior = joint_prior(
+                    dyn, params.dyn_params, w_t, theta.astype(prior.dtype), prior, half
+                )
             z, cov, filtered, fstep, scale = _filtered(
                 cfg, params, unit, time, xhat, jac, prior, z, ah,
                 _first_noise_scale(cfg, dyn, xhat),

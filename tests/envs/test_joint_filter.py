@@ -75,3 +75,29 @@ def test_joint_update_is_the_kalman_filter_of_state_and_theta():
     np.testing.assert_allclose(moved, z_post + regress @ [0.1, 0.0], rtol=1e-5)
     prior = initial_joint_cov(1, 2, jnp.float32, 0.5)
     np.testing.assert_allclose(prior, np.diag([0.0, 0.25, 0.25]))
+
+
+def test_joint_prior_carries_the_first_states_dependence_on_theta():
+    # the first state z0 = 3 theta_0 - theta_1 (w ignored): with theta's prior
+    # C_uu in half-box units u = theta / h, the state's variance is S C_uu S^T and
+    # its cross term S C_uu, S = dz0 / du = [3 h_0, -h_1]; dynamics that cannot say
+    # (no init_at) keep the covariance they were given
+    from jaxcal.envs.joint_filter import joint_prior
+    from jaxcal.envs.memory import StatefulDynamics
+
+    def init_at(dyn_params, w0, theta):
+        return jnp.stack([3.0 * theta[0] - theta[1]])
+
+    dyn = StatefulDynamics(None, None, 1, init_at)
+    half = jnp.array([0.5, 2.0])
+    cov = initial_joint_cov(1, 2, jnp.float32, 0.7)
+    got = np.asarray(joint_prior(dyn, None, jnp.zeros(1), jnp.zeros(2), cov, half))
+    s = np.array([[1.5, -2.0]])
+    c_uu = 0.49 * np.eye(2)
+    np.testing.assert_allclose(got[:1, :1], s @ c_uu @ s.T, rtol=1e-6)
+    np.testing.assert_allclose(got[:1, 1:], s @ c_uu, rtol=1e-6)
+    np.testing.assert_allclose(got[1:, 1:], c_uu, rtol=1e-6)
+    unknown = StatefulDynamics(None, None, 1)
+    np.testing.assert_array_equal(
+        joint_prior(unknown, None, jnp.zeros(1), jnp.zeros(2), cov, half), cov
+    )
