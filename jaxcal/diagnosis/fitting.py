@@ -127,9 +127,9 @@ def evaluate_model(
     ``columns``) the prewhitened signatures. Rows outside ``valid`` get r = 0, and a
     row that was valid and fails makes the SSR infinite (the point is rejected)."""
     inputs = model_inputs(model, data, lay, params)
-    # a static model's signatures come with its evaluation; a model with memory
-    # costs one forward pass per tangent, taken only when asked for
-    want = columns or not model.is_stateful
+    # signatures cost a forward pass per tangent (a model with memory) or a
+    # derivative per direction (a static one): taken only when asked for
+    want = columns
     sig = signatures(model, data, inputs, lay.tangents if want else ())
     yhat = sig.y if offset is None else sig.y + offset
     ok = sig.ok if valid is None else valid & sig.ok
@@ -280,10 +280,13 @@ def schur_solve(
 
 def _evaluate_trial(model, data, lay, trial, offset, valid, ssr):
     """The trial point's evaluation: its SSR first, its signatures only when it
-    lowers the SSR below ``ssr`` (those of a rejected point are never needed)."""
+    lowers the SSR below ``ssr`` (those of a rejected point are never needed). A
+    static model's derivatives come with its evaluation at a few percent each, and
+    most trials are accepted: taken at once."""
     ev_t = evaluate_model(
-        model, data, lay, trial, offset=offset, valid=valid, columns=False
-    )
+        model, data, lay, trial, offset=offset, valid=valid,
+        columns=not model.is_stateful,
+    )  # fmt: skip
     if is_accepted(ev_t.ssr, ssr) and ev_t.cols is None:
         # the signatures too: a point where they overflow (a model with memory
         # driven unstable along a tangent) is rejected like a worse one

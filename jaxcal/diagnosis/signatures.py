@@ -48,6 +48,7 @@ from jaxcal.precision import require_x64
 
 CHUNK_ROWS = 256  # the one row-chunk shape a static model is compiled for
 CHUNKS_IN_FLIGHT = 8  # row chunks dispatched before the first is read back
+DIRECTION_BUCKET = 4  # a fit's derivatives are computed in groups of this many
 TIME_BUCKET = 128  # a model with memory pads its units to a multiple of this
 TANGENT_BUCKET = 8  # ... and its tangents
 CHANNELS = ("parameter", "effect", "condition", "state", "additive", "multiplicative")
@@ -120,25 +121,62 @@ def _linearize_row(model: Model, offset_idx, w, theta, effects, w_off):
     return x, jacs[0], jacs[1], jacs[2], ok
 
 
-def _linearize_program(model: Model, offset_idx: tuple):
+def _directional_row(model: Model, offset_idx, w, theta, effects, w_off, basis):
+    """``(x, x' basis^T, ok)`` of one row: the output and its forward derivatives
+    along the ``[D, M]`` directions ``basis`` in (parameters, effects, offset
+    conditions); ``D = 0`` is the output alone."""
+    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
+    num_p, num_e = theta.shape[0], effects.shape[0]
+
+    def extended(u):
+        th, ef, off_k = u[:num_p], u[num_p : num_p + num_e], u[num_p + num_e :]
+        w_in = w + w_off + select @ off_k
+        if model.effects:
+            x, info = model.evaluate_effects(w_in, th, ef)
+        else:
+            x, info = model.evaluate(w_in, th)
+        return x, info.valid
+
+    u0 = jnp.concatenate([theta, effects, jnp.zeros(len(offset_idx), w.dtype)])
+    if basis.shape[0] == 0:
+        x, valid = extended(u0)
+        jac = jnp.zeros(x.shape + (0,), x.dtype)
+    else:
+
+        def push(v):  # the primal is not batched: computed once for every direction
+            (x, valid), (dx, _) = jax.jvp(extended, (u0,), (v,))
+            return x, valid, dx
+
+        x, valid, jac = jax.vmap(push, out_axes=(None, None, 1))(basis)
+    ok = valid & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(jac))
+    return x, jac, ok
+
+
+def _linearize_program(model: Model, offset_idx: tuple, directions: int | None = None):
     """The jitted ``[C]``-row linearisation of ``model`` (one shape for every data
     set of a model), built once per process and kept on disk across processes
     (:func:`jaxcal.calibrators.on_disk.kept`, under the built-in model's name or a
     user model's traced digest): tracing the turbofan's Newton solve under
     ``jacfwd`` took 30-35 s of every new process, the computation of a 200-unit
-    fit's evaluation 2-3 s."""
+    fit's evaluation 2-3 s. ``directions``: ``None`` for every derivative
+    (:func:`_linearize_row`), else that many directions given as an argument
+    (:func:`_directional_row`, 0: the output alone)."""
 
     def build():
-        program = jax.jit(
-            jax.vmap(functools.partial(_linearize_row, model, offset_idx))
-        )
+        if directions is None:
+            row = functools.partial(_linearize_row, model, offset_idx)
+            program = jax.jit(jax.vmap(row))
+        else:
+            row = functools.partial(_directional_row, model, offset_idx)
+            program = jax.jit(jax.vmap(row, in_axes=(0, 0, 0, 0, None)))
         origin = model.origin or traced_key(model, np.float64)
         disk = None if origin is None else (
-            "diagnosis.linearize", origin, offset_idx, CHUNK_ROWS,
+            "diagnosis.linearize", origin, offset_idx, CHUNK_ROWS, directions,
         )  # fmt: skip
         return kept(program, disk)
 
-    return cached_value(("diagnosis.linearize", model, offset_idx), build)
+    key = ("diagnosis.linearize", model, offset_idx, directions)
+    return cached_value(key, build)
 
 
 class Linearization(NamedTuple):
@@ -150,6 +188,12 @@ class Linearization(NamedTuple):
     jac_w: np.ndarray  # [N, E, K] offset conditions (offset_conditions order)
     ok: np.ndarray  # [N]
     outputs: tuple | None = None  # the model outputs E are (None: all of them)
+    # the (channel, index) derivatives computed (None: all; the others are zero)
+    directions: frozenset | None = None
+
+    def covers(self, keys) -> bool:
+        """The derivatives along every ``(channel, index)`` of ``keys`` are here."""
+        return self.directions is None or set(keys) <= self.directions
 
 
 def linearize(
@@ -160,6 +204,7 @@ def linearize(
     w_offset=None,
     *,
     outputs: Sequence[int] | None = None,
+    directions=None,
 ) -> Linearization:
     """Per-row output and Jacobians of a static model at ``N`` rows.
 
@@ -173,6 +218,10 @@ def linearize(
         outputs: the model outputs kept (indices; default all): a fleet's rows
             times every output and parameter is the memory of the diagnosis, and
             its residual uses a few outputs.
+        directions: the ``(channel, index)`` derivatives wanted (channels
+            ``parameter``, ``effect``, ``condition``; default all): a fit needs
+            its own few, and each costs about 7 % of the model's evaluation (the
+            turbofan's Newton solve is shared); the others are returned as zeros.
     """
     require_x64("the diagnosis needs float64")
     w = np.asarray(w, np.float64)
@@ -193,12 +242,25 @@ def linearize(
     w_offset = np.asarray(w_offset, np.float64)
     offset_idx = tuple(model.condition_names.index(c) for c in offset_conditions(model))
     keep = slice(None) if outputs is None else np.asarray(outputs, int)
-    program = _linearize_program(model, offset_idx)
+    basis, slots = _basis(model, offset_idx, directions)
+    program = _linearize_program(
+        model, offset_idx, None if basis is None else basis.shape[0]
+    )
 
     def read(start, stop, out):
-        x, j_th, j_ef, j_w, ok = (np.asarray(a)[: stop - start] for a in out)
+        out = [np.asarray(a)[: stop - start] for a in out]
         batch_progress(stop, n, "rows")
-        return x[:, keep], j_th[:, keep], j_ef[:, keep], j_w[:, keep], ok
+        if basis is None:
+            x, j_th, j_ef, j_w, ok = out
+            return x[:, keep], j_th[:, keep], j_ef[:, keep], j_w[:, keep], ok
+        x, jac, ok = out
+        x = x[:, keep]
+        full = np.zeros(x.shape + (basis.shape[1],))
+        for d, m in enumerate(slots):
+            full[:, :, m] = jac[:, keep, d]
+        num_p, num_e = theta.shape[1], effects.shape[1]
+        return (x, full[:, :, :num_p], full[:, :, num_p : num_p + num_e],
+                full[:, :, num_p + num_e :], ok)  # fmt: skip
 
     # chunks are dispatched ahead and read back in order: they run on JAX's threads
     # while the host waits on the oldest (2 cores: 0.55 s for 4096 rows of the
@@ -209,7 +271,8 @@ def linearize(
         take = np.concatenate(
             [np.arange(start, stop), np.full(CHUNK_ROWS - (stop - start), stop - 1)]
         )
-        out = program(w[take], theta[take], effects[take], w_offset[take])
+        args = (w[take], theta[take], effects[take], w_offset[take])
+        out = program(*args) if basis is None else program(*args, basis)
         pending.append((start, stop, out))
         if len(pending) == CHUNKS_IN_FLIGHT:
             parts.append(read(*pending.popleft()))
@@ -218,7 +281,36 @@ def linearize(
     return Linearization(
         x, j_th, j_ef, j_w, ok.astype(bool),
         None if outputs is None else tuple(int(i) for i in outputs),
+        None if basis is None else frozenset(directions),
     )  # fmt: skip
+
+
+def _basis(model: Model, offset_idx: tuple, directions):
+    """``(basis [D, M], slots [k])``: the unit directions in (parameters, effects,
+    offset conditions) of the wanted derivatives, padded with zero rows to a
+    multiple of :data:`DIRECTION_BUCKET` (two compiled shapes, 0 and one bucket,
+    serve the fits), and the input each of the first ``k`` rows moves; ``(None,
+    None)`` for every derivative (all asked, or more than one bucket)."""
+    if directions is None:
+        return None, None
+    num_p, num_e = len(model.parameters), len(model.effects)
+    size = num_p + num_e + len(offset_idx)
+    slots = []
+    for channel, index in sorted(set(directions)):
+        if channel == "parameter":
+            slots.append(index)
+        elif channel == "effect":
+            slots.append(num_p + index)
+        elif channel == "condition" and index in offset_idx:
+            slots.append(num_p + num_e + offset_idx.index(index))
+        else:
+            raise ValueError(f"no derivative along {channel} {index} of {model.name!r}")
+    rows = -(-len(slots) // DIRECTION_BUCKET) * DIRECTION_BUCKET
+    if rows > DIRECTION_BUCKET or rows >= size:
+        return None, None  # a screen's many: every derivative, as one program
+    basis = np.zeros((rows, size))
+    basis[np.arange(len(slots)), slots] = 1.0
+    return basis, slots
 
 
 # the last model points' linearisations: a fit starts where the one it refines
@@ -228,9 +320,10 @@ LINEARIZATIONS_KEPT = 4
 _LINEARIZED: collections.OrderedDict = collections.OrderedDict()
 
 
-def _linearized(model, data, inputs: RowInputs) -> Linearization:
-    """:func:`linearize` at ``inputs`` (the data's outputs), reused when the same
-    point was linearised last (the key is the inputs' bytes, not their identity)."""
+def _linearized(model, data, inputs: RowInputs, directions) -> Linearization:
+    """:func:`linearize` at ``inputs`` (the data's outputs) with at least the
+    derivatives ``directions``, reused when the same point was linearised lately
+    with them (the key is the inputs' bytes, not their identity)."""
     outputs = tuple(int(i) for i in data.sensor_idx)
     digest = hashlib.sha256()
     for arr in (data.w, inputs.theta, inputs.effects, inputs.w_offset):
@@ -239,9 +332,9 @@ def _linearized(model, data, inputs: RowInputs) -> Linearization:
         digest.update(arr.tobytes())
     key = (model, outputs, digest.hexdigest())
     lin = _LINEARIZED.get(key)
-    if lin is None:
+    if lin is None or not lin.covers(directions):
         lin = linearize(model, data.w, inputs.theta, inputs.effects, inputs.w_offset,
-                        outputs=outputs)  # fmt: skip
+                        outputs=outputs, directions=directions)  # fmt: skip
         for arr in lin[:5]:
             arr.setflags(write=False)  # shared by every caller at this point
         _LINEARIZED[key] = lin
@@ -253,12 +346,20 @@ def _linearized(model, data, inputs: RowInputs) -> Linearization:
 
 def _static(model, data, inputs: RowInputs, tangents, lin=None) -> Signatures:
     used = tuple(int(i) for i in data.sensor_idx)
-    if lin is None or lin.outputs != used:
-        lin = _linearized(model, data, inputs)
+    offset_names = offset_conditions(model)
+    directions = set()
+    for tan in tangents:
+        if tan.channel == "condition":
+            name = model.condition_names[tan.index]
+            if name not in offset_names:
+                raise ValueError(f"model {model.name!r} allows no offset on {name}")
+        if tan.channel in ("parameter", "effect", "condition"):
+            directions.add((tan.channel, int(tan.index)))
+    if lin is None or lin.outputs != used or not lin.covers(directions):
+        lin = _linearized(model, data, inputs, frozenset(directions))
     x = lin.x
     gain = 1.0 + inputs.multiplicative[:, data.sensor_idx]
     y = x * gain + inputs.additive[:, data.sensor_idx]
-    offset_names = offset_conditions(model)
     cols = np.zeros(x.shape + (len(tangents),))
     for t, tan in enumerate(tangents):
         prof = np.asarray(tan.profile, np.float64)[:, None]
@@ -267,10 +368,7 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None) -> Signatures:
         elif tan.channel == "effect":
             cols[:, :, t] = prof * lin.jac_effects[:, :, tan.index] * gain
         elif tan.channel == "condition":
-            name = model.condition_names[tan.index]
-            if name not in offset_names:
-                raise ValueError(f"model {model.name!r} allows no offset on {name}")
-            k = offset_names.index(name)
+            k = offset_names.index(model.condition_names[tan.index])
             cols[:, :, t] = prof * lin.jac_w[:, :, k] * gain
         else:
             _layer_column(cols, t, tan, data, x)
