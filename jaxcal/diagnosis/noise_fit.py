@@ -173,13 +173,19 @@ def projection_bias(
         a_inv = np.linalg.pinv(np.einsum("tsi,tsj->ij", d, vd))
         g = np.einsum("tsi,tsj->ij", vd, c)
         agai = a_inv @ g @ a_inv
+        # tr(A^-1 G A^-1 sym(D_s^T J D_s)) and tr(A^-1 C_s^T J D_s) as sums over the
+        # lag's row pairs of d_{t+k} . (d_t M): O(m S q) a lag, not O(m S q^2)
+        d_agai, d_ainv = d @ agai, d @ a_inv
         for k in range(min(max_lag, m - 1) + 1):
-            dd = np.einsum("tsi,tsj->sij", d[k:], d[: m - k])
-            cd = np.einsum("tsi,tsj->sij", c[k:], d[: m - k])
-            cd = cd + np.einsum("tsi,tsj->sij", c[: m - k], d[k:])
-            dd = 0.5 * (dd + np.transpose(dd, (0, 2, 1)))
-            out[:, k] += np.einsum("sij,ji->s", dd, agai)
-            out[:, k] -= np.einsum("sij,ji->s", cd, a_inv)
+            late, early = slice(k, m), slice(0, m - k)
+            dd = 0.5 * (
+                np.sum(d[late] * d_agai[early], axis=(0, 2))
+                + np.sum(d[early] * d_agai[late], axis=(0, 2))
+            )
+            cd = np.sum(c[late] * d_ainv[early], axis=(0, 2)) + np.sum(
+                c[early] * d_ainv[late], axis=(0, 2)
+            )
+            out[:, k] += dd - cd
     return out / np.maximum(pair_counts(data.starts, max_lag), 1)
 
 
