@@ -186,6 +186,17 @@ class _Refits:
                                     stds, True, old.detectability)  # fmt: skip
 
 
+def _slim(fit: FitResult) -> FitResult:
+    """``fit`` without what only its own fit and the winner's verdicts read: its
+    prewhitened columns and its model's Jacobians (a fleet's rows times its columns
+    each: 60 of the 100 MB of one FD001 refit, held for every entry refitted). The
+    residual and raw signatures stay: the noise model may be refitted on them
+    (:mod:`.pipeline`)."""
+    ev = fit.evaluation
+    slim = ev._replace(cols=None, sig=ev.sig._replace(lin=None))
+    return fit._replace(evaluation=slim)
+
+
 def _winner(ranking, entries: dict, fits: dict, num_tests: int, cfg: IdentifyConfig):
     """The best refitted entry when it is significant (``bic_margin`` and the
     Bonferroni p-value), a pair only when it beats the best single by the margin;
@@ -292,6 +303,8 @@ def identify(
         confounded = _confounded_with(winner, singles, entries, screen, cfg)
         # the winner's onsets were profiled at its own fit
         onset_ci.update(refits.onset_ci.get(winner.name, {}))
+    fits = {name: fit if winner is not None and name == winner.name else _slim(fit)
+            for name, fit in fits.items()}  # fmt: skip
     return Identification(
         null, ranking, winner, None if winner is None else fits[winner.name],
         confounded, absorbed, num_tests, fits, onset_ci, near_miss,
