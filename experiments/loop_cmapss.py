@@ -218,8 +218,9 @@ def main(argv: list[str]) -> int:
         start = time.time()
         data = read_dataset(path)
         res = diagnose(
-            data, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None
-        )
+            data, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None,
+            progress=True,
+        )  # fmt: skip
         seconds = time.time() - start
         config = {
             **config_to_dict(cfg),
