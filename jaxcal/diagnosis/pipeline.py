@@ -63,7 +63,7 @@ from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.screen import init_from, spec_for
 from jaxcal.diagnosis.terms import ModelSpec
 from jaxcal.diagnosis.timing import StageClock
-from jaxcal.diagnosis.units import unit_effects, unit_trajectories
+from jaxcal.diagnosis.units import fleet_summary, unit_effects, unit_trajectories
 from jaxcal.model import Model
 
 NOISE_ROUNDS = 2  # noise model <-> declared-only fit alternations
@@ -459,7 +459,7 @@ def _verdicts(model, data, declared, library, ident, null, cfg, fell_back):
         final_ident.onset_ci,
     )  # fmt: skip
     for entry, eff in zip(identified, per_unit, strict=True):
-        entry.update(_fleet_summary(eff, entry))
+        entry.update(fleet_summary(eff, entry))
     return DiagnosisResult(
         data, model, declared, tuple(library), ident, rescreen, verdict, identified,
         confounded, disc, before, after, added, tuple(members), tuple(per_unit),
@@ -482,29 +482,3 @@ def _per_unit(model, data, declared, best, null, members, before, after, cfg, ci
         traj_before, before.tracking_rmse, after.tracking_rmse, alpha,
     )  # fmt: skip
     return per_unit, flags
-
-
-def _fleet_summary(eff, entry: dict) -> dict:
-    """Fleet numbers of one effect from the same final fit as its per-unit values.
-
-    A per-unit smooth parameter's fleet size is the mean over units of its change
-    over each record (the per-unit size), beside the mean values at the first and the
-    last cycle; its standard error is that of the mean, at least the units' own mean
-    standard error. Carriers and the rest are summarised apart, since a fleet mean
-    blends them.
-    """
-    out = {"carriers": int(eff.carries.sum())}
-    if entry["family"] == "parameter":
-        size = eff.size
-        u = size.size
-        spread = float(np.var(size, ddof=1)) / u if u > 1 else 0.0
-        own = float(np.mean(eff.size_std**2)) / u
-        out["size"] = float(np.mean(size))
-        out["std"] = float(np.sqrt(max(spread, own)))
-        out["start_value"] = float(np.mean(eff.start_value))
-        out["end_value"] = float(np.mean(eff.start_value + size))
-    for key, mask in (("size_carriers", eff.carries), ("size_others", ~eff.carries)):
-        vals = eff.size[mask]
-        vals = vals[np.isfinite(vals)]
-        out[key] = float(np.mean(vals)) if vals.size else None
-    return out

@@ -324,3 +324,29 @@ def units_json(effect: UnitEffect, unit_ids: np.ndarray) -> list[dict]:
             strict=True,
         )  # fmt: skip
     ]
+
+
+def fleet_summary(eff, entry: dict) -> dict:
+    """Fleet numbers of one effect from the same final fit as its per-unit values.
+
+    A per-unit smooth parameter's fleet size is the mean over units of its change
+    over each record (the per-unit size), beside the mean values at the first and the
+    last cycle; its standard error is that of the mean, at least the units' own mean
+    standard error. Carriers and the rest are summarised apart, since a fleet mean
+    blends them.
+    """
+    out = {"carriers": int(eff.carries.sum())}
+    if entry["family"] == "parameter":
+        size = eff.size
+        u = size.size
+        spread = float(np.var(size, ddof=1)) / u if u > 1 else 0.0
+        own = float(np.mean(eff.size_std**2)) / u
+        out["size"] = float(np.mean(size))
+        out["std"] = float(np.sqrt(max(spread, own)))
+        out["start_value"] = float(np.mean(eff.start_value))
+        out["end_value"] = float(np.mean(eff.start_value + size))
+    for key, mask in (("size_carriers", eff.carries), ("size_others", ~eff.carries)):
+        vals = eff.size[mask]
+        vals = vals[np.isfinite(vals)]
+        out[key] = float(np.mean(vals)) if vals.size else None
+    return out

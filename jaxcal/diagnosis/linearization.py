@@ -1,0 +1,282 @@
+"""A static model's per-row Jacobians over a data set, for the diagnosis's signatures
+(:mod:`jaxcal.diagnosis.signatures`).
+
+``jax.jacfwd`` with respect to the parameters, effects and offset conditions (or
+only the directions a fit needs, in buckets of :data:`DIRECTION_BUCKET`), one jitted
+function with a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across
+processes (``jaxcal.calibrators.on_disk``), its chunks dispatched
+:data:`CHUNKS_IN_FLIGHT` ahead; the last :data:`LINEARIZATIONS_KEPT` points are
+reused (a refit starts where the fit before it ended), and only the residual's
+outputs are kept.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import hashlib
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.calibrators.compiled import cached_value
+from jaxcal.calibrators.on_disk import kept
+from jaxcal.calibrators.traced_key import traced_key
+from jaxcal.diagnosis.kinds import offset_conditions
+from jaxcal.diagnosis.timing import batch_progress
+from jaxcal.model import Model
+from jaxcal.precision import require_x64
+
+if TYPE_CHECKING:  # annotations only: signatures imports this module
+    from jaxcal.diagnosis.signatures import RowInputs
+
+CHUNK_ROWS = 256  # the one row-chunk shape a static model is compiled for
+CHUNKS_IN_FLIGHT = 8  # row chunks dispatched before the first is read back
+DIRECTION_BUCKET = 4  # a fit's derivatives are computed in groups of this many
+
+
+def _linearize_row(model: Model, offset_idx, w, theta, effects, w_off):
+    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
+
+    def extended(th, ef, off_k):
+        w_in = w + w_off + select @ off_k
+        if model.effects:
+            x, info = model.evaluate_effects(w_in, th, ef)
+        else:
+            x, info = model.evaluate(w_in, th)
+        return x, (x, info.valid)
+
+    off_k = jnp.zeros(len(offset_idx), w.dtype)
+    jacs, (x, valid) = jax.jacfwd(extended, argnums=(0, 1, 2), has_aux=True)(
+        theta, effects, off_k
+    )
+    ok = valid & jnp.all(jnp.isfinite(x))
+    for jac in jacs:
+        ok = ok & jnp.all(jnp.isfinite(jac))
+    return x, jacs[0], jacs[1], jacs[2], ok
+
+
+def _directional_row(model: Model, offset_idx, w, theta, effects, w_off, basis):
+    """``(x, x' basis^T, ok)`` of one row: the output and its forward derivatives
+    along the ``[D, M]`` directions ``basis`` in (parameters, effects, offset
+    conditions); ``D = 0`` is the output alone."""
+    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
+    num_p, num_e = theta.shape[0], effects.shape[0]
+
+    def extended(u):
+        th, ef, off_k = u[:num_p], u[num_p : num_p + num_e], u[num_p + num_e :]
+        w_in = w + w_off + select @ off_k
+        if model.effects:
+            x, info = model.evaluate_effects(w_in, th, ef)
+        else:
+            x, info = model.evaluate(w_in, th)
+        return x, info.valid
+
+    u0 = jnp.concatenate([theta, effects, jnp.zeros(len(offset_idx), w.dtype)])
+    if basis.shape[0] == 0:
+        x, valid = extended(u0)
+        jac = jnp.zeros(x.shape + (0,), x.dtype)
+    else:
+
+        def push(v):  # the primal is not batched: computed once for every direction
+            (x, valid), (dx, _) = jax.jvp(extended, (u0,), (v,))
+            return x, valid, dx
+
+        x, valid, jac = jax.vmap(push, out_axes=(None, None, 1))(basis)
+    ok = valid & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(jac))
+    return x, jac, ok
+
+
+def _linearize_program(model: Model, offset_idx: tuple, directions: int | None = None):
+    """The jitted ``[C]``-row linearisation of ``model`` (one shape for every data
+    set of a model), built once per process and kept on disk across processes
+    (:func:`jaxcal.calibrators.on_disk.kept`, under the built-in model's name or a
+    user model's traced digest): tracing the turbofan's Newton solve under
+    ``jacfwd`` took 30-35 s of every new process, the computation of a 200-unit
+    fit's evaluation 2-3 s. ``directions``: ``None`` for every derivative
+    (:func:`_linearize_row`), else that many directions given as an argument
+    (:func:`_directional_row`, 0: the output alone)."""
+
+    def build():
+        if directions is None:
+            row = functools.partial(_linearize_row, model, offset_idx)
+            program = jax.jit(jax.vmap(row))
+        else:
+            row = functools.partial(_directional_row, model, offset_idx)
+            program = jax.jit(jax.vmap(row, in_axes=(0, 0, 0, 0, None)))
+        origin = model.origin or traced_key(model, np.float64)
+        disk = None if origin is None else (
+            "diagnosis.linearize", origin, offset_idx, CHUNK_ROWS, directions,
+        )  # fmt: skip
+        return kept(program, disk)
+
+    key = ("diagnosis.linearize", model, offset_idx, directions)
+    return cached_value(key, build)
+
+
+class Linearization(NamedTuple):
+    """A static model and its per-row Jacobians (``E`` model outputs)."""
+
+    x: np.ndarray  # [N, E]
+    jac_theta: np.ndarray  # [N, E, P_all]
+    jac_effects: np.ndarray  # [N, E, n_eff]
+    jac_w: np.ndarray  # [N, E, K] offset conditions (offset_conditions order)
+    ok: np.ndarray  # [N]
+    outputs: tuple | None = None  # the model outputs E are (None: all of them)
+    # the (channel, index) derivatives computed (None: all; the others are zero)
+    directions: frozenset | None = None
+
+    def covers(self, keys) -> bool:
+        """The derivatives along every ``(channel, index)`` of ``keys`` are here."""
+        return self.directions is None or set(keys) <= self.directions
+
+
+def linearize(
+    model: Model,
+    w: np.ndarray,
+    theta: np.ndarray,
+    effects=None,
+    w_offset=None,
+    *,
+    outputs: Sequence[int] | None = None,
+    directions=None,
+) -> Linearization:
+    """Per-row output and Jacobians of a static model at ``N`` rows.
+
+    Args:
+        model: a static :class:`~jaxcal.model.Model` (float64 enabled).
+        w: ``[N, W]`` logged conditions. theta: ``[N, P_all]``.
+        effects: ``[N, n_eff]`` registered-effect inputs (default zeros).
+        w_offset: ``[N, W]`` condition offsets (default zeros); the Jacobian is taken
+            for the conditions the model allows offsets on
+            (:func:`~jaxcal.diagnosis.kinds.offset_conditions`).
+        outputs: the model outputs kept (indices; default all): a fleet's rows
+            times every output and parameter is the memory of the diagnosis, and
+            its residual uses a few outputs.
+        directions: the ``(channel, index)`` derivatives wanted (channels
+            ``parameter``, ``effect``, ``condition``; default all): a fit needs
+            its own few, and each costs about 7 % of the model's evaluation (the
+            turbofan's Newton solve is shared); the others are returned as zeros.
+    """
+    require_x64("the diagnosis needs float64")
+    w = np.asarray(w, np.float64)
+    theta = np.asarray(theta, np.float64)
+    n = w.shape[0]
+    if w.ndim != 2 or w.shape[1] != len(model.conditions) or theta.shape != (
+        n, len(model.parameters)
+    ):  # fmt: skip
+        raise ValueError(
+            f"linearize: expected w [N, {len(model.conditions)}] and theta "
+            f"[N, {len(model.parameters)}], got {w.shape}, {theta.shape}"
+        )
+    if n == 0:
+        raise ValueError("linearize: no rows")
+    effects = np.zeros((n, len(model.effects))) if effects is None else effects
+    w_offset = np.zeros_like(w) if w_offset is None else w_offset
+    effects = np.asarray(effects, np.float64)
+    w_offset = np.asarray(w_offset, np.float64)
+    offset_idx = tuple(model.condition_names.index(c) for c in offset_conditions(model))
+    keep = slice(None) if outputs is None else np.asarray(outputs, int)
+    basis, slots = _basis(model, offset_idx, directions)
+    program = _linearize_program(
+        model, offset_idx, None if basis is None else basis.shape[0]
+    )
+
+    def read(start, stop, out):
+        out = [np.asarray(a)[: stop - start] for a in out]
+        batch_progress(stop, n, "rows")
+        if basis is None:
+            x, j_th, j_ef, j_w, ok = out
+            return x[:, keep], j_th[:, keep], j_ef[:, keep], j_w[:, keep], ok
+        x, jac, ok = out
+        x = x[:, keep]
+        full = np.zeros(x.shape + (basis.shape[1],))
+        for d, m in enumerate(slots):
+            full[:, :, m] = jac[:, keep, d]
+        num_p, num_e = theta.shape[1], effects.shape[1]
+        return (x, full[:, :, :num_p], full[:, :, num_p : num_p + num_e],
+                full[:, :, num_p + num_e :], ok)  # fmt: skip
+
+    # chunks are dispatched ahead and read back in order: they run on JAX's threads
+    # while the host waits on the oldest (2 cores: 0.55 s for 4096 rows of the
+    # turbofan against 0.91 s one chunk at a time)
+    parts, pending = [], collections.deque()
+    for start in range(0, n, CHUNK_ROWS):
+        stop = min(start + CHUNK_ROWS, n)
+        take = np.concatenate(
+            [np.arange(start, stop), np.full(CHUNK_ROWS - (stop - start), stop - 1)]
+        )
+        args = (w[take], theta[take], effects[take], w_offset[take])
+        out = program(*args) if basis is None else program(*args, basis)
+        pending.append((start, stop, out))
+        if len(pending) == CHUNKS_IN_FLIGHT:
+            parts.append(read(*pending.popleft()))
+    parts.extend(read(*p) for p in pending)
+    x, j_th, j_ef, j_w, ok = (np.concatenate(p) for p in zip(*parts, strict=True))
+    return Linearization(
+        x, j_th, j_ef, j_w, ok.astype(bool),
+        None if outputs is None else tuple(int(i) for i in outputs),
+        None if basis is None else frozenset(directions),
+    )  # fmt: skip
+
+
+def _basis(model: Model, offset_idx: tuple, directions):
+    """``(basis [D, M], slots [k])``: the unit directions in (parameters, effects,
+    offset conditions) of the wanted derivatives, padded with zero rows to a
+    multiple of :data:`DIRECTION_BUCKET` (two compiled shapes, 0 and one bucket,
+    serve the fits), and the input each of the first ``k`` rows moves; ``(None,
+    None)`` for every derivative (all asked, or more than one bucket)."""
+    if directions is None:
+        return None, None
+    num_p, num_e = len(model.parameters), len(model.effects)
+    size = num_p + num_e + len(offset_idx)
+    slots = []
+    for channel, index in sorted(set(directions)):
+        if channel == "parameter":
+            slots.append(index)
+        elif channel == "effect":
+            slots.append(num_p + index)
+        elif channel == "condition" and index in offset_idx:
+            slots.append(num_p + num_e + offset_idx.index(index))
+        else:
+            raise ValueError(f"no derivative along {channel} {index} of {model.name!r}")
+    rows = -(-len(slots) // DIRECTION_BUCKET) * DIRECTION_BUCKET
+    if rows > DIRECTION_BUCKET or rows >= size:
+        return None, None  # a screen's many: every derivative, as one program
+    basis = np.zeros((rows, size))
+    basis[np.arange(len(slots)), slots] = 1.0
+    return basis, slots
+
+
+# the last model points' linearisations: a fit starts where the one it refines
+# ended, and every refit of a candidate at the declared-only solution (its terms
+# at zero) evaluates the same point (27 % of the evaluations of a diagnosis)
+LINEARIZATIONS_KEPT = 4
+_LINEARIZED: collections.OrderedDict = collections.OrderedDict()
+
+
+def _linearized(model, data, inputs: RowInputs, directions) -> Linearization:
+    """:func:`linearize` at ``inputs`` (the data's outputs) with at least the
+    derivatives ``directions``, reused when the same point was linearised lately
+    with them (the key is the inputs' bytes, not their identity)."""
+    outputs = tuple(int(i) for i in data.sensor_idx)
+    digest = hashlib.sha256()
+    for arr in (data.w, inputs.theta, inputs.effects, inputs.w_offset):
+        arr = np.ascontiguousarray(arr, np.float64)
+        digest.update(repr(arr.shape).encode())
+        digest.update(arr.tobytes())
+    key = (model, outputs, digest.hexdigest())
+    lin = _LINEARIZED.get(key)
+    if lin is None or not lin.covers(directions):
+        lin = linearize(model, data.w, inputs.theta, inputs.effects, inputs.w_offset,
+                        outputs=outputs, directions=directions)  # fmt: skip
+        for arr in lin[:5]:
+            arr.setflags(write=False)  # shared by every caller at this point
+        _LINEARIZED[key] = lin
+        while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
+            _LINEARIZED.popitem(last=False)
+    _LINEARIZED.move_to_end(key)
+    return lin
