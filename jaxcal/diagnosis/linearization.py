@@ -16,7 +16,7 @@ import collections
 import functools
 import hashlib
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,9 +29,6 @@ from jaxcal.diagnosis.kinds import offset_conditions
 from jaxcal.diagnosis.timing import batch_progress
 from jaxcal.model import Model
 from jaxcal.precision import require_x64
-
-if TYPE_CHECKING:  # annotations only: signatures imports this module
-    from jaxcal.diagnosis.signatures import RowInputs
 
 CHUNK_ROWS = 256  # the one row-chunk shape a static model is compiled for
 CHUNKS_IN_FLIGHT = 8  # row chunks dispatched before the first is read back
@@ -258,10 +255,11 @@ LINEARIZATIONS_KEPT = 4
 _LINEARIZED: collections.OrderedDict = collections.OrderedDict()
 
 
-def _linearized(model, data, inputs: RowInputs, directions) -> Linearization:
-    """:func:`linearize` at ``inputs`` (the data's outputs) with at least the
-    derivatives ``directions``, reused when the same point was linearised lately
-    with them (the key is the inputs' bytes, not their identity)."""
+def _linearized(model, data, inputs, directions) -> Linearization:
+    """:func:`linearize` at ``inputs`` (a
+    :class:`~jaxcal.diagnosis.signatures.RowInputs`; the data's outputs) with at
+    least the derivatives ``directions``, reused when the same point was linearised
+    lately with them (the key is the inputs' bytes, not their identity)."""
     outputs = tuple(int(i) for i in data.sensor_idx)
     digest = hashlib.sha256()
     for arr in (data.w, inputs.theta, inputs.effects, inputs.w_offset):
