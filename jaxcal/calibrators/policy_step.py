@@ -77,6 +77,7 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
+    initial_noise_scale,
     step_with_sensitivity,
 )
 from jaxcal.envs.joint_filter import (
@@ -238,7 +239,10 @@ def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
         count=jnp.zeros((), jnp.int32) if counts(params, band) else None,
         hint=hint, sens=initial_sensitivity(params, num_states, xhat.dtype),
         cov=initial_cov(params, num_states), trend=band_trend(params, band),
-        noise_scale=initial_noise_scale(params, num_states, xhat),
+        noise_scale=initial_noise_scale(
+            getattr(params, "gn_filter", False), getattr(params, "filter_adapt", 0),
+            num_states, xhat,
+        ),
     )  # fmt: skip
 
 
@@ -251,15 +255,6 @@ def start_theta(params: PolicyParams) -> Array | None:
         return None
     theta0 = getattr(params, "theta_start", None)
     return 0.5 * (params.theta_low + params.theta_high) if theta0 is None else theta0
-
-
-def initial_noise_scale(params: PolicyParams, num_states: int, xhat) -> Array | None:
-    """The adaptive filter's first noise scale (ones: the declared noise) where it
-    adapts (``filter_adapt`` on the filter of theta alone, a static model's), else
-    ``None``: the training environment's rule (``tracking._first_noise_scale``)."""
-    if not (getattr(params, "gn_filter", False) and getattr(params, "filter_adapt", 0)):
-        return None
-    return None if num_states else jnp.ones_like(xhat)
 
 
 def band_trend(params: PolicyParams, band) -> Array | None:

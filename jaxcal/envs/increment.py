@@ -206,6 +206,16 @@ def adapted_noise_scale(scale: Array, resid: Array, jac: Array, params, horizon:
     return jnp.clip(new, 1e-3, 1e6).astype(resid.dtype)
 
 
+def initial_noise_scale(filtered: bool, adapt: int, num_states: int, like: Array):
+    """The adaptive filter's noise scale before a stream's first sample (ones like
+    ``like``: the declared noise), ``None`` where it does not adapt: no filter, no
+    ``adapt`` horizon, or the filter not on theta alone (a model with memory). The
+    one rule of the training environment and the deployed step."""
+    if not (filtered and adapt) or num_states:
+        return None
+    return jnp.ones_like(like)
+
+
 def step_feature(delta, resid, params, max_increment: float, whole: bool) -> Array:
     """``[P]`` a filter's step ``delta`` (theta units) in the action's scale, so that
     a unit gain on it takes that step through the gated increment."""

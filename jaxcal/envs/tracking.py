@@ -62,6 +62,7 @@ from jaxcal.envs.increment import (
     gauss_newton_features,
     increment_observation,
     initial_filter_cov,
+    initial_noise_scale,
     step_with_sensitivity,
 )
 from jaxcal.envs.joint_filter import (
@@ -256,15 +257,6 @@ def _filtered(
     return (z, *jax.lax.stop_gradient(out), None, scale)
 
 
-def _first_noise_scale(cfg: EnvConfig, dyn, xhat: Array) -> Array | None:
-    """The adaptive filter's noise scale before a stream's first sample (ones: the
-    declared noise), ``None`` where it does not adapt: ``filter_adapt`` 0, or the
-    filter not on theta alone (a model with memory)."""
-    if not (cfg.gn_filter and cfg.filter_adapt) or dyn.num_states:
-        return None
-    return jnp.ones_like(xhat)
-
-
 def _draw_start(key: PRNGKey, params: EnvParams, cfg: EnvConfig):
     """A random episode start: (unit, start, theta_0), the unit among those a
     window fits, theta_0 anywhere in the box for incremental actions (else None)."""
@@ -372,7 +364,9 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
                 )
             z, cov, filtered, fstep, scale = _filtered(
                 cfg, params, unit, time, xhat, jac, prior, z, ah,
-                _first_noise_scale(cfg, dyn, xhat),
+                initial_noise_scale(
+                    cfg.gn_filter, cfg.filter_adapt, dyn.num_states, xhat
+                ),
             )  # fmt: skip
         state = make_env_state(
             unit=unit,
