@@ -69,6 +69,10 @@ class DiagnosisHints(NamedTuple):
             wear). The diagnosis flags a value of the other sign ("better than
             new"). Default: +1 when the nominal value is the lower bound, -1 when it
             is the upper bound, else unknown (not checked).
+        carriers: parameter name -> the unit ids that carry it (an extended model's
+            effect found in some units only, :mod:`jaxcal.models.extended`):
+            ``jaxcal.calibrate`` holds it at its nominal value in every other unit.
+            Default: every parameter in every unit.
     """
 
     scales: Mapping[str, float] | None = None
@@ -76,6 +80,7 @@ class DiagnosisHints(NamedTuple):
     uninformative: Mapping[str, str] | None = None
     offset_conditions: tuple[str, ...] | None = None
     degradation_sign: Mapping[str, int] | None = None
+    carriers: Mapping[str, tuple[int, ...]] | None = None
 
 
 StepFn = Callable[[Array, Array, Array], tuple[Array, Array, Any]]

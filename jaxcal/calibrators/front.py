@@ -77,7 +77,10 @@ function reads has changed, the programs are built anew, never reused with the o
 value (:mod:`jaxcal.calibrators.traced_key`).
 
 The result in the data's row order, and the console line counting the skipped rows,
-are assembled by :mod:`jaxcal.calibrators.front_rows`.
+are assembled by :mod:`jaxcal.calibrators.front_rows`. A parameter that acts in some
+units only (an extended model's per-unit effect, ``model.diagnosis.carriers``) is
+calibrated in its carriers and held at its nominal value elsewhere
+(:mod:`jaxcal.calibrators.carriers`).
 """
 
 from __future__ import annotations
@@ -89,7 +92,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from jaxcal.calibrators import methods, traced_key
+from jaxcal.calibrators import carriers, methods, traced_key
 from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
     MANY_OUTLIERS,
     flag_notes,
@@ -187,6 +190,13 @@ def calibrate(
         traced_key.refresh(model, dtype)  # new programs if it did (15-40 ms)
     theta = _names(theta, "theta", "parameter", model.parameter_names)
     outputs = _names(outputs, "outputs", "output", model.output_names)
+    if carriers.applies(model, theta, method, options):  # some units only: per group
+        result, data = carriers.calibrate_split(
+            calibrate, model, data, method, theta, noise, outputs=outputs, seed=seed,
+            progress=progress, options=options,
+        )  # fmt: skip
+        if result is not None:
+            return result
     misfit = _misfit(options.pop("misfit", "withhold"))
     cfg, data, problem, notes, threshold = _read_problem(
         model, data, method, theta, noise, outputs, options, dtype

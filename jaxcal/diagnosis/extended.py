@@ -13,6 +13,15 @@ effect's size in real time, per unit, like any other parameter:
   relative gain ``<output>_gain_error``: a drift is an offset that grows, a step one
   that jumps, and a real-time calibrator follows either as it happens.
 
+An effect carried by some units only (the per-unit form, :mod:`.units`) is added for
+its carriers: the units the verdict lists (``carries``; where none passes the
+per-unit test, the units the screen fitted it in), by their ids in the data
+(``units`` of :class:`~jaxcal.models.extended.Added`). Every other unit is
+calibrated with the parameter held at zero, as with the base model: tracked in all
+six units of a reactor fleet whose units 1 and 3 carried a sensor step, the clean
+units got false offsets of -0.13 to +0.33 K and worse parameters. A fleet-wide
+effect is added for every unit.
+
 The other parameters are held at their nominal values. :func:`write_extended` stores
 the extension as ``extended_model.json`` beside the report; ``jaxcal.models.load``
 (and so ``model=`` on every command line) accepts that file
@@ -44,9 +53,11 @@ def _bounds(scale: float, sizes) -> tuple[float, float]:
 
 def added_parameters(res) -> list[Added]:
     """The extension of a :class:`~jaxcal.diagnosis.pipeline.DiagnosisResult`: one
-    :class:`Added` per added effect (merged per channel and target)."""
+    :class:`Added` per added effect (merged per channel and target; its ``units``
+    the carriers of a per-unit effect, module doc)."""
     model, out = res.model, {}
     for cand, eff in zip(res.members, res.unit_effects, strict=True):
+        units = carrier_ids(cand, eff, res.data.unit_ids)
         channel, target = cand.kind.channel, cand.target
         if channel == "parameter":
             p = model.parameters[model.parameter_names.index(target)]
@@ -68,14 +79,29 @@ def added_parameters(res) -> list[Added]:
             unit = "-" if channel == "multiplicative" else model.unit_of(target)
             item = Added(f"{target}_{suffix}", channel, target, 0.0, low, high, unit,
                          step)  # fmt: skip
+        item = item._replace(units=units)
         key = (item.channel, item.target)
         if key in out:  # a bias and a drift of one output: one tracked offset
             old = out[key]
             item = item._replace(
-                low=min(old.low, item.low), high=max(old.high, item.high)
-            )
+                low=min(old.low, item.low), high=max(old.high, item.high),
+                units=None if old.units is None or units is None
+                else tuple(sorted({*old.units, *units})),
+            )  # fmt: skip
         out[key] = item
     return list(out.values())
+
+
+def carrier_ids(cand, eff, unit_ids) -> tuple[int, ...] | None:
+    """The unit ids that carry a per-unit effect (``None``: a fleet-wide one, every
+    unit): those its per-unit verdict lists, else (none passed the test) those the
+    screen fitted it in."""
+    if not cand.per_unit:
+        return None
+    carries = np.asarray(eff.carries, bool)
+    picked = np.flatnonzero(carries) if carries.any() else list(cand.carriers)
+    ids = tuple(sorted({int(u) for u in np.asarray(unit_ids)[picked]}))
+    return None if len(ids) == len(unit_ids) else ids
 
 
 def extended_model(res) -> Model:
@@ -89,7 +115,10 @@ def extension_json(res, base_spec: str) -> dict:
         "format": FORMAT,
         "base": base_spec,
         "declared": list(res.declared),
-        "added": [a._asdict() for a in added_parameters(res)],
+        "added": [
+            {**a._asdict(), "units": None if a.units is None else list(a.units)}
+            for a in added_parameters(res)
+        ],
     }
 
 

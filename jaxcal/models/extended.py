@@ -8,7 +8,16 @@ and ``model=`` on every command line accept it. Each added parameter enters thro
 one channel: a base ``parameter`` (undeclared until now), a registered ``effect``
 input, a ``condition`` offset (the model sees ``w + offset``), or the measurement
 layer, ``additive`` (``x + a``) or ``multiplicative`` (``x (1 + m)``) on one output.
-The base model's other parameters are held at their nominal values. The JSON is data;
+The base model's other parameters are held at their nominal values.
+
+An effect the diagnosis found in some units only is added for those units: its
+:class:`Added` ``units`` lists the carriers' ids (as in the data's ``unit`` column;
+``None``, or no ``units`` key in an older file: every unit). The model's function is
+the same in every unit; the carriers go into its hints (``diagnosis.carriers``,
+:class:`~jaxcal.model.DiagnosisHints`), and :func:`jaxcal.calibrate` calibrates the
+parameter in the carriers only and holds it at its nominal value (0: no effect) with
+std 0 in every other unit (:mod:`jaxcal.calibrators.carriers`), so that a clean unit
+is calibrated as with the base model. The JSON is data;
 its base is code when it names a ``.py`` file or a module, which runs only with the
 user's consent (:mod:`jaxcal.trust`, ``docs/trust.md``): ``trust_code=True``, or the
 same file (same bytes) named by the user in this process. A base that is a registered
@@ -42,13 +51,37 @@ class Added(NamedTuple):
     high: float
     unit: str
     scale: float  # natural step
+    units: tuple[int, ...] | None = None  # the carriers' unit ids (None: every unit)
+
+
+def _carrier_ids(a: Added, where: str) -> tuple[int, ...] | None:
+    """``a.units`` as sorted unit ids (``None``: every unit).
+
+    Raises:
+        ValueError: naming ``where`` and the parameter when it is not a list of
+            integer unit ids.
+    """
+    if a.units is None:
+        return None
+    try:
+        ids = [int(u) for u in a.units if float(u) == int(u)]
+    except (TypeError, ValueError):
+        ids = None
+    if ids is None or isinstance(a.units, str) or len(ids) != len(a.units):
+        raise ValueError(
+            f"{where}: added parameter {a.name!r}: 'units' must be a list of integer "
+            f"unit ids (the carriers; null: every unit), got {a.units!r}"
+        )
+    return tuple(sorted(set(ids)))
 
 
 def build_extended(
     base: Model, declared: Sequence[str], added: Sequence[Added], name: str = ""
 ) -> Model:
-    """``base`` with parameters ``declared + added`` (the rest held at nominal)."""
+    """``base`` with parameters ``declared + added`` (the rest held at nominal; an
+    added parameter with ``units`` calibrated in those units only: module doc)."""
     declared = tuple(declared)
+    added = [a._replace(units=_carrier_ids(a, "build_extended")) for a in added]
     base_idx = np.asarray(base.parameter_index(declared), int)
     nominal = np.asarray(base.nominal, np.float64)
     p_decl = len(declared)
@@ -86,7 +119,11 @@ def build_extended(
         Parameter(a.name, a.nominal, a.low, a.high, a.unit) for a in added
     ]
     scales = {**dict(base.diagnosis.scales or {}), **{a.name: a.scale for a in added}}
-    hints = base.diagnosis._replace(scales=scales)
+    carriers = {
+        **{k: v for k, v in (base.diagnosis.carriers or {}).items() if k in declared},
+        **{a.name: a.units for a in added if a.units is not None},
+    }
+    hints = base.diagnosis._replace(scales=scales, carriers=carriers or None)
     name = name or f"{base.name} (extended: {', '.join(a.name for a in added)})"
     common = dict(
         conditions=base.conditions, parameters=parameters, outputs=base.outputs,
@@ -196,5 +233,6 @@ def load_extended(path: str, *, trust_code: bool = False) -> Model:
             f"{path}: bad extended model, field {err} missing or malformed (expected "
             "'base', 'declared' and 'added' as written by jaxcal.diagnose)"
         ) from None
+    added = [a._replace(units=_carrier_ids(a, path)) for a in added]
     _check_base_consent(base, path, trust_code)
     return build_extended(load(base, trust_code=trust_code), declared, added)
