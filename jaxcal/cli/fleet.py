@@ -244,6 +244,16 @@ def run(cfg: FleetConfig) -> dict:
     noise = parse_noise(cfg.noise)
     require_noise(model, cfg.method, noise)
     theta, outputs, loaded = _names(cfg, model)
+    carriers = model.diagnosis.carriers or {}
+    if set(theta) & set(carriers):  # one calibrator for every unit: say so
+        held = {k: list(v) for k, v in carriers.items() if k in theta}
+        print(
+            f"note: {held} act in those units only (an extended model's carriers); "
+            "this command tracks them in every unit: run it on the carriers "
+            "(units=) and on the others with theta= without them, or use "
+            "jaxcal.calibrate, which holds them at 0 in the others",
+            file=sys.stderr,
+        )
     if cfg.theta0 and len(cfg.theta0) != len(theta):
         raise ValueError(f"theta0 needs one value per theta name {list(theta)}")
     source = open_source(
