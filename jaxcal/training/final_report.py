@@ -64,6 +64,19 @@ def training_gain(records: list[dict], selected: int, cfg: TrainConfig) -> dict:
     }
 
 
+def with_tuning(gain: dict, tuned: dict | None) -> dict:
+    """``gain`` (:func:`training_gain`) once ``tune`` kept a tuned policy: its
+    selection score is the kept one where both score theta on the simulated
+    selection units (``budget.select=sim_theta``); else ``gain`` unchanged."""
+    if not gain or not tuned or not tuned["improved"]:
+        return gain
+    if gain["key"] != "val_sim_theta_rmse":
+        return gain
+    kept = tuned["selection_theta_rmse_after"]
+    ratio = kept / gain["start"] if gain["start"] > 0 else None
+    return {**gain, "kept": kept, "ratio": ratio, "kept_start": False, "tuned": True}
+
+
 def final_report(
     cfg: TrainConfig,
     run_dir: Path,
@@ -110,9 +123,6 @@ def final_report(
         "test_last": test
         if kept.selected_step == policy.chunks_done
         else score(data.test, kept.last),
-        "test_online_last": score(
-            data.test, scoring.deployable(policy.runner.agent_state, "online")
-        ),
         "val_selected": {
             k[4:]: v for k, v in val_record.items() if k.startswith("val_")
         },
