@@ -19,7 +19,11 @@ variant is one ``python -m jaxcal.train`` with the default preset and:
 * ``both``: the two together;
 * ``adapt_start``, ``adapt``, ``adapt_effects``: ``env.filter_adapt=<adapt>`` (the
   filter weighs each output by the noise its innovations show beyond what theta
-  explains), untrained, with the default training, and with ``effects``.
+  explains), untrained, with the default training, and with ``effects``;
+* ``tune``, ``tune_effects``, ``rl_tune_effects``: ``tune.steps=<tune>`` (the kept
+  actor tuned by gradient through the deployed filter on simulated units' theta
+  error, :mod:`jaxcal.training.tune_stage`) from the untrained start, the same with
+  ``effects``, and after the default training with ``effects``.
 
 Every kept policy and the UKF (``jaxcal.calibrate``, the same noise) then run on the
 test units clean and with one effect in every test unit (:data:`EFFECTS`, in units
@@ -64,6 +68,11 @@ VARIANTS = {
     "adapt_start": ["env.filter_adapt={adapt}", "budget.num_chunks=0"],
     "adapt": ["env.filter_adapt={adapt}"],
     "adapt_effects": ["env.filter_adapt={adapt}", "simulate.effects={effects}"],
+    "tune": ["budget.num_chunks=0", "tune.steps={tune}"],
+    "tune_effects": [
+        "budget.num_chunks=0", "simulate.effects={effects}", "tune.steps={tune}"
+    ],
+    "rl_tune_effects": ["simulate.effects={effects}", "tune.steps={tune}"],
 }
 
 
@@ -130,6 +139,7 @@ def run_case(name: str, opts: dict) -> dict:
                 theta_cost=opts["theta_cost"],
                 effects=opts["effects"],
                 adapt=opts["adapt"],
+                tune=opts["tune"],
             )  # fmt: skip
             for a in VARIANTS[variant]
         ]
@@ -222,6 +232,7 @@ class Options:
     theta_cost: float = 30.0
     effects: float = 0.5
     adapt: int = 32
+    tune: int = 300  # tune.steps of the tune variants
 
 
 def main(argv: list[str]) -> int:

@@ -155,8 +155,9 @@ def _gain_line(gain: dict) -> str:
             )
             + ")"
         )
+    how = " (tuned by gradient through the filter)" if gain.get("tuned") else ""
     return (
-        f"training improved on its untrained start: validation {what} "
+        f"training improved on its untrained start{how}: validation {what} "
         f"{gain['start']:.3e} -> {gain['kept']:.3e} ({gain['ratio']:.2f}x)"
     )
 

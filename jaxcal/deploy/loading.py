@@ -43,7 +43,13 @@ from jaxcal.calibrators.uncertainty import load_band
 from jaxcal.precision import require_x64
 from jaxcal.problem import Problem
 from jaxcal.runs.checkpoint import Checkpointer, load_config
-from jaxcal.runs.folder import DATA_FILE, POLICY_BEST_DIR, POLICY_DIR, read_json
+from jaxcal.runs.folder import (
+    DATA_FILE,
+    POLICY_BEST_DIR,
+    POLICY_DIR,
+    POLICY_TUNED_DIR,
+    read_json,
+)
 from jaxcal.surrogate.model import init_surrogate_params
 from jaxcal.training.components import (
     agent_config,
@@ -212,7 +218,9 @@ def _policy_target(cfg: TrainConfig, env_cfg, agent, dims, dtype):
 
 def _restore_policy(run_dir: Path, cfg: TrainConfig, which: str, step, target):
     """``(params, step)``: the policy checkpoint ``step`` (``None``: the newest) of
-    ``policy_best/`` (``which="selected"`` with selection on) or ``policy/``.
+    ``policy_best/`` (``which="selected"`` with selection on) or ``policy/``; the
+    selected policy is the tuned one of ``policy_tuned/`` where the run holds one
+    (``tune.steps``; its step is the chunk it was tuned from).
 
     Raises:
         FileNotFoundError: the folder holds no policy checkpoint.
@@ -221,6 +229,9 @@ def _restore_policy(run_dir: Path, cfg: TrainConfig, which: str, step, target):
     best = run_dir / POLICY_BEST_DIR
     if which == "selected" and cfg.budget.select != "last" and best.is_dir():
         folder = best
+    tuned = run_dir / POLICY_TUNED_DIR
+    if which == "selected" and step is None and tuned.is_dir():
+        folder = tuned
     with Checkpointer(folder) as ckpt:
         if ckpt.latest_step() is None:
             raise FileNotFoundError(

@@ -56,12 +56,15 @@ SURROGATE_FILE = "surrogate.json"
 CHECKPOINT_DIR = "checkpoints"
 POLICY_DIR = "policy"
 POLICY_BEST_DIR = "policy_best"
+# the kept policy tuned by gradient through the filter (tune.steps; loaded first)
+POLICY_TUNED_DIR = "policy_tuned"
 METRICS_FILE = "metrics.jsonl"
 FINAL_FILE = "final.json"
 EVALUATION_FILE = "evaluate.json"
 # Top-level fields (and budget / output sub-fields) a resumed run may change.
 RESUMABLE_FIELDS: dict[str, tuple[str, ...] | None] = {
     "budget": None,  # None: every sub-field
+    "tune": None,
     "output": ("progress", "max_to_keep"),
 }
 

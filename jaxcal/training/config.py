@@ -85,6 +85,7 @@ from jaxcal.training.config_sections import (  # noqa: F401 (re-exported)
     OutputConfig,
     SimulationConfig,
     TrackingConfig,
+    TuneConfig,
 )
 from jaxcal.training.runner import RunnerConfig
 
@@ -124,6 +125,7 @@ class TrainConfig:
     env: TrackingConfig = TrackingConfig()
     budget: BudgetConfig = BudgetConfig()
     simulate: SimulationConfig = SimulationConfig()
+    tune: TuneConfig = TuneConfig()
     output: OutputConfig = OutputConfig()
 
     def __post_init__(self) -> None:

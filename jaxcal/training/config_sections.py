@@ -311,6 +311,32 @@ class SimulationConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """The kept actor tuned by gradient through the deployed filter on simulated
+    units' theta error, kept where the selection units agree
+    (:mod:`jaxcal.training.tune_stage`). It does not change the actor-critic's
+    training, so a run may be resumed with other values."""
+
+    steps: int = 0  # Adam steps (0: off)
+    lr: float = 3e-4  # Adam's step size
+    batch_units: int = 16  # simulated training units per step (whole units)
+    eval_every: int = 25  # steps between scorings on the selection units
+    patience: int = 3  # scorings in a row without a better policy: stop
+    clip: float = 1.0  # global gradient-norm clip (a long recursion's gradient)
+
+    def __post_init__(self) -> None:
+        if self.steps < 0 or self.batch_units < 1 or self.eval_every < 1:
+            raise ValueError(
+                "tune.steps must be >= 0, tune.batch_units and tune.eval_every "
+                f">= 1, got {self}"
+            )
+        if not (self.lr > 0 and self.clip > 0 and self.patience >= 1):
+            raise ValueError(
+                f"tune.lr and tune.clip must be > 0, tune.patience >= 1, got {self}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
 class OutputConfig:
     """Where and what a run writes."""
 

@@ -92,7 +92,7 @@ from jaxcal.training.components import (
 )
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import CalibrationData
-from jaxcal.training.final_report import final_report
+from jaxcal.training.final_report import final_report, with_tuning
 from jaxcal.training.kept_policy import train_kept_policy
 from jaxcal.training.model_source import (
     check_source_unchanged,
@@ -111,6 +111,7 @@ from jaxcal.training.scoring import describe_units
 from jaxcal.training.simulated import Simulations, parse_noise
 from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
 from jaxcal.training.train_env import make_training_env
+from jaxcal.training.tune_stage import tune_kept
 from jaxcal.training.uncertainty_stage import band_runs, fit_policy_band
 
 
@@ -246,6 +247,7 @@ def _train(
         has_val=data.val is not None, target=target, clock=clock,
         wall_start=wall_start, log=log,
     )  # fmt: skip
+    kept, tuned = tune_kept(cfg, kept, parts, sims, scoring, run_dir, log)
     test_out = scoring.run(data.test, kept.selected)
     test = scoring.score(data.test, kept.selected, test_out)
     final = final_report(
@@ -261,6 +263,8 @@ def _train(
             fitted_on=fitted_on, scales=scales, log=log,
         )
     )  # fmt: skip
+    final["tune"] = tuned
+    final["training_gain"] = with_tuning(final.get("training_gain"), tuned)
     final["simulated"] = sims.report()
     return final
 

@@ -46,6 +46,8 @@ class PolicyScoring(NamedTuple):
             tracking RMSE, and with ``budget.select=sim_theta`` the theta RMSE on
             simulated units (``sim_theta_rmse``); ``None`` with neither.
         test_reporter: ``agent_state -> {"theta_rmse": ...}`` over the test units.
+        sim_theta: ``(units, params) -> (pooled, per parameter)`` theta RMSE in box
+            widths on labelled units (the selection's score on simulated ones).
     """
 
     deployable: Callable[..., PolicyParams]
@@ -53,6 +55,7 @@ class PolicyScoring(NamedTuple):
     score: Callable[..., dict]
     val_scorer: Callable[[Any], dict] | None
     test_reporter: Callable[[Any], dict]
+    sim_theta: Callable[..., tuple]
 
 
 def make_policy_scoring(
@@ -98,6 +101,15 @@ def make_policy_scoring(
             **filter_settings(parts.env.config),
         )  # fmt: skip
 
+    def sim_theta(units: Padded, params: PolicyParams):
+        """``(pooled, per parameter)`` theta RMSE in box widths on labelled
+        (simulated) ``units``: what ``budget.select=sim_theta`` selects by."""
+        out = run(units, params)
+        width = problem.theta_high - problem.theta_low
+        return theta_rmse(
+            out.theta / width, units.theta / width, scored_mask(units, out)
+        )
+
     def val_scorer(agent_state) -> dict:
         params = deployable(agent_state)
         scores = {}
@@ -106,13 +118,7 @@ def make_policy_scoring(
             keys = ("theta_rmse", "tracking_rmse_norm")
             scores = {k: scores[k] for k in keys if scores[k] is not None}
         if select_units is not None:
-            out = run(select_units, params)
-            width = problem.theta_high - problem.theta_low
-            scores["sim_theta_rmse"], each = theta_rmse(
-                out.theta / width,
-                select_units.theta / width,
-                scored_mask(select_units, out),
-            )
+            scores["sim_theta_rmse"], each = sim_theta(select_units, params)
             # per parameter too (logged, not selected on): which one a chunk moves
             for name, value in zip(problem.theta_names, each, strict=True):
                 scores[f"sim_theta_rmse_{name}"] = float(value)
@@ -127,5 +133,6 @@ def make_policy_scoring(
 
     scored = data.val is not None or select_units is not None
     return PolicyScoring(
-        deployable, run, score, val_scorer if scored else None, test_reporter
-    )
+        deployable, run, score, val_scorer if scored else None, test_reporter,
+        sim_theta,
+    )  # fmt: skip

@@ -223,6 +223,14 @@ class Simulations:
         self.used["surrogate"] = "simulated training units"
         return self.data._replace(train=self._train_sims()[0])
 
+    def tuning_units(self) -> Padded:
+        """Labelled units simulated as the selection units are (:meth:`
+        _held_out_sims`, other draws), a share ``simulate.effects`` with an
+        undeclared effect: what ``tune`` fits the actor on."""
+        sim, along = self._held_out_sims(3, self.cfg.effects)
+        self.used["tune"] = f"units simulated along {along}"
+        return sim
+
     def training_fleet(self) -> tuple[Padded, np.ndarray | None]:
         """``(units, x_target)`` the policy trains on (``simulate.train``)."""
         real = self.data.train

@@ -7,6 +7,7 @@ The model is defined here, as a user would: a plain JAX function through
 import json
 import shutil
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
@@ -337,3 +338,41 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
             MODEL, path, method="policy", run=tmp_path / "runs" / "start"
         ).theta
     ).all()
+
+
+def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path):
+    """``tune.steps``: the untrained policy tuned by gradient through the deployed
+    filter; final.json says what it did, and the run deploys the tuned actor
+    (``policy_tuned/``) exactly when it lowered the selection's theta error."""
+    from jaxcal.deploy.loading import load_run
+
+    path = tmp_path / "nolabel.csv"
+    _frame(labels=False).to_csv(path, index=False)
+    argv = [
+        a
+        for a in _argv(path, tmp_path / "runs", "name=tuned", "noise=1e-3,1e-3,1e-3")
+        if a != "preset=smoke"
+    ]
+    small = ("budget.num_chunks=0", "env.episode_length=10", "simulate.copies=2",
+             "simulate.effects=0.5", "tune.steps=2", "tune.eval_every=1",
+             "tune.batch_units=2", "tune.lr=1e-3")  # fmt: skip
+    assert train_main([*argv, "preset=default", *small]) == 0
+    run_dir = tmp_path / "runs" / "tuned"
+    final = json.loads((run_dir / "final.json").read_text())
+    tune = final["tune"]
+    assert tune["steps"] in (1, 2)
+    assert tune["selection_theta_rmse_after"] <= tune["selection_theta_rmse_before"]
+    assert (run_dir / "policy_tuned").is_dir() == tune["improved"]
+    assert final["training_gain"].get("tuned", False) == tune["improved"]
+    loaded = load_run(run_dir)
+    start = load_run(run_dir, step=0)  # chunk 0's checkpoint: the untrained actor
+    same = all(
+        np.array_equal(a, b)
+        for a, b in zip(
+            jax.tree.leaves(loaded.params.actor), jax.tree.leaves(start.params.actor),
+            strict=True,
+        )
+    )  # fmt: skip
+    assert same != tune["improved"]
+    result = jaxcal.calibrate(MODEL, path, method="policy", run=run_dir)
+    assert result.valid.all() and np.isfinite(result.theta).all()

@@ -1,0 +1,187 @@
+"""Tuning the kept actor by gradient through the deployed filter (``tune.steps``).
+
+The policy's actor is the analytic filter step plus a learned correction
+(:class:`~jaxcal.agents.networks.SquashedGaussianActor` ``prior``). The actor-critic
+learns that correction from the tracking cost alone, through a critic: it rarely
+moves the validation theta error below its start's (issue 41). In simulation the
+true theta is known and the deployed policy is one differentiable ``lax.scan``, so
+the correction can also be fitted the way KalmanNet fits its gain network (Revach
+et al., IEEE TSP 2022, §IV-B): by backpropagation through time of the theta error
+along whole simulated units, started from the kept policy. The deployed recursion is
+the very function differentiated, so what is tuned is what deploys; the actor still
+reads only data (the labels enter the loss, never the observation).
+
+The units are the run's simulated training units (a share with an undeclared effect
+under ``simulate.effects``); the tuned policy is kept only where it lowers the theta
+error on the simulated *selection* units (never trained on), scored as
+``budget.select=sim_theta`` scores chunks, with early stopping on them
+(``tune.patience``), so a tuning that cannot help costs a few evaluations and
+returns the policy it was given.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxcal.calibrators.policy import PolicyParams
+from jaxcal.data.padded import Padded
+from jaxcal.runs.checkpoint import Checkpointer
+from jaxcal.runs.folder import POLICY_TUNED_DIR
+from jaxcal.training.config_sections import TuneConfig
+
+
+class TuneResult(NamedTuple):
+    """What :func:`tune_policy` did.
+
+    Attributes:
+        params: the policy kept (the tuned one, or the one given where tuning did
+            not lower the selection error).
+        improved: whether ``params`` is a tuned policy.
+        record: the ``final.json`` entry (scores before and after, steps, seconds).
+    """
+
+    params: PolicyParams
+    improved: bool
+    record: dict
+
+
+def _theta_loss(run_arrays, low, high):
+    """``(actor, params, w, x, theta, mask) -> mean squared theta error`` in half-box
+    units over the valid, unflagged rows of a batch of units."""
+    half = (high - low) / 2.0
+
+    def loss(actor, params, w, x, theta, mask):
+        out = run_arrays(params.replace(actor=actor), w, x, mask)
+        used = mask if out.valid is None else mask & out.valid
+        err = jnp.where(used[..., None], (out.theta - theta) / half, 0.0)
+        count = jnp.maximum(jnp.sum(used), 1) * theta.shape[-1]
+        return jnp.sum(jnp.square(err)) / count
+
+    return loss
+
+
+def tune_policy(
+    start: PolicyParams,
+    run_arrays: Callable,
+    train_units: Padded,
+    select_score: Callable[[PolicyParams], float],
+    cfg: TuneConfig,
+    key: jax.Array,
+    log: Callable[[str], None] = print,
+) -> TuneResult:
+    """Tunes ``start``'s actor by Adam on the theta error of ``run_arrays(params, w,
+    x, mask) -> CalOutput`` over batches of ``train_units`` (labelled), evaluating
+    ``select_score`` (lower is better) every ``cfg.eval_every`` steps.
+
+    Raises:
+        ValueError: ``train_units`` carry no true theta.
+    """
+    if train_units.theta is None:
+        raise ValueError("tune: the training units carry no true theta to tune on")
+    tic = time.perf_counter()
+    dtype = start.x_mean.dtype
+    w = jnp.asarray(train_units.w, dtype)
+    x = jnp.asarray(train_units.x, dtype)
+    theta = jnp.asarray(train_units.theta, dtype)
+    mask = jnp.asarray(train_units.mask)
+    low, high = start.theta_low, start.theta_high
+    loss = _theta_loss(run_arrays, low, high)
+    opt = optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr))
+    num_units = w.shape[0]
+    batch = min(cfg.batch_units, num_units)
+
+    @jax.jit
+    def update(actor, opt_state, params, key):
+        idx = jax.random.choice(key, num_units, (batch,), replace=False)
+        value, grad = jax.value_and_grad(loss)(
+            actor, params, w[idx], x[idx], theta[idx], mask[idx]
+        )
+        # a non-finite gradient (a diverging unit) skips the step, never poisons it
+        finite = jnp.all(
+            jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grad)])
+        )
+        updates, new_opt = opt.update(grad, opt_state, actor)
+        new_actor = optax.apply_updates(actor, updates)
+        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(finite, u, v), a, b)  # noqa: E731
+        return pick(new_actor, actor), pick(new_opt, opt_state), value
+
+    best_score = before = float(select_score(start))
+    best, actor = start, start.actor
+    opt_state, waited, steps, losses = opt.init(actor), 0, 0, []
+    for step in range(1, cfg.steps + 1):
+        key, sub = jax.random.split(key)
+        actor, opt_state, value = update(actor, opt_state, start, sub)
+        losses.append(float(value)) if step % cfg.eval_every == 0 else None
+        steps = step
+        if step % cfg.eval_every and step != cfg.steps:
+            continue
+        candidate = start.replace(actor=actor)
+        score = float(select_score(candidate))
+        if np.isfinite(score) and score < best_score:
+            best, best_score, waited = candidate, score, 0
+        else:
+            waited += 1
+        log(
+            f"tune step {step}/{cfg.steps}: train theta loss {float(value):.3e}, "
+            f"selection theta rmse {score:.4e} (best {best_score:.4e})"
+        )
+        if waited >= cfg.patience:
+            break
+    improved = best_score < before
+    record = {
+        "steps": steps,
+        "selection_theta_rmse_before": before,
+        "selection_theta_rmse_after": best_score,
+        "ratio": best_score / before if before > 0 else None,
+        "improved": improved,
+        "seconds": time.perf_counter() - tic,
+    }
+    log(
+        f"tuned by gradient through the filter: selection theta rmse {before:.4e} "
+        f"-> {best_score:.4e} ({record['ratio']:.3f}x) in {steps} steps, "
+        f"{record['seconds']:.0f} s"
+        if improved
+        else "tuning by gradient through the filter did not lower the selection "
+        f"theta rmse ({before:.4e}) in {steps} steps: the run keeps its policy"
+    )
+    return TuneResult(best, improved, record)
+
+
+def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
+    """``(kept, record)``: the run's kept policy tuned (:func:`tune_policy`) on
+    the simulated training units and kept where the selection units agree, saved
+    under ``policy_tuned/`` (the run's deployed policy; a stale one of an earlier
+    session is removed first); ``record`` is ``final.json``'s ``tune`` entry
+    (``None`` with ``tune.steps=0``)."""
+    tuned_dir = run_dir / POLICY_TUNED_DIR
+    if tuned_dir.exists():
+        shutil.rmtree(tuned_dir)  # an earlier session's: this session decides anew
+    if cfg.tune.steps == 0:
+        return kept, None
+    select_units = sims.selection_units()
+    train_units = sims.tuning_units()
+
+    def run_arrays(params, w, x, mask):
+        return parts.run_units(params, w, x, mask)
+
+    def select_score(params) -> float:
+        return float(scoring.sim_theta(select_units, params)[0])
+
+    key = jax.random.fold_in(jax.random.key(cfg.seed), 41)
+    result = tune_policy(
+        kept.selected, run_arrays, train_units, select_score, cfg.tune, key, log
+    )
+    if result.improved:
+        with Checkpointer(tuned_dir, max_to_keep=1) as ckpt:
+            ckpt.save(kept.selected_step, result.params, wait=True)
+        kept = kept._replace(selected=result.params)
+    return kept, result.record

@@ -1,0 +1,95 @@
+"""``tune``: the kept actor tuned by gradient through the deployed recursion on
+labelled units, kept only where the selection score agrees (issue 41)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+from jaxcal.calibrators.interface import CalOutput
+from jaxcal.data.padded import Padded
+from jaxcal.training.config import resolve_config
+from jaxcal.training.config_sections import TuneConfig
+from jaxcal.training.final_report import with_tuning
+from jaxcal.training.tune_stage import tune_policy
+
+
+@struct.dataclass
+class _Params:
+    """The fields tune_policy reads of a policy's params."""
+
+    actor: dict
+    x_mean: jnp.ndarray
+    theta_low: jnp.ndarray
+    theta_high: jnp.ndarray
+
+
+def _units(num=6, steps=20, seed=0):
+    """Units whose true theta is 0.5 x (one output, one parameter)."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1.0, 1.0, (num, steps, 1)).astype(np.float32)
+    lengths = np.full(num, steps, np.int32)
+    lengths[0] = steps // 2  # padding must not enter the loss
+    return Padded(x, x, 0.5 * x, lengths, np.arange(num))
+
+
+def _run(params, w, x, mask):
+    """A "recursion" whose theta is gain * x: the best gain is 0.5."""
+    theta = params.actor["gain"] * x
+    return CalOutput(theta=theta, xhat=x, valid=jnp.ones(mask.shape, bool))
+
+
+def _start(gain=2.0):
+    return _Params({"gain": jnp.float32(gain)}, jnp.zeros(1), -jnp.ones(1), jnp.ones(1))
+
+
+def test_tuning_lowers_the_theta_error_and_keeps_the_best_scored_policy():
+    cfg = TuneConfig(steps=200, lr=0.05, batch_units=3, eval_every=20, patience=3)
+    said = []
+    out = tune_policy(
+        _start(), _run, _units(), lambda p: abs(float(p.actor["gain"]) - 0.5), cfg,
+        __import__("jax").random.key(0), said.append,
+    )  # fmt: skip
+    assert out.improved and abs(float(out.params.actor["gain"]) - 0.5) < 0.1
+    assert out.record["selection_theta_rmse_after"] < 0.1
+    assert out.record["selection_theta_rmse_before"] == pytest.approx(1.5)
+    assert any("tuned by gradient through the filter" in s for s in said)
+
+
+def test_a_tuning_the_selection_disagrees_with_returns_the_start_early():
+    """Selection prefers the start (gain 2): every tuned policy scores worse, so
+    the start comes back after ``patience`` scorings, and the log says so."""
+    cfg = TuneConfig(steps=400, lr=0.05, batch_units=3, eval_every=10, patience=2)
+    said = []
+    start = _start()
+    out = tune_policy(
+        start, _run, _units(), lambda p: abs(float(p.actor["gain"]) - 2.0), cfg,
+        __import__("jax").random.key(0), said.append,
+    )  # fmt: skip
+    assert not out.improved and out.params is start
+    assert out.record["steps"] == 20  # two scorings, then stop
+    assert any("did not lower" in s for s in said)
+
+
+def test_units_without_labels_are_refused():
+    units = _units()._replace(theta=None)
+    with pytest.raises(ValueError, match="no true theta"):
+        tune_policy(_start(), _run, units, lambda p: 1.0, TuneConfig(steps=1),
+                    __import__("jax").random.key(0))  # fmt: skip
+
+
+def test_the_gain_record_counts_the_tuned_policy_on_the_same_score():
+    gain = {"key": "val_sim_theta_rmse", "start": 2.0, "kept": 2.0, "ratio": 1.0,
+            "kept_start": True, "best_trained": None}  # fmt: skip
+    tuned = {"improved": True, "selection_theta_rmse_after": 1.5}
+    out = with_tuning(gain, tuned)
+    assert out["tuned"] and not out["kept_start"] and out["ratio"] == 0.75
+    assert with_tuning(gain, {**tuned, "improved": False}) == gain
+    other = {**gain, "key": "val_tracking_rmse_norm"}
+    assert with_tuning(other, tuned) == other  # not the score tune selects by
+
+
+@pytest.mark.parametrize("bad", ["tune.steps=-1", "tune.lr=0", "tune.patience=0"])
+def test_tune_settings_are_validated(bad):
+    with pytest.raises(ValueError, match="tune."):
+        resolve_config(["dataset=tiny", bad])
