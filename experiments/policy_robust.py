@@ -60,7 +60,9 @@ EFFECTS = {
     "AR(1) 0.8": ("ar1", 0.8),
 }
 VARIANTS = {
-    "start": ["budget.num_chunks=0"],
+    "start": ["budget.num_chunks=0", "tune.steps=0"],
+    # the default before issue 41's tuning: six chunks, no effects, no tuning
+    "rl": ["simulate.effects=0", "tune.steps=0", "budget.patience=null"],
     "default": [],
     "theta": ["env.theta_cost={theta_cost}"],
     "effects": ["simulate.effects={effects}"],

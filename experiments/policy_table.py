@@ -83,7 +83,7 @@ def table(after: dict, before: dict | None, deploy, deploy_before) -> list[str]:
             if data is None:
                 continue
             stream, fleet = _deploy(rows, model)
-            for variant in ("start", "default", "effects", "theta", "both"):
+            for variant in ("start", "rl", "default", "effects", "theta", "both"):
                 run = data["runs"].get(variant)
                 if run is None:
                     continue
@@ -126,7 +126,11 @@ def main(argv: list[str]) -> int:
         "the start's (1: the start kept). `cost x UKF`: the deployed policy's cost "
         "per row over the UKF's guarded step (one stream, host numpy in and out; a "
         "fleet of 100 units), second calls, interleaved in one process; the cost "
-        "does not depend on the weights, so it is shown once per model.",
+        "does not depend on the weights, so it is shown once per model. After: "
+        "`start` the untrained policy, `rl` the actor-critic as it was before the "
+        "tuning (six chunks, no tuning), `default` the default preset now (the "
+        "actor-critic with patience 2, then `tune.steps=400`: the actor tuned by "
+        "gradient through the filter, docs/policy.md).",
         "",
         *table(
             after, _load(opts.before), _load(opts.deploy), _load(opts.deploy_before)

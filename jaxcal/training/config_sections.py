@@ -323,6 +323,12 @@ class TuneConfig:
     eval_every: int = 25  # steps between scorings on the selection units
     patience: int = 3  # scorings in a row without a better policy: stop
     clip: float = 1.0  # global gradient-norm clip (a long recursion's gradient)
+    # a tuned policy is kept only if its theta RMSE on each guard set (clean,
+    # drawn across the box, with effects: Simulations.guard_units) is at most
+    # (1 + this) x the start's: a policy 1.4-2.3x worse on one (the motor tuned on
+    # effects) is refused, one 27 % better on the data's drifts and 10 % worse on
+    # faster changes (the pump) is kept
+    clean_tolerance: float = 0.15
 
     def __post_init__(self) -> None:
         if self.steps < 0 or self.batch_units < 1 or self.eval_every < 1:
@@ -330,7 +336,9 @@ class TuneConfig:
                 "tune.steps must be >= 0, tune.batch_units and tune.eval_every "
                 f">= 1, got {self}"
             )
-        if not (self.lr > 0 and self.clip > 0 and self.patience >= 1):
+        if not (self.lr > 0 and self.clip > 0 and self.patience >= 1) or not (
+            self.clean_tolerance >= 0
+        ):
             raise ValueError(
                 f"tune.lr and tune.clip must be > 0, tune.patience >= 1, got {self}"
             )

@@ -153,8 +153,9 @@ def estimate_noise(problem: Problem, units: Padded) -> Problem:
     return problem.with_noise(noise, f"{result.noise_source}, on the training units")
 
 
-def _joined(a: Padded, b: Padded) -> Padded:
-    """Two unit sets as one (padded to the longer; labels dropped)."""
+def _joined(a: Padded, b: Padded, labels: bool = False) -> Padded:
+    """Two unit sets as one (padded to the longer; labels dropped unless
+    ``labels``, when both carry them)."""
     steps = max(a.w.shape[1], b.w.shape[1])
 
     def pad(v):
@@ -163,10 +164,14 @@ def _joined(a: Padded, b: Padded) -> Padded:
     return Padded(
         np.concatenate([pad(a.w), pad(b.w)]),
         np.concatenate([pad(a.x), pad(b.x)]),
-        None,
+        np.concatenate([pad(a.theta), pad(b.theta)]) if labels else None,
         np.concatenate([a.lengths, b.lengths]),
         np.concatenate([a.unit_ids, b.unit_ids]),
     )
+
+
+# the share of a tuned policy's guard units with an undeclared effect
+GUARD_EFFECTS = 0.5
 
 
 class Simulations:
@@ -186,6 +191,7 @@ class Simulations:
         self._problem: Problem | None = None
         self._train: tuple[Padded, np.ndarray] | None = None
         self._paths: tuple[Padded, np.ndarray] | None = None
+        self._selection: Padded | None = None
         self.used: dict[str, str] = {}
 
     def problem(self) -> Problem:
@@ -226,10 +232,16 @@ class Simulations:
     def tuning_units(self) -> Padded:
         """Labelled units simulated as the selection units are (:meth:`
         _held_out_sims`, other draws), a share ``simulate.effects`` with an
-        undeclared effect: what ``tune`` fits the actor on."""
+        undeclared effect, with as many clean ones drawn across the box: what
+        ``tune`` fits the actor on."""
         sim, along = self._held_out_sims(3, self.cfg.effects)
-        self.used["tune"] = f"units simulated along {along}"
-        return sim
+        # and clean units drawn across the box: tuned on the data's slow drifts
+        # alone, the pump's policy lost 2-3x on faster changes (guard_units checks)
+        self.used["tune"] = (
+            f"units simulated along {along}, and clean units with theta drawn "
+            "across the box"
+        )
+        return _joined(sim, self._held_out_sims(5, paths="box")[0], labels=True)
 
     def training_fleet(self) -> tuple[Padded, np.ndarray | None]:
         """``(units, x_target)`` the policy trains on (``simulate.train``)."""
@@ -270,17 +282,20 @@ class Simulations:
             self._paths = units, estimated_drifts(self.problem(), units)
         return self._paths
 
-    def _held_out_sims(self, salt: int, effects: float = 0.0) -> tuple[Padded, str]:
+    def _held_out_sims(
+        self, salt: int, effects: float = 0.0, paths: str | None = None
+    ) -> tuple[Padded, str]:
         """``(simulated units, what they follow)`` for selection and the band:
         ``band_copies`` copies along the validation units' conditions (the training
         units' without them) with theta drawn across the box, or
         (``simulate.paths=data``) along every non-test unit's conditions with the
         theta drifts the UKF finds in the data, each copy of a unit with another
         unit's drift (conditions and drift: a pair the policy never trained on);
-        a share ``effects`` of them with an undeclared effect on their outputs."""
+        a share ``effects`` of them with an undeclared effect on their outputs;
+        ``paths`` overrides ``simulate.paths``."""
         key = jax.random.fold_in(self.key, salt)
         copies = self.cfg.band_copies
-        if self.cfg.paths == "data":
+        if (paths or self.cfg.paths) == "data":
             units, drifts = self._drifts()
             turn = np.arange(units.w.shape[0])[None] + np.arange(copies)[:, None] + 1
             drifts = drifts[(turn % len(drifts)).ravel()]  # copy c, unit u: u + c + 1
@@ -303,19 +318,38 @@ class Simulations:
         )
         return sim, f"the {which} units' conditions"
 
-    def selection_units(self) -> Padded:
+    def selection_units(self, clean: bool = False) -> Padded:
         """Simulated units (:meth:`_held_out_sims`) on which
         ``budget.select=sim_theta`` scores theta; with ``simulate.effects`` the
         same share of them carries an undeclared effect, so that the policy kept
         is the one that holds under model error too (the band's units stay
-        clean)."""
+        clean). ``clean``: the same units without their effects (the same
+        object when there are none)."""
+        if clean and not self.cfg.effects:
+            return self.selection_units()
+        if clean:
+            return self._held_out_sims(2)[0]
+        if self._selection is not None:
+            return self._selection
         sim, _ = self._held_out_sims(2, self.cfg.effects)
+        self._selection = sim
         self.used["selection"] = "theta RMSE on simulated units" + (
             f", a share {self.cfg.effects:g} with an undeclared effect"
             if self.cfg.effects
             else ""
         )
         return sim
+
+    def guard_units(self) -> list[Padded]:
+        """Simulated units a tuned policy may not lose accuracy on: the selection
+        units without their effects; units with theta drawn across the box
+        (faster, larger changes than the data's drifts: a policy tuned to sit
+        still under a sensor drift must still follow a parameter's); and units
+        with an undeclared effect in half of them (a policy tuned on clean units
+        must not lose what the filter's adaptive noise holds under a bias)."""
+        box, _ = self._held_out_sims(4, paths="box")
+        effects, _ = self._held_out_sims(6, max(self.cfg.effects, GUARD_EFFECTS))
+        return [self.selection_units(clean=True), box, effects]
 
     def band_units(self) -> tuple[Padded | None, str]:
         """``(units, what they are)`` the uncertainty band is fitted on

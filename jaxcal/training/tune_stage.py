@@ -80,7 +80,11 @@ def tune_policy(
 ) -> TuneResult:
     """Tunes ``start``'s actor by Adam on the theta error of ``run_arrays(params, w,
     x, mask) -> CalOutput`` over batches of ``train_units`` (labelled), evaluating
-    ``select_score`` (lower is better) every ``cfg.eval_every`` steps.
+    ``select_score(params) -> (score, clean scores)`` every ``cfg.eval_every``
+    steps: a tuned policy is kept where it lowers the score (the selection units,
+    a share with effects) without raising any clean score (clean units: the
+    selection units' effect-free twins, units drawn across the box) above
+    ``1 + cfg.clean_tolerance`` times the start's.
 
     Raises:
         ValueError: ``train_units`` carry no true theta.
@@ -114,9 +118,13 @@ def tune_policy(
         pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(finite, u, v), a, b)  # noqa: E731
         return pick(new_actor, actor), pick(new_opt, opt_state), value
 
-    best_score = before = float(select_score(start))
-    best, actor = start, start.actor
+    before, clean_before = select_score(start)
+    clean_before = np.asarray(clean_before, float)
+    # a tuned policy may not lose on clean units what it gains under effects
+    clean_limit = clean_before * (1.0 + cfg.clean_tolerance)
+    best_score, best, actor = before, start, start.actor
     opt_state, waited, steps, losses = opt.init(actor), 0, 0, []
+    best_clean = clean_before
     for step in range(1, cfg.steps + 1):
         key, sub = jax.random.split(key)
         actor, opt_state, value = update(actor, opt_state, start, sub)
@@ -125,14 +133,15 @@ def tune_policy(
         if step % cfg.eval_every and step != cfg.steps:
             continue
         candidate = start.replace(actor=actor)
-        score = float(select_score(candidate))
-        if np.isfinite(score) and score < best_score:
-            best, best_score, waited = candidate, score, 0
+        score, clean = select_score(candidate)
+        if np.isfinite(score) and score < best_score and np.all(clean <= clean_limit):
+            best, best_score, best_clean, waited = candidate, score, clean, 0
         else:
             waited += 1
         log(
             f"tune step {step}/{cfg.steps}: train theta loss {float(value):.3e}, "
-            f"selection theta rmse {score:.4e} (best {best_score:.4e})"
+            f"selection theta rmse {score:.4e} (best {best_score:.4e}; clean units "
+            f"x start {np.round(clean / np.maximum(clean_before, 1e-30), 3).tolist()})"
         )
         if waited >= cfg.patience:
             break
@@ -141,6 +150,8 @@ def tune_policy(
         "steps": steps,
         "selection_theta_rmse_before": before,
         "selection_theta_rmse_after": best_score,
+        "clean_theta_rmse_before": np.asarray(clean_before).tolist(),
+        "clean_theta_rmse_after": np.asarray(best_clean).tolist(),
         "ratio": best_score / before if before > 0 else None,
         "improved": improved,
         "seconds": time.perf_counter() - tic,
@@ -168,13 +179,16 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
     if cfg.tune.steps == 0:
         return kept, None
     select_units = sims.selection_units()
+    guards = sims.guard_units()
     train_units = sims.tuning_units()
 
     def run_arrays(params, w, x, mask):
         return parts.run_units(params, w, x, mask)
 
-    def select_score(params) -> float:
-        return float(scoring.sim_theta(select_units, params)[0])
+    def select_score(params) -> tuple[float, np.ndarray]:
+        score = float(scoring.sim_theta(select_units, params)[0])
+        clean = [float(scoring.sim_theta(u, params)[0]) for u in guards]
+        return score, np.asarray(clean)
 
     key = jax.random.fold_in(jax.random.key(cfg.seed), 41)
     result = tune_policy(

@@ -216,3 +216,36 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
         cal = make_policy_calibrator(None, lambda p, w, x, th: x, params)
         state = cal.init(None, jnp.ones(2), jnp.zeros(2))
         np.testing.assert_allclose(state.theta, expect)
+
+
+def test_tuning_and_guard_units_are_labelled_and_the_clean_twin_is_effect_free():
+    """tune's units (the data's drifts and the box) carry labels; the guard's clean
+    twin is the selection units without their effects: same theta and noise."""
+    import dataclasses
+
+    from jaxcal.training.config import make_train_config
+    from jaxcal.training.data import CalibrationData
+    from jaxcal.training.simulated import Simulations
+
+    units = _units()
+    problem = training_problem(
+        MODEL, units, ("p", "q"), ("y1", "y2"), MODEL.nominal, *MODEL.bounds
+    )
+    data = CalibrationData(
+        problem=problem, train=units, val=None, test=units, info={}
+    )  # fmt: skip
+    cfg = make_train_config("file", "default")
+    cfg = dataclasses.replace(
+        cfg, noise=("0.01", "0.02"),
+        simulate=dataclasses.replace(cfg.simulate, effects=0.5, band_copies=2,
+                                     paths="box"),
+    )  # fmt: skip
+    sims = Simulations(cfg, data, log=lambda _: None)
+    tuning = sims.tuning_units()
+    assert tuning.theta is not None and tuning.theta.shape[0] == 2 * 2 * 6
+    guards = sims.guard_units()
+    assert len(guards) == 3 and all(g.theta is not None for g in guards)
+    select, twin = sims.selection_units(), guards[0]
+    np.testing.assert_array_equal(select.theta, twin.theta)
+    differs = np.any(select.x != twin.x, axis=(1, 2))
+    assert 0 < differs.sum() < len(differs)  # the effects' share, the rest equal

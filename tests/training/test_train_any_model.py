@@ -292,7 +292,7 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
     small = (
         "budget.num_chunks=2", "runner.num_envs=4", "runner.num_steps_per_chunk=40",
         "runner.warmup_steps=80", "runner.min_buffer_size=80", "runner.batch_size=32",
-        "env.episode_length=10", "simulate.copies=2",
+        "env.episode_length=10", "simulate.copies=2", "tune.steps=0",
     )  # fmt: skip
     argv = [
         a

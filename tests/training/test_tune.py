@@ -47,7 +47,7 @@ def test_tuning_lowers_the_theta_error_and_keeps_the_best_scored_policy():
     cfg = TuneConfig(steps=200, lr=0.05, batch_units=3, eval_every=20, patience=3)
     said = []
     out = tune_policy(
-        _start(), _run, _units(), lambda p: abs(float(p.actor["gain"]) - 0.5), cfg,
+        _start(), _run, _units(), lambda p: (abs(p.actor["gain"] - 0.5),) * 2, cfg,
         __import__("jax").random.key(0), said.append,
     )  # fmt: skip
     assert out.improved and abs(float(out.params.actor["gain"]) - 0.5) < 0.1
@@ -63,7 +63,7 @@ def test_a_tuning_the_selection_disagrees_with_returns_the_start_early():
     said = []
     start = _start()
     out = tune_policy(
-        start, _run, _units(), lambda p: abs(float(p.actor["gain"]) - 2.0), cfg,
+        start, _run, _units(), lambda p: (abs(p.actor["gain"] - 2.0),) * 2, cfg,
         __import__("jax").random.key(0), said.append,
     )  # fmt: skip
     assert not out.improved and out.params is start
@@ -74,7 +74,7 @@ def test_a_tuning_the_selection_disagrees_with_returns_the_start_early():
 def test_units_without_labels_are_refused():
     units = _units()._replace(theta=None)
     with pytest.raises(ValueError, match="no true theta"):
-        tune_policy(_start(), _run, units, lambda p: 1.0, TuneConfig(steps=1),
+        tune_policy(_start(), _run, units, lambda p: (1.0, 1.0), TuneConfig(steps=1),
                     __import__("jax").random.key(0))  # fmt: skip
 
 
@@ -87,6 +87,21 @@ def test_the_gain_record_counts_the_tuned_policy_on_the_same_score():
     assert with_tuning(gain, {**tuned, "improved": False}) == gain
     other = {**gain, "key": "val_tracking_rmse_norm"}
     assert with_tuning(other, tuned) == other  # not the score tune selects by
+
+
+def test_a_tuned_policy_that_loses_on_clean_units_is_not_kept():
+    """Under effects the score improves towards gain 0.5, but the clean units
+    prefer the start (gain 2): past the clean tolerance nothing is kept."""
+    cfg = TuneConfig(steps=60, lr=0.05, batch_units=3, eval_every=10, patience=3)
+
+    def score(p):
+        gain = float(p.actor["gain"])
+        return abs(gain - 0.5), abs(gain - 2.0)
+
+    out = tune_policy(
+        _start(), _run, _units(), score, cfg, __import__("jax").random.key(0)
+    )
+    assert not out.improved and out.record["clean_theta_rmse_after"] == 0.0
 
 
 @pytest.mark.parametrize("bad", ["tune.steps=-1", "tune.lr=0", "tune.patience=0"])
