@@ -107,7 +107,12 @@ class StreamingCalibrator:
         )
         if self.anchor_info is not None:
             self._gated(self._carry0)
-        self._packed_step = _packed(self._step, Packing.of(self._carry0))
+        self._stream = _PackedStream(
+            self._step,
+            Packing.of(self._carry0),
+            (self._params, self._check_dev, self._band),
+            len(self.conditions),
+        )
         self._packed0 = jax.device_put(Packing.of(self._carry0).pack(self._carry0))
         self.reset()
 
@@ -145,6 +150,13 @@ class StreamingCalibrator:
         self.last_reason: str | None = None
 
     def _check(self, name: str, value, size: int, ndim: int) -> np.ndarray:
+        if (  # the common case, without numpy's conversion (a stream's every call)
+            type(value) is np.ndarray
+            and value.dtype == self._dtype
+            and value.ndim == ndim
+            and value.shape[-1] == size
+        ):
+            return value
         try:
             array = np.asarray(value, dtype=self._dtype)
         except (TypeError, ValueError):
@@ -170,13 +182,8 @@ class StreamingCalibrator:
         """
         w = self._check("w", w, len(self.conditions), 1)
         x = self._check("x", x, len(self.sensors), 1)
-        self._carry, read = self._packed_step(
-            self._params, self._carry, w, x, self._check_dev, self._band
-        )
-        # one transfer to the host for everything the caller reads (each separate
-        # read would wait on the device and copy on its own)
-        theta, reason, std, gate = jax.device_get(read)
-        self.last_reason = REASONS[int(reason)]
+        self._carry, theta, reason, std, gate = self._stream(self._carry, w, x)
+        self.last_reason = REASONS[reason]
         self.last_valid = self.last_reason == "ok"
         return StepInfo(
             theta, self.last_valid, self.last_reason, theta_std=std,
@@ -223,17 +230,61 @@ class StreamingCalibrator:
         return theta, xhat
 
 
-def _packed(step, packing: Packing):
-    """``step`` on a carry packed into per-dtype buffers
-    (:mod:`jaxcal.calibrators.packed`: a dozen fewer kernels and arguments per
-    sample), returning the new buffers and
-    what the host reads: ``(theta, reason, theta_std or None, gate_open or None)``."""
+class _PackedStream:
+    """``step`` with few arguments and one read a sample: on XLA's CPU runtime each
+    argument and result of a call costs about as much as a small kernel (parsed,
+    checked, allocated), and each host read waits and copies on its own.
 
-    @jax.jit
-    def packed(params, buffers, w, x, check, band):
-        carry, out, reason = step(params, packing.unpack(buffers), w, x, check, band)
-        aux = out.aux if isinstance(out.aux, dict) else {}
-        read = (out.theta, reason, aux.get("theta_std"), aux.get("gate_open"))
-        return packing.pack(carry), read
+    * the carry in per-dtype buffers (:mod:`jaxcal.calibrators.packed`);
+    * the run's constants (params, check, band: two dozen leaves) in per-dtype
+      buffers placed on the device once; they stay arguments, not constants of the
+      program, so XLA folds nothing the fleet runner computes at run time (the
+      stream and the fleet give the same bits);
+    * the sample's ``w`` and ``x`` as one row;
+    * what the host reads (theta, the band's std, the reason, the gate) as one
+      array of theta's dtype (the reason's code and the gate's flag are small
+      integers, exact in it).
 
-    return packed
+    ``__call__(buffers, w, x) -> (buffers, theta, reason, theta_std or None,
+    gate_open or None)``, host numpy out.
+    """
+
+    def __init__(self, step, packing: Packing, consts, num_w: int):
+        const_packing = Packing.of(consts)
+        self._consts = jax.device_put(const_packing.pack(consts))
+        self._num_w = num_w
+        layout: list = []  # (offset, size) of theta, std, reason, gate in the read
+
+        @jax.jit
+        def packed(consts, buffers, row):
+            params, check, band = const_packing.unpack(consts)
+            w, x = row[:num_w], row[num_w:]
+            carry = packing.unpack(buffers)
+            carry, out, reason = step(params, carry, w, x, check, band)
+            aux = out.aux if isinstance(out.aux, dict) else {}
+            dtype = out.theta.dtype
+            parts = [out.theta, aux.get("theta_std"), reason, aux.get("gate_open")]
+            layout.clear()
+            offset = 0
+            for part in parts:
+                size = None if part is None else int(np.size(part))
+                layout.append(None if part is None else (offset, size))
+                offset += size or 0
+            read = jnp.concatenate(
+                [jnp.ravel(p).astype(dtype) for p in parts if p is not None]
+            )
+            return packing.pack(carry), read
+
+        self._jitted = packed
+        self._layout = layout
+
+    def __call__(self, buffers, w: np.ndarray, x: np.ndarray):
+        row = np.concatenate([w, x])
+        buffers, read = self._jitted(self._consts, buffers, row)
+        read = np.asarray(read)  # the one transfer to the host
+        theta, std, reason, gate = (
+            None if slot is None else read[slot[0] : slot[0] + slot[1]]
+            for slot in self._layout
+        )
+        gate = None if gate is None else bool(gate[0])
+        return buffers, theta, int(reason[0]), std, gate
