@@ -12,7 +12,8 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
   problem, jitted and fed one row at a time the same way (host numpy in and out);
   median and 95th percentile microseconds per row;
 * a fleet: ``StreamingCalibrator.run`` over ``units`` streams of ``rows`` rows and
-  the UKF's fleet runner over the same arrays; microseconds per row.
+  the UKF's fleet runner over the same arrays; microseconds per row;
+* ``ops``: the kernels of both compiled stream steps (:func:`compiled_ops`).
 
 The rows are the run's normalisation's mean plus 0.3 of its spread times Gaussian
 draws (the costs do not depend on the values). Prints and writes JSON.
@@ -47,6 +48,60 @@ def _per_row(fns: dict, rows: int) -> dict:
         }
         for name, ts in times.items()
     }
+
+
+# what XLA's CPU runtime runs as no kernel of its own
+_FREE_OPS = {"parameter", "constant", "tuple", "get-tuple-element", "bitcast"}
+
+
+def _op_name(rhs: str) -> str:
+    """The op of an HLO instruction's right-hand side ``shape op(operands)``, the
+    shape maybe a tuple ``(f32[2], ...)``."""
+    if rhs.startswith("("):  # skip the tuple shape to its closing parenthesis
+        depth = 0
+        for i, char in enumerate(rhs):
+            depth += {"(": 1, ")": -1}.get(char, 0)
+            if depth == 0:
+                rhs = rhs[i + 1 :]
+                break
+    return rhs.split("(", 1)[0].split(" ")[-1]
+
+
+def compiled_ops(compiled_text: str) -> dict:
+    """The kernels (thunks) of a compiled program, from its optimised HLO text:
+    ``entry`` ops of the main computation (each fusion, dot, copy, loop and branch
+    one), and per ``while`` loop anywhere, its trip count and the ops of its body
+    (run once per trip; ``every_call``: the loop is in the main computation, not in
+    a branch, such as a stream's first-sample start, or another loop). On XLA's CPU
+    runtime each kernel costs a microsecond or two whatever its size: for one small
+    stream, their number is the step's cost."""
+    bodies: dict[str, list[str]] = {}
+    entry, current = "", None
+    for line in compiled_text.splitlines():
+        if line.endswith("{") and not line.startswith(" "):
+            current = line.split(" ")[1 if line.startswith("ENTRY") else 0]
+            current = current.lstrip("%")
+            entry = current if line.startswith("ENTRY") else entry
+            bodies[current] = []
+        elif current and line.startswith("  ") and " = " in line:
+            if _op_name(line.split(" = ", 1)[1]) not in _FREE_OPS:
+                bodies[current].append(line)
+    loops = []
+    for name, lines in bodies.items():
+        for line in lines:
+            if " while(" not in line:
+                continue
+            body = line.split("body=%", 1)[1].split(",", 1)[0]
+            trips = line.split('"known_trip_count":{"n":"', 1)
+            trips = int(trips[1].split('"', 1)[0]) if len(trips) > 1 else None
+            loops.append(
+                {
+                    "trips": trips,
+                    "body_ops": len(bodies.get(body, [])),
+                    "every_call": name == entry,  # else in a branch or a loop
+                }
+            )
+    return {"entry": len(bodies.get(entry, [])), "loops": loops}
 
 
 def bench_run(run: str, rows: int, units: int) -> dict:
@@ -85,6 +140,16 @@ def bench_run(run: str, rows: int, units: int) -> dict:
         carry[0], res, reason = ukf_step(carry[0], w[0, t], x[0, t])
         jax.device_get((res.theta, reason))
 
+    stream = cal._stream  # the policy's compiled stream step, as cal.step calls it
+    row0 = np.concatenate([w[0, 0], x[0, 0]])
+    out["ops"] = {
+        "policy_stream": compiled_ops(
+            stream._jitted.lower(stream._consts, cal._carry, row0).compile().as_text()
+        ),
+        "ukf_stream": compiled_ops(
+            ukf_step.lower(carry[0], w[0, 0], x[0, 0]).compile().as_text()
+        ),
+    }
     streams = {"policy_stream": lambda t: cal.step(w[0, t], x[0, t]), "ukf_stream": one}
     out.update(_per_row(streams, rows))
     mask = np.ones(shape, bool)
