@@ -86,6 +86,14 @@ def compiled_ops(compiled_text: str) -> dict:
         elif current and line.startswith("  ") and " = " in line:
             if _op_name(line.split(" = ", 1)[1]) not in _FREE_OPS:
                 bodies[current].append(line)
+    # the main path: the entry and what it calls inline (XLA's CPU "small calls")
+    main, todo = set(), [entry]
+    while todo:
+        name = todo.pop()
+        main.add(name)
+        for line in bodies.get(name, []):
+            if " call(" in line and "to_apply=%" in line:
+                todo.append(line.split("to_apply=%", 1)[1].split(",", 1)[0])
     loops = []
     for name, lines in bodies.items():
         for line in lines:
@@ -98,10 +106,11 @@ def compiled_ops(compiled_text: str) -> dict:
                 {
                     "trips": trips,
                     "body_ops": len(bodies.get(body, [])),
-                    "every_call": name == entry,  # else in a branch or a loop
+                    "every_call": name in main,  # else in a branch or a loop
                 }
             )
-    return {"entry": len(bodies.get(entry, [])), "loops": loops}
+    calls = sum(len(bodies.get(name, [])) for name in main - {entry})
+    return {"entry": len(bodies.get(entry, [])) + calls, "loops": loops}
 
 
 def bench_run(run: str, rows: int, units: int) -> dict:

@@ -1,0 +1,45 @@
+"""experiments/bench_deploy.py's kernel count of a compiled program."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+from bench_deploy import compiled_ops  # noqa: E402
+
+
+def _ops(fn, *args) -> dict:
+    return compiled_ops(jax.jit(fn).lower(*args).compile().as_text())
+
+
+def test_a_loop_in_the_main_computation_is_counted_with_its_trips():
+    def looped(x):
+        return jax.lax.fori_loop(0, 7, lambda i, v: jnp.sin(v * v + i), x)
+
+    ops = _ops(looped, jnp.ones(3))
+    (loop,) = ops["loops"]
+    assert loop["trips"] == 7 and loop["every_call"] and loop["body_ops"] >= 1
+    assert ops["entry"] >= 1  # the loop itself
+
+
+def test_a_loop_in_a_branch_is_not_run_every_call():
+    def branched(flag, x):
+        return jax.lax.cond(
+            flag,
+            lambda v: jax.lax.fori_loop(0, 5, lambda i, u: jnp.sin(u) + i, v),
+            lambda v: v * 2.0,
+            x,
+        )
+
+    ops = _ops(branched, jnp.bool_(True), jnp.ones(3))
+    assert [(lp["trips"], lp["every_call"]) for lp in ops["loops"]] == [(5, False)]
+
+
+def test_parameters_constants_and_tuples_are_not_kernels():
+    # one fused kernel; its parameter, constant and result tuple are none
+    ops = _ops(lambda a: jnp.sin(a) + 2.0, jnp.ones(3))
+    assert ops == {"entry": 1, "loops": []}
