@@ -67,6 +67,7 @@ def test_the_selection_units_carry_the_training_share_of_effects(monkeypatch, sh
     cfg = resolve_config(["dataset=tiny", f"simulate.effects={share}"])
     sims = simulated.Simulations.__new__(simulated.Simulations)
     sims.cfg, sims.key, sims.used = cfg.simulate, jax.random.key(0), {}
+    sims._selection = None
     sims.data = types.SimpleNamespace(val=None, train="units")
     sims.problem = lambda: None
     sims.selection_units()
