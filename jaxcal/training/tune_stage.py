@@ -99,7 +99,11 @@ def tune_policy(
     mask = jnp.asarray(train_units.mask)
     low, high = start.theta_low, start.theta_high
     loss = _theta_loss(run_arrays, low, high)
-    opt = optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr))
+    # a non-finite gradient (a diverging unit) skips the step, never poisons it
+    opt = optax.apply_if_finite(
+        optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr)),
+        max_consecutive_errors=cfg.steps + 1,
+    )
     num_units = w.shape[0]
     batch = min(cfg.batch_units, num_units)
 
@@ -109,26 +113,19 @@ def tune_policy(
         value, grad = jax.value_and_grad(loss)(
             actor, params, w[idx], x[idx], theta[idx], mask[idx]
         )
-        # a non-finite gradient (a diverging unit) skips the step, never poisons it
-        finite = jnp.all(
-            jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grad)])
-        )
-        updates, new_opt = opt.update(grad, opt_state, actor)
-        new_actor = optax.apply_updates(actor, updates)
-        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(finite, u, v), a, b)  # noqa: E731
-        return pick(new_actor, actor), pick(new_opt, opt_state), value
+        updates, opt_state = opt.update(grad, opt_state, actor)
+        return optax.apply_updates(actor, updates), opt_state, value
 
     before, clean_before = select_score(start)
     clean_before = np.asarray(clean_before, float)
     # a tuned policy may not lose on clean units what it gains under effects
     clean_limit = clean_before * (1.0 + cfg.clean_tolerance)
     best_score, best, actor = before, start, start.actor
-    opt_state, waited, steps, losses = opt.init(actor), 0, 0, []
+    opt_state, waited, steps = opt.init(actor), 0, 0
     best_clean = clean_before
     for step in range(1, cfg.steps + 1):
         key, sub = jax.random.split(key)
         actor, opt_state, value = update(actor, opt_state, start, sub)
-        losses.append(float(value)) if step % cfg.eval_every == 0 else None
         steps = step
         if step % cfg.eval_every and step != cfg.steps:
             continue
@@ -169,7 +166,7 @@ def tune_policy(
 
 def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
     """``(kept, record)``: the run's kept policy tuned (:func:`tune_policy`) on
-    the simulated training units and kept where the selection units agree, saved
+    simulated tuning units and kept where the selection and guard units agree, saved
     under ``policy_tuned/`` (the run's deployed policy; a stale one of an earlier
     session is removed first); ``record`` is ``final.json``'s ``tune`` entry
     (``None`` with ``tune.steps=0``)."""
