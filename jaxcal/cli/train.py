@@ -142,10 +142,11 @@ def format_final(final: dict) -> str:
 def _gain_line(gain: dict) -> str:
     """One plain line: did training improve on the untrained start?"""
     what = gain["key"].removeprefix("val_").replace("_", " ")
+    start_is = gain.get("start_is", "the filter's step")  # older runs: the filter's
     if gain["kept_start"]:
         best = gain["best_trained"]
         return (
-            "training did not improve on its untrained start (the filter's step): "
+            f"training did not improve on its untrained start ({start_is}): "
             f"the run keeps the start (validation {what} {gain['start']:.3e}"
             + (
                 ""
@@ -156,9 +157,13 @@ def _gain_line(gain: dict) -> str:
             + ")"
         )
     how = " (tuned by gradient through the filter)" if gain.get("tuned") else ""
+    r = gain["ratio"]  # a random start's: far below 0.01
+    ratio = "" if r is None else f" ({r:.2f}x)" if r >= 0.01 else f" ({r:.1e}x)"
+    # a random start is no candidate: the kept chunk may score worse than it
+    verdict = "did not improve" if r is not None and r >= 1 else "improved"
     return (
-        f"training improved on its untrained start{how}: validation {what} "
-        f"{gain['start']:.3e} -> {gain['kept']:.3e} ({gain['ratio']:.2f}x)"
+        f"training {verdict} on its untrained start ({start_is}){how}: validation "
+        f"{what} {gain['start']:.3e} -> {gain['kept']:.3e}{ratio}"
     )
 
 

@@ -12,9 +12,11 @@ what was simulated are added by the pipeline.
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
+from jaxcal.training.components import uses_filter
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import CalibrationData
 from jaxcal.training.kept_policy import KeptPolicy
@@ -36,31 +38,38 @@ def throughput(records: list[dict]) -> dict:
     }
 
 
-def training_gain(records: list[dict], selected: int, cfg: TrainConfig) -> dict:
+def training_gain(
+    records: list[dict], selected: int, cfg: TrainConfig, start: dict | None = None
+) -> dict:
     """What training added to its untrained start, on the selection's score
-    (``budget.select``: lower is better): the start's (chunk 0, scored only for an
-    actor with a prior), the kept chunk's and the best trained chunk's, and
-    ``ratio`` kept / start (1.0: the start kept). ``{}`` when the start was not
-    scored."""
+    (``budget.select``: lower is better): the start's (chunk 0, scored in the
+    training for an actor with a prior; else ``start``, the untrained actor's
+    ``val_*`` scores measured after it), the kept chunk's and the best trained
+    chunk's, ``ratio`` kept / start (1.0: the start kept) and ``start_is``, what
+    the untrained policy is. ``{}`` when the start was not scored."""
     key = (
         "val_sim_theta_rmse"
         if cfg.budget.select == "sim_theta"
         else ("val_tracking_rmse_norm")
     )
     scores = {r["step"]: r[key] for r in records if key in r}
+    if 0 not in scores and start and key in start:
+        scores[0] = start[key]
     if 0 not in scores:
         return {}
     trained = {k: v for k, v in scores.items() if k > 0}
     best_chunk = min(trained, key=trained.get) if trained else None
     kept = scores.get(selected, scores[0])
+    prior = uses_filter(cfg.env) and bool(cfg.env.filter_gain)  # agent_config's
     return {
         "key": key,
         "start": scores[0],
         "kept": kept,
-        "ratio": kept / scores[0] if scores[0] > 0 else None,
+        "ratio": kept / scores[0] if 0 < scores[0] < math.inf else None,
         "best_trained_chunk": best_chunk,
         "best_trained": None if best_chunk is None else trained[best_chunk],
         "kept_start": selected == 0,
+        "start_is": "the filter's step" if prior else "a randomly initialised actor",
     }
 
 
@@ -126,7 +135,9 @@ def final_report(
         "val_selected": {
             k[4:]: v for k, v in val_record.items() if k.startswith("val_")
         },
-        "training_gain": training_gain(records, kept.selected_step, cfg),
+        "training_gain": training_gain(
+            records, kept.selected_step, cfg, kept.start_scores
+        ),
         "chunks": policy.chunks_done,
         "stopped_early": policy.stopped_early,
         "env_steps": int(policy.runner.env_steps),

@@ -12,6 +12,7 @@ is the run's selected one; otherwise the last policy is.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -25,6 +26,7 @@ from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.policy_scoring import PolicyScoring
 from jaxcal.training.policy_stage import ChunkScoring, PolicyResult, train_policy
+from jaxcal.training.runner import initial_agent_state
 from jaxcal.typedefs import PRNGKey
 
 
@@ -37,6 +39,10 @@ class KeptPolicy(NamedTuple):
         selected: the policy the run keeps (``last`` without selection).
         selected_step: its chunk.
         select: whether selection was on.
+        start_scores: the untrained policy's validation scores (``val_*``) where
+            the training did not score its chunk 0 (an actor without a prior:
+            scored after the training, for ``final.json``'s ``training_gain``);
+            ``None`` otherwise.
     """
 
     result: PolicyResult
@@ -44,6 +50,7 @@ class KeptPolicy(NamedTuple):
     selected: PolicyParams
     selected_step: int
     select: bool
+    start_scores: dict | None = None
 
 
 def train_kept_policy(
@@ -112,7 +119,10 @@ def train_kept_policy(
                 reporter=scoring.test_reporter if target is not None else None,
                 target=target,
                 clock=clock,
-                score_start=getattr(parts.actor, "prior", None) is not None,
+                # an actor with a prior works untrained; with num_chunks=0 any
+                # actor's untrained policy is scored and kept (a deployable start)
+                score_start=getattr(parts.actor, "prior", None) is not None
+                or cfg.budget.num_chunks == 0,
                 patience=cfg.budget.patience,
             ),
             on_checkpoint=save_latest,
@@ -124,7 +134,26 @@ def train_kept_policy(
         if select and best_ckpt.latest_step() is not None:
             selected_step = best_ckpt.latest_step()
             selected = best_ckpt.restore(selected_step, last)
-    return KeptPolicy(policy, last, selected, selected_step, select)
+    start = _unscored_start(key, parts, scoring, policy.records, log)
+    return KeptPolicy(policy, last, selected, selected_step, select, start)
+
+
+def _unscored_start(key, parts, scoring: PolicyScoring, records, log) -> dict | None:
+    """The untrained policy's validation scores (``val_*``) where the training
+    scored chunks but not chunk 0 (an actor without a prior starts as a random
+    network, never a candidate): what the training gained over its start
+    (``final.json``'s ``training_gain``) is then measured, at the cost of one
+    validation scoring. ``None`` where chunk 0 was scored or nothing is."""
+    scored = [r for r in records if any(k.startswith("val_") for k in r)]
+    if scoring.val_scorer is None or not scored or scored[0]["step"] == 0:
+        return None
+    tic = time.perf_counter()
+    scores = scoring.val_scorer(initial_agent_state(key, parts.agent))
+    log(
+        "the untrained start (a randomly initialised actor) scored on the "
+        f"validation units in {time.perf_counter() - tic:.1f} s"
+    )
+    return {f"val_{k}": v for k, v in scores.items()}
 
 
 def _savers(deployable, latest_ckpt: Checkpointer, best_ckpt: Checkpointer):

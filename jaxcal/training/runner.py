@@ -134,6 +134,7 @@ def init_runner(
             f"{env.action_size}"
         )
     check_env_params(env_params, env.config)
+    # key_agent as initial_agent_state derives it
     key_agent, key_reset, key_run = jax.random.split(key, 3)
     keys_reset = jax.random.split(key_reset, cfg.num_envs)
     obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(keys_reset, env_params)
@@ -147,6 +148,13 @@ def init_runner(
         num_updates=jnp.zeros((), jnp.int32),
         episode_cost=jnp.zeros((cfg.num_envs,), jnp.float32),
     )
+
+
+def initial_agent_state(key: PRNGKey, agent: Agent):
+    """The agent state a new runner of ``key`` starts with (:func:`init_runner`'s),
+    without its buffer and environments: the untrained policy, scored after a
+    training whose chunk 0 was not (``jaxcal.training.kept_policy``)."""
+    return agent.init(jax.random.split(key, 3)[0])
 
 
 def _where_done(done: Array, reset_value: Array, value: Array) -> Array:
