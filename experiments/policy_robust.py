@@ -23,7 +23,10 @@ variant is one ``python -m jaxcal.train`` with the default preset and:
 * ``tune``, ``tune_effects``, ``rl_tune_effects``: ``tune.steps=<tune>`` (the kept
   actor tuned by gradient through the deployed filter on simulated units' theta
   error, :mod:`jaxcal.training.tune_stage`) from the untrained start, the same with
-  ``effects``, and after the default training with ``effects``.
+  ``effects``, and after the default training with ``effects``;
+* ``balanced``: the default with ``tune.effects=<effects>`` (a share of the tuning
+  units with effects, the score half clean, half effects, clean not above the
+  start's).
 
 Every kept policy and the UKF (``jaxcal.calibrate``, the same noise) then run on the
 test units clean and with one effect in every test unit (:data:`EFFECTS`, in units
@@ -72,9 +75,14 @@ VARIANTS = {
     "adapt_effects": ["env.filter_adapt={adapt}", "simulate.effects={effects}"],
     "tune": ["budget.num_chunks=0", "tune.steps={tune}"],
     "tune_effects": [
-        "budget.num_chunks=0", "simulate.effects={effects}", "tune.steps={tune}"
+        "budget.num_chunks=0",
+        "simulate.effects={effects}",
+        "tune.steps={tune}",
     ],
     "rl_tune_effects": ["simulate.effects={effects}", "tune.steps={tune}"],
+    # the default with a share of the tuning units carrying effects, scored half
+    # clean, half effects, clean never worse than the start (tune.effects)
+    "balanced": ["tune.effects={effects}"],
 }
 
 

@@ -329,8 +329,19 @@ class TuneConfig:
     # effects) is refused, one 27 % better on the data's drifts and 10 % worse on
     # faster changes (the pump) is kept
     clean_tolerance: float = 0.15
+    # a share of the tuning units with an undeclared effect (sim_effects.KINDS).
+    # With it the score a tuned policy must lower is the mean over the clean
+    # selection units and the effects guard, each over the start's, and the clean
+    # selection units may not lose at all (clean_limit): tuned on effects alone,
+    # the reactor held a bias 2x better but lost 20 % clean (tune_levers/)
+    effects: float = 0.0
+    clean_limit: float = 1.0  # with effects: clean selection error <= this x start
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.effects <= 1.0 or not self.clean_limit > 0:
+            raise ValueError(
+                f"tune.effects must be in [0, 1] and tune.clean_limit > 0, got {self}"
+            )
         if self.steps < 0 or self.batch_units < 1 or self.eval_every < 1:
             raise ValueError(
                 "tune.steps must be >= 0, tune.batch_units and tune.eval_every "

@@ -229,12 +229,13 @@ class Simulations:
         self.used["surrogate"] = "simulated training units"
         return self.data._replace(train=self._train_sims()[0])
 
-    def tuning_units(self) -> Padded:
+    def tuning_units(self, effects: float | None = None) -> Padded:
         """Labelled units simulated as the selection units are (:meth:`
-        _held_out_sims`, other draws), a share ``simulate.effects`` with an
-        undeclared effect, with as many clean ones drawn across the box: what
-        ``tune`` fits the actor on."""
-        sim, along = self._held_out_sims(3, self.cfg.effects)
+        _held_out_sims`, other draws), a share ``effects`` (default
+        ``simulate.effects``) with an undeclared effect, with as many clean ones
+        drawn across the box: what ``tune`` fits the actor on."""
+        share = self.cfg.effects if effects is None else max(effects, self.cfg.effects)
+        sim, along = self._held_out_sims(3, share)
         # and clean units drawn across the box: tuned on the data's slow drifts
         # alone, the pump's policy lost 2-3x on faster changes (guard_units checks)
         self.used["tune"] = (

@@ -77,6 +77,7 @@ def tune_policy(
     cfg: TuneConfig,
     key: jax.Array,
     log: Callable[[str], None] = print,
+    limits: np.ndarray | None = None,
 ) -> TuneResult:
     """Tunes ``start``'s actor by Adam on the theta error of ``run_arrays(params, w,
     x, mask) -> CalOutput`` over batches of ``train_units`` (labelled), evaluating
@@ -84,7 +85,7 @@ def tune_policy(
     steps: a tuned policy is kept where it lowers the score (the selection units,
     a share with effects) without raising any clean score (clean units: the
     selection units' effect-free twins, units drawn across the box) above
-    ``1 + cfg.clean_tolerance`` times the start's.
+    ``limits`` (default ``1 + cfg.clean_tolerance``) times the start's.
 
     Raises:
         ValueError: ``train_units`` carry no true theta.
@@ -119,7 +120,8 @@ def tune_policy(
     before, clean_before = select_score(start)
     clean_before = np.asarray(clean_before, float)
     # a tuned policy may not lose on clean units what it gains under effects
-    clean_limit = clean_before * (1.0 + cfg.clean_tolerance)
+    factor = 1.0 + cfg.clean_tolerance if limits is None else np.asarray(limits)
+    clean_limit = clean_before * factor
     best_score, best, actor = before, start, start.actor
     opt_state, waited, steps = opt.init(actor), 0, 0
     best_clean = clean_before
@@ -176,21 +178,47 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
     if cfg.tune.steps == 0:
         return kept, None
     select_units = sims.selection_units()
-    guards = sims.guard_units()
-    train_units = sims.tuning_units()
+    guards = sims.guard_units()  # clean twins, across the box, with effects
+    train_units = sims.tuning_units(cfg.tune.effects or None)
 
     def run_arrays(params, w, x, mask):
         return parts.run_units(params, w, x, mask)
 
-    def select_score(params) -> tuple[float, np.ndarray]:
+    def scores(params) -> tuple[float, np.ndarray]:
         score = float(scoring.sim_theta(select_units, params)[0])
         clean = [float(scoring.sim_theta(u, params)[0]) for u in guards]
         return score, np.asarray(clean)
 
+    start = kept.selected
+    at_start = scores(start)
+    limits = None
+    if cfg.tune.effects:  # effects count as much as the clean units; clean may not lose
+        limits = np.full(len(guards), 1.0 + cfg.tune.clean_tolerance)
+        limits[0] = cfg.tune.clean_limit
+
+    raw = {id(start): at_start[0]}  # each scored policy's own selection rmse
+
+    def select_score(params) -> tuple[float, np.ndarray]:
+        score, clean = at_start if params is start else scores(params)
+        raw[id(params)] = score
+        if cfg.tune.effects:  # the mean of the two ratios, in selection units
+            (score0, clean0), eff = at_start, len(guards) - 1
+            score = score0 * 0.5 * (score / score0 + clean[eff] / clean0[eff])
+        return score, clean
+
     key = jax.random.fold_in(jax.random.key(cfg.seed), 41)
     result = tune_policy(
-        kept.selected, run_arrays, train_units, select_score, cfg.tune, key, log
+        start, run_arrays, train_units, select_score, cfg.tune, key, log, limits
     )
+    if cfg.tune.effects:  # the record's selection rmse stays the selection's own
+        record = result.record
+        record["score_before"] = record["selection_theta_rmse_before"]
+        record["score_after"] = record["selection_theta_rmse_after"]
+        record["score"] = (
+            "mean of the clean selection and effects guard units' theta rmse, each "
+            "x the start's, times the start's selection rmse"
+        )
+        record["selection_theta_rmse_after"] = raw[id(result.params)]
     if result.improved:
         with Checkpointer(tuned_dir, max_to_keep=1) as ckpt:
             ckpt.save(kept.selected_step, result.params, wait=True)

@@ -340,10 +340,12 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
     ).all()
 
 
-def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path):
+@pytest.mark.parametrize("effects", ["simulate.effects=0.5", "tune.effects=0.5"])
+def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path, effects):
     """``tune.steps``: the untrained policy tuned by gradient through the deployed
     filter; final.json says what it did, and the run deploys the tuned actor
-    (``policy_tuned/``) exactly when it lowered the selection's theta error."""
+    (``policy_tuned/``) exactly when it lowered the selection's theta error. With
+    ``tune.effects`` the score is half effects, and the clean units may not lose."""
     from jaxcal.deploy.loading import load_run
 
     path = tmp_path / "nolabel.csv"
@@ -354,7 +356,7 @@ def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path):
         if a != "preset=smoke"
     ]
     small = ("budget.num_chunks=0", "env.episode_length=10", "simulate.copies=2",
-             "simulate.effects=0.5", "tune.steps=2", "tune.eval_every=1",
+             effects, "tune.steps=2", "tune.eval_every=1",
              "tune.batch_units=2", "tune.lr=1e-3")  # fmt: skip
     assert train_main([*argv, "preset=default", *small]) == 0
     run_dir = tmp_path / "runs" / "tuned"
@@ -362,6 +364,9 @@ def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path):
     tune = final["tune"]
     assert tune["steps"] in (1, 2)
     assert tune["selection_theta_rmse_after"] <= tune["selection_theta_rmse_before"]
+    if effects.startswith("tune."):
+        assert tune["score_after"] <= tune["score_before"]
+        assert tune["clean_theta_rmse_after"][0] <= tune["clean_theta_rmse_before"][0]
     assert (run_dir / "policy_tuned").is_dir() == tune["improved"]
     assert final["training_gain"].get("tuned", False) == tune["improved"]
     loaded = load_run(run_dir)
