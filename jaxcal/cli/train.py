@@ -87,7 +87,7 @@ def format_final(final: dict) -> str:
             + ", ".join(f"{k} {v:.3e}" for k, v in test["theta_rmse_per_param"].items())
             + ")"
         )
-    last = final["test_last"]["theta_rmse"]
+    last = final.get("val_last") or {}
     lines = [
         f"run {final['run']}: {final['agent']} on {final['dynamics']}, "
         f"{final['chunks']} chunks, {final['num_updates']:,} updates, "
@@ -98,7 +98,12 @@ def format_final(final: dict) -> str:
         + ", ".join(f"{k} {v:.4g}" for k, v in test["tracking_rmse_units"].items()),
         f"kept policy: {final['policy']} actor of chunk {final['selected_chunk']} "
         f"(select={final['select']})"
-        + ("" if last is None else f"; last chunk's theta RMSE {last:.3e}"),
+        + (
+            f"; last scored chunk ({last['chunk']})'s validation theta RMSE "
+            f"{last['theta_rmse']:.3e}"
+            if last.get("theta_rmse") is not None
+            else ""
+        ),
     ]
     gain = final.get("training_gain") or {}
     if gain:

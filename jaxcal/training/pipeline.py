@@ -251,7 +251,7 @@ def _train(
     test_out = scoring.run(data.test, kept.selected)
     test = scoring.score(data.test, kept.selected, test_out)
     final = final_report(
-        cfg, run_dir, path, data, kept, test, scoring, surrogate_report, target,
+        cfg, run_dir, path, data, kept, test, surrogate_report, target,
         wall_start,
     )  # fmt: skip
     band_units, fitted_on = sims.band_units()

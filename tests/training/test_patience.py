@@ -65,7 +65,7 @@ def _final(gain: dict) -> dict:
         "num_updates": 1, "env_steps": 1, "test_units": [7],
         "test": {"theta_rmse": None, "tracking_rmse_norm": 0.1,
                  "tracking_rmse_units": {"y": 0.1}},
-        "test_last": {"theta_rmse": None}, "policy": "target", "selected_chunk": 0,
+        "val_last": {}, "policy": "target", "selected_chunk": 0,
         "select": "sim_theta", "training_gain": gain,
     }  # fmt: skip
 
@@ -83,3 +83,21 @@ def test_training_windows_fit_the_longest_unit():
     assert fit_episode(cfg, 202, said.append) is cfg and len(said) == 1
     with pytest.raises(ValueError, match="needs at least 3"):
         fit_episode(cfg, 2, said.append)
+
+
+def test_the_last_scored_chunk_is_reported_from_its_validation_scores():
+    """final.json's ``val_last``: the last scored chunk's validation scores (no test
+    pass of its own), and the console line names them."""
+    from jaxcal.training.final_report import _last_val
+
+    records = [
+        {"step": 5, "val_theta_rmse": 2.0, "val_tracking_rmse_norm": 0.2},
+        {"step": 6, "cost": 1.0},
+        {"step": 10, "val_theta_rmse": 1.0, "val_tracking_rmse_norm": 0.1},
+        {"step": 11, "cost": 0.5},
+    ]
+    last = _last_val(records)
+    assert last == {"chunk": 10, "theta_rmse": 1.0, "tracking_rmse_norm": 0.1}
+    assert _last_val([{"step": 1, "cost": 1.0}]) == {}
+    text = format_final({**_final({}), "val_last": last})
+    assert "last scored chunk (10)'s validation theta RMSE 1.000e+00" in text
