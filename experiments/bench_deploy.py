@@ -16,7 +16,9 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
 * ``ops``: the kernels of both compiled stream steps (:func:`compiled_ops`).
 
 The rows are the run's normalisation's mean plus 0.3 of its spread times Gaussian
-draws (the costs do not depend on the values). Prints and writes JSON.
+draws (the costs of the any-model cases do not depend on the values), or rows a
+caller gives :func:`bench_run` (``experiments/policy_turbofan.py``: the turbofan's
+test rows). Prints and writes JSON.
 """
 
 from __future__ import annotations
@@ -113,7 +115,12 @@ def compiled_ops(compiled_text: str) -> dict:
     return {"entry": len(bodies.get(entry, [])) + calls, "loops": loops}
 
 
-def bench_run(run: str, rows: int, units: int) -> dict:
+def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dict:
+    """One run's costs (module docstring). ``data``: ``(w [units, rows, W], x [units,
+    rows, S])`` rows to feed (the run's conditions and sensors, in their order)
+    instead of the drawn ones: a model whose cost depends on the values (the
+    turbofan's Newton solve converges in more or fewer iterations; a flagged row
+    skips the model) is timed on its own data."""
     import jax
 
     from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
@@ -132,8 +139,16 @@ def bench_run(run: str, rows: int, units: int) -> dict:
     x = np.asarray(norm.x_mean) + 0.3 * np.asarray(norm.x_std) * rng.normal(
         size=(*shape, len(cal.sensors))
     )
+    if data is not None:
+        w, x = (np.asarray(a) for a in data)
+        if w.shape[:2] != shape or x.shape[:2] != shape:
+            raise ValueError(
+                f"data: w {w.shape} and x {x.shape} must both start with (units, "
+                f"rows) = {shape}"
+            )
     w, x = w.astype(cal._dtype), x.astype(cal._dtype)
     out = {"run": run, "model": problem.model.name, "rows": rows, "units": units}
+    out["rows_from"] = "drawn" if data is None else "given"
 
     ukf = make(problem, config("ukf", {}))
     check = cal._check_dev
