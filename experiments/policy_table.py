@@ -6,12 +6,16 @@ job time, before and after.
         [before=results/policy_robust/before/results.json]
         [deploy=results/bench/deploy.json]
         [deploy_before=results/bench/deploy_before.json]
+        [turbofan=results/policy_any_model/turbofan.json]
         [out=results/policy_any_model/issue41.md]
 
 Reads what ``experiments/policy_robust.py`` (theta RMSE per variant and effect, the
 training's gain, job seconds) and ``experiments/bench_deploy.py`` (cost per row, one
-stream and a fleet) wrote; computes nothing new. ``before``: the same study at the
-start of the issue's work (commit b0688a7: a 256-wide actor, the declared noise).
+stream and a fleet) wrote, and the turbofan's row from what
+``experiments/policy_turbofan.py`` wrote (``make train``'s run against the UKF on a
+subset of its test rows, its deployed cost); computes nothing new. ``before``: the
+same study at the start of the issue's work (commit b0688a7: a 256-wide actor, the
+declared noise).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ class Options:
     before: str = "results/policy_robust/before/results.json"
     deploy: str = "results/bench/deploy.json"
     deploy_before: str = "results/bench/deploy_before.json"
+    turbofan: str = "results/policy_any_model/turbofan.json"
     out: str = "results/policy_any_model/issue41.md"
 
 
@@ -100,6 +105,40 @@ def table(after: dict, before: dict | None, deploy, deploy_before) -> list[str]:
     return lines
 
 
+def turbofan_rows(result: dict | None) -> list[str]:
+    """The turbofan's rows (``experiments/policy_turbofan.py``'s JSON): its
+    untrained start and ``make train``'s kept policy, after the issue's work."""
+    if result is None:
+        return []
+    job = result["training"]
+    gain = job["training_gain"]["ratio"]
+    lines = []
+    for variant, label, which, seconds in (
+        ("start", "start", "theta_rmse", job["start_job_seconds"]),
+        ("default", "policy", "theta_rmse", job["job_seconds"]),
+        ("default, settled", "policy", "theta_rmse_settled", job["job_seconds"]),
+    ):
+        mine, ukf, start = (result[which][k] for k in (label, "UKF", "start"))
+        cells = [
+            "turbofan", "after", variant,
+            *(_ratio(mine[e] / ukf[e]) for e in EFFECTS),
+            *(_ratio(mine[e] / start[e]) for e in EFFECTS),
+            "1.00" if variant == "start" else _ratio(gain), f"{seconds:.0f}",
+            _fmt(result["deploy"]["stream_ratio"]) if variant == "start" else "",
+            _fmt(result["deploy"]["fleet_ratio"]) if variant == "start" else "",
+        ]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _ratio(x: float) -> str:
+    """Two decimals, or two significant digits far from 1 (the turbofan's random
+    start: thousands of times the UKF's error)."""
+    if x >= 100:
+        return f"{x:.0f}"
+    return f"{x:.2f}" if x >= 0.01 else f"{x:.2g}"
+
+
 def main(argv: list[str]) -> int:
     from jaxcal.settings import parse_overrides
 
@@ -130,11 +169,20 @@ def main(argv: list[str]) -> int:
         "`start` the untrained policy, `rl` the actor-critic as it was before the "
         "tuning (six chunks, no tuning), `default` the default preset now (the "
         "actor-critic with patience 2, then `tune.steps=400`: the actor tuned by "
-        "gradient through the filter, docs/policy.md).",
+        "gradient through the filter, docs/policy.md). The turbofan "
+        f"(`{opts.turbofan}`, `experiments/policy_turbofan.py`, details in its "
+        "`.md`): `default` the run of `make train`, `start` the same with "
+        "`budget.num_chunks=0` (a randomly initialised actor: the turbofan's policy "
+        "observes no filter step); scored on a subset (each test unit's first and "
+        "last rows, each a stream started cold), the effects on its first output "
+        "in units of the UKF's declared noise; `settled`: the same runs scored "
+        "after each window's first rows (the cold start left out); `val gain` on "
+        "the validation tracking RMSE; its cost on its own test rows.",
         "",
         *table(
             after, _load(opts.before), _load(opts.deploy), _load(opts.deploy_before)
         ),
+        *turbofan_rows(_load(opts.turbofan)),
         "",
     ]
     os.makedirs(os.path.dirname(opts.out) or ".", exist_ok=True)
