@@ -116,7 +116,7 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
     fit_d, offset, disc = _backfit(model, data, spec0, null.params, cfg)
     rescreen = identify(
         model, data, declared, library, cfg.identify, fit_d, offset=offset
-    )
+    )._replace(fits={})  # read by the noise passes alone (pipeline), done by now
     options = [(_bic_with(fit_d, disc), fit_d, offset, disc, None)]
     for screen in (ident, rescreen):
         if screen.winner is not None:

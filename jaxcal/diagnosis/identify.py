@@ -97,7 +97,9 @@ class Identification(NamedTuple):
     confounded: list[str]  # effects confounded with the winner (winner first)
     absorbed: list[str]  # effects the declared parameters can mimic
     num_tests: int
-    fits: dict  # entry name -> FitResult of every refitted model
+    # entry name -> FitResult of every refitted model, the winner's whole, the others
+    # with what a noise refit reads (_slim); released once the noise passes are done
+    fits: dict
     onset_ci: dict  # candidate key -> [U, 2] rows of a step's onset interval
     # the candidate no unit showed on its own with the largest summed unit score, on
     # every unit, and that sum: a basis for the noise model (pipeline), never a verdict
@@ -187,13 +189,17 @@ class _Refits:
 
 
 def _slim(fit: FitResult) -> FitResult:
-    """``fit`` without what only its own fit and the winner's verdicts read: its
-    prewhitened columns and its model's Jacobians (a fleet's rows times its columns
-    each: 60 of the 100 MB of one FD001 refit, held for every entry refitted). The
-    residual and raw signatures stay: the noise model may be refitted on them
-    (:mod:`.pipeline`)."""
+    """``fit`` with only what the noise model's refit on it reads
+    (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
+    signatures of the per-unit columns. The prewhitened columns, the model's
+    Jacobians, its outputs and row inputs are a fleet's rows times their columns
+    each (about 130 MB of one NASA FD002 refit, held for every entry refitted);
+    only its own fit and the winner's verdicts read them."""
     ev = fit.evaluation
-    slim = ev._replace(cols=None, sig=ev.sig._replace(lin=None))
+    local = np.array(ev.sig.cols[:, :, : fit.layout.num_local])  # not a view
+    sig = ev.sig._replace(y=None, x=None, cols=local, lin=None)
+    slim = ev._replace(yhat=None, white=None, theta=None, inputs=None, sig=sig,
+                       cols=None)  # fmt: skip
     return fit._replace(evaluation=slim)
 
 

@@ -6,8 +6,10 @@ only the directions a fit needs, in buckets of :data:`DIRECTION_BUCKET`), one ji
 function with a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across
 processes (``jaxcal.calibrators.on_disk``), its chunks dispatched
 :data:`CHUNKS_IN_FLIGHT` ahead; the last :data:`LINEARIZATIONS_KEPT` points are
-reused (a refit starts where the fit before it ended), and only the residual's
-outputs are kept.
+reused (a refit starts where the fit before it ended), an output-only point that
+differs from one of them on a few rows evaluates those rows alone
+(:data:`PIECED_SHARE`), and only the residual's outputs and a fit's own
+derivatives are kept.
 """
 
 from __future__ import annotations
@@ -115,20 +117,39 @@ def _linearize_program(model: Model, offset_idx: tuple, directions: int | None =
 
 
 class Linearization(NamedTuple):
-    """A static model and its per-row Jacobians (``E`` model outputs)."""
+    """A static model and its per-row Jacobians (``E`` model outputs): every
+    derivative in ``jac_theta``, ``jac_effects``, ``jac_w``, or a fit's few in
+    ``jac`` alone (the full arrays ``None``: a fleet's rows times every direction
+    were 66 MB of zeros a point on NASA FD002, for the 4 a fit uses)."""
 
     x: np.ndarray  # [N, E]
-    jac_theta: np.ndarray  # [N, E, P_all]
-    jac_effects: np.ndarray  # [N, E, n_eff]
-    jac_w: np.ndarray  # [N, E, K] offset conditions (offset_conditions order)
+    jac_theta: np.ndarray | None  # [N, E, P_all]
+    jac_effects: np.ndarray | None  # [N, E, n_eff]
+    jac_w: np.ndarray | None  # [N, E, K] offset conditions (offset_conditions order)
     ok: np.ndarray  # [N]
     outputs: tuple | None = None  # the model outputs E are (None: all of them)
-    # the (channel, index) derivatives computed (None: all; the others are zero)
+    # the (channel, index) derivatives computed (None: all, in the full arrays)
     directions: frozenset | None = None
+    jac: np.ndarray | None = None  # [N, E, D] those derivatives, sorted(directions)
 
     def covers(self, keys) -> bool:
         """The derivatives along every ``(channel, index)`` of ``keys`` are here."""
         return self.directions is None or set(keys) <= self.directions
+
+    def derivative(self, channel: str, index: int, slot: int) -> np.ndarray:
+        """``[N, E]`` derivative along ``(channel, index)`` (``slot``: its position in
+        the full array of its channel, the offset conditions' order for
+        ``condition``)."""
+        if self.directions is not None:
+            return self.jac[:, :, sorted(self.directions).index((channel, index))]
+        full = {"parameter": self.jac_theta, "effect": self.jac_effects,
+                "condition": self.jac_w}[channel]  # fmt: skip
+        return full[:, :, slot]
+
+    def arrays(self) -> tuple:
+        """The arrays held (shared read-only by every caller at this point)."""
+        held = (self.x, self.jac_theta, self.jac_effects, self.jac_w, self.ok, self.jac)
+        return tuple(a for a in held if a is not None)
 
 
 def linearize(
@@ -156,7 +177,8 @@ def linearize(
         directions: the ``(channel, index)`` derivatives wanted (channels
             ``parameter``, ``effect``, ``condition``; default all): a fit needs
             its own few, and each costs about 7 % of the model's evaluation (the
-            turbofan's Newton solve is shared); the others are returned as zeros.
+            turbofan's Newton solve is shared); those alone are returned, in
+            ``jac`` (:class:`Linearization`).
     """
     require_x64("the diagnosis needs float64")
     w = np.asarray(w, np.float64)
@@ -189,13 +211,7 @@ def linearize(
             x, j_th, j_ef, j_w, ok = out
             return x[:, keep], j_th[:, keep], j_ef[:, keep], j_w[:, keep], ok
         x, jac, ok = out
-        x = x[:, keep]
-        full = np.zeros(x.shape + (basis.shape[1],))
-        for d, m in enumerate(slots):
-            full[:, :, m] = jac[:, keep, d]
-        num_p, num_e = theta.shape[1], effects.shape[1]
-        return (x, full[:, :, :num_p], full[:, :, num_p : num_p + num_e],
-                full[:, :, num_p + num_e :], ok)  # fmt: skip
+        return x[:, keep], jac[:, keep, : len(slots)], ok
 
     # chunks are dispatched ahead and read back in order: they run on JAX's threads
     # while the host waits on the oldest (2 cores: 0.55 s for 4096 rows of the
@@ -212,12 +228,13 @@ def linearize(
         if len(pending) == CHUNKS_IN_FLIGHT:
             parts.append(read(*pending.popleft()))
     parts.extend(read(*p) for p in pending)
-    x, j_th, j_ef, j_w, ok = (np.concatenate(p) for p in zip(*parts, strict=True))
-    return Linearization(
-        x, j_th, j_ef, j_w, ok.astype(bool),
-        None if outputs is None else tuple(int(i) for i in outputs),
-        None if basis is None else frozenset(directions),
-    )  # fmt: skip
+    outputs = None if outputs is None else tuple(int(i) for i in outputs)
+    if basis is None:
+        x, j_th, j_ef, j_w, ok = (np.concatenate(p) for p in zip(*parts, strict=True))
+        return Linearization(x, j_th, j_ef, j_w, ok.astype(bool), outputs)
+    x, jac, ok = (np.concatenate(p) for p in zip(*parts, strict=True))
+    return Linearization(x, None, None, None, ok.astype(bool), outputs,
+                         frozenset(directions), jac)  # fmt: skip
 
 
 def _basis(model: Model, offset_idx: tuple, directions):
@@ -252,29 +269,96 @@ def _basis(model: Model, offset_idx: tuple, directions):
 # ended, and every refit of a candidate at the declared-only solution (its terms
 # at zero) evaluates the same point (27 % of the evaluations of a diagnosis)
 LINEARIZATIONS_KEPT = 4
+# An output-only evaluation whose inputs differ from a kept output-only one on at
+# most this share of the rows evaluates those rows alone and takes the others from
+# it. The onset polish of a step (:func:`.onsets.polish_onsets`) moves each
+# carrier's onset one row at a time and evaluates the fleet at every move: 45 % of
+# the evaluations of NASA FD002's first 30 units. A row's output does not depend on
+# the other rows of its chunk (the chunk is vmapped; bitwise the same, checked in
+# tests/diagnosis/test_linearization_reuse.py).
+PIECED_SHARE = 0.5
 _LINEARIZED: collections.OrderedDict = collections.OrderedDict()
+
+
+class _Kept(NamedTuple):
+    """A kept linearisation and the row inputs it was taken at."""
+
+    lin: Linearization
+    w_digest: str
+    rows: tuple  # (theta, effects, w_offset) [N, ...], read-only
+
+
+def _digest(*arrays) -> str:
+    digest = hashlib.sha256()
+    for arr in arrays:
+        arr = np.ascontiguousarray(arr, np.float64)
+        digest.update(repr(arr.shape).encode())
+        digest.update(arr.tobytes())
+    return digest.hexdigest()
+
+
+def _changed_rows(old: tuple, new: tuple) -> np.ndarray:
+    """``[N]`` bool: rows where any of the inputs differ bitwise."""
+    out = np.zeros(old[0].shape[0], bool)
+    for a, b in zip(old, new, strict=True):
+        a = np.ascontiguousarray(a, np.float64).view(np.uint64)
+        b = np.ascontiguousarray(b, np.float64).view(np.uint64)
+        out |= np.any(a != b, axis=1)
+    return out
+
+
+def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
+    """The output-only linearisation at ``rows`` from a kept output-only one at the
+    same conditions, only the rows whose inputs differ evaluated (``None``: no
+    kept point is near enough, or derivatives are wanted)."""
+    if directions:
+        return None
+    for (kept_model, kept_outputs, _), entry in reversed(_LINEARIZED.items()):
+        base = entry.lin
+        if (
+            kept_model != model
+            or kept_outputs != outputs
+            or entry.w_digest != w_digest
+            or base.directions != frozenset()
+        ):
+            continue
+        changed = _changed_rows(entry.rows, rows)
+        idx = np.flatnonzero(changed)
+        if idx.size > PIECED_SHARE * changed.size:
+            continue
+        x, ok = base.x.copy(), base.ok.copy()
+        if idx.size:
+            part = linearize(model, w[idx], *(a[idx] for a in rows),
+                             outputs=outputs, directions=frozenset())  # fmt: skip
+            x[idx], ok[idx] = part.x, part.ok
+        return base._replace(x=x, ok=ok)
+    return None
 
 
 def _linearized(model, data, inputs, directions) -> Linearization:
     """:func:`linearize` at ``inputs`` (a
     :class:`~jaxcal.diagnosis.signatures.RowInputs`; the data's outputs) with at
     least the derivatives ``directions``, reused when the same point was linearised
-    lately with them (the key is the inputs' bytes, not their identity)."""
+    lately with them (the key is the inputs' bytes, not their identity), or pieced
+    from a near one (:data:`PIECED_SHARE`)."""
     outputs = tuple(int(i) for i in data.sensor_idx)
-    digest = hashlib.sha256()
-    for arr in (data.w, inputs.theta, inputs.effects, inputs.w_offset):
-        arr = np.ascontiguousarray(arr, np.float64)
-        digest.update(repr(arr.shape).encode())
-        digest.update(arr.tobytes())
-    key = (model, outputs, digest.hexdigest())
-    lin = _LINEARIZED.get(key)
-    if lin is None or not lin.covers(directions):
-        lin = linearize(model, data.w, inputs.theta, inputs.effects, inputs.w_offset,
-                        outputs=outputs, directions=directions)  # fmt: skip
-        for arr in lin[:5]:
+    rows = (inputs.theta, inputs.effects, inputs.w_offset)
+    w_digest = _digest(data.w)
+    key = (model, outputs, w_digest + _digest(*rows))
+    entry = _LINEARIZED.get(key)
+    if entry is None or not entry.lin.covers(directions):
+        lin = _pieced(model, data.w, w_digest, outputs, rows, directions)
+        if lin is None:
+            lin = linearize(model, data.w, *rows, outputs=outputs,
+                            directions=directions)  # fmt: skip
+        for arr in lin.arrays():
             arr.setflags(write=False)  # shared by every caller at this point
-        _LINEARIZED[key] = lin
+        rows = tuple(np.array(a, np.float64) for a in rows)
+        for arr in rows:
+            arr.setflags(write=False)
+        entry = _Kept(lin, w_digest, rows)
+        _LINEARIZED[key] = entry
         while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
             _LINEARIZED.popitem(last=False)
     _LINEARIZED.move_to_end(key)
-    return lin
+    return entry.lin

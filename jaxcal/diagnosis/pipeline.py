@@ -314,6 +314,9 @@ def _run(model, dataset, declared, cfg, clock: StageClock, *, sensors, units,
             null = fit_model(model, data, spec0, null.params, max_iters=cfg.max_iters)
             library = _library(model, data, declared, cfg)
             ident = identify(model, data, declared, library, cfg.identify, null)
+    # the refits were kept for the noise passes alone (a fleet's rows times their
+    # columns each): the winner's fit stays
+    ident = ident._replace(fits={})
     return _finish(model, data, declared, library, ident, null, cfg, clock)
 
 

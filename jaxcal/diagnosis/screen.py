@@ -106,15 +106,10 @@ class Screen:
             self._a_inv.append(np.linalg.inv(a))
             self._d.append(dm.T @ self.r[sl].reshape(-1))
         self._base = {}  # key -> whitened columns on every unit [N, S, k]
-        smooth = [c for c in self.library if c.kind.profile != "step"]
+        smooth = [c.with_form("units", range(data.num_units))
+                  for c in self.library if c.kind.profile != "step"]  # fmt: skip
         if smooth:
-            cols = self._columns([c.with_form("units", range(data.num_units))
-                                  for c in smooth])  # fmt: skip
-            start = 0
-            for cand in smooth:
-                k = term_profile(data, cand).shape[1]
-                self._base[cand.name] = cols[:, :, start : start + k]
-                start += k
+            self._base = self._smooth_columns(smooth)
         self._steps = {}  # key -> (UnitScores, whitened column at the best onsets)
 
     # ------------------------------------------------------------- helpers
@@ -122,14 +117,38 @@ class Screen:
     def _rows(self, u: int) -> slice:
         return slice(self.data.starts[u], self.data.starts[u + 1])
 
-    def _columns(self, members: Sequence[Candidate], tangents=None) -> np.ndarray:
-        """Prewhitened signatures ``[N, S, q]`` of the members' coefficients (or of
-        ``tangents``) at the null point."""
-        if tangents is None:
-            spec = ModelSpec((), tuple(members))
-            tangents = layout(self.model, self.data, spec).tangents
+    def _smooth_columns(self, smooth: Sequence[Candidate]) -> dict:
+        """Whitened columns ``[N, S, k]`` of each candidate on every unit: views
+        into one array of them all (the layout the per-unit products are summed
+        in, to the last bit)."""
+        widths = [term_profile(self.data, c).shape[1] for c in smooth]
+        if self.model.is_stateful:  # one simulation along every tangent
+            cols = self._columns(smooth)
+        else:
+            # every derivative at once (one evaluation), the columns formed
+            # candidate by candidate: all at once were three transient copies of
+            # the fleet's rows times 67 columns (0.8 GB on NASA FD002)
+            every = layout(self.model, self.data, ModelSpec((), tuple(smooth)))
+            ev = self.null.evaluation
+            like = signatures(self.model, self.data, ev.inputs, (), like=ev.sig,
+                              cover=every.tangents)  # fmt: skip
+            cols = np.empty(self.data.x.shape + (sum(widths),))
+            start = 0
+            for cand, k in zip(smooth, widths, strict=True):
+                cols[:, :, start : start + k] = self._columns([cand], like=like)
+                start += k
+        ends = np.cumsum(widths)
+        return {c.name: cols[:, :, e - k : e]
+                for c, k, e in zip(smooth, widths, ends, strict=True)}  # fmt: skip
+
+    def _columns(self, members: Sequence[Candidate], *, like=None) -> np.ndarray:
+        """Prewhitened signatures ``[N, S, q]`` of the members' coefficients at the
+        null point (``like``: its evaluation with their derivatives)."""
+        spec = ModelSpec((), tuple(members))
+        tangents = layout(self.model, self.data, spec).tangents
         ev = self.null.evaluation
-        sig = signatures(self.model, self.data, ev.inputs, tangents, like=ev.sig)
+        like = ev.sig if like is None else like
+        sig = signatures(self.model, self.data, ev.inputs, tangents, like=like)
         return self.data.whiten(np.where(self.used[:, :, None], sig.cols, 0.0))
 
     def project(self, cols: np.ndarray):

@@ -98,11 +98,11 @@ def zero_inputs(model: Model, num_rows: int, num_units: int) -> RowInputs:
 # ---------------------------------------------------------------- static models
 
 
-def _static(model, data, inputs: RowInputs, tangents, lin=None) -> Signatures:
+def _static(model, data, inputs: RowInputs, tangents, lin=None, cover=()) -> Signatures:
     used = tuple(int(i) for i in data.sensor_idx)
     offset_names = offset_conditions(model)
     directions = set()
-    for tan in tangents:
+    for tan in list(tangents) + list(cover):
         if tan.channel == "condition":
             name = model.condition_names[tan.index]
             if name not in offset_names:
@@ -117,13 +117,13 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None) -> Signatures:
     cols = np.zeros(x.shape + (len(tangents),))
     for t, tan in enumerate(tangents):
         prof = np.asarray(tan.profile, np.float64)[:, None]
-        if tan.channel == "parameter":
-            cols[:, :, t] = prof * lin.jac_theta[:, :, tan.index] * gain
-        elif tan.channel == "effect":
-            cols[:, :, t] = prof * lin.jac_effects[:, :, tan.index] * gain
+        if tan.channel in ("parameter", "effect"):
+            jac = lin.derivative(tan.channel, int(tan.index), tan.index)
+            cols[:, :, t] = prof * jac * gain
         elif tan.channel == "condition":
             k = offset_names.index(model.condition_names[tan.index])
-            cols[:, :, t] = prof * lin.jac_w[:, :, k] * gain
+            jac = lin.derivative(tan.channel, int(tan.index), k)
+            cols[:, :, t] = prof * jac * gain
         else:
             _layer_column(cols, t, tan, data, x)
     return Signatures(y, x, lin.ok, cols, lin)
@@ -248,6 +248,7 @@ def signatures(
     tangents: Sequence[Tangent] = (),
     *,
     like: Signatures | None = None,
+    cover: Sequence[Tangent] = (),
 ) -> Signatures:
     """The extended model at ``inputs`` and its signatures along ``tangents``.
 
@@ -258,6 +259,8 @@ def signatures(
         tangents: the directions whose signatures are wanted.
         like: an earlier result at the same ``inputs``: a static model's Jacobians
             are reused (no model evaluation), a model with memory is simulated again.
+        cover: more directions whose derivatives a static model's result holds (in
+            ``lin``), for later calls ``like`` it; their columns are not formed.
 
     Returns:
         :class:`Signatures` (``cols [N, S, len(tangents)]``).
@@ -271,4 +274,4 @@ def signatures(
     if any(t.channel == "state" for t in tangents):
         raise ValueError("a static model has no states")
     lin = None if like is None else like.lin
-    return _static(model, data, inputs, list(tangents), lin)
+    return _static(model, data, inputs, list(tangents), lin, cover)
