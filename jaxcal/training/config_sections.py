@@ -319,7 +319,10 @@ class TuneConfig:
 
     steps: int = 0  # Adam steps (0: off)
     lr: float = 3e-4  # Adam's step size
-    batch_units: int = 16  # simulated training units per step (whole units)
+    batch_units: int = 16  # simulated training units per step
+    # rows of a unit per step: longer units are cut to a window at a random row
+    # (the filter starts afresh there), so a step's cost does not grow with them
+    window: int = 2048
     eval_every: int = 25  # steps between scorings on the selection units
     patience: int = 3  # scorings in a row without a better policy: stop
     clip: float = 1.0  # global gradient-norm clip (a long recursion's gradient)
@@ -342,10 +345,10 @@ class TuneConfig:
             raise ValueError(
                 f"tune.effects must be in [0, 1] and tune.clean_limit > 0, got {self}"
             )
-        if self.steps < 0 or self.batch_units < 1 or self.eval_every < 1:
+        if self.steps < 0 or min(self.batch_units, self.eval_every, self.window) < 1:
             raise ValueError(
-                "tune.steps must be >= 0, tune.batch_units and tune.eval_every "
-                f">= 1, got {self}"
+                "tune.steps must be >= 0, tune.batch_units, tune.eval_every and "
+                f"tune.window >= 1, got {self}"
             )
         if not (self.lr > 0 and self.clip > 0 and self.patience >= 1) or not (
             self.clean_tolerance >= 0

@@ -11,6 +11,10 @@ along whole simulated units, started from the kept policy. The deployed recursio
 the very function differentiated, so what is tuned is what deploys; the actor still
 reads only data (the labels enter the loss, never the observation).
 
+Units longer than ``tune.window`` rows are cut to windows of that many rows at
+random starts (the filter starting afresh there), so that a step's cost does not
+grow with the units' length; the scoring runs whole units.
+
 The units are the run's simulated training units (a share with an undeclared effect
 under ``simulate.effects``); the tuned policy is kept only where it lowers the theta
 error on the simulated *selection* units (never trained on), scored as
@@ -105,15 +109,33 @@ def tune_policy(
         optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr)),
         max_consecutive_errors=cfg.steps + 1,
     )
-    num_units = w.shape[0]
+    num_units, num_rows = w.shape[0], w.shape[1]
     batch = min(cfg.batch_units, num_units)
+    window = min(cfg.window, num_rows)
+    lengths = jnp.asarray(train_units.lengths)
+
+    def draw(key):
+        """A batch of units, or of windows of ``window`` rows in them: the
+        gradient through a recursion of 17,000 rows (a battery cell) cost minutes
+        a step, and its size grows with the length."""
+        if window == num_rows:  # whole units, as short units always are
+            idx = jax.random.choice(key, num_units, (batch,), replace=False)
+            return w[idx], x[idx], theta[idx], mask[idx]
+        key_units, key_start = jax.random.split(key)
+        idx = jax.random.choice(key_units, num_units, (batch,), replace=False)
+        span = jnp.maximum(lengths[idx] - window, 0) + 1
+        start = jax.random.randint(key_start, (batch,), 0, span)
+
+        def cut(a):  # [batch, T, ...] -> [batch, window, ...] from each start
+            return jax.vmap(
+                lambda u, s: jax.lax.dynamic_slice_in_dim(u, s, window, axis=0)
+            )(a[idx], start)
+
+        return cut(w), cut(x), cut(theta), cut(mask)
 
     @jax.jit
     def update(actor, opt_state, params, key):
-        idx = jax.random.choice(key, num_units, (batch,), replace=False)
-        value, grad = jax.value_and_grad(loss)(
-            actor, params, w[idx], x[idx], theta[idx], mask[idx]
-        )
+        value, grad = jax.value_and_grad(loss)(actor, params, *draw(key))
         updates, opt_state = opt.update(grad, opt_state, actor)
         return optax.apply_updates(actor, updates), opt_state, value
 

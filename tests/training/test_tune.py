@@ -56,6 +56,24 @@ def test_tuning_lowers_the_theta_error_and_keeps_the_best_scored_policy():
     assert any("tuned by gradient through the filter" in s for s in said)
 
 
+def test_long_units_are_tuned_on_windows_of_them():
+    """``tune.window``: a step sees ``window`` rows of each unit drawn (its cost
+    no longer grows with the units' length) and still learns the gain."""
+    cfg = TuneConfig(steps=200, lr=0.05, batch_units=3, eval_every=20, window=5)
+    seen = []
+
+    def run(params, w, x, mask):
+        seen.append(x.shape[1])  # at trace time: the rows a step differentiates
+        return _run(params, w, x, mask)
+
+    out = tune_policy(
+        _start(), run, _units(), lambda p: (abs(p.actor["gain"] - 0.5),) * 2, cfg,
+        __import__("jax").random.key(0),
+    )  # fmt: skip
+    assert seen == [5]
+    assert out.improved and abs(float(out.params.actor["gain"]) - 0.5) < 0.1
+
+
 def test_a_tuning_the_selection_disagrees_with_returns_the_start_early():
     """Selection prefers the start (gain 2): every tuned policy scores worse, so
     the start comes back after ``patience`` scorings, and the log says so."""
@@ -104,7 +122,9 @@ def test_a_tuned_policy_that_loses_on_clean_units_is_not_kept():
     assert not out.improved and out.record["clean_theta_rmse_after"] == 0.0
 
 
-@pytest.mark.parametrize("bad", ["tune.steps=-1", "tune.lr=0", "tune.patience=0"])
+@pytest.mark.parametrize(
+    "bad", ["tune.steps=-1", "tune.lr=0", "tune.patience=0", "tune.window=0"]
+)
 def test_tune_settings_are_validated(bad):
     with pytest.raises(ValueError, match="tune."):
         resolve_config(["dataset=tiny", bad])
