@@ -42,6 +42,10 @@ from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_TUNED_DIR
 from jaxcal.training.config_sections import TuneConfig
 
+# a scoring this many times the start's (or not finite) ends the tuning: on the
+# battery's cells the first scorings were 10-14x, 21x, and none came back below 1
+DIVERGED = 2.0
+
 
 class TuneResult(NamedTuple):
     """What :func:`tune_policy` did.
@@ -165,6 +169,9 @@ def tune_policy(
             f"x start {np.round(clean / np.maximum(clean_before, 1e-30), 3).tolist()})"
         )
         if waited >= cfg.patience:
+            break
+        if not np.isfinite(score) or 0 < before * DIVERGED <= score:  # (battery)
+            log(f"tune: stopped, the tuned policy scores {score / before:.1f}x start")
             break
     improved = best_score < before
     record = {

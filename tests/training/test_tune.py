@@ -89,6 +89,21 @@ def test_a_tuning_the_selection_disagrees_with_returns_the_start_early():
     assert any("did not lower" in s for s in said)
 
 
+def test_a_diverging_tuning_stops_at_its_first_scoring():
+    """A scoring twice the start's or worse ends the tuning (patience would wait
+    for two more): the start is kept and the log says why."""
+    cfg = TuneConfig(steps=400, lr=0.5, batch_units=3, eval_every=10, patience=3)
+    said = []
+    start = _start(0.55)  # near the best gain; a step size of 0.5 overshoots
+    out = tune_policy(
+        start, _run, _units(), lambda p: (abs(p.actor["gain"] - 0.5) + 0.01,) * 2,
+        cfg,
+        __import__("jax").random.key(0), said.append,
+    )  # fmt: skip
+    assert not out.improved and out.record["steps"] == 10
+    assert any("tune: stopped" in s for s in said)
+
+
 def test_units_without_labels_are_refused():
     units = _units()._replace(theta=None)
     with pytest.raises(ValueError, match="no true theta"):
