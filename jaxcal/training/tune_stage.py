@@ -210,9 +210,6 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
     guards = sims.guard_units()  # clean twins, across the box, with effects
     train_units = sims.tuning_units(cfg.tune.effects or None)
 
-    def run_arrays(params, w, x, mask):
-        return parts.run_units(params, w, x, mask)
-
     def scores(params) -> tuple[float, np.ndarray]:
         score = float(scoring.sim_theta(select_units, params)[0])
         clean = [float(scoring.sim_theta(u, params)[0]) for u in guards]
@@ -225,11 +222,8 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
         limits = np.full(len(guards), 1.0 + cfg.tune.clean_tolerance)
         limits[0] = cfg.tune.clean_limit
 
-    raw = {id(start): at_start[0]}  # each scored policy's own selection rmse
-
     def select_score(params) -> tuple[float, np.ndarray]:
         score, clean = at_start if params is start else scores(params)
-        raw[id(params)] = score
         if cfg.tune.effects:  # the mean of the two ratios, in selection units
             (score0, clean0), eff = at_start, len(guards) - 1
             score = score0 * 0.5 * (score / score0 + clean[eff] / clean0[eff])
@@ -237,7 +231,7 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
 
     key = jax.random.fold_in(jax.random.key(cfg.seed), 41)
     result = tune_policy(
-        start, run_arrays, train_units, select_score, cfg.tune, key, log, limits
+        start, parts.run_units, train_units, select_score, cfg.tune, key, log, limits
     )
     if cfg.tune.effects:  # the record's selection rmse stays the selection's own
         record = result.record
@@ -247,7 +241,10 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
             "mean of the clean selection and effects guard units' theta rmse, each "
             "x the start's, times the start's selection rmse"
         )
-        record["selection_theta_rmse_after"] = raw[id(result.params)]
+        record["selection_theta_rmse_before"] = at_start[0]
+        record["selection_theta_rmse_after"] = (
+            scores(result.params)[0] if result.improved else at_start[0]
+        )
     if result.improved:
         with Checkpointer(tuned_dir, max_to_keep=1) as ckpt:
             ckpt.save(kept.selected_step, result.params, wait=True)
