@@ -123,7 +123,7 @@ def test_training_figures_report_time_to_target_beside_the_paper():
 
     final = {"wall_seconds": 500.0, "target_theta_rmse": 2.5e-4,
              "time_to_target_s": 310.0, "time_to_target_chunk": 60,
-             "test_scorings": 30, "test": {"theta_rmse": 2e-4}}  # fmt: skip
+             "target_scorings": 30, "test": {"theta_rmse": 2e-4}}  # fmt: skip
     figs = training_figures(final, "runs/x/final.json")
     to_target = figs["train_to_target_s"]
     assert to_target["value"] == 310.0 and to_target["peer"]["value"] == 6200.0

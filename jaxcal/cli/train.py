@@ -27,7 +27,7 @@ with progress (steps, updates/s, cost, validation theta RMSE), writes
 ``final.json``, the kept policy's 90 % theta band ``uncertainty.json``) and prints
 the test units' theta RMSE and tracking RMSE, the band's test coverage and, with
 ``budget.target_theta_rmse`` set (``dataset=cmapss``: 2.5e-4), the job's wall time
-to the first scoring whose test theta RMSE reached it. Rerunning
+to the first scoring whose validation theta RMSE reached it. Rerunning
 the same command resumes from the last checkpoint; a run folder made with a different
 config is an error. Every check of the config and the data (path given, file readable,
 theta and sensor names, unit splits, run folder writable) runs before the run folder is
@@ -118,14 +118,13 @@ def format_final(final: dict) -> str:
     if target is not None:
         reached = final.get("time_to_target_s")
         lines.append(
-            f"time to target (test theta RMSE <= {target:.2e}): "
+            f"time to target (validation theta RMSE <= {target:.2e}): "
             + (
                 f"{reached:.0f} s of job wall time (chunk "
                 f"{final['time_to_target_chunk']})"
                 if reached is not None
-                else f"not reached in {final.get('test_scorings', 0)} scorings"
+                else f"not reached in {final.get('target_scorings', 0)} scorings"
             )
-            + f"; test scoring took {final.get('test_scoring_seconds', 0.0):.1f} s"
         )
     if final.get("test_coverage90") is not None:
         band = final["uncertainty"]

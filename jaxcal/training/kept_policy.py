@@ -77,7 +77,8 @@ def train_kept_policy(
         train_params: the training units' :class:`EnvParams`.
         scoring: the run's :class:`~jaxcal.training.policy_scoring.PolicyScoring`.
         has_val: whether the run has validation units.
-        target: the test theta RMSE of time to target (``None``: not reported).
+        target: the validation theta RMSE of time to target (``None``: not
+            reported).
         clock: seconds since the job's start; wall_start: its
             ``time.perf_counter()`` (the time limit counts from it).
         log: where one-line messages go.
@@ -116,7 +117,6 @@ def train_kept_policy(
                 if cfg.budget.select == "sim_theta"
                 else "val_tracking_rmse_norm",
                 on_best=save_best if select else None,
-                reporter=scoring.test_reporter if target is not None else None,
                 target=target,
                 clock=clock,
                 # an actor with a prior works untrained; with num_chunks=0 any

@@ -34,8 +34,8 @@
    first sample); validation units are scored every ``eval_every`` chunks (theta
    RMSE for progress only; the label-free tracking RMSE also selects the kept
    policy when ``budget.select=val_tracking``); with ``budget.target_theta_rmse``
-   set, every scoring also runs the test units, for reporting only (the job's time
-   to target; selection never sees a test score);
+   set, the first scoring whose validation theta RMSE is at or below it gives the
+   job's time to target (reporting only);
 5. the kept policy runs once through every test unit's whole trajectory (the
    deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
@@ -241,7 +241,7 @@ def _train(
         cfg, data, problem, parts, train_params, env_cfg.max_increment, dtype,
         select_units,
     )  # fmt: skip
-    target = _test_target(cfg, data, log)
+    target = _val_target(cfg, data, log)
     kept = train_kept_policy(
         cfg, key_runner, run_dir, parts, train_params, scoring,
         has_val=data.val is not None, target=target, clock=clock,
@@ -302,14 +302,14 @@ def _data_record(
     }  # fmt: skip
 
 
-def _test_target(
+def _val_target(
     cfg: TrainConfig, data: CalibrationData, log: Callable[[str], None]
 ) -> float | None:
-    """``budget.target_theta_rmse``, or ``None`` when the test units have no true
+    """``budget.target_theta_rmse``, or ``None`` when no validation unit has a true
     theta to measure the time to target by (said in the log)."""
     target = cfg.budget.target_theta_rmse
-    if target is not None and data.test.theta is None:
-        log("budget.target_theta_rmse: the test units have no true theta, so the "
-            "time to target is not measured")  # fmt: skip
+    if target is not None and (data.val is None or data.val.theta is None):
+        log("budget.target_theta_rmse: the validation units have no true theta, so "
+            "the time to target is not measured")  # fmt: skip
         target = None
     return target

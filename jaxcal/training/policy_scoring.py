@@ -45,7 +45,6 @@ class PolicyScoring(NamedTuple):
         val_scorer: ``agent_state -> dict``: the validation units' theta and
             tracking RMSE, and with ``budget.select=sim_theta`` the theta RMSE on
             simulated units (``sim_theta_rmse``); ``None`` with neither.
-        test_reporter: ``agent_state -> {"theta_rmse": ...}`` over the test units.
         sim_theta: ``(units, params) -> (pooled, per parameter)`` theta RMSE in box
             widths on labelled units (the selection's score on simulated ones).
     """
@@ -54,7 +53,6 @@ class PolicyScoring(NamedTuple):
     run: Callable[[Padded, PolicyParams], Any]
     score: Callable[..., dict]
     val_scorer: Callable[[Any], dict] | None
-    test_reporter: Callable[[Any], dict]
     sim_theta: Callable[..., tuple]
 
 
@@ -124,15 +122,7 @@ def make_policy_scoring(
                 scores[f"sim_theta_rmse_{name}"] = float(value)
         return scores
 
-    def test_reporter(agent_state) -> dict:
-        # Reporting only (time to target): train_policy logs it as test_*, and
-        # selection reads val_* alone, so test labels never choose the policy.
-        out = run(data.test, deployable(agent_state))
-        pooled, _ = theta_rmse(out.theta, data.test.theta, scored_mask(data.test, out))
-        return {"theta_rmse": pooled}
-
     scored = data.val is not None or select_units is not None
     return PolicyScoring(
-        deployable, run, score, val_scorer if scored else None, test_reporter,
-        sim_theta,
+        deployable, run, score, val_scorer if scored else None, sim_theta,
     )  # fmt: skip

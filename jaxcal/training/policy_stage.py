@@ -5,8 +5,8 @@ The environment steps and agent updates run inside
 iterations, environments vmapped, replay buffer on device); this module is the host loop
 around it (STYLE §2.4): per chunk it writes one JSONL record (cost, agent diagnostics,
 counters, wall time, updates/s, env steps/s and, every ``eval_every`` chunks, the
-validation scores, plus the test units' theta RMSE and the job's wall time when a
-reporter is given), updates a tqdm bar, and saves an Orbax checkpoint every
+validation scores and the job's wall time, and the first crossing of the time to
+target), updates a tqdm bar, and saves an Orbax checkpoint every
 ``ckpt_every`` chunks and after the last one.
 
 Checkpoints hold the whole :class:`~jaxcal.training.runner.RunnerState` (agent, env
@@ -46,8 +46,9 @@ BEST_KEY = "val_tracking_rmse_norm"
 Scorer = Callable[[Any], dict]
 """``scorer(agent_state) -> {"theta_rmse": ..., "tracking_rmse_norm": ...}``."""
 
-# The reporting-only test score of time to target (never read by selection).
-TEST_KEY = "test_theta_rmse"
+# The time to target's score: the validation units' theta RMSE, scored with every
+# validation pass anyway (a separate test pass cost make train 45 s, issue 41).
+TARGET_KEY = "val_theta_rmse"
 
 
 class PolicyResult(NamedTuple):
@@ -121,16 +122,13 @@ class ChunkScoring(NamedTuple):
             tracking RMSE; ``val_sim_theta_rmse``: theta RMSE on simulated units).
         on_best: called as ``on_best(chunk, runner)`` when a scored chunk has the
             lowest ``best_key`` so far (earlier sessions included).
-        reporter: test scores of an agent state, called at the same chunks as
-            ``scorer`` until the target is reached, and logged as ``test_*`` with
-            ``test_score_seconds``. For reporting only (time to target):
-            selection reads ``val_*`` keys alone.
-        target: the test theta RMSE whose first crossing (``test_theta_rmse <=
-            target``, earlier sessions included) is logged once, and marked in
-            its record as ``time_to_target_s`` / ``time_to_target_chunk``.
+        target: the validation theta RMSE whose first crossing (``val_theta_rmse
+            <= target``, earlier sessions included) is logged once, and marked in
+            its record as ``time_to_target_s`` / ``time_to_target_chunk``;
+            reporting only (selection reads ``best_key``).
         clock: seconds since the job's start (earlier sessions included); stamped
             as ``job_seconds`` on every scored record, after the validation
-            scores and before the test scores (reporting is not part of the job).
+            scores.
         score_start: also score the untrained policy (chunk 0) and keep it if no
             chunk beats it: an actor with a prior
             (:attr:`~jaxcal.agents.configs._ActorCriticConfig.actor_prior`) is a
@@ -144,7 +142,6 @@ class ChunkScoring(NamedTuple):
     scorer: Scorer | None = None
     best_key: str = BEST_KEY
     on_best: Callable[[int, RunnerState], None] | None = None
-    reporter: Scorer | None = None
     target: float | None = None
     clock: Callable[[], float] | None = None
     score_start: bool = False
@@ -343,31 +340,22 @@ def _timed_chunk(train_chunk, runner, train_params, runner_cfg, first: bool):
 
 
 def _score(record: dict, runner, chunk: int, scoring: ChunkScoring, reached, log):
-    """Adds a scored chunk's validation scores, job time and test scores to its
-    ``record``; returns whether the target is reached (its first crossing logged
-    and marked)."""
+    """Adds a scored chunk's validation scores and job time to its ``record``;
+    returns whether the target is reached (its first crossing logged and
+    marked)."""
     if scoring.scorer is not None:
         scores = scoring.scorer(runner.agent_state)
         record.update({f"val_{k}": v for k, v in scores.items()})
     if scoring.clock is not None:
         record["job_seconds"] = scoring.clock()
-    if scoring.reporter is None or reached:
-        # once the target is crossed its time is known: later test passes would
-        # only cost time (the turbofan's test set: ~45 s a pass)
-        return reached
-    tic_test = time.perf_counter()
-    scores = scoring.reporter(runner.agent_state)
-    record.update({f"test_{k}": v for k, v in scores.items()})
-    record["test_score_seconds"] = time.perf_counter() - tic_test
     if not reached and _reaches(record, scoring.target):
         reached = True
         record["time_to_target_s"] = record.get("job_seconds")
         record["time_to_target_chunk"] = chunk
         log(
-            f"test theta RMSE {record[TEST_KEY]:.3e} <= target "
+            f"validation theta RMSE {record[TARGET_KEY]:.3e} <= target "
             f"{scoring.target:.3e} at chunk {chunk}, "
-            f"{record.get('job_seconds') or 0:.0f} s into the job (the test units "
-            "are not scored again until the end)"
+            f"{record.get('job_seconds') or 0:.0f} s into the job"
         )
     return reached
 
@@ -383,8 +371,8 @@ def _select(record: dict, best: float, chunk: int, runner, scoring: ChunkScoring
 
 
 def _reaches(record: dict, target: float | None) -> bool:
-    """Whether ``record``'s test theta RMSE is at or below ``target``."""
-    value = record.get(TEST_KEY)
+    """Whether ``record``'s validation theta RMSE is at or below ``target``."""
+    value = record.get(TARGET_KEY)
     return target is not None and value is not None and value <= target
 
 

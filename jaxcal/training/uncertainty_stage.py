@@ -36,7 +36,7 @@ from jaxcal.calibrators.uncertainty import (
     save_band,
 )
 from jaxcal.data.padded import Padded
-from jaxcal.training.policy_stage import TEST_KEY
+from jaxcal.training.policy_stage import TARGET_KEY
 
 BAND_LEVEL = 0.9  # the interval the band is fitted for and its coverage checked at
 
@@ -159,27 +159,25 @@ def time_to_target(records: list[dict], target: float | None) -> dict:
     """The ``final.json`` time-to-target fields of a run's metrics records.
 
     Args:
-        records: the run's metrics records (``step``, ``test_theta_rmse`` and
+        records: the run's metrics records (``step``, ``val_theta_rmse`` and
             ``job_seconds`` on scored chunks).
         target: ``budget.target_theta_rmse`` (``None``: off).
 
     Returns:
         ``{"target_theta_rmse", "time_to_target_s", "time_to_target_chunk",
-        "test_scorings", "test_scoring_seconds"}``; the two ``time_to_target``
-        fields are ``None`` when no scoring reached the target.
+        "target_scorings"}``: the first scoring whose validation theta RMSE is at
+        or below ``target`` (both ``None`` when none is) and how many scorings
+        were read.
     """
     scored = sorted(
-        (r for r in records if r.get(TEST_KEY) is not None), key=lambda r: r["step"]
+        (r for r in records if r.get(TARGET_KEY) is not None), key=lambda r: r["step"]
     )
     hit = next(
-        (r for r in scored if target is not None and r[TEST_KEY] <= target), None
+        (r for r in scored if target is not None and r[TARGET_KEY] <= target), None
     )
     return {
         "target_theta_rmse": target,
         "time_to_target_s": None if hit is None else hit.get("job_seconds"),
         "time_to_target_chunk": None if hit is None else int(hit["step"]),
-        "test_scorings": len(scored),
-        "test_scoring_seconds": float(
-            sum(r.get("test_score_seconds", 0.0) for r in scored)
-        ),
+        "target_scorings": len(scored) if target is not None else 0,
     }

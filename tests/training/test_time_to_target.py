@@ -1,7 +1,8 @@
 """The training job's time to target and its uncertainty band, on the smoke preset.
 
-A loose target is reached at the first scoring, an impossible one never; the test
-scores are reporting only, so both runs keep the same policy. The kept policy's
+A loose target is reached at the first scoring, an impossible one never; the time to
+target reads the validation units' theta RMSE, reporting only, so both runs keep the
+same policy and no test pass runs during training. The kept policy's
 band is written to ``uncertainty.json`` and its test coverage to ``final.json``;
 a run without validation units has no band. The smoke compilations are shared with
 the other pipeline tests through ``make_components``' cache.
@@ -60,11 +61,12 @@ def test_a_reachable_target_is_timed_at_its_first_scoring(runs):
     assert final["target_theta_rmse"] == 1.0
     assert final["time_to_target_chunk"] == 1
     assert 0 < final["time_to_target_s"] <= final["session_wall_seconds"]
-    # once reached, the test units are not scored again until the end
-    assert final["test_scorings"] == 1 and final["test_scoring_seconds"] > 0
+    assert final["target_scorings"] == 3
     records = read_metrics(runs_dir / "loose" / "metrics.jsonl")
     assert all("job_seconds" in r for r in records)
-    assert ["test_theta_rmse" in r for r in records] == [True, False, False]
+    # the validation units' theta RMSE times it: no test pass during training
+    assert not any(k.startswith("test_") for r in records for k in r)
+    assert records[0]["val_theta_rmse"] <= 1.0
     assert records[0]["time_to_target_s"] == final["time_to_target_s"]
     assert records[0]["time_to_target_chunk"] == 1
     assert not any("time_to_target_s" in r for r in records[1:])  # first only
@@ -76,7 +78,7 @@ def test_an_unreachable_target_is_null_and_selection_ignores_test_scores(runs):
     _, (loose, _), (never, notes) = runs
     assert never["time_to_target_s"] is None
     assert never["time_to_target_chunk"] is None
-    assert never["test_scorings"] == 3
+    assert never["target_scorings"] == 3
     assert not any("<= target" in n for n in notes)
     assert "not reached in 3 scorings" in format_final(never)
     # the test scores are reporting only: the same policy is kept, scored the same
@@ -113,6 +115,10 @@ def test_no_validation_units_means_no_band_and_a_note(tmp_path):
     # with validation units the band is written and checked on the test units
     fields = fit_policy_band(test, out, test, out, tmp_path, ("a",), log=notes.append)
     assert fields["test_coverage90"] == 1.0 and load_band(tmp_path) is not None
-    # no target: no test scoring, no time
+    # no target: no time; a target: the first validation scoring at or below it
     timing = time_to_target([{"step": 1, "val_theta_rmse": 0.1}], None)
-    assert timing["time_to_target_s"] is None and timing["test_scorings"] == 0
+    assert timing["time_to_target_s"] is None and timing["target_scorings"] == 0
+    records = [{"step": s, "val_theta_rmse": v, "job_seconds": 10.0 * s}
+               for s, v in ((2, 0.3), (1, 0.5), (3, 0.05))]  # fmt: skip
+    timing = time_to_target(records, 0.3)
+    assert timing["time_to_target_chunk"] == 2 and timing["time_to_target_s"] == 20.0
