@@ -17,6 +17,9 @@ parameter set. The methods that calibrate a chosen set of parameters take part (
 UKF, least squares, E2E trained on the call); a trained policy fixes its parameters
 in its run, and E2E given trained weights in them: they estimate every parameter in
 every unit, as their training did.
+
+The fleet command line (:mod:`jaxcal.fleet.per_unit`) splits its units with the same
+:func:`unit_groups` and fills the held columns with :func:`widen`.
 """
 
 from __future__ import annotations
@@ -69,6 +72,41 @@ def unit_groups(
     return [(tuple(ids), own) for own, ids in groups.items()]
 
 
+def nominal_values(model: Model, names: Sequence[str]) -> np.ndarray:
+    """``[len(names)]`` the nominal values of the parameters ``names`` of ``model``."""
+    by_name = {p.name: p.nominal for p in model.parameters}
+    return np.asarray([by_name[k] for k in names], np.float64)
+
+
+def widen(values, own: Sequence[str], names: Sequence[str], fill, axes: int = 1):
+    """``values`` whose last ``axes`` axes run over the parameters ``own``, as
+    arrays over ``names`` (a superset): the columns of ``own`` placed, the others
+    ``fill`` (a held parameter: its nominal value, or a std of 0; one number, or
+    ``[len(names)]`` per column). ``axes=2``: a covariance, rows and columns."""
+    values = np.asarray(values)
+    cols = np.asarray([list(names).index(k) for k in own], int)
+    lead = values.shape[: values.ndim - axes]
+    out = np.empty((*lead, *(len(names),) * axes), values.dtype)
+    out[...] = np.asarray(fill, values.dtype)
+    if axes == 1:
+        out[..., cols] = values
+    elif axes == 2:
+        out[..., cols[:, None], cols[None, :]] = values
+    else:
+        raise ValueError(f"widen: axes must be 1 or 2, got {axes}")
+    return out
+
+
+def held_note(groups, names: Sequence[str]) -> str:
+    """The note naming, for each group of :func:`unit_groups`, the parameters of
+    ``names`` held at nominal in its units."""
+    shown = "; ".join(
+        f"{', '.join(n for n in names if n not in own)} held at nominal in unit(s) "
+        f"{list(ids)}" for ids, own in groups if len(own) < len(names)
+    )  # fmt: skip
+    return f"per-unit parameters (the model's carriers): {shown}"
+
+
 def calibrate_split(
     calibrate: Callable,
     model: Model,
@@ -104,11 +142,7 @@ def calibrate_split(
         )  # fmt: skip
         parts.append((rows, own, res))
     merged = merge(parts, names, model, data, outputs)
-    shown = "; ".join(
-        f"{', '.join(n for n in names if n not in own)} held at nominal in unit(s) "
-        f"{list(ids)}" for ids, own in groups if len(own) < len(names)
-    )  # fmt: skip
-    note = f"per-unit parameters (the model's carriers): {shown}"
+    note = held_note(groups, names)
     if merged.problem.noise_source != "given":
         noise_each = "; ".join(
             f"units {list(ids)}: "
@@ -128,9 +162,7 @@ def merge(
     calibrate reads its nominal value with std 0 in that group's rows."""
     n, p = data.num_rows, len(names)
     first = parts[0][2]
-    nominal = np.asarray(
-        [model.parameters[model.parameter_names.index(k)].nominal for k in names]
-    )
+    nominal = nominal_values(model, names)
     theta = np.tile(nominal.astype(first.theta.dtype), (n, 1))
     has_std = all(res.theta_std is not None for _, _, res in parts)
     std = np.zeros((n, p), first.theta.dtype) if has_std else None
@@ -141,10 +173,9 @@ def merge(
                 f"a unit group's result has {res.theta.shape[0]} rows for "
                 f"{int(rows.sum())}"
             )
-        cols = [names.index(k) for k in own]
-        theta[np.ix_(rows, cols)] = res.theta
+        theta[rows] = widen(res.theta, own, names, nominal)
         if std is not None:
-            std[np.ix_(rows, cols)] = res.theta_std
+            std[rows] = widen(res.theta_std, own, names, 0.0)
         for field in ("states", "xhat", "valid", "reason", "unit", "time",
                       "partial", "misfit", "at_bound"):  # fmt: skip
             value = getattr(res, field)

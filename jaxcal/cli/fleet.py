@@ -39,6 +39,12 @@ Process 0 writes ``out`` (atomically; columns named by the problem's parameters 
 outputs) and prints a JSON summary; a bad argument prints the error and exits with
 code 2. See ``docs/fleet.md``.
 
+An extended model whose added parameter lists its carriers (``"units"`` in
+``extended_model.json``) is calibrated as ``jaxcal.calibrate`` does it: the UKF, least
+squares and E2E track the parameter in the carriers only and hold it at its nominal
+value (0) with std 0 in every other unit (:mod:`jaxcal.fleet.per_unit`); the summary
+and the file's attributes say which units held what (``unit_runs``, ``notes``).
+
 Samples with NaN / Inf, or outside the method's valid inputs (the model's condition
 range for ``ukf`` / ``ls``, the run's training range for ``policy``, the data's for
 ``e2e``), are skipped and flagged: the file's ``valid`` / ``reason`` columns,
@@ -48,6 +54,7 @@ range for ``ukf`` / ``ls``, the run's training range for ``policy``, the data's 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import sys
 from typing import Any, Literal
@@ -230,47 +237,53 @@ def theta_rmse(path: str, block_rows: int = 1 << 20) -> list[float] | None:
 
 
 def run(cfg: FleetConfig) -> dict:
-    """Calibrate the selected units of ``cfg.data``; process 0 writes ``cfg.out``."""
+    """Calibrate the selected units of ``cfg.data``; process 0 writes ``cfg.out``.
+
+    A parameter that acts in some units only (an extended model's carriers) is
+    calibrated in those units and held at its nominal value with std 0 in the
+    others, as by ``jaxcal.calibrate`` (:mod:`jaxcal.fleet.per_unit`)."""
     import jax
 
+    from jaxcal.calibrators.carriers import nominal_values
     from jaxcal.fleet.method import build_problem, make_method, require_noise
+    from jaxcal.fleet.per_unit import plan_runs, stream_runs
     from jaxcal.fleet.results import FleetResultWriter
     from jaxcal.fleet.sharded import make_unit_mesh
     from jaxcal.fleet.sources import open_source
-    from jaxcal.fleet.streaming import calibrate_stream, units_per_chunk
+    from jaxcal.fleet.streaming import units_per_chunk
     from jaxcal.models import load
 
     model = load(cfg.model or cfg.engine, trust_code=cfg.trust_code)
     noise = parse_noise(cfg.noise)
     require_noise(model, cfg.method, noise)
     theta, outputs, loaded = _names(cfg, model)
-    carriers = model.diagnosis.carriers or {}
-    if set(theta) & set(carriers):  # one calibrator for every unit: say so
-        held = {k: list(v) for k, v in carriers.items() if k in theta}
-        print(
-            f"note: {held} act in those units only (an extended model's carriers); "
-            "this command tracks them in every unit: run it on the carriers "
-            "(units=) and on the others with theta= without them, or use "
-            "jaxcal.calibrate, which holds them at 0 in the others",
-            file=sys.stderr,
-        )
     if cfg.theta0 and len(cfg.theta0) != len(theta):
         raise ValueError(f"theta0 needs one value per theta name {list(theta)}")
     source = open_source(
         cfg.data, model, outputs=outputs, split=cfg.split, units=cfg.units,
         stride=cfg.stride, max_len=cfg.max_len,
     )  # fmt: skip
-    problem = build_problem(
-        model, source, theta=theta, method=cfg.method, noise=noise, theta0=cfg.theta0
-    )
-    fleet = make_method(problem, method_config(cfg, loaded), source, cfg.seed)
+    runs, note = plan_runs(model, theta, source.unit_ids, cfg.method, dict(cfg.options))
+    start = dict(zip(theta, cfg.theta0, strict=False))  # theta0 per name ({}: nominal)
+
+    def problem_of(names):
+        return build_problem(
+            model, source, theta=names, method=cfg.method, noise=noise,
+            theta0=[start[k] for k in names] if start else (),
+        )  # fmt: skip
+
+    problem = problem_of(theta)  # the file's: every parameter of theta
+    fleets = {}  # the parameters a group calibrates -> its method (module doc)
+    for names in dict.fromkeys(r.theta for r in runs):
+        own = problem if names == problem.theta_names else problem_of(names)
+        fleets[names] = make_method(own, method_config(cfg, loaded), source, cfg.seed)
     mesh = make_unit_mesh()
     num_processes, process_index = jax.process_count(), jax.process_index()
     chunk_units = cfg.chunk_units or mesh.size
     size = units_per_chunk(chunk_units, num_processes, mesh)
-    chunks = source.chunks(
-        problem.theta_names, chunk_units, process_index, num_processes
-    )
+    groups = [
+        {"units": r.unit_ids.tolist(), "theta": list(r.theta)} for r in runs
+    ] if note else None  # fmt: skip
     attrs = {
         "config": config_to_dict(cfg),
         "method": cfg.method,
@@ -281,19 +294,22 @@ def run(cfg: FleetConfig) -> dict:
         "noise_source": problem.noise_source,
         "num_processes": num_processes,
         "num_devices": mesh.size,
+        **({"unit_runs": groups, "notes": [note]} if note else {}),
     }
-    stream = dict(size=size, unroll=cfg.unroll, check=fleet.check)
+    stream = functools.partial(
+        stream_runs, runs, fleets, source, mesh, theta_names=problem.theta_names,
+        nominal=nominal_values(model, problem.theta_names), chunk_units=chunk_units,
+        size=size, unroll=cfg.unroll,
+    )  # fmt: skip
     if process_index == 0:
         with FleetResultWriter(
             cfg.out, theta_names=problem.theta_names,
             sensor_names=problem.output_names, attrs=attrs,
         ) as writer:  # fmt: skip
-            stats = calibrate_stream(
-                fleet.calibrator, chunks, mesh, writer=writer, **stream
-            )
+            stats = stream(writer=writer)
         rmse = theta_rmse(cfg.out)
     else:
-        stats = calibrate_stream(fleet.calibrator, chunks, mesh, **stream)
+        stats = stream(writer=None)
         rmse = None
     return {
         **stats,
@@ -307,6 +323,7 @@ def run(cfg: FleetConfig) -> dict:
         "num_devices": mesh.size,
         "num_processes": num_processes,
         "theta_rmse": rmse,
+        **({"unit_runs": groups, "notes": [note]} if note else {}),
     }
 
 

@@ -13,7 +13,8 @@
   ``docs/fleet.md``): any model
   (``model=``) on an N-CMAPSS file or a table (``data=``,
   :mod:`~jaxcal.fleet.sources`), the method built from the front door's method table
-  (:mod:`~jaxcal.fleet.method`).
+  (:mod:`~jaxcal.fleet.method`); a parameter some units carry (an extended model's
+  carriers) held at nominal in the others (:mod:`~jaxcal.fleet.per_unit`).
 
 Any :class:`~jaxcal.calibrators.interface.Calibrator` works: UKF, least squares, a
 deployed policy. Importing this package does not initialise JAX's backends, so

@@ -49,9 +49,10 @@ class FleetSource(NamedTuple):
         max_len: ``T``, the padded length.
         description: ``path[split]`` for the output file.
         norm_source: where the outputs' statistics come from.
-        chunks: ``chunks(theta_names, chunk_units, process_index, num_processes)``
-            -> this process's :class:`UnitChunk` s (with ``theta_true`` when the data
-            hold the true values of ``theta_names``).
+        chunks: ``chunks(theta_names, chunk_units, process_index, num_processes,
+            units=None)`` -> this process's :class:`UnitChunk` s of the units
+            ``units`` (ids among ``unit_ids``, ascending; ``None``: every one), with
+            ``theta_true`` when the data hold the true values of ``theta_names``.
         complete: ``sample`` is all the data (a table).
     """
 
@@ -131,6 +132,21 @@ def open_source(
     return _table(path, model, outputs, split, units, stride, max_len)
 
 
+def _positions(unit_ids: np.ndarray, units) -> np.ndarray:
+    """The positions in ``unit_ids`` of the ids ``units`` (``None``: every one).
+
+    Raises:
+        ValueError: naming ids that are not among ``unit_ids``.
+    """
+    if units is None:
+        return np.arange(unit_ids.size)
+    units = np.asarray(units, np.int64)
+    missing = sorted(set(units.tolist()) - set(unit_ids.tolist()))
+    if missing:
+        raise ValueError(f"chunks: unit(s) {missing} are not among the selected units")
+    return np.flatnonzero(np.isin(unit_ids, units))
+
+
 def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource:
     from jaxcal.data.readers import read_ncmapss_split
     from jaxcal.fleet.ncmapss_source import (
@@ -158,10 +174,11 @@ def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource
     )  # fmt: skip
     sample = clean_rows(first.for_model(model, outputs))
 
-    def chunks(theta_names, chunk_units, process_index=0, num_processes=1):
+    def chunks(theta_names, chunk_units, process_index=0, num_processes=1, units=None):
         truth = sample.theta is not None and set(theta_names) <= set(sample.theta_names)
+        ids = unit_ids[_positions(unit_ids, units)]
         return iter_ncmapss_chunks(
-            path, split, unit_ids, max_len=length, chunk_units=chunk_units,
+            path, split, ids, max_len=length, chunk_units=chunk_units,
             sensors=outputs, theta_names=tuple(theta_names) if truth else None,
             stride=stride, process_index=process_index, num_processes=num_processes,
         )  # fmt: skip
@@ -204,13 +221,15 @@ def _table(path, model, outputs, split, units, stride, max_len) -> FleetSource:
         "time": data.time[fill],
     }
 
-    def chunks(theta_names, chunk_units, process_index=0, num_processes=1):
-        extras = dict(per_step)
+    def chunks(theta_names, chunk_units, process_index=0, num_processes=1, units=None):
+        pos = _positions(unit_ids, units)
+        rows = fill[pos]
+        extras = {k: v[pos] for k, v in per_step.items()}
         if data.theta is not None and set(theta_names) <= set(data.theta_names):
             cols = [data.theta_names.index(n) for n in theta_names]
-            extras["theta_true"] = data.theta[fill][..., cols]
+            extras["theta_true"] = data.theta[rows][..., cols]
         return iter_array_chunks(
-            data.w[fill], data.x[fill], mask, chunk_units, unit_ids=unit_ids,
+            data.w[rows], data.x[rows], mask[pos], chunk_units, unit_ids=unit_ids[pos],
             extras=extras, process_index=process_index, num_processes=num_processes,
         )  # fmt: skip
 
