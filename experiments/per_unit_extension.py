@@ -16,6 +16,12 @@ Per unit: each declared parameter's error at the unit's last sample and its RMSE
 from the step on, and the tracked offset at the last sample with its reported std
 against the truth (1.5 K in a carrier, 0 elsewhere).
 
+The fleet command line (``python -m jaxcal.fleet``, the UKF, the true noise given: it
+estimates none) runs the same three on the same fleet, the exported model's offset
+held in the clean units as ``jaxcal.calibrate`` holds it (:mod:`jaxcal.fleet.per_unit`),
+and the exported model once more on two ``jax.distributed`` processes (the file
+compared with one process's).
+
 Usage::
 
     python experiments/per_unit_extension.py [seed=0] [out=results/loop]
@@ -27,10 +33,12 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
 import time
+import types
 import warnings
 
 import numpy as np
@@ -99,6 +107,42 @@ def _per_unit(res, fleet) -> dict:
             }
         out[int(u)] = entry
     return out
+
+
+def _fleet_cli(args: list[str], out: str, processes: int = 1) -> tuple[object, float]:
+    """Run ``python -m jaxcal.fleet args out=out`` (on ``processes`` processes of
+    one CPU device each); ``(its results as a calibration result, wall seconds)``:
+    the file's rows in the data's row order (its ``row`` column)."""
+    from jaxcal.fleet.results import read_results
+
+    cmd = [sys.executable, "-m", "jaxcal.fleet", *args, f"out={out}"]
+    start = time.perf_counter()
+    if processes == 1:
+        subprocess.run(cmd, check=True, cwd=os.path.dirname(HERE))
+    else:
+        with socket.socket() as sock:  # a free port for the coordinator
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        cluster = ["--coordinator", f"127.0.0.1:{port}", "--num-processes",
+                   str(processes), "--local-devices", "1"]  # fmt: skip
+        procs = [
+            subprocess.Popen(
+                [*cmd, *cluster, "--process-id", str(i)], cwd=os.path.dirname(HERE)
+            )  # fmt: skip
+            for i in range(processes)
+        ]
+        if any(p.wait() != 0 for p in procs):
+            raise SystemExit(f"{' '.join(cmd)}: a process failed")
+    seconds = time.perf_counter() - start
+    arrays, attrs = read_results(out)
+    order = np.argsort(arrays["row"], kind="stable")
+    res = types.SimpleNamespace(
+        unit=arrays["unit"][order], time=arrays["time"][order],
+        theta=arrays["theta"][order], theta_std=arrays["aux_theta_std"][order],
+        theta_names=tuple(attrs["theta_names"]), notes=list(attrs.get("notes", [])),
+        arrays=arrays,
+    )  # fmt: skip
+    return res, seconds
 
 
 def _offset_of(rep: dict, u: int) -> tuple[float, float]:
@@ -187,7 +231,156 @@ def _markdown(rep: dict) -> str:
         lines.append(f"| {u} | {b['truth']:.1f} | {pm(a)} | {pm(b)} | {z} |")
     lines += ["", "Notes of the carriers' run:", ""]
     lines += [f"- {n}" for n in rep["runs"]["carriers"]["notes"]]
+    lines += _fleet_markdown(rep["fleet_cli"], units, pm)
     return "\n".join(lines) + "\n"
+
+
+def _fleet_markdown(fleet: dict, units, pm) -> list[str]:
+    runs, diff = fleet["runs"], fleet["vs_calibrate"]
+    lines = [
+        "",
+        "## The fleet command line (`python -m jaxcal.fleet`)",
+        "",
+        "The same fleet, the same three models, by the fleet command line (the UKF "
+        "with the true noise given: the command line estimates none). The exported "
+        "model, as run here (`<diagnosis>`: the diagnosis's report folder; "
+        "`reactor.csv`: the fleet with the model's columns only):",
+        "",
+        "```bash",
+        fleet["command"],
+        "```",
+        "",
+        "and `model=experiments/reactor.py:reactor_model theta=activity,UA,dH` "
+        "(base), the exported file with its `units` removed (every unit). Wall "
+        "time, each a fresh process (model load included; the compiled programs "
+        "may come from the on-disk cache of an earlier run): "
+        + ", ".join(f"{k} {runs[k]['seconds']:.1f} s" for k in runs)
+        + ".",
+        "",
+        "Clean units, mean over units and parameters of the error (at the last "
+        "sample; RMSE from the step on) relative to the fleet command line's base "
+        "run: " + _ratios(fleet["clean_ratio"]) + ". (`jaxcal.calibrate` with the "
+        "noise given: " + _ratios(fleet["calibrate_clean_ratio"]) + ".) Against "
+        "`jaxcal.calibrate` with the noise given, the largest difference of a "
+        "declared parameter's error (at the last sample or RMSE) in the clean units: "
+        + ", ".join(f"{k} {diff[k + ', clean']:.2g}" for k in runs)
+        + "; in the carriers: "
+        + ", ".join(f"{k} {diff[k + ', carriers']:.2g}" for k in runs)
+        + " (`jaxcal.calibrate` screens and skips 2 outlier rows of the carriers, "
+        "the command line none).",
+        "",
+        "| unit | truth | every unit: est +- std | carriers: est +- std | "
+        "carriers: error / std |",
+        "|---|---|---|---|---|",
+    ]
+    for u in units:
+        a, b = (runs[k]["units"][u][OFFSET] for k in ("every unit", "carriers"))
+        z = (
+            "held (std 0)" if b["std"] == 0.0
+            else f"{abs(b['est'] - b['truth']) / b['std']:.2f}"
+        )  # fmt: skip
+        lines.append(f"| {u} | {b['truth']:.1f} | {pm(a)} | {pm(b)} | {z} |")
+    held = fleet["held"]
+    two = fleet["two_processes"]
+    lines += [
+        "",
+        f"In the clean units the offset column is {held['max_abs_offset']:g} and its "
+        f"std {held['max_std']:g} at every row ({held['rows']} rows). The file's "
+        f"notes: {'; '.join(runs['carriers']['notes'])}.",
+        "",
+        "On two `jax.distributed` processes (`--coordinator 127.0.0.1:PORT "
+        "--num-processes 2 --process-id I --local-devices 1`, "
+        f"{two['seconds']:.1f} s): the file "
+        + (
+            "equal to one process's, bit for bit"
+            if two["max_abs_diff"] == 0.0
+            else f"within {two['max_abs_diff']:.1g} of one process's"
+        )
+        + f" ({two['columns']} columns, {two['rows']} rows).",
+    ]
+    return lines
+
+
+def _fleet_runs(tmp: str, fleet, spec: dict, model) -> dict:
+    """The fleet command line's base, every-unit and carriers runs (and the
+    carriers' on two processes) on ``fleet``; their per-unit numbers."""
+    diag = os.path.join(tmp, "diag")
+    every_path = os.path.join(diag, "every_unit.json")  # beside it: the same base
+    with open(every_path, "w") as f:
+        json.dump({**spec, "added": [{**a, "units": None} for a in spec["added"]]}, f)
+    known = [*model.condition_names, *model.output_names, "unit", "time", *DECLARED]
+    data_path = os.path.join(tmp, "reactor_model_columns.csv")
+    fleet[known].to_csv(data_path, index=False)  # the true E_scale: no model's column
+    noise = "noise=" + ",".join(f"{k}:{v}" for k, v in reactor.NOISE.items())
+    common = [f"data={data_path}", "method=ukf", noise, "trust_code=true"]
+    base_spec = f"{os.path.join(HERE, 'reactor.py')}:reactor_model"
+    models = {
+        "base": [f"model={base_spec}", f"theta={','.join(DECLARED)}"],
+        "every unit": [f"model={every_path}"],
+        "carriers": [f"model={os.path.join(diag, 'extended_model.json')}"],
+    }
+    runs, results = {}, {}
+    for name, args in models.items():
+        res, seconds = _fleet_cli([*args, *common], os.path.join(tmp, "fleet.h5"))
+        units = {str(k): v for k, v in _per_unit(res, fleet).items()}
+        runs[name] = {"units": units, "notes": res.notes, "seconds": seconds}
+        results[name] = res
+    carriers = results["carriers"]
+    clean = ~np.isin(carriers.unit, CARRIERS)
+    j = carriers.theta_names.index(OFFSET)
+    two, seconds = _fleet_cli(
+        [*models["carriers"], *common], os.path.join(tmp, "fleet2.h5"), processes=2
+    )
+    one_file, two_file = carriers.arrays, two.arrays
+    if sorted(one_file) != sorted(two_file):
+        raise SystemExit("two processes wrote other columns than one")
+    command = (
+        "python -m jaxcal.fleet model=<diagnosis>/extended_model.json "
+        "data=reactor.csv method=ukf "
+        + noise + " trust_code=true out=fleet.h5"
+    )  # fmt: skip
+    return {
+        "command": command,
+        "runs": runs,
+        "held": {
+            "rows": int(clean.sum()),
+            "max_abs_offset": float(np.abs(carriers.theta[clean, j]).max()),
+            "max_std": float(np.abs(carriers.theta_std[clean, j]).max()),
+        },
+        "two_processes": {
+            "seconds": seconds,
+            "columns": len(one_file),
+            "rows": int(one_file["theta"].shape[0]),
+            "max_abs_diff": float(
+                max(
+                    np.abs(two_file[k].astype(float) - one_file[k].astype(float)).max()
+                    for k in one_file
+                )
+            ),  # fmt: skip
+        },
+    }
+
+
+def _differences(fleet_runs: dict, given: dict, clean: list[str]) -> dict:
+    """The largest difference of the declared parameters' errors (at the last
+    sample, RMSE from the step on) between the command line's runs and
+    ``jaxcal.calibrate``'s with the noise given, over the clean units and the
+    carriers."""
+    groups = {"clean": clean, "carriers": [str(u) for u in CARRIERS]}
+    return {
+        f"{run}, {group}": float(
+            max(
+                abs(
+                    fleet_runs[run]["units"][u][p][key] - given[run]["units"][u][p][key]
+                )
+                for u in units
+                for p in DECLARED
+                for key in ("end", "rmse")
+            )
+        )  # fmt: skip
+        for run in ("base", "every unit", "carriers")
+        for group, units in groups.items()
+    }
 
 
 def main(argv) -> None:
@@ -205,9 +398,10 @@ def main(argv) -> None:
         ext_path = os.path.join(tmp, "diag", "extended_model.json")
         with open(ext_path) as f:
             spec = json.load(f)
-    added = {a["name"]: a for a in spec["added"]}
-    if OFFSET not in added:
-        raise SystemExit(f"the diagnosis exported {list(added)}, not {OFFSET}")
+        added = {a["name"]: a for a in spec["added"]}
+        if OFFSET not in added:
+            raise SystemExit(f"the diagnosis exported {list(added)}, not {OFFSET}")
+        fleet_cli = _fleet_runs(tmp, fleet, spec, model)
     from jaxcal.models.extended import Added
 
     adds = [Added(**a) for a in spec["added"]]
@@ -240,6 +434,9 @@ def main(argv) -> None:
         }  # fmt: skip
 
     runs, given = calibrated(None), calibrated(reactor.NOISE)
+    fleet_cli["clean_ratio"] = ratios(fleet_cli["runs"])
+    fleet_cli["calibrate_clean_ratio"] = ratios(given)
+    fleet_cli["vs_calibrate"] = _differences(fleet_cli["runs"], given, clean)
 
     rep = {
         "seed": seed,
@@ -249,6 +446,7 @@ def main(argv) -> None:
         "runs": runs,
         "clean_ratio": ratios(runs),
         "noise_given": {"runs": given, "clean_ratio": ratios(given)},
+        "fleet_cli": fleet_cli,
         "seconds": time.perf_counter() - start,
     }
     os.makedirs(out, exist_ok=True)
