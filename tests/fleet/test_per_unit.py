@@ -210,3 +210,118 @@ def test_two_processes_write_the_same_file(fleet, tmp_path, capsys):
     assert np.all(b["theta"][held, 2] == 0.0) and np.all(
         b["aux_theta_std"][held, 2] == 0
     )
+
+
+def test_least_squares_and_the_covariance_hold_zero_rows(fleet, tmp_path, capsys):
+    """Every per-parameter diagnostic of a held parameter is 0 (LS: its stds; the
+    UKF's covariance: the parameter's row and column); a ``theta0`` of the held
+    parameter does not move it off its nominal value."""
+    _, data, model_path, _ = fleet
+    common = [f"model={model_path}", f"data={data}", NOISE_ARG]
+    _, ls, _ = _run(
+        [*common, "method=ls", "window=4", "num_iters=2", f"out={tmp_path / 'ls.h5'}"],
+        capsys,
+    )
+    held = ~np.isin(ls["unit"], CARRIERS)
+    for name in ("theta", "aux_theta_std", "aux_laplace_std"):
+        assert np.all(ls[name][held, 2] == 0.0), name
+        assert np.all(ls[name][~held, 2] != 0.0), name
+    _, ukf, _ = _run(
+        [*common, "method=ukf", "return_cov=true", "theta0=0.1,0.02,0.5",
+         f"out={tmp_path / 'cov.h5'}"], capsys,
+    )  # fmt: skip
+    cov = ukf["aux_theta_cov"]
+    assert cov.shape == (len(UNITS) * ROWS, 3, 3)
+    assert np.all(cov[held, 2, :] == 0.0) and np.all(cov[held, :, 2] == 0.0)
+    assert np.all(cov[held][:, [0, 1], [0, 1]] > 0.0)  # the declared ones: tracked
+    np.testing.assert_allclose(
+        np.sqrt(cov[~held, 2, 2]), ukf["aux_theta_std"][~held, 2]
+    )
+    assert np.all(ukf["theta"][held, 2] == 0.0)  # theta0's 0.5: carriers' start only
+
+
+def test_a_parameter_no_unit_of_a_group_carries_is_refused(fleet, tmp_path, capsys):
+    _, data, model_path, _ = fleet
+    argv = [
+        f"model={model_path}", f"data={data}", NOISE_ARG, f"theta={OFFSET}",
+        f"out={tmp_path / 'o.h5'}",
+    ]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "unit(s) [4, 9] carry none of these parameters" in err
+    assert not (tmp_path / "o.h5").exists()
+
+
+TOY_TURBOFAN = """
+import jax.numpy as jnp
+from jaxcal.model import Model
+
+
+def toy(w, theta):
+    tra = w[2] / 100
+    hpt = theta[0]
+    return jnp.stack([500 + 80 * tra - 900 * hpt, 1200 + 300 * tra - 700 * hpt])
+
+
+MODEL = Model.from_function(
+    toy, conditions=("alt", "Mach", "TRA", "T2"),
+    parameters={"HPT_eff_mod": (0.0, -0.1, 0.03)}, outputs=("T24", "T30"),
+    name="toy_turbofan", condition_range=([-1000, 0, 15, 400], [45000, 0.9, 105, 600]),
+)
+"""
+
+
+def test_ncmapss_file_streams_the_carriers_runs(tmp_path, capsys):
+    """An N-CMAPSS file (streamed, never read whole) with a T30 offset in unit 2 of
+    1, 2, 3: the runs read only their units' rows."""
+    from jaxcal.data.ncmapss_io import write_ncmapss
+    from jaxcal.data.record import Record
+    from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+
+    (tmp_path / "toy.py").write_text(TOY_TURBOFAN)
+    model = load(f"{tmp_path / 'toy.py'}:MODEL", trust_code=True)
+    rng = np.random.default_rng(1)
+    lengths, loss = [30, 40, 20], -0.01
+    unit = np.repeat([1, 2, 3], lengths)
+    n = unit.size
+    w = rng.uniform([1e4, 0.3, 60, 480], [3e4, 0.7, 90, 520], (n, 4))
+    theta = np.zeros((n, len(HEALTH_NAMES)))
+    theta[:, HEALTH_NAMES.index("HPT_eff_mod")] = loss
+    x = rng.normal(size=(n, len(SENSOR_NAMES))) + 500
+    cols = [SENSOR_NAMES.index(s) for s in model.output_names]
+    x[:, cols] = np.asarray(jax.vmap(model.evaluate)(w, np.full((n, 1), loss))[0])
+    x[:, cols] += 0.05 * rng.normal(size=(n, len(cols)))
+    step = (unit == 2) & (np.arange(n) - lengths[0] >= 10)
+    x[step, SENSOR_NAMES.index("T30")] += 2.0
+    rec = Record(
+        w=w, x=x, x_names=SENSOR_NAMES, theta=theta, unit=unit,
+        cycle=np.ones(n, int), flight_class=np.ones(n), hs=np.ones(n),
+        rul=np.zeros(n, int),
+    )  # fmt: skip
+    data = tmp_path / "toy.h5"
+    write_ncmapss(data, rec, rec)
+    spec = {
+        "format": "jaxcal.extended_model/1", "base": "toy.py:MODEL",
+        "declared": ["HPT_eff_mod"],
+        "added": [{
+            "name": "T30_offset", "channel": "additive", "target": "T30",
+            "nominal": 0.0, "low": -10.0, "high": 10.0, "unit": "K", "scale": 0.1,
+            "units": [2],
+        }],
+    }  # fmt: skip
+    (tmp_path / "ext.json").write_text(json.dumps(spec))
+    summary, got, _ = _run(
+        [f"model={tmp_path / 'ext.json'}", f"data={data}", "trust_code=true",
+         "outputs=T24,T30", "noise=0.05", "split=dev", "chunk_units=2",
+         f"out={tmp_path / 'out.h5'}"], capsys,
+    )  # fmt: skip
+    assert [r["units"] for r in summary["unit_runs"]] == [[1], [2], [3]]
+    np.testing.assert_array_equal(got["unit_length"], lengths)
+    np.testing.assert_array_equal(got["unit"], unit)
+    held = got["unit"] != 2
+    assert np.all(got["theta"][held, 1] == 0.0)
+    assert np.all(got["aux_theta_std"][held, 1] == 0.0)
+    last = np.flatnonzero(got["unit"] == 2)[-1]
+    est, std = got["theta"][last, 1], got["aux_theta_std"][last, 1]
+    assert 0.0 < std < 1.0 and abs(est - 2.0) < 3 * std
+    np.testing.assert_allclose(got["unit_theta_last"][:, 0], loss, atol=2e-3)
