@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxcal.calibrators.gated import DEFAULT_WINDOW, gate_state
 from jaxcal.calibrators.interface import (
+    OK,
     REASONS,
     GuardCarry,
     guarded_update,
@@ -32,7 +33,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
-from jaxcal.calibrators.packed import Packing
+from jaxcal.calibrators.packed import Packing, jit_per_row
 from jaxcal.calibrators.policy import (
     initial_guard_carry,
     make_fleet_runner,
@@ -131,7 +132,7 @@ class StreamingCalibrator:
         out0 = carry0.out._replace(theta=carry.out.theta.astype(carry0.out.theta.dtype))
         self._carry0 = carry0._replace(out=out0)
 
-        @jax.jit
+        @jit_per_row
         def step(carry, w, x, check):
             reason = sample_reason(check, w, x)
             return guarded_update(stream.step, carry, w, x, reason)
@@ -170,6 +171,16 @@ class StreamingCalibrator:
             )
         return array
 
+    def _advance(self, w, x) -> tuple:
+        """One sample through the stream: ``(theta, theta_std, gate_open)``; the
+        flag in ``last_valid`` / ``last_reason``."""
+        w = self._check("w", w, len(self.conditions), 1)
+        x = self._check("x", x, len(self.sensors), 1)
+        self._carry, theta, reason, std, gate = self._stream(self._carry, w, x)
+        self.last_reason = REASONS[reason]
+        self.last_valid = reason == OK
+        return theta, std, gate
+
     def step_info(self, w, x) -> StepInfo:
         """Calibrate on one sample and say whether it was used.
 
@@ -180,15 +191,8 @@ class StreamingCalibrator:
         Returns:
             :class:`StepInfo`; a skipped sample leaves the state untouched.
         """
-        w = self._check("w", w, len(self.conditions), 1)
-        x = self._check("x", x, len(self.sensors), 1)
-        self._carry, theta, reason, std, gate = self._stream(self._carry, w, x)
-        self.last_reason = REASONS[reason]
-        self.last_valid = self.last_reason == "ok"
-        return StepInfo(
-            theta, self.last_valid, self.last_reason, theta_std=std,
-            gate_open=None if gate is None else bool(gate),
-        )  # fmt: skip
+        theta, std, gate = self._advance(w, x)
+        return StepInfo(theta, self.last_valid, self.last_reason, std, gate)
 
     def step(self, w, x) -> np.ndarray:
         """Calibrate on one sample: ``w [W]`` (``conditions``) and ``x [S]``.
@@ -197,7 +201,7 @@ class StreamingCalibrator:
             ``theta [P]`` (numpy) for this sample; the last valid one when the
             sample is skipped (see ``last_valid`` / ``last_reason``).
         """
-        return self.step_info(w, x).theta
+        return self._advance(w, x)[0]
 
     def run(self, w, x, mask=None, *, return_flags: bool = False) -> tuple:
         """Calibrate whole trajectories: ``lax.scan`` over time, vmapped over units.
@@ -255,7 +259,7 @@ class _PackedStream:
         self._num_w = num_w
         layout: list = []  # (offset, size) of theta, std, reason, gate in the read
 
-        @jax.jit
+        @jit_per_row
         def packed(consts, buffers, row):
             params, check, band = const_packing.unpack(consts)
             w, x = row[:num_w], row[num_w:]
@@ -277,14 +281,21 @@ class _PackedStream:
 
         self._jitted = packed
         self._layout = layout
+        self._slots: tuple | None = None  # the layout's slices, once traced
 
     def __call__(self, buffers, w: np.ndarray, x: np.ndarray):
-        row = np.concatenate([w, x])
-        buffers, read = self._jitted(self._consts, buffers, row)
+        buffers, read = self._jitted(self._consts, buffers, np.concatenate((w, x)))
         read = np.asarray(read)  # the one transfer to the host
-        theta, std, reason, gate = (
-            None if slot is None else read[slot[0] : slot[0] + slot[1]]
-            for slot in self._layout
+        if self._slots is None:
+            self._slots = tuple(
+                None if slot is None else slice(slot[0], slot[0] + slot[1])
+                for slot in self._layout
+            )
+        theta, std, reason, gate = self._slots
+        return (
+            buffers,
+            read[theta],
+            int(read[reason.start]),
+            None if std is None else read[std],
+            None if gate is None else bool(read[gate.start]),
         )
-        gate = None if gate is None else bool(gate[0])
-        return buffers, theta, int(reason[0]), std, gate

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.guard import keep_where
-from jaxcal.calibrators.packed import Packing
+from jaxcal.calibrators.packed import Packing, jit_per_row
 
 
 def _tree(shift):
@@ -46,3 +46,31 @@ def test_keep_where_selects_whole_trees():
         np.testing.assert_array_equal(got["d"], want["d"])
         assert int(got["b"][0]) == int(want["b"][0])
         assert bool(got["b"][1]) == bool(want["b"][1])
+
+
+def test_a_per_row_program_computes_the_bits_of_the_default_one():
+    # a small filter-like step: independent dots, reductions and a guard, the kind
+    # of program whose kernels the per-row schedule orders differently
+    def step(carry, row):
+        p, theta = carry
+        h = jnp.tanh(weights @ row + p @ theta)
+        gain = p @ h[:3] / (1.0 + jnp.sum(h * h))
+        new = (p - jnp.outer(gain, gain) * 0.1, theta + gain)
+        ok = jnp.all(jnp.isfinite(row))
+        return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, carry), gain
+
+    rng = np.random.default_rng(0)
+    weights = jnp.asarray(rng.normal(size=(3, 5)), jnp.float32)
+    rows = rng.normal(size=(20, 5)).astype(np.float32)
+    rows[4, 1], rows[9] = np.nan, np.inf  # skipped rows
+    carry0 = (jnp.eye(3, dtype=jnp.float32), jnp.zeros(3, jnp.float32))
+    outs = []
+    for jit in (jax.jit, jit_per_row):
+        carry, got = carry0, []
+        fn = jit(step)
+        for row in rows:
+            carry, gain = fn(carry, row)
+            got.append(np.asarray(gain))
+        outs.append((np.stack(got), np.asarray(carry[0]), np.asarray(carry[1])))
+    for default, per_row in zip(*outs, strict=True):
+        assert np.array_equal(default.view(np.uint32), per_row.view(np.uint32))
