@@ -165,9 +165,11 @@ def _gain_line(gain: dict) -> str:
     ratio = "" if r is None else f" ({r:.2f}x)" if r >= 0.01 else f" ({r:.1e}x)"
     # a random start is no candidate: the kept chunk may score worse than it
     verdict = "did not improve" if r is not None and r >= 1 else "improved"
+    steps = gain.get("scored_steps")
+    on = "" if steps is None else f" (each unit's first {steps} steps)"
     return (
         f"training {verdict} on its untrained start ({start_is}){how}: validation "
-        f"{what} {gain['start']:.3e} -> {gain['kept']:.3e}{ratio}"
+        f"{what}{on} {gain['start']:.3e} -> {gain['kept']:.3e}{ratio}"
     )
 
 

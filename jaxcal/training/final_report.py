@@ -41,9 +41,10 @@ def training_gain(
     records: list[dict], selected: int, cfg: TrainConfig, start: dict | None = None
 ) -> dict:
     """What training added to its untrained start, on the selection's score
-    (``budget.select``: lower is better): the start's (chunk 0, scored in the
-    training for an actor with a prior; else ``start``, the untrained actor's
-    ``val_*`` scores measured after it), the kept chunk's and the best trained
+    (``budget.select``: lower is better): the start's and the kept chunk's (chunk
+    0 scored in the training for an actor with a prior; else ``start``, both
+    scored after the training on the validation units' first ``start["steps"]``
+    steps, :func:`jaxcal.training.kept_policy._unscored_start`), the best trained
     chunk's, ``ratio`` kept / start (1.0: the start kept) and ``start_is``, what
     the untrained policy is. ``{}`` when the start was not scored."""
     key = (
@@ -52,23 +53,27 @@ def training_gain(
         else ("val_tracking_rmse_norm")
     )
     scores = {r["step"]: r[key] for r in records if key in r}
-    if 0 not in scores and start and key in start:
-        scores[0] = start[key]
-    if 0 not in scores:
-        return {}
     trained = {k: v for k, v in scores.items() if k > 0}
+    steps = None
+    if 0 in scores:
+        first, kept = scores[0], scores.get(selected, scores[0])
+    elif start and key in start["start"] and key in start["kept"]:
+        first, kept, steps = start["start"][key], start["kept"][key], start["steps"]
+    else:
+        return {}
     best_chunk = min(trained, key=trained.get) if trained else None
-    kept = scores.get(selected, scores[0])
     prior = uses_filter(cfg.env) and bool(cfg.env.filter_gain)  # agent_config's
     return {
         "key": key,
-        "start": scores[0],
+        "start": first,
         "kept": kept,
-        "ratio": kept / scores[0] if 0 < scores[0] < math.inf else None,
+        "ratio": kept / first if 0 < first < math.inf else None,
         "best_trained_chunk": best_chunk,
         "best_trained": None if best_chunk is None else trained[best_chunk],
         "kept_start": selected == 0,
         "start_is": "the filter's step" if prior else "a randomly initialised actor",
+        # start and kept scored on each validation unit's first steps (None: whole)
+        "scored_steps": steps,
     }
 
 

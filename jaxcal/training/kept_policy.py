@@ -20,6 +20,7 @@ from typing import NamedTuple
 import jax
 
 from jaxcal.calibrators.policy import PolicyParams
+from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR
@@ -28,6 +29,11 @@ from jaxcal.training.policy_scoring import PolicyScoring
 from jaxcal.training.policy_stage import ChunkScoring, PolicyResult, train_policy
 from jaxcal.training.runner import initial_agent_state
 from jaxcal.typedefs import PRNGKey
+
+# The untrained start of a random actor is compared with the kept policy on each
+# validation unit's first steps: its theta sits at a bound, where the turbofan's
+# solves are slowest (its whole validation unit took make train 20 s).
+START_STEPS = 4096
 
 
 class KeptPolicy(NamedTuple):
@@ -39,10 +45,14 @@ class KeptPolicy(NamedTuple):
         selected: the policy the run keeps (``last`` without selection).
         selected_step: its chunk.
         select: whether selection was on.
-        start_scores: the untrained policy's validation scores (``val_*``) where
-            the training did not score its chunk 0 (an actor without a prior:
-            scored after the training, for ``final.json``'s ``training_gain``);
-            ``None`` otherwise.
+        start_scores: where the training did not score its chunk 0 (an actor
+            without a prior, a random network), the untrained and the selected
+            policies' scores (``val_*``) on the validation units' first
+            ``START_STEPS`` steps, scored after the training for ``final.json``'s
+            ``training_gain``: ``{"steps", "start", "kept"}``; ``None`` otherwise.
+        val_out: the selected policy's run over the validation units, made when
+            its chunk was scored in this session (``None``: not kept), for the
+            band (:func:`jaxcal.training.uncertainty_stage.band_runs`).
     """
 
     result: PolicyResult
@@ -51,6 +61,7 @@ class KeptPolicy(NamedTuple):
     selected_step: int
     select: bool
     start_scores: dict | None = None
+    val_out: object | None = None
 
 
 def train_kept_policy(
@@ -61,7 +72,7 @@ def train_kept_policy(
     train_params: EnvParams,
     scoring: PolicyScoring,
     *,
-    has_val: bool,
+    val: Padded | None,
     target: float | None,
     clock: Callable[[], float],
     wall_start: float,
@@ -76,14 +87,14 @@ def train_kept_policy(
         parts: the run's components (environment, agent, jitted chunk).
         train_params: the training units' :class:`EnvParams`.
         scoring: the run's :class:`~jaxcal.training.policy_scoring.PolicyScoring`.
-        has_val: whether the run has validation units.
+        val: the run's validation units (``None``: none).
         target: the validation theta RMSE of time to target (``None``: not
             reported).
         clock: seconds since the job's start; wall_start: its
             ``time.perf_counter()`` (the time limit counts from it).
         log: where one-line messages go.
     """
-    select = (cfg.budget.select == "val_tracking" and has_val) or (
+    select = (cfg.budget.select == "val_tracking" and val is not None) or (
         cfg.budget.select == "sim_theta"
     )
     deadline = (
@@ -97,6 +108,13 @@ def train_kept_policy(
         Checkpointer(run_dir / POLICY_BEST_DIR, max_to_keep=1) as best_ckpt,
     ):
         save_latest, save_best = _savers(scoring.deployable, latest_ckpt, best_ckpt)
+        best_runs: dict = {}  # the best chunk's validation run, made at its scoring
+
+        def on_best(chunk: int, runner) -> None:
+            save_best(chunk, runner)
+            best_runs.clear()
+            best_runs[chunk] = scoring.last_val_out()
+
         policy = train_policy(
             key,
             parts.env,
@@ -116,7 +134,7 @@ def train_kept_policy(
                 best_key="val_sim_theta_rmse"
                 if cfg.budget.select == "sim_theta"
                 else "val_tracking_rmse_norm",
-                on_best=save_best if select else None,
+                on_best=on_best if select else None,
                 target=target,
                 clock=clock,
                 # an actor with a prior works untrained; with num_chunks=0 any
@@ -134,26 +152,40 @@ def train_kept_policy(
         if select and best_ckpt.latest_step() is not None:
             selected_step = best_ckpt.latest_step()
             selected = best_ckpt.restore(selected_step, last)
-    start = _unscored_start(key, parts, scoring, policy.records, log)
-    return KeptPolicy(policy, last, selected, selected_step, select, start)
+    start = _unscored_start(key, parts, scoring, policy.records, val, selected, log)
+    val_out = best_runs.get(selected_step) if select else None
+    return KeptPolicy(policy, last, selected, selected_step, select, start, val_out)
 
 
-def _unscored_start(key, parts, scoring: PolicyScoring, records, log) -> dict | None:
-    """The untrained policy's validation scores (``val_*``) where the training
-    scored chunks but not chunk 0 (an actor without a prior starts as a random
-    network, never a candidate): what the training gained over its start
-    (``final.json``'s ``training_gain``) is then measured, at the cost of one
-    validation scoring. ``None`` where chunk 0 was scored or nothing is."""
+def _unscored_start(
+    key, parts, scoring: PolicyScoring, records, val, selected, log
+) -> dict | None:
+    """Where the training scored chunks but not chunk 0 (an actor without a prior
+    starts as a random network, never a candidate): the untrained and the selected
+    policies scored on the validation units' first :data:`START_STEPS` steps, so
+    that ``final.json``'s ``training_gain`` says what training gained over the
+    start. ``None`` where chunk 0 was scored, nothing was, or there are no
+    validation units."""
     scored = [r for r in records if any(k.startswith("val_") for k in r)]
-    if scoring.val_scorer is None or not scored or scored[0]["step"] == 0:
+    if val is None or not scored or scored[0]["step"] == 0:
         return None
     tic = time.perf_counter()
-    scores = scoring.val_scorer(initial_agent_state(key, parts.agent))
-    log(
-        "the untrained start (a randomly initialised actor) scored on the "
-        f"validation units in {time.perf_counter() - tic:.1f} s"
+    head = val.head(START_STEPS)
+    untrained = scoring.deployable(initial_agent_state(key, parts.agent))
+    start, kept = (
+        _val_scores(scoring.score(head, params)) for params in (untrained, selected)
     )
-    return {f"val_{k}": v for k, v in scores.items()}
+    log(
+        "the untrained start (a randomly initialised actor) and the kept policy "
+        f"scored on the validation units' first {START_STEPS} steps in "
+        f"{time.perf_counter() - tic:.1f} s"
+    )
+    return {"steps": START_STEPS, "start": start, "kept": kept}
+
+
+def _val_scores(scores: dict) -> dict:
+    keys = ("theta_rmse", "tracking_rmse_norm")
+    return {f"val_{k}": scores[k] for k in keys if scores.get(k) is not None}
 
 
 def _savers(deployable, latest_ckpt: Checkpointer, best_ckpt: Checkpointer):

@@ -244,7 +244,7 @@ def _train(
     target = _val_target(cfg, data, log)
     kept = train_kept_policy(
         cfg, key_runner, run_dir, parts, train_params, scoring,
-        has_val=data.val is not None, target=target, clock=clock,
+        val=data.val, target=target, clock=clock,
         wall_start=wall_start, log=log,
     )  # fmt: skip
     kept, tuned = tune_kept(cfg, kept, parts, sims, scoring, run_dir, log)
@@ -255,7 +255,10 @@ def _train(
         wall_start,
     )  # fmt: skip
     band_units, fitted_on = sims.band_units()
-    band_out, scales = band_runs(scoring.run, band_units, data.test, kept.selected)
+    made = kept.val_out if band_units is data.val else None
+    band_out, scales = band_runs(
+        scoring.run, band_units, data.test, kept.selected, made
+    )
     names = tuple(data.theta_names)
     final.update(
         fit_policy_band(

@@ -47,6 +47,9 @@ class PolicyScoring(NamedTuple):
             simulated units (``sim_theta_rmse``); ``None`` with neither.
         sim_theta: ``(units, params) -> (pooled, per parameter)`` theta RMSE in box
             widths on labelled units (the selection's score on simulated ones).
+        last_val_out: ``() -> CalOutput | None``, the last ``val_scorer`` call's run
+            over the validation units: the band is fitted on the kept chunk's run,
+            made once when it was scored (the turbofan's unit: ~14 s a run).
     """
 
     deployable: Callable[..., PolicyParams]
@@ -54,6 +57,7 @@ class PolicyScoring(NamedTuple):
     score: Callable[..., dict]
     val_scorer: Callable[[Any], dict] | None
     sim_theta: Callable[..., tuple]
+    last_val_out: Callable[[], Any]
 
 
 def make_policy_scoring(
@@ -108,11 +112,14 @@ def make_policy_scoring(
             out.theta / width, units.theta / width, scored_mask(units, out)
         )
 
+    last = {"val_out": None}
+
     def val_scorer(agent_state) -> dict:
         params = deployable(agent_state)
         scores = {}
         if data.val is not None:
-            scores = score(data.val, params)
+            last["val_out"] = run(data.val, params)
+            scores = score(data.val, params, last["val_out"])
             keys = ("theta_rmse", "tracking_rmse_norm")
             scores = {k: scores[k] for k in keys if scores[k] is not None}
         if select_units is not None:
@@ -125,4 +132,5 @@ def make_policy_scoring(
     scored = data.val is not None or select_units is not None
     return PolicyScoring(
         deployable, run, score, val_scorer if scored else None, sim_theta,
+        lambda: last["val_out"],
     )  # fmt: skip

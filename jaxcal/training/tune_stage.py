@@ -248,5 +248,6 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
     if result.improved:
         with Checkpointer(tuned_dir, max_to_keep=1) as ckpt:
             ckpt.save(kept.selected_step, result.params, wait=True)
-        kept = kept._replace(selected=result.params)
+        # the validation run kept for the band was the untuned policy's
+        kept = kept._replace(selected=result.params, val_out=None)
     return kept, result.record

@@ -60,7 +60,9 @@ def scale_probe(params) -> ThetaBand | None:
     return ThetaBand(edges=jnp.zeros(1, jnp.int32), std=ones, relative=True)
 
 
-def band_runs(run: Callable, band_units: Padded | None, test: Padded, params):
+def band_runs(
+    run: Callable, band_units: Padded | None, test: Padded, params, made=None
+):
     """``(band_out, scales)``: the kept policy's run over the band's units and, for
     a policy on a filter (:func:`scale_probe`), the error its filter predicts on
     them and on the test units (``fit_policy_band``'s ``scales``; else ``None``).
@@ -70,13 +72,15 @@ def band_runs(run: Callable, band_units: Padded | None, test: Padded, params):
         band_units: the units the band is fitted on (``None``: none).
         test: the test units.
         params: the kept policy.
+        made: its run over ``band_units`` already made (the validation units,
+            scored when its chunk was), used where no probe is needed.
     """
     if band_units is None:
         return None, None
     probe = scale_probe(params)
-    band_out = run(band_units, params, probe)  # theta is the same with the probe
     if probe is None:
-        return band_out, None
+        return (run(band_units, params) if made is None else made), None
+    band_out = run(band_units, params, probe)  # theta is the same with the probe
     test_scale = run(test, params, probe).aux["theta_std"]
     return band_out, (band_out.aux["theta_std"], test_scale)
 

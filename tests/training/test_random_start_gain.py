@@ -9,6 +9,7 @@ from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.cli.train import main
 from jaxcal.runs.metrics_log import read_metrics
+from jaxcal.training.kept_policy import START_STEPS
 
 START_IS = "a randomly initialised actor"
 
@@ -36,6 +37,8 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     out = capsys.readouterr().out
     gain = _final(runs_dir, "trained")["training_gain"]
     assert gain["start_is"] == START_IS and gain["key"] == "val_tracking_rmse_norm"
+    # scored after training on each validation unit's first steps (short units)
+    assert gain["scored_steps"] == START_STEPS
     assert not gain["kept_start"] and gain["ratio"] == pytest.approx(
         gain["kept"] / gain["start"]
     )
@@ -44,6 +47,7 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     assert steps == [1, 2]
     said = [ln for ln in out.splitlines() if f"untrained start ({START_IS}):" in ln]
     assert len(said) == 1 and said[0].startswith("training ")
+    assert f"first {START_STEPS} steps" in said[0]
 
     # the same seed untrained: its chunk 0 is the start the trained run scored
     assert main([*argv, "name=start", "budget.num_chunks=0"]) == 0

@@ -17,6 +17,7 @@ from jaxcal.calibrators.uncertainty import UNCERTAINTY_FILE, load_band
 from jaxcal.cli.train import format_final
 from jaxcal.data.padded import Padded
 from jaxcal.runs.metrics_log import read_metrics
+from jaxcal.training import pipeline, uncertainty_stage
 from jaxcal.training.config import resolve_config
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.uncertainty_stage import fit_policy_band, time_to_target
@@ -48,10 +49,20 @@ def _run(data_file, runs_dir, name, *extra):
     return final, notes
 
 
+BAND_RUNS = []  # (the validation run kept from the chunk's scoring, a fresh one)
+
+
+def _spy_band_runs(run, band_units, test, params, made=None):
+    BAND_RUNS.append((made, run(band_units, params)))
+    return uncertainty_stage.band_runs(run, band_units, test, params, made)
+
+
 @pytest.fixture(scope="module")
 def runs(data_file, tmp_path_factory):
     runs_dir = tmp_path_factory.mktemp("runs")
-    loose = _run(data_file, runs_dir, "loose", "budget.target_theta_rmse=1.0")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pipeline, "band_runs", _spy_band_runs)
+        loose = _run(data_file, runs_dir, "loose", "budget.target_theta_rmse=1.0")
     never = _run(data_file, runs_dir, "never", "budget.target_theta_rmse=1e-12")
     return runs_dir, loose, never
 
@@ -98,6 +109,14 @@ def test_the_kept_policy_gets_a_band_measured_on_test_units(runs):
     assert 0.0 <= final["test_coverage90"] <= 1.0
     assert set(final["test_coverage90_per_param"]) == {"HPT_eff_mod"}
     assert "90 % theta band" in format_final(final)
+
+
+def test_the_band_reuses_the_kept_chunks_validation_run(runs):
+    # made once when the kept chunk was scored, not again: the same bits
+    ((made, fresh),) = BAND_RUNS
+    assert made is not None
+    for name in ("theta", "xhat", "valid", "reason"):
+        np.testing.assert_array_equal(getattr(made, name), getattr(fresh, name))
 
 
 def test_no_validation_units_means_no_band_and_a_note(tmp_path):
