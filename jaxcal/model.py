@@ -450,10 +450,10 @@ class Model:
         Because the declared vector is scattered into the full one, ``jax.jacfwd``
         of the result costs ``P`` tangent sweeps, not one per model parameter.
         """
-        declared, used, base = self._restriction(theta_names, output_names, theta_base)
+        slot, hit, used, base = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array) -> Array:
-            full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
+            full = jnp.where(hit, theta[slot], jnp.asarray(base, theta.dtype))
             x, _ = self.evaluate(w, full)
             return x if used is None else x[used]
 
@@ -467,18 +467,21 @@ class Model:
     ) -> Callable[[Array, Array, Any], tuple[Array, Any]]:
         """:meth:`restrict` with the warm start: ``F(w, theta [P], hint) -> (x_used
         [S], next_hint)`` (see :meth:`evaluate_hinted`)."""
-        declared, used, base = self._restriction(theta_names, output_names, theta_base)
+        slot, hit, used, base = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array, hint: Any) -> tuple[Array, Any]:
-            full = jnp.asarray(base, theta.dtype).at[declared].set(theta)
+            full = jnp.where(hit, theta[slot], jnp.asarray(base, theta.dtype))
             x, _, hint = self.evaluate_hinted(w, full, hint)
             return (x if used is None else x[used]), hint
 
         return measure
 
     def _restriction(self, theta_names, output_names, theta_base):
-        """(declared indices, used output indices or None, full base theta) of a
-        restriction (:meth:`restrict`, :meth:`restrict_hinted`)."""
+        """(slot, hit, used output indices or None, full base theta) of a restriction
+        (:meth:`restrict`, :meth:`restrict_hinted`): the full theta is ``where(hit,
+        theta[slot], base)``, the values of ``base.at[declared].set(theta)`` as a
+        select of a gather, which fuse into their consumers (a scatter is a kernel of
+        its own on XLA's CPU runtime, several under ``jvp`` and ``vmap``)."""
         declared = np.asarray(self.parameter_index(theta_names))
         used = (
             None
@@ -490,7 +493,11 @@ class Model:
             raise ValueError(
                 f"theta_base must be [{len(self.parameters)}], got {base.shape}"
             )
-        return declared, used, base
+        hit = np.zeros(base.shape, bool)
+        hit[declared] = True
+        slot = np.zeros(base.shape, np.int32)
+        slot[declared] = np.arange(declared.size)
+        return slot, hit, used, base
 
     def __repr__(self) -> str:
         kind = f"stateful, Z={len(self.states)}" if self.states else "static"

@@ -46,6 +46,25 @@ def test_restrict_holds_undeclared_parameters_and_selects_outputs():
     np.testing.assert_allclose(measure(jnp.array([1.0, 1.0]), jnp.array([0.25])), [1.5])
 
 
+def test_restrict_places_declared_parameters_in_any_order_with_their_sweeps():
+    def fn(w, theta):  # every parameter's place visible in the outputs
+        return jnp.stack([theta[0] + 10 * theta[1] + 100 * theta[2], w[0] * theta[1]])
+
+    model = jaxcal.Model.from_function(
+        fn,
+        conditions=("a",),
+        parameters={"p": (1.0, 0.0, 2.0), "q": (0.5, 0.0, 1.0), "r": (0.25, 0.0, 1.0)},
+        outputs=("y", "z"),
+    )
+    measure = model.restrict(["r", "p"])  # declared out of order, q held
+    w, theta = jnp.array([3.0]), jnp.array([0.75, 1.5])
+    full = jnp.array([1.5, 0.5, 0.75])  # p, q, r
+    np.testing.assert_array_equal(measure(w, theta), model.evaluate(w, full)[0])
+    # one tangent sweep per declared parameter: d/dr = 100, d/dp = 1 on y
+    jac = jax.jit(jax.jacfwd(measure, argnums=1))(w, theta)
+    np.testing.assert_array_equal(jac, [[100.0, 1.0], [0.0, 0.0]])
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
