@@ -9,8 +9,9 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
 
 * one stream: ``StreamingCalibrator.step`` (host numpy in and out, the guarded
   step) and the UKF's guarded step of :func:`jaxcal.calibrate` on the same
-  problem, jitted and fed one row at a time the same way (host numpy in and out);
-  median and 95th percentile microseconds per row;
+  problem, jitted with the same per-row compile options
+  (:func:`jaxcal.calibrators.packed.jit_per_row`) and fed one row at a time the same
+  way (host numpy in and out); median and 95th percentile microseconds per row;
 * a fleet: ``StreamingCalibrator.run`` over ``units`` streams of ``rows`` rows and
   the UKF's fleet runner over the same arrays; microseconds per row;
 * ``ops``: the kernels of both compiled stream steps (:func:`compiled_ops`).
@@ -127,6 +128,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
     from jaxcal.calibrators.interface import run_fleet
     from jaxcal.calibrators.method_configs import config
     from jaxcal.calibrators.methods import make
+    from jaxcal.calibrators.packed import jit_per_row
     from jaxcal.deploy import StreamingCalibrator
 
     cal = StreamingCalibrator(run, trust_code=True)
@@ -153,7 +155,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
     ukf = make(problem, config("ukf", {}))
     check = cal._check_dev
 
-    @jax.jit
+    @jit_per_row  # compiled as the policy's stream step is (the same options)
     def ukf_step(carry, w_t, x_t):
         return guarded_update(ukf.step, carry, w_t, x_t, sample_reason(check, w_t, x_t))
 
