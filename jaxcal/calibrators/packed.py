@@ -49,30 +49,41 @@ class Packing:
     """Where each leaf of a pytree lives in the per-dtype buffers."""
 
     treedef: jax.tree_util.PyTreeDef
-    dtypes: tuple[np.dtype, ...]  # one buffer per dtype, in first-seen order
+    # each buffer's dtype: one shared buffer per dtype in first-seen order, and one
+    # per leaf kept alone (an extended dtype's, or a large one: ``of``'s alone_from)
+    dtypes: tuple[np.dtype, ...]
     # per leaf: (buffer, start, size, shape); start -1: the leaf is its buffer
     slots: tuple[tuple[int, int, int, tuple[int, ...]], ...]
 
     @classmethod
-    def of(cls, tree) -> Packing:
-        """The packing of trees shaped as ``tree`` (its leaves' shapes and dtypes)."""
+    def of(cls, tree, alone_from: int | None = None) -> Packing:
+        """The packing of trees shaped as ``tree`` (its leaves' shapes and dtypes).
+
+        ``alone_from``: a leaf of at least this many elements keeps a buffer of its
+        own. A slice of a buffer that a dot reads is copied at every call (the
+        turbofan actor's 256 x 256 weights: 256 KB, split over two threads), an
+        argument costs about as much as one small kernel."""
         leaves, treedef = jax.tree.flatten(tree)
         dtypes: list[np.dtype] = []
         sizes: list[int] = []
+        shared: dict[np.dtype, int] = {}  # the buffer each plain dtype's leaves share
         slots = []
         for leaf in leaves:
             dtype, shape = leaf.dtype, tuple(np.shape(leaf))
-            if jax.dtypes.issubdtype(dtype, jax.dtypes.extended):
+            size = math.prod(shape)
+            if jax.dtypes.issubdtype(dtype, jax.dtypes.extended) or (
+                alone_from is not None and size >= alone_from
+            ):
                 slots.append((len(dtypes), -1, 0, shape))
                 dtypes.append(dtype)
                 sizes.append(0)
                 continue
             dtype = np.dtype(dtype)
-            if dtype not in dtypes:
+            if dtype not in shared:
+                shared[dtype] = len(dtypes)
                 dtypes.append(dtype)
                 sizes.append(0)
-            k = dtypes.index(dtype)
-            size = math.prod(shape)
+            k = shared[dtype]
             slots.append((k, sizes[k], size, shape))
             sizes[k] += size
         return cls(treedef, tuple(dtypes), tuple(slots))

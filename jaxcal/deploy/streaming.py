@@ -241,9 +241,10 @@ class _PackedStream:
 
     * the carry in per-dtype buffers (:mod:`jaxcal.calibrators.packed`);
     * the run's constants (params, check, band: two dozen leaves) in per-dtype
-      buffers placed on the device once; they stay arguments, not constants of the
-      program, so XLA folds nothing the fleet runner computes at run time (the
-      stream and the fleet give the same bits);
+      buffers placed on the device once, a weight matrix of 4096 numbers or more in
+      a buffer of its own (not copied out of a shared one at every call); they stay
+      arguments, not constants of the program, so XLA folds nothing the fleet
+      runner computes at run time (the stream and the fleet give the same bits);
     * the sample's ``w`` and ``x`` as one row;
     * what the host reads (theta, the band's std, the reason, the gate) as one
       array of theta's dtype (the reason's code and the gate's flag are small
@@ -254,7 +255,7 @@ class _PackedStream:
     """
 
     def __init__(self, step, packing: Packing, consts, num_w: int):
-        const_packing = Packing.of(consts)
+        const_packing = Packing.of(consts, alone_from=4096)
         self._consts = jax.device_put(const_packing.pack(consts))
         self._num_w = num_w
         layout: list = []  # (offset, size) of theta, std, reason, gate in the read

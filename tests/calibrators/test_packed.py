@@ -38,6 +38,23 @@ def test_pack_round_trip_keeps_values_and_dtypes():
     )
 
 
+def test_a_large_leaf_keeps_a_buffer_of_its_own():
+    tree = {
+        "a": jnp.arange(3.0, dtype=jnp.float32),
+        "big": jnp.arange(12.0, dtype=jnp.float32).reshape(3, 4),
+        "c": jnp.float32(7.0),
+        "n": jnp.arange(5, dtype=jnp.int32),
+    }
+    packing = Packing.of(tree, alone_from=6)
+    buffers = jax.jit(packing.pack)(tree)
+    # the small floats share one buffer, the large one has its own, the ints another
+    assert sorted(b.shape for b in buffers) == [(3, 4), (4,), (5,)]
+    back = jax.jit(packing.unpack)(buffers)
+    for got, want in zip(jax.tree.leaves(back), jax.tree.leaves(tree), strict=True):
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+
+
 def test_keep_where_selects_whole_trees():
     new, old = _tree(1), _tree(0)
     for ok, want in ((True, new), (False, old)):
