@@ -25,6 +25,7 @@ test rows). Prints and writes JSON.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -155,7 +156,8 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
     ukf = make(problem, config("ukf", {}))
     check = cal._check_dev
 
-    @jit_per_row  # compiled as the policy's stream step is (the same options)
+    # compiled as the policy's stream step is (the same options)
+    @functools.partial(jit_per_row, warm_solve=cal._warm_solve)
     def ukf_step(carry, w_t, x_t):
         return guarded_update(ukf.step, carry, w_t, x_t, sample_reason(check, w_t, x_t))
 

@@ -19,8 +19,11 @@ machine shared with other work most of all). XLA's default schedule keeps
 independent kernels apart for concurrency: the heat exchanger's step starts with 12
 kernels ready at once. The memory-optimised schedule reuses buffers, which orders the
 kernels into fewer ready at a time (3): measured on the four policy runs of
-``results/bench/stream_profile.md``, the compiled call 30 % faster, the same bits
-(the schedule orders kernels, it does not change what they compute).
+``results/bench/stream_profile.md``, the compiled call 30 % faster, the same bits.
+Not for a model that carries a warm-started solve from row to row (the turbofan's
+Broyden, ``Model.evaluate_hinted``): there the schedule changed the solve's numbers
+(5e-8 on the outputs) and gained nothing (~395 us a row either way), so such a
+program keeps XLA's defaults (``warm_solve``).
 """
 
 from __future__ import annotations
@@ -38,10 +41,12 @@ from jaxcal.typedefs import Array
 PER_ROW_OPTIONS = {"xla_cpu_scheduler_type": "CPU_SCHEDULER_TYPE_MEMORY_OPTIMIZED"}
 
 
-def jit_per_row(fn, **jit_kwargs):
+def jit_per_row(fn, *, warm_solve: bool = False, **jit_kwargs):
     """``jax.jit(fn)`` compiled with :data:`PER_ROW_OPTIONS`: for a stream's step,
-    called once per row with few, small arrays."""
-    return jax.jit(fn, compiler_options=PER_ROW_OPTIONS, **jit_kwargs)
+    called once per row with few, small arrays. ``warm_solve``: the step carries a
+    model's warm-started solve (module docstring): XLA's defaults."""
+    options = None if warm_solve else PER_ROW_OPTIONS
+    return jax.jit(fn, compiler_options=options, **jit_kwargs)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,6 +16,7 @@ Users import it from :mod:`jaxcal.deploy`.
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import NamedTuple
 
@@ -40,6 +41,7 @@ from jaxcal.calibrators.policy import (
     make_guarded_stream_step,
 )
 from jaxcal.calibrators.trained import LoadedRun, as_loaded, load_calibrator, run_check
+from jaxcal.envs.memory import HintedDynamics
 
 
 class StepInfo(NamedTuple):
@@ -95,6 +97,8 @@ class StreamingCalibrator:
         # placed once: a numpy box would be copied to the device on every step
         self._check_dev = jax.tree.map(jnp.asarray, self.check)
         actor, dynamics = self.run_info.actor, self.run_info.dynamics
+        # a warm-started solve keeps XLA's default schedule (jit_per_row)
+        self._warm_solve = isinstance(dynamics, HintedDynamics)
         # one sample per call: the model's solver starts from the previous sample's
         # solution (a turbofan's Newton solve); whole trajectories keep the cold solve
         self._step = make_guarded_stream_step(actor, dynamics, warm_start=True)
@@ -113,6 +117,7 @@ class StreamingCalibrator:
             Packing.of(self._carry0),
             (self._params, self._check_dev, self._band),
             len(self.conditions),
+            warm_solve=self._warm_solve,
         )
         self._packed0 = jax.device_put(Packing.of(self._carry0).pack(self._carry0))
         self.reset()
@@ -132,7 +137,7 @@ class StreamingCalibrator:
         out0 = carry0.out._replace(theta=carry.out.theta.astype(carry0.out.theta.dtype))
         self._carry0 = carry0._replace(out=out0)
 
-        @jit_per_row
+        @functools.partial(jit_per_row, warm_solve=self._warm_solve)
         def step(carry, w, x, check):
             reason = sample_reason(check, w, x)
             return guarded_update(stream.step, carry, w, x, reason)
@@ -254,13 +259,13 @@ class _PackedStream:
     gate_open or None)``, host numpy out.
     """
 
-    def __init__(self, step, packing: Packing, consts, num_w: int):
+    def __init__(self, step, packing: Packing, consts, num_w: int, *, warm_solve=False):
         const_packing = Packing.of(consts, alone_from=4096)
         self._consts = jax.device_put(const_packing.pack(consts))
         self._num_w = num_w
         layout: list = []  # (offset, size) of theta, std, reason, gate in the read
 
-        @jit_per_row
+        @functools.partial(jit_per_row, warm_solve=warm_solve)
         def packed(consts, buffers, row):
             params, check, band = const_packing.unpack(consts)
             w, x = row[:num_w], row[num_w:]

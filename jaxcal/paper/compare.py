@@ -32,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, count_reasons
-from jaxcal.calibrators.packed import jit_per_row
 from jaxcal.data.padded import Padded
 from jaxcal.paper.methods import Method
 from jaxcal.problem import Problem
@@ -260,7 +259,7 @@ def measure_latency(
     length = int(units.lengths[0])
     w = units.w[0, :length].astype(method.dtype)
     x = units.x[0, :length].astype(method.dtype)
-    step = jit_per_row(calibrator.step)  # every method compiled as a stream's step
+    step = jax.jit(calibrator.step)
     state = calibrator.init(jax.random.key(seed), w[0], x[0])
     state, out = step(state, w[0], x[0])
     np.asarray(out.theta)  # compiled and finished
