@@ -4,8 +4,7 @@ A physics model maps operating conditions ``w [W]`` and parameters ``theta [P]``
 outputs ``x [S]``. Statically, ``x = F(w, theta)``; with memory, a hidden state
 ``z [Z]`` is carried: ``(z', x) = step(z, w, theta)``, ``z_0 = init_state(w_0,
 theta)``. A static model is the stateful one with no state (``Z = 0``), so every
-layer can handle both through :meth:`Model.step`; the static shortcut
-:meth:`Model.evaluate` exists because most calibrators only need ``F``.
+layer handles both through :meth:`Model.step` (:meth:`Model.evaluate`: ``F``).
 
 A ``Model`` is a frozen container of names, units, bounds and pure functions (the
 dynamax pattern: a model is a params container plus pure functions), hashable by
@@ -446,15 +445,12 @@ class Model:
     ) -> Callable[[Array, Array], Array]:
         """``F(w, theta_declared [P]) -> x_used [S]``: the other parameters are held
         at ``theta_base`` (default the nominal values), only the used outputs kept.
-
-        Because the declared vector is scattered into the full one, ``jax.jacfwd``
-        of the result costs ``P`` tangent sweeps, not one per model parameter.
+        ``jax.jacfwd`` of it costs ``P`` tangent sweeps, not one per model parameter.
         """
-        slot, hit, used, base = self._restriction(theta_names, output_names, theta_base)
+        place, used = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array) -> Array:
-            full = jnp.where(hit, theta[slot], jnp.asarray(base, theta.dtype))
-            x, _ = self.evaluate(w, full)
+            x, _ = self.evaluate(w, place(theta))
             return x if used is None else x[used]
 
         return measure
@@ -467,37 +463,34 @@ class Model:
     ) -> Callable[[Array, Array, Any], tuple[Array, Any]]:
         """:meth:`restrict` with the warm start: ``F(w, theta [P], hint) -> (x_used
         [S], next_hint)`` (see :meth:`evaluate_hinted`)."""
-        slot, hit, used, base = self._restriction(theta_names, output_names, theta_base)
+        place, used = self._restriction(theta_names, output_names, theta_base)
 
         def measure(w: Array, theta: Array, hint: Any) -> tuple[Array, Any]:
-            full = jnp.where(hit, theta[slot], jnp.asarray(base, theta.dtype))
-            x, _, hint = self.evaluate_hinted(w, full, hint)
+            x, _, hint = self.evaluate_hinted(w, place(theta), hint)
             return (x if used is None else x[used]), hint
 
         return measure
 
     def _restriction(self, theta_names, output_names, theta_base):
-        """(slot, hit, used output indices or None, full base theta) of a restriction
-        (:meth:`restrict`, :meth:`restrict_hinted`): the full theta is ``where(hit,
-        theta[slot], base)``, the values of ``base.at[declared].set(theta)`` as a
-        select of a gather, which fuse into their consumers (a scatter is a kernel of
-        its own on XLA's CPU runtime, several under ``jvp`` and ``vmap``)."""
+        """``(place, used)``: ``place(theta) -> full theta``, ``where(hit, theta[slot],
+        base)`` (a select of a gather fuses into its consumers; a scatter is a kernel
+        of its own on XLA's CPU runtime), and the used outputs (``None``: all)."""
         declared = np.asarray(self.parameter_index(theta_names))
-        used = (
-            None
-            if output_names is None
-            else np.asarray(self.output_index(output_names))
-        )
+        out_index = self.output_index
+        used = None if output_names is None else np.asarray(out_index(output_names))
         base = np.asarray(self.nominal if theta_base is None else theta_base)
         if base.shape != (len(self.parameters),):
             raise ValueError(
                 f"theta_base must be [{len(self.parameters)}], got {base.shape}"
             )
-        hit = np.zeros(base.shape, bool)
-        hit[declared] = True
+        hit = np.isin(np.arange(base.size), declared)
         slot = np.zeros(base.shape, np.int32)
         slot[declared] = np.arange(declared.size)
-        return slot, hit, used, base
+
+        def place(theta: Array) -> Array:
+            return jnp.where(hit, theta[slot], jnp.asarray(base, theta.dtype))
+
+        return place, used
 
     def __repr__(self) -> str:
         kind = f"stateful, Z={len(self.states)}" if self.states else "static"
