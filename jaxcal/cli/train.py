@@ -145,6 +145,13 @@ def format_final(final: dict) -> str:
 
 def _gain_line(gain: dict) -> str:
     """One plain line: did training improve on the untrained start?"""
+    if not gain.get("scored", True):
+        how = (  # a random actor's start is scored on request only
+            " (budget.score_random_start=true scores it: one more validation pass)"
+            if gain["start_is"] == "a randomly initialised actor"
+            else ""
+        )
+        return f"the untrained start ({gain['start_is']}) was not scored{how}"
     what = gain["key"].removeprefix("val_").replace("_", " ")
     start_is = gain.get("start_is", "the filter's step")  # older runs: the filter's
     if gain["kept_start"]:
@@ -165,11 +172,9 @@ def _gain_line(gain: dict) -> str:
     ratio = "" if r is None else f" ({r:.2f}x)" if r >= 0.01 else f" ({r:.1e}x)"
     # a random start is no candidate: the kept chunk may score worse than it
     verdict = "did not improve" if r is not None and r >= 1 else "improved"
-    steps = gain.get("scored_steps")
-    on = "" if steps is None else f" (each unit's first {steps} steps)"
     return (
         f"training {verdict} on its untrained start ({start_is}){how}: validation "
-        f"{what}{on} {gain['start']:.3e} -> {gain['kept']:.3e}{ratio}"
+        f"{what} {gain['start']:.3e} -> {gain['kept']:.3e}{ratio}"
     )
 
 

@@ -52,20 +52,6 @@ class Padded(NamedTuple):
         """Number of valid steps over all units."""
         return int(self.lengths.sum())
 
-    def head(self, steps: int) -> Padded:
-        """The first ``steps`` steps of every unit (all of a shorter one)."""
-        if steps >= self.x.shape[1]:
-            return self
-
-        def cut(a):
-            return None if a is None else a[:, :steps]
-
-        return self._replace(
-            w=cut(self.w), x=cut(self.x), theta=cut(self.theta),
-            lengths=np.minimum(self.lengths, steps).astype(self.lengths.dtype),
-            rows=cut(self.rows), cycle=cut(self.cycle),
-        )  # fmt: skip
-
     def to_rows(self, values: np.ndarray, num_rows: int, fill=np.nan) -> np.ndarray:
         """``[U, T, ...]`` per-step values back to ``[N, ...]`` in the source's row
         order (the padded cells are dropped; needs ``rows``)."""

@@ -137,7 +137,7 @@ class StreamingCalibrator:
         out0 = carry0.out._replace(theta=carry.out.theta.astype(carry0.out.theta.dtype))
         self._carry0 = carry0._replace(out=out0)
 
-        @functools.partial(jit_per_row, warm_solve=self._warm_solve)
+        @jax.jit  # called inside _PackedStream's program, which has the options
         def step(carry, w, x, check):
             reason = sample_reason(check, w, x)
             return guarded_update(stream.step, carry, w, x, reason)

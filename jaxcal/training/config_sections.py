@@ -217,6 +217,11 @@ class BudgetConfig:
     # scored anyway; reporting only: selection reads the tracking). None: off. The
     # dataset presets' values are in TARGET_THETA_RMSE (cmapss: 2.5e-4).
     target_theta_rmse: float | None = None
+    # An actor without a prior starts as a random network, never a candidate: its
+    # untrained start is scored on the validation units after the training for
+    # final.json's training_gain only with this set (one more validation pass: the
+    # turbofan's took make train 20 s, its theta at a bound; issue 41).
+    score_random_start: bool = False
 
     def __post_init__(self) -> None:
         if self.target_theta_rmse is not None and not self.target_theta_rmse > 0:

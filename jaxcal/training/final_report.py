@@ -41,39 +41,37 @@ def training_gain(
     records: list[dict], selected: int, cfg: TrainConfig, start: dict | None = None
 ) -> dict:
     """What training added to its untrained start, on the selection's score
-    (``budget.select``: lower is better): the start's and the kept chunk's (chunk
-    0 scored in the training for an actor with a prior; else ``start``, both
-    scored after the training on the validation units' first ``start["steps"]``
-    steps, :func:`jaxcal.training.kept_policy._unscored_start`), the best trained
-    chunk's, ``ratio`` kept / start (1.0: the start kept) and ``start_is``, what
-    the untrained policy is. ``{}`` when the start was not scored."""
+    (``budget.select``: lower is better): the start's (chunk 0, scored in the
+    training for an actor with a prior; else ``start``, the untrained actor's
+    ``val_*`` scores measured after it with ``budget.score_random_start``), the
+    kept chunk's and the best trained chunk's, ``ratio`` kept / start (1.0: the
+    start kept) and ``start_is``, what the untrained policy is. Without a score
+    of the start: ``{"start_is", "scored": False}``."""
     key = (
         "val_sim_theta_rmse"
         if cfg.budget.select == "sim_theta"
         else ("val_tracking_rmse_norm")
     )
-    scores = {r["step"]: r[key] for r in records if key in r}
-    trained = {k: v for k, v in scores.items() if k > 0}
-    steps = None
-    if 0 in scores:
-        first, kept = scores[0], scores.get(selected, scores[0])
-    elif start and key in start["start"] and key in start["kept"]:
-        first, kept, steps = start["start"][key], start["kept"][key], start["steps"]
-    else:
-        return {}
-    best_chunk = min(trained, key=trained.get) if trained else None
     prior = uses_filter(cfg.env) and bool(cfg.env.filter_gain)  # agent_config's
+    start_is = "the filter's step" if prior else "a randomly initialised actor"
+    scores = {r["step"]: r[key] for r in records if key in r}
+    if 0 not in scores and start and key in start:
+        scores[0] = start[key]
+    if 0 not in scores:
+        return {"start_is": start_is, "scored": False}
+    trained = {k: v for k, v in scores.items() if k > 0}
+    best_chunk = min(trained, key=trained.get) if trained else None
+    kept = scores.get(selected, scores[0])
     return {
         "key": key,
-        "start": first,
+        "start": scores[0],
         "kept": kept,
-        "ratio": kept / first if 0 < first < math.inf else None,
+        "ratio": kept / scores[0] if 0 < scores[0] < math.inf else None,
         "best_trained_chunk": best_chunk,
         "best_trained": None if best_chunk is None else trained[best_chunk],
         "kept_start": selected == 0,
-        "start_is": "the filter's step" if prior else "a randomly initialised actor",
-        # start and kept scored on each validation unit's first steps (None: whole)
-        "scored_steps": steps,
+        "start_is": start_is,
+        "scored": True,
     }
 
 
@@ -83,7 +81,7 @@ def with_tuning(gain: dict, tuned: dict | None) -> dict:
     selection units (``budget.select=sim_theta``); else ``gain`` unchanged."""
     if not gain or not tuned or not tuned["improved"]:
         return gain
-    if gain["key"] != "val_sim_theta_rmse":
+    if gain.get("key") != "val_sim_theta_rmse":  # also an unscored start
         return gain
     kept = tuned["selection_theta_rmse_after"]
     ratio = kept / gain["start"] if gain["start"] > 0 else None

@@ -30,11 +30,6 @@ from jaxcal.training.policy_stage import ChunkScoring, PolicyResult, train_polic
 from jaxcal.training.runner import initial_agent_state
 from jaxcal.typedefs import PRNGKey
 
-# The untrained start of a random actor is compared with the kept policy on each
-# validation unit's first steps: its theta sits at a bound, where the turbofan's
-# solves are slowest (its whole validation unit took make train 20 s).
-START_STEPS = 4096
-
 
 class KeptPolicy(NamedTuple):
     """What :func:`train_kept_policy` trained and kept.
@@ -45,11 +40,11 @@ class KeptPolicy(NamedTuple):
         selected: the policy the run keeps (``last`` without selection).
         selected_step: its chunk.
         select: whether selection was on.
-        start_scores: where the training did not score its chunk 0 (an actor
-            without a prior, a random network), the untrained and the selected
-            policies' scores (``val_*``) on the validation units' first
-            ``START_STEPS`` steps, scored after the training for ``final.json``'s
-            ``training_gain``: ``{"steps", "start", "kept"}``; ``None`` otherwise.
+        start_scores: the untrained policy's validation scores (``val_*``) where
+            the training did not score its chunk 0 (an actor without a prior: a
+            random network, scored after the training for ``final.json``'s
+            ``training_gain`` with ``budget.score_random_start``); ``None``
+            otherwise.
         val_out: the selected policy's run over the validation units, made when
             its chunk was scored in this session (``None``: not kept), for the
             band (:func:`jaxcal.training.uncertainty_stage.band_runs`).
@@ -152,40 +147,29 @@ def train_kept_policy(
         if select and best_ckpt.latest_step() is not None:
             selected_step = best_ckpt.latest_step()
             selected = best_ckpt.restore(selected_step, last)
-    start = _unscored_start(key, parts, scoring, policy.records, val, selected, log)
+    start = None
+    if cfg.budget.score_random_start:
+        start = _unscored_start(key, parts, scoring, policy.records, log)
     val_out = best_runs.get(selected_step) if select else None
     return KeptPolicy(policy, last, selected, selected_step, select, start, val_out)
 
 
-def _unscored_start(
-    key, parts, scoring: PolicyScoring, records, val, selected, log
-) -> dict | None:
-    """Where the training scored chunks but not chunk 0 (an actor without a prior
-    starts as a random network, never a candidate): the untrained and the selected
-    policies scored on the validation units' first :data:`START_STEPS` steps, so
-    that ``final.json``'s ``training_gain`` says what training gained over the
-    start. ``None`` where chunk 0 was scored, nothing was, or there are no
-    validation units."""
+def _unscored_start(key, parts, scoring: PolicyScoring, records, log) -> dict | None:
+    """The untrained policy's validation scores (``val_*``) where the training
+    scored chunks but not chunk 0 (an actor without a prior starts as a random
+    network, never a candidate): what the training gained over its start
+    (``final.json``'s ``training_gain``) is then measured, at the cost of one
+    validation scoring. ``None`` where chunk 0 was scored or nothing is."""
     scored = [r for r in records if any(k.startswith("val_") for k in r)]
-    if val is None or not scored or scored[0]["step"] == 0:
+    if scoring.val_scorer is None or not scored or scored[0]["step"] == 0:
         return None
     tic = time.perf_counter()
-    head = val.head(START_STEPS)
-    untrained = scoring.deployable(initial_agent_state(key, parts.agent))
-    start, kept = (
-        _val_scores(scoring.score(head, params)) for params in (untrained, selected)
-    )
+    scores = scoring.val_scorer(initial_agent_state(key, parts.agent))
     log(
-        "the untrained start (a randomly initialised actor) and the kept policy "
-        f"scored on the validation units' first {START_STEPS} steps in "
-        f"{time.perf_counter() - tic:.1f} s"
+        "the untrained start (a randomly initialised actor) scored on the "
+        f"validation units in {time.perf_counter() - tic:.1f} s"
     )
-    return {"steps": START_STEPS, "start": start, "kept": kept}
-
-
-def _val_scores(scores: dict) -> dict:
-    keys = ("theta_rmse", "tracking_rmse_norm")
-    return {f"val_{k}": scores[k] for k in keys if scores.get(k) is not None}
+    return {f"val_{k}": v for k, v in scores.items()}
 
 
 def _savers(deployable, latest_ckpt: Checkpointer, best_ckpt: Checkpointer):

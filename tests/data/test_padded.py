@@ -84,15 +84,6 @@ def test_padded_is_a_pytree_jitted_code_takes_whole():
         weight = p.mask[..., None]
         return (p.x * weight).sum((0, 1)) / weight.sum()
 
-    np.testing.assert_allclose(valid_mean(padded), make_record().x.mean(0), rtol=1e-12)
-
-
-def test_head_keeps_each_units_first_steps():
-    padded = make_record().padded()
-    np.testing.assert_array_equal(padded.lengths, [4, 3, 2])
-    head = padded.head(3)
-    np.testing.assert_array_equal(head.lengths, [3, 3, 2])
-    np.testing.assert_array_equal(head.x, padded.x[:, :3])
-    np.testing.assert_array_equal(head.w, padded.w[:, :3])
-    assert head.rows is None and head.num_samples == 8
-    assert padded.head(4) is padded and padded.head(99) is padded
+    np.testing.assert_allclose(
+        valid_mean(padded), make_record().x.mean(0), rtol=1e-12
+    )

@@ -50,7 +50,7 @@ def test_training_gain_says_whether_training_beat_its_start():
     assert gain["best_trained_chunk"] == 2
     kept_start = training_gain(_records(1.0, 2.0, 1.5), 0, cfg)
     assert kept_start["kept_start"] and kept_start["best_trained"] == 1.5
-    assert training_gain(_records(None, 2.0), 1, cfg) == {}  # start not scored
+    assert not training_gain(_records(None, 2.0), 1, cfg)["scored"]  # start not scored
     line = format_final(_final(kept_start)).splitlines()
     assert sum("did not improve on its untrained start" in ln for ln in line) == 1
     line = format_final(_final(gain)).splitlines()

@@ -1,6 +1,8 @@
 """A run whose actor has no prior (the turbofan's: a randomly initialised network)
-reports what training gained over its untrained start, as the filter-started runs
-do, and ``budget.num_chunks=0`` gives it a deployable untrained policy."""
+reports what training gained over its untrained start with
+``budget.score_random_start=true`` (one more validation pass; by default it says the
+start was not scored), and ``budget.num_chunks=0`` gives it a deployable untrained
+policy."""
 
 import json
 
@@ -9,7 +11,6 @@ from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.cli.train import main
 from jaxcal.runs.metrics_log import read_metrics
-from jaxcal.training.kept_policy import START_STEPS
 
 START_IS = "a randomly initialised actor"
 
@@ -33,12 +34,11 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     runs, capsys
 ):
     argv, runs_dir = runs
-    assert main([*argv, "name=trained"]) == 0
+    assert main([*argv, "name=trained", "budget.score_random_start=true"]) == 0
     out = capsys.readouterr().out
     gain = _final(runs_dir, "trained")["training_gain"]
+    assert gain["scored"]
     assert gain["start_is"] == START_IS and gain["key"] == "val_tracking_rmse_norm"
-    # scored after training on each validation unit's first steps (short units)
-    assert gain["scored_steps"] == START_STEPS
     assert not gain["kept_start"] and gain["ratio"] == pytest.approx(
         gain["kept"] / gain["start"]
     )
@@ -47,7 +47,6 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     assert steps == [1, 2]
     said = [ln for ln in out.splitlines() if f"untrained start ({START_IS}):" in ln]
     assert len(said) == 1 and said[0].startswith("training ")
-    assert f"first {START_STEPS} steps" in said[0]
 
     # the same seed untrained: its chunk 0 is the start the trained run scored
     assert main([*argv, "name=start", "budget.num_chunks=0"]) == 0
@@ -56,6 +55,13 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     assert start["selected_chunk"] == 0 and start["training_gain"]["kept_start"]
     assert start["training_gain"]["start"] == pytest.approx(gain["start"], rel=1e-5)
     assert "did not improve on its untrained start" in out
+    # by default the random start is not scored, and the run says so in one line
+    assert main([*argv, "name=unscored", "budget.num_chunks=2"]) == 0
+    out = capsys.readouterr().out
+    assert _final(runs_dir, "unscored")["training_gain"] == {
+        "start_is": START_IS, "scored": False,
+    }  # fmt: skip
+    assert f"the untrained start ({START_IS}) was not scored" in out
     # deployable: the untrained policy was kept as chunk 0
     from jaxcal.deploy.loading import load_run
 
