@@ -50,7 +50,13 @@ def test_training_gain_says_whether_training_beat_its_start():
     assert gain["best_trained_chunk"] == 2
     kept_start = training_gain(_records(1.0, 2.0, 1.5), 0, cfg)
     assert kept_start["kept_start"] and kept_start["best_trained"] == 1.5
-    assert not training_gain(_records(None, 2.0), 1, cfg)["scored"]  # start not scored
+    unscored = training_gain(_records(None, 2.0), 1, cfg)  # the start not scored
+    assert unscored == {"start_is": unscored["start_is"], "scored": False}
+    line = format_final(_final(unscored)).splitlines()
+    assert sum("was not scored" in ln for ln in line) == 1
+    random = {"start_is": "a randomly initialised actor", "scored": False}
+    line = format_final(_final(random)).splitlines()
+    assert sum("budget.score_random_start=true" in ln for ln in line) == 1
     line = format_final(_final(kept_start)).splitlines()
     assert sum("did not improve on its untrained start" in ln for ln in line) == 1
     line = format_final(_final(gain)).splitlines()
