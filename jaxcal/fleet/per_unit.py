@@ -26,11 +26,12 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from jaxcal.calibrators import carriers
 from jaxcal.calibrators.interface import count_reasons
-from jaxcal.fleet.streaming import calibrate_stream
+from jaxcal.fleet.streaming import calibrate_stream, stream_summary
 from jaxcal.model import Model
 
 # per-step diagnostics over the calibrated parameters: name -> parameter axes
@@ -98,20 +99,15 @@ class WidenedWriter:
 
 def merge_stats(parts: Sequence[dict]) -> dict:
     """One :func:`~jaxcal.fleet.streaming.calibrate_stream` summary of the runs'."""
-    total = {
+    counts = {
         k: sum(p[k] for p in parts)
-        for k in ("num_chunks", "num_units", "num_rows", "num_partial", "seconds")
+        for k in ("num_chunks", "num_units", "num_rows", "num_partial")
     }
     flagged = count_reasons([])
     for part in parts:
         for name, count in part["flagged"].items():
             flagged[name] += count
-    return {
-        **total,
-        "num_flagged": sum(flagged.values()),
-        "flagged": flagged,
-        "rows_per_s": total["num_rows"] / max(total["seconds"], 1e-12),
-    }
+    return stream_summary(counts, flagged, sum(p["seconds"] for p in parts))
 
 
 def stream_runs(
@@ -143,8 +139,6 @@ def stream_runs(
     Returns:
         The summary of :func:`~jaxcal.fleet.streaming.calibrate_stream` over every run.
     """
-    import jax
-
     theta_names = tuple(theta_names)
     parts = []
     for run in runs:

@@ -221,11 +221,16 @@ def calibrate_stream(
                 cycle=rows["cycle"], extras=rows["extras"], valid=out.valid,
                 reason=out.reason, partial=out.partial,
             )  # fmt: skip
-    seconds = time.perf_counter() - start
+    return stream_summary(stats, flagged, time.perf_counter() - start)
+
+
+def stream_summary(counts: dict, flagged: dict, seconds: float) -> dict:
+    """:func:`calibrate_stream`'s summary of its ``counts`` (chunks, units, rows,
+    partial rows), the rows ``flagged`` per reason and the ``seconds`` taken."""
     return {
-        **stats,
+        **counts,
         "num_flagged": sum(flagged.values()),
         "flagged": flagged,
         "seconds": seconds,
-        "rows_per_s": stats["num_rows"] / max(seconds, 1e-12),
+        "rows_per_s": counts["num_rows"] / max(seconds, 1e-12),
     }
