@@ -20,7 +20,6 @@ from typing import NamedTuple
 import jax
 
 from jaxcal.calibrators.policy import PolicyParams
-from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR
@@ -67,7 +66,7 @@ def train_kept_policy(
     train_params: EnvParams,
     scoring: PolicyScoring,
     *,
-    val: Padded | None,
+    has_val: bool,
     target: float | None,
     clock: Callable[[], float],
     wall_start: float,
@@ -82,14 +81,14 @@ def train_kept_policy(
         parts: the run's components (environment, agent, jitted chunk).
         train_params: the training units' :class:`EnvParams`.
         scoring: the run's :class:`~jaxcal.training.policy_scoring.PolicyScoring`.
-        val: the run's validation units (``None``: none).
+        has_val: whether the run has validation units.
         target: the validation theta RMSE of time to target (``None``: not
             reported).
         clock: seconds since the job's start; wall_start: its
             ``time.perf_counter()`` (the time limit counts from it).
         log: where one-line messages go.
     """
-    select = (cfg.budget.select == "val_tracking" and val is not None) or (
+    select = (cfg.budget.select == "val_tracking" and has_val) or (
         cfg.budget.select == "sim_theta"
     )
     deadline = (

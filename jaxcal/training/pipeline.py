@@ -244,7 +244,7 @@ def _train(
     target = _val_target(cfg, data, log)
     kept = train_kept_policy(
         cfg, key_runner, run_dir, parts, train_params, scoring,
-        val=data.val, target=target, clock=clock,
+        has_val=data.val is not None, target=target, clock=clock,
         wall_start=wall_start, log=log,
     )  # fmt: skip
     kept, tuned = tune_kept(cfg, kept, parts, sims, scoring, run_dir, log)
