@@ -65,6 +65,24 @@ def test_colour_and_level_are_recovered_and_the_residual_is_white():
     assert ljung_box_p(e / sigma)[0] < 1e-6
 
 
+def test_ljung_box_is_statsmodels_to_the_last_bit():
+    """``ljung_box_p`` forms only the lags it reads (statsmodels forms all N: O(N^2)
+    on a fleet's concatenated rows) and must give acorr_ljungbox's p-values exactly:
+    the diagnosis's reports were made with them."""
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    rng = np.random.default_rng(3)
+    for n, lags in ((4, 10), (37, 10), (600, 10), (600, 3)):
+        e = rng.standard_normal((n, 4))
+        e[:, 1] = np.cumsum(e[:, 1])  # coloured: p near 0
+        e[:, 3] = 2.0  # constant: p = 1, not tested
+        want = np.ones(4)
+        h = min(lags, max(n // 5, 1))
+        for s in range(3):
+            want[s] = acorr_ljungbox(e[:, s], lags=[h])["lb_pvalue"].iloc[0]
+        np.testing.assert_array_equal(ljung_box_p(e, lags), want)
+
+
 def test_what_a_flexible_fit_absorbs_is_given_back():
     """A per-unit spline fit on short units absorbs the low frequencies of coloured
     noise; uncorrected, colour and level come out low (issue 24's false alarms)."""
