@@ -25,6 +25,12 @@ The state after t is ``z_t + dz`` when theta moves by ``du``; when the policy mo
 otherwise (a trained correction, the box), the state follows the posterior
 regression on theta, ``C'_zu C'_uu^-1`` (:func:`conditioned_state`): the untrained
 policy (gain 1) is exactly this filter.
+
+The update's products of two 4-wide matrices (a reactor's two states and two
+parameters) are written out (:func:`_product`): XLA's CPU runtime runs such a dot as
+a call to Eigen per matrix, and over a fleet (``vmap`` over units) as one call per
+unit, ~0.7 us each: four of them were two thirds of the reactor fleet's cost per row
+(``results/bench/stream_profile.md``, round 3).
 """
 
 from __future__ import annotations
@@ -111,15 +117,47 @@ def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: flo
     )
     m = jnp.concatenate([a, lower], axis=0)
     noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
-    s = h @ pred @ h.T + noise
-    gain = spd_solve(s, (m @ pred @ h.T).T).T
-    new_cov = m @ pred @ m.T - gain @ s @ gain.T
+    s = _product(h, pred) @ h.T + noise
+    m_pred = _product(m, pred)
+    # (M C- H^T)^T as XLA computes it: H (M C-)^T
+    gain = spd_solve(s, _product(h, m_pred.T)).T
+    new_cov = _product(m_pred, m.T) - gain @ s @ gain.T
     new_cov = 0.5 * (new_cov + new_cov.T)
     d = gain @ (resid * params.x_std).astype(cov.dtype)
     dz, du = d[:num_states], d[num_states:]
     half = 0.5 * (params.theta_high - params.theta_low)
     feature = step_feature(half * du, resid, params, max_increment, True)
     return new_cov, feature, dz, du
+
+
+# (rows, columns) of a product over 4 terms that XLA's CPU dot hands to Eigen (not
+# both operands with a side of 3 or less, not a vector), and whether Eigen's kernel
+# sums the 4 products (p0 + p2) + (p1 + p3) each rounded (True: 2 result rows), or
+# in two fused multiply-add chains fma(p2, p0) + fma(p3, p1) (False)
+_EIGEN_SUMS = {(2, 4): True, (3, 4): False, (4, 2): False, (4, 3): False, (4, 4): False}
+
+
+def _product(a: Array, b: Array) -> Array:
+    """``a @ b`` (``[m, 4] @ [4, n]``) with the bits of XLA's CPU dot, written out as
+    products and sums that fuse with their neighbours (the module docstring), for
+    the shapes of :data:`_EIGEN_SUMS`; any other shape is the dot itself.
+
+    The order is Eigen's kernel's (measured on this CPU runtime against the dot,
+    ``tests/envs/test_joint_filter.py``): with fused multiply-adds where it fuses
+    (``fma(a_2, b_2, p_0)``: XLA's CPU compiler contracts a product into the sum it
+    feeds, so a product meant to be rounded on its own goes through a select it does
+    not look through), a sum of zeros +0 as Eigen's (its accumulators start at +0).
+    """
+    pairwise = _EIGEN_SUMS.get((a.shape[0], b.shape[1]))
+    if a.ndim != 2 or a.shape[1] != 4 or pairwise is None:
+        return a @ b
+    terms = [a[:, k, None] * b[None, k, :] for k in range(4)]
+    rounded = [jnp.where(jnp.isnan(t), jnp.asarray(jnp.nan, t.dtype), t) for t in terms]
+    if pairwise:
+        out = (rounded[0] + rounded[2]) + (rounded[1] + rounded[3])
+    else:  # XLA contracts the product of each sum into its fused multiply-add
+        out = (terms[2] + rounded[0]) + (terms[3] + rounded[1])
+    return jnp.where(out == 0, jnp.zeros_like(out), out)
 
 
 def conditioned_state(z: Array, cov: Array, du_taken: Array, du_filter: Array):

@@ -4,8 +4,10 @@ tests/training/test_train_stateful.py)."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from flax import struct
 
 from jaxcal.envs.joint_filter import (
@@ -101,3 +103,42 @@ def test_joint_prior_carries_the_first_states_dependence_on_theta():
     np.testing.assert_array_equal(
         joint_prior(unknown, None, jnp.zeros(1), jnp.zeros(2), cov, half), cov
     )
+
+
+@pytest.mark.parametrize("rows, cols", [(2, 4), (3, 4), (4, 2), (4, 3), (4, 4)])
+def test_written_out_product_has_the_dots_bits(rows, cols):
+    # the joint filter's 4-term products written out (_product) are XLA's CPU dot
+    # bit for bit, one matrix and batched over units (vmap: a fleet), with zeros of
+    # both signs (a sum of zeros is +0, as the dot's) and an operand transposed;
+    # a product of another shape is the dot itself
+    from jaxcal.envs.joint_filter import _product
+
+    rng = np.random.default_rng(rows * 10 + cols)
+    a = rng.normal(size=(64, rows, 4)).astype(np.float32)
+    b = rng.normal(size=(64, 4, cols)).astype(np.float32)
+    a[:16][rng.random((16, rows, 4)) < 0.4] = 0.0
+    b[:16][rng.random((16, 4, cols)) < 0.4] = -0.0
+    a[16:20] *= 1e-30  # products below float32's normal range
+
+    def bits(x):
+        return np.asarray(x).view(np.int32)
+
+    def dot(x, y):
+        return x @ y
+
+    for batched in (False, True):
+        ours, xla = (
+            jax.jit(jax.vmap(f)) if batched else jax.jit(f) for f in (_product, dot)
+        )
+        if batched:
+            np.testing.assert_array_equal(bits(ours(a, b)), bits(xla(a, b)))
+            continue
+        for i in range(a.shape[0]):
+            np.testing.assert_array_equal(bits(ours(a[i], b[i])), bits(xla(a[i], b[i])))
+    bt = np.ascontiguousarray(np.swapaxes(b, 1, 2))
+    ours = jax.jit(jax.vmap(lambda x, y: _product(x, y.T)))(a, bt)
+    np.testing.assert_array_equal(
+        bits(ours), bits(jax.jit(jax.vmap(lambda x, y: x @ y.T))(a, bt))
+    )
+    x, y = (jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((3, 5), (5, 4)))
+    np.testing.assert_array_equal(bits(_product(x, y)), bits(x @ y))
