@@ -344,11 +344,19 @@ class TuneConfig:
     # the reactor held a bias 2x better but lost 20 % clean (tune_levers/)
     effects: float = 0.0
     clean_limit: float = 1.0  # with effects: clean selection error <= this x start
+    # with effects: the effects guard's weight in the score (the clean selection
+    # units' the rest); 1: the effects alone, the clean units a limit only
+    effects_weight: float = 0.5
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.effects <= 1.0 or not self.clean_limit > 0:
+        if not (
+            0.0 <= self.effects <= 1.0
+            and self.clean_limit > 0
+            and 0.0 <= self.effects_weight <= 1.0
+        ):
             raise ValueError(
-                f"tune.effects must be in [0, 1] and tune.clean_limit > 0, got {self}"
+                "tune.effects and tune.effects_weight must be in [0, 1] and "
+                f"tune.clean_limit > 0, got {self}"
             )
         if self.steps < 0 or min(self.batch_units, self.eval_every, self.window) < 1:
             raise ValueError(

@@ -224,9 +224,12 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
 
     def select_score(params) -> tuple[float, np.ndarray]:
         score, clean = at_start if params is start else scores(params)
-        if cfg.tune.effects:  # the mean of the two ratios, in selection units
+        if cfg.tune.effects:  # the two ratios weighed, in selection units
             (score0, clean0), eff = at_start, len(guards) - 1
-            score = score0 * 0.5 * (score / score0 + clean[eff] / clean0[eff])
+            weight = cfg.tune.effects_weight
+            score = score0 * (
+                (1.0 - weight) * score / score0 + weight * clean[eff] / clean0[eff]
+            )
         return score, clean
 
     key = jax.random.fold_in(jax.random.key(cfg.seed), 41)
@@ -238,8 +241,9 @@ def tune_kept(cfg, kept, parts, sims, scoring, run_dir: Path, log) -> tuple:
         record["score_before"] = record["selection_theta_rmse_before"]
         record["score_after"] = record["selection_theta_rmse_after"]
         record["score"] = (
-            "mean of the clean selection and effects guard units' theta rmse, each "
-            "x the start's, times the start's selection rmse"
+            f"the clean selection units' and (weight {cfg.tune.effects_weight:g}) "
+            "the effects guard units' theta rmse, each x the start's, weighed, times "
+            "the start's selection rmse"
         )
         record["selection_theta_rmse_before"] = at_start[0]
         record["selection_theta_rmse_after"] = (

@@ -138,7 +138,14 @@ def test_a_tuned_policy_that_loses_on_clean_units_is_not_kept():
 
 
 @pytest.mark.parametrize(
-    "bad", ["tune.steps=-1", "tune.lr=0", "tune.patience=0", "tune.window=0"]
+    "bad",
+    [
+        "tune.steps=-1",
+        "tune.lr=0",
+        "tune.patience=0",
+        "tune.window=0",
+        "tune.effects_weight=1.5",
+    ],
 )
 def test_tune_settings_are_validated(bad):
     with pytest.raises(ValueError, match="tune."):
