@@ -165,10 +165,15 @@ def projection_bias(
         )  # [m, S, 2S]: each output's intercept and slope in time
         d = np.concatenate([cols[sl], trend], axis=2)  # [m, S, q]
         vd = fit.whiten_transpose(fit.whiten(d, p_u), p_u)  # V D
-        lag = np.abs(np.subtract.outer(np.arange(m), np.arange(m)))
+        lag = None
         c = np.empty_like(d)
         for s in range(num_s):  # C_s = Sigma_s V_s D_s (Toeplitz AR covariance)
             acf = arma_acf(np.r_[1.0, -noise.ar[s, : noise.order[s]]], [1.0], m)
+            if not acf[1:].any():  # white: Sigma_s = sigma^2 I, the product's bits
+                c[:, s] = (noise.sigma[s] ** 2 * acf[0]) * vd[:, s]
+                continue
+            if lag is None:
+                lag = np.abs(np.subtract.outer(np.arange(m), np.arange(m)))
             c[:, s] = (noise.sigma[s] ** 2 * acf[lag]) @ vd[:, s]
         a_inv = np.linalg.pinv(np.einsum("tsi,tsj->ij", d, vd))
         g = np.einsum("tsi,tsj->ij", vd, c)
