@@ -42,6 +42,7 @@ import numpy as np
 
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.kinds import Candidate, nests
+from jaxcal.diagnosis.linearization import remember
 from jaxcal.diagnosis.onsets import polish_onsets, refine_onsets
 from jaxcal.diagnosis.prepare import LoopData
 from jaxcal.diagnosis.ranking import (  # noqa: F401 (log10_chi2_sf: re-exported)
@@ -57,7 +58,9 @@ from jaxcal.diagnosis.screen import (
     Screen,
     init_from,
     spec_for,
+    warm_from,
 )
+from jaxcal.diagnosis.terms import model_inputs
 from jaxcal.model import Model
 
 ONSET_ROUNDS = 2  # profile a step's onsets at the fit, refit when one moved
@@ -168,16 +171,31 @@ class _Refits:
     entries: dict  # entry name -> RankEntry, updated in place
     fits: dict = dataclasses.field(default_factory=dict)  # entry name -> FitResult
     onset_ci: dict = dataclasses.field(default_factory=dict)  # name -> {step: [U, 2]}
+    warm: dict = dataclasses.field(default_factory=dict)  # name -> an earlier fit
+
+    def _start(self, name: str, spec):
+        """Where the refit of ``name`` starts: where its earlier fit ended (its
+        model point kept, so its first evaluation costs none), else at the
+        declared-only solution with the effects at zero."""
+        model, data, prev = self.model, self.data, self.warm.get(name)
+        init = None if prev is None else warm_from(prev, model, data, spec)
+        if init is None:
+            return init_from(self.null, model, data, spec)
+        lin = prev.evaluation.sig.lin
+        if lin is not None and not model.is_stateful:
+            remember(model, data, model_inputs(model, data, prev.layout, prev.params),
+                     lin)  # fmt: skip
+        return init
 
     def refit(self, members) -> None:
         """Refit ``members`` and replace their entry."""
         model, data, null = self.model, self.data, self.null
         spec = spec_for(self.declared, members, null.spec.initial_state)
+        name = " + ".join(c.label for c in members)
         fit = fit_model(
-            model, data, spec, init_from(null, model, data, spec), offset=self.offset,
+            model, data, spec, self._start(name, spec), offset=self.offset,
             max_iters=self.cfg.max_iters,
         )  # fmt: skip
-        name = " + ".join(c.label for c in members)
         members, fit, self.onset_ci[name] = _profile_onsets(
             model, data, self.declared, members, fit, self.offset, self.cfg
         )
@@ -191,13 +209,15 @@ class _Refits:
 def _slim(fit: FitResult) -> FitResult:
     """``fit`` with only what the noise model's refit on it reads
     (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
-    signatures of the per-unit columns. The prewhitened columns, the model's
-    Jacobians, its outputs and row inputs are a fleet's rows times their columns
-    each (about 130 MB of one NASA FD002 refit, held for every entry refitted);
-    only its own fit and the winner's verdicts read them."""
+    signatures of the per-unit columns, and the model's linearisation at its
+    end point (its outputs and its own few derivatives: the next pass's refit
+    starts there, :meth:`_Refits._start`). The prewhitened columns, the outputs
+    and row inputs are a fleet's rows times their columns each (about 130 MB of
+    one NASA FD002 refit with every Jacobian, held for every entry refitted); only
+    its own fit and the winner's verdicts read them."""
     ev = fit.evaluation
     local = np.array(ev.sig.cols[:, :, : fit.layout.num_local])  # not a view
-    sig = ev.sig._replace(y=None, x=None, cols=local, lin=None)
+    sig = ev.sig._replace(y=None, x=None, cols=local)
     slim = ev._replace(yhat=None, white=None, theta=None, inputs=None, sig=sig,
                        cols=None)  # fmt: skip
     return fit._replace(evaluation=slim)
@@ -262,6 +282,7 @@ def identify(
     null: FitResult,
     *,
     offset: np.ndarray | None = None,
+    warm: dict | None = None,
 ) -> Identification:
     """Rank the library against the residual of the declared-only fit ``null``.
 
@@ -273,6 +294,8 @@ def identify(
         cfg: settings.
         null: the declared-only fit (the "before" calibration).
         offset: a fixed discrepancy term included in every refit (output units).
+        warm: entry name -> an earlier fit of it (the last noise pass's
+            ``fits``): its refit starts where that one ended.
 
     Returns:
         :class:`Identification`.
@@ -288,7 +311,8 @@ def identify(
         lr = screen.joint(pair)[0]
         e = rank_entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
-    refits = _Refits(model, data, declared, null, offset, cfg, entries)
+    refits = _Refits(model, data, declared, null, offset, cfg, entries,
+                     warm=dict(warm or {}))  # fmt: skip
     for e in singles[: cfg.top_k]:
         refits.refit(list(e.members))
     for pair in pairs:

@@ -335,6 +335,26 @@ def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
     return None
 
 
+def remember(model, data, inputs, lin: Linearization) -> None:
+    """Keep ``lin``, taken at ``inputs`` (a
+    :class:`~jaxcal.diagnosis.signatures.RowInputs`) on ``data``'s outputs, as if
+    just linearised there: a fit started where an earlier one ended (the next noise
+    pass's refit of the same entry) finds its first evaluation here."""
+    outputs = tuple(int(i) for i in data.sensor_idx)
+    if lin.outputs != outputs:
+        return
+    rows = tuple(np.array(a, np.float64) for a in
+                 (inputs.theta, inputs.effects, inputs.w_offset))  # fmt: skip
+    for arr in rows:
+        arr.setflags(write=False)
+    w_digest = _digest(data.w)
+    key = (model, outputs, w_digest + _digest(*rows))
+    _LINEARIZED[key] = _Kept(lin, w_digest, rows)
+    _LINEARIZED.move_to_end(key)
+    while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
+        _LINEARIZED.popitem(last=False)
+
+
 def _linearized(model, data, inputs, directions) -> Linearization:
     """:func:`linearize` at ``inputs`` (a
     :class:`~jaxcal.diagnosis.signatures.RowInputs`; the data's outputs) with at

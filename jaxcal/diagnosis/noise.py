@@ -72,6 +72,21 @@ class NoiseModel(NamedTuple):
         """The same colour with another level."""
         return self._replace(sigma=np.asarray(sigma, np.float64), source=source)
 
+    def settled(self, old: NoiseModel, tol: float) -> bool:
+        """True when this model is ``old`` to within ``tol`` on every output: the same
+        AR orders, levels and inflations within ``tol`` relative, AR coefficients
+        within ``tol`` (a refitted model that has not changed)."""
+
+        def rel(a, b):
+            return np.abs(a - b) / np.maximum(np.abs(b), 1e-300)
+
+        return bool(
+            np.array_equal(self.order, old.order)
+            and np.all(rel(self.sigma, old.sigma) <= tol)
+            and np.all(rel(self.inflation, old.inflation) <= tol)
+            and np.all(np.abs(self.ar - old.ar) <= tol)
+        )
+
     def filter_table(self, position: np.ndarray) -> np.ndarray:
         """``[N, S, MAX_ORDER + 1]`` whitening coefficients of each row.
 

@@ -28,6 +28,7 @@ reproduce), used to flag confounding.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -85,6 +86,41 @@ def init_from(null: FitResult, model: Model, data: LoopData, spec: ModelSpec):
     unit_coef = np.zeros((u, lay.num_local))
     unit_coef[:, :q0] = null.params.unit_coef
     return ModelParams(unit_coef, np.zeros(lay.num_global))
+
+
+def warm_from(prev: FitResult, model: Model, data: LoopData, spec: ModelSpec):
+    """Start a candidate fit where ``prev`` (an earlier fit of the same entry, e.g.
+    the last noise pass's) ended: its coefficients of every block ``spec`` shares
+    with it (a term in the same form, carriers and onsets, its coefficients rescaled
+    to the same physical size when the natural step moved with the noise), zeros
+    elsewhere; ``None`` when it shares no term or its units differ."""
+    lay, old = layout(model, data, spec), prev.layout
+    if prev.params.unit_coef.shape[0] != data.num_units:
+        return None
+    old_terms = {c.key: c for c in prev.spec.terms}
+    new_terms = {c.key: c for c in spec.terms}
+    old_blocks = {(b.role, b.name): b for b in old.blocks}
+    unit_coef = np.zeros((data.num_units, lay.num_local))
+    global_coef = np.zeros(lay.num_global)
+    shared = 0
+    for b in lay.blocks:
+        ob = old_blocks.get((b.role, b.name))
+        if ob is None or ob.local != b.local:
+            continue
+        ratio = 1.0
+        if b.role == "term":
+            new_c, old_c = new_terms[b.name], old_terms[b.name]
+            if dataclasses.replace(old_c, scale=new_c.scale) != new_c:
+                continue
+            ratio = old_c.scale / new_c.scale
+            shared += 1
+        if b.local:
+            coef = prev.params.unit_coef[:, ob.columns]
+            unit_coef[:, b.columns] = coef if ratio == 1.0 else coef * ratio
+        else:
+            coef = prev.params.global_coef[ob.columns]
+            global_coef[b.columns] = coef if ratio == 1.0 else coef * ratio
+    return ModelParams(unit_coef, global_coef) if shared == len(new_terms) else None
 
 
 class Screen:

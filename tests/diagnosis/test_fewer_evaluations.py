@@ -1,8 +1,11 @@
 """Fewer fleet evaluations per fit (issue 43): what each saved evaluation relies on.
 
 A fit stops when the linear model promises less than the stopping gain, without
-evaluating that step.
+evaluating that step; a noise pass's refit starts where the last pass's fit of the
+same entry ended, its model point kept, so that its first evaluation is free.
 """
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -12,7 +15,8 @@ import jaxcal.diagnosis.linearization as linearization
 from jaxcal.diagnosis.fitting import fit_model
 from jaxcal.diagnosis.kinds import build_library
 from jaxcal.diagnosis.prepare import prepare_data
-from jaxcal.diagnosis.screen import spec_for
+from jaxcal.diagnosis.screen import init_from, spec_for, warm_from
+from jaxcal.diagnosis.terms import model_inputs
 
 
 @pytest.fixture
@@ -58,3 +62,32 @@ def test_a_fit_at_its_optimum_stops_without_a_trial(engine, case, evaluations):
     assert len(evaluations) == 1
     assert again.converged and again.iterations == 0
     np.testing.assert_array_equal(again.params.global_coef, fit.params.global_coef)
+
+
+def test_warm_start_takes_the_earlier_fit_of_the_same_entry(engine, case):
+    data, null, cand = case
+    spec = spec_for(DECLARED, [cand])
+    fit = fit_model(engine, data, spec, init_from(null, engine, data, spec))
+    same = warm_from(fit, engine, data, spec)
+    np.testing.assert_array_equal(same.unit_coef, fit.params.unit_coef)
+    np.testing.assert_array_equal(same.global_coef, fit.params.global_coef)
+    # a natural step moved with the noise: the same physical size
+    rescaled = dataclasses.replace(cand, scale=2.0 * cand.scale)
+    moved = warm_from(fit, engine, data, spec_for(DECLARED, [rescaled]))
+    np.testing.assert_allclose(moved.global_coef, 0.5 * fit.params.global_coef)
+    # another form of the term is no warm start
+    units = cand.with_form("units", [0])
+    assert warm_from(fit, engine, data, spec_for(DECLARED, [units])) is None
+
+
+def test_a_remembered_end_point_is_not_evaluated_again(engine, case, evaluations):
+    data, null, cand = case
+    spec = spec_for(DECLARED, [cand])
+    fit = fit_model(engine, data, spec, init_from(null, engine, data, spec))
+    linearization._LINEARIZED.clear()
+    evaluations.clear()
+    inputs = model_inputs(engine, data, fit.layout, fit.params)
+    linearization.remember(engine, data, inputs, fit.evaluation.sig.lin)
+    again = fit_model(engine, data, spec, warm_from(fit, engine, data, spec))
+    assert evaluations == []  # the start served from the kept point, no trial
+    assert again.ssr == fit.ssr

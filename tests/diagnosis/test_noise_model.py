@@ -105,3 +105,16 @@ def test_what_a_flexible_fit_absorbs_is_given_back():
     raw_error = abs(np.mean(raw_estimates) - 0.7)
     assert raw_error > 0.06  # the bias is real ...
     assert abs(np.mean(estimates) - 0.7) < 0.5 * raw_error  # ... and mostly given back
+
+
+def test_a_noise_model_within_the_tolerance_has_settled():
+    """The noise passes stop when the refitted model is the one in use (pipeline
+    NOISE_SETTLED): a level, a coefficient or an order that moved is a change."""
+    old = NoiseModel.white(np.array([1.0, 2.0]), "estimated")
+    old = old._replace(ar=np.array([[0.5, 0, 0], [0, 0, 0]]), order=np.array([1, 0]))
+    assert old.settled(old, 0.0)
+    assert old.with_sigma([1.005, 1.99], "estimated").settled(old, 0.01)
+    assert not old.with_sigma([1.02, 2.0], "estimated").settled(old, 0.01)
+    moved = old._replace(ar=np.array([[0.52, 0, 0], [0, 0, 0]]))
+    assert not moved.settled(old, 0.01)
+    assert not old._replace(order=np.array([1, 1])).settled(old, 0.01)
