@@ -138,9 +138,10 @@ _EIGEN_SUMS = {(2, 4): True, (3, 4): False, (4, 2): False, (4, 3): False, (4, 4)
 
 
 def _product(a: Array, b: Array) -> Array:
-    """``a @ b`` (``[m, 4] @ [4, n]``) with the bits of XLA's CPU dot, written out as
-    products and sums that fuse with their neighbours (the module docstring), for
-    the shapes of :data:`_EIGEN_SUMS`; any other shape is the dot itself.
+    """``a @ b`` (``[m, 4] @ [4, n]``, float32) with the bits of XLA's CPU dot,
+    written out as products and sums that fuse with their neighbours (the module
+    docstring), for the shapes of :data:`_EIGEN_SUMS`; any other shape or dtype is
+    the dot itself.
 
     The order is Eigen's kernel's (measured on this CPU runtime against the dot,
     ``tests/envs/test_joint_filter.py``): with fused multiply-adds where it fuses
@@ -148,8 +149,11 @@ def _product(a: Array, b: Array) -> Array:
     feeds, so a product meant to be rounded on its own goes through a select it does
     not look through), a sum of zeros +0 as Eigen's (its accumulators start at +0).
     """
+    float32 = a.dtype == b.dtype == jnp.float32  # float64's kernel: not measured
+    if not (float32 and a.ndim == b.ndim == 2 and a.shape[1] == 4):
+        return a @ b
     pairwise = _EIGEN_SUMS.get((a.shape[0], b.shape[1]))
-    if a.ndim != 2 or a.shape[1] != 4 or pairwise is None:
+    if pairwise is None:
         return a @ b
     terms = [a[:, k, None] * b[None, k, :] for k in range(4)]
     rounded = [jnp.where(jnp.isnan(t), jnp.asarray(jnp.nan, t.dtype), t) for t in terms]
