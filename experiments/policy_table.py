@@ -28,6 +28,8 @@ import sys
 EFFECTS = ("clean", "bias 3σ", "drift 4σ", "gain 3σ", "AR(1) 0.8")
 # bench_deploy names the model as the run records it
 DEPLOY_NAMES = {"reactor": "cstr"}
+# the rows of a model, in this order (those its results hold)
+VARIANTS = ("start", "rl", "clean-tuned", "default", "effects", "theta", "both")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +90,7 @@ def table(after: dict, before: dict | None, deploy, deploy_before) -> list[str]:
             if data is None:
                 continue
             stream, fleet = _deploy(rows, model)
-            for variant in ("start", "rl", "default", "effects", "theta", "both"):
+            for variant in VARIANTS:
                 run = data["runs"].get(variant)
                 if run is None:
                     continue
@@ -167,9 +169,12 @@ def main(argv: list[str]) -> int:
         "fleet of 100 units), second calls, interleaved in one process; the cost "
         "does not depend on the weights, so it is shown once per model. After: "
         "`start` the untrained policy, `rl` the actor-critic as it was before the "
-        "tuning (six chunks, no tuning), `default` the default preset now (the "
-        "actor-critic with patience 2, then `tune.steps=400`: the actor tuned by "
-        "gradient through the filter, docs/policy.md). The turbofan "
+        "tuning (six chunks, no tuning), `clean-tuned` the default of the round "
+        "before (the actor-critic with patience 2, then `tune.steps=400`: the actor "
+        "tuned by gradient through the filter on clean units, docs/policy.md), "
+        "`default` the default preset now (the same tuning on units half of which "
+        "carry an effect, `tune.effects=0.5`: results/policy_robust/robust/). The "
+        "turbofan "
         f"(`{opts.turbofan}`, `experiments/policy_turbofan.py`, details in its "
         "`.md`): `default` the run of `make train`, `start` the same with "
         "`budget.num_chunks=0` (a randomly initialised actor: the turbofan's policy "
