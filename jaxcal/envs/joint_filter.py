@@ -119,7 +119,6 @@ def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: flo
     noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
     s = _product(h, pred) @ h.T + noise
     m_pred = _product(m, pred)
-    # (M C- H^T)^T as XLA computes it: H (M C-)^T
     gain = spd_solve(s, _product(h, m_pred.T)).T
     new_cov = _product(m_pred, m.T) - gain @ s @ gain.T
     new_cov = 0.5 * (new_cov + new_cov.T)
@@ -130,38 +129,23 @@ def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: flo
     return new_cov, feature, dz, du
 
 
-# (rows, columns) of a product over 4 terms that XLA's CPU dot hands to Eigen (not
-# both operands with a side of 3 or less, not a vector), and whether Eigen's kernel
-# sums the 4 products (p0 + p2) + (p1 + p3) each rounded (True: 2 result rows), or
-# in two fused multiply-add chains fma(p2, p0) + fma(p3, p1) (False)
-_EIGEN_SUMS = {(2, 4): True, (3, 4): False, (4, 2): False, (4, 3): False, (4, 4): False}
+# the longest contraction written out (:func:`_product`): the joint filter's states
+# plus parameters (the reactor's 2 + 2)
+_WRITTEN_OUT = 4
 
 
 def _product(a: Array, b: Array) -> Array:
-    """``a @ b`` (``[m, 4] @ [4, n]``, float32) with the bits of XLA's CPU dot,
-    written out as products and sums that fuse with their neighbours (the module
-    docstring), for the shapes of :data:`_EIGEN_SUMS`; any other shape or dtype is
-    the dot itself.
-
-    The order is Eigen's kernel's (measured on this CPU runtime against the dot,
-    ``tests/envs/test_joint_filter.py``): with fused multiply-adds where it fuses
-    (``fma(a_2, b_2, p_0)``: XLA's CPU compiler contracts a product into the sum it
-    feeds, so a product meant to be rounded on its own goes through a select it does
-    not look through), a sum of zeros +0 as Eigen's (its accumulators start at +0).
-    """
-    float32 = a.dtype == b.dtype == jnp.float32  # float64's kernel: not measured
-    if not (float32 and a.ndim == b.ndim == 2 and a.shape[1] == 4):
+    """``a @ b`` for a contraction of at most :data:`_WRITTEN_OUT` terms, written
+    out as a sum of outer products so that it fuses with its neighbours (the module
+    docstring); a longer one is the dot. Its rounding is not the dot's to the bit
+    (the dot's summation order is Eigen's): the training environment and the
+    deployed step both call this one function, so they agree with each other."""
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] > _WRITTEN_OUT:
         return a @ b
-    pairwise = _EIGEN_SUMS.get((a.shape[0], b.shape[1]))
-    if pairwise is None:
-        return a @ b
-    terms = [a[:, k, None] * b[None, k, :] for k in range(4)]
-    rounded = [jnp.where(jnp.isnan(t), jnp.asarray(jnp.nan, t.dtype), t) for t in terms]
-    if pairwise:
-        out = (rounded[0] + rounded[2]) + (rounded[1] + rounded[3])
-    else:  # XLA contracts the product of each sum into its fused multiply-add
-        out = (terms[2] + rounded[0]) + (terms[3] + rounded[1])
-    return jnp.where(out == 0, jnp.zeros_like(out), out)
+    out = a[:, 0, None] * b[None, 0, :]
+    for k in range(1, a.shape[1]):  # unrolled at trace time: 2-4 terms
+        out = out + a[:, k, None] * b[None, k, :]
+    return out
 
 
 def conditioned_state(z: Array, cov: Array, du_taken: Array, du_filter: Array):
