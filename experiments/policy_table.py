@@ -29,7 +29,16 @@ EFFECTS = ("clean", "bias 3σ", "drift 4σ", "gain 3σ", "AR(1) 0.8")
 # bench_deploy names the model as the run records it
 DEPLOY_NAMES = {"reactor": "cstr"}
 # the rows of a model, in this order (those its results hold)
-VARIANTS = ("start", "rl", "clean-tuned", "default", "effects", "theta", "both")
+VARIANTS = (
+    "start",
+    "rl",
+    "clean-tuned",
+    "box-2x",
+    "default",
+    "effects",
+    "theta",
+    "both",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,7 +182,9 @@ def main(argv: list[str]) -> int:
         "before (the actor-critic with patience 2, then `tune.steps=400`: the actor "
         "tuned by gradient through the filter on clean units, docs/policy.md), "
         "`default` the default preset now (the same tuning on units half of which "
-        "carry an effect, `tune.effects=0.5`: results/policy_robust/robust/). The "
+        "carry an effect, `tune.effects=0.5`, the units drawn across the box within "
+        "1.5x: results/policy_robust/robust/), `box-2x` the same with them within "
+        "2x (`tune.clean_tolerance=1.0`). The "
         "turbofan "
         f"(`{opts.turbofan}`, `experiments/policy_turbofan.py`, details in its "
         "`.md`): `default` the run of `make train`, `start` the same with "
