@@ -57,3 +57,21 @@ def synthetic(engine):
         )
 
     return make
+
+
+@pytest.fixture
+def evaluated_rows(monkeypatch):
+    """The row counts the model is linearised at (:func:`jaxcal.diagnosis.
+    linearization.linearize`, its cache of recent points emptied first)."""
+    import jaxcal.diagnosis.linearization as linearization
+
+    calls = []
+    original = linearization.linearize
+
+    def counted(model, w, *args, **kwargs):
+        calls.append(w.shape[0])
+        return original(model, w, *args, **kwargs)
+
+    monkeypatch.setattr(linearization, "linearize", counted)
+    monkeypatch.setattr(linearization, "_LINEARIZED", type(linearization._LINEARIZED)())
+    return calls

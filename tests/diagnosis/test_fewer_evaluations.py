@@ -34,32 +34,17 @@ def case(engine, synthetic):
     return data, null, cand
 
 
-@pytest.fixture
-def evaluations(monkeypatch):
-    """The row counts the model is evaluated at (cache emptied)."""
-    calls = []
-    original = linearization.linearize
-
-    def counted(model, w, *args, **kwargs):
-        calls.append(w.shape[0])
-        return original(model, w, *args, **kwargs)
-
-    monkeypatch.setattr(linearization, "linearize", counted)
-    monkeypatch.setattr(linearization, "_LINEARIZED", type(linearization._LINEARIZED)())
-    return calls
-
-
-def test_a_fit_at_its_optimum_stops_without_a_trial(engine, case, evaluations):
+def test_a_fit_at_its_optimum_stops_without_a_trial(engine, case, evaluated_rows):
     data, _, cand = case
     spec = spec_for(DECLARED, [cand])
     fit = fit_model(engine, data, spec)
     assert fit.converged
     linearization._LINEARIZED.clear()
-    evaluations.clear()
+    evaluated_rows.clear()
     again = fit_model(engine, data, spec, fit.params)
     # the start point only (its model point dropped from the cache just above): a
     # trial whose predicted gain is below the stop would have been a second
-    assert len(evaluations) == 1
+    assert len(evaluated_rows) == 1
     assert again.converged and again.iterations == 0
     np.testing.assert_array_equal(again.params.global_coef, fit.params.global_coef)
 
@@ -80,14 +65,14 @@ def test_warm_start_takes_the_earlier_fit_of_the_same_entry(engine, case):
     assert warm_from(fit, engine, data, spec_for(DECLARED, [units])) is None
 
 
-def test_a_remembered_end_point_is_not_evaluated_again(engine, case, evaluations):
+def test_a_remembered_end_point_is_not_evaluated_again(engine, case, evaluated_rows):
     data, null, cand = case
     spec = spec_for(DECLARED, [cand])
     fit = fit_model(engine, data, spec, init_from(null, engine, data, spec))
     linearization._LINEARIZED.clear()
-    evaluations.clear()
+    evaluated_rows.clear()
     inputs = model_inputs(engine, data, fit.layout, fit.params)
     linearization.remember(engine, data, inputs, fit.evaluation.sig.lin)
     again = fit_model(engine, data, spec, warm_from(fit, engine, data, spec))
-    assert evaluations == []  # the start served from the kept point, no trial
+    assert evaluated_rows == []  # the start served from the kept point, no trial
     assert again.ssr == fit.ssr

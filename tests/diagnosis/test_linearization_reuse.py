@@ -28,21 +28,6 @@ def point(engine, synthetic):
     return data, inputs._replace(theta=theta)
 
 
-@pytest.fixture
-def evaluated_rows(monkeypatch):
-    """The row counts :func:`linearize` is called with."""
-    calls = []
-    original = linearization.linearize
-
-    def counted(model, w, *args, **kwargs):
-        calls.append(w.shape[0])
-        return original(model, w, *args, **kwargs)
-
-    monkeypatch.setattr(linearization, "linearize", counted)
-    monkeypatch.setattr(linearization, "_LINEARIZED", type(linearization._LINEARIZED)())
-    return calls
-
-
 def test_a_point_near_a_kept_one_evaluates_only_its_changed_rows(
     engine, point, evaluated_rows
 ):
