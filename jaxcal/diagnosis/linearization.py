@@ -335,24 +335,37 @@ def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
     return None
 
 
+def _point(model, data, rows) -> tuple:
+    """``(key, outputs, w digest)`` of a point linearised on ``data``'s outputs at
+    the row inputs ``rows`` (theta, effects, w offset): the key is their bytes."""
+    outputs = tuple(int(i) for i in data.sensor_idx)
+    w_digest = _digest(data.w)
+    return (model, outputs, w_digest + _digest(*rows)), outputs, w_digest
+
+
+def _keep(key, lin: Linearization, w_digest, rows) -> _Kept:
+    """Keep ``lin`` under ``key`` as the most recent point (a copy of ``rows``,
+    read-only), the least recent one dropped past :data:`LINEARIZATIONS_KEPT`."""
+    rows = tuple(np.array(a, np.float64) for a in rows)
+    for arr in rows:
+        arr.setflags(write=False)
+    entry = _Kept(lin, w_digest, rows)
+    _LINEARIZED[key] = entry
+    _LINEARIZED.move_to_end(key)
+    while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
+        _LINEARIZED.popitem(last=False)
+    return entry
+
+
 def remember(model, data, inputs, lin: Linearization) -> None:
     """Keep ``lin``, taken at ``inputs`` (a
     :class:`~jaxcal.diagnosis.signatures.RowInputs`) on ``data``'s outputs, as if
     just linearised there: a fit started where an earlier one ended (the next noise
     pass's refit of the same entry) finds its first evaluation here."""
-    outputs = tuple(int(i) for i in data.sensor_idx)
-    if lin.outputs != outputs:
-        return
-    rows = tuple(np.array(a, np.float64) for a in
-                 (inputs.theta, inputs.effects, inputs.w_offset))  # fmt: skip
-    for arr in rows:
-        arr.setflags(write=False)
-    w_digest = _digest(data.w)
-    key = (model, outputs, w_digest + _digest(*rows))
-    _LINEARIZED[key] = _Kept(lin, w_digest, rows)
-    _LINEARIZED.move_to_end(key)
-    while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
-        _LINEARIZED.popitem(last=False)
+    rows = (inputs.theta, inputs.effects, inputs.w_offset)
+    key, outputs, w_digest = _point(model, data, rows)
+    if lin.outputs == outputs:
+        _keep(key, lin, w_digest, rows)
 
 
 def _linearized(model, data, inputs, directions) -> Linearization:
@@ -361,10 +374,8 @@ def _linearized(model, data, inputs, directions) -> Linearization:
     least the derivatives ``directions``, reused when the same point was linearised
     lately with them (the key is the inputs' bytes, not their identity), or pieced
     from a near one (:data:`PIECED_SHARE`)."""
-    outputs = tuple(int(i) for i in data.sensor_idx)
     rows = (inputs.theta, inputs.effects, inputs.w_offset)
-    w_digest = _digest(data.w)
-    key = (model, outputs, w_digest + _digest(*rows))
+    key, outputs, w_digest = _point(model, data, rows)
     entry = _LINEARIZED.get(key)
     if entry is None or not entry.lin.covers(directions):
         lin = _pieced(model, data.w, w_digest, outputs, rows, directions)
@@ -373,12 +384,6 @@ def _linearized(model, data, inputs, directions) -> Linearization:
                             directions=directions)  # fmt: skip
         for arr in lin.arrays():
             arr.setflags(write=False)  # shared by every caller at this point
-        rows = tuple(np.array(a, np.float64) for a in rows)
-        for arr in rows:
-            arr.setflags(write=False)
-        entry = _Kept(lin, w_digest, rows)
-        _LINEARIZED[key] = entry
-        while len(_LINEARIZED) > LINEARIZATIONS_KEPT:
-            _LINEARIZED.popitem(last=False)
+        entry = _keep(key, lin, w_digest, rows)
     _LINEARIZED.move_to_end(key)
     return entry.lin

@@ -200,13 +200,9 @@ def ljung_box_p(e: np.ndarray, lags: int = WHITENESS_LAGS) -> np.ndarray:
         if not np.std(x) > 0:
             continue
         xo = x - x.mean()
-        acov = np.empty(lags + 1)  # statsmodels' acovf: the lag's dot product / N
-        acov[0] = xo.dot(xo)
-        for k in range(1, lags + 1):
-            acov[k] = xo[k:].dot(xo[:-k])
-        acov = acov / (n * np.ones(lags + 1))
+        lagged = [xo[k:].dot(xo[:-k]) for k in range(1, lags + 1)]
+        acov = np.array([xo.dot(xo), *lagged]) / n  # statsmodels' acovf
         sacf = acov / acov[0]
-        sacf2 = sacf[1:] ** 2 / (n - np.arange(1, lags + 1))
-        q = n * (n + 2) * np.cumsum(sacf2)[np.array([lags]) - 1]
-        out[s] = float(stats.chi2.sf(q, np.array([lags]))[0])
+        q = n * (n + 2) * np.cumsum(sacf[1:] ** 2 / (n - np.arange(1, lags + 1)))[-1]
+        out[s] = float(stats.chi2.sf(q, lags))
     return out
