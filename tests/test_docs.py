@@ -121,9 +121,7 @@ def _parsers():
         "jaxcal.evaluate": evaluate.parse_args,
         "jaxcal.generate": generate.parse_args,
         "jaxcal.fleet": fleet.parse_args,
-        "jaxcal.diagnose": lambda a: diagnose.parse_overrides(
-            a, diagnose.DiagnoseConfig()
-        ),
+        "jaxcal.diagnose": diagnose.parse_args,
     }
 
 

@@ -6,13 +6,14 @@ one, and the documented ``--flag value`` spellings as ``key=value`` tokens. Pars
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import re
 import typing
 from collections.abc import Sequence
 from typing import Any
 
-from jaxcal.settings import UnknownKeyError
+from jaxcal.settings import UnknownKeyError, parse_overrides
 
 # ``key=`` and ``--flag`` spellings of a usage line: keys a command line takes beyond
 # its config's fields (train's ``outputs=``, ``test_units=``), offered as suggestions.
@@ -122,3 +123,64 @@ def flags_as_overrides(
             value = tokens.pop(0)
         out.append(f"{flags[name]}={value}")
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ClusterArgs:
+    """The ``jax.distributed`` settings of a command line (``key=value`` or the
+    documented flags, :data:`CLUSTER_FLAGS`); ``None``: from the environment
+    (:func:`jaxcal.fleet.distributed.process_settings`)."""
+
+    coordinator: str | None = None  # HOST:PORT of process 0
+    num_processes: int | None = None
+    process_id: int | None = None
+    local_devices: int | None = None  # CPU devices of this process
+
+    def resolve(self) -> dict:
+        """The keyword arguments of :func:`jaxcal.fleet.distributed.initialize`:
+        ``coordinator``, ``num_processes``, ``process_id`` (each from its flag,
+        else its ``JAXCAL_*`` variable), ``local_device_count``.
+
+        Raises:
+            ValueError: naming the bad setting and the expected form.
+        """
+        from jaxcal.fleet.distributed import process_settings
+
+        coordinator, num_processes, process_id = process_settings(
+            self.coordinator, self.num_processes, self.process_id
+        )
+        return {
+            "coordinator": coordinator,
+            "num_processes": num_processes,
+            "process_id": process_id,
+            "local_device_count": self.local_devices,
+        }
+
+
+CLUSTER_FLAGS = {
+    "--coordinator": "coordinator",
+    "--num-processes": "num_processes",
+    "--process-id": "process_id",
+    "--local-devices": "local_devices",
+}
+CLUSTER_USAGE = (
+    "[--coordinator HOST:PORT --num-processes N --process-id I] [--local-devices K]"
+)
+
+
+def split_cluster_args(argv: Sequence[str]) -> tuple[list[str], ClusterArgs]:
+    """A command line's cluster settings (the flags of :data:`CLUSTER_FLAGS`, or their
+    ``key=value`` form) apart from its other ``key=value`` tokens.
+
+    Returns:
+        ``(other tokens, settings)``; :meth:`ClusterArgs.resolve` completes the
+        settings from the environment.
+
+    Raises:
+        ValueError: an unknown flag, a flag without its value or a bad value.
+    """
+    tokens = flags_as_overrides(argv, CLUSTER_FLAGS)
+    keys = set(CLUSTER_FLAGS.values())
+    ours = [t for t in tokens if t.partition("=")[0].strip() in keys]
+    rest = [t for t in tokens if t.partition("=")[0].strip() not in keys]
+    return rest, parse_overrides(ours, ClusterArgs())

@@ -27,6 +27,16 @@ row per flight. Every data set is subsampled evenly within units down to ``max_r
 ``report.md`` and ``report.json`` say how many (per column); ``rename=T_24:T24`` maps
 column names, ``ignore=a,b`` leaves table columns out. float64 is enabled here, at
 the entry point.
+
+On several processes (``jax.distributed``: the same command on each, with its own
+``--process-id``; or the ``JAXCAL_COORDINATOR`` / ``JAXCAL_NUM_PROCESSES`` /
+``JAXCAL_PROCESS_ID`` variables, as ``python -m jaxcal.fleet``), every process reads
+the data and runs the same diagnosis; the model's evaluations are split by units and
+gathered (:mod:`jaxcal.diagnosis.sharding`), so each process reaches the verdict of
+one process. Process 0 alone writes the report and prints the verdict line::
+
+    python -m jaxcal.diagnose data=fleet.csv calibrate=wear model=pump.py:PUMP \\
+        --coordinator 10.0.0.1:12355 --num-processes 2 --process-id 0
 """
 
 from __future__ import annotations
@@ -36,13 +46,13 @@ import os
 import sys
 import time
 
-from jaxcal.cli.args import parse_command_line
+from jaxcal.cli.args import CLUSTER_USAGE, parse_command_line, split_cluster_args
 from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
 
 USAGE = (
     "usage: python -m jaxcal.diagnose data=FILE calibrate=A,B [model=SPEC] [out=DIR] "
     "[units=1,2] [outputs=A,B] [max_rows=N] [kinds=K,...] [rename=FILE:MODEL,...] "
-    "[ignore=A,B] [key=value ...]"
+    f"[ignore=A,B] [key=value ...] {CLUSTER_USAGE}"
 )
 
 
@@ -78,6 +88,17 @@ class DiagnoseConfig:
     @property
     def residual_outputs(self) -> list[str] | None:
         return list(self.outputs or self.sensors) or None
+
+
+def parse_args(argv: list[str]) -> tuple[DiagnoseConfig, dict]:
+    """The config and the cluster settings of a command line (``cluster``: the
+    keyword arguments of :func:`jaxcal.fleet.distributed.initialize`).
+
+    Raises:
+        ValueError: naming the bad key or flag and the expected form.
+    """
+    rest, flags = split_cluster_args(argv)
+    return parse_overrides(rest, DiagnoseConfig()), flags.resolve()
 
 
 def _rename(cfg: DiagnoseConfig) -> dict:
@@ -138,13 +159,16 @@ def output_dir(cfg: DiagnoseConfig) -> str:
 
 
 def run(cfg: DiagnoseConfig) -> dict:
-    """Diagnose ``cfg.data`` and write the report; returns the report dict."""
+    """Diagnose ``cfg.data`` and write the report (process 0 of a cluster); returns
+    the report dict."""
+    import jax
+
     from jaxcal.cache import enable_compilation_cache
     from jaxcal.diagnosis.discrepancy import DiscrepancyConfig
     from jaxcal.diagnosis.identify import IdentifyConfig
     from jaxcal.diagnosis.markdown import dropped_rows_line
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-    from jaxcal.diagnosis.report import write_report
+    from jaxcal.diagnosis.report import report_dict, write_report
     from jaxcal.models import load
     from jaxcal.precision import enable_x64
 
@@ -164,6 +188,7 @@ def run(cfg: DiagnoseConfig) -> dict:
         identify=IdentifyConfig(alpha=cfg.alpha, bic_margin=cfg.bic_margin),
         discrepancy=DiscrepancyConfig(margin=cfg.bic_margin),
     )
+    writer = jax.process_index() == 0  # on a cluster, process 0 alone writes
     start = time.time()
     res = diagnose(
         data,
@@ -172,13 +197,16 @@ def run(cfg: DiagnoseConfig) -> dict:
         loop_cfg,
         sensors=cfg.residual_outputs,
         max_rows=cfg.max_rows or None,
-        progress=True,
+        progress=writer,
     )
     config = {
         **config_to_dict(cfg),
         "loop": config_to_dict(loop_cfg),
         "seconds": time.time() - start,
     }
+    if not writer:
+        rep = report_dict(res, source=cfg.data, model=model.name, config=config)
+        return {**rep, "out": out}
     rep = write_report(
         out, res, source=cfg.data, model=model.name, config=config,
         base_spec=cfg.model_spec,
@@ -195,16 +223,24 @@ def run(cfg: DiagnoseConfig) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (0 done, 2 bad arguments or data)."""
-    cfg, code = parse_command_line(
-        argv, lambda args: parse_overrides(args, DiagnoseConfig()), __doc__, USAGE
-    )
+    parsed, code = parse_command_line(argv, parse_args, __doc__, USAGE)
     if code is not None:
         return code
+    cfg, cluster = parsed
+    from jaxcal.fleet.distributed import initialize
+
+    try:  # before any JAX computation
+        initialize(**cluster)
+    except RuntimeError as err:
+        print(f"jaxcal.diagnose: {err}", file=sys.stderr)
+        return 1
     try:
         rep = run(cfg)
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxcal.diagnose: {err}", file=sys.stderr)
         return 2
+    if cluster["process_id"] != 0:
+        return 0
     from jaxcal.diagnosis.markdown import effect_line
 
     units = rep["data"]["units"]

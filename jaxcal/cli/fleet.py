@@ -62,15 +62,14 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from jaxcal.cli.args import flags_as_overrides, parse_command_line
+from jaxcal.cli.args import CLUSTER_USAGE, parse_command_line, split_cluster_args
 from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
 from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
 
 USAGE = (
     "usage: python -m jaxcal.fleet data=FILE out=OUT.h5 [model=SPEC] "
     "[method=ukf|ls|e2e|policy] [run=RUN_DIR] [noise=NAME:STD,...|STD] "
-    "[field=value ...] [option=value ...] "
-    "[--coordinator HOST:PORT --num-processes N --process-id I] [--local-devices K]"
+    f"[field=value ...] [option=value ...] {CLUSTER_USAGE}"
 )
 
 
@@ -105,26 +104,6 @@ class FleetConfig:
 FLEET_KEYS = tuple(
     f.name for f in dataclasses.fields(FleetConfig) if f.name != "options"
 )
-
-
-@dataclasses.dataclass(frozen=True)
-class ClusterArgs:
-    """The ``jax.distributed`` settings of a command line (``key=value`` or the
-    documented flags, :data:`CLUSTER_FLAGS`); ``None``: from the environment
-    (:func:`jaxcal.fleet.distributed.process_settings`)."""
-
-    coordinator: str | None = None  # HOST:PORT of process 0
-    num_processes: int | None = None
-    process_id: int | None = None
-    local_devices: int | None = None  # CPU devices of this process
-
-
-CLUSTER_FLAGS = {
-    "--coordinator": "coordinator",
-    "--num-processes": "num_processes",
-    "--process-id": "process_id",
-    "--local-devices": "local_devices",
-}
 
 
 def _split_tokens(tokens: list[str]) -> tuple[list[str], list[tuple]]:
@@ -172,15 +151,9 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     Raises:
         ValueError: naming the bad key, option or flag and the expected form.
     """
-    from jaxcal.fleet.distributed import process_settings
     from jaxcal.fleet.sources import is_ncmapss
 
-    tokens = flags_as_overrides(argv, CLUSTER_FLAGS)
-    keys = set(CLUSTER_FLAGS.values())
-    flags = parse_overrides(
-        [t for t in tokens if t.partition("=")[0].strip() in keys], ClusterArgs()
-    )
-    rest = [t for t in tokens if t.partition("=")[0].strip() not in keys]
+    rest, flags = split_cluster_args(argv)
     fleet_tokens, option_tokens = _split_tokens(rest)
     cfg = parse_overrides(fleet_tokens, FleetConfig())
     method = canonical(cfg.method)
@@ -208,16 +181,7 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
         raise ValueError(
             f"theta0 needs one value per theta name ({len(cfg.theta)} values)"
         )
-    coordinator, num_processes, process_id = process_settings(
-        flags.coordinator, flags.num_processes, flags.process_id
-    )
-    cluster = {
-        "coordinator": coordinator,
-        "num_processes": num_processes,
-        "process_id": process_id,
-        "local_device_count": flags.local_devices,
-    }
-    return cfg, cluster
+    return cfg, flags.resolve()
 
 
 def theta_rmse(path: str, block_rows: int = 1 << 20) -> list[float] | None:

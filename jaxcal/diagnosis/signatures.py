@@ -44,6 +44,7 @@ from jaxcal.diagnosis.linearization import (  # noqa: F401 (CHUNK_ROWS, lineariz
     _linearized,
     linearize,
 )
+from jaxcal.diagnosis.sharding import evaluate_split
 from jaxcal.model import Model
 from jaxcal.precision import require_x64
 
@@ -216,12 +217,16 @@ def _stateful(model, data, inputs: RowInputs, tangents) -> Signatures:
         else:
             d_z0[q, :, tan.index] = np.asarray(tan.profile)[first]
     pad = functools.partial(_pad, data, length=length)
-    x, valid, dx = _simulate(
-        model, jnp.asarray(pad(data.w)), jnp.asarray(pad(inputs.theta)),
-        jnp.asarray(pad(inputs.w_offset)), jnp.asarray(inputs.z0),
-        jnp.asarray(mask), jnp.asarray(np.stack([pad(d) for d in d_theta])),
-        jnp.asarray(np.stack([pad(d) for d in d_w])), jnp.asarray(d_z0),
-    )  # fmt: skip
+    per_unit = (pad(data.w), pad(inputs.theta), pad(inputs.w_offset), inputs.z0, mask)
+    d_theta, d_w = np.stack([pad(d) for d in d_theta]), np.stack([pad(d) for d in d_w])
+
+    def simulate(start, stop):  # units start .. stop - 1
+        units = [jnp.asarray(a[start:stop]) for a in per_unit]
+        tangents = [jnp.asarray(d[:, start:stop]) for d in (d_theta, d_w, d_z0)]
+        return tuple(np.asarray(a) for a in _simulate(model, *units, *tangents))
+
+    # on a cluster, each process simulates its block of units (.sharding)
+    x, valid, dx = evaluate_split(simulate, data.num_units)
     used = data.sensor_idx
     x = _unpad(data, np.asarray(x))[:, used]
     ok = _unpad(data, np.asarray(valid)).astype(bool) & np.all(np.isfinite(x), axis=1)

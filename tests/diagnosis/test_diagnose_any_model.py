@@ -43,11 +43,10 @@ PUMP = jaxcal.Model.from_function(
 NOISE = np.array([0.1, 1.0, 0.05])  # head m, power kW, t_out K
 
 
-def _write_csv(path, t_out_bias):
-    """Four units x 50 time steps at six duty points, wear drifting 0 -> 0.1, noise
-    and an optional bias on t_out."""
+def _write_csv(path, t_out_bias, units=4, steps=50):
+    """``units`` units x ``steps`` time steps (default 4 x 50) at six duty points,
+    wear drifting 0 -> 0.1, noise and an optional bias on t_out."""
     rng = np.random.default_rng(0)
-    units, steps = 4, 50
     n = units * steps
     # six duty points (a plant runs at a few set points), each with a little jitter
     points = np.stack(

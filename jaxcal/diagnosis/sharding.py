@@ -1,0 +1,90 @@
+"""The diagnosis's model evaluations split over the processes of a JAX cluster.
+
+A diagnosis on several ``jax.distributed`` processes (``python -m jaxcal.diagnose
+--num-processes 2 ...``, :func:`jaxcal.fleet.distributed.initialize`) is
+multi-controller: every process runs the same diagnosis on the same rows, and only
+its hot part, the model's evaluation, is divided. Each process evaluates its own
+contiguous block of the items (a static model's row chunks, rows ordered by unit:
+a block of units; a model with memory's units), the blocks are exchanged with
+``process_allgather``, and every process holds the whole fleet's outputs and
+Jacobians. The host algebra after it (fits, noise models, tests, the fleet-wide
+criterion and the verdict) then runs in every process on the same arrays, so every
+process reaches the same verdict: a row's or a unit's evaluation does not depend on
+the others evaluated with it (vmapped; bitwise the same, checked in
+``tests/diagnosis/test_two_processes.py``), and the collectives come in the same
+order everywhere because the program and its data are the same.
+
+With one process, or fewer blocks than processes (a few changed rows evaluated
+again), every process evaluates everything itself: no exchange, and one process
+runs exactly the code it ran before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+
+def evaluate_split(
+    evaluate: Callable[[int, int], tuple[np.ndarray, ...]],
+    num_items: int,
+    block: int = 1,
+) -> tuple[np.ndarray, ...]:
+    """``evaluate(0, num_items)``, computed by the processes of the cluster together.
+
+    Args:
+        evaluate: ``(start, stop) -> arrays``, each with ``stop - start`` items on
+            its leading axis (the items ``start .. stop - 1``); deterministic, and
+            an item's values independent of the others in the call.
+        num_items: items in all.
+        block: the items are divided in whole blocks of this many (a static
+            model's compiled chunk of rows), contiguous, process 0's first.
+
+    Returns:
+        The arrays of ``evaluate(0, num_items)``, the same in every process.
+    """
+    num_processes = jax.process_count()
+    num_blocks = -(-num_items // block)
+    if num_processes == 1 or num_blocks < num_processes:
+        return tuple(evaluate(0, num_items))
+    # imported here: one process never needs the cluster's code (nor h5py)
+    from jax.experimental import multihost_utils
+
+    from jaxcal.fleet.distributed import process_share
+
+    blocks = np.arange(num_blocks)
+    bounds = []
+    for process in range(num_processes):
+        mine = process_share(blocks, process, num_processes)
+        bounds.append((int(mine[0]) * block, min(int(mine[-1] + 1) * block, num_items)))
+    size = max(stop - start for start, stop in bounds)
+    start, stop = bounds[jax.process_index()]
+    local = [np.asarray(a) for a in evaluate(start, stop)]
+    for a in local:
+        if a.shape[:1] != (stop - start,):
+            raise ValueError(
+                f"evaluate_split: evaluate({start}, {stop}) returned an array of "
+                f"shape {a.shape}, expected {stop - start} items on its first axis"
+            )
+    # the same shape in every process (process_allgather's contract): pad to the
+    # largest share; booleans travel as bytes
+    padded = tuple(_padded(a, size) for a in local)
+    gathered = multihost_utils.process_allgather(padded, tiled=False)
+    out = []
+    for mine, stacked in zip(local, gathered, strict=True):
+        stacked = np.asarray(stacked)
+        parts = [stacked[p, : b - a] for p, (a, b) in enumerate(bounds)]
+        out.append(np.concatenate(parts).astype(mine.dtype, copy=False))
+    return tuple(out)
+
+
+def _padded(arr: np.ndarray, size: int) -> np.ndarray:
+    """``arr`` with zeros after its items up to ``size`` (``bool`` as ``uint8``)."""
+    arr = arr.astype(np.uint8) if arr.dtype == np.bool_ else arr
+    if arr.shape[0] == size:
+        return arr
+    return np.concatenate(
+        [arr, np.zeros((size - arr.shape[0],) + arr.shape[1:], arr.dtype)]
+    )
