@@ -21,6 +21,7 @@ runs exactly the code it ran before.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import jax
@@ -68,21 +69,46 @@ def evaluate_split(
                 f"evaluate_split: evaluate({start}, {stop}) returned an array of "
                 f"shape {a.shape}, expected {stop - start} items on its first axis"
             )
-    # the same shape in every process (process_allgather's contract): pad to the
-    # largest share; booleans travel as bytes
-    padded = tuple(_padded(a, size) for a in local)
-    gathered = multihost_utils.process_allgather(padded, tiled=False)
-    out = []
-    for mine, stacked in zip(local, gathered, strict=True):
-        stacked = np.asarray(stacked)
-        parts = [stacked[p, : b - a] for p, (a, b) in enumerate(bounds)]
-        out.append(np.concatenate(parts).astype(mine.dtype, copy=False))
+    # one exchange of bytes: the arrays padded to the largest share (the same
+    # shape in every process, process_allgather's contract), booleans as bytes
+    padded = [_padded(a, size) for a in local]
+    flat = np.concatenate([a.view(np.uint8).ravel() for a in padded])
+    _wait_for_all()
+    stacked = np.asarray(multihost_utils.process_allgather(flat, tiled=False))
+    out, offset = [], 0
+    for mine, pad in zip(local, padded, strict=True):
+        part = np.ascontiguousarray(stacked[:, offset : offset + pad.nbytes])
+        offset += pad.nbytes
+        part = part.view(pad.dtype).reshape((num_processes,) + pad.shape)
+        pieces = [part[p, : b - a] for p, (a, b) in enumerate(bounds)]
+        out.append(np.concatenate(pieces).astype(mine.dtype, copy=False))
     return tuple(out)
 
 
+# How long a process waits at an exchange for the others. The CPU collectives
+# (gloo) give up after 30 s, and a process can fall further behind than that (it
+# compiles a program the other read from the disk cache, or the machine is busy):
+# the exchange starts once every process has reached it (a process that died
+# holds the others at most this long).
+WAIT_FOR_ALL_S = 1800
+_BARRIERS = itertools.count()  # the same sequence in every process
+
+
+def _wait_for_all() -> None:
+    """Block until every process reaches this point (the cluster's coordination
+    service, not a collective: no 30 s limit)."""
+    from jax._src import distributed  # JAX's own savers wait on its client this way
+
+    client = distributed.global_state.client
+    if client is not None:
+        barrier = f"jaxcal.diagnosis.sharding.{next(_BARRIERS)}"
+        client.wait_at_barrier(barrier, timeout_in_ms=WAIT_FOR_ALL_S * 1000)
+
+
 def _padded(arr: np.ndarray, size: int) -> np.ndarray:
-    """``arr`` with zeros after its items up to ``size`` (``bool`` as ``uint8``)."""
-    arr = arr.astype(np.uint8) if arr.dtype == np.bool_ else arr
+    """``arr`` with zeros after its items up to ``size`` (``bool`` as ``uint8``),
+    C-contiguous."""
+    arr = np.ascontiguousarray(arr.astype(np.uint8) if arr.dtype == np.bool_ else arr)
     if arr.shape[0] == size:
         return arr
     return np.concatenate(
