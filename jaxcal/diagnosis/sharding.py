@@ -69,20 +69,39 @@ def evaluate_split(
                 f"evaluate_split: evaluate({start}, {stop}) returned an array of "
                 f"shape {a.shape}, expected {stop - start} items on its first axis"
             )
-    # one exchange of bytes: the arrays padded to the largest share (the same
-    # shape in every process, process_allgather's contract), booleans as bytes
-    padded = [_padded(a, size) for a in local]
-    flat = np.concatenate([a.view(np.uint8).ravel() for a in padded])
+    # one exchange of bytes: each array padded to the largest share (the same shape
+    # in every process, process_allgather's contract), booleans as bytes; the
+    # fleet's Jacobians are the diagnosis's memory: one copy of them at a time
+    kinds = [(a.dtype, (size,) + a.shape[1:]) for a in local]
+    sizes = [
+        int(np.prod(shape)) * np.dtype(_wire(dtype)).itemsize for dtype, shape in kinds
+    ]
+    flat = np.zeros(sum(sizes), np.uint8)
+    offset = 0
+    for a, nbytes in zip(local, sizes, strict=True):
+        wire = np.ascontiguousarray(a, _wire(a.dtype)).view(np.uint8).ravel()
+        flat[offset : offset + wire.size] = wire
+        offset += nbytes
+    del local, wire
     _wait_for_all()
     stacked = np.asarray(multihost_utils.process_allgather(flat, tiled=False))
+    del flat
     out, offset = [], 0
-    for mine, pad in zip(local, padded, strict=True):
-        part = np.ascontiguousarray(stacked[:, offset : offset + pad.nbytes])
-        offset += pad.nbytes
-        part = part.view(pad.dtype).reshape((num_processes,) + pad.shape)
-        pieces = [part[p, : b - a] for p, (a, b) in enumerate(bounds)]
-        out.append(np.concatenate(pieces).astype(mine.dtype, copy=False))
+    for (dtype, shape), nbytes in zip(kinds, sizes, strict=True):
+        pieces = [
+            stacked[p, offset : offset + nbytes]
+            .view(_wire(dtype))
+            .reshape(shape)[: b - a]
+            for p, (a, b) in enumerate(bounds)
+        ]
+        out.append(np.concatenate(pieces).astype(dtype, copy=False))
+        offset += nbytes
     return tuple(out)
+
+
+def _wire(dtype) -> np.dtype:
+    """The type an array travels as (``bool`` as ``uint8``)."""
+    return np.dtype(np.uint8) if dtype == np.bool_ else np.dtype(dtype)
 
 
 # How long a process waits at an exchange for the others. The CPU collectives
@@ -103,14 +122,3 @@ def _wait_for_all() -> None:
     if client is not None:
         barrier = f"jaxcal.diagnosis.sharding.{next(_BARRIERS)}"
         client.wait_at_barrier(barrier, timeout_in_ms=WAIT_FOR_ALL_S * 1000)
-
-
-def _padded(arr: np.ndarray, size: int) -> np.ndarray:
-    """``arr`` with zeros after its items up to ``size`` (``bool`` as ``uint8``),
-    C-contiguous."""
-    arr = np.ascontiguousarray(arr.astype(np.uint8) if arr.dtype == np.bool_ else arr)
-    if arr.shape[0] == size:
-        return arr
-    return np.concatenate(
-        [arr, np.zeros((size - arr.shape[0],) + arr.shape[1:], arr.dtype)]
-    )

@@ -36,8 +36,8 @@ def _comparable(rep: dict) -> dict:
 
 @pytest.fixture(scope="module")
 def static_runs(tmp_path_factory):
-    """``(one process's report, its console, the two processes' folder, their
-    stdouts)`` of the pump's diagnosis."""
+    """``(folder, command line, the two processes' stdouts)`` of the pump's
+    diagnosis on two processes (its report in ``folder/two``)."""
     tmp = tmp_path_factory.mktemp("two_processes")
     data = _write_csv(tmp / "pump.csv", t_out_bias=0.5, units=6, steps=100)
     argv = [f"model={any_model.__file__}:PUMP", f"data={data}", "calibrate=wear"]

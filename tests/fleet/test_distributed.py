@@ -3,13 +3,12 @@ CPU devices each, calibrate one analytic fleet; the gathered results equal the
 single-process ``run_fleet`` results."""
 
 import os
-import socket
-import subprocess
 import sys
 
 import numpy as np
 import pytest
 from fleet_worker import problem, reference, ukf
+from support.processes import free_port, run_processes
 
 from jaxcal.fleet.distributed import (
     initialize,
@@ -22,43 +21,16 @@ WORKER = os.path.join(os.path.dirname(__file__), "fleet_worker.py")
 TIMEOUT_S = 240
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def two_process_run(tmp_path_factory):
     out_dir = tmp_path_factory.mktemp("distributed")
     port = str(free_port())
-    env = {
-        **os.environ,
-        "JAX_PLATFORMS": "cpu",
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-    }
-    procs = [
-        subprocess.Popen(
-            [sys.executable, WORKER, "distributed", str(out_dir), port, str(i)],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+    commands = [
+        [sys.executable, WORKER, "distributed", str(out_dir), port, str(i)]
         for i in range(2)
     ]
-    errors = []
-    for i, proc in enumerate(procs):
-        try:
-            _, stderr = proc.communicate(timeout=TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            for other in procs:
-                other.kill()
-            _, stderr = proc.communicate()
-            errors.append(f"process {i} timed out after {TIMEOUT_S} s:\n{stderr}")
-            continue
-        if proc.returncode != 0:
-            errors.append(f"process {i} exited {proc.returncode}:\n{stderr}")
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    _, errors = run_processes(commands, env, TIMEOUT_S)
     if errors:
         pytest.fail("\n\n".join(errors))
     return out_dir
