@@ -154,3 +154,23 @@ def test_a_user_models_program_is_kept_by_what_it_computes(tmp_path):
         capture_output=True, text=True,
     )  # fmt: skip
     assert out.returncode == 7, out.stderr
+
+
+def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypatch):
+    import jax
+    import jax.numpy as jnp
+
+    from jaxcal import cache
+    from jaxcal.calibrators import on_disk
+
+    cache.return_freed_heap()  # glibc's malloc_trim here; a no-op elsewhere
+    monkeypatch.setattr(cache, "is_enabled", lambda: True)
+    monkeypatch.setattr(cache, "program_directory", lambda: str(tmp_path))
+    trims = []
+    monkeypatch.setattr(cache, "return_freed_heap", lambda: trims.append(1))
+    run = on_disk.kept(jax.jit(lambda x: 2.0 * x), ("test", "double"))
+    assert float(run(jnp.ones(3))[0]) == 2.0
+    run(jnp.ones(3))
+    assert len(trims) == 1  # the first call of a signature only
+    run(jnp.ones(4))
+    assert len(trims) == 2

@@ -102,9 +102,12 @@ def kept(fn: Callable, key: tuple | None) -> Callable:
         leaves, tree = jax.tree.flatten(args)
         signature = (str(tree),) + tuple((np.shape(a), _dtype_name(a)) for a in leaves)
         call = calls.get(signature)
-        if call is None:
-            call = calls[signature] = _exported(fn, key, signature, args)
-        return call(*args)
+        if call is not None:
+            return call(*args)
+        call = calls[signature] = _exported(fn, key, signature, args)
+        out = call(*args)  # compiles or loads the executable, then dispatches
+        cache.return_freed_heap()
+        return out
 
     return run
 
