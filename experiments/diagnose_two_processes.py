@@ -5,7 +5,8 @@ the wall time of each.
 Usage::
 
     python experiments/diagnose_two_processes.py [units=1000] [processes=2]
-        [kind=sensor_bias] [seed=0] [out=results/loop/scaling/two_processes.json]
+        [kind=sensor_bias] [seed=0] [pin=false]
+        [out=results/loop/scaling/two_processes.json]
 
 1. The fleet of ``profile_diagnosis.py data=synthetic`` (the loop study's record,
    noise levels known) is made once, in a child process, and kept in a temporary
@@ -13,7 +14,9 @@ Usage::
 2. One process diagnoses it; then (after it, not beside it) ``processes`` processes
    joined on localhost (:func:`jaxcal.fleet.distributed.initialize`), which split the
    model's evaluations by units (:mod:`jaxcal.diagnosis.sharding`). Each process
-   writes its report (``report.json``'s content without the stage seconds).
+   writes its report (``report.json``'s content without the stage seconds). With
+   ``pin=true`` process ``i`` runs on core ``i`` alone (the one process on core 0):
+   the machine as one-core hosts.
 3. Prints one JSON object: per run the wall seconds from the start of the processes
    to the last one's exit (``wall_s``: imports, programs and data loaded included)
    and of the diagnosis alone in each process, peak resident memory, the machine's
@@ -46,6 +49,9 @@ class TwoProcessConfig:
     kind: str = "sensor_bias"  # the fleet's effect (loop_study kinds)
     seed: int = 0
     timeout_s: int = 3600  # per run
+    # each process on its own core (process i on core i, the one process on core 0):
+    # the machine as one-core hosts (Linux), instead of every process on every core
+    pin: bool = False
     out: str = ""  # also write the JSON here
 
 
@@ -73,8 +79,12 @@ def generate(cfg_json: str, path: str) -> None:
         pickle.dump(_load(prof, load("cmapss")), f)
 
 
-def worker(data_path: str, out_dir: str, port: str, num: int, index: int) -> None:
+def worker(
+    data_path: str, out_dir: str, port: str, num: int, index: int, pin: bool
+) -> None:
     """Child: one process of a run; writes ``process<index>.json``."""
+    if pin:
+        os.sched_setaffinity(0, {index % os.cpu_count()})
     from jaxcal.fleet.distributed import initialize
 
     initialize(f"127.0.0.1:{port}", num, index, timeout_s=600)
@@ -124,7 +134,17 @@ def _cluster_run(cfg, data_path: str, tmp: str, num: int) -> tuple[dict, list]:
     os.makedirs(out_dir)
     port = str(_free_port())
     commands = [
-        [sys.executable, __file__, "worker", data_path, out_dir, port, str(num), str(i)]
+        [
+            sys.executable,
+            __file__,
+            "worker",
+            data_path,
+            out_dir,
+            port,
+            str(num),
+            str(i),
+            str(int(cfg.pin)),
+        ]
         for i in range(num)
     ]
     load_before = os.getloadavg()
@@ -195,7 +215,7 @@ if __name__ == "__main__":
     if sys.argv[1:2] == ["generate"]:
         generate(*sys.argv[2:4])
     elif sys.argv[1:2] == ["worker"]:
-        path, out_dir, port, num, index = sys.argv[2:7]
-        worker(path, out_dir, port, int(num), int(index))
+        path, out_dir, port, num, index, pin = sys.argv[2:8]
+        worker(path, out_dir, port, int(num), int(index), pin == "1")
     else:
         raise SystemExit(main(sys.argv[1:]))
