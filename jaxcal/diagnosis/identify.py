@@ -172,6 +172,7 @@ class _Refits:
     fits: dict = dataclasses.field(default_factory=dict)  # entry name -> FitResult
     onset_ci: dict = dataclasses.field(default_factory=dict)  # name -> {step: [U, 2]}
     warm: dict = dataclasses.field(default_factory=dict)  # name -> an earlier fit
+    slimmed: set = dataclasses.field(default_factory=set)  # fits already slim
 
     def _start(self, name: str, spec):
         """Where the refit of ``name`` starts: where its earlier fit ended (its
@@ -204,6 +205,24 @@ class _Refits:
         old = self.entries[name]
         self.entries[name] = rank_entry(members, null.ssr - fit.ssr, null, data, sizes,
                                     stds, True, old.detectability)  # fmt: skip
+        self._slim_losers()
+
+    def _slim_losers(self) -> None:
+        """Slim (:func:`_slim`) every fit but the two :func:`_winner` can pick: the
+        refitted entry and the refitted single of lowest BIC. An entry is refitted
+        once, so a fit that falls behind never comes back; holding every refit
+        whole until the screen ends was NASA FD002's peak memory (about 130 MB a
+        refit with its Jacobians)."""
+        refitted = [self.entries[n] for n in self.fits]
+        singles = [e for e in refitted if len(e.members) == 1]
+        keep = {e.name for e in refitted if not np.isfinite(e.bic)}  # never guess
+        for group in (refitted, singles):
+            if group:  # every entry at the lowest BIC (a tie is the winner's to break)
+                low = min(e.bic for e in group)
+                keep |= {e.name for e in group if e.bic == low}
+        for name in set(self.fits) - keep - self.slimmed:
+            self.fits[name] = _slim(self.fits[name])
+            self.slimmed.add(name)
 
 
 def _slim(fit: FitResult) -> FitResult:
@@ -333,8 +352,11 @@ def identify(
         confounded = _confounded_with(winner, singles, entries, screen, cfg)
         # the winner's onsets were profiled at its own fit
         onset_ci.update(refits.onset_ci.get(winner.name, {}))
-    fits = {name: fit if winner is not None and name == winner.name else _slim(fit)
-            for name, fit in fits.items()}  # fmt: skip
+    fits = {
+        name: fit if (winner is not None and name == winner.name)
+        or name in refits.slimmed else _slim(fit)
+        for name, fit in fits.items()
+    }  # fmt: skip
     return Identification(
         null, ranking, winner, None if winner is None else fits[winner.name],
         confounded, absorbed, num_tests, fits, onset_ci, near_miss,

@@ -177,3 +177,44 @@ def test_the_field_forms_of_issue_16_are_named(engine, synthetic, kind, target, 
     tol = max(4.0 * found["std"], 0.1 * abs(syn.truth.size))
     assert found["size"] == pytest.approx(syn.truth.size, abs=tol)
     assert res.flags == ()
+
+
+def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
+    engine, synthetic, monkeypatch
+):
+    """Every refit but the two the winner can come from is slimmed as soon as it
+    falls behind (memory); the identification is the one that slims them at the
+    end, to the last bit."""
+    import jaxcal.diagnosis.identify as ident_mod
+    from jaxcal.diagnosis.fitting import fit_model
+    from jaxcal.diagnosis.pipeline import LoopConfig, _library
+    from jaxcal.diagnosis.prepare import prepare_data
+    from jaxcal.diagnosis.screen import spec_for
+
+    syn = synthetic("sensor_bias", 0, "Ps30")
+    cfg = LoopConfig()
+    data = prepare_data(syn.data, engine, noise_std=syn.noise_std)
+    null = fit_model(engine, data, spec_for(DECLARED, []))
+    library = _library(engine, data, DECLARED, cfg)
+
+    whole = []
+    losers = ident_mod._Refits._slim_losers
+
+    def counted(self):
+        losers(self)
+        whole.append(sum(f.evaluation.cols is not None for f in self.fits.values()))
+
+    monkeypatch.setattr(ident_mod._Refits, "_slim_losers", counted)
+    eager = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null)
+    assert len(whole) >= 3 and max(whole) <= 2
+    monkeypatch.setattr(ident_mod._Refits, "_slim_losers", lambda self: None)
+    late = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null)
+    assert eager.winner.name == late.winner.name == "sensor_bias[Ps30]"
+    assert [e.bic for e in eager.ranking] == [e.bic for e in late.ranking]
+    assert eager.winner_fit.ssr == late.winner_fit.ssr
+    assert eager.winner_fit.evaluation.cols is not None
+    assert set(eager.fits) == set(late.fits)
+    for name, fit in eager.fits.items():
+        np.testing.assert_array_equal(
+            fit.evaluation.resid, late.fits[name].evaluation.resid
+        )
