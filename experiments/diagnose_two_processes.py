@@ -202,12 +202,9 @@ def main(argv: list[str]) -> int:
         "wall_ratio": round(many["wall_s"] / one["wall_s"], 3),
         "config": dataclasses.asdict(cfg),
     }
-    text = json.dumps(out, indent=1)
-    if cfg.out:
-        from jaxcal.diagnosis.report import write_text
+    from profile_diagnosis import emit
 
-        write_text(cfg.out, text + "\n")
-    print(text)
+    emit(out, cfg.out)
     return 0
 
 

@@ -161,13 +161,18 @@ def main(argv: list[str]) -> int:
         stats = pstats.Stats(prof)
         out["hot_cumulative_s"] = _hot(stats)
         out["top_own_time"] = _top(stats, cfg.top)
+    emit(out, cfg.out)
+    return 0
+
+
+def emit(out: dict, path: str) -> None:
+    """Print ``out`` as JSON, and write it to ``path`` too when one is given."""
     text = json.dumps(out, indent=1)
-    if cfg.out:
+    if path:
         from jaxcal.diagnosis.report import write_text
 
-        write_text(cfg.out, text + "\n")
+        write_text(path, text + "\n")
     print(text)
-    return 0
 
 
 if __name__ == "__main__":
