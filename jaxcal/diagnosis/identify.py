@@ -178,7 +178,9 @@ class _Refits:
         """Where the refit of ``name`` starts: where its earlier fit ended (its
         model point kept, so its first evaluation costs none), else at the
         declared-only solution with the effects at zero."""
-        model, data, prev = self.model, self.data, self.warm.get(name)
+        # taken out: the caller handed the earlier fits over, and each is released
+        # once its refit has started (two noise passes' fits were FD002's peak)
+        model, data, prev = self.model, self.data, self.warm.pop(name, None)
         init = None if prev is None else warm_from(prev, model, data, spec)
         if init is None:
             return init_from(self.null, model, data, spec)
@@ -314,7 +316,8 @@ def identify(
         null: the declared-only fit (the "before" calibration).
         offset: a fixed discrepancy term included in every refit (output units).
         warm: entry name -> an earlier fit of it (the last noise pass's
-            ``fits``): its refit starts where that one ended.
+            ``fits``): its refit starts where that one ended. Consumed: each
+            entry is removed from the dict as its refit starts.
 
     Returns:
         :class:`Identification`.
@@ -331,7 +334,7 @@ def identify(
         e = rank_entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
     refits = _Refits(model, data, declared, null, offset, cfg, entries,
-                     warm=dict(warm or {}))  # fmt: skip
+                     warm={} if warm is None else warm)  # fmt: skip
     for e in singles[: cfg.top_k]:
         refits.refit(list(e.members))
     for pair in pairs:

@@ -318,11 +318,12 @@ def _run(model, dataset, declared, cfg, clock: StageClock, *, sensors, units,
                 break
             if refit.noise.settled(data.noise, NOISE_SETTLED):
                 break  # the trace would be repeated under the same noise model
-            data = refit
+            data, warm, ident = refit, ident.fits, None  # the fits handed over
             null = fit_model(model, data, spec0, null.params, max_iters=cfg.max_iters)
             library = _library(model, data, declared, cfg)
             ident = identify(model, data, declared, library, cfg.identify, null,
-                             warm=ident.fits)  # fmt: skip
+                             warm=warm)  # fmt: skip
+            del warm
     # the refits were kept for the noise passes alone (a fleet's rows times their
     # columns each): the winner's fit stays
     ident = ident._replace(fits={})

@@ -214,6 +214,12 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
     assert eager.winner_fit.ssr == late.winner_fit.ssr
     assert eager.winner_fit.evaluation.cols is not None
     assert set(eager.fits) == set(late.fits)
+    warm = dict(late.fits)  # a next noise pass hands the fits over ...
+    again = ident_mod.identify(
+        engine, data, DECLARED, library, cfg.identify, null, warm=warm
+    )
+    assert again.winner.name == eager.winner.name
+    assert not set(again.fits) & set(warm)  # ... each released as its refit starts
     for name, fit in eager.fits.items():
         np.testing.assert_array_equal(
             fit.evaluation.resid, late.fits[name].evaluation.resid
