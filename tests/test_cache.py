@@ -159,6 +159,7 @@ def test_a_user_models_program_is_kept_by_what_it_computes(tmp_path):
 def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypatch):
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
     from jaxcal import cache
     from jaxcal.calibrators import on_disk
@@ -174,3 +175,37 @@ def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypat
     assert len(trims) == 1  # the first call of a signature only
     run(jnp.ones(4))
     assert len(trims) == 2
+
+
+def test_a_cluster_process_beyond_the_first_keeps_its_own_executable(
+    tmp_path, monkeypatch
+):
+    """JAX writes its persistent cache from process 0 only: process 1 keeps the
+    compiled executable itself and reads it back in its next run, uncompiled."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxcal.calibrators import on_disk
+
+    where = tmp_path / "xla"
+    where.mkdir(mode=0o700)
+    programs = where / "jaxcal-programs"
+    monkeypatch.setattr(on_disk.cache, "is_enabled", lambda: True)
+    monkeypatch.setattr(on_disk.cache, "program_directory", lambda: str(programs))
+    monkeypatch.setattr(on_disk.jax, "process_index", lambda: 1)
+    monkeypatch.setattr(on_disk.jax, "process_count", lambda: 2)
+    fn = jax.jit(lambda a, b: (jnp.sin(a) * b, a.sum()))
+    a, b = np.linspace(0.0, 1.0, 7), np.float64(3.0) * np.ones(7)
+    first = on_disk.kept(fn, ("cluster-test",))(a, b)
+    executables = list(programs.glob("*" + on_disk.EXECUTABLE_SUFFIX))
+    assert len(executables) == 1 and "-p1of2d" in executables[0].name
+
+    def refuse(self, *args, **kwargs):
+        raise AssertionError("compiled again")
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", refuse)
+    again = on_disk.kept(fn, ("cluster-test",))(a, b)  # a new process's wrapper
+    for x, y in zip(first, again):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    np.testing.assert_array_equal(np.asarray(again[0]), np.sin(a) * b)

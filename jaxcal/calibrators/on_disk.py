@@ -25,6 +25,13 @@ without the disk, with one warning naming the folder (a planted program could re
 wrong numbers without a word). A file that cannot be read is traced again and
 rewritten; at most :data:`MAX_KEPT` programs and :data:`MAX_BYTES` of them are kept,
 the least recently used removed first.
+
+In a ``jax.distributed`` cluster, JAX writes its persistent cache from process 0 only
+(``jax._src.compiler._cache_write``), and a CPU executable is keyed by the device it
+runs on, so every other process would compile each program in every run (the
+turbofan's diagnosis programs: ~110 s of process 1's run). Such a process keeps the
+compiled executable itself, beside the program, keyed by its place in the cluster
+(:func:`_compiled_here`); the same privacy rule covers it.
 """
 
 from __future__ import annotations
@@ -39,12 +46,14 @@ from pathlib import Path
 import jax
 import numpy as np
 from jax import export
+from jax.experimental import serialize_executable
 
 from jaxcal import cache
 from jaxcal.calibrators.interface import CalOutput
 from jaxcal.runs.atomic import write_atomic
 
 SUFFIX = ".jaxexport"
+EXECUTABLE_SUFFIX = ".jaxexe"  # a cluster process's own compiled executable
 # Programs kept at most, and their bytes; past either the least recently used go (a
 # new jaxcal source or JAX version keys new files, so old ones would otherwise pile
 # up). A user's model keys programs of its own (6-90 kB for the tests' small
@@ -165,14 +174,57 @@ def _exported(fn: Callable, key: tuple, signature: tuple, args) -> Callable:
         os.makedirs(path.parent, mode=0o700, exist_ok=True)
         write_atomic(path, data)
         _prune(path.parent)
+    if jax.process_index() != 0:
+        return _compiled_here(exp, path, args)
     return jax.jit(exp.call)
+
+
+def _compiled_here(exp: export.Exported, path: Path, args) -> Callable:
+    """The compiled executable of ``exp`` for a cluster process other than the
+    first (module docstring), read from beside the program ``path`` or compiled and
+    written there. ``jax.jit`` of the program when it cannot be kept, or for
+    arguments the executable was not compiled for."""
+    jitted = jax.jit(exp.call)
+    devices = jax.local_devices()
+    place = f"p{jax.process_index()}of{jax.process_count()}"
+    place += "d" + "-".join(str(d.id) for d in devices)
+    exe = path.with_name(f"{path.name[: -len(SUFFIX)]}-{place}{EXECUTABLE_SUFFIX}")
+    lowered = jitted.lower(*args)  # the program's own StableHLO: no model traced
+    compiled = None
+    if exe.is_file() and _not_private(exe) is None:
+        try:
+            compiled = serialize_executable.deserialize_and_load(
+                exe.read_bytes(),
+                lowered.in_tree,
+                lowered.out_tree,
+                execution_devices=devices,
+            )
+            os.utime(exe)
+        except Exception as err:  # noqa: BLE001 - a damaged file: compiled again
+            warnings.warn(f"{exe}: unreadable ({err}); compiled again", stacklevel=4)
+    if compiled is None:
+        compiled = lowered.compile()
+        try:
+            write_atomic(exe, serialize_executable.serialize(compiled)[0])
+            _prune(exe.parent)
+        except Exception as err:  # noqa: BLE001 - not keepable: run it as it is
+            warnings.warn(f"executable not kept on disk: {err}", stacklevel=4)
+
+    def call(*call_args):
+        try:
+            return compiled(*call_args)
+        except TypeError:  # arguments of other types (weak or not): JAX's own call
+            return jitted(*call_args)
+
+    return call
 
 
 def _prune(directory: Path, keep: int = MAX_KEPT, max_bytes: int = MAX_BYTES) -> None:
     """Keep only the most recently used programs in ``directory``: at most ``keep``
     of them and ``max_bytes`` together."""
     files = []
-    for f in directory.glob("*" + SUFFIX):
+    kept_files = [*directory.glob("*" + SUFFIX), *directory.glob("*" + EXECUTABLE_SUFFIX)]
+    for f in kept_files:
         try:
             stat = f.stat()
         except OSError:  # removed meanwhile by another process
