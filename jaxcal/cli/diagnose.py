@@ -23,9 +23,10 @@ outputs, with optional ``unit``, ``time`` (the cycle) and true-parameter columns
 stride chosen so that about ``max_rows`` rows are loaded (``stride`` overrides it), and
 only its measured sensors X_s unless ``outputs`` names others; a C-MAPSS file has one
 row per flight. Every data set is subsampled evenly within units down to ``max_rows``
-(0 keeps every row). Rows holding NaN or Inf are dropped, and the console,
-``report.md`` and ``report.json`` say how many (per column); ``rename=T_24:T24`` maps
-column names, ``ignore=a,b`` leaves table columns out. float64 is enabled here, at
+(0 keeps every row; a note on the console and in the report says how many were
+used). Rows holding NaN or Inf are dropped, and the console, ``report.md`` and
+``report.json`` say how many (per column); ``rename=T_24:T24`` maps column names,
+``ignore=a,b`` leaves table columns out. float64 is enabled here, at
 the entry point.
 
 On several processes (``jax.distributed``: the same command on each, with its own

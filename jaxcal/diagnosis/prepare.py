@@ -257,7 +257,14 @@ def _row_order(data: Dataset, model: Model, finite, max_rows, notes: list):
             f"model {model.name!r} are simulated along every row"
         )
     elif max_rows is not None:
-        order = order[_subsample(unit_raw, starts, max_rows)]
+        kept = _subsample(unit_raw, starts, max_rows)
+        if kept.size < order.size:  # said: a user reading "100 units" expects all rows
+            notes.append(
+                f"{kept.size} of {order.size} rows used: one in "
+                f"{int(np.ceil(order.size / max_rows))} of each unit's rows "
+                f"(max_rows={max_rows}; 0 or None keeps every row)"
+            )
+        order = order[kept]
     return order
 
 

@@ -130,6 +130,10 @@ def test_prepare_data_sorts_selects_and_explains_exclusions():
     assert data.w[:, 1].min() >= 0.0 and "Mach just outside" in data.notes[0]
     small = prepare_data(_record(rng), max_rows=20)
     assert 14 <= small.num_rows <= 22 and small.num_units == 2
+    said = [n for n in small.notes if "rows used" in n]  # subsampling is said
+    assert said == [f"{small.num_rows} of 60 rows used: one in 3 of each unit's rows "
+                    "(max_rows=20; 0 or None keeps every row)"]  # fmt: skip
+    assert not any("rows used" in n for n in data.notes)  # all rows: nothing said
     keep = np.arange(data.num_rows) >= 30
     only7 = data.take_rows(keep, "unit 3 dropped")
     np.testing.assert_array_equal(only7.unit_ids, [7])
