@@ -159,7 +159,6 @@ def test_a_user_models_program_is_kept_by_what_it_computes(tmp_path):
 def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypatch):
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     from jaxcal import cache
     from jaxcal.calibrators import on_disk
@@ -206,6 +205,6 @@ def test_a_cluster_process_beyond_the_first_keeps_its_own_executable(
 
     monkeypatch.setattr(jax.stages.Lowered, "compile", refuse)
     again = on_disk.kept(fn, ("cluster-test",))(a, b)  # a new process's wrapper
-    for x, y in zip(first, again):
+    for x, y in zip(first, again, strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_array_equal(np.asarray(again[0]), np.sin(a) * b)

@@ -223,8 +223,7 @@ def _prune(directory: Path, keep: int = MAX_KEPT, max_bytes: int = MAX_BYTES) ->
     """Keep only the most recently used programs in ``directory``: at most ``keep``
     of them and ``max_bytes`` together."""
     files = []
-    kept_files = [*directory.glob("*" + SUFFIX), *directory.glob("*" + EXECUTABLE_SUFFIX)]
-    for f in kept_files:
+    for f in [*directory.glob("*" + SUFFIX), *directory.glob("*" + EXECUTABLE_SUFFIX)]:
         try:
             stat = f.stat()
         except OSError:  # removed meanwhile by another process
