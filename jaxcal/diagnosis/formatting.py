@@ -55,7 +55,16 @@ def effect_line(e: dict, num_units: int | None = None) -> str:
     form = " (per unit)" if e.get("form") == "units" else ""
     text = f"{e['name']}{form} = {e['size']:.4g} ± {fmt_std(e['std'])} {e['unit']}"
     if num_units is not None and "carriers" in e:
-        text += f" (carried by {e['carriers']} of {num_units} units)"
+        text += f" (carried by {e['carriers']} of {num_units} units"
+        if not e["carriers"] and e.get("min_size") is not None:
+            # a per-unit effect fitted where the BIC chose it, but no unit's size
+            # passed the minimum-effect test: say so, not a bare "0 of N"
+            fitted = sum(u.get("size") is not None for u in e.get("units") or [])
+            text += (
+                f": fitted in {fitted}, none beyond its minimum size "
+                f"{e['min_size']:.3g}"
+            )
+        text += ")"
     return text
 
 

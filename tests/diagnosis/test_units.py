@@ -17,7 +17,7 @@ import pytest
 import jaxcal
 from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.kinds import KINDS, Candidate
-from jaxcal.diagnosis.markdown import fmt_p, fmt_std
+from jaxcal.diagnosis.markdown import effect_line, fmt_p, fmt_std
 from jaxcal.diagnosis.pipeline import diagnose
 from jaxcal.diagnosis.plausibility import degradation_sign, plausibility_flags
 from jaxcal.diagnosis.report import write_report
@@ -233,6 +233,19 @@ def test_holm_and_the_printed_numbers():
     assert fmt_p(0.0123) == "0.012"
     assert fmt_std(0.0) == fmt_std(float("nan")) == fmt_std(None) == "n/a"
     assert fmt_std(6e-5) == "6e-05"
+
+
+def test_an_effect_no_unit_carries_says_why():
+    """NASA FD002: a per-unit step fitted in 138 units, none past its minimum size."""
+    units = [{"size": -0.002}, {"size": None}, {"size": -0.003}]
+    e = {"name": "parameter_step[X]", "form": "units", "size": -0.0022,
+         "std": 1.3e-4, "unit": "-", "carriers": 0, "min_size": 0.005,
+         "units": units}  # fmt: skip
+    assert effect_line(e, 3).endswith(
+        "(carried by 0 of 3 units: fitted in 2, none beyond its minimum size 0.005)"
+    )
+    carried = {**e, "carriers": 2}
+    assert effect_line(carried, 3).endswith("(carried by 2 of 3 units)")
 
 
 def test_the_fallback_keeps_a_library_effect_that_explains_better():
