@@ -103,16 +103,16 @@ def _select_sensors(data: Dataset, model: Model, sensors) -> tuple[list, dict]:
 
 def _subsample(
     unit: np.ndarray, starts: np.ndarray, max_rows: int | None
-) -> np.ndarray:
+) -> tuple[np.ndarray, int]:
+    """The rows kept, one in ``stride`` of each unit's, and ``stride`` (1: all)."""
     n = unit.shape[0]
     if max_rows is None or n <= max_rows:
-        return np.arange(n)
+        return np.arange(n), 1
     if max_rows < len(starts) - 1:
         raise ValueError(f"max_rows={max_rows} is below the number of units")
     stride = int(np.ceil(n / max_rows))
-    return np.concatenate(
-        [np.arange(a, b, stride) for a, b in zip(starts[:-1], starts[1:], strict=True)]
-    )
+    bounds = zip(starts[:-1], starts[1:], strict=True)
+    return np.concatenate([np.arange(a, b, stride) for a, b in bounds]), stride
 
 
 def prepare_data(
@@ -257,12 +257,11 @@ def _row_order(data: Dataset, model: Model, finite, max_rows, notes: list):
             f"model {model.name!r} are simulated along every row"
         )
     elif max_rows is not None:
-        kept = _subsample(unit_raw, starts, max_rows)
+        kept, stride = _subsample(unit_raw, starts, max_rows)
         if kept.size < order.size:  # said: a user reading "100 units" expects all rows
             notes.append(
-                f"{kept.size} of {order.size} rows used: one in "
-                f"{int(np.ceil(order.size / max_rows))} of each unit's rows "
-                f"(max_rows={max_rows}; 0 or None keeps every row)"
+                f"{kept.size} of {order.size} rows used: one in {stride} of each "
+                f"unit's rows (max_rows={max_rows}; 0 or None keeps every row)"
             )
         order = order[kept]
     return order
