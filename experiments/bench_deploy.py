@@ -2,7 +2,7 @@
 (issue 41 item 2), on trained runs of any model.
 
     python experiments/bench_deploy.py runs=<run>[,<run>...] [rows=400] [units=100]
-        [out=results/bench/deploy.json]
+        [sync=true] [out=results/bench/deploy.json]
 
 Per run, second calls (compiled), this machine's 2 cores, as ratios in one process
 (the two methods' calls interleaved, so that a shared machine's load falls on both):
@@ -19,7 +19,10 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
 The rows are the run's normalisation's mean plus 0.3 of its spread times Gaussian
 draws (the costs of the any-model cases do not depend on the values), or rows a
 caller gives :func:`bench_run` (``experiments/policy_turbofan.py``: the turbofan's
-test rows). Prints and writes JSON.
+test rows). ``sync=true`` (the default) runs JAX's calls on the calling thread
+(:func:`jaxcal.deploy.synchronous_dispatch`, as a deployed program should), both
+methods alike; ``sync=false`` JAX's default thread-pool dispatch. Each result
+records which (``synchronous``). Prints and writes JSON.
 """
 
 from __future__ import annotations
@@ -151,6 +154,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
             )
     w, x = w.astype(cal._dtype), x.astype(cal._dtype)
     out = {"run": run, "model": problem.model.name, "rows": rows, "units": units}
+    out["synchronous"] = cal.synchronous
     out["rows_from"] = "drawn" if data is None else "given"
 
     ukf = make(problem, config("ukf", {}))
@@ -210,6 +214,7 @@ class Options:
     runs: str = ""
     rows: int = 400
     units: int = 100
+    sync: bool = True
     out: str = ""
 
 
@@ -223,6 +228,10 @@ def main(argv: list[str]) -> int:
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if opts["sync"]:
+        from jaxcal.deploy import synchronous_dispatch
+
+        synchronous_dispatch()  # before any JAX computation
     results = [
         bench_run(r, int(opts["rows"]), int(opts["units"]))
         for r in opts["runs"].split(",")

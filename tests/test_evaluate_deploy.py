@@ -197,3 +197,49 @@ def test_evaluate_report_counts_flagged_samples(trained, capsys):
     report = json.loads((run_dir / "evaluate.json").read_text())
     assert report["num_flagged"] == 0 and "x_nonfinite" in report["flagged"]
     assert report["num_scored"] == report["num_samples"]
+
+
+SYNC_STREAM = """
+import sys, numpy as np
+from jaxcal.deploy import StreamingCalibrator, synchronous_dispatch
+synchronous_dispatch()  # before JAX's first computation
+from jaxcal.cache import enable_compilation_cache
+from jaxcal.precision import enable_x64
+enable_x64(); enable_compilation_cache()
+synchronous_dispatch()  # already synchronous: nothing to do
+w, x = np.load(sys.argv[2]), np.load(sys.argv[3])
+cal = StreamingCalibrator(sys.argv[1])
+assert cal.synchronous
+print(np.stack([cal.step(w[t], x[t]) for t in range(len(w))]).tobytes().hex())
+"""
+
+
+def test_synchronous_dispatch_runs_the_same_stream_and_refuses_a_started_jax(
+    trained, tmp_path
+):
+    """JAX's dispatch on the calling thread (deployment's lowest cost a row) gives
+    the streamed theta of the default dispatch, bit for bit; asked for once JAX has
+    started, it says so instead of being ignored."""
+    import subprocess
+    import sys
+
+    from jaxcal.deploy import synchronous_dispatch
+
+    run_dir, _, data = trained
+    units = data.test
+    length = min(int(units.lengths[0]), 30)
+    w, x = units.w[0, :length], units.x[0, :length]
+    cal = StreamingCalibrator(run_dir)
+    assert not cal.synchronous  # this process's JAX started with the default
+    streamed = np.stack([cal.step(w[t], x[t]) for t in range(length)])
+    np.save(tmp_path / "w.npy", w)
+    np.save(tmp_path / "x.npy", x)
+    out = subprocess.run(
+        [sys.executable, "-c", SYNC_STREAM, str(run_dir), str(tmp_path / "w.npy"),
+         str(tmp_path / "x.npy")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == streamed.tobytes().hex()
+    with pytest.raises(RuntimeError, match="JAX_CPU_ENABLE_ASYNC_DISPATCH=false"):
+        synchronous_dispatch()

@@ -24,6 +24,14 @@ Not for a model that carries a warm-started solve from row to row (the turbofan'
 Broyden, ``Model.evaluate_hinted``): there the schedule changed the solve's numbers
 (5e-8 on the outputs) and gained nothing (~395 us a row either way), so such a
 program keeps XLA's defaults (``warm_solve``).
+
+:func:`synchronous_dispatch` goes one step further, for the whole process: JAX's CPU
+client hands every call to a thread of its own and the caller waits for it, which on
+a step of ~100 small kernels costs as much as the kernels. Run on the calling thread,
+``StreamingCalibrator.step`` took half the time on the four small models
+(``results/bench/stream_profile.md``, round 4). JAX reads that setting once, when its
+CPU backend starts, so it is an entry point's call (as ``enable_x64``), never a
+library's.
 """
 
 from __future__ import annotations
@@ -39,6 +47,42 @@ from jaxcal.typedefs import Array
 
 # compile options of a program called once per row (module docstring)
 PER_ROW_OPTIONS = {"xla_cpu_scheduler_type": "CPU_SCHEDULER_TYPE_MEMORY_OPTIMIZED"}
+
+
+# JAX's setting (its environment variable: JAX_CPU_ENABLE_ASYNC_DISPATCH)
+DISPATCH_FLAG = "jax_cpu_enable_async_dispatch"
+
+
+def synchronous_dispatch() -> None:
+    """Run JAX's CPU calls on the calling thread, for the lowest cost a row
+    (module docstring). Call it at the start of the program, before any JAX
+    computation, or set ``JAX_CPU_ENABLE_ASYNC_DISPATCH=false`` in the environment.
+    Only single-device calls change; their results are the same bits.
+
+    Raises:
+        RuntimeError: JAX's backend has already started with asynchronous dispatch
+            (the setting would be ignored without a word).
+    """
+    if dispatch_is_synchronous():
+        return
+    # JAX has no public test of a started backend; without it the flag is still set
+    from jax._src import xla_bridge
+
+    started = getattr(xla_bridge, "backends_are_initialized", lambda: False)()
+    if started:
+        raise RuntimeError(
+            "synchronous_dispatch() must run before JAX's first computation (its CPU "
+            "backend has started, with asynchronous dispatch): call it at the start "
+            "of the program, or set JAX_CPU_ENABLE_ASYNC_DISPATCH=false in the "
+            "environment"
+        )
+    jax.config.update(DISPATCH_FLAG, False)
+
+
+def dispatch_is_synchronous() -> bool:
+    """True when JAX runs CPU calls on the calling thread
+    (:func:`synchronous_dispatch`)."""
+    return not jax.config.values[DISPATCH_FLAG]
 
 
 def jit_per_row(fn, *, warm_solve: bool = False, **jit_kwargs):

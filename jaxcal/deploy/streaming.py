@@ -34,7 +34,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
-from jaxcal.calibrators.packed import Packing, jit_per_row
+from jaxcal.calibrators.packed import Packing, dispatch_is_synchronous, jit_per_row
 from jaxcal.calibrators.policy import (
     initial_guard_carry,
     make_fleet_runner,
@@ -74,6 +74,9 @@ class StreamingCalibrator:
         check: the valid input box (:func:`run_check`), ``None``: finiteness only.
         last_valid, last_reason: the flag of the last :meth:`step` (``None`` after
             :meth:`reset`).
+        synchronous: JAX runs each step on the calling thread
+            (:func:`jaxcal.deploy.synchronous_dispatch`, called at the program's
+            start: about half the cost of a small model's step).
     """
 
     def __init__(
@@ -84,6 +87,7 @@ class StreamingCalibrator:
         trust_code: bool = False,
     ):
         self.run_info = as_loaded(run, trust_code=trust_code)
+        self.synchronous = dispatch_is_synchronous()
         problem = self.run_info.problem
         self.sensors = problem.output_names
         self.theta_names = problem.theta_names
