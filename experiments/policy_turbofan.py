@@ -4,7 +4,7 @@ per row against the UKF's, and what training gained over the start.
 
     python experiments/policy_turbofan.py [run=runs/cmapss_q41]
         [start=runs/cmapss_start41] [rows=1500] [settle=300] [sensor=] [bench_rows=200]
-        [bench_units=16] [out=results/policy_any_model/turbofan.json]
+        [bench_units=16] [sync=true] [out=results/policy_any_model/turbofan.json]
 
 ``start``: the same training with ``budget.num_chunks=0`` (the untrained policy the
 run starts from: on the turbofan a randomly initialised actor, ``env.gauss_newton=
@@ -24,7 +24,9 @@ window's rows from ``settle`` on (the cold start's transient left out).
 Deployed cost: :func:`bench_deploy.bench_run` on ``bench_units`` streams of
 ``bench_rows`` test rows (windows spread over the test units), the policy's
 ``StreamingCalibrator`` against the method table's UKF on the run's problem,
-interleaved in one process. Writes ``out`` and the page beside it (``.md``).
+interleaved in one process; ``sync=true`` (the default) with JAX's calls on the
+calling thread (:func:`jaxcal.deploy.synchronous_dispatch`), as
+``bench_deploy.py``. Writes ``out`` and the page beside it (``.md``).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class Options:
     sensor: str = ""
     bench_rows: int = 200
     bench_units: int = 16
+    sync: bool = True
     out: str = "results/policy_any_model/turbofan.json"
 
 
@@ -287,7 +290,9 @@ def page(result: dict, opts: Options) -> str:
         f"all test rows theta RMSE {job['start_test_theta_rmse_all_rows']:.3g}).",
         "",
         f"Deployed cost per row ({dep['units']} streams x {dep['rows']} test rows, "
-        "interleaved in one process): one stream "
+        "interleaved in one process, JAX's dispatch "
+        + ("on the calling thread" if dep.get("synchronous") else "by its thread pool")
+        + "): one stream "
         f"`StreamingCalibrator.step` {dep['policy_stream']['median_us']:.0f} µs "
         f"(p95 {dep['policy_stream']['p95_us']:.0f}) against the UKF's guarded step "
         f"{dep['ukf_stream']['median_us']:.0f} µs (p95 "
@@ -323,6 +328,10 @@ def main(argv: list[str]) -> int:
         return 2
     import jax
 
+    if opts.sync:
+        from jaxcal.deploy import synchronous_dispatch
+
+        synchronous_dispatch()  # before any JAX computation
     jax.config.update("jax_enable_x64", True)  # entry point: the turbofan's F
     tic = time.perf_counter()
     result = {"options": dataclasses.asdict(opts)}
