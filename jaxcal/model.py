@@ -95,10 +95,10 @@ class Model:
             out of a residual) for the diagnosis; all optional.
         x64: the model needs float64 (an iterative solver inside).
         native: the object the model wraps (e.g. the turbofan ``Engine``), or None.
-        hinted_fn: optional warm-started form of a static model's function,
-            ``hinted_fn(w, theta, hint) -> (x, valid, next_hint)``: the same x to
-            the model's own solver tolerance (not bit for bit), cheaper when
-            ``hint`` is the previous call's along a stream of nearby inputs.
+        hinted_fn: optional warm-started ``fn``, ``hinted_fn(w, theta, hint) ->
+            (x, valid, next_hint)``: the same x to the model's solver tolerance,
+            cheaper when ``hint`` is the previous call's along a stream (a fleet
+            vmaps it: ``jaxcal.physics.warm_start`` on a fall-back).
         initial_hint: ``initial_hint() -> hint``, the hint before any call.
         origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
             :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled

@@ -93,7 +93,10 @@ def make_fleet_runner(
     ``lax.scan`` over time, ``vmap`` over units
     (:func:`~jaxcal.calibrators.interface.run_fleet`); compiled once per array shape
     (and once more with a ``check``). Returns a ``CalOutput`` with ``valid`` and
-    ``reason`` per sample.
+    ``reason`` per sample. A model with a warm-started solve (the turbofan's) carries
+    it along each unit, as a stream does: the same theta as streaming the unit's rows
+    one by one, at 0.55x the cold solve's cost a row over 16 units
+    (``results/bench/stream_profile.md``, round 4).
     """
 
     def run(
@@ -105,8 +108,9 @@ def make_fleet_runner(
         band: ThetaBand | None = None,
     ) -> CalOutput:
         calibrator = make_policy_calibrator(
-            actor, dynamics, params, band, start_at_first_sample=False
-        )  # run_fleet's init is given each unit's first ok row
+            actor, dynamics, params, band, start_at_first_sample=False,
+            warm_start=True,
+        )  # fmt: skip  # run_fleet's init is given each unit's first ok row
         return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
 
     return jax.jit(run)

@@ -35,9 +35,10 @@ A static model with a warm start (:class:`~jaxcal.envs.memory.HintedDynamics`, e
 the turbofan's Newton solve) may also carry its solver hint from sample to sample
 (``warm_start=True``, ``PolicyState.hint``): x-hat is then the model's output to its
 solver tolerance, at a fraction of the cold solve's cost; the first sample starts
-without one. Only a single stream does (deployment, one sample per call): batched over
-units, the hinted solve's ``lax.cond`` fall-back runs for every unit, so whole
-trajectories and fleets keep the cold solve (and the paper's bits).
+without one. The deployed stream and the fleet runner
+(:func:`~jaxcal.calibrators.policy.make_fleet_runner`: the turbofan's hinted solve
+batches with a rule of its own, the cold fall-back only at rows some unit needs it)
+do; the paper's scored methods keep the cold solve (and the paper's bits).
 
 What the step reads and carries
 (:class:`~jaxcal.calibrators.policy_params.PolicyParams`,
@@ -114,9 +115,9 @@ def make_policy_calibrator(
             filter predicts (:func:`filter_scale`; an incremental policy with the
             filter feature only).
         warm_start: carry the model's solver hint from sample to sample (a
-            :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise). For one
-            stream, one sample per call: under ``vmap`` the hinted solve's fall-back
-            runs for every unit and costs more than the cold solve.
+            :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise): a
+            stream, one sample per call, and a fleet (the turbofan's hinted solve
+            batches with a rule of its own, ``jaxcal.physics.warm_start``).
         start_at_first_sample: a model with memory starts its state at the first
             sample the step is fed (a stream whose first state was made before any
             row). ``False`` where ``init`` is given the first ok row, as

@@ -103,8 +103,8 @@ class StreamingCalibrator:
         actor, dynamics = self.run_info.actor, self.run_info.dynamics
         # a warm-started solve keeps XLA's default schedule (jit_per_row)
         self._warm_solve = isinstance(dynamics, HintedDynamics)
-        # one sample per call: the model's solver starts from the previous sample's
-        # solution (a turbofan's Newton solve); whole trajectories keep the cold solve
+        # the model's solver starts from the previous sample's solution (a
+        # turbofan's Newton solve), one sample per call and along whole trajectories
         self._step = make_guarded_stream_step(actor, dynamics, warm_start=True)
         self._run = make_fleet_runner(actor, dynamics)
         self._band = jax.device_put(self.run_info.band)

@@ -6,8 +6,8 @@ iteration a forward-mode Jacobian) is then its whole cost. Consecutive samples a
 nearby problems, so the previous sample's solution, inverse Jacobian and sensitivity
 to (w, theta) start Broyden's method (:func:`jaxcal.physics.solver.quasi_newton`),
 which closes the balance with a few residuals and no Jacobian; the cold solve remains
-the fall-back. Only single streams use it: under ``vmap`` the fall-back's ``lax.cond``
-runs both branches (``results/train/feedback.md``, "the warm-started stream").
+the fall-back, which a fleet (under ``vmap``) runs only at the rows where some unit
+needs it (a batching rule of its own, :func:`_hinted_solve`).
 """
 
 from __future__ import annotations
@@ -59,7 +59,8 @@ def evaluate_hinted(
     thermo loops, cheap when not differentiated). When it does not (no hint yet, a
     jump in the conditions, a NaN hint) the sample is solved as
     :func:`evaluate_design` does from the guess table (``lax.cond``: the cold path
-    runs only then; under ``vmap`` both branches run, so a batched fleet pays both),
+    runs only then; under ``vmap``, for the whole batch, at the rows where some lane
+    needs it),
     and the next hint carries the exact inverse Jacobian and sensitivity there. The
     outputs agree with the cold path's to the solve's tolerance (~3e-10 relative on
     Dataset #1), not bit for bit; ``info.converged`` is checked the same way (closed,
@@ -83,30 +84,78 @@ def evaluate_hinted(
             f"{tuple(w.shape)}, {tuple(theta.shape)} (vmap it for a batch)"
         )
     dp = design_point(d) if dp is None else dp
-    effects = jnp.zeros((cycle.NUM_EFFECTS,), dtype)
     hint = solver.Hint(
         *(jnp.asarray(a, bool if i == 2 else dtype) for i, a in enumerate(hint))
     )
+    solve = _hinted_solve(envelope, cfg, max_iter)
+    x, info, jinv, dz_dp = solve(w, theta, hint, (d, dp, guess))
     p = jnp.concatenate([w, theta])
-    usable = _is_usable(hint)
-    residual = _residual_with_outputs(d, dp, w, theta, effects)
-    z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
-    start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
-    z, rmax, iters, jinv, (x, is_physical) = solver.quasi_newton(
-        residual, start, None, cfg.tol, max_iter
-    )
-    inside = in_envelope(envelope, w, theta)
-    fast_ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & is_physical
+    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
 
-    def fast(_):
+
+def _hinted_solve(envelope, cfg, max_iter):
+    """``solve(w, theta, hint, (d, dp, guess)) -> (x, EngineInfo, jinv, dz_dp)``:
+    Broyden from the hint, the cold solve where it does not close (``lax.cond``).
+
+    Under ``vmap`` a ``cond`` on a batched predicate runs both branches for every
+    lane, so a fleet would pay the cold solve (4 Newton iterations, each a
+    forward-mode Jacobian) at every row on top of Broyden's. The batching rule
+    (``jax.custom_batching.custom_vmap``) runs Broyden on the whole batch and the
+    cold solve, on the whole batch, only when some lane needs it (its first row, a
+    jump, a NaN hint): each lane gets what the ``cond`` gives it, and a fleet's
+    row costs about a stream's. ``results/bench/stream_profile.md``, round 4. The
+    engine's arrays are arguments, not closures: a rule's function may not close
+    over a traced value.
+    """
+
+    def fast(w, theta, hint, consts):
+        d, dp, _ = consts
+        effects = jnp.zeros((cycle.NUM_EFFECTS,), w.dtype)
+        p = jnp.concatenate([w, theta])
+        usable = _is_usable(hint)
+        residual = _residual_with_outputs(d, dp, w, theta, effects)
+        z0 = jnp.where(usable, solver.predicted_start(hint, p), 0.0)
+        start = hint._replace(z=z0, jinv=jnp.where(usable, hint.jinv, 0.0))
+        z, rmax, iters, jinv, (x, is_physical) = solver.quasi_newton(
+            residual, start, None, cfg.tol, max_iter
+        )
+        inside = in_envelope(envelope, w, theta)
+        ok = usable & (rmax <= cfg.tol) & jnp.all(jnp.isfinite(x)) & is_physical
         info = EngineInfo(inside, rmax, iters, inside, z)
-        return x, info, jinv, solver.secant_sensitivity(hint, p, z)
+        return (x, info, jinv, solver.secant_sensitivity(hint, p, z)), ok
 
-    def cold(_):
+    def cold(w, theta, consts):
+        d, dp, guess = consts
+        effects = jnp.zeros((cycle.NUM_EFFECTS,), w.dtype)
+        p = jnp.concatenate([w, theta])
         return _cold_solve(d, dp, w, theta, effects, p, guess, envelope, cfg)
 
-    x, info, jinv, dz_dp = jax.lax.cond(fast_ok, fast, cold, None)
-    return x, info, solver.Hint(info.z, jinv, info.converged, p, dz_dp)
+    @jax.custom_batching.custom_vmap
+    def solve(w, theta, hint, consts):
+        out, ok = fast(w, theta, hint, consts)
+        return jax.lax.cond(ok, lambda _: out, lambda _: cold(w, theta, consts), None)
+
+    @solve.def_vmap
+    def _batched(size, batched, w, theta, hint, consts):
+        def spread(a, is_batched):
+            return a if is_batched else jnp.broadcast_to(a, (size, *jnp.shape(a)))
+
+        w, theta = spread(w, batched[0]), spread(theta, batched[1])
+        hint = jax.tree.map(spread, hint, batched[2])
+        axes = jax.tree.map(lambda b: 0 if b else None, batched[3])
+        out, ok = jax.vmap(fast, in_axes=(0, 0, 0, axes))(w, theta, hint, consts)
+
+        def with_cold(_):
+            def pick(a, b):
+                return jnp.where(ok.reshape(ok.shape + (1,) * (a.ndim - 1)), a, b)
+
+            cold_out = jax.vmap(cold, in_axes=(0, 0, axes))(w, theta, consts)
+            return jax.tree.map(pick, out, cold_out)
+
+        out = jax.lax.cond(jnp.all(ok), lambda _: out, with_cold, None)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return solve
 
 
 def _is_usable(hint: solver.Hint):

@@ -119,3 +119,26 @@ def test_policy_method_deploys_warm_without_a_noise_key(setup, warm):
         )  # fmt: skip
         record = measure_latency(method, units, repeats=3)
     assert record["stream_form"] and record["deploy_form"]
+
+
+def test_a_fleet_carries_the_warm_start_and_each_unit_gets_its_stream(setup, warm):
+    """The fleet runner carries the hinted solve along each unit (the turbofan's
+    batching rule: Broyden for the batch, the cold solve only at rows where some
+    unit needs it), and each unit gets the theta its own warm stream gives: a unit
+    whose rows start later takes its cold first solve while the others are warm."""
+    from jaxcal.calibrators.policy import make_fleet_runner
+
+    dyn, params, w, x = setup
+    late = 3  # unit 1's first rows are padding: its first solve is cold alone
+    w_late = np.concatenate([w[:late], w[: len(w) - late]])
+    x_late = np.concatenate([x[:late], x[: len(x) - late]])
+    mask = np.ones((2, len(w)), bool)
+    mask[1, :late] = False
+    with jax.enable_x64(True):
+        out = make_fleet_runner(_Feedback(), dyn)(
+            params, np.stack([w, w_late]), np.stack([x, x_late]), mask
+        )
+    theta = np.asarray(out.theta)
+    np.testing.assert_allclose(theta[0], warm[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(theta[1, late:], warm[0][: len(w) - late], atol=1e-12)
+    assert np.asarray(out.valid)[1].tolist() == mask[1].tolist()
