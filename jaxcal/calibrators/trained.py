@@ -114,10 +114,11 @@ def load_calibrator(
         anchor: an absolute policy's run with its band (``uncertainty.json``): the
             run, an incremental policy, is then gated by it where the model misfits
             the data (:mod:`jaxcal.calibrators.gated`).
-        warm_start: for one stream, one sample per call: the model's solver is
-            warm-started from the previous sample when it can be
-            (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); keep the
-            default for ``run_fleet`` over many units.
+        warm_start: for one stream, one sample per call (its first state made
+            before any row); keep the default for ``run_fleet`` over many units.
+            The model's solver is warm-started from the previous sample where it
+            can be, either way
+            (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`).
 
     Raises:
         ValueError: the anchor has no band, its names differ from the run's, or the
@@ -127,7 +128,7 @@ def load_calibrator(
     # run_fleet gives init the first ok row; a stream (warm_start) makes its first
     # state before any row and starts the model's state at its first sample
     cal = make_policy_calibrator(
-        run.actor, run.dynamics, run.params, run.band, warm_start=warm_start,
+        run.actor, run.dynamics, run.params, run.band, warm_start=True,
         start_at_first_sample=warm_start,
     )  # fmt: skip
     if anchor is None:
@@ -136,7 +137,7 @@ def load_calibrator(
     check_anchor(run, anchor)
     anchor_cal = make_policy_calibrator(
         anchor.actor, anchor.dynamics, anchor.params, anchor.band,
-        warm_start=warm_start, start_at_first_sample=warm_start,
+        warm_start=True, start_at_first_sample=warm_start,
     )  # fmt: skip
     return make_gated_calibrator(
         cal,
