@@ -107,10 +107,10 @@ def make_fleet_runner(
         check: SampleCheck | None = None,
         band: ThetaBand | None = None,
     ) -> CalOutput:
+        # run_fleet's init is given each unit's first ok row
         calibrator = make_policy_calibrator(
-            actor, dynamics, params, band, start_at_first_sample=False,
-            warm_start=True,
-        )  # fmt: skip  # run_fleet's init is given each unit's first ok row
+            actor, dynamics, params, band, start_at_first_sample=False, warm_start=True
+        )
         return run_fleet(calibrator, w, x, mask, unroll=unroll, check=check)
 
     return jax.jit(run)
