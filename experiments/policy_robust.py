@@ -93,6 +93,8 @@ VARIANTS = {
         "tune.patience=6",
         "tune.steps=600",
     ],
+    # the default with the filter's output-bias states tuned beside the actor
+    "bias": ["tune.bias=true"],
     # the default with the units drawn across the box within 1.5x (not 2x)
     "box15": ["tune.clean_tolerance=0.5"],
     # the same scored on the effects alone (the clean units a limit only)

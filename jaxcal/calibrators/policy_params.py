@@ -60,6 +60,9 @@ class IncrementPolicyParams(PolicyParams):
             its prior std, half-widths of the box (static); ``filter_adapt``:
             the samples the filter on theta alone averages its noise over
             (static; ``EnvConfig.filter_adapt``, 0: the declared noise).
+        filter_bias_var: ``[S]`` the random walk per sample of the filter's
+            output-bias states, (noise stds)^2 (:mod:`jaxcal.envs.bias_states`,
+            fitted by ``tune.bias``); ``None``: no bias states.
     """
 
     step_ref: Array
@@ -71,6 +74,7 @@ class IncrementPolicyParams(PolicyParams):
     filter_whole: bool = struct.field(pytree_node=False, default=False)
     filter_prior_std: float = struct.field(pytree_node=False, default=FILTER_PRIOR_STD)
     filter_adapt: int = struct.field(pytree_node=False, default=0)
+    filter_bias_var: Array | None = None
 
 
 @struct.dataclass
@@ -90,6 +94,14 @@ def counts(params: PolicyParams, band) -> bool:
     """Whether a policy's state counts its samples: for its band's time buckets, or
     for the stream's age its Gauss-Newton observation holds."""
     return band is not None or uses_jacobian(params)
+
+
+def has_bias_states(params: PolicyParams) -> bool:
+    """Whether the policy's filter carries output-bias states (a tuned policy with
+    ``filter_bias_var``; :mod:`jaxcal.envs.bias_states`)."""
+    return getattr(params, "gn_filter", False) and (
+        getattr(params, "filter_bias_var", None) is not None
+    )
 
 
 def uses_jacobian(params: PolicyParams) -> bool:
@@ -131,6 +143,8 @@ class PolicyState:
     trend: Array | None = None
     # [S] the adaptive filter's noise variance over the declared one (filter_adapt)
     noise_scale: Array | None = None
+    # [S] the filter's output biases in noise stds (filter_bias_var)
+    bias: Array | None = None
 
 
 def filter_settings(env_cfg) -> dict:

@@ -67,10 +67,19 @@ from jaxcal.calibrators.policy_params import (
     PolicyParams,
     PolicyState,
     counts,
+    has_bias_states,
     initial_sensitivity,
     uses_jacobian,
 )
 from jaxcal.calibrators.uncertainty import ThetaBand, band_std
+from jaxcal.envs.bias_states import (
+    bias_rate,
+    bias_walk,
+    biased_jacobians,
+    debiased,
+    static_joint,
+    with_bias_block,
+)
 from jaxcal.envs.increment import (
     adapted_noise_scale,
     apply_increment,
@@ -218,15 +227,20 @@ def _initial_state(
     state = fresh_state(params, band, dyn.num_states, x0, z0, hint)
     if state.cov is None or not (params.filter_whole and dyn.num_states):
         return state
-    return state.replace(cov=_joint_prior_at(dyn, params, state.cov, w0))
+    return state.replace(cov=_joint_prior_at(dyn, params, w0))
 
 
-def _joint_prior_at(dyn, params: PolicyParams, cov, w):
+def _joint_prior_at(dyn, params: PolicyParams, w):
     """The joint filter's first covariance at a stream's first conditions ``w``
-    (:func:`~jaxcal.envs.joint_filter.joint_prior`, around the start theta)."""
+    (:func:`~jaxcal.envs.joint_filter.joint_prior`, around the start theta), the
+    output biases' block (known zeros) inserted where the filter has one."""
+    cov = initial_cov(params, dyn.num_states, with_bias=False)
     half = 0.5 * (params.theta_high - params.theta_low)
     theta0 = start_theta(params).astype(cov.dtype)
-    return joint_prior(dyn, params.dyn_params, w.astype(cov.dtype), theta0, cov, half)
+    cov = joint_prior(dyn, params.dyn_params, w.astype(cov.dtype), theta0, cov, half)
+    if not has_bias_states(params):
+        return cov
+    return with_bias_block(cov, dyn.num_states, params.x_noise.shape[0])
 
 
 def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
@@ -244,6 +258,7 @@ def fresh_state(params: PolicyParams, band, num_states: int, xhat, z, hint):
             getattr(params, "gn_filter", False), getattr(params, "filter_adapt", 0),
             num_states, xhat,
         ),
+        bias=jnp.zeros_like(xhat) if has_bias_states(params) else None,
     )  # fmt: skip
 
 
@@ -265,15 +280,20 @@ def band_trend(params: PolicyParams, band) -> Array | None:
     return initial_trend(params.theta_low.shape[-1], params.theta_low.dtype)
 
 
-def initial_cov(params: PolicyParams, num_states: int) -> Array | None:
+def initial_cov(
+    params: PolicyParams, num_states: int, with_bias: bool = True
+) -> Array | None:
     """The filter step's first covariance (``gn_filter``; the joint one on a model
-    with memory under ``filter_whole``), else ``None``."""
+    with memory under ``filter_whole``; with the output biases' block where the
+    filter has one, unless ``with_bias=False``), else ``None``."""
     if not getattr(params, "gn_filter", False):
         return None
     dims = (params.theta_low.shape[-1], params.theta_low.dtype, params.filter_prior_std)
-    if params.filter_whole and num_states:
-        return initial_joint_cov(num_states, *dims)
-    return initial_filter_cov(*dims)
+    joint = params.filter_whole and num_states
+    cov = initial_joint_cov(num_states, *dims) if joint else initial_filter_cov(*dims)
+    if not (with_bias and has_bias_states(params)):
+        return cov
+    return with_bias_block(cov, num_states if joint else 0, params.x_noise.shape[0])
 
 
 def _kept_cov(state: PolicyState, w_t):
@@ -287,7 +307,7 @@ def _first_cov(dyn, params: PolicyParams, state: PolicyState, w_t):
     there too)."""
 
     def first():
-        return _joint_prior_at(dyn, params, initial_cov(params, dyn.num_states), w_t)
+        return _joint_prior_at(dyn, params, w_t)
 
     return jax.lax.cond(state.started, lambda: state.cov, first)
 
@@ -344,6 +364,7 @@ def _increment_step(
     z_prev = first_state(state, state.z, w_t, x_t)
     extra = sens = cov = joint_step = noise_scale = None
     half = 0.5 * (params.theta_high - params.theta_low)
+    biased = has_bias_states(params)  # the output biases filtered with theta
     if uses_jacobian(params):  # the environment's observation (jaxcal.envs.increment)
 
         def one(z_, th):
@@ -360,7 +381,27 @@ def _increment_step(
             )
         resid = (x_t - xhat.astype(x_t.dtype)) / params.x_std
         filtered = None
-        if joint:
+        if biased:
+            resid = debiased(resid, state.bias, params.x_noise, params.x_std)
+            ah = biased_jacobians(
+                ah if joint else static_joint(jac, half), params.x_noise,
+                half.shape[-1],
+            )  # fmt: skip
+            walk = bias_walk(
+                0 if z is None else z.shape[0],
+                bias_rate(params.filter_bias_var, state.noise_scale),
+                state.cov.dtype,
+            )
+            cov, filtered, dzb, du = joint_filter_feature(
+                state.cov, resid, ah, params, params.max_increment, params.filter_q,
+                walk, state.noise_scale,
+            )  # fmt: skip
+            joint_step = (dzb, du)
+            if state.noise_scale is not None:
+                noise_scale = adapted_noise_scale(
+                    state.noise_scale, resid, jac, params, params.filter_adapt
+                )
+        elif joint:
             cov, filtered, dz, du = joint_filter_feature(
                 state.cov, resid, ah, params, params.max_increment, params.filter_q
             )
@@ -382,6 +423,8 @@ def _increment_step(
         z, xhat, hint = transition(state, z_prev, w_t, xhat_prev, state.theta)
     xhat = xhat.astype(x_t.dtype)
     resid = (x_t - xhat) / params.x_std
+    if biased:  # the innovation the filter read: the prediction plus the biases
+        resid = debiased(resid, state.bias, params.x_noise, params.x_std)
     obs = increment_observation(
         resid,
         (w_t - params.w_mean) / params.w_std,
@@ -400,7 +443,16 @@ def _increment_step(
         params.max_increment,
         params.step_ref,
     )
-    if joint_step is not None:  # the filter's state, given the policy's theta step
+    bias = state.bias
+    if biased:  # the (state, biases), given the policy's theta step
+        dzb, du = joint_step
+        zb = bias if z is None else jnp.concatenate([z, bias.astype(z.dtype)])
+        zb = zb + dzb.astype(zb.dtype)
+        zb = conditioned_state(zb, cov, (theta - state.theta) / half, du)
+        num_states = zb.shape[0] - bias.shape[0]
+        bias = zb[num_states:].astype(bias.dtype)
+        z = None if z is None else zb[:num_states].astype(z.dtype)
+    elif joint_step is not None:  # the filter's state, given the policy's theta step
         dz, du = joint_step
         z = z + dz.astype(z.dtype)
         z = conditioned_state(z, cov, (theta - state.theta) / half, du)
@@ -415,5 +467,6 @@ def _increment_step(
         noise_scale=None
         if noise_scale is None
         else noise_scale.astype(state.noise_scale.dtype),
+        bias=bias,
     )
     return new_state, theta, xhat

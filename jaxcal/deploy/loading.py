@@ -239,4 +239,8 @@ def _restore_policy(run_dir: Path, cfg: TrainConfig, which: str, step, target):
                 "first (python -m jaxcal.train ...)"
             )
         step = ckpt.latest_step() if step is None else step
+        if folder == tuned and getattr(cfg.tune, "bias", False):
+            # the tuned filter's output biases (tune.bias): their walk, one per output
+            walk = jax.ShapeDtypeStruct(target.x_std.shape, target.x_std.dtype)
+            target = target.replace(filter_bias_var=walk)
         return ckpt.restore(step, target), step

@@ -97,15 +97,23 @@ def step_with_joint(step, z: Array, theta: Array, sens: Array, half: Array):
     return (h_theta + h_z @ sens, a_z @ sens + a_theta, (a, h), *out)
 
 
-def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: float):
+def joint_filter_feature(
+    cov, resid, joint, params, max_increment: float, q: float, state_walk=None,
+    noise_scale=None,
+):  # fmt: skip
     """``(C', feature [P], dz [Z], du [P])``: the update of the module docstring, the
     theta step in the action's scale (:func:`~jaxcal.envs.increment.step_feature`,
-    the gate divided out)."""
+    the gate divided out). ``state_walk`` ``[Z]``: the state's random walk per
+    sample (none by default; the output biases', :mod:`jaxcal.envs.bias_states`);
+    ``noise_scale`` ``[S]``: each output's noise variance taken ``max(1, scale)``
+    times its own (:func:`~jaxcal.envs.increment.adapted_noise_scale`)."""
     a, h = (m.astype(cov.dtype) for m in joint)
     num_states, n = a.shape[0], cov.shape[0]
     param_dim = n - num_states
+    if state_walk is None:
+        state_walk = jnp.zeros(num_states, cov.dtype)
     walk = jnp.concatenate(
-        [jnp.zeros(num_states, cov.dtype), jnp.full(param_dim, q**2, cov.dtype)]
+        [state_walk.astype(cov.dtype), jnp.full(param_dim, q**2, cov.dtype)]
     )
     pred = cov + jnp.diag(walk)
     lower = jnp.concatenate(
@@ -116,7 +124,10 @@ def joint_filter_feature(cov, resid, joint, params, max_increment: float, q: flo
         axis=1,
     )
     m = jnp.concatenate([a, lower], axis=0)
-    noise = jnp.diag(jnp.square(params.x_noise).astype(cov.dtype))
+    variance = jnp.square(params.x_noise)
+    if noise_scale is not None:
+        variance = variance * jnp.maximum(noise_scale, 1.0)
+    noise = jnp.diag(variance.astype(cov.dtype))
     s = _product(h, pred) @ h.T + noise
     m_pred = _product(m, pred)
     gain = spd_solve(s, _product(h, m_pred.T)).T

@@ -347,8 +347,14 @@ class TuneConfig:
     # with effects: the effects guard's weight in the score (the clean selection
     # units' the rest); 1: the effects alone, the clean units a limit only
     effects_weight: float = 0.5
+    # tune the random walk of output-bias states in the filter beside the actor
+    # (jaxcal.envs.bias_states): a sensor's slow error estimated, not read as theta
+    bias: bool = False
+    bias_lr: float = 0.05  # Adam's step on the biases' log walk (natural log)
 
     def __post_init__(self) -> None:
+        if not self.bias_lr > 0:
+            raise ValueError(f"tune.bias_lr must be > 0, got {self.bias_lr!r}")
         if not (
             0.0 <= self.effects <= 1.0
             and self.clean_limit > 0

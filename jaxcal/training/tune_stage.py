@@ -38,6 +38,7 @@ import optax
 
 from jaxcal.calibrators.policy import PolicyParams
 from jaxcal.data.padded import Padded
+from jaxcal.envs.bias_states import BIAS_WALKS, START_WALK
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_TUNED_DIR
 from jaxcal.training.config_sections import TuneConfig
@@ -62,13 +63,46 @@ class TuneResult(NamedTuple):
     record: dict
 
 
+def with_tuned(params: PolicyParams, tuned: dict) -> PolicyParams:
+    """``params`` with the tuned leaves: the actor, and where the filter's output
+    biases are tuned (``tune.bias``) their walk ``exp(log_bias_var)``."""
+    params = params.replace(actor=tuned["actor"])
+    if tuned.get("log_bias_var") is None:
+        return params
+    return params.replace(filter_bias_var=jnp.exp(tuned["log_bias_var"]))
+
+
+def _start_tuned(start: PolicyParams, bias: bool) -> dict:
+    """The tuning's first leaves: the kept actor, and with ``bias`` the output
+    biases' walk at :data:`~jaxcal.envs.bias_states.START_WALK` (a filter that
+    changes nothing yet)."""
+    if not bias:
+        return {"actor": start.actor, "log_bias_var": None}
+    log_var = jnp.full(start.x_std.shape, np.log(START_WALK), start.x_std.dtype)
+    return {"actor": start.actor, "log_bias_var": log_var}
+
+
+def _optimizer(cfg: TuneConfig, bias: bool):
+    """Adam on the actor (its gradient clipped), and on the biases' log walk with
+    its own step size (``tune.bias_lr``: the walk spans decades, the actor's
+    weights move by thousandths); a non-finite gradient (a diverging unit) skips
+    the step, never poisons it."""
+    inner = optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr))
+    if bias:
+        inner = optax.multi_transform(
+            {"actor": inner, "bias": optax.adam(cfg.bias_lr)},
+            {"actor": "actor", "log_bias_var": "bias"},
+        )
+    return optax.apply_if_finite(inner, max_consecutive_errors=cfg.steps + 1)
+
+
 def _theta_loss(run_arrays, low, high):
-    """``(actor, params, w, x, theta, mask) -> mean squared theta error`` in half-box
-    units over the valid, unflagged rows of a batch of units."""
+    """``(tuned, params, w, x, theta, mask) -> mean squared theta error`` in
+    half-box units over the valid, unflagged rows of a batch of units."""
     half = (high - low) / 2.0
 
-    def loss(actor, params, w, x, theta, mask):
-        out = run_arrays(params.replace(actor=actor), w, x, mask)
+    def loss(tuned, params, w, x, theta, mask):
+        out = run_arrays(with_tuned(params, tuned), w, x, mask)
         used = mask if out.valid is None else mask & out.valid
         err = jnp.where(used[..., None], (out.theta - theta) / half, 0.0)
         count = jnp.maximum(jnp.sum(used), 1) * theta.shape[-1]
@@ -108,11 +142,8 @@ def tune_policy(
     mask = jnp.asarray(train_units.mask)
     low, high = start.theta_low, start.theta_high
     loss = _theta_loss(run_arrays, low, high)
-    # a non-finite gradient (a diverging unit) skips the step, never poisons it
-    opt = optax.apply_if_finite(
-        optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr)),
-        max_consecutive_errors=cfg.steps + 1,
-    )
+    bias = cfg.bias and getattr(start, "gn_filter", False)
+    opt = _optimizer(cfg, bias)
     num_units, num_rows = w.shape[0], w.shape[1]
     batch = min(cfg.batch_units, num_units)
     window = min(cfg.window, num_rows)
@@ -138,26 +169,39 @@ def tune_policy(
         return cut(w), cut(x), cut(theta), cut(mask)
 
     @jax.jit
-    def update(actor, opt_state, params, key):
-        value, grad = jax.value_and_grad(loss)(actor, params, *draw(key))
-        updates, opt_state = opt.update(grad, opt_state, actor)
-        return optax.apply_updates(actor, updates), opt_state, value
+    def update(tuned, opt_state, params, key):
+        value, grad = jax.value_and_grad(loss)(tuned, params, *draw(key))
+        updates, opt_state = opt.update(grad, opt_state, tuned)
+        return optax.apply_updates(tuned, updates), opt_state, value
 
     before, clean_before = select_score(start)
     clean_before = np.asarray(clean_before, float)
     # a tuned policy may not lose on clean units what it gains under effects
     factor = 1.0 + cfg.clean_tolerance if limits is None else np.asarray(limits)
     clean_limit = clean_before * factor
-    best_score, best, actor = before, start, start.actor
-    opt_state, waited, steps = opt.init(actor), 0, 0
+    best_score, best, tuned = before, start, _start_tuned(start, bias)
     best_clean = clean_before
+    if bias:  # the walk spans decades: a scoring per decade first, then Adam
+        for walk in BIAS_WALKS:
+            trial = {**tuned, "log_bias_var": jnp.full_like(
+                tuned["log_bias_var"], np.log(walk))}  # fmt: skip
+            score, clean = select_score(with_tuned(start, trial))
+            log(f"tune: output-bias walk {walk:g}: selection score {score:.4e}")
+            if (
+                np.isfinite(score)
+                and score < best_score
+                and np.all(clean <= clean_limit)
+            ):
+                best, best_score, best_clean = with_tuned(start, trial), score, clean
+                tuned = trial
+    opt_state, waited, steps = opt.init(tuned), 0, 0
     for step in range(1, cfg.steps + 1):
         key, sub = jax.random.split(key)
-        actor, opt_state, value = update(actor, opt_state, start, sub)
+        tuned, opt_state, value = update(tuned, opt_state, start, sub)
         steps = step
         if step % cfg.eval_every and step != cfg.steps:
             continue
-        candidate = start.replace(actor=actor)
+        candidate = with_tuned(start, tuned)
         score, clean = select_score(candidate)
         if np.isfinite(score) and score < best_score and np.all(clean <= clean_limit):
             best, best_score, best_clean, waited = candidate, score, clean, 0
@@ -184,6 +228,8 @@ def tune_policy(
         "improved": improved,
         "seconds": time.perf_counter() - tic,
     }
+    if getattr(best, "filter_bias_var", None) is not None:
+        record["bias_var"] = np.asarray(best.filter_bias_var).tolist()
     log(
         f"tuned by gradient through the filter: selection theta rmse {before:.4e} "
         f"-> {best_score:.4e} ({record['ratio']:.3f}x) in {steps} steps, "

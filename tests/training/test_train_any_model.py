@@ -379,5 +379,11 @@ def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path, effects
         )
     )  # fmt: skip
     assert same != tune["improved"]
+    # the default preset's tuning fits the filter's output-bias walks (tune.bias):
+    # a tuned policy loads with them, the untrained one has none
+    assert (loaded.params.filter_bias_var is not None) == tune["improved"]
+    assert start.params.filter_bias_var is None
+    if tune["improved"]:
+        np.testing.assert_allclose(loaded.params.filter_bias_var, tune["bias_var"])
     result = jaxcal.calibrate(MODEL, path, method="policy", run=run_dir)
     assert result.valid.all() and np.isfinite(result.theta).all()

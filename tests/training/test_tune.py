@@ -150,3 +150,45 @@ def test_a_tuned_policy_that_loses_on_clean_units_is_not_kept():
 def test_tune_settings_are_validated(bad):
     with pytest.raises(ValueError, match="tune."):
         resolve_config(["dataset=tiny", bad])
+
+
+@struct.dataclass
+class _FilterParams(_Params):
+    """A filter's params: the output biases' walk is tuned beside the actor."""
+
+    x_std: jnp.ndarray = None
+    filter_bias_var: jnp.ndarray | None = None
+    gn_filter: bool = struct.field(pytree_node=False, default=True)
+
+
+def test_bias_walk_is_tuned_beside_the_actor_from_a_walk_that_changes_nothing():
+    """``tune.bias``: the filter's output-bias walk starts at START_WALK and is
+    scored per decade (BIAS_WALKS), then fitted by gradient (here the best theta
+    needs a walk of 3e-3: ``theta = g x + v``, between two decades)."""
+    from jaxcal.envs.bias_states import START_WALK
+
+    units = _units()
+    units = units._replace(theta=units.theta + 3e-3)
+
+    def run(params, w, x, mask):
+        out = _run(params, w, x, mask)
+        walk = 0.0 if params.filter_bias_var is None else params.filter_bias_var[0]
+        return out._replace(theta=out.theta + walk)
+
+    start = _FilterParams(
+        {"gain": jnp.float32(0.5)}, jnp.zeros(1), -jnp.ones(1), jnp.ones(1),
+        x_std=jnp.ones(1),
+    )  # fmt: skip
+
+    def score(p):
+        walk = 0.0 if p.filter_bias_var is None else float(p.filter_bias_var[0])
+        return (abs(walk - 3e-3),) * 2
+
+    cfg = TuneConfig(steps=300, lr=1e-3, bias=True, bias_lr=0.1, eval_every=20,
+                     batch_units=3)  # fmt: skip
+    out = tune_policy(start, run, units, score, cfg, __import__("jax").random.key(0))
+    assert out.improved and out.record["bias_var"][0] == pytest.approx(3e-3, rel=0.2)
+    off = tune_policy(start, run, units, score, TuneConfig(steps=20, eval_every=10),
+                      __import__("jax").random.key(0))  # fmt: skip
+    assert off.params is start or off.params.filter_bias_var is None
+    assert START_WALK < 1e-5  # the start changes no scored theta
