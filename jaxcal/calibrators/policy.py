@@ -47,6 +47,7 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     filter_settings,
     initial_sensitivity,
     policy_params_from_env,
+    with_output_states,
 )
 from jaxcal.calibrators.policy_step import (
     fresh_state,

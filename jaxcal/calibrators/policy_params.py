@@ -11,6 +11,8 @@ from its training environment's. :mod:`jaxcal.calibrators.policy` re-exports the
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 from flax import struct
 
@@ -60,9 +62,6 @@ class IncrementPolicyParams(PolicyParams):
             its prior std, half-widths of the box (static); ``filter_adapt``:
             the samples the filter on theta alone averages its noise over
             (static; ``EnvConfig.filter_adapt``, 0: the declared noise).
-        filter_bias_var: ``[S]`` the random walk per sample of the filter's
-            output-bias states, (noise stds)^2 (:mod:`jaxcal.envs.bias_states`,
-            fitted by ``tune.bias``); ``None``: no bias states.
     """
 
     step_ref: Array
@@ -74,7 +73,6 @@ class IncrementPolicyParams(PolicyParams):
     filter_whole: bool = struct.field(pytree_node=False, default=False)
     filter_prior_std: float = struct.field(pytree_node=False, default=FILTER_PRIOR_STD)
     filter_adapt: int = struct.field(pytree_node=False, default=0)
-    filter_bias_var: Array | None = None
 
 
 @struct.dataclass
@@ -88,6 +86,31 @@ class StartedIncrementPolicyParams(IncrementPolicyParams):
     """
 
     theta_start: Array | None = None
+
+
+@struct.dataclass
+class OutputStatesPolicyParams(StartedIncrementPolicyParams):
+    """:class:`StartedIncrementPolicyParams` of a policy whose filter carries
+    output states (:mod:`jaxcal.envs.bias_states`, fitted by the tuning; its own
+    class: the checkpoints of the runs before it keep their layout).
+
+    Attributes:
+        filter_bias_var: ``[S]`` the random walk per sample of each output's bias,
+            (noise stds)^2 (``tune.bias``).
+    """
+
+    filter_bias_var: Array | None = None
+
+
+def with_output_states(params: PolicyParams, bias_var: Array):
+    """``params`` (an incremental policy's) with its filter's output-bias states,
+    their walk ``bias_var`` (a start theta of ``None``: the box centre, as the
+    class it came from)."""
+    if hasattr(params, "filter_bias_var"):
+        return params.replace(filter_bias_var=bias_var)
+    fields = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+    fields.setdefault("theta_start", None)
+    return OutputStatesPolicyParams(**fields, filter_bias_var=bias_var)
 
 
 def counts(params: PolicyParams, band) -> bool:

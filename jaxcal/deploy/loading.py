@@ -37,6 +37,7 @@ from jaxcal.calibrators.policy import (
     PolicyParams,
     StartedIncrementPolicyParams,
     filter_settings,
+    with_output_states,
 )
 from jaxcal.calibrators.trained import LoadedRun
 from jaxcal.calibrators.uncertainty import load_band
@@ -242,5 +243,5 @@ def _restore_policy(run_dir: Path, cfg: TrainConfig, which: str, step, target):
         if folder == tuned and getattr(cfg.tune, "bias", False):
             # the tuned filter's output biases (tune.bias): their walk, one per output
             walk = jax.ShapeDtypeStruct(target.x_std.shape, target.x_std.dtype)
-            target = target.replace(filter_bias_var=walk)
+            target = with_output_states(target, walk)
         return ckpt.restore(step, target), step

@@ -39,18 +39,13 @@ START_WALK = 1e-6
 
 def biased_jacobians(joint, x_noise: Array, param_dim: int):
     """``(A', H')`` of the filter with bias states: the model's step Jacobians
-    ``(A [Z, Z + P], H [S, Z + P])`` in ``(z, u)`` (``None`` for a static model)
-    extended to ``(z, b, u)``: the bias keeps its value (``I``) and adds
-    ``sigma`` (``x_noise``) to the prediction."""
+    ``(A [Z, Z + P], H [S, Z + P])`` in ``(z, u)`` (:func:`static_joint` for a
+    static model) extended to ``(z, b, u)``: the bias keeps its value (``I``) and
+    adds ``sigma`` (``x_noise``) to the prediction."""
     sigma = x_noise
     num_out = sigma.shape[0]
-    if joint is None:
-        num_states = 0
-        a = jnp.zeros((0, param_dim), sigma.dtype)
-        h = jnp.zeros((num_out, param_dim), sigma.dtype)
-    else:
-        a, h = joint
-        num_states = a.shape[0]
+    a, h = joint
+    num_states = a.shape[0]
     a_z, a_u = a[:, :num_states], a[:, num_states:]
     h_z, h_u = h[:, :num_states], h[:, num_states:]
     zeros = jnp.zeros((num_states, num_out), a.dtype)

@@ -37,6 +37,7 @@ import numpy as np
 import optax
 
 from jaxcal.calibrators.policy import PolicyParams
+from jaxcal.calibrators.policy_params import with_output_states
 from jaxcal.data.padded import Padded
 from jaxcal.envs.bias_states import BIAS_WALKS, START_WALK
 from jaxcal.runs.checkpoint import Checkpointer
@@ -67,9 +68,9 @@ def with_tuned(params: PolicyParams, tuned: dict) -> PolicyParams:
     """``params`` with the tuned leaves: the actor, and where the filter's output
     biases are tuned (``tune.bias``) their walk ``exp(log_bias_var)``."""
     params = params.replace(actor=tuned["actor"])
-    if tuned.get("log_bias_var") is None:
+    if "log_bias_var" not in tuned:
         return params
-    return params.replace(filter_bias_var=jnp.exp(tuned["log_bias_var"]))
+    return with_output_states(params, jnp.exp(tuned["log_bias_var"]))
 
 
 def _start_tuned(start: PolicyParams, bias: bool) -> dict:
@@ -77,21 +78,22 @@ def _start_tuned(start: PolicyParams, bias: bool) -> dict:
     biases' walk at :data:`~jaxcal.envs.bias_states.START_WALK` (a filter that
     changes nothing yet)."""
     if not bias:
-        return {"actor": start.actor, "log_bias_var": None}
-    log_var = jnp.full(start.x_std.shape, np.log(START_WALK), start.x_std.dtype)
+        return {"actor": start.actor}
+    like = start.x_std
+    log_var = jnp.full(like.shape, np.log(START_WALK), like.dtype)
     return {"actor": start.actor, "log_bias_var": log_var}
 
 
-def _optimizer(cfg: TuneConfig, bias: bool):
+def _optimizer(cfg: TuneConfig, tuned: dict):
     """Adam on the actor (its gradient clipped), and on the biases' log walk with
     its own step size (``tune.bias_lr``: the walk spans decades, the actor's
     weights move by thousandths); a non-finite gradient (a diverging unit) skips
     the step, never poisons it."""
     inner = optax.chain(optax.clip_by_global_norm(cfg.clip), optax.adam(cfg.lr))
-    if bias:
+    if len(tuned) > 1:
+        labels = {key: "actor" if key == "actor" else "filter" for key in tuned}
         inner = optax.multi_transform(
-            {"actor": inner, "bias": optax.adam(cfg.bias_lr)},
-            {"actor": "actor", "log_bias_var": "bias"},
+            {"actor": inner, "filter": optax.adam(cfg.bias_lr)}, labels
         )
     return optax.apply_if_finite(inner, max_consecutive_errors=cfg.steps + 1)
 
@@ -143,7 +145,8 @@ def tune_policy(
     low, high = start.theta_low, start.theta_high
     loss = _theta_loss(run_arrays, low, high)
     bias = cfg.bias and getattr(start, "gn_filter", False)
-    opt = _optimizer(cfg, bias)
+    first = _start_tuned(start, bias)
+    opt = _optimizer(cfg, first)
     num_units, num_rows = w.shape[0], w.shape[1]
     batch = min(cfg.batch_units, num_units)
     window = min(cfg.window, num_rows)
@@ -179,21 +182,16 @@ def tune_policy(
     # a tuned policy may not lose on clean units what it gains under effects
     factor = 1.0 + cfg.clean_tolerance if limits is None else np.asarray(limits)
     clean_limit = clean_before * factor
-    best_score, best, tuned = before, start, _start_tuned(start, bias)
+    best_score, best, tuned = before, start, first
     best_clean = clean_before
-    if bias:  # the walk spans decades: a scoring per decade first, then Adam
-        for walk in BIAS_WALKS:
-            trial = {**tuned, "log_bias_var": jnp.full_like(
-                tuned["log_bias_var"], np.log(walk))}  # fmt: skip
-            score, clean = select_score(with_tuned(start, trial))
-            log(f"tune: output-bias walk {walk:g}: selection score {score:.4e}")
-            if (
-                np.isfinite(score)
-                and score < best_score
-                and np.all(clean <= clean_limit)
-            ):
-                best, best_score, best_clean = with_tuned(start, trial), score, clean
-                tuned = trial
+    for walk in BIAS_WALKS if bias else ():  # a scoring per decade, then Adam
+        value = jnp.full_like(tuned["log_bias_var"], np.log(walk))
+        trial = {**tuned, "log_bias_var": value}
+        score, clean = select_score(with_tuned(start, trial))
+        log(f"tune: output-bias walk {walk:g}: selection score {score:.4e}")
+        if np.isfinite(score) and score < best_score and np.all(clean <= clean_limit):
+            best, best_score, best_clean = with_tuned(start, trial), score, clean
+            tuned = trial
     opt_state, waited, steps = opt.init(tuned), 0, 0
     for step in range(1, cfg.steps + 1):
         key, sub = jax.random.split(key)

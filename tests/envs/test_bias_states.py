@@ -11,7 +11,11 @@ import numpy as np
 from support.norm import own_norm
 
 from jaxcal.calibrators.interface import run_fleet
-from jaxcal.calibrators.policy import make_policy_calibrator, policy_params_from_env
+from jaxcal.calibrators.policy import (
+    make_policy_calibrator,
+    policy_params_from_env,
+    with_output_states,
+)
 from jaxcal.envs.bias_states import START_WALK, with_bias_block
 from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import StatefulDynamics, as_stateful
@@ -101,7 +105,7 @@ def _run(dynamics, params, w, x, walk, adapt=0):
         filter_adapt=adapt,
     )  # fmt: skip
     if walk is not None:
-        pp = pp.replace(filter_bias_var=jnp.full(x.shape[-1], walk))
+        pp = with_output_states(pp, jnp.full(x.shape[-1], walk))
     cal = make_policy_calibrator(StepActor(), dynamics, pp)
     out = run_fleet(cal, jnp.asarray(w), jnp.asarray(x), jnp.ones((U, T), bool))
     return np.asarray(out.theta)

@@ -195,6 +195,10 @@ def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
     static = [f.name for f in fields if not f.metadata.get("pytree_node", True)]
     assert leaves[-2:] == ["step_ref", "x_noise"] and "theta_start" not in leaves
     assert next(f for f in fields if f.name == "x_noise").default is None
+    # nor after it: a started policy's last leaf stays its start (the filter's
+    # output states, tune.bias, are a class of their own)
+    started = dataclasses.fields(StartedIncrementPolicyParams)
+    assert [f.name for f in started][-1] == "theta_start"
     assert static == [
         "max_increment",
         "gauss_newton",
