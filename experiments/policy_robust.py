@@ -94,7 +94,12 @@ VARIANTS = {
         "tune.steps=600",
     ],
     # the default with the filter's output-bias states tuned beside the actor
+    # (tune.bias: the default since results/policy_robust/bias)
     "bias": ["tune.bias=true"],
+    # the default before it: the actor tuned alone
+    "actor-tuned": ["tune.bias=false"],
+    # the default with the units drawn across the box within 2x (not 1.5x)
+    "box-2x": ["tune.clean_tolerance=1.0"],
     # the default with the units drawn across the box within 1.5x (not 2x)
     "box15": ["tune.clean_tolerance=0.5"],
     # the same scored on the effects alone (the clean units a limit only)

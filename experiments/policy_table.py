@@ -34,6 +34,7 @@ VARIANTS = (
     "rl",
     "clean-tuned",
     "box-2x",
+    "actor-tuned",
     "default",
     "effects",
     "theta",
@@ -180,13 +181,15 @@ def main(argv: list[str]) -> int:
         "`deploy_async.json` the default dispatch); the cost "
         "does not depend on the weights, so it is shown once per model. After: "
         "`start` the untrained policy, `rl` the actor-critic as it was before the "
-        "tuning (six chunks, no tuning), `clean-tuned` the default of the round "
+        "tuning (six chunks, no tuning), `clean-tuned` the default two rounds "
         "before (the actor-critic with patience 2, then `tune.steps=400`: the actor "
         "tuned by gradient through the filter on clean units, docs/policy.md), "
-        "`default` the default preset now (the same tuning on units half of which "
-        "carry an effect, `tune.effects=0.5`, the units drawn across the box within "
-        "1.5x: results/policy_robust/robust/), `box-2x` the same with them within "
-        "2x (`tune.clean_tolerance=1.0`). The "
+        "`actor-tuned` the default of the round before (the same tuning on units "
+        "half of which carry an effect, `tune.effects=0.5`, the units drawn across "
+        "the box within 1.5x: results/policy_robust/robust/), `box-2x` that with "
+        "them within 2x (`tune.clean_tolerance=1.0`), `default` the default preset "
+        "now (the filter's output-bias walks tuned beside the actor, `tune.bias`: "
+        "results/policy_robust/bias/). The "
         "turbofan "
         f"(`{opts.turbofan}`, `experiments/policy_turbofan.py`, details in its "
         "`.md`): `default` the run of `make train`, `start` the same with "

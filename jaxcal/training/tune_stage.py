@@ -84,6 +84,24 @@ def _start_tuned(start: PolicyParams, bias: bool) -> dict:
     return {"actor": start.actor, "log_bias_var": log_var}
 
 
+def _walk_trials(tuned: dict):
+    """``(label, log walk -> log walk)`` the biases' walks scored before the
+    gradient steps, each against the best so far: one walk for every output per
+    decade (:data:`BIAS_WALKS`), then each output's own per decade (a sensor's
+    fault and a parameter's change differ more on some outputs than on others).
+    The log walk's gradient is too faint to cross decades in a few hundred
+    steps."""
+    num_out = tuned["log_bias_var"].shape[-1]
+    for walk in BIAS_WALKS:
+        yield f"{walk:g}", lambda old, walk=walk: jnp.full_like(old, np.log(walk))
+    for k in range(num_out):  # host side: S outputs, a few scorings each
+        for walk in BIAS_WALKS:
+            yield (
+                f"{walk:g} on output {k}",
+                lambda old, k=k, walk=walk: old.at[k].set(np.log(walk)),
+            )
+
+
 def _optimizer(cfg: TuneConfig, tuned: dict):
     """Adam on the actor (its gradient clipped), and on the biases' log walk with
     its own step size (``tune.bias_lr``: the walk spans decades, the actor's
@@ -184,12 +202,19 @@ def tune_policy(
     clean_limit = clean_before * factor
     best_score, best, tuned = before, start, first
     best_clean = clean_before
-    for walk in BIAS_WALKS if bias else ():  # a scoring per decade, then Adam
-        value = jnp.full_like(tuned["log_bias_var"], np.log(walk))
-        trial = {**tuned, "log_bias_var": value}
+    for label, value in _walk_trials(tuned) if bias else ():  # then Adam
+        trial = {**tuned, "log_bias_var": value(tuned["log_bias_var"])}
         score, clean = select_score(with_tuned(start, trial))
-        log(f"tune: output-bias walk {walk:g}: selection score {score:.4e}")
-        if np.isfinite(score) and score < best_score and np.all(clean <= clean_limit):
+        over = np.flatnonzero(clean > clean_limit)
+        log(
+            f"tune: output-bias walk {label}: selection score {score:.4e}"
+            + (
+                f" (refused: guard set {over.tolist()} above its limit)"
+                if over.size
+                else ""
+            )
+        )
+        if np.isfinite(score) and score < best_score and not over.size:
             best, best_score, best_clean = with_tuned(start, trial), score, clean
             tuned = trial
     opt_state, waited, steps = opt.init(tuned), 0, 0
