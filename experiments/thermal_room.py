@@ -6,8 +6,10 @@ C_w dT_w/dt = UA_rw (T_r - T_w) - UA_wo (T_w - T_a), explicit Euler in 10 sub-st
 Parameters: the heater's efficiency eta (fouling), UA_rw and UA_wo (insulation
 ageing). Outputs: T_r, T_w and the heat flux out, UA_wo (T_w - T_a) / 1000 (kW).
 """
+
 import jax
 import jax.numpy as jnp
+
 from jaxcal.model import Model
 
 C_R, C_W, DT, SUB = 2.0e6, 1.5e7, 600.0, 10
