@@ -29,6 +29,7 @@ sys.path.insert(0, HERE)
 
 from policy_robust import EFFECTS, _score, with_effect  # noqa: E402
 from thermal_room import thermal_init, thermal_model, thermal_step  # noqa: E402
+from unseen_models import _schedule  # noqa: E402
 
 NOISE = {"T_r": 0.1, "T_w": 0.1, "flux": 0.05}
 
@@ -48,12 +49,7 @@ def main(argv: list[str]) -> int:
         start = rng.uniform([0.85, 700.0, 250.0], [1.0, 900.0, 330.0])
         rise = np.array([-0.2, -250.0, 100.0]) * rng.uniform(0.4, 1.0, 3)
         theta = start + rise * (t[:, None] / rows) ** 1.2
-        cols = []
-        for lo, hi in zip(low, high, strict=True):
-            walk = np.cumsum(rng.normal(0, 1, rows))
-            walk = (walk - walk.min()) / max(np.ptp(walk), 1e-9)
-            cols.append(lo + (hi - lo) * (0.1 + 0.8 * walk))
-        w = np.stack(cols, 1)
+        w = _schedule(rng, rows, low, high)
 
         def body(z, inp):
             return thermal_step(z, *inp)
@@ -87,18 +83,17 @@ def main(argv: list[str]) -> int:
         lab: with_effect(test, outputs, NOISE, k, s, np.random.default_rng(7))
         for lab, (k, s) in EFFECTS.items()
     }
-    res = {"ukf": {}}
-    for lab, fr in tests.items():
-        r = jaxcal.calibrate(
-            spec,
-            fr,
-            method="ukf",
-            theta=names,
-            noise=NOISE,
-            progress=False,
-            misfit="keep",
-        )
-        res["ukf"][lab] = _score(r, fr, names, half)
+
+    def scores(method: str, **options) -> dict:
+        """Theta RMSE of ``method`` on each test frame (half-widths of the box)."""
+        out = {}
+        for lab, fr in tests.items():
+            r = jaxcal.calibrate(spec, fr, method=method, theta=names, progress=False,
+                                 misfit="keep", **options)  # fmt: skip
+            out[lab] = _score(r, fr, names, half)
+        return out
+
+    res = {"ukf": scores("ukf", noise=NOISE)}
     print("ukf", res["ukf"], flush=True)
     noise_arg = ",".join(f"{k}:{v}" for k, v in NOISE.items())
     for variant, extra in (
@@ -128,18 +123,7 @@ def main(argv: list[str]) -> int:
             return 1
         job = time.perf_counter() - tic
         line = [l for l in p.stdout.splitlines() if "training " in l and "start" in l]
-        sc = {}
-        for lab, fr in tests.items():
-            r = jaxcal.calibrate(
-                spec,
-                fr,
-                method="policy",
-                theta=names,
-                run=f"{work}/thermal-{variant}",
-                progress=False,
-                misfit="keep",
-            )
-            sc[lab] = _score(r, fr, names, half)
+        sc = scores("policy", run=f"{work}/thermal-{variant}")
         res[variant] = {"job_s": job, "theta_rmse": sc, "line": line}
         print(
             variant,

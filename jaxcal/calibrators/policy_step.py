@@ -397,10 +397,6 @@ def _increment_step(
                 walk, state.noise_scale,
             )  # fmt: skip
             joint_step = (dzb, du)
-            if state.noise_scale is not None:
-                noise_scale = adapted_noise_scale(
-                    state.noise_scale, resid, jac, params, params.filter_adapt
-                )
         elif joint:
             cov, filtered, dz, du = joint_filter_feature(
                 state.cov, resid, ah, params, params.max_increment, params.filter_q
@@ -411,10 +407,10 @@ def _increment_step(
                 state.cov, resid, jac, params, params.max_increment,
                 params.filter_q, params.filter_whole, state.noise_scale,
             )  # fmt: skip
-            if state.noise_scale is not None:
-                noise_scale = adapted_noise_scale(
-                    state.noise_scale, resid, jac, params, params.filter_adapt
-                )
+        if state.noise_scale is not None:  # the filter on theta alone adapts
+            noise_scale = adapted_noise_scale(
+                state.noise_scale, resid, jac, params, params.filter_adapt
+            )
         extra = gauss_newton_features(
             resid, jac, state.count, params, params.max_increment,
             one_sample=params.gauss_newton, filtered=filtered,

@@ -84,22 +84,16 @@ def _start_tuned(start: PolicyParams, bias: bool) -> dict:
     return {"actor": start.actor, "log_bias_var": log_var}
 
 
-def _walk_trials(tuned: dict):
-    """``(label, log walk -> log walk)`` the biases' walks scored before the
-    gradient steps, each against the best so far: one walk for every output per
-    decade (:data:`BIAS_WALKS`), then each output's own per decade (a sensor's
-    fault and a parameter's change differ more on some outputs than on others).
-    The log walk's gradient is too faint to cross decades in a few hundred
-    steps."""
-    num_out = tuned["log_bias_var"].shape[-1]
-    for walk in BIAS_WALKS:
-        yield f"{walk:g}", lambda old, walk=walk: jnp.full_like(old, np.log(walk))
-    for k in range(num_out):  # host side: S outputs, a few scorings each
+def _walk_trials(num_out: int):
+    """``(label, outputs)`` the biases' walks scored before the gradient steps,
+    each set on ``outputs`` of the best so far: every output at once per decade
+    (:data:`BIAS_WALKS`), then each output on its own (a sensor's fault and a
+    parameter's change differ more on some outputs than on others). The log
+    walk's gradient is too faint to cross decades in a few hundred steps."""
+    for k in (slice(None), *range(num_out)):  # host side: S + 1 sets, 3 walks each
         for walk in BIAS_WALKS:
-            yield (
-                f"{walk:g} on output {k}",
-                lambda old, k=k, walk=walk: old.at[k].set(np.log(walk)),
-            )
+            label = f"{walk:g}" if k == slice(None) else f"{walk:g} on output {k}"
+            yield label, k, walk
 
 
 def _optimizer(cfg: TuneConfig, tuned: dict):
@@ -202,18 +196,15 @@ def tune_policy(
     clean_limit = clean_before * factor
     best_score, best, tuned = before, start, first
     best_clean = clean_before
-    for label, value in _walk_trials(tuned) if bias else ():  # then Adam
-        trial = {**tuned, "log_bias_var": value(tuned["log_bias_var"])}
+    trials = _walk_trials(start.x_std.shape[-1]) if bias else ()
+    for label, outputs, walk in trials:  # then Adam
+        value = tuned["log_bias_var"].at[outputs].set(np.log(walk))
+        trial = {**tuned, "log_bias_var": value}
         score, clean = select_score(with_tuned(start, trial))
         over = np.flatnonzero(clean > clean_limit)
-        log(
-            f"tune: output-bias walk {label}: selection score {score:.4e}"
-            + (
-                f" (refused: guard set {over.tolist()} above its limit)"
-                if over.size
-                else ""
-            )
-        )
+        refused = f" (refused: guard set {over.tolist()} above its limit)"
+        log(f"tune: output-bias walk {label}: selection score {score:.4e}"
+            + (refused if over.size else ""))  # fmt: skip
         if np.isfinite(score) and score < best_score and not over.size:
             best, best_score, best_clean = with_tuned(start, trial), score, clean
             tuned = trial
