@@ -52,7 +52,10 @@ def _variants(engine, dp):
     def parts(w, theta):
         effects = jnp.zeros((cycle.NUM_EFFECTS,), w.dtype)
         p = jnp.concatenate([w, theta])
-        return p, warm_start._residual_with_outputs(engine.design, dp, w, theta, effects)
+        residual = warm_start._residual_with_outputs(
+            engine.design, dp, w, theta, effects
+        )
+        return p, residual
 
     def solve(w, theta, hint):
         x, _, hint = engine.evaluate_hinted(w, theta, hint)
@@ -118,11 +121,12 @@ def main(argv: list[str]) -> int:
     out["solve_kernels"] = _kernels(
         fns["solve"].lower(w[0], theta[0], first).compile().as_text()
     )
+
     def residual(z, w1, th1):  # the sample's inputs as arguments: nothing folded
         effects = jnp.zeros((cycle.NUM_EFFECTS,), w1.dtype)
-        return warm_start._residual_with_outputs(
-            engine.design, dp, w1, th1, effects
-        )(z, None)
+        return warm_start._residual_with_outputs(engine.design, dp, w1, th1, effects)(
+            z, None
+        )
 
     one = jax.jit(residual)
     z, w0, th0 = np.asarray(first.z), w[0], theta[0]
@@ -141,9 +145,10 @@ def main(argv: list[str]) -> int:
         cfg = solver.SolverConfig(tol=tol)
 
         def at(w1, th1, hint, cfg=cfg):
-            return warm_start.evaluate_hinted(engine.design, w1, th1, hint,
-                                              guess=engine.guess, solver_cfg=cfg,
-                                              envelope=engine.envelope, dp=dp)  # fmt: skip
+            return warm_start.evaluate_hinted(
+                engine.design, w1, th1, hint, guess=engine.guess, solver_cfg=cfg,
+                envelope=engine.envelope, dp=dp,
+            )  # fmt: skip
 
         step, hint, iters, err = jax.jit(at), engine.initial_hint(), [], 0.0
         for t in range(rows):
