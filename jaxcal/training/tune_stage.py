@@ -79,17 +79,17 @@ def _start_tuned(start: PolicyParams, bias: bool) -> dict:
     changes nothing yet)."""
     if not bias:
         return {"actor": start.actor}
-    like = start.x_std
-    log_var = jnp.full(like.shape, np.log(START_WALK), like.dtype)
+    log_var = jnp.full(start.x_std.shape, np.log(START_WALK), start.x_std.dtype)
     return {"actor": start.actor, "log_bias_var": log_var}
 
 
 def _walk_trials(num_out: int):
-    """``(label, outputs)`` the biases' walks scored before the gradient steps,
-    each set on ``outputs`` of the best so far: every output at once per decade
-    (:data:`BIAS_WALKS`), then each output on its own (a sensor's fault and a
-    parameter's change differ more on some outputs than on others). The log
-    walk's gradient is too faint to cross decades in a few hundred steps."""
+    """``(label, outputs, walk)``: the biases' walks scored before the gradient
+    steps, each ``walk`` set on ``outputs`` (an index or every one) of the best so
+    far: every output at once per decade (:data:`BIAS_WALKS`), then each output
+    on its own (a sensor's fault and a parameter's change differ more on some
+    outputs than on others). The log walk's gradient is too faint to cross
+    decades in a few hundred steps."""
     for k in (slice(None), *range(num_out)):  # host side: S + 1 sets, 3 walks each
         for walk in BIAS_WALKS:
             label = f"{walk:g}" if k == slice(None) else f"{walk:g} on output {k}"
