@@ -38,11 +38,14 @@ import numpy as np
 from jaxcal.model_contract import (
     ModelContractError,
     check_functions,
+    check_warm_start,
     checked_output,
     checked_state,
+    initial_state_fn,
     split_output,
     split_step,
     traced_call,
+    warm_output,
 )
 from jaxcal.model_spec import (
     DiagnosisHints,
@@ -51,6 +54,7 @@ from jaxcal.model_spec import (
     StepFn,
     Variable,
     as_parameters,
+    as_range,
     as_variables,
     check_vocabulary,
     names_to_index,
@@ -100,6 +104,9 @@ class Model:
             cheaper when ``hint`` is the previous call's along a stream (a fleet
             vmaps it: ``jaxcal.physics.warm_start`` on a fall-back).
         initial_hint: ``initial_hint() -> hint``, the hint before any call.
+        warm_fn, warm_size: optional ``warm_fn(w, theta, e, z0) -> (x, valid, z)``:
+            from the solver start ``z0`` [warm_size] (NaN: its own), its solution
+            ``z`` (:mod:`jaxcal.diagnosis.linearization`).
         origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
             :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
             programs can be kept on disk, :mod:`jaxcal.calibrators.on_disk`);
@@ -122,6 +129,8 @@ class Model:
     diagnosis: DiagnosisHints = DiagnosisHints()
     hinted_fn: Callable[[Array, Array, Any], Any] | None = None
     initial_hint_fn: Callable[[], Any] | None = None
+    warm_fn: Callable[[Array, Array, Array, Array], Any] | None = None
+    warm_size: int = 0
     origin: str | None = None
 
     # ---------------------------------------------------------------- builders
@@ -144,6 +153,8 @@ class Model:
         diagnosis: DiagnosisHints | None = None,
         hinted_fn: Callable[[Array, Array, Any], Any] | None = None,
         initial_hint: Callable[[], Any] | None = None,
+        warm_fn: Callable[[Array, Array, Array, Array], Any] | None = None,
+        warm_size: int = 0,
     ) -> Model:
         """A static model from a pure JAX function ``fn(w [W], theta [P]) -> x [S]``.
 
@@ -151,16 +162,18 @@ class Model:
         :class:`ModelInfo`. ``conditions`` / ``outputs``: names, ``{name: unit}`` or
         :class:`Variable` s; ``parameters``: ``{name: (nominal, low, high[, unit])}``.
         ``hinted_fn`` / ``initial_hint``: an optional warm-started ``fn`` (both or
-        neither; see the class attributes).
+        neither), ``warm_fn`` / ``warm_size``: see the class attributes.
         """
         if (hinted_fn is None) != (initial_hint is None):
             raise ValueError(
                 "hinted_fn and initial_hint go together: give both or none"
             )
+        check_warm_start(warm_fn, warm_size)
 
         check_functions(
             str(name), (fn, "fn(w, theta)"),
             (hinted_fn, "hinted_fn(w, theta, hint)"), (initial_hint, "initial_hint()"),
+            (warm_fn, "warm_fn(w, theta, e, z0)"),
         )  # fmt: skip
         declared = [v.name for v in as_variables(outputs, "outputs")]
 
@@ -178,6 +191,7 @@ class Model:
             name, conditions, parameters, outputs, step, init_state, (),
             condition_range, input_check, effects, effect_fn, x64, native,
             diagnosis=diagnosis, hinted_fn=hinted_fn, initial_hint_fn=initial_hint,
+            warm_fn=warm_fn, warm_size=int(warm_size),
         )  # fmt: skip
 
     @classmethod
@@ -209,24 +223,9 @@ class Model:
             str(name), (step, "step(state, w, theta)"),
             (init_state if callable(init_state) else None, "init_state(w0, theta)"),
         )  # fmt: skip
-        if callable(init_state):
-
-            def init_fn(w0, theta):
-                call = "init_state(w0, theta)"
-                return traced_call(init_state, (w0, theta), model=str(name), call=call)
-
-        else:
-            init = np.asarray(init_state, dtype=np.float64)
-            names = [v.name for v in as_variables(states, "states")]
-            if init.shape != (len(names),):
-                raise ModelContractError(
-                    f"model {name!r}: init_state has shape {init.shape}; expected "
-                    f"[{len(names)}], one value per declared state {names}"
-                )
-
-            def init_fn(w0, theta):
-                del w0
-                return jnp.asarray(init, dtype=jnp.result_type(theta))
+        init_fn = initial_state_fn(
+            init_state, [v.name for v in as_variables(states, "states")], str(name)
+        )
 
         def step_fn(state, w, theta):
             call = "step(state, w, theta)"
@@ -243,19 +242,11 @@ class Model:
     def _build(
         cls, name, conditions, parameters, outputs, step, init_state, states,
         condition_range, input_check, effects, effect_fn, x64, native,
-        diagnosis=None, hinted_fn=None, initial_hint_fn=None,
+        diagnosis=None, hinted_fn=None, initial_hint_fn=None, warm_fn=None,
+        warm_size=0,
     ) -> Model:  # fmt: skip
         conditions = as_variables(conditions, "conditions")
-        if condition_range is not None:
-            low, high = (np.asarray(b, np.float64) for b in condition_range)
-            if low.shape != (len(conditions),) or high.shape != low.shape:
-                raise ValueError(
-                    f"condition_range must be (low [{len(conditions)}], high "
-                    f"[{len(conditions)}]), got shapes {low.shape}, {high.shape}"
-                )
-            if np.any(low > high) or np.isnan(low).any() or np.isnan(high).any():
-                raise ValueError("condition_range: need low <= high, no NaN")
-            condition_range = (low, high)
+        condition_range = as_range(condition_range, len(conditions))
         effects = as_parameters(effects, "effects") if effects else ()
         if effects and effect_fn is None:
             raise ValueError("effects need an effect_fn(w, theta, e) -> x")
@@ -286,6 +277,8 @@ class Model:
             diagnosis=DiagnosisHints() if diagnosis is None else diagnosis,
             hinted_fn=hinted_fn,
             initial_hint_fn=initial_hint_fn,
+            warm_fn=warm_fn,
+            warm_size=warm_size,
         )
 
     # ---------------------------------------------------------------- names
@@ -436,6 +429,12 @@ class Model:
         x, valid = split_output(out, self.output_names, model=self.name, call=call)
         x, valid = checked_output(self, x, valid, call)
         return x, self._info(w, theta, x, valid)
+
+    def evaluate_from(self, w: Array, theta: Array, e: Array, z0: Array):
+        """``(x [S_all], ModelInfo, z [warm_size])``: :attr:`warm_fn` from ``z0``
+        (validity as in :meth:`evaluate`)."""
+        x, valid, z = warm_output(self, w, theta, e, z0)
+        return x, self._info(w, theta, x, valid), z
 
     def restrict(
         self,

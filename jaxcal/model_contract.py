@@ -277,3 +277,56 @@ def _user_line(err: BaseException) -> str | None:
     frame = users[-1]
     code = f": {frame.line.strip()}" if frame.line else ""
     return f"{os.path.basename(frame.filename)}:{frame.lineno}{code}"
+
+
+def check_warm_start(warm_fn, warm_size) -> None:
+    """A model's ``warm_fn`` and ``warm_size`` (the length of its solution) go
+    together (:class:`jaxcal.model.Model`)."""
+    if (warm_fn is None) != (int(warm_size) == 0) or int(warm_size) < 0:
+        raise ValueError(
+            "warm_fn needs warm_size > 0 (the length of its z), and warm_size "
+            f"a warm_fn: got {warm_fn!r} and {warm_size!r}"
+        )
+
+
+def warm_output(model, w, theta, e, z0):
+    """``(x, valid, z)`` of ``model.warm_fn(w, theta, e, z0)``, ``x`` checked as
+    :func:`checked_output` checks ``fn``'s (:meth:`jaxcal.model.Model.
+    evaluate_from`)."""
+    if model.warm_fn is None:
+        raise ValueError(f"model {model.name!r} has no warm_fn")
+    call = "warm_fn(w, theta, e, z0)"
+    out = traced_call(model.warm_fn, (w, theta, e, z0), model=model.name, call=call)
+    if not (isinstance(out, tuple) and len(out) == 3):
+        raise ValueError(
+            f"model {model.name!r}: {call} must return (x, valid, z), got "
+            f"{type(out).__name__}"
+        )
+    x, valid = split_output(out[:2], model.output_names, model=model.name, call=call)
+    x, valid = checked_output(model, x, valid, call)
+    return x, valid, out[2]
+
+
+def initial_state_fn(init_state, names: list[str], model: str):
+    """``init_fn(w0, theta) -> state`` of a stateful model's ``init_state``: a
+    function of (w0, theta), its tracing errors translated, or a fixed ``[Z]``
+    array, one value per declared state (else a ModelContractError)."""
+    if callable(init_state):
+
+        def init_fn(w0, theta):
+            call = "init_state(w0, theta)"
+            return traced_call(init_state, (w0, theta), model=model, call=call)
+
+        return init_fn
+    init = np.asarray(init_state, dtype=np.float64)
+    if init.shape != (len(names),):
+        raise ModelContractError(
+            f"model {model!r}: init_state has shape {init.shape}; expected "
+            f"[{len(names)}], one value per declared state {names}"
+        )
+
+    def fixed(w0, theta):
+        del w0
+        return jnp.asarray(init, dtype=jnp.result_type(theta))
+
+    return fixed

@@ -196,6 +196,22 @@ RESERVED_NAMES = TABLE_COLUMNS + RESULT_COLUMNS
 SHAREABLE = frozenset({"output", "state"})
 
 
+def as_range(condition_range, num_conditions: int):
+    """``(low [W], high [W])`` float64 arrays of a model's ``condition_range``
+    (``None`` stays ``None``), or a ValueError saying what is wrong with it."""
+    if condition_range is None:
+        return None
+    low, high = (np.asarray(b, np.float64) for b in condition_range)
+    if low.shape != (num_conditions,) or high.shape != low.shape:
+        raise ValueError(
+            f"condition_range must be (low [{num_conditions}], high "
+            f"[{num_conditions}]), got shapes {low.shape}, {high.shape}"
+        )
+    if np.any(low > high) or np.isnan(low).any() or np.isnan(high).any():
+        raise ValueError("condition_range: need low <= high, no NaN")
+    return low, high
+
+
 def check_vocabulary(**groups: Sequence[Variable | Parameter]) -> None:
     """Each name of a model names one thing: a data column is a condition, an output
     or a true parameter, and a result column a parameter, a state or an output, so a

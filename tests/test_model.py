@@ -72,6 +72,8 @@ def test_restrict_places_declared_parameters_in_any_order_with_their_sweeps():
         ({"parameters": {"p": (1.0, 2.0, 0.5)}}, "low < high"),
         ({"outputs": ("y", "y")}, "repeated"),
         ({"conditions": "ab"}, "sequence of names"),
+        ({"warm_fn": lambda w, th, e, z0: (w, True, z0)}, "warm_size"),
+        ({"warm_size": 3}, "warm_fn"),
     ],
 )
 def test_bad_model_declarations_are_clear_errors(kwargs, match):
@@ -81,6 +83,26 @@ def test_bad_model_declarations_are_clear_errors(kwargs, match):
     spec.update(kwargs)
     with pytest.raises(ValueError, match=match):
         jaxcal.Model.from_function(_fn, **spec)
+
+
+def test_a_warm_started_form_returns_its_solution_and_checks_its_output():
+    def warm(w, theta, e, z0):  # a solver's start z0 and its solution z
+        del e
+        return _fn(w, theta), True, jnp.where(jnp.isfinite(z0), z0, 0.0) + 1.0
+
+    model = jaxcal.Model.from_function(
+        _fn, conditions=("a", "b"), parameters={"p": (1.0, 0.5, 2.0),
+        "q": (0.0, -1.0, 1.0)}, outputs=("y1", "y2"), warm_fn=warm, warm_size=1,
+        condition_range=([0.0, -10.0], [5.0, 10.0]),
+    )  # fmt: skip
+    w, theta = jnp.array([1.0, 2.0]), jnp.array([1.5, 0.5])
+    x, info, z = model.evaluate_from(w, theta, jnp.zeros(0), jnp.array([jnp.nan]))
+    np.testing.assert_array_equal(x, model.evaluate(w, theta)[0])
+    assert bool(info.valid) and float(z[0]) == 1.0
+    assert not bool(model.evaluate_from(jnp.array([9.0, 2.0]), theta, jnp.zeros(0),
+                                        z)[1].valid)  # fmt: skip  # outside the box
+    with pytest.raises(ValueError, match="no warm_fn"):
+        _model().evaluate_from(w, theta, jnp.zeros(0), z)
 
 
 def test_stateful_model_steps_and_static_evaluate_refuses_it():

@@ -1,11 +1,15 @@
 """A static model's per-row Jacobians over a data set, for the diagnosis's signatures
 (:mod:`jaxcal.diagnosis.signatures`).
 
-``jax.jacfwd`` with respect to the parameters, effects and offset conditions (or
-only the directions a fit needs, in buckets of :data:`DIRECTION_BUCKET`), one jitted
-function with a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across
-processes (``jaxcal.calibrators.on_disk``), its chunks dispatched
-:data:`CHUNKS_IN_FLIGHT` ahead; the last :data:`LINEARIZATIONS_KEPT` points are
+Forward derivatives along the directions a fit needs in (parameters, effects,
+offset conditions), in buckets of :data:`DIRECTION_BUCKET`, one jitted function with
+a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across processes
+(``jaxcal.calibrators.on_disk``), its chunks dispatched :data:`CHUNKS_IN_FLIGHT`
+ahead. A model whose solver can start from a nearby solution (``Model.warm_fn``: the
+turbofan's Newton solve) takes every derivative with the same program bucket by
+bucket, each bucket after the first started at the first's solution, and each point
+started at the last kept point's solution on the same rows; any other model takes
+every derivative in one pass. The last :data:`LINEARIZATIONS_KEPT` points are
 reused (a refit starts where the fit before it ended), an output-only point that
 differs from one of them on a few rows evaluates those rows alone
 (:data:`PIECED_SHARE`), and only the residual's outputs and a fit's own
@@ -38,75 +42,55 @@ CHUNKS_IN_FLIGHT = 8  # row chunks dispatched before the first is read back
 DIRECTION_BUCKET = 4  # a fit's derivatives are computed in groups of this many
 
 
-def _linearize_row(model: Model, offset_idx, w, theta, effects, w_off):
-    select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
-
-    def extended(th, ef, off_k):
-        w_in = w + w_off + select @ off_k
-        if model.effects:
-            x, info = model.evaluate_effects(w_in, th, ef)
-        else:
-            x, info = model.evaluate(w_in, th)
-        return x, (x, info.valid)
-
-    off_k = jnp.zeros(len(offset_idx), w.dtype)
-    jacs, (x, valid) = jax.jacfwd(extended, argnums=(0, 1, 2), has_aux=True)(
-        theta, effects, off_k
-    )
-    ok = valid & jnp.all(jnp.isfinite(x))
-    for jac in jacs:
-        ok = ok & jnp.all(jnp.isfinite(jac))
-    return x, jacs[0], jacs[1], jacs[2], ok
-
-
-def _directional_row(model: Model, offset_idx, w, theta, effects, w_off, basis):
-    """``(x, x' basis^T, ok)`` of one row: the output and its forward derivatives
+def _directional_row(model: Model, offset_idx, w, theta, effects, w_off, basis, z0):
+    """``(x, x' basis^T, ok, z)`` of one row: the output and its forward derivatives
     along the ``[D, M]`` directions ``basis`` in (parameters, effects, offset
-    conditions); ``D = 0`` is the output alone."""
+    conditions); ``D = 0`` is the output alone. A model with a ``warm_fn`` starts
+    its solver from ``z0`` (non-finite: its own start) and returns its solution
+    ``z``; ``z`` is ``[0]`` without one."""
     select = jnp.eye(len(model.conditions), dtype=w.dtype)[:, list(offset_idx)]
     num_p, num_e = theta.shape[0], effects.shape[0]
+    warm = model.warm_fn is not None
 
     def extended(u):
         th, ef, off_k = u[:num_p], u[num_p : num_p + num_e], u[num_p + num_e :]
         w_in = w + w_off + select @ off_k
+        if warm:
+            x, info, z = model.evaluate_from(w_in, th, ef, z0)
+            return x, (info.valid, z.astype(w.dtype))
         if model.effects:
             x, info = model.evaluate_effects(w_in, th, ef)
         else:
             x, info = model.evaluate(w_in, th)
-        return x, info.valid
+        return x, (info.valid, jnp.zeros((0,), w.dtype))
 
     u0 = jnp.concatenate([theta, effects, jnp.zeros(len(offset_idx), w.dtype)])
     if basis.shape[0] == 0:
-        x, valid = extended(u0)
+        x, (valid, z) = extended(u0)
         jac = jnp.zeros(x.shape + (0,), x.dtype)
     else:
 
         def push(v):  # the primal is not batched: computed once for every direction
-            (x, valid), (dx, _) = jax.jvp(extended, (u0,), (v,))
-            return x, valid, dx
+            (x, aux), (dx, _) = jax.jvp(extended, (u0,), (v,))
+            return x, aux, dx
 
-        x, valid, jac = jax.vmap(push, out_axes=(None, None, 1))(basis)
+        x, (valid, z), jac = jax.vmap(push, out_axes=(None, None, 1))(basis)
     ok = valid & jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(jac))
-    return x, jac, ok
+    return x, jac, ok, z
 
 
-def _linearize_program(model: Model, offset_idx: tuple, directions: int | None = None):
-    """The jitted ``[C]``-row linearisation of ``model`` (one shape for every data
-    set of a model), built once per process and kept on disk across processes
-    (:func:`jaxcal.calibrators.on_disk.kept`, under the built-in model's name or a
-    user model's traced digest): tracing the turbofan's Newton solve under
-    ``jacfwd`` took 30-35 s of every new process, the computation of a 200-unit
-    fit's evaluation 2-3 s. ``directions``: ``None`` for every derivative
-    (:func:`_linearize_row`), else that many directions given as an argument
-    (:func:`_directional_row`, 0: the output alone)."""
+def _linearize_program(model: Model, offset_idx: tuple, directions: int):
+    """The jitted ``[C]``-row linearisation of ``model`` along ``directions``
+    directions given as an argument (:func:`_directional_row`, 0: the output
+    alone; one shape for every data set of a model), built once per process and
+    kept on disk across processes (:func:`jaxcal.calibrators.on_disk.kept`, under
+    the built-in model's name or a user model's traced digest): tracing the
+    turbofan's Newton solve took 30-35 s of every new process, the computation of a
+    200-unit fit's evaluation 2-3 s."""
 
     def build():
-        if directions is None:
-            row = functools.partial(_linearize_row, model, offset_idx)
-            program = jax.jit(jax.vmap(row))
-        else:
-            row = functools.partial(_directional_row, model, offset_idx)
-            program = jax.jit(jax.vmap(row, in_axes=(0, 0, 0, 0, None)))
+        row = functools.partial(_directional_row, model, offset_idx)
+        program = jax.jit(jax.vmap(row, in_axes=(0, 0, 0, 0, None, 0)))
         origin = model.origin or traced_key(model, np.float64)
         disk = None if origin is None else (
             "diagnosis.linearize", origin, offset_idx, CHUNK_ROWS, directions,
@@ -132,6 +116,9 @@ class Linearization(NamedTuple):
     # the (channel, index) derivatives computed (None: all, in the full arrays)
     directions: frozenset | None = None
     jac: np.ndarray | None = None  # [N, E, D] those derivatives, sorted(directions)
+    # [N, warm_size] the model solver's solution at each row (a model with a
+    # warm_fn; NaN where the row failed): the next point's start
+    z: np.ndarray | None = None
 
     def covers(self, keys) -> bool:
         """The derivatives along every ``(channel, index)`` of ``keys`` are here."""
@@ -149,7 +136,8 @@ class Linearization(NamedTuple):
 
     def arrays(self) -> tuple:
         """The arrays held (shared read-only by every caller at this point)."""
-        held = (self.x, self.jac_theta, self.jac_effects, self.jac_w, self.ok, self.jac)
+        held = (self.x, self.jac_theta, self.jac_effects, self.jac_w, self.ok, self.jac,
+                self.z)  # fmt: skip
         return tuple(a for a in held if a is not None)
 
 
@@ -162,6 +150,7 @@ def linearize(
     *,
     outputs: Sequence[int] | None = None,
     directions=None,
+    start: np.ndarray | None = None,
 ) -> Linearization:
     """Per-row output and Jacobians of a static model at ``N`` rows.
 
@@ -180,6 +169,9 @@ def linearize(
             its own few, and each costs about 7 % of the model's evaluation (the
             turbofan's Newton solve is shared); those alone are returned, in
             ``jac`` (:class:`Linearization`).
+        start: ``[N, warm_size]`` a model with a ``warm_fn``: its solver's start at
+            each row, the ``z`` of a nearby point (NaN or ``None``: the model's
+            own start).
     """
     require_x64("the diagnosis needs float64")
     w = np.asarray(w, np.float64)
@@ -200,61 +192,88 @@ def linearize(
     w_offset = np.asarray(w_offset, np.float64)
     offset_idx = tuple(model.condition_names.index(c) for c in offset_conditions(model))
     keep = slice(None) if outputs is None else np.asarray(outputs, int)
-    basis, slots = _basis(model, offset_idx, directions)
-    program = _linearize_program(
-        model, offset_idx, None if basis is None else basis.shape[0]
-    )
+    basis, every = _basis(model, offset_idx, directions)
+    width = basis.shape[0]  # the wanted directions, then zero rows to a bucket
+    if model.warm_fn is not None and width > DIRECTION_BUCKET:
+        # the turbofan's Newton solve is ~60 % of a bucket and its compiled program
+        # with every direction 0.43 GB resident (results/loop/profile.md, round 9):
+        # buckets of the fit's program, each after the first started at the
+        # first's solution (one Newton iteration), one program for everything
+        blocks = [
+            basis[i : i + DIRECTION_BUCKET] for i in range(0, width, DIRECTION_BUCKET)
+        ]
+    else:
+        blocks = [basis]
+    size = basis.shape[1]
+    if start is None or not model.warm_size:
+        start = np.full((n, model.warm_size), np.nan)  # the model's own start
+    start = np.asarray(start, np.float64)
+    parts = []
+    for k, block in enumerate(blocks):
+        program = _linearize_program(model, offset_idx, block.shape[0])
+        x_k, jac_k, ok_k, z_k = evaluate_split(
+            functools.partial(
+                _evaluate_rows, program, block, (w, theta, effects, w_offset, start),
+                keep, n,
+            ),
+            n, CHUNK_ROWS,
+        )  # fmt: skip
+        if k == 0:
+            x, ok = x_k, ok_k.astype(bool)
+            start = np.where(ok[:, None], z_k, np.nan)
+        else:
+            ok = ok & ok_k.astype(bool)
+        parts.append(jac_k)
+    jac = np.concatenate(parts, axis=2)
+    outputs = None if outputs is None else tuple(int(i) for i in outputs)
+    z = start if model.warm_size else None
+    if every:
+        num_p, num_e = len(model.parameters), len(model.effects)
+        return Linearization(
+            x, jac[:, :, :num_p], jac[:, :, num_p : num_p + num_e],
+            jac[:, :, num_p + num_e : size], ok, outputs, z=z,
+        )  # fmt: skip
+    slots = int(np.count_nonzero(basis.any(axis=1)))
+    return Linearization(x, None, None, None, ok, outputs,
+                         frozenset(directions), jac[:, :, :slots], z)  # fmt: skip
+
+
+def _evaluate_rows(program, basis, arrays, keep, n, first, last):
+    """``(x, jac, ok, z)`` of rows ``first .. last - 1`` in whole chunks: chunks are
+    dispatched ahead and read back in order (they run on JAX's threads while the
+    host waits on the oldest; 2 cores: 0.55 s for 4096 rows of the turbofan against
+    0.91 s one chunk at a time)."""
 
     def read(start, stop, out):
-        out = [np.asarray(a)[: stop - start] for a in out]
+        x, jac, ok, z = (np.asarray(a)[: stop - start] for a in out)
         batch_progress(stop, n, "rows")
-        if basis is None:
-            x, j_th, j_ef, j_w, ok = out
-            return x[:, keep], j_th[:, keep], j_ef[:, keep], j_w[:, keep], ok
-        x, jac, ok = out
-        return x[:, keep], jac[:, keep, : len(slots)], ok
+        return x[:, keep], jac[:, keep], ok, z
 
-    def evaluate(first, last):  # rows first .. last - 1, in whole chunks
-        # chunks are dispatched ahead and read back in order: they run on JAX's
-        # threads while the host waits on the oldest (2 cores: 0.55 s for 4096 rows
-        # of the turbofan against 0.91 s one chunk at a time)
-        parts, pending = [], collections.deque()
-        for start in range(first, last, CHUNK_ROWS):
-            stop = min(start + CHUNK_ROWS, last)
-            take = np.concatenate(
-                [np.arange(start, stop), np.full(CHUNK_ROWS - (stop - start), stop - 1)]
-            )
-            args = (w[take], theta[take], effects[take], w_offset[take])
-            out = program(*args) if basis is None else program(*args, basis)
-            pending.append((start, stop, out))
-            if len(pending) == CHUNKS_IN_FLIGHT:
-                parts.append(read(*pending.popleft()))
-        parts.extend(read(*p) for p in pending)
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
-
-    # on a cluster, each process evaluates its block of chunks (.sharding)
-    evaluated = evaluate_split(evaluate, n, CHUNK_ROWS)
-    outputs = None if outputs is None else tuple(int(i) for i in outputs)
-    if basis is None:
-        x, j_th, j_ef, j_w, ok = evaluated
-        return Linearization(x, j_th, j_ef, j_w, ok.astype(bool), outputs)
-    x, jac, ok = evaluated
-    return Linearization(x, None, None, None, ok.astype(bool), outputs,
-                         frozenset(directions), jac)  # fmt: skip
+    parts, pending = [], collections.deque()
+    for start in range(first, last, CHUNK_ROWS):
+        stop = min(start + CHUNK_ROWS, last)
+        take = np.concatenate(
+            [np.arange(start, stop), np.full(CHUNK_ROWS - (stop - start), stop - 1)]
+        )
+        w, theta, effects, w_offset, z0 = (a[take] for a in arrays)
+        pending.append((start, stop, program(w, theta, effects, w_offset, basis, z0)))
+        if len(pending) == CHUNKS_IN_FLIGHT:
+            parts.append(read(*pending.popleft()))
+    parts.extend(read(*p) for p in pending)
+    return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
 
 def _basis(model: Model, offset_idx: tuple, directions):
-    """``(basis [D, M], slots [k])``: the unit directions in (parameters, effects,
-    offset conditions) of the wanted derivatives, padded with zero rows to a
-    multiple of :data:`DIRECTION_BUCKET` (two compiled shapes, 0 and one bucket,
-    serve the fits), and the input each of the first ``k`` rows moves; ``(None,
-    None)`` for every derivative (all asked, or more than one bucket)."""
-    if directions is None:
-        return None, None
+    """``(basis [D, M], every)``: the unit directions in (parameters, effects,
+    offset conditions) of the wanted derivatives in their sorted order, padded with
+    zero rows to a multiple of :data:`DIRECTION_BUCKET` (one compiled shape, a
+    bucket, serves the fits). ``every``: all of them are wanted (``None``), or more
+    than one bucket (a screen's many), or a bucket is as wide as all: every
+    derivative, in input order."""
     num_p, num_e = len(model.parameters), len(model.effects)
     size = num_p + num_e + len(offset_idx)
     slots = []
-    for channel, index in sorted(set(directions)):
+    for channel, index in sorted(set(directions or ())):
         if channel == "parameter":
             slots.append(index)
         elif channel == "effect":
@@ -264,11 +283,13 @@ def _basis(model: Model, offset_idx: tuple, directions):
         else:
             raise ValueError(f"no derivative along {channel} {index} of {model.name!r}")
     rows = -(-len(slots) // DIRECTION_BUCKET) * DIRECTION_BUCKET
-    if rows > DIRECTION_BUCKET or rows >= size:
-        return None, None  # a screen's many: every derivative, as one program
+    every = directions is None or rows > DIRECTION_BUCKET or rows >= size
+    if every:
+        slots = list(range(size))
+    rows = -(-len(slots) // DIRECTION_BUCKET) * DIRECTION_BUCKET
     basis = np.zeros((rows, size))
     basis[np.arange(len(slots)), slots] = 1.0
-    return basis, slots
+    return basis, every
 
 
 # the last model points' linearisations: a fit starts where the one it refines
@@ -333,11 +354,27 @@ def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
         if idx.size > PIECED_SHARE * changed.size:
             continue
         x, ok = base.x.copy(), base.ok.copy()
+        z = None if base.z is None else base.z.copy()
         if idx.size:
             part = linearize(model, w[idx], *(a[idx] for a in rows),
-                             outputs=outputs, directions=frozenset())  # fmt: skip
+                             outputs=outputs, directions=frozenset(),
+                             start=None if z is None else z[idx])  # fmt: skip
             x[idx], ok[idx] = part.x, part.ok
-        return base._replace(x=x, ok=ok)
+            if z is not None:
+                z[idx] = part.z
+        return base._replace(x=x, ok=ok, z=z)
+    return None
+
+
+def _nearest_solution(model, w_digest) -> np.ndarray | None:
+    """The model solver's solution at the rows of the latest kept point on the
+    same conditions (``None``: none kept, or the model has no ``warm_fn``): a fit's
+    next point is a step away, and the turbofan's Newton solve closes from it in 3
+    iterations instead of 4 from its guess table."""
+    for (kept_model, _, _), entry in reversed(_LINEARIZED.items()):
+        if kept_model == model and entry.w_digest == w_digest:
+            if entry.lin.z is not None:
+                return entry.lin.z
     return None
 
 
@@ -387,7 +424,8 @@ def _linearized(model, data, inputs, directions) -> Linearization:
         lin = _pieced(model, data.w, w_digest, outputs, rows, directions)
         if lin is None:
             lin = linearize(model, data.w, *rows, outputs=outputs,
-                            directions=directions)  # fmt: skip
+                            directions=directions,
+                            start=_nearest_solution(model, w_digest))  # fmt: skip
         for arr in lin.arrays():
             arr.setflags(write=False)  # shared by every caller at this point
         entry = _keep(key, lin, w_digest, rows)

@@ -35,7 +35,7 @@ from jaxcal.physics.constants import (
     SENSOR_NAMES,
     SENSOR_UNITS,
 )
-from jaxcal.physics.cycle import EFFECT_NAMES
+from jaxcal.physics.cycle import EFFECT_NAMES, NUM_UNKNOWNS
 from jaxcal.physics.engine import Engine, load_engine
 from jaxcal.physics.reference import FD002_EARLY_MEANS, FD002_EARLY_STD
 from jaxcal.precision import is_x64
@@ -127,6 +127,10 @@ def turbofan_model(engine: Engine) -> Model:
         x, info = engine.evaluate(w, theta, effects=e)
         return x, ModelInfo(valid=info.converged, native=info)
 
+    def warm(w, theta, e, z0):
+        x, info = evaluate_engine_from(engine, w, theta, e, z0)
+        return x, ModelInfo(valid=info.converged, native=info), info.z
+
     def hinted(w, theta, hint):
         x, info, hint = evaluate_engine_hinted(engine, w, theta, hint)
         return x, ModelInfo(valid=info.converged, native=info), hint
@@ -146,6 +150,8 @@ def turbofan_model(engine: Engine) -> Model:
         diagnosis=diagnosis_hints(),
         hinted_fn=hinted,
         initial_hint=engine.initial_hint,
+        warm_fn=warm,
+        warm_size=NUM_UNKNOWNS,
     )
 
 
@@ -158,6 +164,15 @@ def _evaluate(engine: Engine, w, theta):
 # pattern, not once per calibrator, pass and data set (tens of seconds each). The
 # engine is a pytree argument, so every configuration shares the one trace.
 evaluate_engine = jax.jit(_evaluate)
+
+
+def _evaluate_from(engine: Engine, w, theta, effects, z0):
+    return engine.evaluate_from(w, theta, effects, z0)
+
+
+# The evaluation from a nearby solution (Engine.evaluate_from), jitted for the same
+# reason as evaluate_engine.
+evaluate_engine_from = jax.jit(_evaluate_from)
 
 
 def _evaluate_hinted(engine: Engine, w, theta, hint):

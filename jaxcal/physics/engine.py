@@ -74,6 +74,17 @@ class Engine:
             envelope=self.envelope,
         )  # fmt: skip
 
+    def evaluate_from(self, w, theta, effects, z0):
+        """:meth:`evaluate` started from ``z0`` [..., 9] (``info.z`` of a nearby
+        point: the same balance closed in fewer Newton iterations, one when ``z0``
+        solves it already); a sample whose ``z0`` is not finite starts from the
+        guess table as :meth:`evaluate` does. Differentiable in ``theta`` and
+        ``effects`` as :meth:`evaluate` (not through ``z0``)."""
+        return evaluate_design(
+            self.design, w, theta, effects, z0, guess=self.guess,
+            envelope=self.envelope, fill_start=True,
+        )  # fmt: skip
+
     def initial_hint(self) -> solver.Hint:
         """The warm start of a stream before its first sample (none: a full solve)."""
         size = len(CONDITION_NAMES) + len(HEALTH_NAMES)

@@ -135,6 +135,7 @@ def evaluate_design(
     envelope: Envelope = Envelope(),
     solver_cfg: solver.SolverConfig | None = None,
     dp: DesignPoint | None = None,
+    fill_start: bool = False,
 ):
     """Functional form of :meth:`Engine.evaluate` with the design as an argument.
 
@@ -147,6 +148,8 @@ def evaluate_design(
         effects: [..., NUM_EFFECTS] model extensions (default zeros).
         z0: [..., 9] Newton start (default: ``guess`` interpolated at (TRA, Mach), or
             the design point z = 0 without a table).
+        fill_start: a sample whose ``z0`` is not finite starts from ``guess``
+            instead (a caller's start known for some samples only).
         guess: table of solved balances (:mod:`jaxcal.physics.guess`).
         envelope: validity box for ``info.in_envelope``.
         solver_cfg: Newton settings (default depends on the float precision).
@@ -171,10 +174,13 @@ def evaluate_design(
     batch = jnp.broadcast_shapes(batch, effects.shape[:-1])
     dp = design_point(d) if dp is None else dp
     if z0 is None and guess is not None:
-        pcn, _ = corrected_fan_speed_demand(d, w[..., 2])
-        z0 = jax.vmap(initial_guess, (None, 0, 0))(
-            guess, pcn.reshape(-1), w[..., 1].reshape(-1)
-        ).reshape(w.shape[:-1] + (cycle.NUM_UNKNOWNS,))
+        z0 = guessed_start(d, guess, w)
+    elif z0 is not None and guess is not None and fill_start:
+        z0 = jnp.asarray(z0, dtype)
+        z0 = jnp.where(
+            jnp.all(jnp.isfinite(z0), axis=-1, keepdims=True), z0,
+            guessed_start(d, guess, w),
+        )  # fmt: skip
     z0 = jnp.zeros(batch + (cycle.NUM_UNKNOWNS,), dtype) if z0 is None else z0
     z0 = jnp.asarray(z0, dtype)
     flat = [
@@ -199,6 +205,16 @@ def evaluate_design(
     x = x.reshape(batch + x.shape[-1:])
     info = jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), info)
     return x, info
+
+
+def guessed_start(d: EngineDesign, guess: GuessTable, w):
+    """``[..., 9]`` the Newton start of the balance at conditions ``w`` [..., 4]:
+    the table of solved balances interpolated at (corrected fan speed demand,
+    Mach)."""
+    pcn, _ = corrected_fan_speed_demand(d, w[..., 2])
+    return jax.vmap(initial_guess, (None, 0, 0))(
+        guess, pcn.reshape(-1), w[..., 1].reshape(-1)
+    ).reshape(w.shape[:-1] + (cycle.NUM_UNKNOWNS,))
 
 
 def check_last_dim(name, a, n):

@@ -2,7 +2,8 @@
 
 An output-only evaluation that differs from a kept one on a few rows evaluates those
 rows alone (the onset polish of a step moves one row per carrier at a time); the
-result must be the full evaluation's, bit for bit, or the diagnosis's numbers move.
+result must be the full evaluation's (started, as the diagnosis starts it, at the kept
+point's solution), bit for bit, or the diagnosis's numbers move.
 """
 
 from types import SimpleNamespace
@@ -33,15 +34,17 @@ def test_a_point_near_a_kept_one_evaluates_only_its_changed_rows(
 ):
     data, inputs = point
     j = engine.parameter_names.index("HPT_eff_mod")
-    linearization._linearized(engine, data, inputs, frozenset())
+    kept = linearization._linearized(engine, data, inputs, frozenset())
     moved = inputs.theta.copy()
     moved[[5, 300, 599], j] += 0.01  # one row in each chunk
     near = inputs._replace(theta=moved)
     pieced = linearization._linearized(engine, data, near, frozenset())
     assert evaluated_rows == [ROWS, 3]
+    # the full evaluation a diagnosis makes there: started at the kept solution
     full = linearization.linearize(
-        engine, data.w, moved, outputs=tuple(data.sensor_idx), directions=frozenset()
-    )
+        engine, data.w, moved, outputs=tuple(data.sensor_idx), directions=frozenset(),
+        start=kept.z,
+    )  # fmt: skip
     assert np.array_equal(pieced.x, full.x)  # bitwise: the numbers do not move
     assert np.array_equal(pieced.ok, full.ok)
     assert not np.array_equal(pieced.x[5], linearization._linearized(
@@ -63,3 +66,81 @@ def test_derivatives_or_many_changed_rows_are_evaluated_in_full(
     moved[: ROWS // 2 + 1, j] += 0.01  # beyond PIECED_SHARE of the rows
     linearization._linearized(engine, data, inputs._replace(theta=moved), frozenset())
     assert evaluated_rows == [ROWS, ROWS, ROWS]
+
+
+def _programs(monkeypatch):
+    """The direction counts of the compiled programs a linearisation asks for."""
+    asked = []
+    original = linearization._linearize_program
+
+    def spy(model, offset_idx, directions):
+        asked.append(directions)
+        return original(model, offset_idx, directions)
+
+    monkeypatch.setattr(linearization, "_linearize_program", spy)
+    return asked
+
+
+def test_every_derivative_of_the_turbofan_is_the_fits_program_in_buckets(
+    engine, point, monkeypatch
+):
+    """One compiled program serves a fit's few derivatives and a screen's every one
+    (a program with every direction held 0.45 GB resident): the buckets after the
+    first start at the first's solution, and agree with a fit's own bucket."""
+    data, inputs = point
+    w, theta = data.w[:300], inputs.theta[:300]
+    asked = _programs(monkeypatch)
+    every = linearization.linearize(engine, w, theta)
+    num_p, num_e = len(engine.parameters), len(engine.effects)
+    assert set(asked) == {linearization.DIRECTION_BUCKET} and len(asked) == -(
+        -(num_p + num_e + every.jac_w.shape[2]) // linearization.DIRECTION_BUCKET
+    )  # fmt: skip
+    assert every.ok.all() and every.z.shape == (300, engine.warm_size)
+    wanted = frozenset({("parameter", 2), ("parameter", 9), ("effect", 4)})
+    few = linearization.linearize(engine, w, theta, directions=wanted)
+    assert np.array_equal(every.x, few.x)
+    for k, (channel, index) in enumerate(sorted(wanted)):
+        full = every.jac_theta if channel == "parameter" else every.jac_effects
+        np.testing.assert_allclose(
+            few.jac[:, :, k], full[:, :, index], rtol=1e-9, atol=1e-12
+        )
+
+
+def test_a_start_near_the_solution_gives_the_cold_answer(engine, point):
+    """A fit's next point starts at the last one's solution (fewer Newton
+    iterations): the same outputs and derivatives to the solver's tolerance, and a
+    row whose start is NaN starts cold."""
+    data, inputs = point
+    w, theta = data.w[:300], inputs.theta[:300]
+    wanted = frozenset({("parameter", 2), ("parameter", 3)})
+    near = linearization.linearize(engine, w, theta, directions=wanted)
+    moved = theta.copy()
+    moved[:, 2] += 2e-3
+    cold = linearization.linearize(engine, w, moved, directions=wanted)
+    start = near.z.copy()
+    start[::7] = np.nan
+    warm = linearization.linearize(engine, w, moved, directions=wanted, start=start)
+    assert warm.ok.all()
+    np.testing.assert_allclose(warm.x, cold.x, rtol=1e-10)
+    np.testing.assert_allclose(warm.jac, cold.jac, rtol=1e-7, atol=1e-10)
+    assert np.array_equal(warm.x[::7], cold.x[::7])  # started cold: the same bits
+    np.testing.assert_allclose(warm.z, cold.z, rtol=1e-9, atol=1e-12)
+
+
+def test_a_model_without_a_warm_start_takes_every_derivative_in_one_program(
+    point, monkeypatch
+):
+    """A model with no solver start to share (the heat exchanger) keeps one pass
+    for every derivative."""
+    from jaxcal.models import load
+
+    model = load("heat_exchanger")
+    assert model.warm_fn is None and model.warm_size == 0
+    n = 40
+    rng = np.random.default_rng(1)
+    low, high = (np.asarray(b, np.float64) for b in model.condition_range)
+    w = low + (high - low) * rng.uniform(0.2, 0.8, (n, len(model.conditions)))
+    theta = np.tile(model.nominal, (n, 1))
+    asked = _programs(monkeypatch)
+    lin = linearization.linearize(model, w, theta)
+    assert len(asked) == 1 and lin.z is None
