@@ -11,7 +11,7 @@ shapes the calibrators call it with costs milliseconds, against the ~1 s of
 tracing and lowering a whole calibrator in every new process.
 
 The digest covers the model's functions (``step_fn``, ``init_state_fn``,
-``input_check``, ``effect_fn``), each traced and, where differentiable, its
+``input_check``, ``effect_fn``, ``warm_fn``), each traced and, where differentiable, its
 forward-mode derivative traced too: a ``jax.custom_jvp`` rule is opaque in the
 primal jaxpr (printed by name only), and the calibrators use first derivatives
 (least squares' Jacobian, the filter feature's). Anything whose behaviour a jaxpr
@@ -95,9 +95,12 @@ def _digest(model: Model, dtype: np.dtype) -> tuple[str | None, bool]:
     calls.append(("init", model.init_state_fn, (w, theta)))
     if model.input_check is not None:
         calls.append(("check", model.input_check, (w,)))
+    e = jax.ShapeDtypeStruct((len(model.effects),), dtype)
     if model.effect_fn is not None:
-        e = jax.ShapeDtypeStruct((len(model.effects),), dtype)
         calls.append(("effect", model.effect_fn, (w, theta, e)))
+    if model.warm_fn is not None:  # the diagnosis's programs call it
+        z0 = jax.ShapeDtypeStruct((model.warm_size,), dtype)
+        calls.append(("warm", model.warm_fn, (w, theta, e, z0)))
     try:
         for label, fn, args in calls:
             digest.update(label.encode())
@@ -126,7 +129,8 @@ def _tangent(fn):
         half = len(both) // 2
         out, tangent = jax.jvp(fn, both[:half], both[half:])
         pairs = zip(jax.tree.leaves(out), jax.tree.leaves(tangent), strict=True)
-        return [t for o, t in pairs if jnp.issubdtype(o.dtype, jnp.inexact)]
+        # a Python bool (a validity flag) has no dtype: result_type reads both
+        return [t for o, t in pairs if jnp.issubdtype(jnp.result_type(o), jnp.inexact)]
 
     return jvp
 

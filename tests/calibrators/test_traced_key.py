@@ -52,6 +52,23 @@ def test_a_changed_declaration_or_check_changes_the_digest():
     assert _key(_affine(), input_check=lambda w: w[0] > 0) != _key(_affine())
 
 
+def test_a_changed_solver_start_changes_the_digest():
+    """The diagnosis's kept programs call a model's ``warm_fn``: a model that
+    differs only there must not load another's program."""
+
+    def warm(shift):
+        def fn(w, theta, e, z0):
+            del e
+            return _affine()(w, theta), True, jnp.nan_to_num(z0) + shift
+
+        return fn
+
+    one = _key(_affine(), warm_fn=warm(1.0), warm_size=2)
+    assert one is not None and one != _key(_affine())
+    assert _key(_affine(), warm_fn=warm(1.0), warm_size=2) == one
+    assert _key(_affine(), warm_fn=warm(2.0), warm_size=2) != one
+
+
 def test_a_custom_derivative_rule_is_read_through_the_traced_derivative():
     def with_rule(slope):
         @jax.custom_jvp
