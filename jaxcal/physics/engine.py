@@ -16,6 +16,7 @@ raises a clear error naming the offending field and its valid range.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -28,7 +29,12 @@ from jaxcal.physics.constants import (
     SENSOR_NAMES,
 )
 from jaxcal.physics.design import DesignPoint, EngineDesign, design_point
-from jaxcal.physics.evaluation import Envelope, check_inputs, evaluate_design
+from jaxcal.physics.evaluation import (
+    Envelope,
+    check_inputs,
+    evaluate_design,
+    guessed_start,
+)
 from jaxcal.physics.guess import GuessTable, build_guess_table
 from jaxcal.physics.warm_start import evaluate_hinted
 from jaxcal.precision import float_dtype
@@ -80,10 +86,10 @@ class Engine:
         solves it already); a sample whose ``z0`` is not finite starts from the
         guess table as :meth:`evaluate` does. Differentiable in ``theta`` and
         ``effects`` as :meth:`evaluate` (not through ``z0``)."""
-        return evaluate_design(
-            self.design, w, theta, effects, z0, guess=self.guess,
-            envelope=self.envelope, fill_start=True,
-        )  # fmt: skip
+        w, z0 = (jnp.asarray(a, float_dtype()) for a in (w, z0))
+        known = jnp.all(jnp.isfinite(z0), axis=-1, keepdims=True)
+        z0 = jnp.where(known, z0, guessed_start(self.design, self.guess, w))
+        return self.evaluate(w, theta, effects=effects, z0=z0)
 
     def initial_hint(self) -> solver.Hint:
         """The warm start of a stream before its first sample (none: a full solve)."""

@@ -135,7 +135,6 @@ def evaluate_design(
     envelope: Envelope = Envelope(),
     solver_cfg: solver.SolverConfig | None = None,
     dp: DesignPoint | None = None,
-    fill_start: bool = False,
 ):
     """Functional form of :meth:`Engine.evaluate` with the design as an argument.
 
@@ -148,8 +147,6 @@ def evaluate_design(
         effects: [..., NUM_EFFECTS] model extensions (default zeros).
         z0: [..., 9] Newton start (default: ``guess`` interpolated at (TRA, Mach), or
             the design point z = 0 without a table).
-        fill_start: a sample whose ``z0`` is not finite starts from ``guess``
-            instead (a caller's start known for some samples only).
         guess: table of solved balances (:mod:`jaxcal.physics.guess`).
         envelope: validity box for ``info.in_envelope``.
         solver_cfg: Newton settings (default depends on the float precision).
@@ -175,12 +172,6 @@ def evaluate_design(
     dp = design_point(d) if dp is None else dp
     if z0 is None and guess is not None:
         z0 = guessed_start(d, guess, w)
-    elif z0 is not None and guess is not None and fill_start:
-        z0 = jnp.asarray(z0, dtype)
-        z0 = jnp.where(
-            jnp.all(jnp.isfinite(z0), axis=-1, keepdims=True), z0,
-            guessed_start(d, guess, w),
-        )  # fmt: skip
     z0 = jnp.zeros(batch + (cycle.NUM_UNKNOWNS,), dtype) if z0 is None else z0
     z0 = jnp.asarray(z0, dtype)
     flat = [
