@@ -130,8 +130,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
 
     from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
     from jaxcal.calibrators.interface import run_fleet
-    from jaxcal.calibrators.method_configs import config
-    from jaxcal.calibrators.methods import make
+    from jaxcal.calibrators.methods import config, make
     from jaxcal.calibrators.packed import jit_per_row
     from jaxcal.deploy import StreamingCalibrator
 

@@ -57,6 +57,8 @@ from paper_presets import (  # noqa: E402
     Preset,
 )
 
+from jaxcal.paper.tables import ON_MODEL  # noqa: E402
+
 # ----------------------------------------------------------------------- plan
 
 
@@ -369,7 +371,7 @@ USAGE = (
 
 SKIPPABLE = (
     "UKF",
-    "LS",
+    *ON_MODEL,  # every registered method on the model beside the UKF
     "E2E",
     "E2E-sim",
     "LAC",

@@ -15,13 +15,14 @@ from jaxcal.calibrators.e2e import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.paper.npe import NPEConfig
 from jaxcal.paper.suite import SuiteConfig
-from jaxcal.paper.tables import POLICIES
+from jaxcal.paper.tables import ON_MODEL, POLICIES
 
 # CLAC-F: the CLAC policy trained and deployed on the physics F instead of the
 # surrogate D (dynamics=physics), which isolates what D's model error costs;
 # CLAC-inc: the formulation, incremental actions deployed through F
+# ON_MODEL: every registered method on the model beside the UKF (least squares, ...)
 ALL_METHODS = (
-    "UKF", "LS", "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc",
+    "UKF", *ON_MODEL, "E2E", "E2E-sim", "CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc",
     "CLAC-gate",
 )  # fmt: skip
 # CLAC-gate trains nothing: CLAC-inc gated by CLAC where F misfits the data
@@ -50,7 +51,7 @@ EVALUATIONS = (
     ("ds1", "bias", ("UKF", *POLICIES, "CLAC-gate")),
     ("ds1", "noise", ("UKF", *POLICIES, "CLAC-gate")),
     ("ds1", "snr70", ("UKF", "E2E", "E2E-sim", *POLICIES, "CLAC-gate")),
-    ("ds2", "clean", ("UKF", "LS", "E2E", "E2E-sim", "CLAC")),
+    ("ds2", "clean", ("UKF", *ON_MODEL, "E2E", "E2E-sim", "CLAC")),
     ("ds2-d1", "clean", ("UKF", "CLAC")),
     ("ds2-d2", "clean", ("UKF", "CLAC")),
 )

@@ -73,7 +73,7 @@ def _dotted_keys(cfg, prefix: str = "") -> set[str]:
 
 def _valid_keys() -> set[str]:
     from jaxcal.calibrators.front import _READER_OPTIONS, calibrate
-    from jaxcal.calibrators.method_configs import METHODS, options_of
+    from jaxcal.calibrators.methods import METHODS, options_of
     from jaxcal.cli import bench, diagnose, evaluate, fleet, generate, train, validate
     from jaxcal.cli.args import _USAGE_KEY
     from jaxcal.data.dataset_configs import DatasetConfig

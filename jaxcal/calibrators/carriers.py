@@ -36,7 +36,6 @@ from jaxcal.model import Model
 from jaxcal.problem import Problem
 
 READER_OPTIONS = ("rename", "ignore", "nonfinite")  # as front._READER_OPTIONS
-SPLIT_METHODS = ("ukf", "ls", "e2e")  # the methods whose parameters a call chooses
 
 
 def applies(model: Model, theta: Sequence[str] | None, method: str, options) -> bool:
@@ -44,7 +43,9 @@ def applies(model: Model, theta: Sequence[str] | None, method: str, options) -> 
     parameter has carriers and ``method`` calibrates a chosen set (module doc)."""
     carriers = model.diagnosis.carriers or {}
     names = model.parameter_names if theta is None else tuple(theta)
-    if method not in SPLIT_METHODS or (method == "e2e" and options.get("e2e")):
+    from jaxcal.calibrators.methods import get  # the registry imports the methods
+
+    if not get(method).chooses_parameters(options):
         return False
     return any(n in carriers for n in names)
 

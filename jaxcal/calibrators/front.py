@@ -11,7 +11,9 @@ jitted), and returns per-row results in the input's row order::
     result.partial      # [N] bool: some outputs of the row were missing (NaN)
     result.misfit       # [N] bool: the unit's innovations coloured: std not honest
 
-Methods (peers under the one ``Calibrator(init, step)`` interface):
+Methods (peers under the one ``Calibrator(init, step)`` interface): every method of
+the registry (:mod:`jaxcal.calibrators.methods`; each its package's docstring), among
+them
 
 * ``"ukf"``: the unscented Kalman filter on the model (random-walk parameters);
 * ``"ls"``: sliding-window least squares on the model (Levenberg–Marquardt);
@@ -180,8 +182,7 @@ def calibrate(
     from jaxcal import cache
     from jaxcal.models import load
 
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    methods.get(method)  # an unknown name: the registered ones listed
     cache.ensure_default()  # compile once per machine (jaxcal.cache)
 
     model = load(model)
@@ -239,7 +240,8 @@ def _checked_std(result: CalibrationResult, screened, problem: Problem, misfit: 
     if screened is not None and screened.z is not None:  # the innovations' colour
         colour = colour_rows(result.unit, result.time, screened.z, screened.used)
         rows, kept = colour.misfit, misfit == "keep"
-        widen = widening(colour, result.method)  # a coloured noise: fewer rows' worth
+        # a coloured noise: fewer rows' worth
+        widen = widening(colour, methods.get(result.method).white_std)
         std = std * widen[:, None]
         std = std if kept else np.where(rows[:, None], np.nan, std)
         result = dataclasses.replace(result, misfit=rows, theta_std=std)
@@ -259,13 +261,8 @@ def _read_problem(model: Model, data, method, theta, noise, outputs, options, dt
     and its noise checked against the float dtype."""
     reader = {k: options.pop(k) for k in _READER_OPTIONS if k in options}
     threshold = _threshold(options.pop("outlier_z", OUTLIER_Z))
-    if method == "policy" and options.get("run"):
-        # a trained policy fixes its parameters and outputs: default to the run's
-        from jaxcal.calibrators.trained import load_run
-
-        run = options["run"] = load_run(options["run"])
-        theta = run.problem.theta_names if theta is None else theta
-        outputs = run.problem.output_names if outputs is None else outputs
+    # a trained policy fixes its parameters and outputs: its run's are the defaults
+    options, theta, outputs = methods.get(method).prepare(options, theta, outputs)
     cfg = methods.config(method, options)
     data = read_dataset(data, model, **reader).for_model(model, outputs)
     clipped, notes = clip_jitter(data.w, model)
@@ -426,16 +423,14 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
     level, or a given noise with outlier flags off. The passes are the method's own
     UKF, else a default one with the method's state settings; the same rows and
     settings are screened once per process (:mod:`.screen_memo`)."""
-    from jaxcal.calibrators.methods import UKF, LeastSquares, Policy
     from jaxcal.calibrators.screen_memo import screened
 
-    if noise is None and isinstance(cfg, Policy):
+    method = methods.method_of(cfg)
+    if noise is None and not method.reads_noise:
         return None
     if noise is not None and threshold == np.inf:
         return None
-    if not isinstance(cfg, UKF):
-        std = cfg.state_std if isinstance(cfg, LeastSquares) else None
-        cfg = UKF(state_std=std)
+    cfg = method.screening(cfg)
     return screened(  # once per data set in a process (a second method reuses it)
         problem, data, buckets, cfg, estimate=noise is None, threshold=threshold
     )

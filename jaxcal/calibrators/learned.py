@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxcal.calibrators import compiled
 from jaxcal.calibrators.interface import Calibrator, SampleCheck, run_fleet
-from jaxcal.calibrators.method_configs import E2E, Built, Policy
+from jaxcal.calibrators.methods.options import Built
 from jaxcal.data.buckets import Buckets
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
@@ -49,9 +49,7 @@ def learned_built(problem: Problem, cal: Calibrator, check) -> Built:
     return Built(lambda padded, skip=None: runner(cal, padded, skip), uniform, cal)
 
 
-def e2e_calibrator(
-    problem: Problem, buckets: Buckets, seed: int, cfg: E2E
-) -> Calibrator:
+def e2e_calibrator(problem: Problem, buckets: Buckets, seed: int, cfg) -> Calibrator:
     """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
     from jaxcal.calibrators.e2e import E2EConfig, make_e2e_calibrator
     from jaxcal.calibrators.e2e_sim import fit_e2e_sim, held_out_band
@@ -83,9 +81,7 @@ def e2e_calibrator(
     )  # fmt: skip
 
 
-def policy_calibrator(
-    problem: Problem, cfg: Policy
-) -> tuple[Calibrator, SampleCheck | None]:
+def policy_calibrator(problem: Problem, cfg) -> tuple[Calibrator, SampleCheck | None]:
     """A trained policy from ``run=<folder>`` and its sample check (the run's own
     training range, not the range of the data being calibrated); its names must
     match the problem, and the problem's model must be the run's own (by names and

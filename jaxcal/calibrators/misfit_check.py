@@ -45,9 +45,9 @@ stds. And a noise that is itself coloured (AR(1) of 0.8 on both outputs) leaves
 innovations with a ratio of 2-3.4, under the flag, and a UKF std 1.6-2.6x too small
 (coverage 0.52-0.70): where the innovations fit an AR(p) noise (Yule-Walker, BIC
 order) without shift and under the flag, the std of a method that assumes white noise
-(:data:`WIDENED`) is widened by the square root of that AR fit's long-run variance
-ratio (:func:`ar_long_run_ratio`; the Bartlett estimate, bandwidth-truncated, reads
-a persistent colour low): coverage 0.86-0.98 per unit. Why this widening and not the
+(:attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`) is widened by the
+square root of that AR fit's long-run variance ratio (:func:`ar_long_run_ratio`; the
+Bartlett estimate, bandwidth-truncated, reads a persistent colour low): coverage 0.86-0.98 per unit. Why this widening and not the
 battery's: there the colour came from a bias the parameters absorb, which no factor
 read off the residuals fixes; here from the noise, whose long-run variance is what
 the estimate's variance scales with (fewer independent rows).
@@ -86,7 +86,6 @@ SHIFTED = 10.0
 # a unit's std is widened by sqrt(AR long-run variance ratio) where that is above
 # this (the std at least 1.22x too small from the colour)
 WIDEN_FROM = 1.5
-WIDENED = ("ukf", "e2e")  # the methods whose std assumes white noise, unchecked
 
 
 def autocorrelation(series: np.ndarray) -> np.ndarray:
@@ -222,13 +221,15 @@ def colour_rows(
     return Colour(misfit, ratio, shift, widen)
 
 
-def widening(colour: Colour, method: str) -> np.ndarray:
-    """``[N]`` the factor ``method``'s std is widened by: :attr:`Colour.widen` for a
-    std that assumes white noise (:data:`WIDENED`), 1 for least squares, whose
+def widening(colour: Colour, white_std: bool) -> np.ndarray:
+    """``[N]`` the factor a method's std is widened by: :attr:`Colour.widen` for a
+    std that assumes white noise (``white_std``, the method's
+    :attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`), 1 for least
+    squares, whose
     online check against its own later estimates already scales its std to the
     errors it makes (measured on the reactor with AR(1) noise of 0.8: widened,
     its coverage per unit 0.95-1.0, the std 1.3x to 4x too wide)."""
-    if method in WIDENED:
+    if white_std:
         return colour.widen
     return np.ones_like(colour.widen)
 

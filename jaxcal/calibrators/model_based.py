@@ -1,7 +1,7 @@
-"""The model-based methods (UKF, least squares) on a problem: their calibrators and
-compiled programs.
+"""The methods on the model (UKF, EKF, least squares) on a problem: their
+calibrators and compiled programs.
 
-Both work on the restricted model ``F(w, theta_declared) -> x_used`` (a model with
+Each works on the restricted model ``F(w, theta_declared) -> x_used`` (a model with
 memory: its transition, the states filtered or fitted with the parameters); the
 measurement noise is the explicit input ``noise_std`` (the filter's covariance,
 :mod:`jaxcal.calibrators.compiled`), the parameters are scaled by the half-width of
@@ -13,7 +13,6 @@ resolved here against each state's natural size (:func:`state_scale`).
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import jax.numpy as jnp
@@ -22,10 +21,7 @@ import numpy as np
 from jaxcal.calibrators import compiled
 from jaxcal.calibrators.compiled import Inputs
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
-from jaxcal.calibrators.least_squares import make_least_squares
-from jaxcal.calibrators.method_configs import UKF, Built, LeastSquares
-from jaxcal.calibrators.ukf import make_joint_ukf, make_ukf
-from jaxcal.calibrators.window_state import make_window_least_squares
+from jaxcal.calibrators.methods.options import Built
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 
@@ -39,49 +35,43 @@ def model_check(problem: Problem) -> SampleCheck | None:
 
 
 def model_based_factory(
-    problem: Problem, cfg, measure: Callable | None = None
-) -> Callable[[Inputs], Calibrator]:
-    """``make(inputs) -> Calibrator`` of a :class:`UKF` or :class:`LeastSquares`
-    config on ``problem``'s model: pure in its :class:`Inputs` (call it under
-    ``jax.jit`` with traced inputs). ``measure``: ``F(w, theta) -> x`` in place of
-    the problem's (a static model only; the paper suite's perturbable model)."""
-    ukf = isinstance(cfg, UKF)
-    settings = cfg.filter if ukf else cfg.solver
+    problem: Problem, settings, static: Callable, stateful: Callable,
+    measure: Callable | None = None,
+) -> Callable[[Inputs], Calibrator]:  # fmt: skip
+    """``make(inputs) -> Calibrator`` of a method on ``problem``'s model, pure in its
+    :class:`Inputs` (call it under ``jax.jit`` with traced inputs): ``static(F,
+    settings, measurement, theta0=, theta_scale=, theta_box=)`` on a static model,
+    ``stateful(transition, settings, measurement, state_std=, state_q=, theta0=,
+    theta_scale=, state_scale=, theta_box=)`` on a model with memory (a method's
+    filter makers, e.g. :func:`~jaxcal.calibrators.ukf.make_ukf` and
+    :func:`~jaxcal.calibrators.ukf.make_joint_ukf`). ``measure``: ``F(w, theta) ->
+    x`` in place of the problem's (a static model only; the paper suite's perturbable
+    model)."""
     measurement = compiled.measurement_of
     if measure is not None and problem.model.is_stateful:
         raise ValueError("measure= replaces a static model's F only")
     if not problem.model.is_stateful:
         measure = problem.measure() if measure is None else measure
-        make = make_ukf if ukf else make_least_squares
 
-        def static(inputs: Inputs) -> Calibrator:
-            return make(
+        def on_static(inputs: Inputs) -> Calibrator:
+            return static(
                 measure, settings, measurement(inputs), theta0=inputs.theta0,
                 theta_scale=inputs.theta_scale,
                 theta_box=(inputs.theta_low, inputs.theta_high),  # stays inside
             )  # fmt: skip
 
-        return static
+        return on_static
     tr = problem.transition()
-    if not ukf and settings.prior_std is None:  # a window without excitation
-        settings = dataclasses.replace(settings, prior_std=1.0)  # must not run off
 
-    def stateful(inputs: Inputs) -> Calibrator:
-        common = dict(
-            theta0=inputs.theta0, theta_scale=inputs.theta_scale,
-            state_scale=inputs.state_scale,
+    def on_stateful(inputs: Inputs) -> Calibrator:
+        return stateful(
+            tr, settings, measurement(inputs), state_std=inputs.state_std,
+            state_q=inputs.state_q, theta0=inputs.theta0,
+            theta_scale=inputs.theta_scale, state_scale=inputs.state_scale,
             theta_box=(inputs.theta_low, inputs.theta_high),
         )  # fmt: skip
-        if ukf:
-            return make_joint_ukf(
-                tr, settings, measurement(inputs), state_std=inputs.state_std,
-                state_q=inputs.state_q, **common,
-            )  # fmt: skip
-        return make_window_least_squares(
-            tr, settings, measurement(inputs), state_std=inputs.state_std, **common
-        )
 
-    return stateful
+    return on_stateful
 
 
 def model_inputs(problem: Problem, cfg, dtype, x_mean=None) -> Inputs:
@@ -93,34 +83,19 @@ def model_inputs(problem: Problem, cfg, dtype, x_mean=None) -> Inputs:
     scale = state_scale(problem, dtype)
     std = state_option(cfg.state_std, states, 0.01 * scale)
     q = state_option(getattr(cfg, "state_q", None), states, 1e-6 * scale)
-    if isinstance(cfg, LeastSquares):
-        std = np.maximum(std, 1e-9 * scale)
+    std = np.maximum(std, getattr(cfg, "state_std_floor", 0.0) * scale)
     return compiled.inputs_of(
         problem, dtype, state_std=std, state_q=q, state_scale=scale, x_mean=x_mean
     )
 
 
-def ukf_program(problem: Problem, cfg: UKF, dtype):
-    """The UKF's compiled program with innovations (:func:`compiled.filter_program`):
-    the screening passes and the method's own run share it."""
-    make = model_based_factory(problem, cfg)
-    return compiled.filter_program(problem, cfg, make, model_check(problem), dtype)
-
-
-def build_model_based(problem: Problem, cfg, dtype) -> Built:
-    """:class:`Built` of a :class:`UKF` or :class:`LeastSquares` config on ``problem``:
-    its compiled fleet program over the padded groups, and the prior std (the UKF's
-    ``prior_std`` of the half-width, least squares a uniform's over the box)."""
+def fleet_built(problem: Problem, cfg, program_of, prior_std, dtype) -> Built:
+    """:class:`Built` of a method on the model: its compiled fleet program
+    (``program_of() -> program(inputs, w, x, mask) -> CalOutput``) run on the padded
+    groups with ``cfg``'s inputs, and the std ``prior_std [P]`` known before a first
+    sample."""
     inputs = model_inputs(problem, cfg, dtype)  # first: it checks the settings
-    if isinstance(cfg, UKF):
-        filt = ukf_program(problem, cfg, dtype)
-
-        def program(inputs, w, x, mask):  # nothing to probe: the screen's program
-            return filt(inputs, w, x, mask, jnp.zeros_like(mask))[0]
-
-    else:
-        make, check = model_based_factory(problem, cfg), model_check(problem)
-        program = compiled.fleet_program(problem, cfg, make, check, dtype)
+    program = program_of()
 
     def run(padded: Padded, skip=None):
         mask = padded.mask if skip is None else padded.mask & ~np.asarray(skip)
@@ -128,9 +103,15 @@ def build_model_based(problem: Problem, cfg, dtype) -> Built:
             inputs, jnp.asarray(padded.w), jnp.asarray(padded.x), jnp.asarray(mask)
         )
 
-    half = problem.theta_half_width
-    prior = cfg.filter.prior_std * half if isinstance(cfg, UKF) else half / np.sqrt(3)
-    return Built(run, prior)
+    return Built(run, prior_std)
+
+
+def stream_calibrator(problem: Problem, cfg, factory) -> Calibrator:
+    """One stream's calibrator of a method on the model (``factory`` its
+    :attr:`~jaxcal.calibrators.methods.protocol.Method.factory`): the problem's
+    noise and prior as constants, in the float dtype JAX defaults to."""
+    dtype = jnp.zeros((), float).dtype
+    return factory(problem, cfg)(model_inputs(problem, cfg, dtype))
 
 
 def state_scale(problem: Problem, dtype) -> np.ndarray:

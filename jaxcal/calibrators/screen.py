@@ -86,7 +86,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.guard import MASKED, OK
-from jaxcal.calibrators.methods import UKF, model_inputs, ukf_program
+from jaxcal.calibrators.methods.ukf import UKF, ukf_program
+from jaxcal.calibrators.model_based import model_inputs
 from jaxcal.calibrators.outliers import (
     OutlierRows,
     StuckRun,
@@ -256,7 +257,7 @@ def _pass_function(problem: Problem, data: Dataset, cfg: UKF, dtype):
     """``(noise [S], w, x, mask, probe) -> (reason, xhat, innovation, its std)`` of
     the UKF on ``problem`` with that noise, ``[U, T, ...]``, the ``probe`` rows
     judged though skipped: the method table's UKF program
-    (:func:`~jaxcal.calibrators.methods.ukf_program`, compiled once per process; the
+    (:func:`~jaxcal.calibrators.methods.ukf.ukf_program`, compiled once per process; the
     noise and the outputs' centre are arguments)."""
     # the outputs' median: a mean a wild reading moved (1e6 in one row) would cost
     # every unit digits in float32

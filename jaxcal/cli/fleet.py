@@ -23,8 +23,9 @@ old name). ``data=``
 is an N-CMAPSS ``.h5`` file (the turbofan's layout, streamed: never read whole) or any
 table the front door reads (``.csv``, ``.parquet``, C-MAPSS ``.txt``; held in memory),
 its columns named as the model's (:mod:`jaxcal.fleet.sources`). The method is built
-from the front door's method table (:mod:`jaxcal.fleet.method`): ``method=ukf|ls|
-e2e|policy`` (``least_squares`` is the old name of ``ls``; ``e2e`` on tables only),
+from the front door's method table (:mod:`jaxcal.fleet.method`): ``method=`` any
+registered method (``ukf``, ``ls``, ``e2e``, ``policy``, ...; ``least_squares`` is
+the old name of ``ls``; a method that learns from the whole data set on tables only),
 and every key that is not a field of :class:`FleetConfig` is an option of the method
 (``q=``, ``prior_std=``, ``window=``, ``num_iters=``, ``state_std=``, ``anchor=``,
 ...; the old ``ukf.q=`` / ``least_squares.window=`` forms still work): a misspelt one
@@ -57,11 +58,12 @@ import dataclasses
 import functools
 import json
 import sys
-from typing import Any, Literal
+from typing import Any
 
 import h5py
 import numpy as np
 
+from jaxcal.calibrators import methods
 from jaxcal.cli.args import CLUSTER_USAGE, parse_command_line, split_cluster_args
 from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
 from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
@@ -83,7 +85,7 @@ class FleetConfig:
     model: str = ""  # jaxcal.models.load spec; "" = engine=
     engine: str = "cmapss"  # old name of model=
     split: str = ""  # N-CMAPSS: dev | test ("" = test); a table's split label ("" all)
-    method: Literal["ukf", "ls", "least_squares", "e2e", "policy"] = "ukf"
+    method: str = "ukf"  # a registered method (jaxcal.calibrators.methods)
     run: str = ""  # method=policy: the training run directory (runs/<id>)
     theta: tuple[str, ...] = ()  # () = a policy's, the turbofan's HPT_eff_mod, or all
     outputs: tuple[str, ...] = ()  # () = a policy's, the file's observed_sensors
@@ -130,10 +132,8 @@ def _split_tokens(tokens: list[str]) -> tuple[list[str], list[tuple]]:
 
 def method_config(cfg: FleetConfig, run=None):
     """The method table's config of ``cfg`` (a policy's ``run``: loaded or a path)."""
-    from jaxcal.calibrators import methods
-
     options = dict(cfg.options)
-    if cfg.method == "policy":
+    if methods.get(cfg.method).needs_run:
         options["run"] = run if run is not None else cfg.run
     return methods.config(cfg.method, options)
 
@@ -157,17 +157,19 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     fleet_tokens, option_tokens = _split_tokens(rest)
     cfg = parse_overrides(fleet_tokens, FleetConfig())
     method = canonical(cfg.method)
+    methods.get(method)  # an unknown method: the registered ones listed
     options = method_options(method, option_tokens, FLEET_KEYS)
     cfg = dataclasses.replace(cfg, method=method, options=options)
     if not cfg.data or not cfg.out:
         raise ValueError("data=<file> and out=<results.h5> are required")
     check_output_path(cfg.out, "out")  # refused now, not after the calibration
-    if method == "policy" and not cfg.run:
-        raise ValueError("method=policy needs run=<runs/...> (training run dir)")
-    if method == "e2e" and is_ncmapss(cfg.data):
+    needs = methods.get(method)
+    if needs.needs_run and not cfg.run:
+        raise ValueError(f"method={method} needs run=<runs/...> (training run dir)")
+    if needs.needs_all_rows and is_ncmapss(cfg.data):
         raise ValueError(
-            "method=e2e trains on the whole data set: give the data as a table "
-            "(.csv, .parquet), or use jaxcal.calibrate"
+            f"method={method} learns from the whole data set: give the data as a "
+            "table (.csv, .parquet), or use jaxcal.calibrate"
         )
     method_config(cfg)  # a bad option value fails here, before any work
     parse_noise(cfg.noise)
@@ -298,7 +300,7 @@ def _names(cfg: FleetConfig, model):
     from jaxcal.fleet.method import default_theta
 
     theta, outputs, loaded = cfg.theta, cfg.outputs or cfg.sensors, None
-    if cfg.method == "policy":  # a trained policy fixes its names: default to them
+    if methods.get(cfg.method).needs_run:  # a trained run fixes its names: its own
         from jaxcal.deploy import load_run
 
         loaded = load_run(cfg.run, trust_code=cfg.trust_code)

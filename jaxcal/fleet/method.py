@@ -111,7 +111,7 @@ def method_options(
         ValueError: an option the method does not take (listing the valid ones and
             the closest match), a repeated one, or a badly typed value.
     """
-    config_type = methods.METHODS[method]
+    config_type = methods.get(method).config
     valid = methods.options_of(config_type)
     options: dict[str, Any] = {}
     unknown = []
@@ -179,7 +179,7 @@ def default_theta(model: Model) -> tuple[str, ...]:
 
 def require_noise(model: Model, method: str, noise) -> None:
     """A ValueError when ``method`` on ``model`` needs ``noise=`` and has none."""
-    if noise is None and method != "policy" and not is_turbofan(model):
+    if noise is None and methods.get(method).reads_noise and not is_turbofan(model):
         raise ValueError(
             f"model {model.name!r}: pass noise= (the measurement noise std, "
             "name:std,... per output or one number for all); the fleet has a "
@@ -243,23 +243,19 @@ def build_problem(
 def make_method(problem: Problem, cfg, source, seed: int = 0) -> FleetMethod:
     """The calibrator and sample check of the config ``cfg`` on ``problem``
     (module docstring); a policy's ``cfg.run`` is a loaded run."""
-    if isinstance(cfg, (methods.UKF, methods.LeastSquares)):
-        check = methods.model_check(problem)
-        return FleetMethod(problem, methods.make(problem, cfg), check)
-    if isinstance(cfg, methods.Policy):
-        from jaxcal.deploy import run_check
+    method = methods.method_of(cfg)
+    buckets = None
+    if method.needs_all_rows:  # it learns from the whole data set first
+        if not source.complete:
+            raise ValueError(
+                f"method={method.name} learns from the conditions of the whole data "
+                "set: give the data as a table (.csv, .parquet), or use "
+                "jaxcal.calibrate"
+            )
+        import jax.numpy as jnp
 
-        return FleetMethod(problem, methods.make(problem, cfg), run_check(cfg.run))
-    if not source.complete:
-        raise ValueError(
-            "method=e2e trains its network on the conditions of the whole data set: "
-            "give the data as a table (.csv, .parquet), or use jaxcal.calibrate"
-        )
-    import jax.numpy as jnp
+        from jaxcal.data.buckets import bucket_units
 
-    from jaxcal.calibrators.policy import range_check
-    from jaxcal.data.buckets import bucket_units
-
-    buckets = bucket_units(source.sample, jnp.zeros((), float).dtype)
-    calibrator = methods.make(problem, cfg, buckets, seed)
-    return FleetMethod(problem, calibrator, range_check(problem))
+        buckets = bucket_units(source.sample, jnp.zeros((), float).dtype)
+    calibrator = method.make(problem, cfg, buckets, seed)
+    return FleetMethod(problem, calibrator, method.check(problem, cfg))

@@ -51,11 +51,11 @@ from jaxcal.calibrators.interface import (
     measure_declared,
     run_fleet,
 )
-from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
-from jaxcal.calibrators.methods import UKF, LeastSquares, model_based_factory
+from jaxcal.calibrators.least_squares import LeastSquaresConfig
+from jaxcal.calibrators.methods import REGISTRY, method_of
 from jaxcal.calibrators.policy import make_policy_calibrator
 from jaxcal.calibrators.trained import run_check
-from jaxcal.calibrators.ukf import UKFConfig, make_ukf
+from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.problem import Problem
@@ -260,13 +260,14 @@ def make_model(
     return model
 
 
-def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Method:
-    """A calibrator ``make(model, cfg, norm, theta0=, theta_scale=)`` on the perturbable
-    F, with its prior at the box centre and parameters scaled by the half-width."""
-
-    # the method table's calibrator on this F: the outputs in units of their training
+def model_method(engine, problem: Problem, table_cfg, name: str) -> Method:
+    """A registered method on the model (its config ``table_cfg``,
+    :mod:`jaxcal.calibrators.methods`) on the perturbable F, with its prior at the
+    box centre and parameters scaled by the half-width."""
+    # the method's calibrator on this F: the outputs in units of their training
     # std with the paper's r, the prior at the box centre
-    table_cfg = UKF(filter=cfg) if make is make_ukf else LeastSquares(solver=cfg)
+    factory = method_of(table_cfg).factory
+    cfg = getattr(table_cfg, table_cfg.field_name)  # the filter's or solver's own
     inputs = inputs_of(problem, np.float64)._replace(
         x_mean=jnp.asarray(problem.norm.x_mean, jnp.float64),
         noise_std=jnp.asarray(problem.norm.x_std, jnp.float64),
@@ -274,7 +275,7 @@ def _model_based_method(make, engine, problem: Problem, cfg, name: str) -> Metho
     )
 
     def on(model) -> Calibrator:
-        return model_based_factory(problem, table_cfg, measure=model)(inputs)
+        return factory(problem, table_cfg, measure=model)(inputs)
 
     def build(bias, noise_sigma):
         return with_step_key(
@@ -296,7 +297,7 @@ def ukf_method(
 ) -> Method:
     """The paper's UKF on F: prior at the box centre, parameters scaled by its
     half-width (``prior_std = 1`` spans the box), q = r = 0.01 by default."""
-    return _model_based_method(make_ukf, engine, problem, cfg, name)
+    return model_method(engine, problem, REGISTRY["ukf"].config(filter=cfg), name)
 
 
 def least_squares_method(
@@ -306,7 +307,7 @@ def least_squares_method(
     name: str = "LS",
 ) -> Method:
     """Sliding-window Levenberg-Marquardt on F, same prior and scaling as the UKF."""
-    return _model_based_method(make_least_squares, engine, problem, cfg, name)
+    return model_method(engine, problem, REGISTRY["ls"].config(solver=cfg), name)
 
 
 # ------------------------------------------------------------------ learned

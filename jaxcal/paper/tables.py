@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+from jaxcal.calibrators.methods import REGISTRY
+
 # Published values (Tian et al., Tables "inference", "time", "robust_track",
 # "sensor_noise", "tracking" and the ablation paragraph). None: not run ("–");
 # "failed": the paper's "#" (UKF did not give a stable inference).
@@ -34,7 +36,9 @@ PAPER = {
     },
     "ablation": {"LAC": 1.3e-3, "CLAC": 3.3e-4},
 }
-EXTRA = ("LAC", "SAC", "CLAC-F", "CLAC-inc", "CLAC-gate", "LS", "E2E-sim")
+# the registered methods on the model beside the paper's UKF (least squares, ...)
+ON_MODEL = tuple(m.label for m in REGISTRY.values() if m.on_model and m.label != "UKF")
+EXTRA = ("LAC", "SAC", "CLAC-F", "CLAC-inc", "CLAC-gate", *ON_MODEL, "E2E-sim")
 # trained through python -m jaxcal.train
 POLICIES = ("CLAC", "LAC", "SAC", "CLAC-F", "CLAC-inc")
 # composed from trained policies (jaxcal.paper.gate_steps): CLAC-inc gated by CLAC
@@ -51,6 +55,7 @@ NAMES = {
     "CLAC-inc": "CLAC-inc (increments through F)",
     "CLAC-gate": "CLAC-gate (CLAC-inc, CLAC where F misfits)",
 }
+NAMES.update({m: f"{m} on F" for m in ON_MODEL if m not in NAMES})
 
 
 def fmt(value, digits: int = 3) -> str:
@@ -151,7 +156,7 @@ def inference_table(r: Results) -> list[str]:
         names = list(ev["theta_rmse_per_param"])
         out += ["", "Dataset #2 per parameter (theta RMSE):", ""]
         rows = []
-        for method in ("UKF", "LS", "E2E", "E2E-sim", "CLAC"):
+        for method in ("UKF", *ON_MODEL, "E2E", "E2E-sim", "CLAC"):
             e = r.eval("ds2", method)
             if e is not None:
                 rows.append(

@@ -47,7 +47,7 @@ def test_overrides_and_cluster_flags():
     ("argv", "message"),
     [
         (["out=o.h5"], "data=<file> and out=<results.h5> are required"),
-        (["data=a.h5", "out=o.h5", "method=kalman"], "expected one of ukf"),
+        (["data=a.h5", "out=o.h5", "method=kalman"], "must be one of ('ukf'"),
         (["data=a.h5", "out=o.h5", "method=policy"], "needs run="),
         (["data=a.h5", "out=o.h5", "bogus=1"], "unknown key 'bogus'"),
         (["data=a.h5", "out=o.h5", "ukf.q=-1"], "q=-1.0 is not a finite number > 0"),
@@ -55,7 +55,7 @@ def test_overrides_and_cluster_flags():
         (["data=a.h5", "out=o.h5", "ukf.r=0.1"], "the measurement noise is noise="),
         (["data=a.h5", "out=o.h5", "theta_scale=0.01"], "theta_scale= is gone"),
         (["data=a.h5", "out=o.h5", "noise=T24"], "expected name:std"),
-        (["data=a.h5", "out=o.h5", "method=e2e"], "method=e2e trains"),
+        (["data=a.h5", "out=o.h5", "method=e2e"], "method=e2e learns from the whole"),
         (["data=a.h5", "out=o.h5", "theta=HPT_eff_mod", "theta0=0,0"], "one value"),
         (["data=a.h5", "out=o.h5", "--num-processes", "2"], "coordinator must be"),
         (["data=a.h5", "out=o.h5", "--workers", "2"], "unknown flag"),

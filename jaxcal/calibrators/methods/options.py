@@ -1,12 +1,10 @@
-"""The methods' configs: one frozen, hashable dataclass per method of
-:func:`jaxcal.calibrate`, the table of their names, and the front door's keyword
-options read into one.
+"""A method's keyword options read into its config, every option's form checked.
 
-:class:`UKF`, :class:`LeastSquares`, :class:`E2E` and :class:`Policy` are registered
-in :data:`METHODS` by name; :func:`config` turns keyword options into a config (a
-misspelt option lists the valid ones and the closest match). A config is hashable, so
-it keys the compiled programs (:mod:`jaxcal.calibrators.compiled`); what makes it
-a ready :class:`Built` for a problem is :func:`jaxcal.calibrators.methods.build`.
+Each method's config is a frozen, hashable dataclass of its package
+(:mod:`jaxcal.calibrators.methods`); :func:`config_of` turns keyword options into
+one (a misspelt option lists the valid ones and the closest match). A config is
+hashable, so it keys the compiled programs (:mod:`jaxcal.calibrators.compiled`);
+what makes it a ready :class:`Built` for a problem is its method's ``build``.
 """
 
 from __future__ import annotations
@@ -14,13 +12,11 @@ from __future__ import annotations
 import dataclasses
 import difflib
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator
-from jaxcal.calibrators.least_squares import LeastSquaresConfig
-from jaxcal.calibrators.ukf import UKFConfig
 
 
 def _frozen(value):
@@ -36,64 +32,6 @@ def _frozen(value):
         return tuple(np.ravel(np.asarray(value, np.float64)).tolist())
     except (TypeError, ValueError):
         return value
-
-
-@dataclasses.dataclass(frozen=True)
-class UKF:
-    """The unscented Kalman filter on the model (random-walk parameters); with hidden
-    states the joint state-and-parameter filter. ``filter``: its settings (``r`` is
-    1: the noise is the ``noise_std`` input); ``state_std`` / ``state_q``: the
-    initial state's std and the states' process noise (scalar, per state, or
-    ``{state: value}``; default 1 % / 1e-6 of each state's size)."""
-
-    filter: UKFConfig = UKFConfig(r=1.0)
-    state_std: Any = None
-    state_q: Any = None
-
-    name = "ukf"
-    field_type = UKFConfig
-    field_name = "filter"
-
-
-@dataclasses.dataclass(frozen=True)
-class LeastSquares:
-    """Sliding-window least squares on the model (Levenberg-Marquardt); with hidden
-    states the moving-window fit of the parameters and the window's initial state.
-    ``solver``: its settings (``r`` is 1); ``state_std``: the window start's std."""
-
-    solver: LeastSquaresConfig = LeastSquaresConfig(r=1.0)
-    state_std: Any = None
-
-    name = "ls"
-    field_type = LeastSquaresConfig
-    field_name = "solver"
-
-
-@dataclasses.dataclass(frozen=True)
-class E2E:
-    """The E2E network ``theta_t = G(w_t, x_t, x_{t-1})``: given weights
-    (``e2e=``), else trained on simulations of the model (E2E-sim) with
-    ``e2e_config``; ``e2e_window``: past samples G reads (a model with memory:
-    16); ``e2e_copies``: simulated fleets."""
-
-    e2e: Any = dataclasses.field(default=None, compare=False)
-    e2e_config: Any = None
-    e2e_window: int | None = None
-    e2e_copies: int = 8
-
-    name = "e2e"
-
-
-@dataclasses.dataclass(frozen=True)
-class Policy:
-    """A trained tracking policy, ``run=<run folder>``; an incremental (feedback)
-    policy's run with ``anchor=<absolute policy's run folder>`` is gated by it where
-    the model misfits the data (:mod:`jaxcal.calibrators.gated`)."""
-
-    run: Any = dataclasses.field(default=None, compare=False)
-    anchor: Any = dataclasses.field(default=None, compare=False)
-
-    name = "policy"
 
 
 # Each option's accepted form: (kind, what it is). Kinds: "positive", "real",
@@ -163,7 +101,7 @@ def _plain(name: str, value):
     return {"count": int, "flag": bool}.get(kind, float)(value)
 
 
-def check_options(method: str, options: dict) -> None:
+def check_options(method: str, options: dict, config_type=None) -> None:
     """Every option of ``options`` has its expected form (:data:`_FORMS`): type,
     finiteness and range, checked before any config is built (``q="0.01"`` or a
     window of ``32.5`` would otherwise fail inside a comparison, ``q=inf`` run a
@@ -175,7 +113,7 @@ def check_options(method: str, options: dict) -> None:
     """
     for name, value in options.items():
         kind, what = _FORMS.get(name, ("-", ""))
-        optional = kind.endswith("?") or (name == "prior_std" and method == "ls")
+        optional = kind.endswith("?") or name in getattr(config_type, "may_be_none", ())
         kind = kind.rstrip("?")
         if kind == "-" or (value is None and (optional or kind == "state")):
             continue
@@ -218,17 +156,15 @@ def options_of(config_type) -> tuple[str, ...]:
     return tuple(names)
 
 
-def config(method: str, options: dict):
-    """The config of ``method`` from keyword ``options`` (every one consumed).
+def config_of(method: str, config_type, options: dict):
+    """The config (of type ``config_type``) of ``method`` from keyword ``options``
+    (every one consumed).
 
     Raises:
-        ValueError: an unknown method, an option the method does not take
-            (listing the valid ones and the closest match), or an option of
-            another type or range than it takes (:func:`check_options`).
+        ValueError: an option the method does not take (listing the valid ones and
+            the closest match), or an option of another type or range than it
+            takes (:func:`check_options`).
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")
-    config_type = METHODS[method]
     valid = options_of(config_type)
     unknown = sorted(set(options) - set(valid))
     if unknown:
@@ -241,7 +177,7 @@ def config(method: str, options: dict):
             f"unknown option(s) for method={method!r}: {said}; its options are "
             f"{sorted(valid)}"
         )
-    check_options(method, options)
+    check_options(method, options, config_type)
     options = {k: _plain(k, v) for k, v in options.items()}
     kwargs = {}
     inner = getattr(config_type, "field_type", None)
@@ -254,6 +190,3 @@ def config(method: str, options: dict):
             value = options[f.name]
             kwargs[f.name] = _frozen(value) if f.name.startswith("state_") else value
     return config_type(**kwargs)
-
-
-METHODS: dict[str, type] = {c.name: c for c in (UKF, LeastSquares, E2E, Policy)}

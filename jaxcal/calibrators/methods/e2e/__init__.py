@@ -1,0 +1,58 @@
+"""The E2E network ``theta_t = G(w_t, x_t, x_{t-1})`` (Tian et al. §2.4, eq. e2e):
+given weights, else trained on simulations of the model over the box at the data's
+own conditions (E2E-sim, :mod:`jaxcal.calibrators.e2e_sim`); checked against the
+data's range (:mod:`jaxcal.calibrators.learned`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from jaxcal.calibrators.learned import e2e_calibrator, learned_built
+from jaxcal.calibrators.methods.protocol import Method
+
+
+@dataclasses.dataclass(frozen=True)
+class E2E:
+    """The E2E network ``theta_t = G(w_t, x_t, x_{t-1})``: given weights
+    (``e2e=``), else trained on simulations of the model (E2E-sim) with
+    ``e2e_config``; ``e2e_window``: past samples G reads (a model with memory:
+    16); ``e2e_copies``: simulated fleets."""
+
+    e2e: Any = dataclasses.field(default=None, compare=False)
+    e2e_config: Any = None
+    e2e_window: int | None = None
+    e2e_copies: int = 8
+
+    name = "e2e"
+
+
+def _range_check(problem):
+    from jaxcal.calibrators.policy import range_check  # E2E's own imports
+
+    return range_check(problem)
+
+
+def build(problem, cfg: E2E, buckets, seed: int = 0):
+    """The network (trained first without weights) run over the padded groups."""
+    cal = e2e_calibrator(problem, buckets, seed, cfg)
+    return learned_built(problem, cal, _range_check(problem))
+
+
+def make(problem, cfg: E2E, buckets=None, seed: int = 0):
+    """One stream's network; E2E-sim needs the data's ``buckets`` to train on."""
+    if buckets is None and cfg.e2e is None:
+        raise ValueError("E2E-sim trains on the data's conditions: pass buckets=")
+    return build(problem, cfg, buckets, seed).calibrator
+
+
+METHOD = Method(
+    name="e2e",
+    config=E2E,
+    build=build,
+    make=make,
+    check=lambda problem, cfg: _range_check(problem),
+    label="E2E",
+    needs_all_rows=True,  # E2E-sim trains on the whole data set's conditions
+    chooses_parameters=lambda options: not options.get("e2e"),  # weights fix them
+)
