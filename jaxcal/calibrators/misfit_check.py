@@ -47,8 +47,8 @@ innovations with a ratio of 2-3.4, under the flag, and a UKF std 1.6-2.6x too sm
 order) without shift and under the flag, the std of a method that assumes white noise
 (:attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`) is widened by the
 square root of that AR fit's long-run variance ratio (:func:`ar_long_run_ratio`; the
-Bartlett estimate, bandwidth-truncated, reads a persistent colour low): coverage 0.86-0.98 per unit. Why this widening and not the
-battery's: there the colour came from a bias the parameters absorb, which no factor
+Bartlett estimate, bandwidth-truncated, reads a persistent colour low): coverage
+0.86-0.98 per unit. Why this widening and not the battery's: there the colour came from a bias the parameters absorb, which no factor
 read off the residuals fixes; here from the noise, whose long-run variance is what
 the estimate's variance scales with (fewer independent rows).
 

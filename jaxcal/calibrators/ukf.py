@@ -57,18 +57,19 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
+from jaxcal.calibrators.gaussian_filter import (
+    Moments,
+    make_gaussian_filter,
+    static_transition,
+)
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalOutput,
-    CalStepOutput,
     MeasureFn,
     Measurement,
     check_measurement,
-    check_prior,
     check_scale,
-    inner_box,
     run_calibrator,
     run_fleet,
 )
@@ -84,7 +85,7 @@ from jaxcal.calibrators.ukf_steps import (  # noqa: F401 (re-exported: one impor
     update,
 )
 from jaxcal.problem import Transition
-from jaxcal.typedefs import Array, PRNGKey
+from jaxcal.typedefs import Array
 
 
 def make_ukf(
@@ -124,18 +125,24 @@ def make_ukf(
         ``x_t`` given the past) and, if asked, ``theta_cov [P, P]``. ``x_t`` may
         hold NaN in some outputs (missing): the update uses the observed ones.
     """
-
-    def init_state(w0, theta):
-        del w0
-        return jnp.zeros((0,), theta.dtype)
-
-    def step(z, w, theta):
-        return z, measure_fn(w, theta)
-
     return make_joint_ukf(
-        Transition(init_state, step, 0), cfg, measurement, theta0=theta0,
+        static_transition(measure_fn), cfg, measurement, theta0=theta0,
         theta_scale=theta_scale, theta_box=theta_box, clip_points=False,
     )  # fmt: skip
+
+
+def unscented(cfg: UKFConfig) -> Moments:
+    """The UKF's moments: the scaled unscented transform of the prediction and of
+    the prior of a model with memory (:mod:`jaxcal.calibrators.ukf_steps`)."""
+    return Moments(
+        predict=lambda state, propagate, noise, weights, num_states: predict(
+            state, propagate, noise, weights, cfg, num_states
+        ),
+        prior=lambda at_rest, u0, cov_u, s_std, s_scale: joint_prior(
+            at_rest, u0, cov_u, cfg, s_std, s_scale
+        ),
+        weights=lambda n, dtype: unscented_weights(n, cfg),
+    )
 
 
 def make_joint_ukf(
@@ -178,82 +185,14 @@ def make_joint_ukf(
     Returns:
         ``Calibrator(init, step)`` as :func:`make_ukf`, with ``aux["state"] [Z]`` and
         ``aux["state_std"] [Z]`` (the filtered state after the sample) when ``Z > 0``.
+        The filter's skeleton is :func:`~jaxcal.calibrators.gaussian_filter.
+        make_gaussian_filter`, shared with the EKF.
     """
-    measurement = check_measurement(measurement)
-    centre, noise_std = measurement
-    theta0, scale = check_prior(theta0, theta_scale)
-    num_params = theta0.shape[0]
-    init_state, step_fn, num_states = transition
-    s_scale = check_scale(state_scale, num_states, theta0.dtype)
-    s_std = _state_vector(state_std, num_states, s_scale, "state_std")
-    s_q = _state_vector(state_q, num_states, 0.0 * s_scale, "state_q")
-    weights = unscented_weights(num_states + num_params, cfg)  # (wm, wc, spread)
-    eye = jnp.eye(num_params, dtype=theta0.dtype)
-    noise = process_noise(cfg, eye, s_q, s_scale)  # (q_theta, q_state)
-    admissible = _clip_to_box(theta_box if clip_points else None, theta0.dtype)
-    project = _project_mean(theta_box, scale, num_states)
-
-    def unpack(a):
-        return s_scale * a[:num_states], scale * a[num_states:]
-
-    def init(key: PRNGKey | None, w0: Array, x0: Array) -> UKFState:
-        del key, x0  # the prior is fixed by the factory
-        u0 = theta0 / scale
-        cov_u = cfg.prior_std**2 * eye
-        if not num_states:
-            return UKFState(mean=u0, cov=cov_u)
-        at_rest = lambda u: init_state(w0, admissible(scale * u))  # noqa: E731
-        return joint_prior(at_rest, u0, cov_u, cfg, s_std, s_scale)
-
-    def step(state: UKFState, w_t: Array, x_t: Array) -> tuple[UKFState, CalStepOutput]:
-        def propagate(a: Array):
-            z, theta = unpack(a)
-            z_next, x = step_fn(z, w_t, admissible(theta))
-            return z_next / s_scale, (x - centre) / noise_std
-
-        pred = predict(state, propagate, noise, weights, cfg, num_states)
-        mean, cov, s_cov, innovation, log_lik = update(
-            pred, x_t, measurement, weights, cfg.r
-        )
-        mean = project(mean)
-        z_post, theta_post = unpack(mean)
-        if cfg.posterior_xhat:  # x_t of the previous posterior state, new theta
-            xhat = step_fn(unpack(state.mean)[0], w_t, admissible(theta_post))[1]
-        else:  # the predicted measurement mean, free but one step behind the update
-            xhat = centre + noise_std * pred.y_mean
-        aux = step_aux(cfg, cov, s_cov, innovation, log_lik, z_post, scale, s_scale)
-        out = CalStepOutput(theta=theta_post, xhat=xhat, aux=aux)
-        return UKFState(mean=mean, cov=cov), out
-
-    return Calibrator(init=init, step=step, accepts_partial=True)
-
-
-def _clip_to_box(theta_box: tuple[Array, Array] | None, dtype):
-    """``theta -> theta`` clipped into ``theta_box``, the identity without a box."""
-    if theta_box is None:
-        return lambda theta: theta
-    low, high = (jnp.asarray(b, dtype) for b in theta_box)
-    return lambda theta: jnp.clip(theta, low, high)
-
-
-def _project_mean(theta_box: tuple[Array, Array] | None, scale: Array, num_states):
-    """``a -> a`` with its scaled parameters ``a[Z:]`` clipped into ``theta_box``,
-    a hair inside (:func:`~jaxcal.calibrators.interface.inner_box`); the identity
-    without a box."""
-    if theta_box is None:
-        return lambda a: a
-    low, high = inner_box(theta_box, scale)
-    return lambda a: a.at[num_states:].set(jnp.clip(a[num_states:], low, high))
-
-
-def _state_vector(value, num_states: int, default: Array, field: str) -> Array:
-    """A scalar or ``[Z]`` non-negative setting -> ``[Z]`` (``default`` if None)."""
-    if value is None:
-        return default
-    arr = jnp.broadcast_to(jnp.asarray(value, default.dtype), (num_states,))
-    if not isinstance(arr, jax.core.Tracer) and not np.all(np.asarray(arr) >= 0):
-        raise ValueError(f"{field} must be >= 0 (scalar or [Z]), got {value}")
-    return arr
+    return make_gaussian_filter(
+        unscented(cfg), transition, cfg, measurement, theta0=theta0,
+        theta_scale=theta_scale, state_std=state_std, state_q=state_q,
+        state_scale=state_scale, theta_box=theta_box, clip_points=clip_points,
+    )  # fmt: skip
 
 
 def ukf_filter(
