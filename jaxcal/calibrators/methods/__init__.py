@@ -28,7 +28,7 @@ from jaxcal.calibrators.methods.protocol import Method
 from jaxcal.data.buckets import Buckets
 from jaxcal.problem import Problem
 
-PACKAGES = ("ukf", "ls", "e2e", "policy")  # the registry: one entry a method
+PACKAGES = ("ukf", "ls", "e2e", "policy", "ekf")  # the registry: one entry a method
 
 REGISTRY: dict[str, Method] = {
     m.name: m
