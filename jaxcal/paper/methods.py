@@ -292,6 +292,21 @@ def model_method(engine, problem: Problem, table_cfg, name: str) -> Method:
     )  # fmt: skip
 
 
+def paper_config(method, ukf: UKFConfig, least_squares: LeastSquaresConfig):
+    """The config of a registered method on the model with the paper's settings: the
+    UKF's and least squares' own, another method's with the UKF's values of the
+    settings it shares (``q``, ``r``, ``prior_std``, ...: a like-for-like
+    comparison)."""
+    inner, field = method.config.field_type, method.config.field_name
+    own = {UKFConfig: ukf, LeastSquaresConfig: least_squares}
+    if inner in own:
+        return method.config(**{field: own[inner]})
+    names = {f.name for f in dataclasses.fields(inner)}
+    paper = dataclasses.asdict(ukf)
+    settings = inner(**{k: paper[k] for k in names & set(paper)})
+    return method.config(**{field: settings})
+
+
 def ukf_method(
     engine, problem: Problem, cfg: UKFConfig = UKFConfig(), name: str = "UKF"
 ) -> Method:

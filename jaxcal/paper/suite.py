@@ -39,7 +39,13 @@ from jaxcal.paper.compare import (
     limit_units,
     measure_latency,
 )
-from jaxcal.paper.methods import Method, e2e_method, model_method, policy_method
+from jaxcal.paper.methods import (
+    Method,
+    e2e_method,
+    model_method,
+    paper_config,
+    policy_method,
+)
 from jaxcal.paper.npe import NPEConfig
 from jaxcal.paper.simulate import (
     evaluate_declared,
@@ -183,7 +189,8 @@ class Suite:
     def _build(self, name: str) -> Method:
         on_model = {m.label: m for m in REGISTRY.values() if m.on_model}
         if name in on_model:  # a registered method on the model, on the suite's F
-            table_cfg = self._settings(on_model[name])
+            cfg = self.cfg
+            table_cfg = paper_config(on_model[name], cfg.ukf, cfg.least_squares)
             return model_method(self.engine, self.problem, table_cfg, name)
         if name in ("E2E", "E2E-sim"):
             target = init_e2e_params(
@@ -214,20 +221,6 @@ class Suite:
             with jax.enable_x64(needs_x64(self.runs[name])):
                 return policy_method(load_run(self.runs[name]), name)
         raise ValueError(f"unknown method {name!r} (no run given for it?)")
-
-    def _settings(self, method):
-        """The config of a registered method on the model with the paper's
-        settings: the UKF's and least squares' own (:class:`SuiteConfig`), another
-        method's with the paper's UKF values of the settings it shares (``q``,
-        ``r``, ``prior_std``, ...: a like-for-like comparison)."""
-        inner, field = method.config.field_type, method.config.field_name
-        own = {UKFConfig: self.cfg.ukf, LeastSquaresConfig: self.cfg.least_squares}
-        if inner in own:
-            return method.config(**{field: own[inner]})
-        names = {f.name for f in dataclasses.fields(inner)}
-        paper = dataclasses.asdict(self.cfg.ukf)
-        settings = inner(**{k: paper[k] for k in names & set(paper)})
-        return method.config(**{field: settings})
 
     def _e2e_path(self, name: str) -> Path:
         return self.model_dir / f"{name.lower()}.msgpack"

@@ -42,7 +42,9 @@ def _dispatches(tree: ast.AST) -> list[str]:
             types = node.args[1]
             elts = types.elts if isinstance(types, ast.Tuple) else [types]
             hit = {getattr(e, "id", getattr(e, "attr", "")) for e in elts} & configs
-            found += [f"line {node.lineno}: isinstance(.., {sorted(hit)})"] if hit else []
+            found += (
+                [f"line {node.lineno}: isinstance(.., {sorted(hit)})"] if hit else []
+            )
         if isinstance(node, ast.Compare):
             consts = [
                 c.value

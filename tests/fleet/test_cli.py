@@ -102,12 +102,13 @@ def hx_csv(tmp_path_factory):
     return path, frame.reset_index(drop=True), model
 
 
-def test_heat_exchanger_csv_ukf_one_row_per_input_row(hx_csv, tmp_path, capsys):
+@pytest.mark.parametrize("method", ["ukf", "ekf"])
+def test_heat_exchanger_csv_one_row_per_input_row(hx_csv, tmp_path, capsys, method):
     path, frame, model = hx_csv
     out = tmp_path / "hx.h5"
     noise = ",".join(f"{k}:{v}" for k, v in HX_NOISE.items())
     argv = [
-        "model=heat_exchanger", f"data={path}", "method=ukf", f"noise={noise}",
+        "model=heat_exchanger", f"data={path}", f"method={method}", f"noise={noise}",
         f"out={out}", "chunk_units=2",
     ]  # fmt: skip
     assert main(argv) == 0
@@ -117,7 +118,7 @@ def test_heat_exchanger_csv_ukf_one_row_per_input_row(hx_csv, tmp_path, capsys):
     arrays, attrs = read_results(out)
     assert attrs["theta_names"] == list(model.parameter_names)
     assert attrs["sensor_names"] == list(model.output_names)
-    assert attrs["model"] == "heat_exchanger" and attrs["method"] == "ukf"
+    assert attrs["model"] == "heat_exchanger" and attrs["method"] == method
     assert attrs["noise_std"] == list(HX_NOISE.values())
     # one row per input row: units ascending, time order, each row's source row
     assert arrays["theta"].shape == (len(frame), 3) and arrays["valid"].all()

@@ -26,6 +26,8 @@ from jaxcal.paper.compare import (
 from jaxcal.paper.methods import (
     evaluation_key,
     least_squares_method,
+    model_method,
+    paper_config,
     perturb_output,
     ukf_method,
     with_step_key,
@@ -158,10 +160,22 @@ def test_with_step_key_needs_a_key_and_draws_fresh_noise_every_step():
 
 
 def _model_based(engine, problem):
-    """The UKF and least squares on the toy model (small window: fast)."""
+    """Every registered method on the model, on the toy model with the paper's
+    settings (least squares: a small window, fast)."""
+    from jaxcal.calibrators.methods import REGISTRY
+    from jaxcal.calibrators.ukf import UKFConfig
+
+    ls = LeastSquaresConfig(window=4)
+    others = [
+        model_method(engine, problem, paper_config(m, UKFConfig(), ls), m.label)
+        for m in REGISTRY.values()
+        if m.on_model and m.label not in ("UKF", "LS")
+    ]
+    assert others, "the EKF is a registered method on the model"
     return (
         ukf_method(engine, problem),
-        least_squares_method(engine, problem, LeastSquaresConfig(window=4)),
+        least_squares_method(engine, problem, ls),
+        *others,
     )
 
 
