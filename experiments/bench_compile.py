@@ -148,7 +148,7 @@ def child(case: str, method: str, calls: int) -> dict:
 def _other_rows(data):
     """The same rows with one reading moved by a part in 1e7: data of the same
     shape that the process has not seen, so the call screens again (a repeat on the
-    same rows reuses the screening, :mod:`jaxcal.calibrators.screen_memo`)."""
+    same rows reuses the screening, :mod:`jaxcal.calibrators.front.screen_memo`)."""
     import dataclasses
 
     if hasattr(data, "iloc"):  # a DataFrame: its last column is an output
@@ -161,7 +161,7 @@ def _other_rows(data):
 
 
 def _about_disk(message) -> bool:
-    """Whether a warning is :mod:`jaxcal.calibrators.on_disk`'s."""
+    """Whether a warning is :mod:`jaxcal.calibrators.programs.on_disk`'s."""
     text = str(message)
     return "not kept on disk" in text or "unreadable" in text
 

@@ -10,7 +10,8 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
 * one stream: ``StreamingCalibrator.step`` (host numpy in and out, the guarded
   step) and the UKF's guarded step of :func:`jaxcal.calibrate` on the same
   problem, jitted with the same per-row compile options
-  (:func:`jaxcal.calibrators.packed.jit_per_row`) and fed one row at a time the same
+  (:func:`jaxcal.calibrators.programs.packed.jit_per_row`) and fed one row at a time the
+  same
   way (host numpy in and out); median and 95th percentile microseconds per row;
 * a fleet: ``StreamingCalibrator.run`` over ``units`` streams of ``rows`` rows and
   the UKF's fleet runner over the same arrays; microseconds per row;
@@ -131,7 +132,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
     from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
     from jaxcal.calibrators.interface import run_fleet
     from jaxcal.calibrators.methods import config, make
-    from jaxcal.calibrators.packed import jit_per_row
+    from jaxcal.calibrators.programs.packed import jit_per_row
     from jaxcal.deploy import StreamingCalibrator
 
     cal = StreamingCalibrator(run, trust_code=True)

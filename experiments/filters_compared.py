@@ -10,7 +10,8 @@ cases (``experiments/policy_any_model.py``: the same fleets, test units and seed
   over the parameters; the 90 % coverage of the reported std;
 * **cost per row** (second calls, compiled, the methods' calls interleaved so that a
   shared machine's load falls on all alike): one stream (each method's guarded step
-  jitted as a deployed stream step is, :func:`jaxcal.calibrators.packed.jit_per_row`,
+  jitted as a deployed stream step is,
+  :func:`jaxcal.calibrators.programs.packed.jit_per_row`,
   fed one host row at a time; median microseconds) and a fleet (its jitted fleet
   runner over the test units; the best of three).
 
@@ -84,7 +85,7 @@ def _costs(problem, data, names, rows) -> dict:
     from jaxcal.calibrators import methods
     from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
     from jaxcal.calibrators.interface import run_fleet
-    from jaxcal.calibrators.packed import jit_per_row
+    from jaxcal.calibrators.programs.packed import jit_per_row
     from jaxcal.data.buckets import bucket_units
 
     model = problem.model

@@ -1327,7 +1327,7 @@ def _tampered_result(ctx: Context) -> Seen:
     as the floats saved, or refused naming the field."""
     import pyarrow.parquet as pq
 
-    from jaxcal.calibrators.result import META_KEY, CalibrationResult
+    from jaxcal.calibrators.front.result import META_KEY, CalibrationResult
 
     path = ctx.reference.save(ctx.root / "tampered.parquet")
     table = pq.read_table(path)
@@ -1585,7 +1585,7 @@ PLANT = """
 import sys, pathlib
 import jax, jax.numpy as jnp
 from jax import export
-import jaxcal.calibrators.on_disk  # registers the programs' named tuples
+import jaxcal.calibrators.programs.on_disk  # registers the programs' named tuples
 folder = pathlib.Path(sys.argv[1])
 for path in folder.rglob("*.jaxexport"):
     exp = export.deserialize(bytearray(path.read_bytes()))

@@ -11,7 +11,7 @@ estimated, least squares with it given. Per case:
   (rows from cycle 1 on, the example's scoring rule);
 * the share of rows ``result.misfit`` marks, and each cell's largest long-run
   variance ratio of the screening's one-step innovations
-  (:func:`jaxcal.calibrators.misfit_check.misfit_rows`);
+  (:func:`jaxcal.calibrators.uncertainty.misfit_check.misfit_rows`);
 * the alternative measured and rejected: the std widened by the square root of that
   ratio (the effective-sample-size argument), and the factor each cell's std would
   need (the 90 % quantile of ``|error| / std`` over 1.6449).
@@ -43,8 +43,8 @@ def _case(frame: pd.DataFrame, method: str, noise: str) -> dict:
     from peers import THETA, UKF
 
     import jaxcal
-    from jaxcal.calibrators import screen_memo
-    from jaxcal.calibrators.misfit_check import misfit_rows
+    from jaxcal.calibrators.front import screen_memo
+    from jaxcal.calibrators.uncertainty.misfit_check import misfit_rows
 
     if method == "ukf":
         options = {k: UKF[k] for k in ("q", "prior_std", "state_std", "state_q")}

@@ -169,7 +169,7 @@ def estimate(preset: Preset, name: str) -> float:
 
 def make_plan(ctx: Context) -> list[Step]:
     """Every step of the experiment, in order."""
-    from jaxcal.calibrators.gated import DEFAULT_WINDOW
+    from jaxcal.calibrators.methods.policy.gated import DEFAULT_WINDOW
     from jaxcal.paper import gate_steps, npe_steps
     from jaxcal.paper.npe import is_available as npe_available
     from jaxcal.paper.std_steps import calib_std_step

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from jaxcal.calibrators.e2e import E2EConfig
+from jaxcal.calibrators.methods.e2e.network import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.paper.npe import NPEConfig
 from jaxcal.paper.suite import SuiteConfig

@@ -10,7 +10,7 @@ user would run it) then calibrates the fleet with
 * ``every unit``: the exported model with the offset tracked in every unit (what the
   export did before: the file with its ``units`` removed);
 * ``carriers``: the exported model as written, the offset calibrated in the units the
-  verdict names and held at 0 in the others (:mod:`jaxcal.calibrators.carriers`).
+  verdict names and held at 0 in the others (:mod:`jaxcal.calibrators.front.carriers`).
 
 Per unit: each declared parameter's error at the unit's last sample and its RMSE
 from the step on, and the tracked offset at the last sample with its reported std

@@ -438,19 +438,20 @@ model with memory (8 units, R_sa falling or constant, R_cs calibrated alongside)
 
 {table}
 
-Least squares' std (`jaxcal/calibrators/least_squares.py`, module docstring): the
+Least squares' std (`jaxcal/calibrators/methods/ls/window.py`, module docstring): the
 Laplace std widened by the window's lag bias (lag matrix times the drift rate read
 off the estimate's own past) and scaled by an online check (adaptive conformal
 inference against the estimate issued half a window earlier).
 
-The estimated noise (`jaxcal/calibrators/screen.py`, module docstring): the UKF
+The estimated noise (`jaxcal/calibrators/front/screen.py`, module docstring): the UKF
 pass's one-step innovations, their variance times `(2 - k) / 2` with `k` the share
 of each output's innovation the update absorbs (a filter that follows the noise
 leaves innovations of twice its variance). The post-fit residual before it read the
 heat exchanger's `dp_hot` 60x too small, and the UKF then followed that output's
 noise through `dp_coeff` with a std 50x too small: the `estimated` rows of
 `before_innovations`. Every reported std is also checked against the estimate's own
-row-to-row scatter (`jaxcal/calibrators/jitter_check.py`); none of the runs above
+row-to-row scatter (`jaxcal/calibrators/uncertainty/jitter_check.py`); none of the runs
+above
 needed it. Still over 0.95: the tank with the noise estimated (0.97-0.98; the
 estimate is a little wide there, 0.958 with the true noise given) and the thermal
 model's `R_cs` (0.99 with the noise given too).

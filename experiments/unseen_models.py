@@ -124,7 +124,8 @@ def fan_model() -> Model:
         fan_outputs,
         conditions={"speed": "rpm", "damper": "-"},
         parameters={
-            "wear": (0.02, 0.0, 0.4, "-"), "fouling": (0.2, 0.0, 3.0, "-"),
+            "wear": (0.02, 0.0, 0.4, "-"),
+            "fouling": (0.2, 0.0, 3.0, "-"),
             "loss": (0.1, 0.02, 0.4, "-"),
         },  # fmt: skip
         outputs={"flow": "m^3/s", "pressure": "Pa", "power": "kW"},

@@ -38,8 +38,8 @@ _EXPORTS = {
     "Problem": ("jaxcal.problem", "Problem"),
     "Dataset": ("jaxcal.data.dataset", "Dataset"),
     "read_dataset": ("jaxcal.data.readers", "read_dataset"),
-    "calibrate": ("jaxcal.calibrators.front", "calibrate"),
-    "CalibrationResult": ("jaxcal.calibrators.result", "CalibrationResult"),
+    "calibrate": ("jaxcal.calibrators.front.door", "calibrate"),
+    "CalibrationResult": ("jaxcal.calibrators.front.result", "CalibrationResult"),
     "models": ("jaxcal.models", None),
 }
 

@@ -18,7 +18,7 @@ turns it on in ``$JAXCAL_CACHE_DIR`` or ``~/.cache/jaxcal/xla``, unless
 Importing jaxcal changes nothing (the switch happens at the first call, or at the
 first :func:`jaxcal.models.load` of a built-in model). The traced programs of
 jaxcal's own models, and of a user's model keyed by what it computes, are kept beside
-the compiled ones, under the same switch (:mod:`jaxcal.calibrators.on_disk`).
+the compiled ones, under the same switch (:mod:`jaxcal.calibrators.programs.on_disk`).
 
 Trusting a cache: a cached entry is compiled machine code that the process loads and
 runs, so anyone who can write to the directory can make jaxcal run their code (a
@@ -93,7 +93,7 @@ def disable() -> None:
 
 def program_directory() -> str:
     """Where traced programs are kept
-    (:mod:`jaxcal.calibrators.on_disk`): ``jaxcal-programs`` inside the active
+    (:mod:`jaxcal.calibrators.programs.on_disk`): ``jaxcal-programs`` inside the active
     compilation cache directory (JAX's cache reads only its own files there)."""
     return os.path.join(jax.config.jax_compilation_cache_dir or directory(),
                         "jaxcal-programs")  # fmt: skip
@@ -162,7 +162,7 @@ def return_freed_heap() -> None:
     pages in the process: 0.5-0.65 GB of resident memory per program that the rest
     of a diagnosis never reused, so its peak rose by as much (NASA FD001's whole
     diagnosis: 2.97 GB peak before, 2.47 GB after). Called after a kept program's
-    first call (:func:`jaxcal.calibrators.on_disk.kept`); it moves no number (a
+    first call (:func:`jaxcal.calibrators.programs.on_disk.kept`); it moves no number (a
     trim at the end of each diagnosis stage as well gained 0.02 GB: not done)."""
     trim = _malloc_trim()
     if trim is not None:

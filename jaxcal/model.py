@@ -109,7 +109,7 @@ class Model:
             ``z`` (:mod:`jaxcal.diagnosis.linearization`).
         origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
             :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
-            programs can be kept on disk, :mod:`jaxcal.calibrators.on_disk`);
+            programs can be kept on disk, :mod:`jaxcal.calibrators.programs.on_disk`);
             None for any other model.
     """
 

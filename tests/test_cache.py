@@ -53,7 +53,7 @@ KEPT = """
 import os, sys, warnings, json
 import jax, numpy as np, pandas as pd
 import jaxcal
-from jaxcal.calibrators import on_disk
+from jaxcal.calibrators.programs import on_disk
 
 if sys.argv[1] == "again":  # a program kept on disk must not be traced again
     def refuse(*args, **kwargs):
@@ -88,7 +88,7 @@ def test_a_built_in_models_program_is_kept_on_disk_and_not_traced_again(tmp_path
 
 
 def test_only_the_most_recently_used_programs_are_kept(tmp_path):
-    from jaxcal.calibrators import on_disk
+    from jaxcal.calibrators.programs import on_disk
 
     for i in range(5):
         f = tmp_path / f"p{i}{on_disk.SUFFIX}"
@@ -109,7 +109,7 @@ USER = """
 import os, sys, warnings, json
 import jax, jax.numpy as jnp, numpy as np, pandas as pd
 import jaxcal
-from jaxcal.calibrators import on_disk
+from jaxcal.calibrators.programs import on_disk
 
 mode, offset = sys.argv[1], float(sys.argv[2])
 if mode == "again":  # a program kept on disk must not be traced again
@@ -161,7 +161,7 @@ def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypat
     import jax.numpy as jnp
 
     from jaxcal import cache
-    from jaxcal.calibrators import on_disk
+    from jaxcal.calibrators.programs import on_disk
 
     cache.return_freed_heap()  # glibc's malloc_trim here; a no-op elsewhere
     monkeypatch.setattr(cache, "is_enabled", lambda: True)
@@ -185,7 +185,7 @@ def test_a_cluster_process_beyond_the_first_keeps_its_own_executable(
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxcal.calibrators import on_disk
+    from jaxcal.calibrators.programs import on_disk
 
     where = tmp_path / "xla"
     where.mkdir(mode=0o700)

@@ -146,7 +146,7 @@ def test_config_from_dict_rejects_unknown_fields_and_wrong_type():
 
 
 def test_real_nested_configs_parse_and_round_trip():
-    from jaxcal.calibrators.e2e import E2EConfig
+    from jaxcal.calibrators.methods.e2e.network import E2EConfig
     from jaxcal.surrogate.model import SurrogateConfig
 
     cfg = parse_overrides(

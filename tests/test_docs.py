@@ -247,7 +247,7 @@ def test_site_builds_strictly_and_offline(tmp_path):
     api = (site / "api/front.html").read_text()
     for name in (
         "model.Model",
-        "calibrators.front.calibrate",
+        "calibrators.front.door.calibrate",
         "data.readers.read_dataset",
     ):
         assert f'id="jaxcal.{name}"' in api, name

@@ -45,7 +45,7 @@ def _mentions(pattern: re.Pattern) -> list[tuple[str, str]]:
 
 
 def _result_attributes() -> set[str]:
-    from jaxcal.calibrators.result import CalibrationResult
+    from jaxcal.calibrators.front.result import CalibrationResult
     from jaxcal.diagnosis.pipeline import DiagnosisResult
 
     names = {f.name for f in dataclasses.fields(CalibrationResult)}
@@ -72,7 +72,7 @@ def _dotted_keys(cfg, prefix: str = "") -> set[str]:
 
 
 def _valid_keys() -> set[str]:
-    from jaxcal.calibrators.front import _READER_OPTIONS, calibrate
+    from jaxcal.calibrators.front.door import _READER_OPTIONS, calibrate
     from jaxcal.calibrators.methods import METHODS, options_of
     from jaxcal.cli import bench, diagnose, evaluate, fleet, generate, train, validate
     from jaxcal.cli.args import _USAGE_KEY

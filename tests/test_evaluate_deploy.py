@@ -13,7 +13,7 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.calibrators.interface import REASONS, run_fleet
-from jaxcal.calibrators.policy import stream_start_theta
+from jaxcal.calibrators.methods.policy.calibrator import stream_start_theta
 from jaxcal.cli.evaluate import main, parse_args
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env

@@ -79,7 +79,7 @@ def test_calibrate_writes_a_line_per_stage_to_a_captured_stderr(monkeypatch, cap
     import pandas as pd
 
     import jaxcal
-    from jaxcal.calibrators import front
+    from jaxcal.calibrators.front import door as front
 
     monkeypatch.setattr(front, "PROGRESS_AFTER", 0.0)  # show it from the start
     model = jaxcal.Model.from_function(

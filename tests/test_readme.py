@@ -54,7 +54,7 @@ def _run(where, method: str) -> object:
 
 def test_each_block_names_the_methods_that_run_with_its_call():
     for where in (TANK, MEMORY):
-        assert _methods(_block(*where)) == ["ukf", "ls", "e2e"], where
+        assert _methods(_block(*where)) == ["ukf", "ekf", "ls", "e2e"], where
     lines = _block(*TANK).strip().splitlines()
     assert 15 <= len(lines) <= 25
 

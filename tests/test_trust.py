@@ -23,7 +23,7 @@ from jax import export
 
 import jaxcal
 from jaxcal import cache
-from jaxcal.calibrators import on_disk
+from jaxcal.calibrators.programs import on_disk
 
 
 @pytest.fixture

@@ -14,9 +14,11 @@ reached ``budget.target_theta_rmse`` (2.5e-4 on Dataset #1), next to the paper's
 6,200 s.
 
 The deployment cost is measured in this run: the jitted single-sample step of
-:func:`jaxcal.calibrators.policy.make_stream_step` (policy pi* and one step of D, host
+:func:`jaxcal.calibrators.methods.policy.calibrator.make_stream_step` (policy pi* and
+one step of D, host
 numpy in and out) and the vmapped fleet runner of
-:func:`~jaxcal.calibrators.policy.make_fleet_runner`, with the production
+:func:`~jaxcal.calibrators.methods.policy.calibrator.make_fleet_runner`, with the
+production
 architectures and fresh weights (the cost does not depend on the values).
 """
 
@@ -35,7 +37,7 @@ import numpy as np
 from cpubench.measure import blocking, figure, published_peer, time_interleaved
 from jaxcal.agents.configs import CLACConfig
 from jaxcal.agents.networks import make_networks
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     PolicyParams,
     PolicyState,
     make_fleet_runner,

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.packed import dispatch_is_synchronous
+from jaxcal.calibrators.programs.packed import dispatch_is_synchronous
 from jaxcal.deploy import synchronous_dispatch
 from jaxcal.physics import cycle, solver, warm_start
 from jaxcal.physics.design import design_point

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.packed import Packing
+from jaxcal.calibrators.programs.packed import Packing
 from jaxcal.typedefs import Array
 
 CalState = Any  # a calibrator's state pytree (see :mod:`jaxcal.calibrators.interface`)
@@ -237,7 +237,8 @@ def probed_update(
 
 def keep_where(ok: Array, new, old):
     """``new`` where ``ok`` else ``old``, leaf by leaf, as one select per dtype on
-    the packed leaves (:mod:`jaxcal.calibrators.packed`): a select per leaf is a
+    the packed leaves (:mod:`jaxcal.calibrators.programs.packed`): a select per leaf is
+    a
     kernel per leaf on XLA's CPU runtime, a dozen or more per sample."""
     packing = Packing.of(old)
     kept = [

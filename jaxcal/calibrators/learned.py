@@ -1,9 +1,11 @@
 """The learned methods (E2E, a trained policy) ready to run for the front door.
 
 The E2E network learns the inverse of the model from simulations over the box at the
-data's own operating conditions (:mod:`jaxcal.calibrators.e2e_sim`), or takes given
+data's own operating conditions (:mod:`jaxcal.calibrators.methods.e2e.simulated`), or
+takes given
 weights; a trained policy is loaded from its run folder, gated by an absolute
-policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.gated`). Either is a
+policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.methods.policy.gated`). Either
+is a
 ``Calibrator`` built outside the compiled programs, run by one jitted fleet scan
 (:func:`make_runner`) with a sample check: the data's range for E2E, the run's own
 training range for a policy.
@@ -15,9 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators import compiled
 from jaxcal.calibrators.interface import Calibrator, SampleCheck, run_fleet
 from jaxcal.calibrators.methods.options import Built
+from jaxcal.calibrators.programs import compiled
 from jaxcal.data.buckets import Buckets
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
@@ -51,8 +53,8 @@ def learned_built(problem: Problem, cal: Calibrator, check) -> Built:
 
 def e2e_calibrator(problem: Problem, buckets: Buckets, seed: int, cfg) -> Calibrator:
     """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
-    from jaxcal.calibrators.e2e import E2EConfig, make_e2e_calibrator
-    from jaxcal.calibrators.e2e_sim import fit_e2e_sim, held_out_band
+    from jaxcal.calibrators.methods.e2e.network import E2EConfig, make_e2e_calibrator
+    from jaxcal.calibrators.methods.e2e.simulated import fit_e2e_sim, held_out_band
     from jaxcal.nets.mlp import RegressorConfig
 
     params = cfg.e2e
@@ -85,14 +87,15 @@ def policy_calibrator(problem: Problem, cfg) -> tuple[Calibrator, SampleCheck | 
     """A trained policy from ``run=<folder>`` and its sample check (the run's own
     training range, not the range of the data being calibrated); its names must
     match the problem, and the problem's model must be the run's own (by names and
-    by outputs at probe points, :mod:`jaxcal.calibrators.run_model`). With
+    by outputs at probe points, :mod:`jaxcal.calibrators.methods.policy.run_model`).
+    With
     ``anchor=<folder>`` (an absolute policy's run with its
     band) the run, an incremental policy, is gated by it (:mod:`jaxcal.calibrators.
     gated`): the feedback while the model fits the data, the anchor where not."""
     # A run folder is read through jaxcal.runs.read_run (the deploy layer's loader,
     # registered by the package root); imported here, when the method is asked for,
     # not at import time.
-    from jaxcal.calibrators.trained import (
+    from jaxcal.calibrators.methods.policy.trained import (
         LoadedRun,
         check_run_model,
         load_calibrator,

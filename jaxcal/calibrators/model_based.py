@@ -4,10 +4,12 @@ calibrators and compiled programs.
 Each works on the restricted model ``F(w, theta_declared) -> x_used`` (a model with
 memory: its transition, the states filtered or fitted with the parameters); the
 measurement noise is the explicit input ``noise_std`` (the filter's covariance,
-:mod:`jaxcal.calibrators.compiled`), the parameters are scaled by the half-width of
+:mod:`jaxcal.calibrators.programs.compiled`), the parameters are scaled by the
+half-width of
 the box and start at the nominal values. Their programs are compiled once per
-process (:mod:`jaxcal.calibrators.compiled`): the data, noise, prior and scales are
-arguments (:class:`~jaxcal.calibrators.compiled.Inputs`), the states' settings
+process (:mod:`jaxcal.calibrators.programs.compiled`): the data, noise, prior and scales
+are
+arguments (:class:`~jaxcal.calibrators.programs.compiled.Inputs`), the states' settings
 resolved here against each state's natural size (:func:`state_scale`).
 """
 
@@ -18,10 +20,10 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators import compiled
-from jaxcal.calibrators.compiled import Inputs
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
 from jaxcal.calibrators.methods.options import Built
+from jaxcal.calibrators.programs import compiled
+from jaxcal.calibrators.programs.compiled import Inputs
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 

@@ -14,7 +14,7 @@ transform). Choices the paper leaves open, fixed here:
   ``R = diag((r noise_std)^2)`` in output units. The paper's methods take the
   training statistics (``noise_std`` the training std), so ``r`` is in units of each
   sensor's spread, as the appendix says; :func:`jaxcal.calibrate` passes the
-  measurement noise std with ``r = 1`` (:mod:`jaxcal.calibrators.compiled`).
+  measurement noise std with ``r = 1`` (:mod:`jaxcal.calibrators.programs.compiled`).
 * Parameters may be normalised too: the filter works in ``z = theta / theta_scale``
   (``theta_scale`` e.g. the training std of each parameter), so ``q`` and ``prior_std``
   are in those units. ``theta_scale=None`` means raw ``theta`` units. Outputs are

@@ -27,7 +27,8 @@ Prints the results and writes them to ``runs/<name>/evaluate.json``
 ``data=``). Without a true-parameter column the theta RMSE is not scored. Works for
 any model's run (the model is rebuilt from the spec in ``data.json``); x64 is enabled
 when the run's model needs it. With ``anchor=`` the run (an incremental policy) is
-scored gated by that absolute policy's run (:mod:`jaxcal.calibrators.gated`; the
+scored gated by that absolute policy's run
+(:mod:`jaxcal.calibrators.methods.policy.gated`; the
 report gets ``_gated`` in its name and the anchor's folder). The data file named in
 the run's config must be readable, and the run folder writable: a folder that cannot
 take the report is an error (exit code 2) before the evaluation starts. A run whose

@@ -210,7 +210,7 @@ def run(cfg: FleetConfig) -> dict:
     others, as by ``jaxcal.calibrate`` (:mod:`jaxcal.fleet.per_unit`)."""
     import jax
 
-    from jaxcal.calibrators.carriers import nominal_values
+    from jaxcal.calibrators.front.carriers import nominal_values
     from jaxcal.fleet.method import build_problem, make_method, require_noise
     from jaxcal.fleet.per_unit import plan_runs, stream_runs
     from jaxcal.fleet.results import FleetResultWriter

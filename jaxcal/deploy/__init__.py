@@ -18,7 +18,8 @@ turbofan or any other model::
     gated = StreamingCalibrator(feedback_run, anchor=absolute_run)
 
 Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
-training range (:func:`jaxcal.calibrators.policy.range_check`), is *skipped*: the
+training range (:func:`jaxcal.calibrators.methods.policy.calibrator.range_check`), is
+*skipped*: the
 carried state is left exactly as it was, ``step`` returns the last valid theta (before
 any valid sample the theta the stream starts from, inside the box) and the flag is
 readable (``cal.last_valid``, ``cal.last_reason``,
@@ -26,7 +27,8 @@ readable (``cal.last_valid``, ``cal.last_reason``,
 continues as if the sample had never arrived. Runs trained before the range was stored
 check finiteness only.
 
-Semantics (:mod:`jaxcal.calibrators.policy`): the calibrator carries the model output
+Semantics (:mod:`jaxcal.calibrators.methods.policy.calibrator`): the calibrator carries
+the model output
 x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),
 norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (or F with
 ``dynamics=physics``). A model with memory carries its hidden state z as well,
@@ -53,12 +55,17 @@ about half the cost of a small model's step; the results are the same bits.
 The package holds deployment: :mod:`jaxcal.deploy.loading` reads a run folder
 (:func:`load_run`), :mod:`jaxcal.deploy.streaming` runs it sample by sample; the
 record of a loaded run and its calibrator are the policy method's
-(:mod:`jaxcal.calibrators.trained`), re-exported here. A run whose model needs float64
+(:mod:`jaxcal.calibrators.methods.policy.trained`), re-exported here. A run whose model
+needs float64
 with ``dynamics=physics`` needs x64 enabled first (``jaxcal.precision.enable_x64()``).
 """
 
-from jaxcal.calibrators.packed import synchronous_dispatch
-from jaxcal.calibrators.trained import LoadedRun, load_calibrator, run_check
+from jaxcal.calibrators.methods.policy.trained import (
+    LoadedRun,
+    load_calibrator,
+    run_check,
+)
+from jaxcal.calibrators.programs.packed import synchronous_dispatch
 from jaxcal.deploy.loading import load_run
 from jaxcal.deploy.streaming import StepInfo, StreamingCalibrator
 from jaxcal.training.model_source import adopt_model_file

@@ -12,7 +12,8 @@ consent (``trust_code=True``, or the same file named by the user in this process
 :mod:`jaxcal.trust`, ``docs/trust.md``); ``data.json`` files of the older layout (the
 turbofan's ``RunMeta`` fields) are read too.
 
-The record it returns, :class:`~jaxcal.calibrators.trained.LoadedRun`, and what
+The record it returns, :class:`~jaxcal.calibrators.methods.policy.trained.LoadedRun`,
+and what
 turns it into a calibrator live with the calibrators, which cannot import this
 module (it needs the training job's config and components): they read a folder
 through :func:`jaxcal.runs.read_run`, which the package root fills with
@@ -32,15 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.agents.networks import make_networks
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     IncrementPolicyParams,
     PolicyParams,
     StartedIncrementPolicyParams,
     filter_settings,
     with_output_states,
 )
-from jaxcal.calibrators.trained import LoadedRun
-from jaxcal.calibrators.uncertainty import load_band
+from jaxcal.calibrators.methods.policy.trained import LoadedRun
+from jaxcal.calibrators.uncertainty.conformal import load_band
 from jaxcal.precision import require_x64
 from jaxcal.problem import Problem
 from jaxcal.runs.checkpoint import Checkpointer, load_config

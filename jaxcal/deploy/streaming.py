@@ -2,14 +2,17 @@
 
 Host numpy in and out, one jitted call per sample (or one per batch of whole
 trajectories). Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far
-outside the run's training range (:func:`jaxcal.calibrators.policy.range_check` of the
+outside the run's training range
+(:func:`jaxcal.calibrators.methods.policy.calibrator.range_check` of the
 run's problem), is *skipped*: the carried state is left exactly as it was, ``step``
 returns the last valid theta (before any valid sample the theta the stream starts from,
-inside the box: :func:`~jaxcal.calibrators.policy.stream_start_theta`) and the flag is
-readable (``last_valid``, ``last_reason``, :meth:`StreamingCalibrator.step_info`;
+inside the box:
+:func:`~jaxcal.calibrators.methods.policy.calibrator.stream_start_theta`) and the flag
+is readable (``last_valid``, ``last_reason``, :meth:`StreamingCalibrator.step_info`;
 ``run(..., return_flags=True)``). A sample with some outputs missing (NaN in some of
 ``x``, the others finite) is skipped the same way with reason ``x_partial``: a policy
-needs every output (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`); the UKF
+needs every output
+(:func:`~jaxcal.calibrators.methods.policy.calibrator.make_policy_calibrator`); the UKF
 and least squares of :func:`jaxcal.calibrate` and :mod:`jaxcal.fleet` use such samples.
 Users import it from :mod:`jaxcal.deploy`.
 """
@@ -24,7 +27,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.gated import DEFAULT_WINDOW, gate_state
 from jaxcal.calibrators.interface import (
     OK,
     REASONS,
@@ -34,13 +36,23 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
-from jaxcal.calibrators.packed import Packing, dispatch_is_synchronous, jit_per_row
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     initial_guard_carry,
     make_fleet_runner,
     make_guarded_stream_step,
 )
-from jaxcal.calibrators.trained import LoadedRun, as_loaded, load_calibrator, run_check
+from jaxcal.calibrators.methods.policy.gated import DEFAULT_WINDOW, gate_state
+from jaxcal.calibrators.methods.policy.trained import (
+    LoadedRun,
+    as_loaded,
+    load_calibrator,
+    run_check,
+)
+from jaxcal.calibrators.programs.packed import (
+    Packing,
+    dispatch_is_synchronous,
+    jit_per_row,
+)
 from jaxcal.envs.memory import HintedDynamics
 
 
@@ -63,7 +75,7 @@ class StreamingCalibrator:
         run: a run folder or a :class:`LoadedRun`.
         anchor: an absolute policy's run (with its ``uncertainty.json``) that takes
             over where the model misfits the data; ``run`` must then be an
-            incremental policy (:mod:`jaxcal.calibrators.gated`).
+            incremental policy (:mod:`jaxcal.calibrators.methods.policy.gated`).
         trust_code: run the runs' model code (a copy of a model file, a module)
             given as folders: the user trusts them (``docs/trust.md``).
 
@@ -248,7 +260,7 @@ class _PackedStream:
     argument and result of a call costs about as much as a small kernel (parsed,
     checked, allocated), and each host read waits and copies on its own.
 
-    * the carry in per-dtype buffers (:mod:`jaxcal.calibrators.packed`);
+    * the carry in per-dtype buffers (:mod:`jaxcal.calibrators.programs.packed`);
     * the run's constants (params, check, band: two dozen leaves) in per-dtype
       buffers placed on the device once, a weight matrix of 4096 numbers or more in
       a buffer of its own (not copied out of a shared one at every call); they stay

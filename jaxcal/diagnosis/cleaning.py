@@ -2,7 +2,8 @@
 
 A reading is wild when it departs from the median of its two neighbours on each
 side, in its unit, by more than ``outlier_z`` robust stds of such departures
-(:mod:`jaxcal.calibrators.outliers`, the front door's statistics). Judged against its
+(:mod:`jaxcal.calibrators.front.outliers`, the front door's statistics). Judged against
+its
 neighbours, a fault that persists (a step, a drift, a bias) is never an outlier; an
 isolated reading off by orders of magnitude always is. ``cfg`` is the diagnosis's
 :class:`~jaxcal.diagnosis.pipeline.LoopConfig`.
@@ -58,7 +59,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.calibrators.outliers import describe_outliers, outlier_rows, robust_scale
+from jaxcal.calibrators.front.outliers import (
+    describe_outliers,
+    outlier_rows,
+    robust_scale,
+)
 from jaxcal.diagnosis.fitting import FitResult, fit_model
 from jaxcal.diagnosis.prepare import LoopData
 
@@ -221,7 +226,8 @@ def _standardised(data: LoopData, fit: FitResult, flagged: np.ndarray):
 def drop_outliers(model, data: LoopData, spec0, null: FitResult, cfg):
     """``(data, fit)`` without the rows holding a wild reading: one that departs from
     the median of its two neighbours on each side by more than ``outlier_z`` robust
-    stds of such departures (:mod:`jaxcal.calibrators.outliers`), both as it is and
+    stds of such departures (:mod:`jaxcal.calibrators.front.outliers`), both as it is
+    and
     at the declared parameters re-calibrated on its neighbours (module docstring: a
     transient the model follows is no outlier). Judged against its neighbours, a
     fault that persists (a step, a drift, a bias) is never an outlier; an isolated

@@ -4,7 +4,8 @@
 Forward derivatives along the directions a fit needs in (parameters, effects,
 offset conditions), in buckets of :data:`DIRECTION_BUCKET`, one jitted function with
 a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across processes
-(``jaxcal.calibrators.on_disk``), its chunks dispatched :data:`CHUNKS_IN_FLIGHT`
+(``jaxcal.calibrators.programs.on_disk``), its chunks dispatched
+:data:`CHUNKS_IN_FLIGHT`
 ahead. A model whose solver can start from a nearby solution (``Model.warm_fn``: the
 turbofan's Newton solve) takes every derivative with the same program bucket by
 bucket, each bucket after the first started at the first's solution, and each point
@@ -28,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.compiled import cached_value
-from jaxcal.calibrators.on_disk import kept
-from jaxcal.calibrators.traced_key import traced_key
+from jaxcal.calibrators.programs.compiled import cached_value
+from jaxcal.calibrators.programs.on_disk import kept
+from jaxcal.calibrators.programs.traced_key import traced_key
 from jaxcal.diagnosis.kinds import offset_conditions
 from jaxcal.diagnosis.sharding import evaluate_split
 from jaxcal.diagnosis.timing import batch_progress
@@ -83,7 +84,8 @@ def _linearize_program(model: Model, offset_idx: tuple, directions: int):
     """The jitted ``[C]``-row linearisation of ``model`` along ``directions``
     directions given as an argument (:func:`_directional_row`, 0: the output
     alone; one shape for every data set of a model), built once per process and
-    kept on disk across processes (:func:`jaxcal.calibrators.on_disk.kept`, under
+    kept on disk across processes (:func:`jaxcal.calibrators.programs.on_disk.kept`,
+    under
     the built-in model's name or a user model's traced digest): tracing the
     turbofan's Newton solve took 30-35 s of every new process, the computation of a
     200-unit fit's evaluation 2-3 s."""

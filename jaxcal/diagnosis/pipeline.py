@@ -47,7 +47,7 @@ from typing import NamedTuple
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from jaxcal.calibrators.outliers import OUTLIER_Z
+from jaxcal.calibrators.front.outliers import OUTLIER_Z
 from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.cleaning import drop_outliers
 from jaxcal.diagnosis.discrepancy import Discrepancy, DiscrepancyConfig

@@ -153,7 +153,7 @@ def _consent(module, name: str) -> None:
 def _builtin(name: str) -> Model:
     """A built-in model, one object per name and precision (so one set of compiled
     programs), marked as jaxcal's own code (``Model.origin``: its programs are kept
-    on disk, :mod:`jaxcal.calibrators.on_disk`). Loading one turns on the
+    on disk, :mod:`jaxcal.calibrators.programs.on_disk`). Loading one turns on the
     compilation cache (:mod:`jaxcal.cache`): its set-up compiles too."""
     cache.ensure_default()
     key = (name, is_x64())

@@ -22,8 +22,8 @@ A residual may hand a *hint* from the last accepted point to the next evaluation
 (``hinted=True`` in :func:`linearize`): the engine's Newton starts in the design fit,
 a continuation in parameter space that keeps the balance on its physical branch.
 
-Users: :mod:`jaxcal.calibrators.least_squares` (sliding window and batch fit),
-:mod:`jaxcal.calibrators.window_state` (moving horizon, box projection),
+Users: :mod:`jaxcal.calibrators.methods.ls.window` (sliding window and batch fit),
+:mod:`jaxcal.calibrators.methods.ls.window_state` (moving horizon, box projection),
 :mod:`jaxcal.physics.design_fit` (hinted) and :mod:`jaxcal.diagnosis.fitting`, whose
 normal equations have arrow structure and are solved by Schur complement on the host
 with this module's damping, acceptance and covariance: a dense Jacobian there would

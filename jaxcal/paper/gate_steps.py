@@ -1,12 +1,14 @@
 """The gated policy (CLAC-gate) in the paper experiment: its fit and its method.
 
-CLAC-gate is :func:`jaxcal.calibrators.gated.make_gated_calibrator` over the two
+CLAC-gate is :func:`jaxcal.calibrators.methods.policy.gated.make_gated_calibrator` over
+the two
 trained Dataset #1 policies: the feedback CLAC-inc (incremental actions through F)
 and the anchor CLAC (the paper's absolute policy through D). It trains nothing; its
 fit step (``fit-ds1-CLAC-gate``) uses the validation units only (never test labels):
 
 1. the anchor over the validation units → its error band (split-conformal, the
-   bands of :mod:`jaxcal.calibrators.uncertainty`), which sets the gate's threshold;
+   bands of :mod:`jaxcal.calibrators.uncertainty.conformal`), which sets the gate's
+   threshold;
 2. the gated policy over the same units → its own band (``aux["theta_std"]``, the
    coverage the report scores);
 
@@ -25,15 +27,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.gated import (
+from jaxcal.calibrators.interface import Calibrator
+from jaxcal.calibrators.methods.policy.gated import (
     DEFAULT_WINDOW,
     Z90,
     feedback_sensitivity,
     gate_threshold,
     make_gated_calibrator,
 )
-from jaxcal.calibrators.interface import Calibrator
-from jaxcal.calibrators.uncertainty import (
+from jaxcal.calibrators.uncertainty.conformal import (
     band_coverage,
     band_from_json,
     band_to_json,

@@ -43,18 +43,18 @@ import numpy as np
 from flax import struct
 from jax import lax
 
-from jaxcal.calibrators.compiled import inputs_of
-from jaxcal.calibrators.e2e import E2EParams, make_e2e_calibrator
 from jaxcal.calibrators.interface import (
     Calibrator,
     SampleCheck,
     measure_declared,
     run_fleet,
 )
-from jaxcal.calibrators.least_squares import LeastSquaresConfig
 from jaxcal.calibrators.methods import REGISTRY, method_of
-from jaxcal.calibrators.policy import make_policy_calibrator
-from jaxcal.calibrators.trained import run_check
+from jaxcal.calibrators.methods.e2e.network import E2EParams, make_e2e_calibrator
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
+from jaxcal.calibrators.methods.policy.calibrator import make_policy_calibrator
+from jaxcal.calibrators.methods.policy.trained import run_check
+from jaxcal.calibrators.programs.compiled import inputs_of
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics

@@ -5,7 +5,7 @@ follows from its assumed noise, not from its error: on clean Dataset #1 the pape
 UKF (q = r = 0.01) reports a median std of 1.5e-4 while its error after the start-up
 is ~1e-7 (the fitted scale is ~3e-4), so its nominal 90 % interval covers 99.99 % of
 the test samples. :func:`calib_std_step` fits the
-split-conformal scale of :mod:`jaxcal.calibrators.std_scale` on the suite's
+split-conformal scale of :mod:`jaxcal.calibrators.uncertainty.std_scale` on the suite's
 validation units (the reference run's, never a test label), per bucket of samples
 since a unit's start (and, for comparison, one scale for all samples), then runs the
 method over the test units and measures the coverage of the raw and of the rescaled
@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.std_scale import (
+from jaxcal.calibrators.uncertainty.std_scale import (
     StdScale,
     fit_std_scale,
     scale_factors,

@@ -27,10 +27,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxcal.calibrators.e2e import E2EConfig, fit_e2e, init_e2e_params
 from jaxcal.calibrators.interface import SampleCheck
-from jaxcal.calibrators.least_squares import LeastSquaresConfig
 from jaxcal.calibrators.methods import REGISTRY
+from jaxcal.calibrators.methods.e2e.network import E2EConfig, fit_e2e, init_e2e_params
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import (

@@ -14,7 +14,8 @@ is ``None`` (JSON null), never a guess; nothing here computes a result beyond a 
 
 The "best policy" is the issue's configuration, CLAC-gate (the feedback CLAC-inc,
 incremental actions through F, with the paper's CLAC taking over where F misfits the
-data: :mod:`jaxcal.calibrators.gated`), when its clean Dataset #1 evaluation exists,
+data: :mod:`jaxcal.calibrators.methods.policy.gated`), when its clean Dataset #1
+evaluation exists,
 else CLAC-inc, else the paper's CLAC: a run without them (``skip=CLAC-inc``) still gets
 a summary. CLAC-gate trains nothing of its own: its time to target is its feedback's
 (the default ``make train``); the anchor's training is the paper's CLAC.

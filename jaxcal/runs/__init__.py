@@ -12,7 +12,8 @@ Host-only leaves at the bottom of the package (they know files, not models):
 Reading a trained *policy* back needs the training job's config and components, so
 that reader is :func:`jaxcal.deploy.load_run`, above the training layer. The layers
 below it that take a run folder (the method table's policy, the front door:
-:mod:`jaxcal.calibrators.trained`) call :func:`read_run` here instead, a slot the
+:mod:`jaxcal.calibrators.methods.policy.trained`) call :func:`read_run` here instead, a
+slot the
 package root fills with that reader when ``jaxcal`` is imported (``jaxcal/__init__``,
 the composition root): no module imports a layer above its own, and nothing heavy is
 loaded before a run is read.

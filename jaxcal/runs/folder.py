@@ -13,7 +13,7 @@
     final.json         test scores, wall time, throughput and time to target of the
                        finished run, and the 90 % band's test coverage
     uncertainty.json   the kept policy's split-conformal theta band, fitted on the
-                       validation units (jaxcal.calibrators.uncertainty)
+                       validation units (jaxcal.calibrators.uncertainty.conformal)
     model/             the copy of a model file the run was trained on, which
                        loading the run uses (jaxcal.training.model_source)
     .lock              held by the one training of the run (jaxcal.runs.lock)

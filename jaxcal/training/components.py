@@ -31,7 +31,7 @@ from jaxcal.agents.configs import CLACConfig, LACConfig, SACConfig
 from jaxcal.agents.lac import make_lac
 from jaxcal.agents.networks import make_networks
 from jaxcal.agents.sac import make_sac
-from jaxcal.calibrators.policy import make_fleet_runner
+from jaxcal.calibrators.methods.policy.calibrator import make_fleet_runner
 from jaxcal.envs.memory import HintedDynamics, StatefulDynamics, transition_dynamics
 from jaxcal.envs.tracking import Dynamics, Env, EnvConfig, make_tracking_env
 from jaxcal.model import Model
@@ -209,7 +209,7 @@ class Components(NamedTuple):
         train_chunk: ``jax.jit(make_train_chunk(env, agent, runner_cfg),
             donate_argnums=0)``.
         run_units: the jitted fleet calibrator
-            (:func:`~jaxcal.calibrators.policy.make_fleet_runner`).
+            (:func:`~jaxcal.calibrators.methods.policy.calibrator.make_fleet_runner`).
     """
 
     env: Env

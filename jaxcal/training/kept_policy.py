@@ -3,7 +3,8 @@ one the run keeps.
 
 :func:`train_kept_policy` runs the host loop (:func:`jaxcal.training.policy_stage.
 train_policy`) with the run's budget. Besides the runner checkpoints, every
-checkpoint step saves the deployable :class:`~jaxcal.calibrators.policy.
+checkpoint step saves the deployable
+:class:`~jaxcal.calibrators.methods.policy.calibrator.
 PolicyParams` under ``policy/``. With selection on (``budget.select=val_tracking``
 and validation units, or ``budget.select=sim_theta``) each scored chunk that beats
 the best so far saves its policy under ``policy_best/`` (one kept), and that policy
@@ -19,7 +20,7 @@ from typing import NamedTuple
 
 import jax
 
-from jaxcal.calibrators.policy import PolicyParams
+from jaxcal.calibrators.methods.policy.calibrator import PolicyParams
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR

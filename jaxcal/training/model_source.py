@@ -32,7 +32,8 @@ with the user's consent (:mod:`jaxcal.trust`): ``trust_code=True``, or the same 
 session. Without it the load is refused with an error naming the copy and the flag.
 A run never makes jaxcal import a module from the working directory or ``sys.path``
 on its own say-so, nor call any function but the one its consented copy names.
-:mod:`jaxcal.calibrators.run_model` compares a model passed to a run with the run's
+:mod:`jaxcal.calibrators.methods.policy.run_model` compares a model passed to a run with
+the run's
 own.
 """
 

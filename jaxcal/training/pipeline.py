@@ -37,7 +37,8 @@
    set, the first scoring whose validation theta RMSE is at or below it gives the
    job's time to target (reporting only);
 5. the kept policy runs once through every test unit's whole trajectory (the
-   deployment calibrator of :mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped
+   deployment calibrator of :mod:`jaxcal.calibrators.methods.policy.calibrator`,
+   ``lax.scan`` vmapped
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
    time, updates/s and env steps/s, the time to target (plus, for transparency, the
    scores of the last policy and of the last online actor;
@@ -56,7 +57,8 @@ simulated validation units.
 The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
 of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
 runner checkpoints, every checkpoint step saves the deployable
-:class:`~jaxcal.calibrators.policy.PolicyParams` (actor, dynamics parameters,
+:class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (actor, dynamics
+parameters,
 normalisation, action box) under ``policy/``, and the selected one under
 ``policy_best/``; :func:`jaxcal.deploy.loading.load_run` loads a run from those and
 ``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.

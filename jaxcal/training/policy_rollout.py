@@ -2,7 +2,8 @@
 
 :func:`evaluate_policy` runs pi*(s) = tanh(mean) through every unit of the tracking
 environment from its first sample (``lax.scan`` over time, ``vmap`` over units), the
-reference the deployment calibrator (:mod:`jaxcal.calibrators.policy`) reproduces on
+reference the deployment calibrator
+(:mod:`jaxcal.calibrators.methods.policy.calibrator`) reproduces on
 samples t >= 1. :mod:`jaxcal.training.runner` re-exports it.
 """
 

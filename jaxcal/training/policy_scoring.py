@@ -3,9 +3,11 @@ run over units and scored.
 
 :func:`make_policy_scoring` closes over one run (its environment, components,
 normalised problem and range check) and returns :class:`PolicyScoring`: the
-deployable :class:`~jaxcal.calibrators.policy.PolicyParams` of an agent state (its
+deployable :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` of an
+agent state (its
 Polyak-averaged target actor or its online one), the deployment calibrator's run over
-units (:mod:`jaxcal.calibrators.policy`, ``lax.scan`` vmapped over units, in the
+units (:mod:`jaxcal.calibrators.methods.policy.calibrator`, ``lax.scan`` vmapped over
+units, in the
 run's dtype), the scores of such a run (:func:`jaxcal.training.scoring.score_units`),
 the validation scores the host loop logs and selects by, and the test units' theta
 RMSE it may report (time to target; selection never reads it).
@@ -16,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     PolicyParams,
     filter_settings,
     policy_params_from_env,

@@ -65,9 +65,10 @@ def _frame(problem: Problem, units: Padded):
 
 
 def front_ukf(problem: Problem, units: Padded, noise=None):
-    """The front door's UKF on ``units`` (:func:`jaxcal.calibrators.front.calibrate`)
-    and the rows' ``(unit, time)`` indexes."""
-    from jaxcal.calibrators.front import calibrate
+    """The front door's UKF on ``units``
+    (:func:`jaxcal.calibrators.front.door.calibrate`) and the rows' ``(unit, time)``
+    indexes."""
+    from jaxcal.calibrators.front.door import calibrate
 
     frame, index = _frame(problem, units)
     result = calibrate(

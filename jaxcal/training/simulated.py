@@ -16,7 +16,7 @@ the data (``simulate.paths``): :mod:`jaxcal.training.sim_paths`.
 
 The noise is the problem's: given (``noise=`` of the command line), else estimated
 by the front door's screening (a UKF pass over the training units,
-:func:`jaxcal.calibrators.front.calibrate`).
+:func:`jaxcal.calibrators.front.door.calibrate`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from jaxcal.calibrators.e2e_sim import simulate_fleet
+from jaxcal.calibrators.methods.e2e.simulated import simulate_fleet
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 from jaxcal.training.calibration_data import output_spread

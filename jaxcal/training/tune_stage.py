@@ -36,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxcal.calibrators.policy import PolicyParams
-from jaxcal.calibrators.policy_params import with_output_states
+from jaxcal.calibrators.methods.policy.calibrator import PolicyParams
+from jaxcal.calibrators.methods.policy.params import with_output_states
 from jaxcal.data.padded import Padded
 from jaxcal.envs.bias_states import BIAS_WALKS, START_WALK
 from jaxcal.runs.checkpoint import Checkpointer

@@ -1,7 +1,8 @@
 """The last stage of a training run: the kept policy's uncertainty band, and the
 time-to-target summary of the run's records.
 
-The band (:mod:`jaxcal.calibrators.uncertainty`) is fitted by split conformal on
+The band (:mod:`jaxcal.calibrators.uncertainty.conformal`) is fitted by split conformal
+on
 units the policy never trained on, after selection: the selected policy's theta
 trajectories over them (the same jitted fleet run that scores units) give the
 per-bucket absolute errors. Those units are units simulated from the model along the
@@ -12,7 +13,8 @@ trajectories when they carry labels, the honest check of a band fitted elsewhere
 
 A policy built on a random-walk filter (``env.gauss_newton=filter``) gets a relative
 band: the conformal fit of its errors over the error its filter predicts on each
-sample, std and lag bias (:mod:`jaxcal.calibrators.lag_scale`). Its error is mostly
+sample, std and lag bias (:mod:`jaxcal.calibrators.uncertainty.lag_scale`). Its error is
+mostly
 a per-unit lag bias (a unit's drift rate times a lag its conditions set), which a
 width pooled over units misses on the fast-drifting or weakly observed units: on the
 pump (seed 0) the pooled band covered the test units' leak 0.78, the relative one
@@ -28,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import OK, CalOutput
-from jaxcal.calibrators.uncertainty import (
+from jaxcal.calibrators.uncertainty.conformal import (
     UNCERTAINTY_FILE,
     ThetaBand,
     band_coverage,

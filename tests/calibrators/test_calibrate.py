@@ -6,7 +6,7 @@ import pytest
 from support.tank import MODEL, NOISE, make_frame, tank
 
 import jaxcal
-from jaxcal.calibrators.e2e import E2EConfig
+from jaxcal.calibrators.methods.e2e.network import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
 
 

@@ -11,7 +11,7 @@ import pytest
 from jax import monitoring
 
 import jaxcal
-from jaxcal.calibrators import compiled, traced_key
+from jaxcal.calibrators.programs import compiled, traced_key
 
 TRACE = "/jax/core/compile/jaxpr_trace_duration"
 COMPILE = "/jax/core/compile/backend_compile_duration"

@@ -7,13 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.gated import (
+from jaxcal.calibrators.interface import Calibrator, CalStepOutput, run_calibrator
+from jaxcal.calibrators.methods.policy.gated import (
     feedback_sensitivity,
     gate_threshold,
     make_gated_calibrator,
 )
-from jaxcal.calibrators.interface import Calibrator, CalStepOutput, run_calibrator
-from jaxcal.calibrators.uncertainty import ThetaBand
+from jaxcal.calibrators.uncertainty.conformal import ThetaBand
 
 S = 3
 FEEDBACK_THETA, ANCHOR_THETA = 0.25, -0.5

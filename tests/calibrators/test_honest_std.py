@@ -1,5 +1,6 @@
 """Issue 42, honest uncertainty: a coloured noise widens the std, a late shift in the
-innovations withholds it (``jaxcal/calibrators/misfit_check.py``), on synthetic
+innovations withholds it (``jaxcal/calibrators/uncertainty/misfit_check.py``), on
+synthetic
 innovations and on the newcomer's reactor (``tests/support/reactor.py``)."""
 
 import warnings
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.misfit_check import (
+from jaxcal.calibrators.uncertainty.misfit_check import (
     SHIFTED,
     WIDEN_FROM,
     ar_long_run_ratio,
@@ -99,7 +100,7 @@ def test_the_reactor_with_a_late_sensor_bias_withholds_those_units_std(runs):
 
 
 def test_e2e_stays_in_the_box_with_a_held_out_std():
-    from jaxcal.calibrators.e2e import E2EConfig
+    from jaxcal.calibrators.methods.e2e.network import E2EConfig
     from jaxcal.nets.mlp import RegressorConfig
     from tests.support.tank import MODEL as TANK
     from tests.support.tank import NOISE as TANK_NOISE

@@ -17,13 +17,13 @@ from support.tank import MODEL, NOISE, make_frame, tank, tank_model
 
 import jaxcal
 import jaxcal.data.buckets
-from jaxcal.calibrators.e2e import E2EConfig
-from jaxcal.calibrators.outliers import (
+from jaxcal.calibrators.front.outliers import (
     describe_outliers,
     outlier_rows,
     robust_noise,
     robust_scale,
 )
+from jaxcal.calibrators.methods.e2e.network import E2EConfig
 from jaxcal.data.buckets import bucket_units
 from jaxcal.data.readers import read_dataset
 from jaxcal.nets.mlp import RegressorConfig

@@ -164,7 +164,7 @@ def _reads_a_global(w, theta):
 
 
 def test_a_changed_global_gets_a_new_program_not_the_old_answer(frame):
-    from jaxcal.calibrators import compiled
+    from jaxcal.calibrators.programs import compiled
 
     model = tank_model(_reads_a_global, name="reads_a_global")
     try:
@@ -251,7 +251,7 @@ def test_a_result_inside_its_box_marks_no_row(frame):
 
 
 def test_any_method_s_theta_is_clipped_into_the_box_and_marked():
-    from jaxcal.calibrators.front_rows import inside_box
+    from jaxcal.calibrators.front.rows import inside_box
 
     class Box:  # the problem's box, all inside_box reads
         theta_low, theta_high = np.array([0.5, 0.0]), np.array([2.0, 0.5])

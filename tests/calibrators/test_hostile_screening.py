@@ -11,7 +11,7 @@ import pytest
 from support.tank import NOISE, tank, tank_model
 
 import jaxcal
-from jaxcal.calibrators.outliers import STUCK_RUN, stuck_runs
+from jaxcal.calibrators.front.outliers import STUCK_RUN, stuck_runs
 
 MODEL = tank_model(condition_range=None)
 

@@ -1,5 +1,5 @@
 """A reported theta std is never below the estimate's own row-to-row scatter
-(``jaxcal/calibrators/jitter_check.py``).
+(``jaxcal/calibrators/uncertainty/jitter_check.py``).
 
 Given a noise 40x too small on ``dp_hot``, the heat exchanger's UKF follows that
 output's noise through ``dp_coeff`` with a std about 50x too small (as it did with
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.jitter_check import jitter_floor
+from jaxcal.calibrators.uncertainty.jitter_check import jitter_floor
 
 sys.path.insert(
     0, str(Path(__file__).resolve().parents[2] / "examples" / "heat_exchanger")

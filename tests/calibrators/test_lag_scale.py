@@ -5,13 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.lag_scale import (
-    filter_error_scale,
-    initial_trend,
-    trend_rate,
-    update_trend,
-)
-from jaxcal.calibrators.uncertainty import (
+from jaxcal.calibrators.uncertainty.conformal import (
     UNCERTAINTY_FILE,
     ThetaBand,
     band_coverage,
@@ -19,6 +13,12 @@ from jaxcal.calibrators.uncertainty import (
     fit_band,
     load_band,
     save_band,
+)
+from jaxcal.calibrators.uncertainty.lag_scale import (
+    filter_error_scale,
+    initial_trend,
+    trend_rate,
+    update_trend,
 )
 
 

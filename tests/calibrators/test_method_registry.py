@@ -14,10 +14,8 @@ from jaxcal.calibrators.methods import PACKAGES, REGISTRY, Method
 ROOT = pathlib.Path(__file__).resolve().parents[2] / "jaxcal"
 # the callers of the registry: none may dispatch on a method's name or config type
 CALLERS = (
-    "calibrators/front.py",
-    "calibrators/front_rows.py",
-    "calibrators/carriers.py",
-    "calibrators/misfit_check.py",
+    "calibrators/front",
+    "calibrators/uncertainty/misfit_check.py",
     "fleet",
     "cli/fleet.py",
     "paper",

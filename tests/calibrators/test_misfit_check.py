@@ -1,5 +1,5 @@
 """Where the model misfits the data, the std is flagged (``result.misfit``) and noted
-(``jaxcal/calibrators/misfit_check.py``).
+(``jaxcal/calibrators/uncertainty/misfit_check.py``).
 
 A tank whose level carries a slow departure the model lacks: the UKF's ``leak``
 absorbs it, and its 90 % interval holds the truth on a few percent of the rows while
@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.misfit_check import (
+from jaxcal.calibrators.uncertainty.misfit_check import (
     COLOURED,
     long_run_ratio,
     misfit_note,

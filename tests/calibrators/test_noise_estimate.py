@@ -1,5 +1,6 @@
 """The front door's noise estimate where one parameter alone explains an output
-(``jaxcal/calibrators/screen.py``: one-step innovations, corrected for the share the
+(``jaxcal/calibrators/front/screen.py``: one-step innovations, corrected for the share
+the
 update absorbs).
 
 The heat exchanger's ``dp_coeff`` moves ``dp_hot`` and nothing else, so the filter

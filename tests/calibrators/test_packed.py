@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.guard import keep_where
-from jaxcal.calibrators.packed import Packing, jit_per_row
+from jaxcal.calibrators.programs.packed import Packing, jit_per_row
 
 
 def _tree(shift):

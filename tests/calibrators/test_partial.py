@@ -18,16 +18,16 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.e2e import E2EConfig
 from jaxcal.calibrators.interface import Measurement, run_calibrator
-from jaxcal.calibrators.least_squares import (
+from jaxcal.calibrators.methods.e2e.network import E2EConfig
+from jaxcal.calibrators.methods.ls.window import (
     FitConfig,
     LeastSquaresConfig,
     fit_least_squares,
     make_least_squares,
 )
+from jaxcal.calibrators.methods.ls.window_state import make_window_least_squares
 from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
-from jaxcal.calibrators.window_state import make_window_least_squares
 from jaxcal.data.readers import read_dataset
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.problem import Transition

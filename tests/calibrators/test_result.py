@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 from support.tank import MODEL, NOISE, make_frame
 
 import jaxcal
-from jaxcal.calibrators.result import CalibrationResult
+from jaxcal.calibrators.front.result import CalibrationResult
 
 ARRAYS = ("theta", "theta_std", "states", "xhat", "valid", "reason", "partial")
 NAMES = ("theta_names", "output_names", "state_names", "notes", "method")

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators import screen_memo
+from jaxcal.calibrators.front import screen_memo
 
 
 def _tank(w, theta):

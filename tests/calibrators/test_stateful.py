@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.e2e import E2EConfig
+from jaxcal.calibrators.methods.e2e.network import E2EConfig
 from jaxcal.nets.mlp import RegressorConfig
 
 NOISE = 0.01

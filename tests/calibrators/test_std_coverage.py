@@ -19,7 +19,7 @@ import pytest
 from scipy import stats
 
 import jaxcal
-from jaxcal.calibrators.drift_std import Z_LEVEL, interval_half_width
+from jaxcal.calibrators.uncertainty.drift_std import Z_LEVEL, interval_half_width
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "experiments"))
 from std_coverage import tank, tank_model  # noqa: E402

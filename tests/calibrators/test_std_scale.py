@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.front import CalibrationResult
+from jaxcal.calibrators.front.door import CalibrationResult
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput, run_fleet
-from jaxcal.calibrators.std_scale import (
+from jaxcal.calibrators.uncertainty.conformal import z_value
+from jaxcal.calibrators.uncertainty.std_scale import (
     StdScale,
     fit_result_scale,
     fit_std_scale,
@@ -20,7 +21,6 @@ from jaxcal.calibrators.std_scale import (
     stream_index,
     with_std_scale,
 )
-from jaxcal.calibrators.uncertainty import z_value
 
 
 def _draws(rng, units, length, *, inflate=25.0, transient=False):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.traced_key import traced_key
+from jaxcal.calibrators.programs.traced_key import traced_key
 
 
 def _model(fn, **kw):

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.uncertainty import (
+from jaxcal.calibrators.uncertainty.conformal import (
     UNCERTAINTY_FILE,
     ThetaBand,
     band_coverage,

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from support.e2e_batch import e2e_predict
 
-from jaxcal.calibrators.e2e import (
+from jaxcal.calibrators.interface import run_fleet
+from jaxcal.calibrators.methods.e2e.network import (
     E2EConfig,
     e2e_features,
     fit_e2e,
     init_e2e_params,
     make_e2e_calibrator,
 )
-from jaxcal.calibrators.interface import run_fleet
 from jaxcal.nets.mlp import RegressorConfig
 
 TINY = E2EConfig(

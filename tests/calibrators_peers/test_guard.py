@@ -12,7 +12,6 @@ import pytest
 
 from jaxcal.agents.configs import CLACConfig
 from jaxcal.agents.networks import make_networks
-from jaxcal.calibrators.e2e import E2EConfig, init_e2e_params, make_e2e_calibrator
 from jaxcal.calibrators.interface import (
     REASON_CODE,
     REASONS,
@@ -25,8 +24,16 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
-from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
-from jaxcal.calibrators.policy import PolicyParams, make_policy_calibrator
+from jaxcal.calibrators.methods.e2e.network import (
+    E2EConfig,
+    init_e2e_params,
+    make_e2e_calibrator,
+)
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.methods.policy.calibrator import (
+    PolicyParams,
+    make_policy_calibrator,
+)
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 from jaxcal.physics.atmosphere import isa_total_temperature
 from jaxcal.physics.engine import ENVELOPES

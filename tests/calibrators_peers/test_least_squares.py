@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxcal.calibrators.interface import Measurement, run_calibrator
-from jaxcal.calibrators.least_squares import (
+from jaxcal.calibrators.methods.ls.window import (
     FitConfig,
     LeastSquaresConfig,
     fit_least_squares,

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.result import META_KEY, CalibrationResult
+from jaxcal.calibrators.front.result import META_KEY, CalibrationResult
 from jaxcal.cli.fleet import parse_args as parse_fleet
 from jaxcal.data.readers import read_dataset
 from jaxcal.fleet.results import FleetResultWriter

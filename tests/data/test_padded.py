@@ -84,6 +84,4 @@ def test_padded_is_a_pytree_jitted_code_takes_whole():
         weight = p.mask[..., None]
         return (p.x * weight).sum((0, 1)) / weight.sum()
 
-    np.testing.assert_allclose(
-        valid_mean(padded), make_record().x.mean(0), rtol=1e-12
-    )
+    np.testing.assert_allclose(valid_mean(padded), make_record().x.mean(0), rtol=1e-12)

@@ -18,7 +18,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.carriers import unit_groups
+from jaxcal.calibrators.front.carriers import unit_groups
 from jaxcal.diagnosis.extended import added_parameters, extension_json
 from jaxcal.diagnosis.kinds import build_library
 from jaxcal.diagnosis.units import UnitEffect

@@ -13,7 +13,7 @@ and 10-sigma spikes in 0.5 % of the rows are all found, and nothing else.
 import numpy as np
 import pytest
 
-from jaxcal.calibrators.outliers import robust_scale
+from jaxcal.calibrators.front.outliers import robust_scale
 from jaxcal.data.dataset import Dataset
 from jaxcal.diagnosis.cleaning import drop_outliers
 from jaxcal.diagnosis.fitting import fit_model

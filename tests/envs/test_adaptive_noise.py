@@ -16,7 +16,10 @@ import numpy as np
 from support.norm import own_norm
 
 from jaxcal.calibrators.interface import run_fleet
-from jaxcal.calibrators.policy import make_policy_calibrator, policy_params_from_env
+from jaxcal.calibrators.methods.policy.calibrator import (
+    make_policy_calibrator,
+    policy_params_from_env,
+)
 from jaxcal.envs.increment import adapted_noise_scale, increment_step_ref
 from jaxcal.envs.memory import as_stateful
 from jaxcal.envs.tracking import EnvConfig, make_env_params, make_tracking_env

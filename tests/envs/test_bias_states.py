@@ -11,7 +11,7 @@ import numpy as np
 from support.norm import own_norm
 
 from jaxcal.calibrators.interface import run_fleet
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     make_policy_calibrator,
     policy_params_from_env,
     with_output_states,

@@ -13,7 +13,7 @@ import pytest
 from support.norm import own_norm
 
 from jaxcal.calibrators.interface import run_fleet
-from jaxcal.calibrators.policy import (
+from jaxcal.calibrators.methods.policy.calibrator import (
     IncrementPolicyParams,
     make_policy_calibrator,
     policy_params_from_env,

@@ -33,7 +33,7 @@ from jaxcal.calibrators.interface import (
     Measurement,
     run_fleet,
 )
-from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
 
 NUM_UNITS, NUM_STEPS, NUM_SENSORS, NUM_PARAMS = 6, 12, 3, 2

@@ -15,7 +15,7 @@ from support.keys import has_prng_key
 from support.paper_problem import paper_problem
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
-from jaxcal.calibrators.least_squares import LeastSquaresConfig
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import (
     evaluate_method,

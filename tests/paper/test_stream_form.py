@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 from support.keys import has_prng_key
 
-from jaxcal.calibrators.policy import IncrementPolicyParams, make_policy_calibrator
+from jaxcal.calibrators.methods.policy.calibrator import (
+    IncrementPolicyParams,
+    make_policy_calibrator,
+)
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.physics.atmosphere import isa_total_temperature
 
@@ -126,7 +129,7 @@ def test_a_fleet_carries_the_warm_start_and_each_unit_gets_its_stream(setup, war
     batching rule: Broyden for the batch, the cold solve only at rows where some
     unit needs it), and each unit gets the theta its own warm stream gives: a unit
     whose rows start later takes its cold first solve while the others are warm."""
-    from jaxcal.calibrators.policy import make_fleet_runner
+    from jaxcal.calibrators.methods.policy.calibrator import make_fleet_runner
 
     dyn, params, w, x = setup
     late = 3  # unit 1's first rows are padding: its first solve is cold alone

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxcal.calibrators.e2e import (
+from jaxcal.calibrators.methods.e2e.network import (
     E2EParams,
     _apply,
     e2e_apply,

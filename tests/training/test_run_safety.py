@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.run_model import check_run_model
+from jaxcal.calibrators.methods.policy.run_model import check_run_model
 from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import adopt_model_file, load_run
 from jaxcal.models import load

@@ -181,7 +181,7 @@ def test_table_data_with_labels_to_score_only(tmp_path):
 def test_an_incremental_policy_starts_at_theta_start_else_the_box_centre():
     import dataclasses
 
-    from jaxcal.calibrators.policy import (
+    from jaxcal.calibrators.methods.policy.calibrator import (
         IncrementPolicyParams,
         StartedIncrementPolicyParams,
         make_policy_calibrator,

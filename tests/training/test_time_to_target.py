@@ -13,7 +13,7 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.calibrators.interface import CalOutput
-from jaxcal.calibrators.uncertainty import UNCERTAINTY_FILE, load_band
+from jaxcal.calibrators.uncertainty.conformal import UNCERTAINTY_FILE, load_band
 from jaxcal.cli.train import format_final
 from jaxcal.data.padded import Padded
 from jaxcal.runs.metrics_log import read_metrics

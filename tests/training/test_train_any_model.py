@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import jaxcal
-from jaxcal.calibrators.uncertainty import load_band
+from jaxcal.calibrators.uncertainty.conformal import load_band
 from jaxcal.cli.evaluate import main as evaluate_main
 from jaxcal.cli.train import format_final
 from jaxcal.cli.train import main as train_main
@@ -177,7 +177,8 @@ def test_physics_dynamics_on_unlabelled_data(tmp_path):
 
 def test_a_filter_policy_streams_with_its_relative_band(tmp_path):
     # the default preset's feature (env.gauss_newton=filter): the band scales the
-    # error the policy's filter predicts (jaxcal.calibrators.lag_scale), so the
+    # error the policy's filter predicts (jaxcal.calibrators.uncertainty.lag_scale), so
+    # the
     # streaming calibrator must carry the filter's covariance from its first sample
     path = tmp_path / "nolabel.csv"
     _frame(labels=False).to_csv(path, index=False)

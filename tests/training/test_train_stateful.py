@@ -283,8 +283,8 @@ def test_gauss_newton_feedback_on_a_model_with_memory_env_and_deployment_agree(
     the truth on noise-free data, and the deployed calibrator reproduces the env's
     thetas."""
     from jaxcal.calibrators.interface import run_fleet
-    from jaxcal.calibrators.policy import make_policy_calibrator
-    from jaxcal.calibrators.policy_params import policy_params_from_env
+    from jaxcal.calibrators.methods.policy.calibrator import make_policy_calibrator
+    from jaxcal.calibrators.methods.policy.params import policy_params_from_env
     from jaxcal.envs.increment import increment_step_ref
 
     w, _, truth, problem = _unit_three()

@@ -3,7 +3,8 @@
 Each method's config is a frozen, hashable dataclass of its package
 (:mod:`jaxcal.calibrators.methods`); :func:`config_of` turns keyword options into
 one (a misspelt option lists the valid ones and the closest match). A config is
-hashable, so it keys the compiled programs (:mod:`jaxcal.calibrators.compiled`);
+hashable, so it keys the compiled programs
+(:mod:`jaxcal.calibrators.programs.compiled`);
 what makes it a ready :class:`Built` for a problem is its method's ``build``.
 """
 
@@ -127,7 +128,7 @@ def check_options(method: str, options: dict, config_type=None) -> None:
             )
     config_ = options.get("e2e_config")
     if config_ is not None:
-        from jaxcal.calibrators.e2e import E2EConfig
+        from jaxcal.calibrators.methods.e2e.network import E2EConfig
 
         if not isinstance(config_, E2EConfig):
             raise ValueError(

@@ -7,7 +7,7 @@ never test a method's name or config type: adding a method is one package
 registry (:data:`jaxcal.calibrators.methods.PACKAGES`).
 
 A method's config is a frozen, hashable dataclass of its keyword options (it keys the
-compiled programs, :mod:`jaxcal.calibrators.compiled`); the options' forms are
+compiled programs, :mod:`jaxcal.calibrators.programs.compiled`); the options' forms are
 checked by :mod:`jaxcal.calibrators.methods.options`. The functions below are what
 the callers ask of a method; the defaults suit a method on the model that reads the
 measurement noise.
@@ -59,7 +59,8 @@ class Method:
             (default: a UKF with the method's hidden-state settings).
         factory: a method on the model: ``factory(problem, cfg, measure=None) ->
             make(inputs) -> Calibrator`` pure in its compiled inputs
-            (:class:`~jaxcal.calibrators.compiled.Inputs`), ``measure`` a static
+            (:class:`~jaxcal.calibrators.programs.compiled.Inputs`), ``measure`` a
+            static
             model's ``F`` put in place of the problem's (the paper's perturbed
             model); ``None`` for a method without a model.
         label: its name in the paper's tables.
@@ -70,10 +71,10 @@ class Method:
             estimate (a streamed file cannot feed it).
         white_std: its std assumes white noise; under coloured innovations it is
             widened by the colour's long-run variance
-            (:func:`~jaxcal.calibrators.misfit_check.widening`).
+            (:func:`~jaxcal.calibrators.uncertainty.misfit_check.widening`).
         chooses_parameters: ``chooses_parameters(options) -> bool``: a call chooses
             the calibrated set (a unit carrying some parameters only is then
-            calibrated on its own set, :mod:`jaxcal.calibrators.carriers`); given
+            calibrated on its own set, :mod:`jaxcal.calibrators.front.carriers`); given
             weights or a trained run fix it.
         prepare: ``prepare(options, theta, outputs) -> (options, theta, outputs)``
             before the config is read: a run loaded, its names the defaults.

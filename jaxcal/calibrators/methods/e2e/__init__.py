@@ -1,6 +1,7 @@
 """The E2E network ``theta_t = G(w_t, x_t, x_{t-1})`` (Tian et al. §2.4, eq. e2e):
 given weights, else trained on simulations of the model over the box at the data's
-own conditions (E2E-sim, :mod:`jaxcal.calibrators.e2e_sim`); checked against the
+own conditions (E2E-sim, :mod:`jaxcal.calibrators.methods.e2e.simulated`); checked
+against the
 data's range (:mod:`jaxcal.calibrators.learned`)."""
 
 from __future__ import annotations
@@ -28,7 +29,9 @@ class E2E:
 
 
 def _range_check(problem):
-    from jaxcal.calibrators.policy import range_check  # E2E's own imports
+    from jaxcal.calibrators.methods.policy.calibrator import (
+        range_check,  # E2E's own imports
+    )
 
     return range_check(problem)
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators import compiled
 from jaxcal.calibrators.methods.ekf.filter import EKFConfig, make_ekf, make_joint_ekf
 from jaxcal.calibrators.methods.protocol import Method
 from jaxcal.calibrators.model_based import (
@@ -19,6 +18,7 @@ from jaxcal.calibrators.model_based import (
     model_check,
     stream_calibrator,
 )
+from jaxcal.calibrators.programs import compiled
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,8 @@
 """Sliding-window least squares on the model (Levenberg-Marquardt,
-:mod:`jaxcal.calibrators.least_squares`); with hidden states the moving-window fit of
-the parameters and the window's initial state (:mod:`jaxcal.calibrators.window_state`).
+:mod:`jaxcal.calibrators.methods.ls.window`); with hidden states the moving-window fit
+of
+the parameters and the window's initial state
+(:mod:`jaxcal.calibrators.methods.ls.window_state`).
 """
 
 from __future__ import annotations
@@ -10,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxcal.calibrators import compiled
-from jaxcal.calibrators.least_squares import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
+from jaxcal.calibrators.methods.ls.window_state import make_window_least_squares
 from jaxcal.calibrators.methods.protocol import Method
 from jaxcal.calibrators.model_based import (
     fleet_built,
@@ -19,7 +21,7 @@ from jaxcal.calibrators.model_based import (
     model_check,
     stream_calibrator,
 )
-from jaxcal.calibrators.window_state import make_window_least_squares
+from jaxcal.calibrators.programs import compiled
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,8 @@
 """A trained tracking policy (CLAC, LAC, SAC) from its run folder
-(:mod:`jaxcal.calibrators.trained`); an incremental policy gated by an absolute
-policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.gated`). It reads no
+(:mod:`jaxcal.calibrators.methods.policy.trained`); an incremental policy gated by an
+absolute
+policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.methods.policy.gated`). It reads
+no
 measurement noise and is checked against its run's own training range."""
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from jaxcal.calibrators.methods.protocol import Method
 class Policy:
     """A trained tracking policy, ``run=<run folder>``; an incremental (feedback)
     policy's run with ``anchor=<absolute policy's run folder>`` is gated by it where
-    the model misfits the data (:mod:`jaxcal.calibrators.gated`)."""
+    the model misfits the data (:mod:`jaxcal.calibrators.methods.policy.gated`)."""
 
     run: Any = dataclasses.field(default=None, compare=False)
     anchor: Any = dataclasses.field(default=None, compare=False)
@@ -37,7 +39,7 @@ def prepare(options: dict, theta, outputs):
     the defaults."""
     if not options.get("run"):
         return options, theta, outputs
-    from jaxcal.calibrators.trained import load_run
+    from jaxcal.calibrators.methods.policy.trained import load_run
 
     run = options["run"] = load_run(options["run"])
     theta = run.problem.theta_names if theta is None else theta
@@ -46,7 +48,7 @@ def prepare(options: dict, theta, outputs):
 
 
 def _check(problem, cfg: Policy):
-    from jaxcal.calibrators.trained import run_check
+    from jaxcal.calibrators.methods.policy.trained import run_check
 
     del problem
     return run_check(cfg.run)

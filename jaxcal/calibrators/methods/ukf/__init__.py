@@ -1,7 +1,8 @@
 """The unscented Kalman filter on the model (:mod:`jaxcal.calibrators.ukf`): the
 paper's baseline, random-walk parameters; with hidden states the joint
 state-and-parameter filter. Its compiled program also returns the innovations: the
-screening passes and the method's own run share it (:mod:`jaxcal.calibrators.screen`).
+screening passes and the method's own run share it
+(:mod:`jaxcal.calibrators.front.screen`).
 """
 
 from __future__ import annotations
@@ -9,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators import compiled
 from jaxcal.calibrators.methods.protocol import Method
 from jaxcal.calibrators.model_based import (
     fleet_built,
@@ -17,6 +17,7 @@ from jaxcal.calibrators.model_based import (
     model_check,
     stream_calibrator,
 )
+from jaxcal.calibrators.programs import compiled
 from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
 
 

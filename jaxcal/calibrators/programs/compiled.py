@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, Measurement, run_fleet
-from jaxcal.calibrators.on_disk import kept, serialisable
-from jaxcal.calibrators.traced_key import fingerprint, traced_key
+from jaxcal.calibrators.programs.on_disk import kept, serialisable
+from jaxcal.calibrators.programs.traced_key import fingerprint, traced_key
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array
 
@@ -112,8 +112,9 @@ def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callab
     """The program ``build()`` made once for (``kind``, ``problem``'s key,
     ``settings``, ``dtype``) in this process; ``build`` returns a jitted function.
     It is also kept on disk for the next process
-    (:func:`~jaxcal.calibrators.on_disk.kept`), under the built-in model's name or
-    a user model's traced digest (:mod:`~jaxcal.calibrators.traced_key`)."""
+    (:func:`~jaxcal.calibrators.programs.on_disk.kept`), under the built-in model's name
+    or
+    a user model's traced digest (:mod:`~jaxcal.calibrators.programs.traced_key`)."""
     key = (kind, problem_key(problem, dtype), settings)
 
     def build_kept():
@@ -169,7 +170,7 @@ def filter_program(
     row looks to the filter that did not use it; NaN at other rows). The probe rides
     on the scan's own step (:func:`~jaxcal.calibrators.guard.probed_update`), so the
     innovations cost no model evaluation beyond the filter's. One program serves the
-    screening passes and the UKF's own run (:mod:`jaxcal.calibrators.screen`)."""
+    screening passes and the UKF's own run (:mod:`jaxcal.calibrators.front.screen`)."""
 
     def build():
         def run(inputs: Inputs, w, x, mask, probe):

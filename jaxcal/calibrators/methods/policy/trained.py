@@ -6,7 +6,7 @@ training job. What they need of it is here: :class:`LoadedRun` (the record of a
 loaded run), :func:`load_calibrator` (its policy as a ``Calibrator(init, step)``,
 gated by an anchor run where asked), :func:`run_check` (its training range as the
 sample check) and :func:`check_run_model` (the model given is the run's own,
-:mod:`jaxcal.calibrators.run_model`).
+:mod:`jaxcal.calibrators.methods.policy.run_model`).
 
 Reading a run folder needs the training job's config and components, which sit
 above the calibrators. So :func:`load_run` here reads through the one slot of
@@ -22,10 +22,16 @@ import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from jaxcal.calibrators.gated import feedback_sensitivity, make_gated_calibrator
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
-from jaxcal.calibrators.policy import make_policy_calibrator, range_check
-from jaxcal.calibrators.run_model import check_run_model  # noqa: F401 (re-exported)
+from jaxcal.calibrators.methods.policy.calibrator import (
+    make_policy_calibrator,
+    range_check,
+)
+from jaxcal.calibrators.methods.policy.gated import (
+    feedback_sensitivity,
+    make_gated_calibrator,
+)
+from jaxcal.calibrators.methods.policy.run_model import check_run_model  # noqa: F401 (re-exported)
 from jaxcal.runs import read_run
 
 
@@ -38,14 +44,15 @@ class LoadedRun(NamedTuple):
         problem: the run's :class:`~jaxcal.problem.Problem` (model, names, box,
             normalisation, training input range).
         params: the deployable
-            :class:`~jaxcal.calibrators.policy.PolicyParams` (or its incremental
+            :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (or its
+            incremental
             variants).
         actor: the actor module (static).
         dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
             :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
         step: the checkpoint step (chunks trained) the policy comes from.
         band: the calibrated error band of the kept policy
-            (:class:`~jaxcal.calibrators.uncertainty.ThetaBand` of
+            (:class:`~jaxcal.calibrators.uncertainty.conformal.ThetaBand` of
             ``uncertainty.json``, fitted on the validation units at the end of
             training); ``None`` for a run without one.
         model_source: what the run stores of its model (``data.json``
@@ -113,12 +120,12 @@ def load_calibrator(
         run_dir: the run (folder or loaded).
         anchor: an absolute policy's run with its band (``uncertainty.json``): the
             run, an incremental policy, is then gated by it where the model misfits
-            the data (:mod:`jaxcal.calibrators.gated`).
+            the data (:mod:`jaxcal.calibrators.methods.policy.gated`).
         warm_start: for one stream, one sample per call (its first state made
             before any row); keep the default for ``run_fleet`` over many units.
             The model's solver is warm-started from the previous sample where it
             can be, either way
-            (:func:`~jaxcal.calibrators.policy.make_policy_calibrator`).
+            (:func:`~jaxcal.calibrators.methods.policy.calibrator.make_policy_calibrator`).
 
     Raises:
         ValueError: the anchor has no band, its names differ from the run's, or the

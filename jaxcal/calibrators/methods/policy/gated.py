@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
-from jaxcal.calibrators.uncertainty import ThetaBand, band_std, z_value
+from jaxcal.calibrators.uncertainty.conformal import ThetaBand, band_std, z_value
 from jaxcal.typedefs import Array, PRNGKey
 
 DEFAULT_WINDOW = 2  # samples a misfit must last before the anchor takes over

@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from jaxcal.calibrators.result import CalibrationResult
+from jaxcal.calibrators.front.result import CalibrationResult
 from jaxcal.data.dataset import Dataset
 from jaxcal.model import Model
 from jaxcal.problem import Problem

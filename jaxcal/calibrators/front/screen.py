@@ -7,25 +7,25 @@ off its passes:
 
 * **Outliers.** A reading the filter did not expect: its innovation ``x_t -
   E[x_t | past]`` (the prediction before the row is used, so the row cannot explain
-  itself away) beyond :data:`~jaxcal.calibrators.outliers.OUTLIER_Z` times its
+  itself away) beyond :data:`~jaxcal.calibrators.front.outliers.OUTLIER_Z` times its
   predicted std, on any output — the Kalman filter's validation gate (Bar-Shalom,
   Li & Kirubarajan 2001, "Estimation with Applications to Tracking and Navigation",
   sec. 5.4), per output. A wild row drags the filter, so the rows after it look
   wild too: the first pass proposes candidates, the second pass skips them and judges
   every row again from the filter state carried past the skipped ones (the UKF step
   evaluated at each row from the state before it,
-  :func:`~jaxcal.calibrators.compiled.filter_program`), and only
+  :func:`~jaxcal.calibrators.programs.compiled.filter_program`), and only
   candidates still beyond the gate are flagged (never a new row: skipping the start
   of a real change would make the rest of it look wild, one pass after another).
   The innovations are taken about their robust centre and over their robust scale
-  (:func:`~jaxcal.calibrators.outliers.robust_scale`), so a model misfit, which
+  (:func:`~jaxcal.calibrators.front.outliers.robust_scale`), so a model misfit, which
   shifts and widens all of them, is not an outlier. With a given noise
   (``noise=``) that scale is at least 1: a row is judged against the given noise,
   or against the data's own spread where that is wider (and a note says so).
 * **The noise** (when not given), from the one-step innovations ``nu_t = x_t -
   E[x_t | past]`` of each unit's settled rows (each unit's first :data:`SETTLE`
   share left out), pooled over units with the hard-rejection estimator of
-  :func:`~jaxcal.calibrators.outliers.robust_noise`, outlier rows left out. The
+  :func:`~jaxcal.calibrators.front.outliers.robust_noise`, outlier rows left out. The
   update moves the prediction of output ``s`` by a share ``k_s`` of its innovation
   (``k = 1 - R / S``, ``S`` the innovation's predicted variance: the diagonal of
   the filter's ``HK`` where the outputs' innovations are uncorrelated), and a
@@ -51,7 +51,7 @@ off its passes:
 
 The UKF is compiled once per process for all passes and all calls (the noise and
 the outputs' centre are arguments of the compiled program,
-:mod:`jaxcal.calibrators.compiled`), group by group of the
+:mod:`jaxcal.calibrators.programs.compiled`), group by group of the
 :class:`~jaxcal.data.buckets.Buckets`.
 
 So a few wild rows change neither the noise of the other units nor their results,
@@ -60,9 +60,9 @@ and their own unit's stream skips them (reason ``outlier``).
 Two faults are judged per output, not per row:
 
 * **A stuck sensor.** An output that repeats one reading for
-  :data:`~jaxcal.calibrators.outliers.STUCK_RUN` rows or more (a quantised output,
+  :data:`~jaxcal.calibrators.front.outliers.STUCK_RUN` rows or more (a quantised output,
   which repeats most of its readings, excepted:
-  :func:`~jaxcal.calibrators.outliers.stuck_runs`) while the filter expects it to
+  :func:`~jaxcal.calibrators.front.outliers.stuck_runs`) while the filter expects it to
   move (a value of the run beyond the gate) is a frozen sensor, not a row of wild
   readings: judged per row, every row of the run would be skipped, its good outputs
   with it (a stuck outflow cost the tank's level and temperature 18 rows of one
@@ -85,10 +85,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.guard import MASKED, OK
-from jaxcal.calibrators.methods.ukf import UKF, ukf_program
-from jaxcal.calibrators.model_based import model_inputs
-from jaxcal.calibrators.outliers import (
+from jaxcal.calibrators.front.outliers import (
     OutlierRows,
     StuckRun,
     outlier_rows,
@@ -97,7 +94,10 @@ from jaxcal.calibrators.outliers import (
     robust_scale,
     stuck_runs,
 )
-from jaxcal.calibrators.skipped import nothing_valid_error
+from jaxcal.calibrators.front.skipped import nothing_valid_error
+from jaxcal.calibrators.guard import MASKED, OK
+from jaxcal.calibrators.methods.ukf import UKF, ukf_program
+from jaxcal.calibrators.model_based import model_inputs
 from jaxcal.data.buckets import Buckets, bucket_units
 from jaxcal.data.dataset import Dataset
 from jaxcal.problem import Problem
@@ -116,11 +116,12 @@ class Screen(NamedTuple):
     Attributes:
         problem: the problem with its noise (given, or estimated).
         outlier: ``[N]`` bool rows flagged as outliers.
-        found: the :class:`~jaxcal.calibrators.outliers.OutlierRows` behind it.
+        found: the :class:`~jaxcal.calibrators.front.outliers.OutlierRows` behind it.
         notes: what the screening noticed (a given noise far too small).
         z: ``[N, S]`` the last pass's one-step innovations over their predicted
             std (``nan``: a missing output), or ``None`` (no row used); their
-            colour is the model's misfit (:mod:`jaxcal.calibrators.misfit_check`).
+            colour is the model's misfit
+            (:mod:`jaxcal.calibrators.uncertainty.misfit_check`).
         used: ``[N]`` bool, the rows that pass used (outliers skipped), or ``None``.
         data: the rows with a stuck sensor's readings left out (``nan``), which the
             method must calibrate on, and ``buckets`` them padded; ``None``: the

@@ -292,8 +292,8 @@ def make_e2e_calibrator(
         theta0: ``[P]`` parameters of that initial state.
         box: ``(low [P], high [P])``: G's output is projected into the declared
             box (a network extrapolates past the labels it was trained on).
-        band: a :class:`~jaxcal.calibrators.uncertainty.ThetaBand` fitted on
-            held-out simulated units (:func:`jaxcal.calibrators.e2e_sim.
+        band: a :class:`~jaxcal.calibrators.uncertainty.conformal.ThetaBand` fitted on
+            held-out simulated units (:func:`jaxcal.calibrators.methods.e2e.simulated.
             held_out_band`): ``aux["theta_std"]`` is its std at the sample's
             count since the unit's first one; ``None``: no std.
 
@@ -342,7 +342,7 @@ def make_e2e_calibrator(
         )
         aux = None
         if band is not None:
-            from jaxcal.calibrators.uncertainty import band_std
+            from jaxcal.calibrators.uncertainty.conformal import band_std
 
             aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
         return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)

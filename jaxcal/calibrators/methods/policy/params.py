@@ -2,11 +2,12 @@
 
 :class:`PolicyParams` (and its incremental variants :class:`IncrementPolicyParams`,
 :class:`StartedIncrementPolicyParams`) holds everything the step of
-:mod:`jaxcal.calibrators.policy_step` reads, every array a leaf (traced,
+:mod:`jaxcal.calibrators.methods.policy.step` reads, every array a leaf (traced,
 checkpointable), so one jitted runner serves any trained policy of the same
 architecture without retracing; :class:`PolicyState` is what the step carries from
 sample to sample. :func:`policy_params_from_env` builds the parameters of a policy
-from its training environment's. :mod:`jaxcal.calibrators.policy` re-exports them.
+from its training environment's. :mod:`jaxcal.calibrators.methods.policy.calibrator`
+re-exports them.
 """
 
 from __future__ import annotations
@@ -162,7 +163,7 @@ class PolicyState:
     sens: Array | None = None
     cov: Array | None = None  # [P, P] the filter step's covariance (gn_filter)
     # [2, P] Brown's smoothed theta levels: the drift rate a relative band reads
-    # (jaxcal.calibrators.lag_scale)
+    # (jaxcal.calibrators.uncertainty.lag_scale)
     trend: Array | None = None
     # [S] the adaptive filter's noise variance over the declared one (filter_adapt)
     noise_scale: Array | None = None

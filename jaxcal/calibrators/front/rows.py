@@ -1,8 +1,9 @@
 """From a calibration's per-group outputs back to the data's rows.
 
 :func:`to_rows` turns the outputs of the padded unit groups of
-:func:`jaxcal.calibrators.front.calibrate` into one
-:class:`~jaxcal.calibrators.result.CalibrationResult` in the data's row order (skipped
+:func:`jaxcal.calibrators.front.door.calibrate` into one
+:class:`~jaxcal.calibrators.front.result.CalibrationResult` in the data's row order
+(skipped
 rows carry the last used row's estimate, rows before a unit's first used row the
 prior); :func:`flag_notes` words the console line that counts the skipped rows per
 reason, with what the outliers and the model's non-finite outputs were, and the line
@@ -18,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxcal.calibrators.front.outliers import describe_outliers
+from jaxcal.calibrators.front.result import CalibrationResult
+from jaxcal.calibrators.front.skipped import model_nonfinite_note
 from jaxcal.calibrators.guard import MASKED, OK, REASON_CODE, REASONS
-from jaxcal.calibrators.outliers import describe_outliers
-from jaxcal.calibrators.result import CalibrationResult
-from jaxcal.calibrators.skipped import model_nonfinite_note
 from jaxcal.data.dataset import Dataset
 from jaxcal.problem import Problem
 

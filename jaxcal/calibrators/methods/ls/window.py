@@ -31,7 +31,8 @@ Missing outputs: a NaN in ``x`` (a sensor channel dropped out) is left out of th
 sum of squares (a masked residual, fixed shapes), so both take partial rows
 (``Calibrator.accepts_partial``).
 
-The streaming std is :func:`~jaxcal.calibrators.drift_std.drift_std`: honest when
+The streaming std is :func:`~jaxcal.calibrators.uncertainty.drift_std.drift_std`: honest
+when
 theta drifts within the window (``aux["laplace_std"]`` keeps the fit's own std).
 """
 
@@ -46,12 +47,6 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from jaxcal.calibrators.drift_std import (
-    DriftHistory,
-    drift_std,
-    init_drift_history,
-    prior_age,
-)
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
@@ -60,6 +55,12 @@ from jaxcal.calibrators.interface import (
     check_measurement,
     check_scale,
     inner_box,
+)
+from jaxcal.calibrators.uncertainty.drift_std import (
+    DriftHistory,
+    drift_std,
+    init_drift_history,
+    prior_age,
 )
 from jaxcal.numerics.levenberg_marquardt import (
     Damping,

@@ -48,7 +48,8 @@ order) without shift and under the flag, the std of a method that assumes white 
 (:attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`) is widened by the
 square root of that AR fit's long-run variance ratio (:func:`ar_long_run_ratio`; the
 Bartlett estimate, bandwidth-truncated, reads a persistent colour low): coverage
-0.86-0.98 per unit. Why this widening and not the battery's: there the colour came from a bias the parameters absorb, which no factor
+0.86-0.98 per unit. Why this widening and not the battery's: there the colour came from
+a bias the parameters absorb, which no factor
 read off the residuals fixes; here from the noise, whose long-run variance is what
 the estimate's variance scales with (fewer independent rows).
 
@@ -66,8 +67,8 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from jaxcal.calibrators.jitter_check import settled_rows, units_shown
-from jaxcal.calibrators.outliers import MAD_TO_STD
+from jaxcal.calibrators.front.outliers import MAD_TO_STD
+from jaxcal.calibrators.uncertainty.jitter_check import settled_rows, units_shown
 
 # flagged where the long-run variance is this many times the variance: the std at
 # least 2x too small from the colour alone (measured: <= 1.22 well specified, >= 17

@@ -25,7 +25,8 @@ conditions. On the pump (seed 0) the leak lags 6-11 samples by conditions and dr
 0.00015-0.0004 per sample by unit, so its error is mostly a per-unit bias; a band of
 one width per time bucket, pooled over simulated units, covered single real units
 from 0.62 to 0.98 and the three test units 0.78. Scaling the band by this predicted
-error (:func:`jaxcal.calibrators.uncertainty.fit_band` with ``scale``) widens it on
+error (:func:`jaxcal.calibrators.uncertainty.conformal.fit_band` with ``scale``) widens
+it on
 the units that drift fast or are observed weakly: the three test units' leak 0.81.
 It does not make single units alike: the rate estimated online is noisy, and the
 lag also depends on the noise's own slow wander, so a few test units can still

@@ -6,7 +6,8 @@ data the paper's q = r = 0.01 give a std ~25x the error, so the nominal 90 %
 interval covers ~100 %. The shape of the std over time (wide at the start, narrowing
 as the filter locks on) is informative; its level is not. So the std is kept and
 multiplied by a scale ``s`` fitted on held-out units with known theta, per bucket of
-samples since a unit's start (the buckets of :mod:`jaxcal.calibrators.uncertainty`)
+samples since a unit's start (the buckets of
+:mod:`jaxcal.calibrators.uncertainty.conformal`)
 and per parameter: with the normalised scores ``|theta_hat - theta| / std`` of the
 bucket, ``s`` is their split-conformal ``level`` quantile (Lei et al. 2018, §2.2)
 divided by ``z`` (1.6449 for 90 %), so that ``+-z s std`` holds ``level`` of the
@@ -17,7 +18,7 @@ do not count): the count the deployed wrapper :func:`with_std_scale` keeps, sinc
 flagged sample never reaches a calibrator's ``step``.
 
 * :func:`fit_std_scale` on padded ``[U, T, P]`` runs, :func:`fit_result_scale` on a
-  :class:`~jaxcal.calibrators.front.CalibrationResult` of ``jaxcal.calibrate``;
+  :class:`~jaxcal.calibrators.front.door.CalibrationResult` of ``jaxcal.calibrate``;
 * :func:`scaled_std` (jittable lookup), :func:`with_std_scale` (a calibrator whose
   ``theta_std`` is rescaled), :func:`rescale_result` (a result's ``theta_std``);
 * :func:`scale_factors` (host lookup), :func:`std_coverage`: the share of samples
@@ -34,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators.interface import Calibrator
-from jaxcal.calibrators.uncertainty import (
+from jaxcal.calibrators.uncertainty.conformal import (
     MIN_BUCKET_SAMPLES,
     conformal_scale,
     z_value,
@@ -74,7 +75,8 @@ def normalised_scores(err: np.ndarray, std: np.ndarray) -> np.ndarray:
 
 def _fit(scores, t, *, level, edges, min_count, caller) -> StdScale:
     """The scale of normalised ``scores`` ``[n, P]`` at stream indices ``t`` ``[n]``
-    (:func:`~jaxcal.calibrators.uncertainty.conformal_scale`), which must be finite."""
+    (:func:`~jaxcal.calibrators.uncertainty.conformal.conformal_scale`), which must
+    be finite."""
     edges, scale = conformal_scale(scores, t, level=level, edges=edges,
                                    min_count=min_count, caller=caller)  # fmt: skip
     if not np.isfinite(scale).all():
@@ -106,7 +108,8 @@ def fit_std_scale(
         mask: ``[U, T]`` the scored samples (real and not flagged).
         level: the interval's coverage target, in (0, 1).
         edges: bucket starts (``edges[0] == 0``, increasing); ``[0]``: one scale per
-            parameter; ``None``: log-spaced (:func:`~jaxcal.calibrators.uncertainty.
+            parameter; ``None``: log-spaced
+            (:func:`~jaxcal.calibrators.uncertainty.conformal.
             log_edges`).
         min_count: buckets with fewer samples merge into a neighbour.
 
@@ -223,7 +226,7 @@ def with_std_scale(calibrator: Calibrator, scale: StdScale) -> Calibrator:
 
 
 def result_index(result) -> np.ndarray:
-    """``[N]`` each row's ``t`` in a :class:`~jaxcal.calibrators.front.
+    """``[N]`` each row's ``t`` in a :class:`~jaxcal.calibrators.front.door.
     CalibrationResult`: the valid rows of its unit before it in time (``calibrate``
     streams a unit's rows in time order). A skipped row repeats the previous valid
     row's output, so it gets that row's ``t`` (-1 before a unit's first valid row).
@@ -250,7 +253,7 @@ def fit_result_scale(
     """:func:`fit_std_scale` on a ``jaxcal.calibrate`` result of labelled data.
 
     Args:
-        result: a :class:`~jaxcal.calibrators.front.CalibrationResult` with a
+        result: a :class:`~jaxcal.calibrators.front.door.CalibrationResult` with a
             ``theta_std`` (``"ukf"``, ``"ls"``); its valid rows are scored.
         theta_true: ``[N, P]`` the true parameters of its rows, in row order.
         level: as in :func:`fit_std_scale`.

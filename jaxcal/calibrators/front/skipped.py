@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators import compiled
 from jaxcal.calibrators.guard import REASON_CODE, REASONS
+from jaxcal.calibrators.programs import compiled
 from jaxcal.data.dataset import Dataset
 from jaxcal.problem import Problem
 

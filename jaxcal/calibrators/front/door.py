@@ -21,7 +21,7 @@ them
   the model over the parameter box (or pass trained weights as ``e2e=``);
 * ``"policy"``: a trained tracking policy, ``run=<run folder>``; an incremental
   (feedback) policy's run with ``anchor=<absolute policy's run folder>`` is gated by
-  it where the model misfits the data (:mod:`jaxcal.calibrators.gated`).
+  it where the model misfits the data (:mod:`jaxcal.calibrators.methods.policy.gated`).
 
 A model with hidden states (``Model.from_step``) takes the same call: the UKF
 filters the states jointly with the parameters, least squares fits the parameters
@@ -38,20 +38,23 @@ so that ``reason != "ok"`` still means "skipped" everywhere: a used partial row 
 not a skipped one. Its ``xhat`` holds the model's prediction of the missing outputs.
 
 Noise: ``noise={output: std}``; when omitted it is estimated from the data, robustly,
-from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.screen`;
+from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.front.screen`;
 ``result.noise_source`` says so). A reported ``theta_std`` is never below the
-estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.jitter_check`: a filter
+estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.uncertainty.jitter_check`: a
+filter
 given a noise far too small follows it, with a std that says otherwise). Where the
 screening pass's one-step innovations are clearly autocorrelated (a model misfit, a
 drift the filter lags, a quantised output) the unit's std, which assumes white noise,
 is no calibrated uncertainty: it is withheld there (NaN; ``misfit="keep"`` reports
 it anyway), ``result.misfit`` marks those units' rows and a note names them and says
-why (:mod:`jaxcal.calibrators.misfit_check`; not checked without a screening pass).
+why (:mod:`jaxcal.calibrators.uncertainty.misfit_check`; not checked without a screening
+pass).
 
 No single bad row decides anything for the other rows:
 
 * **Outliers.** The same UKF passes flag wild readings (an innovation beyond
-  ``outlier_z`` = 6 robust stds, :mod:`jaxcal.calibrators.screen`): they are skipped
+  ``outlier_z`` = 6 robust stds, :mod:`jaxcal.calibrators.front.screen`): they are
+  skipped
   by every method, left out of the noise, and reported as ``reason == "outlier"``.
   With a given noise they are still flagged, judged against that noise (or the
   data's own spread where wider). ``outlier_z=None`` turns the flags off; the policy
@@ -61,11 +64,11 @@ No single bad row decides anything for the other rows:
   values, ``theta_std`` the UKF's prior std or a uniform's over the box, ``xhat``
   ``nan``), with ``valid`` False. Every flag is counted on one console line (a
   ``UserWarning``, also in ``result.notes``); a calibration that keeps no row is an
-  error that says why (:mod:`jaxcal.calibrators.skipped`).
+  error that says why (:mod:`jaxcal.calibrators.front.skipped`).
 * **Bounds.** Every method's ``theta`` lies inside the declared box: the UKF's mean
   and least squares' steps are projected onto it, any other method's estimate is
   clipped, and the rows whose estimate reached a bound are marked
-  (``result.at_bound``) and named in a note (:mod:`jaxcal.calibrators.front_rows`).
+  (``result.at_bound``) and named in a note (:mod:`jaxcal.calibrators.front.rows`).
 * **Memory** grows with the rows: units are padded in groups of similar length
   (:mod:`jaxcal.data.buckets`), one compiled program per group shape.
 
@@ -73,16 +76,16 @@ Compiled once: the UKF and least squares are compiled once per process and metho
 settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
 compiled`), and once per machine through JAX's persistent compilation cache, on by
 default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off). The screening is
-done once per data set in a process (:mod:`jaxcal.calibrators.screen_memo`). A
+done once per data set in a process (:mod:`jaxcal.calibrators.front.screen_memo`). A
 user's model is traced again on every call (milliseconds): where a global its
 function reads has changed, the programs are built anew, never reused with the old
-value (:mod:`jaxcal.calibrators.traced_key`).
+value (:mod:`jaxcal.calibrators.programs.traced_key`).
 
 The result in the data's row order, and the console line counting the skipped rows,
-are assembled by :mod:`jaxcal.calibrators.front_rows`. A parameter that acts in some
+are assembled by :mod:`jaxcal.calibrators.front.rows`. A parameter that acts in some
 units only (an extended model's per-unit effect, ``model.diagnosis.carriers``) is
 calibrated in its carriers and held at its nominal value elsewhere
-(:mod:`jaxcal.calibrators.carriers`).
+(:mod:`jaxcal.calibrators.front.carriers`).
 """
 
 from __future__ import annotations
@@ -94,23 +97,25 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from jaxcal.calibrators import carriers, methods, traced_key
-from jaxcal.calibrators.front_rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
+from jaxcal.calibrators import methods
+from jaxcal.calibrators.front import carriers
+from jaxcal.calibrators.front.outliers import OUTLIER_Z
+from jaxcal.calibrators.front.result import CalibrationResult
+from jaxcal.calibrators.front.rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
     MANY_OUTLIERS,
     flag_notes,
     to_rows,
 )
+from jaxcal.calibrators.front.skipped import nothing_valid_error
 from jaxcal.calibrators.guard import REASON_CODE
-from jaxcal.calibrators.jitter_check import jitter_floor, jitter_note
-from jaxcal.calibrators.misfit_check import (
+from jaxcal.calibrators.programs import traced_key
+from jaxcal.calibrators.uncertainty.jitter_check import jitter_floor, jitter_note
+from jaxcal.calibrators.uncertainty.misfit_check import (
     colour_rows,
     misfit_note,
     widen_note,
     widening,
 )
-from jaxcal.calibrators.outliers import OUTLIER_Z
-from jaxcal.calibrators.result import CalibrationResult
-from jaxcal.calibrators.skipped import nothing_valid_error
 from jaxcal.data.buckets import bucket_units
 from jaxcal.data.dataset import clip_jitter
 from jaxcal.data.readers import read_dataset
@@ -423,7 +428,7 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
     level, or a given noise with outlier flags off. The passes are the method's own
     UKF, else a default one with the method's state settings; the same rows and
     settings are screened once per process (:mod:`.screen_memo`)."""
-    from jaxcal.calibrators.screen_memo import screened
+    from jaxcal.calibrators.front.screen_memo import screened
 
     method = methods.method_of(cfg)
     if noise is None and not method.reads_noise:

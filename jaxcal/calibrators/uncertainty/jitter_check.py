@@ -27,8 +27,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from jaxcal.calibrators.outliers import MAD_TO_STD
-from jaxcal.calibrators.screen import SETTLE  # the screening's: the filter locking on
+from jaxcal.calibrators.front.outliers import MAD_TO_STD
+from jaxcal.calibrators.front.screen import (
+    SETTLE,  # the screening's: the filter locking on
+)
 
 MIN_DIFFERENCES = 3  # a unit needs this many consecutive used rows to be judged
 # raised only where the scatter is this many times the median std: clearly

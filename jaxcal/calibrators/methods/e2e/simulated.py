@@ -6,7 +6,7 @@ network learns the inverse of the model where the data will ask it ("E2E-sim").
 
 Its std (:func:`held_out_band`): split conformal on one more simulated fleet the
 network never saw, drawn the same way (Lei et al. 2018, sec. 2.2), per bucket of
-samples since a unit's start (:mod:`jaxcal.calibrators.uncertainty`): the 90 %
+samples since a unit's start (:mod:`jaxcal.calibrators.uncertainty.conformal`): the 90 %
 half-width of ``|theta_hat - theta|`` over 1.6449, with ``theta_hat`` projected into
 the box as the calibrator reports it. It covers 90 % of such simulated units: white
 noise of the problem's std, a constant theta anywhere in the box; the front door's
@@ -74,8 +74,12 @@ def _simulated(problem: Problem, buckets: Buckets, key_theta, key_noise, copies:
 def held_out_band(problem: Problem, buckets: Buckets, params, seed: int):
     """The split-conformal band of the trained ``params`` (module doc), on one
     simulated fleet drawn with a key the training never used."""
-    from jaxcal.calibrators.e2e import _apply, e2e_features, window_features
-    from jaxcal.calibrators.uncertainty import fit_band
+    from jaxcal.calibrators.methods.e2e.network import (
+        _apply,
+        e2e_features,
+        window_features,
+    )
+    from jaxcal.calibrators.uncertainty.conformal import fit_band
 
     key = jax.random.fold_in(jax.random.key(seed), 0x42)  # not a training draw
     key_theta, key_noise = jax.random.split(key)
@@ -101,7 +105,7 @@ def fit_e2e_sim(
     parameter vector per simulated unit drawn uniformly in the box, and Gaussian
     output noise of the problem's std (``window``: G's input, see ``fit_e2e``).
     Simulated group by group of ``buckets`` (memory grows with the rows)."""
-    from jaxcal.calibrators.e2e import e2e_training_rows, fit_e2e_rows
+    from jaxcal.calibrators.methods.e2e.network import e2e_training_rows, fit_e2e_rows
 
     key = jax.random.key(seed)
     key_theta, key_noise, key_fit = jax.random.split(key, 3)

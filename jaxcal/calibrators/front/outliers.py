@@ -24,7 +24,7 @@ deviation one of 50 %. The statistics here are the textbook robust ones:
   froze, or a logger that repeats its last value.
 
 The residual is whatever the caller standardises: the front door
-(:mod:`jaxcal.calibrators.screen`) passes the UKF's innovation over its predicted
+(:mod:`jaxcal.calibrators.front.screen`) passes the UKF's innovation over its predicted
 std, the diagnosis a fit's residual over the noise. Shapes: ``N`` rows, ``S``
 outputs.
 """

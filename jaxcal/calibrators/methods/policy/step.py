@@ -36,15 +36,18 @@ the turbofan's Newton solve) may also carry its solver hint from sample to sampl
 (``warm_start=True``, ``PolicyState.hint``): x-hat is then the model's output to its
 solver tolerance, at a fraction of the cold solve's cost; the first sample starts
 without one. The deployed stream and the fleet runner
-(:func:`~jaxcal.calibrators.policy.make_fleet_runner`: the turbofan's hinted solve
+(:func:`~jaxcal.calibrators.methods.policy.calibrator.make_fleet_runner`: the turbofan's
+hinted solve
 batches with a rule of its own, the cold fall-back only at rows some unit needs it)
 do; the paper's scored methods keep the cold solve (and the paper's bits).
 
 What the step reads and carries
-(:class:`~jaxcal.calibrators.policy_params.PolicyParams`,
-:class:`~jaxcal.calibrators.policy_params.PolicyState`) is in
-:mod:`jaxcal.calibrators.policy_params`; the jitted runners over fleets and streams
-are in :mod:`jaxcal.calibrators.policy`, which re-exports both modules' names.
+(:class:`~jaxcal.calibrators.methods.policy.params.PolicyParams`,
+:class:`~jaxcal.calibrators.methods.policy.params.PolicyState`) is in
+:mod:`jaxcal.calibrators.methods.policy.params`; the jitted runners over fleets and
+streams
+are in :mod:`jaxcal.calibrators.methods.policy.calibrator`, which re-exports both
+modules' names.
 """
 
 from __future__ import annotations
@@ -56,13 +59,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
-from jaxcal.calibrators.lag_scale import (
-    filter_error_scale,
-    initial_trend,
-    trend_rate,
-    update_trend,
-)
-from jaxcal.calibrators.policy_params import (
+from jaxcal.calibrators.methods.policy.params import (
     IncrementPolicyParams,
     PolicyParams,
     PolicyState,
@@ -71,7 +68,13 @@ from jaxcal.calibrators.policy_params import (
     initial_sensitivity,
     uses_jacobian,
 )
-from jaxcal.calibrators.uncertainty import ThetaBand, band_std
+from jaxcal.calibrators.uncertainty.conformal import ThetaBand, band_std
+from jaxcal.calibrators.uncertainty.lag_scale import (
+    filter_error_scale,
+    initial_trend,
+    trend_rate,
+    update_trend,
+)
 from jaxcal.envs.bias_states import (
     bias_rate,
     bias_walk,
@@ -119,7 +122,8 @@ def make_policy_calibrator(
             or a :class:`~jaxcal.envs.memory.StatefulDynamics`.
         params: :class:`PolicyParams` (may be traced).
         band: the run's calibrated error band
-            (:mod:`jaxcal.calibrators.uncertainty`, fitted on its validation units);
+            (:mod:`jaxcal.calibrators.uncertainty.conformal`, fitted on its validation
+            units);
             ``None``: no uncertainty. A relative band scales the error the policy's
             filter predicts (:func:`filter_scale`; an incremental policy with the
             filter feature only).
@@ -193,7 +197,8 @@ def make_policy_calibrator(
 def filter_scale(params: PolicyParams, cov: Array, trend: Array) -> Array:
     """``[P]`` the theta error the policy's filter predicts after a sample: its std
     and the lag bias of the drift ``trend`` shows
-    (:func:`~jaxcal.calibrators.lag_scale.filter_error_scale`; a joint filter's
+    (:func:`~jaxcal.calibrators.uncertainty.lag_scale.filter_error_scale`; a joint
+    filter's
     theta block is its last ``P`` rows)."""
     num = params.theta_low.shape[-1]
     half = 0.5 * (params.theta_high - params.theta_low)

@@ -2,9 +2,11 @@
 and its jitted runners.
 
 The calibrator, the paper's deployment step (§3.1), is :func:`make_policy_calibrator`
-(:mod:`jaxcal.calibrators.policy_step`, where its equations are); what it reads and
+(:mod:`jaxcal.calibrators.methods.policy.step`, where its equations are); what it reads
+and
 carries, :class:`PolicyParams` and :class:`PolicyState`, is in
-:mod:`jaxcal.calibrators.policy_params`. Both are re-exported here, the one import
+:mod:`jaxcal.calibrators.methods.policy.params`. Both are re-exported here, the one
+import
 path. This module runs it: over a fleet (:func:`make_fleet_runner`), one sample per
 call (:func:`make_stream_step`), or one guarded sample per call
 (:func:`make_guarded_stream_step` from :func:`initial_guard_carry`).
@@ -38,7 +40,7 @@ from jaxcal.calibrators.interface import (
     run_fleet,
     sample_reason,
 )
-from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one import path)
+from jaxcal.calibrators.methods.policy.params import (  # noqa: F401 (re-exported: one import path)
     IncrementPolicyParams,
     PolicyParams,
     PolicyState,
@@ -49,12 +51,12 @@ from jaxcal.calibrators.policy_params import (  # noqa: F401 (re-exported: one i
     policy_params_from_env,
     with_output_states,
 )
-from jaxcal.calibrators.policy_step import (
+from jaxcal.calibrators.methods.policy.step import (
     fresh_state,
     make_policy_calibrator,
     start_theta,
 )
-from jaxcal.calibrators.uncertainty import ThetaBand
+from jaxcal.calibrators.uncertainty.conformal import ThetaBand
 from jaxcal.envs.memory import HintedDynamics, as_stateful
 from jaxcal.envs.tracking import Dynamics
 from jaxcal.typedefs import Array

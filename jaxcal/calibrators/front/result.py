@@ -54,7 +54,8 @@ class CalibrationResult:
         misfit: ``[N]`` bool: the row's unit has one-step innovations so
             autocorrelated (a model misfit, a drift the filter lags, a quantised
             output) that ``theta_std`` there is not a calibrated uncertainty
-            (:mod:`jaxcal.calibrators.misfit_check`). ``None``: not checked (no
+            (:mod:`jaxcal.calibrators.uncertainty.misfit_check`). ``None``: not checked
+            (no
             ``theta_std``, or no screening pass to read the innovations from).
         at_bound: ``[N]`` bool: the row's estimate reached a bound of the declared
             box (every method's ``theta`` is kept inside it; the data may call for

@@ -21,7 +21,7 @@ A NaN in ``x_t`` is a missing output: it is left out of the residual (the sample
 other outputs still count), so the calibrator takes partial rows
 (``Calibrator.accepts_partial``).
 
-A static model is better served by :func:`~jaxcal.calibrators.least_squares.
+A static model is better served by :func:`~jaxcal.calibrators.methods.ls.window.
 make_least_squares` (no scan, samples evaluated in parallel); the front picks it when
 ``Z = 0``.
 """
@@ -35,12 +35,6 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from jaxcal.calibrators.drift_std import (
-    DriftHistory,
-    drift_std,
-    init_drift_history,
-    prior_age,
-)
 from jaxcal.calibrators.interface import (
     Calibrator,
     CalStepOutput,
@@ -49,7 +43,13 @@ from jaxcal.calibrators.interface import (
     check_prior,
     check_scale,
 )
-from jaxcal.calibrators.least_squares import LeastSquaresConfig, damping_of
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, damping_of
+from jaxcal.calibrators.uncertainty.drift_std import (
+    DriftHistory,
+    drift_std,
+    init_drift_history,
+    prior_age,
+)
 from jaxcal.numerics.levenberg_marquardt import gauss_newton_cov, linearize, lm_run
 from jaxcal.problem import Transition
 from jaxcal.typedefs import Array, PRNGKey
@@ -99,7 +99,8 @@ def make_window_least_squares(
     Returns:
         ``Calibrator(init, step)``; ``aux`` holds ``theta_std [P]`` (Laplace,
         widened by the window's lag behind a drifting theta:
-        :func:`~jaxcal.calibrators.drift_std.drift_std`), ``laplace_std [P]``,
+        :func:`~jaxcal.calibrators.uncertainty.drift_std.drift_std`), ``laplace_std
+        [P]``,
         ``cost []``, ``state [Z]`` (the state after the sample, simulated over the
         window) and ``state_std [Z]`` (of the window start).
     """

@@ -19,12 +19,14 @@ emit ``theta_std`` and rebuild any symmetric interval it needs.
 
 :func:`conformal_scale` is the one split-conformal scaling of jaxcal: this band's
 half-widths (scores ``|theta_hat - theta|``) and the rescaled std of
-:mod:`jaxcal.calibrators.std_scale` (scores ``|theta_hat - theta| / std``) are both it.
+:mod:`jaxcal.calibrators.uncertainty.std_scale` (scores ``|theta_hat - theta| / std``)
+are both it.
 
 A *relative* band (``fit_band(..., scale=...)``) is the same conformal fit on the
 errors divided by a per-sample scale the calibrator predicts online, and its std is
 that scale times the bucket's value: for a policy built on a random-walk filter, the
-filter's own std and lag bias (:mod:`jaxcal.calibrators.lag_scale`), which vary from
+filter's own std and lag bias (:mod:`jaxcal.calibrators.uncertainty.lag_scale`), which
+vary from
 unit to unit with its drift rate and its conditions where a pooled width does not
 (normalised conformal prediction, Lei et al. 2018, §5.2).
 
@@ -63,7 +65,7 @@ class ThetaBand:
             (1.6449 for 90 %); of ``|theta_hat - theta| / scale`` for a relative
             band.
         relative: the std is a multiple of the sample's predicted error scale
-            (:mod:`jaxcal.calibrators.lag_scale`), not theta's own.
+            (:mod:`jaxcal.calibrators.uncertainty.lag_scale`), not theta's own.
     """
 
     edges: Array

@@ -1,6 +1,6 @@
 """The screening of one data set, done once per process.
 
-The screening (:mod:`jaxcal.calibrators.screen`: the noise level and the outlier
+The screening (:mod:`jaxcal.calibrators.front.screen`: the noise level and the outlier
 rows, from up to five UKF passes) depends on the model, the problem, the rows and
 the passes' filter settings, not on the method that calibrates afterwards. On a
 model with an iterative solver the passes are most of a call: the turbofan on NASA
@@ -26,8 +26,8 @@ import hashlib
 
 import numpy as np
 
-from jaxcal.calibrators.compiled import problem_key
-from jaxcal.calibrators.screen import Screen, screen
+from jaxcal.calibrators.front.screen import Screen, screen
+from jaxcal.calibrators.programs.compiled import problem_key
 
 MAX_KEPT = 8  # screenings kept per process (least recently used dropped)
 # and their row arrays at most this many bytes in all: a fleet of millions of rows
@@ -39,8 +39,8 @@ _LAST: list = []  # the key of the screening used last
 
 
 def screened(problem, data, buckets, cfg, *, estimate: bool, threshold: float):
-    """:func:`~jaxcal.calibrators.screen.screen`'s result, computed once per key
-    (module docstring); the arguments are :func:`~jaxcal.calibrators.screen.
+    """:func:`~jaxcal.calibrators.front.screen.screen`'s result, computed once per key
+    (module docstring); the arguments are :func:`~jaxcal.calibrators.front.screen.
     screen`'s."""
     key = _key(problem, data, buckets.dtype, cfg, estimate, threshold)
     if key in _KEPT:
