@@ -27,10 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.interface import measure_declared
 from jaxcal.data.padded import Padded
 from jaxcal.paper.compare import stacked
-from jaxcal.paper.methods import engine_outputs
+from jaxcal.paper.methods import engine_outputs, measure_declared
 from jaxcal.problem import Problem
 
 

@@ -34,7 +34,7 @@ range for a policy — so a NaN or out-of-range sample is skipped and flagged
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -45,8 +45,8 @@ from jax import lax
 
 from jaxcal.calibrators.interface import (
     Calibrator,
+    MeasureFn,
     SampleCheck,
-    measure_declared,
     run_fleet,
 )
 from jaxcal.calibrators.methods import REGISTRY, method_of
@@ -58,6 +58,7 @@ from jaxcal.calibrators.programs.compiled import inputs_of
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
+from jaxcal.physics.constants import health_index, sensor_index
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array, PRNGKey
 
@@ -227,6 +228,67 @@ def _engine_outputs(engine, w: Array, theta_full: Array) -> Array:
 # traced jaxpr: the engine's large Newton graph is traced and batched once per
 # process and vmap pattern, not once per method, variant and data set (~5 s each).
 engine_outputs = jax.jit(_engine_outputs)
+
+
+def measure_declared(
+    measure_full: Callable[[Array, Array], Array],
+    theta_base: Array,
+    declared_idx: Sequence[int] | Sequence[str],
+    sensor_idx: Sequence[int] | Sequence[str] | None = None,
+) -> MeasureFn:
+    """Restrict a full-parameter model to the declared parameters and chosen sensors.
+
+    Model-based calibrators estimate only the ``P`` declared parameters; the others are
+    held at ``theta_base``. Because the declared vector is scattered into the full one,
+    ``jax.jacfwd`` of the result costs ``P`` tangent sweeps, not one per full parameter.
+
+    Args:
+        measure_full: ``F(w [Wd], theta_full [P_full]) -> x_full [S_full]`` (for the
+            engine: ``lambda w, th: engine.evaluate(w, th)[0]``).
+        theta_base: ``[P_full]`` values of all parameters (undeclared ones stay here).
+        declared_idx: positions in ``theta_full`` of the declared parameters, or their
+            names in the turbofan's ``jaxcal.physics.constants.HEALTH_NAMES``.
+        sensor_idx: positions in ``x_full`` of the sensors to return, or their names in
+            ``SENSOR_NAMES``; ``None`` keeps all.
+
+    Returns:
+        ``measure(w [Wd], theta [P]) -> x [S]``.
+    """
+    theta_base = jnp.asarray(theta_base)
+    if theta_base.ndim != 1:
+        raise ValueError(f"theta_base must be [P_full], got shape {theta_base.shape}")
+    declared = _as_index(
+        declared_idx, health_index, "declared_idx", theta_base.shape[0]
+    )
+    sensors = (
+        None
+        if sensor_idx is None
+        else _as_index(sensor_idx, sensor_index, "sensor_idx", None)
+    )
+
+    def measure(w: Array, theta: Array) -> Array:
+        theta_full = theta_base.astype(theta.dtype).at[declared].set(theta)
+        x_full = measure_full(w, theta_full)
+        return x_full if sensors is None else x_full[sensors]
+
+    return measure
+
+
+def _as_index(idx, from_names, field: str, size: int | None) -> np.ndarray:
+    """Names or integers -> a unique 1-D int array, with a clear error otherwise."""
+    idx = list(idx)
+    if not idx:
+        raise ValueError(f"{field} must name at least one entry")
+    if all(isinstance(i, str) for i in idx):
+        idx = from_names(idx)
+    arr = np.asarray(idx)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{field} must be a sequence of ints or of names, got {idx!r}")
+    if len(set(arr.tolist())) != arr.size or arr.min() < 0:
+        raise ValueError(f"{field} must be unique non-negative indices, got {idx!r}")
+    if size is not None and arr.max() >= size:
+        raise ValueError(f"{field} has index {arr.max()} >= number of entries {size}")
+    return arr
 
 
 def declared_model(engine, problem: Problem) -> Callable[[Array, Array], Array]:

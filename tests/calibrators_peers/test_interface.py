@@ -12,10 +12,10 @@ from jaxcal.calibrators.interface import (
     CalStepOutput,
     Measurement,
     check_measurement,
-    measure_declared,
     run_calibrator,
     run_fleet,
 )
+from jaxcal.paper.methods import measure_declared  # the turbofan's, for the paper
 from jaxcal.physics.constants import HEALTH_NAMES
 
 NUM_STEPS, NUM_SENSORS, NUM_CONDITIONS = 7, 3, 2
