@@ -11,14 +11,7 @@ import dataclasses
 from typing import Any
 
 from jaxcal.calibrators.methods.ekf.filter import EKFConfig, make_ekf, make_joint_ekf
-from jaxcal.calibrators.methods.protocol import Method
-from jaxcal.calibrators.model_based import (
-    fleet_built,
-    model_based_factory,
-    model_check,
-    stream_calibrator,
-)
-from jaxcal.calibrators.programs import compiled
+from jaxcal.calibrators.methods.on_model import on_model_method
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,32 +31,7 @@ class EKF:
     field_name = "filter"
 
 
-def factory(problem, cfg: EKF, measure=None):
-    """``make(inputs) -> Calibrator``: the filter on ``problem``'s model."""
-    return model_based_factory(problem, cfg.filter, make_ekf, make_joint_ekf, measure)
-
-
-def build(problem, cfg: EKF, buckets, seed: int = 0):
-    """The filter's fleet program and its prior std, ``prior_std`` of the
-    half-width."""
-    del seed
-
-    def program_of():
-        make, check = factory(problem, cfg), model_check(problem)
-        return compiled.fleet_program(problem, cfg, make, check, buckets.dtype)
-
-    prior = cfg.filter.prior_std * problem.theta_half_width
-    return fleet_built(problem, cfg, program_of, prior, buckets.dtype)
-
-
-METHOD = Method(
-    name="ekf",
-    config=EKF,
-    build=build,
-    make=lambda problem, cfg, buckets=None, seed=0: stream_calibrator(
-        problem, cfg, factory
-    ),
-    check=lambda problem, cfg: model_check(problem),
-    factory=factory,
-    label="EKF",
-)
+METHOD = on_model_method(
+    "ekf", EKF, make_ekf, make_joint_ekf, label="EKF",
+    prior_std=lambda problem, cfg: cfg.filter.prior_std * problem.theta_half_width,
+)  # fmt: skip

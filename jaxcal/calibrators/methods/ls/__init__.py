@@ -14,14 +14,7 @@ import numpy as np
 
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
 from jaxcal.calibrators.methods.ls.window_state import make_window_least_squares
-from jaxcal.calibrators.methods.protocol import Method
-from jaxcal.calibrators.model_based import (
-    fleet_built,
-    model_based_factory,
-    model_check,
-    stream_calibrator,
-)
-from jaxcal.calibrators.programs import compiled
+from jaxcal.calibrators.methods.on_model import on_model_method
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,34 +43,8 @@ def _window(tr, settings, measurement, *, state_q, **common):
     return make_window_least_squares(tr, settings, measurement, **common)
 
 
-def factory(problem, cfg: LeastSquares, measure=None):
-    """``make(inputs) -> Calibrator``: the window fit on ``problem``'s model."""
-    return model_based_factory(
-        problem, cfg.solver, make_least_squares, _window, measure
-    )
-
-
-def build(problem, cfg: LeastSquares, buckets, seed: int = 0):
-    """The window fit's fleet program and a uniform's std over the box."""
-    del seed
-
-    def program_of():
-        make, check = factory(problem, cfg), model_check(problem)
-        return compiled.fleet_program(problem, cfg, make, check, buckets.dtype)
-
-    prior = problem.theta_half_width / np.sqrt(3)
-    return fleet_built(problem, cfg, program_of, prior, buckets.dtype)
-
-
-METHOD = Method(
-    name="ls",
-    config=LeastSquares,
-    build=build,
-    make=lambda problem, cfg, buckets=None, seed=0: stream_calibrator(
-        problem, cfg, factory
-    ),
-    check=lambda problem, cfg: model_check(problem),
-    factory=factory,
-    label="LS",
+METHOD = on_model_method(
+    "ls", LeastSquares, make_least_squares, _window, label="LS",
+    prior_std=lambda problem, cfg: problem.theta_half_width / np.sqrt(3),
     white_std=False,  # its online check scales the std to its own errors
-)
+)  # fmt: skip

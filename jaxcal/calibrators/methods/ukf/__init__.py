@@ -10,13 +10,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators.methods.protocol import Method
-from jaxcal.calibrators.model_based import (
-    fleet_built,
-    model_based_factory,
-    model_check,
-    stream_calibrator,
-)
+import jax.numpy as jnp
+
+from jaxcal.calibrators.methods.on_model import on_model_method
+from jaxcal.calibrators.model_based import model_check
 from jaxcal.calibrators.programs import compiled
 from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
 
@@ -38,46 +35,26 @@ class UKF:
     field_name = "filter"
 
 
-def factory(problem, cfg: UKF, measure=None):
-    """``make(inputs) -> Calibrator``: the filter on ``problem``'s model."""
-    return model_based_factory(problem, cfg.filter, make_ukf, make_joint_ukf, measure)
+def _without_probe(problem, cfg, make, check, dtype):
+    """The fleet program: the screening's (:func:`ukf_program`), nothing probed and
+    its innovations dropped."""
+    filt = compiled.filter_program(problem, cfg, make, check, dtype)
+
+    def program(inputs, w, x, mask):
+        return filt(inputs, w, x, mask, jnp.zeros_like(mask))[0]
+
+    return program
+
+
+METHOD = on_model_method(
+    "ukf", UKF, make_ukf, make_joint_ukf, label="UKF",
+    prior_std=lambda problem, cfg: cfg.filter.prior_std * problem.theta_half_width,
+    program=_without_probe, screening=lambda cfg: cfg,
+)  # fmt: skip
 
 
 def ukf_program(problem, cfg: UKF, dtype):
     """The UKF's compiled program with innovations (:func:`compiled.filter_program`):
     the screening passes and the method's own run share it."""
-    make = factory(problem, cfg)
+    make = METHOD.factory(problem, cfg)
     return compiled.filter_program(problem, cfg, make, model_check(problem), dtype)
-
-
-def build(problem, cfg: UKF, buckets, seed: int = 0):
-    """The filter's fleet program (the screening's, its innovations dropped) and
-    its prior std, ``prior_std`` of the half-width."""
-    del seed
-
-    def program_of():
-        filt = ukf_program(problem, cfg, buckets.dtype)
-
-        def program(inputs, w, x, mask):  # nothing to probe: the screen's program
-            import jax.numpy as jnp
-
-            return filt(inputs, w, x, mask, jnp.zeros_like(mask))[0]
-
-        return program
-
-    prior = cfg.filter.prior_std * problem.theta_half_width
-    return fleet_built(problem, cfg, program_of, prior, buckets.dtype)
-
-
-METHOD = Method(
-    name="ukf",
-    config=UKF,
-    build=build,
-    make=lambda problem, cfg, buckets=None, seed=0: stream_calibrator(
-        problem, cfg, factory
-    ),
-    check=lambda problem, cfg: model_check(problem),
-    screening=lambda cfg: cfg,
-    factory=factory,
-    label="UKF",
-)
