@@ -178,3 +178,23 @@ def test_the_diagnosis_adds_a_per_unit_effect_for_its_carriers():
     assert added_parameters(res)[0].units == (11, 13)  # none passed: the screen's
     spec = extension_json(res, "heater")
     assert [a["units"] for a in spec["added"]] == [[11, 13], None]
+
+
+def test_any_registered_filter_calibrates_the_exported_model_by_carriers():
+    """The EKF (a method the diagnosis never names) splits an extended model's units
+    by their carriers as the UKF does, and tracks the carriers' offset."""
+    data = _fleet()
+    per_unit = build_extended(BASE, DECLARED, [_offset(CARRIERS)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        res = jaxcal.calibrate(
+            per_unit, data, "ekf", noise=NOISE, progress=False, misfit="keep"
+        )
+    assert res.method == "ekf"
+    assert any("held at nominal in unit(s) [0, 2, 4, 5]" in n for n in res.notes)
+    j = res.theta_names.index("T_out_offset")
+    clean = np.setdiff1d(np.arange(UNITS), CARRIERS)
+    assert np.all(res.theta[np.isin(res.unit, clean), j] == 0.0)
+    for u in CARRIERS:
+        last = np.flatnonzero(res.unit == u)[-1]
+        assert abs(res.theta[last, j] - STEP) <= 2.0 * res.theta_std[last, j]
