@@ -13,7 +13,7 @@ Two measurement models:
 
 * ``engine``: the C-MAPSS-like turbofan F of ``jaxcal.physics.load_engine("cmapss")``
   on the declared parameter HPT_eff_mod (the others at 0) and the 14 measured
-  sensors, through :func:`~jaxcal.calibrators.interface.measure_declared`; filterpy
+  sensors, through :func:`~jaxcal.paper.methods.measure_declared`; filterpy
   calls
   the engine's evaluate jitted for one sample. F dominates the step here.
 * ``toy``: x = tanh(A theta + B w) with P = 4, S = 14, W = 4, cheap enough that the
@@ -42,8 +42,9 @@ from cpubench.measure import (
     time_interleaved,
     try_import,
 )
-from jaxcal.calibrators.interface import Measurement, measure_declared
+from jaxcal.calibrators.interface import Measurement
 from jaxcal.calibrators.ukf import UKFConfig, ukf_filter
+from jaxcal.paper.methods import measure_declared
 
 CFG = UKFConfig(posterior_xhat=False)  # q = r = 0.01, alpha 1, beta 2, kappa 0
 _DISABLED = "optional peers disabled (--no-optional-peers)"

@@ -101,7 +101,7 @@ def make_ukf(
 
     Args:
         measure_fn: ``F(w [Wd], theta [P]) -> x [S]`` (declared parameters only; see
-            ``measure_declared``). Must be jittable and vmappable over ``theta``.
+            ``Problem.measure()``). Must be jittable and vmappable over ``theta``.
         cfg: static settings.
         measurement: ``centre``/``noise_std`` ``[S]``: the outputs are compared as
             ``(x - centre) / noise_std``, with noise std ``cfg.r`` there (``R =
