@@ -12,7 +12,7 @@
    the default preset: its labels score only; ``chunks=N`` overrides its budget).
    Nothing is told the noise: every method, the training included, estimates it
    from the data (the UKF screening's one-step innovations,
-   :mod:`jaxcal.calibrators.screen`);
+   :mod:`jaxcal.calibrators.front.screen`);
 3. runs the diagnosis (``python -m jaxcal.diagnose model=heat_exchanger ...``) on the
    clean fleet and on the fleet whose cold-outlet thermometer reads 0.8 K high;
 4. writes ``README.md``, ``results.json`` and ``theta.png`` to ``out``.
