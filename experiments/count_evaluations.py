@@ -1,9 +1,9 @@
 """The fleet evaluations and fits of a diagnosis, stage by stage.
 
 Runs ``experiments/profile_diagnosis.py`` with the same arguments, and counts each
-call of :func:`jaxcal.diagnosis.linearization.linearize` (one evaluation of the
+call of :func:`jaxcal.diagnosis.kinds.linearization.linearize` (one evaluation of the
 model over the fleet's rows, with the derivatives asked for) and of
-:func:`jaxcal.diagnosis.fitting.fit_model` under the stage that made it (the
+:func:`jaxcal.diagnosis.fitting.joint.fit_model` under the stage that made it (the
 diagnosis's own :class:`~jaxcal.diagnosis.timing.StageClock` names). Prints the
 profile's JSON on stdout, then one JSON object on stderr::
 
@@ -26,8 +26,8 @@ import runpy
 import sys
 import time
 
-import jaxcal.diagnosis.fitting as fitting
-import jaxcal.diagnosis.linearization as linearization
+import jaxcal.diagnosis.fitting.joint as fitting
+import jaxcal.diagnosis.kinds.linearization as linearization
 import jaxcal.diagnosis.pipeline  # noqa: F401 (every diagnosis module, before the patch)
 import jaxcal.diagnosis.timing as timing
 

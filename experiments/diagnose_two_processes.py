@@ -13,7 +13,7 @@ Usage::
    folder: made in every process, its generation alone took 10.9 GB at 1,000 units.
 2. One process diagnoses it; then (after it, not beside it) ``processes`` processes
    joined on localhost (:func:`jaxcal.fleet.distributed.initialize`), which split the
-   model's evaluations by units (:mod:`jaxcal.diagnosis.sharding`). Each process
+   model's evaluations by units (:mod:`jaxcal.diagnosis.data.sharding`). Each process
    writes its report (``report.json``'s content without the stage seconds). With
    ``pin=true`` process ``i`` runs on core ``i`` alone (the one process on core 0):
    the machine as one-core hosts.
@@ -90,7 +90,7 @@ def worker(
     initialize(f"127.0.0.1:{port}", num, index, timeout_s=600)
     from jaxcal.cache import enable_compilation_cache
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-    from jaxcal.diagnosis.report import report_dict
+    from jaxcal.diagnosis.report.write import report_dict
     from jaxcal.models import load
     from jaxcal.precision import enable_x64
 

@@ -33,9 +33,9 @@ import numpy as np
 
 from jaxcal.cache import enable_compilation_cache
 from jaxcal.data.readers import read_dataset
-from jaxcal.diagnosis.markdown import effect_line
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-from jaxcal.diagnosis.report import write_report, write_text
+from jaxcal.diagnosis.report.markdown import effect_line
+from jaxcal.diagnosis.report.write import write_report, write_text
 from jaxcal.models import load
 from jaxcal.precision import enable_x64
 from jaxcal.settings import config_to_dict, parse_overrides

@@ -61,15 +61,15 @@ import robust_scenario as rs  # noqa: E402
 from loop_before import verdict_facts  # noqa: E402
 
 from jaxcal.cache import enable_compilation_cache  # noqa: E402
-from jaxcal.diagnosis.fitting import fit_model  # noqa: E402
-from jaxcal.diagnosis.identify import IdentifyConfig  # noqa: E402
-from jaxcal.diagnosis.kinds import KINDS, natural_scale  # noqa: E402
-from jaxcal.diagnosis.noise import MAX_ORDER, NoiseModel  # noqa: E402
+from jaxcal.diagnosis.data.prepare import prepare_data  # noqa: E402
+from jaxcal.diagnosis.data.synthetic import kind_of  # noqa: E402
+from jaxcal.diagnosis.fitting.identify import IdentifyConfig  # noqa: E402
+from jaxcal.diagnosis.fitting.joint import fit_model  # noqa: E402
+from jaxcal.diagnosis.kinds.table import KINDS, natural_scale  # noqa: E402
+from jaxcal.diagnosis.kinds.terms import ModelSpec  # noqa: E402
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose  # noqa: E402
-from jaxcal.diagnosis.prepare import prepare_data  # noqa: E402
-from jaxcal.diagnosis.report import json_safe  # noqa: E402
-from jaxcal.diagnosis.synthetic import kind_of  # noqa: E402
-from jaxcal.diagnosis.terms import ModelSpec  # noqa: E402
+from jaxcal.diagnosis.report.write import json_safe  # noqa: E402
+from jaxcal.diagnosis.residuals.noise import MAX_ORDER, NoiseModel  # noqa: E402
 from jaxcal.models import load  # noqa: E402
 from jaxcal.precision import enable_x64  # noqa: E402
 from jaxcal.settings import parse_overrides  # noqa: E402

@@ -1,6 +1,7 @@
 """Identification study of the closing-the-loop diagnosis over seeds and effect kinds.
 
-For every effect kind of :func:`jaxcal.diagnosis.synthetic.kinds` of the turbofan (the
+For every effect kind of :func:`jaxcal.diagnosis.data.synthetic.kinds` of the turbofan
+(the
 clean record, one undeclared health modifier -- kinds ``parameter`` (drifting) and
 ``parameter_step`` (jumping mid-life) --, the six engine effects, a sensor bias / gain
 / drift / step and an effect outside the library) and every
@@ -36,9 +37,9 @@ import jax
 import numpy as np
 
 from jaxcal.cache import enable_compilation_cache
+from jaxcal.diagnosis.data.synthetic import SyntheticConfig, kinds, make_synthetic_data
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-from jaxcal.diagnosis.report import json_safe, write_text
-from jaxcal.diagnosis.synthetic import SyntheticConfig, kinds, make_synthetic_data
+from jaxcal.diagnosis.report.write import json_safe, write_text
 from jaxcal.models import load
 from jaxcal.models.turbofan_scenario import (
     DISCREPANCY_BUMP,

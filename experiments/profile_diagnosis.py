@@ -67,7 +67,7 @@ def _load(cfg: ProfileConfig, model):
     if cfg.data == "synthetic":
         import jax
 
-        from jaxcal.diagnosis.synthetic import make_synthetic_data
+        from jaxcal.diagnosis.data.synthetic import make_synthetic_data
         from jaxcal.models.turbofan_scenario import FleetConfig, make_scenario
 
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -169,7 +169,7 @@ def emit(out: dict, path: str) -> None:
     """Print ``out`` as JSON, and write it to ``path`` too when one is given."""
     text = json.dumps(out, indent=1)
     if path:
-        from jaxcal.diagnosis.report import write_text
+        from jaxcal.diagnosis.report.write import write_text
 
         write_text(path, text + "\n")
     print(text)

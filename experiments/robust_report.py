@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from jaxcal.diagnosis.report import json_safe
+from jaxcal.diagnosis.report.write import json_safe
 from jaxcal.runs.atomic import write_atomic
 
 STEP_KINDS = ("sensor_step", "parameter_step")

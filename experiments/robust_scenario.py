@@ -18,9 +18,10 @@ effect. Here each record draws what the diagnosis does *not* assume (:func:`draw
 * which units carry the effect (1 to all, a random subset) and, for a step, its onset
   in each carrier (30-70 % of its life).
 
-:func:`make_record` puts one effect of a kind (:mod:`jaxcal.diagnosis.kinds`) and
+:func:`make_record` puts one effect of a kind (:mod:`jaxcal.diagnosis.kinds.table`) and
 physical size on the carriers through the extended model
-(:func:`jaxcal.diagnosis.signatures.signatures`; a model with memory is simulated with
+(:func:`jaxcal.diagnosis.kinds.signatures.signatures`; a model with memory is simulated
+with
 the effect in it) and adds the noise.
 """
 
@@ -36,10 +37,10 @@ import numpy as np
 
 from jaxcal.data.dataset import Dataset
 from jaxcal.data.flights import FlightConfig, sample_flight
-from jaxcal.diagnosis.kinds import TAU_CYCLES
-from jaxcal.diagnosis.prepare import DEFAULT_NOISE_REL
-from jaxcal.diagnosis.signatures import signatures, zero_inputs
-from jaxcal.diagnosis.synthetic import ar1_noise, kind_of, rows_of
+from jaxcal.diagnosis.data.prepare import DEFAULT_NOISE_REL
+from jaxcal.diagnosis.data.synthetic import ar1_noise, kind_of, rows_of
+from jaxcal.diagnosis.kinds.signatures import signatures, zero_inputs
+from jaxcal.diagnosis.kinds.table import TAU_CYCLES
 from jaxcal.models.turbofan_scenario import STUDY_OUTPUTS
 
 SHAPES = ("linear", "exponential", "piecewise")
@@ -68,7 +69,9 @@ class StudyModel(NamedTuple):
     spec: str  # jaxcal.models.load spec
     declared: tuple[str, ...]
     outputs: tuple[str, ...]
-    kinds: tuple[str, ...]  # study labels (:func:`jaxcal.diagnosis.synthetic.kinds`)
+    kinds: tuple[
+        str, ...
+    ]  # study labels (:func:`jaxcal.diagnosis.data.synthetic.kinds`)
     wear_end: tuple[float, float]  # the declared parameter's end value (change)
     life: tuple[int, int]
     draw_extra: Callable  # rng -> dict
@@ -136,7 +139,7 @@ def make_record(model, sm: StudyModel, setting: Setting, kind: str, target: str,
                 size: float, seed: int, noise: bool = True):  # fmt: skip
     """One Dataset with ``kind`` of physical ``size`` on ``target`` in the carriers.
 
-    ``size`` is in the kind's physical unit (:mod:`jaxcal.diagnosis.kinds`): a
+    ``size`` is in the kind's physical unit (:mod:`jaxcal.diagnosis.kinds.table`): a
     parameter's change at the end of the carrier's life (``parameter``) or its jump
     (``parameter_step``), a registered effect's value, a sensor's bias, relative gain,
     drift per TAU_CYCLES cycles or step. ``noise=False`` gives the noise-free record

@@ -43,11 +43,11 @@ import reactor  # noqa: E402
 
 import jaxcal  # noqa: E402  (the package the path points to: recorded)
 from jaxcal.data.dataset import Dataset  # noqa: E402
-from jaxcal.diagnosis.cleaning import drop_outliers  # noqa: E402
-from jaxcal.diagnosis.fitting import fit_model  # noqa: E402
+from jaxcal.diagnosis.data.cleaning import drop_outliers  # noqa: E402
+from jaxcal.diagnosis.data.prepare import prepare_data  # noqa: E402
+from jaxcal.diagnosis.fitting.joint import fit_model  # noqa: E402
+from jaxcal.diagnosis.kinds.terms import ModelSpec  # noqa: E402
 from jaxcal.diagnosis.pipeline import LoopConfig  # noqa: E402
-from jaxcal.diagnosis.prepare import prepare_data  # noqa: E402
-from jaxcal.diagnosis.terms import ModelSpec  # noqa: E402
 from jaxcal.runs.atomic import write_atomic  # noqa: E402
 
 DECLARED = ("activity", "UA", "dH")
@@ -165,7 +165,7 @@ def markdown(results: dict) -> str:
         f"The reactor (`experiments/reactor.py`), units of {ROWS} samples, set-point "
         "changes every 10-40 samples, AR(1) noise (coefficient in the table), the "
         "noise estimated; the "
-        "diagnosis's screening (`jaxcal.diagnosis.cleaning.drop_outliers`). `near "
+        "diagnosis's screening (`jaxcal.diagnosis.data.cleaning.drop_outliers`). `near "
         f"change`: within {AROUND} rows of a set-point change; `first`: a unit's "
         f"first row; spikes: {SPIKE_SIGMA:g} sensor stds on one output of "
         f"{100 * SPIKE_SHARE:g} % of the rows. `at truth`: the neighbour test on the "

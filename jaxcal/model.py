@@ -106,7 +106,7 @@ class Model:
         initial_hint: ``initial_hint() -> hint``, the hint before any call.
         warm_fn, warm_size: optional ``warm_fn(w, theta, e, z0) -> (x, valid, z)``:
             from the solver start ``z0`` [warm_size] (NaN: its own), its solution
-            ``z`` (:mod:`jaxcal.diagnosis.linearization`).
+            ``z`` (:mod:`jaxcal.diagnosis.kinds.linearization`).
         origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
             :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
             programs can be kept on disk, :mod:`jaxcal.calibrators.programs.on_disk`);

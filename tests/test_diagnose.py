@@ -12,8 +12,8 @@ from jaxcal.cli.diagnose import main
 from jaxcal.data.cmapss_text import SENSOR_MAP
 from jaxcal.data.ncmapss_io import write_ncmapss
 from jaxcal.data.record import Record
-from jaxcal.diagnosis.signatures import linearize
-from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
+from jaxcal.diagnosis.data.synthetic import SyntheticConfig, make_synthetic_data
+from jaxcal.diagnosis.kinds.signatures import linearize
 from jaxcal.models import load
 from jaxcal.models.turbofan_scenario import EFFECT_SIZES, FleetConfig, make_scenario
 from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES

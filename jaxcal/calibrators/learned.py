@@ -110,7 +110,8 @@ def policy_calibrator(problem: Problem, cfg) -> tuple[Calibrator, SampleCheck | 
     _check_run(problem, run)
     check_run_model(run, problem.model)  # the policy runs with the run's own model
     anchor = None
-    if anchor_dir:  # the feedback gated by an absolute policy (calibrators.methods.policy.gated)
+    # the feedback gated by an absolute policy (calibrators.methods.policy.gated)
+    if anchor_dir:
         anchor = load_run(anchor_dir)
         _check_run(problem, anchor)
         check_run_model(anchor, problem.model)

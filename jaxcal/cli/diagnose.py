@@ -11,7 +11,8 @@ still work. Writes ``report.md``, ``report.json`` and PNG figures to ``out`` (de
 ``results/diagnose/<file stem>/``), naming effects in the model's vocabulary and units,
 per unit (report.json ``identified[i].units``: ``unit``, ``carries``, ``size``,
 ``size_std``, ``onset``; ``units.png``) and with the plausibility flags of the verdict
-(``flags``; :mod:`jaxcal.diagnosis.plausibility`), which the console line repeats,
+(``flags``; :mod:`jaxcal.diagnosis.report.plausibility`), which the console line
+repeats,
 and, when effects were added, the extended model ``extended_model.json`` that
 ``model=`` accepts on every command line (the loop closed: the twin tracks the effect
 in real time with any method).
@@ -33,7 +34,7 @@ On several processes (``jax.distributed``: the same command on each, with its ow
 ``--process-id``; or the ``JAXCAL_COORDINATOR`` / ``JAXCAL_NUM_PROCESSES`` /
 ``JAXCAL_PROCESS_ID`` variables, as ``python -m jaxcal.fleet``), every process reads
 the data and runs the same diagnosis; the model's evaluations are split by units and
-gathered (:mod:`jaxcal.diagnosis.sharding`), so each process reaches the verdict of
+gathered (:mod:`jaxcal.diagnosis.data.sharding`), so each process reaches the verdict of
 one process. Process 0 alone writes the report and prints the verdict line::
 
     python -m jaxcal.diagnose data=fleet.csv calibrate=wear model=pump.py:PUMP \\
@@ -73,7 +74,9 @@ class DiagnoseConfig:
     split: str = "dev"  # N-CMAPSS split: dev or test
     stride: int = 0  # N-CMAPSS load stride (0: from max_rows)
     knots: int = 6  # B-spline functions per unit and declared parameter
-    kinds: tuple[str, ...] = ()  # effect kinds (default all; jaxcal.diagnosis.kinds)
+    kinds: tuple[
+        str, ...
+    ] = ()  # effect kinds (default all; jaxcal.diagnosis.kinds.table)
     families: tuple[str, ...] = ()  # old name of kinds=
     bic_margin: float = 10.0  # delta BIC for "found" and for confounding
     alpha: float = 0.01  # family-wise level of the likelihood-ratio tests
@@ -165,11 +168,11 @@ def run(cfg: DiagnoseConfig) -> dict:
     import jax
 
     from jaxcal.cache import enable_compilation_cache
-    from jaxcal.diagnosis.discrepancy import DiscrepancyConfig
-    from jaxcal.diagnosis.identify import IdentifyConfig
-    from jaxcal.diagnosis.markdown import dropped_rows_line
+    from jaxcal.diagnosis.fitting.discrepancy import DiscrepancyConfig
+    from jaxcal.diagnosis.fitting.identify import IdentifyConfig
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-    from jaxcal.diagnosis.report import report_dict, write_report
+    from jaxcal.diagnosis.report.markdown import dropped_rows_line
+    from jaxcal.diagnosis.report.write import report_dict, write_report
     from jaxcal.models import load
     from jaxcal.precision import enable_x64
 
@@ -244,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if jax.process_index() != 0:  # the writer's test of run(): process 0 reports
         return 0
-    from jaxcal.diagnosis.markdown import effect_line
+    from jaxcal.diagnosis.report.markdown import effect_line
 
     units = rep["data"]["units"]
     found = (

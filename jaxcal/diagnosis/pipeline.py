@@ -4,14 +4,16 @@
 and a :class:`~jaxcal.data.dataset.Dataset` (time = cycle). A model with memory is
 fitted in **output-error** form: each unit is simulated from its initial state (with an
 offset fitted per unit) and every candidate acts through the states
-(:mod:`.signatures`).
+(:mod:`jaxcal.diagnosis.kinds.signatures`).
 
 1. **Calibrate** the declared parameters (per-unit splines in time, jointly over
    the data): the "before" model.
-2. **Noise.** The noise model (:mod:`.noise`: a level and an AR(p) colour per output,
+2. **Noise.** The noise model (:mod:`jaxcal.diagnosis.residuals.noise`: a level and an
+AR(p) colour per output,
    or the given levels and an estimated colour) is fitted to this fit's residual,
    quantised outputs are dropped and the fit is repeated on the prewhitened residual.
-3. **Trace** the prewhitened residual to the library (:func:`.identify.identify`:
+3. **Trace** the prewhitened residual to the library
+(:func:`jaxcal.diagnosis.fitting.identify.identify`:
    every kind in its fleet-wide and per-unit forms, steps with their onsets). The
    noise model is then fitted again to the winner's residual (an effect left in the
    residual inflates the estimated colour and level) and the trace repeated when it
@@ -20,7 +22,8 @@ offset fitted per unit) and every candidate acts through the states
    candidate's residual, and the trace repeated when that lowered a level by more
    than :data:`LEVEL_MOVE` (a misfit read as noise hides every candidate).
 4. **Fallback.** A cross-validated ``delta(w)`` is fitted to the residual of the best
-   model so far (:mod:`.discrepancy`, generalised least squares). If it is
+   model so far (:mod:`jaxcal.diagnosis.fitting.discrepancy`, generalised least
+   squares). If it is
    significant, the declared parameters and delta are fitted by backfitting, the
    library is screened again against that model, and an effect is kept only if it is
    still significant beyond delta; a library effect that explains the residual better
@@ -29,8 +32,10 @@ offset fitted per unit) and every candidate acts through the states
    tracking RMSE per output, theta RMSE where the truth is known and the whiteness of
    the prewhitened residual.
 6. **Per unit and plausibility.** Each added effect gets its size, carriers and onset
-   per unit (:mod:`.units`), and the final fit is checked against the model's bounds
-   and direction of wear (:mod:`.plausibility`); triggered checks are flags.
+   per unit (:mod:`jaxcal.diagnosis.report.units`), and the final fit is checked against
+   the model's bounds
+   and direction of wear (:mod:`jaxcal.diagnosis.report.plausibility`); triggered checks
+   are flags.
 
 Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
 (the winner shares its signature with others within the BIC margin; the set is
@@ -49,22 +54,22 @@ from threadpoolctl import threadpool_limits
 
 from jaxcal.calibrators.front.outliers import OUTLIER_Z
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.cleaning import drop_outliers
-from jaxcal.diagnosis.discrepancy import Discrepancy, DiscrepancyConfig
-from jaxcal.diagnosis.fallback import fallback
-from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.identify import Identification, IdentifyConfig, identify
-from jaxcal.diagnosis.kinds import Candidate, build_library
-from jaxcal.diagnosis.noise import MAX_ORDER, ljung_box_p
-from jaxcal.diagnosis.noise_fit import fit_noise, quantised
-from jaxcal.diagnosis.plausibility import plausibility_flags
-from jaxcal.diagnosis.prepare import LoopData, prepare_data
-from jaxcal.diagnosis.ranking import effect_sizes
-from jaxcal.diagnosis.residuals import ResidualSummary, summarize_residuals
-from jaxcal.diagnosis.screen import init_from, spec_for
-from jaxcal.diagnosis.terms import ModelSpec
+from jaxcal.diagnosis.data.cleaning import drop_outliers
+from jaxcal.diagnosis.data.prepare import LoopData, prepare_data
+from jaxcal.diagnosis.fitting.discrepancy import Discrepancy, DiscrepancyConfig
+from jaxcal.diagnosis.fitting.fallback import fallback
+from jaxcal.diagnosis.fitting.identify import Identification, IdentifyConfig, identify
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.ranking import effect_sizes
+from jaxcal.diagnosis.fitting.screen import init_from, spec_for
+from jaxcal.diagnosis.kinds.table import Candidate, build_library
+from jaxcal.diagnosis.kinds.terms import ModelSpec
+from jaxcal.diagnosis.report.plausibility import plausibility_flags
+from jaxcal.diagnosis.report.units import fleet_summary, unit_effects, unit_trajectories
+from jaxcal.diagnosis.residuals.noise import MAX_ORDER, ljung_box_p
+from jaxcal.diagnosis.residuals.noise_fit import fit_noise, quantised
+from jaxcal.diagnosis.residuals.summaries import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.timing import StageClock
-from jaxcal.diagnosis.units import fleet_summary, unit_effects, unit_trajectories
 from jaxcal.model import Model
 
 NOISE_ROUNDS = 2  # noise model <-> declared-only fit alternations
@@ -124,7 +129,7 @@ class Stage(NamedTuple):
 
 
 class DiagnosisResult(NamedTuple):
-    """Everything :mod:`.report` writes."""
+    """Everything :mod:`jaxcal.diagnosis.report.write` writes."""
 
     data: LoopData
     model: Model
@@ -148,8 +153,9 @@ class DiagnosisResult(NamedTuple):
 
     @property
     def extended_model(self):
-        """The model with every added effect as a parameter (:mod:`.extended`)."""
-        from jaxcal.diagnosis.extended import extended_model
+        """The model with every added effect as a parameter
+        (:mod:`jaxcal.diagnosis.report.extended`)."""
+        from jaxcal.diagnosis.report.extended import extended_model
 
         return extended_model(self)
 
@@ -390,7 +396,8 @@ def _winner_basis(ident: Identification, margin: float) -> FitResult:
 
 def _best_fit(model, data, declared, ident: Identification, null, cfg):
     """The fit of the best candidate, significant or not: the best-ranked one, or
-    the near miss (:class:`~jaxcal.diagnosis.identify.Identification`) on every unit
+    the near miss (:class:`~jaxcal.diagnosis.fitting.identify.Identification`) on every
+    unit
     where its summed unit score is larger.
 
     An effect the declared parameters cannot follow leaves a misfit in the

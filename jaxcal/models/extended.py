@@ -1,6 +1,6 @@
 """An extended model: a base model with added parameters, stored as JSON.
 
-The diagnosis (:mod:`jaxcal.diagnosis.extended`) closes the loop by declaring the
+The diagnosis (:mod:`jaxcal.diagnosis.report.extended`) closes the loop by declaring the
 effects it found; this module builds that model from a base :class:`~jaxcal.model.Model`
 and a list of :class:`Added` parameters, and reads it back from an
 ``extended_model.json`` file, so that ``jaxcal.models.load("…/extended_model.json")``

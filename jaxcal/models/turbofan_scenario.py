@@ -1,6 +1,7 @@
 """N-CMAPSS-like fleets of the turbofan for synthetic diagnosis studies.
 
-A scenario is the clean part of a synthetic data set (:mod:`jaxcal.diagnosis.synthetic`
+A scenario is the clean part of a synthetic data set
+(:mod:`jaxcal.diagnosis.data.synthetic`
 adds one effect and the noise): each unit flies a run-to-failure life
 (:func:`jaxcal.data.degradation.sample_unit_degradation`, the declared modifiers degrade
 with the unit's health index) and every cycle is a climb / cruise / descent flight
@@ -66,7 +67,7 @@ class FleetConfig:
 
 
 class FleetRows(NamedTuple):
-    """Clean rows (the ``Scenario`` of :mod:`jaxcal.diagnosis.synthetic`)."""
+    """Clean rows (the ``Scenario`` of :mod:`jaxcal.diagnosis.data.synthetic`)."""
 
     w: np.ndarray  # [N, 4]
     theta: np.ndarray  # [N, 10]
@@ -90,7 +91,7 @@ def _sample_fleet(key_deg, key_flight, deg_cfg, flight_cfg, classes):
 
 
 def make_scenario(cfg: FleetConfig):
-    """``scenario(keys [4]) -> FleetRows`` for :func:`~jaxcal.diagnosis.synthetic.
+    """``scenario(keys [4]) -> FleetRows`` for :func:`~jaxcal.diagnosis.data.synthetic.
     make_synthetic_data` (keys: flight class, degradation, flights, kept rows)."""
 
     def scenario(keys) -> FleetRows:

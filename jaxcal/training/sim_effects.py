@@ -5,7 +5,7 @@ A filter is exact only where its model is: a biased sensor, a drifting gain or
 coloured noise is read as a parameter change. A policy can learn to discount them,
 but only if it trains on them. :func:`add_effects` gives a share of the simulated
 units one effect each, drawn from the kinds of the diagnosis's table that act on the
-outputs (:mod:`jaxcal.diagnosis.kinds`), at sizes in units of each output's noise
+outputs (:mod:`jaxcal.diagnosis.kinds.table`), at sizes in units of each output's noise
 std:
 
 * ``bias``: a constant offset on one output, from an onset to the unit's end;

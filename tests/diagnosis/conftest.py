@@ -10,7 +10,7 @@ import functools
 import jax
 import pytest
 
-from jaxcal.diagnosis.synthetic import SyntheticConfig, make_synthetic_data
+from jaxcal.diagnosis.data.synthetic import SyntheticConfig, make_synthetic_data
 from jaxcal.models import load
 from jaxcal.models.turbofan_scenario import (
     DISCREPANCY_BUMP,
@@ -63,7 +63,7 @@ def synthetic(engine):
 def evaluated_rows(monkeypatch):
     """The row counts the model is linearised at (:func:`jaxcal.diagnosis.
     linearization.linearize`, its cache of recent points emptied first)."""
-    import jaxcal.diagnosis.linearization as linearization
+    import jaxcal.diagnosis.kinds.linearization as linearization
 
     calls = []
     original = linearization.linearize

@@ -26,7 +26,7 @@ def report() -> dict:
     from test_diagnose_stateful import MODEL, NOISE, _dataset
 
     from jaxcal.diagnosis.pipeline import diagnose
-    from jaxcal.diagnosis.report import report_dict
+    from jaxcal.diagnosis.report.write import report_dict
 
     result = diagnose(_dataset(bias=0.01), MODEL, ("R",), noise_std=NOISE)
     rep = report_dict(result)

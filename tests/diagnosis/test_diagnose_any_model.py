@@ -79,7 +79,7 @@ def _diagnose(tmp_path, bias):
 
 
 def test_the_library_is_built_from_the_model():
-    from jaxcal.diagnosis.kinds import build_library
+    from jaxcal.diagnosis.kinds.table import build_library
 
     lib = build_library(PUMP, ("wear",), ("head", "t_out"), np.ones(2), np.ones(2))
     names = {c.name: c.unit for c in lib}

@@ -16,9 +16,14 @@ import pytest
 
 import jaxcal
 from jaxcal.data.readers import read_dataset
+from jaxcal.diagnosis.data.synthetic import ar1_noise, rows_of
+from jaxcal.diagnosis.kinds.signatures import (
+    RowInputs,
+    Tangent,
+    signatures,
+    zero_inputs,
+)
 from jaxcal.diagnosis.pipeline import diagnose
-from jaxcal.diagnosis.signatures import RowInputs, Tangent, signatures, zero_inputs
-from jaxcal.diagnosis.synthetic import ar1_noise, rows_of
 
 DT = 60.0  # s
 AMBIENT = 290.0  # K
@@ -130,11 +135,11 @@ def test_a_misfit_read_as_noise_gives_way_to_the_near_miss():
     largest summed unit score (the near miss). The noise refitted to the near
     miss's fit is back at the truth, where the declared-only residual reads 10x
     (pipeline._best_fit): the next pass can find C."""
-    from jaxcal.diagnosis.fitting import fit_model
-    from jaxcal.diagnosis.identify import identify
+    from jaxcal.diagnosis.data.prepare import prepare_data
+    from jaxcal.diagnosis.fitting.identify import identify
+    from jaxcal.diagnosis.fitting.joint import fit_model
+    from jaxcal.diagnosis.kinds.terms import ModelSpec
     from jaxcal.diagnosis.pipeline import LoopConfig, _best_fit, _fit_noise, _library
-    from jaxcal.diagnosis.prepare import prepare_data
-    from jaxcal.diagnosis.terms import ModelSpec
 
     cfg = LoopConfig()
     noise = {k: 8.0 * v for k, v in NOISE.items()}

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from jaxcal.diagnosis.discrepancy import (
+from jaxcal.diagnosis.fitting.discrepancy import (
     DiscrepancyConfig,
     _folds,
     fit_discrepancy,
@@ -71,8 +71,8 @@ def test_delta_alone_winning_adds_no_library_effect(monkeypatch):
     verdict failed with a KeyError)."""
     from types import SimpleNamespace
 
-    from jaxcal.diagnosis import fallback as fb
-    from jaxcal.diagnosis.identify import Identification
+    from jaxcal.diagnosis.fitting import fallback as fb
+    from jaxcal.diagnosis.fitting.identify import Identification
 
     winner = SimpleNamespace(name="parameter[fan_eff_mod]", members=())
     fan_fit = SimpleNamespace(params=None)

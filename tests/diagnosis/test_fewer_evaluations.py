@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from conftest import DECLARED
 
-import jaxcal.diagnosis.linearization as linearization
-from jaxcal.diagnosis.fitting import fit_model
-from jaxcal.diagnosis.kinds import build_library
-from jaxcal.diagnosis.prepare import prepare_data
-from jaxcal.diagnosis.screen import init_from, spec_for, warm_from
-from jaxcal.diagnosis.terms import model_inputs
+import jaxcal.diagnosis.kinds.linearization as linearization
+from jaxcal.diagnosis.data.prepare import prepare_data
+from jaxcal.diagnosis.fitting.joint import fit_model
+from jaxcal.diagnosis.fitting.screen import init_from, spec_for, warm_from
+from jaxcal.diagnosis.kinds.table import build_library
+from jaxcal.diagnosis.kinds.terms import model_inputs
 
 
 @pytest.fixture

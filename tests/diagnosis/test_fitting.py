@@ -8,11 +8,11 @@ from scipy import stats as sps
 
 from jaxcal.data.readers import dataset_from_record
 from jaxcal.data.record import Record
-from jaxcal.diagnosis.fitting import GramStats, schur_solve
-from jaxcal.diagnosis.identify import log10_chi2_sf
-from jaxcal.diagnosis.noise_fit import fit_noise, quantised
-from jaxcal.diagnosis.prepare import prepare_data as _prepare
-from jaxcal.diagnosis.prepare import spline_basis
+from jaxcal.diagnosis.data.prepare import prepare_data as _prepare
+from jaxcal.diagnosis.data.prepare import spline_basis
+from jaxcal.diagnosis.fitting.identify import log10_chi2_sf
+from jaxcal.diagnosis.fitting.joint import GramStats, schur_solve
+from jaxcal.diagnosis.residuals.noise_fit import fit_noise, quantised
 from jaxcal.models import load
 
 
@@ -188,7 +188,7 @@ def test_the_fit_box_widens_a_quantity_of_one_sign_on_the_log_scale():
     """A resistance or a capacity (bounds of one sign) may leave its declared range
     far away from zero (x4 for a bound ratio of 4) but only halve toward zero; a
     quantity that may change sign gets half its range on each side."""
-    from jaxcal.diagnosis.fitting import fit_box
+    from jaxcal.diagnosis.fitting.joint import fit_box
 
     thermal = load("thermal")  # R_sa (0.01, 0.03), R_cs (0.005, 0.02), C_core (1e5,4e5)
     low, high = fit_box(thermal)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import DECLARED
 
-from jaxcal.diagnosis.kinds import KINDS, build_library
+from jaxcal.diagnosis.kinds.signatures import CHUNK_ROWS, linearize
+from jaxcal.diagnosis.kinds.table import KINDS, build_library
 from jaxcal.diagnosis.pipeline import diagnose
-from jaxcal.diagnosis.signatures import CHUNK_ROWS, linearize
 
 CASES = [
     ("sensor_bias", "Ps30"),
@@ -134,7 +134,7 @@ def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine, study_co
     """The FD003 / FD004 situation on generated data: a fan-efficiency loss grows in
     two of six engines; the per-unit verdict lists exactly those two."""
     STUDY = study_config  # noqa: N806 (the conftest's name)
-    from jaxcal.diagnosis.synthetic import make_synthetic_data
+    from jaxcal.diagnosis.data.synthetic import make_synthetic_data
     from jaxcal.models.turbofan_scenario import FleetConfig, make_scenario
 
     fleet = FleetConfig(
@@ -185,11 +185,11 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
     """Every refit but the two the winner can come from is slimmed as soon as it
     falls behind (memory); the identification is the one that slims them at the
     end, to the last bit."""
-    import jaxcal.diagnosis.identify as ident_mod
-    from jaxcal.diagnosis.fitting import fit_model
+    import jaxcal.diagnosis.fitting.identify as ident_mod
+    from jaxcal.diagnosis.data.prepare import prepare_data
+    from jaxcal.diagnosis.fitting.joint import fit_model
+    from jaxcal.diagnosis.fitting.screen import spec_for
     from jaxcal.diagnosis.pipeline import LoopConfig, _library
-    from jaxcal.diagnosis.prepare import prepare_data
-    from jaxcal.diagnosis.screen import spec_for
 
     syn = synthetic("sensor_bias", 0, "Ps30")
     cfg = LoopConfig()

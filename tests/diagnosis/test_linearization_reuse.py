@@ -1,4 +1,4 @@
-"""Model evaluations reused across nearby points (diagnosis.linearization).
+"""Model evaluations reused across nearby points (diagnosis.kinds.linearization).
 
 An output-only evaluation that differs from a kept one on a few rows evaluates those
 rows alone (the onset polish of a step moves one row per carrier at a time); the
@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import jaxcal.diagnosis.linearization as linearization
-from jaxcal.diagnosis.signatures import zero_inputs
+import jaxcal.diagnosis.kinds.linearization as linearization
+from jaxcal.diagnosis.kinds.signatures import zero_inputs
 
 ROWS = 600  # three row chunks
 

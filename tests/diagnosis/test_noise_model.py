@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from statsmodels.tsa.arima_process import arma_acf
 
-from jaxcal.diagnosis.noise import NoiseModel, ar_rows, ljung_box_p, positions
-from jaxcal.diagnosis.noise_fit import fit_noise
-from jaxcal.diagnosis.synthetic import ar1_noise
+from jaxcal.diagnosis.data.synthetic import ar1_noise
+from jaxcal.diagnosis.residuals.noise import NoiseModel, ar_rows, ljung_box_p, positions
+from jaxcal.diagnosis.residuals.noise_fit import fit_noise
 
 
 def _rows(units, length, rng, num_w=2):

@@ -19,9 +19,9 @@ import pytest
 
 import jaxcal
 from jaxcal.calibrators.front.carriers import unit_groups
-from jaxcal.diagnosis.extended import added_parameters, extension_json
-from jaxcal.diagnosis.kinds import build_library
-from jaxcal.diagnosis.units import UnitEffect
+from jaxcal.diagnosis.kinds.table import build_library
+from jaxcal.diagnosis.report.extended import added_parameters, extension_json
+from jaxcal.diagnosis.report.units import UnitEffect
 from jaxcal.models.extended import Added, build_extended, load_extended
 
 UNITS, ROWS, ONSET, STEP = 6, 100, 30, 1.5

@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 from statsmodels.tsa.arima_process import arma_acf
 
-from jaxcal.diagnosis.noise import MAX_ORDER, NoiseModel, positions
-from jaxcal.diagnosis.noise_fit import pair_counts, projection_bias
+from jaxcal.diagnosis.residuals.noise import MAX_ORDER, NoiseModel, positions
+from jaxcal.diagnosis.residuals.noise_fit import pair_counts, projection_bias
 
 
 def _noise(sigma, phi):

@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from jaxcal.diagnosis.residuals import autocorrelation, ljung_box, summarize_residuals
+from jaxcal.diagnosis.residuals.summaries import (
+    autocorrelation,
+    ljung_box,
+    summarize_residuals,
+)
 
 
 def test_autocorrelation_matches_hand_computation_within_units():

@@ -14,8 +14,8 @@ import pytest
 from test_units import NOISE, PUMP, STEPS, UNITS, pump
 
 from jaxcal.data.dataset import Dataset
+from jaxcal.diagnosis.data.synthetic import ar1_noise
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
-from jaxcal.diagnosis.synthetic import ar1_noise
 
 
 def _fleet(seed=0, carriers=(), step=0.0, leak_jump=0.0, onsets=None, phi=0.0):
@@ -110,7 +110,7 @@ def test_the_noise_is_refitted_to_the_rival_that_leaves_the_least_residual():
     never the basis."""
     from types import SimpleNamespace
 
-    from jaxcal.diagnosis.identify import Identification
+    from jaxcal.diagnosis.fitting.identify import Identification
     from jaxcal.diagnosis.pipeline import _winner_basis
 
     def entry(name, bic, lr, members=1):

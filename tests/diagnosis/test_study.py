@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from conftest import DECLARED
 
+from jaxcal.diagnosis.data.synthetic import kinds
 from jaxcal.diagnosis.pipeline import diagnose
-from jaxcal.diagnosis.synthetic import kinds
 
 
 @pytest.mark.slow

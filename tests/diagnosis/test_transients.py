@@ -15,11 +15,11 @@ import pytest
 
 from jaxcal.calibrators.front.outliers import robust_scale
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.cleaning import drop_outliers
-from jaxcal.diagnosis.fitting import fit_model
+from jaxcal.diagnosis.data.cleaning import drop_outliers
+from jaxcal.diagnosis.data.prepare import prepare_data
+from jaxcal.diagnosis.fitting.joint import fit_model
+from jaxcal.diagnosis.kinds.terms import ModelSpec
 from jaxcal.diagnosis.pipeline import LoopConfig
-from jaxcal.diagnosis.prepare import prepare_data
-from jaxcal.diagnosis.terms import ModelSpec
 from tests.support.reactor import MODEL, NOISE, reactor, small_fleet
 
 DECLARED = ("activity", "UA", "dH")

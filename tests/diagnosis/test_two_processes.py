@@ -1,5 +1,5 @@
 """The diagnosis on two ``jax.distributed`` processes on localhost (issue 43 item 2):
-the model's evaluations split by units (:mod:`jaxcal.diagnosis.sharding`), every
+the model's evaluations split by units (:mod:`jaxcal.diagnosis.data.sharding`), every
 process reaches the report of one process, to the last bit; process 0 alone writes.
 
 A static model through ``python -m jaxcal.diagnose --num-processes 2`` (600 rows: three
@@ -18,7 +18,7 @@ from support.processes import free_port, run_processes
 from test_diagnose_any_model import _write_csv
 
 from jaxcal.cli.diagnose import main, parse_args
-from jaxcal.diagnosis import sharding
+from jaxcal.diagnosis.data import sharding
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WORKER = os.path.join(HERE, "diagnose_worker.py")

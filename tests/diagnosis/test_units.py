@@ -16,12 +16,12 @@ import pytest
 
 import jaxcal
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.kinds import KINDS, Candidate
-from jaxcal.diagnosis.markdown import effect_line, fmt_p, fmt_std
+from jaxcal.diagnosis.kinds.table import KINDS, Candidate
 from jaxcal.diagnosis.pipeline import diagnose
-from jaxcal.diagnosis.plausibility import degradation_sign, plausibility_flags
-from jaxcal.diagnosis.report import write_report
-from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories, holm
+from jaxcal.diagnosis.report.markdown import effect_line, fmt_p, fmt_std
+from jaxcal.diagnosis.report.plausibility import degradation_sign, plausibility_flags
+from jaxcal.diagnosis.report.units import UnitEffect, UnitTrajectories, holm
+from jaxcal.diagnosis.report.write import write_report
 
 UNIT_KEYS = {"unit", "carries", "size", "size_std", "onset", "onset_ci"}
 

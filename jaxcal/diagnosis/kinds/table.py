@@ -11,14 +11,15 @@ An effect the model lacks is described by three independent choices:
   ``tau``, the time since the unit's first row per :data:`TAU_CYCLES` steps),
   ``step`` (zero before an onset, constant from it on; the onset is estimated per
   unit) or ``spline`` (a smooth per-unit function of time, :data:`candidate knots
-  <jaxcal.diagnosis.prepare.LoopData>`);
+  <jaxcal.diagnosis.data.prepare.LoopData>`);
 * a **form**: ``fleet`` (one value shared by every unit) or ``units`` (a value per
   unit, on the units that carry it; which units is chosen by the same criterion as
-  everything else, :mod:`.screen`).
+  everything else, :mod:`jaxcal.diagnosis.fitting.screen`).
 
 :class:`EffectKind` holds the rest of what a kind means: its natural step (the size
 of one fitted unit), its physical unit, the plausibility rules that apply to it
-(:mod:`.plausibility`), how a study draws its size (:mod:`.synthetic`) and how a
+(:mod:`jaxcal.diagnosis.report.plausibility`), how a study draws its size
+(:mod:`jaxcal.diagnosis.data.synthetic`) and how a
 report names it. :data:`KINDS` is the table; a new kind is one new entry.
 """
 
@@ -50,13 +51,15 @@ class EffectKind:
         fleet: True when the kind has a fleet-wide form; a spline or a step is per
             unit by nature (each unit its own trajectory or onset).
         phrase: how a report says it, ``{target}`` filled in.
-        rules: plausibility rules (:data:`.plausibility.FLAGS`) that apply.
+        rules: plausibility rules (:data:`jaxcal.diagnosis.report.plausibility.FLAGS`)
+        that apply.
         draw: how a study sizes it: ``natural`` (natural steps of the target),
             ``noise`` (noise std of the output), ``relative`` (noise std relative to
             the output's mean level) or ``spread`` (% of the condition's std).
         size_range: the default magnitude range of a drawn size, in ``draw`` units.
         min_effect: the smallest size a unit must show to be listed as carrying it,
-            in natural steps (:mod:`.units`). A parameter's is half a step: its
+            in natural steps (:mod:`jaxcal.diagnosis.report.units`). A parameter's is
+            half a step: its
             per-unit size is its change over the record, and a free parameter
             absorbs the declared ones' mismatch as a slow change of a few tenths of
             a step in every unit (NASA FD001, no fan fault: fan efficiency changed by

@@ -1,7 +1,9 @@
 """The fallback when the library does not explain the residual: a discrepancy delta(w).
 
-After the library is screened (:mod:`.identify`), a cross-validated ``delta(w)`` is
-fitted to the residual of the best model so far (:mod:`.discrepancy`, generalised
+After the library is screened (:mod:`jaxcal.diagnosis.fitting.identify`), a
+cross-validated ``delta(w)`` is
+fitted to the residual of the best model so far
+(:mod:`jaxcal.diagnosis.fitting.discrepancy`, generalised
 least squares under the noise model). If it is significant, the declared parameters
 and delta are fitted by backfitting (Hastie & Tibshirani), the library is screened
 again against that model, and three explanations are compared by one criterion:
@@ -16,15 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.diagnosis.discrepancy import (
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.discrepancy import (
     Discrepancy,
     fit_discrepancy,
     predict_discrepancy,
 )
-from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.identify import identify
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.screen import spec_for
+from jaxcal.diagnosis.fitting.identify import identify
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.screen import spec_for
 
 
 def whiten_normalised(data: LoopData):

@@ -1,6 +1,7 @@
 """A step's onset profiled at the fitted model, row by row.
 
-The screen (:mod:`.screen`) scans a step's onset on a grid of rows at the
+The screen (:mod:`jaxcal.diagnosis.fitting.screen`) scans a step's onset on a grid of
+rows at the
 declared-only fit. Both are approximations that matter for a large step: the grid
 (48 onsets per unit for a step through a model's states) misses the true row by up to
 half its spacing, and the linearisation at a point far from the truth biases the
@@ -28,11 +29,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.diagnosis.fitting import FitResult, evaluate_model
-from jaxcal.diagnosis.kinds import Candidate
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.signatures import Tangent, signatures
-from jaxcal.diagnosis.terms import layout
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult, evaluate_model
+from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
+from jaxcal.diagnosis.kinds.table import Candidate
+from jaxcal.diagnosis.kinds.terms import layout
 from jaxcal.model import Model
 
 ONSET_CI = 3.84  # chi2_1 95 % quantile, as the screen's interval

@@ -1,8 +1,10 @@
 """The human-readable page of a diagnosis (report.md).
 
-Pure text from the report dict of :mod:`.report` (no plotting). :func:`render_markdown`
+Pure text from the report dict of :mod:`jaxcal.diagnosis.report.write` (no plotting).
+:func:`render_markdown`
 assembles the page from one function per section; numbers and one-line summaries are
-worded by :mod:`.formatting` (re-exported here), so a console line (:mod:`jaxcal.cli.
+worded by :mod:`jaxcal.diagnosis.report.formatting` (re-exported here), so a console
+line (:mod:`jaxcal.cli.
 diagnose`, experiments/loop_cmapss.py) reads the same. Each added effect gets its
 per-unit table, carriers listed and the rest counted (:func:`_unit_table`).
 """
@@ -13,14 +15,14 @@ import math
 
 import numpy as np
 
-from jaxcal.diagnosis.formatting import (  # noqa: F401 (re-exported: the wording)
+from jaxcal.diagnosis.report.formatting import (  # noqa: F401 (re-exported: the wording)
     dropped_rows_line,
     effect_line,
     fmt_p,
     fmt_std,
     verdict_line,
 )
-from jaxcal.diagnosis.formatting import fmt_value as _fmt  # short: many cells
+from jaxcal.diagnosis.report.formatting import fmt_value as _fmt  # short: many cells
 
 MAX_UNIT_ROWS = 100  # carriers listed in report.md (all are in report.json)
 

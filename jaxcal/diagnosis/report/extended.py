@@ -13,7 +13,8 @@ effect's size in real time, per unit, like any other parameter:
   relative gain ``<output>_gain_error``: a drift is an offset that grows, a step one
   that jumps, and a real-time calibrator follows either as it happens.
 
-An effect carried by some units only (the per-unit form, :mod:`.units`) is added for
+An effect carried by some units only (the per-unit form,
+:mod:`jaxcal.diagnosis.report.units`) is added for
 its carriers: the units the verdict lists (``carries``; where none passes the
 per-unit test, the units the screen fitted it in), by their ids in the data
 (``units`` of :class:`~jaxcal.models.extended.Added`). Every other unit is
@@ -37,7 +38,7 @@ import os
 
 import numpy as np
 
-from jaxcal.diagnosis.kinds import natural_scale
+from jaxcal.diagnosis.kinds.table import natural_scale
 from jaxcal.model import Model
 from jaxcal.models.extended import FORMAT, Added, build_extended
 

@@ -1,6 +1,6 @@
 """The verdict per unit: each added effect's size, who carries it and from when.
 
-From the final fit (:mod:`.fitting`, prewhitened residual):
+From the final fit (:mod:`jaxcal.diagnosis.fitting.joint`, prewhitened residual):
 
 * **Size per unit.** A parameter that changes smoothly: its fitted trajectory
   ``theta_u(t) - nominal`` with standard errors from the unit's own block of the
@@ -18,13 +18,15 @@ From the final fit (:mod:`.fitting`, prewhitened residual):
   the screen chose for a per-unit one, each on its own data) whose effect passes the
   minimum-effect z-test ``H0: |size_u| <= delta`` against ``|size_u| > delta``,
   ``z_u = (|size_u| - delta) / std_u`` one-sided, ``delta`` the kind's minimum effect
-  in natural steps (:class:`.kinds.EffectKind` ``min_effect``), with Holm's step-down
+  in natural steps (:class:`jaxcal.diagnosis.kinds.table.EffectKind` ``min_effect``),
+  with Holm's step-down
   correction across the units at family-wise level ``alpha`` (Holm 1979). A listed
   unit is a claim about one engine: with probability at least ``1 - alpha`` no unit
   without an effect beyond ``delta`` is listed, and no unit whose own data do not
   show the effect is.
 * **Onset.** A step: the scanned onset and its 95 % profile-likelihood interval
-  (:mod:`.screen`). A smooth parameter: the first cycle from which its change since
+  (:mod:`jaxcal.diagnosis.fitting.screen`). A smooth parameter: the first cycle from
+  which its change since
   the first cycle stays beyond ``delta + z_band std(t)`` up to the unit's last cycle
   (``z_band`` the Bonferroni one-sided critical value at ``alpha / U``). A drift: the
   first cycle at which its accumulated change reaches one noise std of the sensor. A
@@ -39,11 +41,11 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats as sps
 
-from jaxcal.diagnosis.fitting import FitResult, gram_stats
-from jaxcal.diagnosis.kinds import Candidate
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.signatures import Tangent, signatures
-from jaxcal.diagnosis.terms import term_profile
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult, gram_stats
+from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
+from jaxcal.diagnosis.kinds.table import Candidate
+from jaxcal.diagnosis.kinds.terms import term_profile
 from jaxcal.model import Model
 
 _RIDGE = 1e-6  # as fitting._RIDGE: keeps a unit's empty knots finite

@@ -1,7 +1,7 @@
 """The extended model along a data set's rows and its signatures.
 
 Every candidate effect enters the model through one of the channels of
-:mod:`.kinds`. The extended model of a data set is, row by row,
+:mod:`jaxcal.diagnosis.kinds.table`. The extended model of a data set is, row by row,
 
     y_t = x_t (1 + m_t) + a_t,   x_t = F(w_t + o_t, theta_t, e_t)      (static)
     (z_t, x_t) = step(z_{t-1}, w_t + o_t, theta_t),  z_0 = init(...) + dz0   (memory)
@@ -14,7 +14,7 @@ spline function, on one unit or on all): a :class:`Tangent`. Its **signature** i
 ``dy/dcoefficient``, the column of the fit's Jacobian.
 
 A static model's signatures are products of per-row Jacobians
-(:mod:`.linearization`: ``jax.jacfwd`` with
+(:mod:`jaxcal.diagnosis.kinds.linearization`: ``jax.jacfwd`` with
 respect to all parameters, effects and offset conditions, one jitted function with a
 fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across processes) and
 the profiles; the last few points' Jacobians are reused (a refit starts where the
@@ -37,14 +37,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.diagnosis.kinds import offset_conditions
-from jaxcal.diagnosis.linearization import (  # noqa: F401 (CHUNK_ROWS, linearize: re-exported)
+from jaxcal.diagnosis.data.sharding import evaluate_split
+from jaxcal.diagnosis.kinds.linearization import (  # noqa: F401 (CHUNK_ROWS, linearize: re-exported)
     CHUNK_ROWS,
     Linearization,
     _linearized,
     linearize,
 )
-from jaxcal.diagnosis.sharding import evaluate_split
+from jaxcal.diagnosis.kinds.table import offset_conditions
 from jaxcal.model import Model
 from jaxcal.precision import require_x64
 
@@ -259,7 +259,7 @@ def signatures(
 
     Args:
         model: the model (float64 enabled by the caller).
-        data: the rows (:class:`~jaxcal.diagnosis.prepare.LoopData`).
+        data: the rows (:class:`~jaxcal.diagnosis.data.prepare.LoopData`).
         inputs: :class:`RowInputs`.
         tangents: the directions whose signatures are wanted.
         like: an earlier result at the same ``inputs``: a static model's Jacobians

@@ -11,7 +11,8 @@ done on the **prewhitened** residual (generalised least squares; Cochrane & Orcu
 1949, with the exact treatment of each unit's first rows of Prais & Winsten 1954 in
 its AR(p) form: the innovations algorithm, Brockwell & Davis 1991, sec. 5.2).
 
-The model is fitted to a calibration's residual by :mod:`.noise_fit`.
+The model is fitted to a calibration's residual by
+:mod:`jaxcal.diagnosis.residuals.noise_fit`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """How a diagnosis prints its numbers and its one-line summaries.
 
-Shared by the page (:mod:`.markdown`) and the console lines (:mod:`jaxcal.cli.diagnose`,
+Shared by the page (:mod:`jaxcal.diagnosis.report.markdown`) and the console lines
+(:mod:`jaxcal.cli.diagnose`,
 experiments/loop_cmapss.py), so both use the same wording. Numbers are printed so that
 they cannot mislead: a standard error that could not be estimated is "n/a", never "0"
 (:func:`fmt_std`); a p-value far in the tail is "< 1e-16", never "0" or a denormal

@@ -3,7 +3,8 @@
 A :class:`RankEntry` holds a candidate model's likelihood-ratio statistic against the
 declared-only fit, its chi2 p-value (finite far into the tail, :func:`log10_chi2_sf`)
 and its extended BIC, whose price counts the coefficients and the choice of carriers
-of a per-unit term (module docstring of :mod:`.identify`, step 3).
+of a per-unit term (module docstring of :mod:`jaxcal.diagnosis.fitting.identify`, step
+3).
 :func:`screened_singles` scores every candidate of the library in each of its forms at
 the declared-only fit (step 1); :func:`effect_sizes` reads the physical sizes of a
 refitted model's members.
@@ -18,10 +19,10 @@ import numpy as np
 from scipy import stats as sps
 from scipy.special import gammaln
 
-from jaxcal.diagnosis.fitting import FitResult
-from jaxcal.diagnosis.kinds import Candidate
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.screen import Screen
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult
+from jaxcal.diagnosis.fitting.screen import Screen
+from jaxcal.diagnosis.kinds.table import Candidate
 
 
 class RankEntry(NamedTuple):
@@ -120,7 +121,8 @@ def effect_sizes(fit: FitResult, members: Sequence[Candidate], data: LoopData):
 
 def screened_singles(screen: Screen, library, null, data, forms=("fleet", "units")):
     """Every library candidate in each of its forms, screened: ``(entries, onset
-    intervals of the steps, the near miss)`` (:class:`.identify.Identification`)."""
+    intervals of the steps, the near miss)``
+    (:class:`jaxcal.diagnosis.fitting.identify.Identification`)."""
     out, onset_ci, near = [], {}, ()
     for cand in library:
         if "units" not in forms and not cand.kind.fleet:

@@ -1,4 +1,5 @@
-"""Fitting the noise model of :mod:`.noise` to a calibration's residual.
+"""Fitting the noise model of :mod:`jaxcal.diagnosis.residuals.noise` to a
+calibration's residual.
 
 Estimation (:func:`fit_noise`):
 
@@ -24,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.diagnosis.noise import (
+from jaxcal.diagnosis.residuals.noise import (
     MAX_ORDER,
     WHITENESS_LAGS,
     NoiseModel,
@@ -225,7 +226,7 @@ def fit_noise(
 
     Args:
         resid: ``[N, S]`` residual ``x - xhat`` in output units, rows sorted by unit
-            and time (:class:`~jaxcal.diagnosis.prepare.LoopData` order).
+            and time (:class:`~jaxcal.diagnosis.data.prepare.LoopData` order).
         data: the rows (``w``, ``tau``, ``unit``, ``starts``, ``cycle``).
         sigma: a known marginal std ``[S]`` (only the colour is estimated).
         max_order: highest AR order (0: white noise and no HAC inflation either:

@@ -1,14 +1,19 @@
 """Joint Gauss–Newton fit of per-unit declared parameters and candidate effects.
 
-The model of a data set is the extended model of :mod:`.signatures` with the terms of
-a :class:`~.terms.ModelSpec`: per unit ``u`` the declared parameters
-``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time, :mod:`.prepare`;
+The model of a data set is the extended model of
+:mod:`jaxcal.diagnosis.kinds.signatures` with the terms of
+a :class:`~jaxcal.diagnosis.kinds.terms.ModelSpec`: per unit ``u`` the declared
+parameters
+``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
+:mod:`jaxcal.diagnosis.data.prepare`;
 ``scale`` the natural step), for a model with memory an offset of each unit's initial
-state, and the candidate effects (:mod:`.kinds`), each coefficient a column
-(:mod:`.terms`).
+state, and the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`), each coefficient
+a column
+(:mod:`jaxcal.diagnosis.kinds.terms`).
 
 The fit minimises the sum of squares of the **prewhitened** residual (the noise
-model's AR filter per output, :mod:`.noise`: generalised least squares), so its SSR is
+model's AR filter per output, :mod:`jaxcal.diagnosis.residuals.noise`: generalised least
+squares), so its SSR is
 ``-2 log L`` up to a constant and every likelihood-ratio statistic and standard error
 below accounts for the serial correlation of the noise. Levenberg–Marquardt (Nocedal &
 Wright 2006, sec. 10.3) with Marquardt damping ``lambda diag(J^T J)``: the damping's
@@ -21,7 +26,7 @@ own rows and to the shared ones. :func:`schur_solve` eliminates the unit blocks
 (Schur complement; Triggs et al. 2000, sec. 6.1), so a fit of 260 units costs 260 small
 solves plus one of the size of the shared part. The Jacobian blocks are stored per unit
 as Gram matrices (:class:`GramStats`), which also give the linearised likelihood ratio
-of any subset of columns at once (:mod:`.screen`).
+of any subset of columns at once (:mod:`jaxcal.diagnosis.fitting.screen`).
 """
 
 from __future__ import annotations
@@ -31,10 +36,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxcal.diagnosis.kinds import Candidate
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.signatures import RowInputs, Signatures, signatures
-from jaxcal.diagnosis.terms import (
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.kinds.signatures import RowInputs, Signatures, signatures
+from jaxcal.diagnosis.kinds.table import Candidate
+from jaxcal.diagnosis.kinds.terms import (
     Layout,
     ModelParams,
     ModelSpec,

@@ -120,5 +120,5 @@ def _wait_for_all() -> None:
 
     client = distributed.global_state.client
     if client is not None:
-        barrier = f"jaxcal.diagnosis.sharding.{next(_BARRIERS)}"
+        barrier = f"jaxcal.diagnosis.data.sharding.{next(_BARRIERS)}"
         client.wait_at_barrier(barrier, timeout_in_ms=WAIT_FOR_ALL_S * 1000)

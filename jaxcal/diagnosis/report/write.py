@@ -1,6 +1,7 @@
 """Write a diagnosis as ``report.json``, ``report.md`` and PNG figures (host-only leaf).
 
-The page's text is :mod:`.markdown`; this module builds the JSON and draws.
+The page's text is :mod:`jaxcal.diagnosis.report.markdown`; this module builds the JSON
+and draws.
 
 The JSON names the verdict, the identified effect(s) with their fitted sizes and
 standard errors, the ranking with its evidence (LR statistic, log10 p, BIC and delta
@@ -21,11 +22,11 @@ import os
 import numpy as np
 from matplotlib.figure import Figure
 
-from jaxcal.diagnosis.extended import added_parameters, write_extended
-from jaxcal.diagnosis.identify import Identification
-from jaxcal.diagnosis.markdown import render_markdown
+from jaxcal.diagnosis.fitting.identify import Identification
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
-from jaxcal.diagnosis.residuals import summary_table
+from jaxcal.diagnosis.report.extended import added_parameters, write_extended
+from jaxcal.diagnosis.report.markdown import render_markdown
+from jaxcal.diagnosis.residuals.summaries import summary_table
 from jaxcal.plotting import plot_stacked_traces, save_figure
 from jaxcal.runs.atomic import write_atomic
 
@@ -105,7 +106,7 @@ def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
     """The added effects with their fleet and per-unit verdicts."""
     from scipy import stats as sps
 
-    from jaxcal.diagnosis.units import units_json
+    from jaxcal.diagnosis.report.units import units_json
 
     z = float(sps.norm.isf(alpha / max(res.data.num_units, 1)))
     out = []

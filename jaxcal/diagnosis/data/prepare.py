@@ -1,7 +1,8 @@
 """The data as the diagnosis sees it: sorted rows, spline bases per unit, noise.
 
 :func:`prepare_data` turns a :class:`~jaxcal.data.dataset.Dataset` (time = cycle) and
-a :class:`~jaxcal.model.Model` into a :class:`~.loop_data.LoopData`: rows sorted by
+a :class:`~jaxcal.model.Model` into a
+:class:`~jaxcal.diagnosis.data.loop_data.LoopData`: rows sorted by
 (unit, time), an optional even subsample, the outputs of the residual ("sensors"), a
 clamped cubic B-spline basis in time for each unit (the declared parameters are
 ``theta_u(c) = nominal + scale sum_k B_k(c) a_uk``: time-varying, smooth, and cheap to
@@ -15,10 +16,12 @@ outside the model's valid range (by less than
 :data:`jaxcal.data.dataset.JITTER_FRACTION` of the range, e.g. Mach -0.0005 of a
 static point) is clipped onto the bound, and the note says so.
 
-Noise: a :class:`~jaxcal.diagnosis.noise.NoiseModel` per output, white at the known
+Noise: a :class:`~jaxcal.diagnosis.residuals.noise.NoiseModel` per output, white at the
+known
 std when given (synthetic data) or at the model's reference level
 (``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
-:func:`.noise.fit_noise` replaces it (level and AR colour) after a first calibration.
+:func:`jaxcal.diagnosis.residuals.noise.fit_noise` replaces it (level and AR colour)
+after a first calibration.
 
 Rows: a row with a non-finite condition is dropped and counted; a row with some
 outputs missing (NaN) is kept, its missing entries marked in ``observed`` and left out
@@ -35,9 +38,9 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from jaxcal.data.dataset import Dataset, clip_jitter
-from jaxcal.diagnosis.kinds import TAU_CYCLES
-from jaxcal.diagnosis.loop_data import LoopData
-from jaxcal.diagnosis.noise import NoiseModel
+from jaxcal.diagnosis.data.loop_data import LoopData
+from jaxcal.diagnosis.kinds.table import TAU_CYCLES
+from jaxcal.diagnosis.residuals.noise import NoiseModel
 from jaxcal.model import Model
 
 MIN_DISTINCT = 20  # fewer distinct values: a setting or a heavily rounded output
@@ -296,7 +299,8 @@ def _partial_rows_note(observed, chosen) -> list[str]:
 
 def _start_noise(model: Model, chosen, x, noise_std) -> NoiseModel:
     """White noise at the given std, or at the model's reference level (a share of
-    the mean ``|x|``) until :func:`.noise.fit_noise` estimates it."""
+    the mean ``|x|``) until :func:`jaxcal.diagnosis.residuals.noise.fit_noise`
+    estimates it."""
     if noise_std is None:
         rel = model.diagnosis.noise_rel or {}
         std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in chosen])

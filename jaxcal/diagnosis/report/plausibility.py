@@ -4,7 +4,7 @@ A library effect that lowers the BIC is not necessarily a physical explanation: 
 effect outside the library can be mimicked by one inside it (a hot inlet taken for a
 large LPC efficiency loss), and an added term can push the declared parameters the
 wrong way. Each check below is a rule stated on the final fit's per-unit values
-(:mod:`.units`); a triggered one becomes a flag in the verdict.
+(:mod:`jaxcal.diagnosis.report.units`); a triggered one becomes a flag in the verdict.
 
 * ``outside_bounds``: an added effect (or a per-unit parameter after the extension)
   whose value leaves the model's stated range (``Parameter.low/high`` of a parameter
@@ -37,9 +37,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats as sps
 
-from jaxcal.diagnosis.kinds import Candidate, natural_scale
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.units import UnitEffect, UnitTrajectories
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.kinds.table import Candidate, natural_scale
+from jaxcal.diagnosis.report.units import UnitEffect, UnitTrajectories
 from jaxcal.model import Model
 
 WORSE_FRACTION = 0.01  # relative increase of a sensor's RMSE that counts as worse
@@ -104,7 +104,8 @@ def plausibility_flags(
     Args:
         model, data: as in the diagnosis.
         declared: the declared parameters.
-        unit_effects: the per-unit verdicts of the added effects (:mod:`.units`).
+        unit_effects: the per-unit verdicts of the added effects
+        (:mod:`jaxcal.diagnosis.report.units`).
         members: the added effects (their kinds say which rules apply).
         effect_values: added effect name -> its fitted value(s) (physical units:
             one for a fleet-wide term, one per carrier for a per-unit one).

@@ -1,5 +1,5 @@
 """A static model's per-row Jacobians over a data set, for the diagnosis's signatures
-(:mod:`jaxcal.diagnosis.signatures`).
+(:mod:`jaxcal.diagnosis.kinds.signatures`).
 
 Forward derivatives along the directions a fit needs in (parameters, effects,
 offset conditions), in buckets of :data:`DIRECTION_BUCKET`, one jitted function with
@@ -32,8 +32,8 @@ import numpy as np
 from jaxcal.calibrators.programs.compiled import cached_value
 from jaxcal.calibrators.programs.on_disk import kept
 from jaxcal.calibrators.programs.traced_key import traced_key
-from jaxcal.diagnosis.kinds import offset_conditions
-from jaxcal.diagnosis.sharding import evaluate_split
+from jaxcal.diagnosis.data.sharding import evaluate_split
+from jaxcal.diagnosis.kinds.table import offset_conditions
 from jaxcal.diagnosis.timing import batch_progress
 from jaxcal.model import Model
 from jaxcal.precision import require_x64
@@ -162,7 +162,7 @@ def linearize(
         effects: ``[N, n_eff]`` registered-effect inputs (default zeros).
         w_offset: ``[N, W]`` condition offsets (default zeros); the Jacobian is taken
             for the conditions the model allows offsets on
-            (:func:`~jaxcal.diagnosis.kinds.offset_conditions`).
+            (:func:`~jaxcal.diagnosis.kinds.table.offset_conditions`).
         outputs: the model outputs kept (indices; default all): a fleet's rows
             times every output and parameter is the memory of the diagnosis, and
             its residual uses a few outputs.
@@ -300,7 +300,8 @@ def _basis(model: Model, offset_idx: tuple, directions):
 LINEARIZATIONS_KEPT = 4
 # An output-only evaluation whose inputs differ from a kept output-only one on at
 # most this share of the rows evaluates those rows alone and takes the others from
-# it. The onset polish of a step (:func:`.onsets.polish_onsets`) moves each
+# it. The onset polish of a step (:func:`jaxcal.diagnosis.kinds.onsets.polish_onsets`)
+# moves each
 # carrier's onset one row at a time and evaluates the fleet at every move: 45 % of
 # the evaluations of NASA FD002's first 30 units. A row's output does not depend on
 # the other rows of its chunk (the chunk is vmapped; bitwise the same, checked in
@@ -404,7 +405,7 @@ def _keep(key, lin: Linearization, w_digest, rows) -> _Kept:
 
 def remember(model, data, inputs, lin: Linearization) -> None:
     """Keep ``lin``, taken at ``inputs`` (a
-    :class:`~jaxcal.diagnosis.signatures.RowInputs`) on ``data``'s outputs, as if
+    :class:`~jaxcal.diagnosis.kinds.signatures.RowInputs`) on ``data``'s outputs, as if
     just linearised there: a fit started where an earlier one ended (the next noise
     pass's refit of the same entry) finds its first evaluation here."""
     rows = (inputs.theta, inputs.effects, inputs.w_offset)
@@ -415,7 +416,7 @@ def remember(model, data, inputs, lin: Linearization) -> None:
 
 def _linearized(model, data, inputs, directions) -> Linearization:
     """:func:`linearize` at ``inputs`` (a
-    :class:`~jaxcal.diagnosis.signatures.RowInputs`; the data's outputs) with at
+    :class:`~jaxcal.diagnosis.kinds.signatures.RowInputs`; the data's outputs) with at
     least the derivatives ``directions``, reused when the same point was linearised
     lately with them (the key is the inputs' bytes, not their identity), or pieced
     from a near one (:data:`PIECED_SHARE`)."""

@@ -35,11 +35,11 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaln
 
-from jaxcal.diagnosis.fitting import FitResult, GramStats, schur_solve
-from jaxcal.diagnosis.kinds import Candidate
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.signatures import Tangent, signatures
-from jaxcal.diagnosis.terms import ModelParams, ModelSpec, layout, term_profile
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult, GramStats, schur_solve
+from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
+from jaxcal.diagnosis.kinds.table import Candidate
+from jaxcal.diagnosis.kinds.terms import ModelParams, ModelSpec, layout, term_profile
 from jaxcal.model import Model
 
 ONSET_GRID = 128  # onsets scanned per unit (every row of a shorter unit)

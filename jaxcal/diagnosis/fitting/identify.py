@@ -1,6 +1,7 @@
 """Trace a residual to the library: screen every form, refit the finalists, rank.
 
-1. **Screen** (:mod:`.screen`): at the declared-only fit, every candidate in each of
+1. **Screen** (:mod:`jaxcal.diagnosis.fitting.screen`): at the declared-only fit, every
+candidate in each of
    its forms — fleet-wide (one value) and in the units that carry it (the carriers and,
    for a step, the onsets chosen by the screen) — and every pair of the best
    ``pair_top`` whose members do not reproduce each other's signature is scored by the
@@ -28,7 +29,7 @@
    theta instead of showing in the residual.
 
 An entry's evidence (price, p-value, BIC) and the screening of step 1 are in
-:mod:`.ranking`.
+:mod:`jaxcal.diagnosis.fitting.ranking`.
 """
 
 from __future__ import annotations
@@ -40,19 +41,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.kinds import Candidate, nests
-from jaxcal.diagnosis.linearization import remember
-from jaxcal.diagnosis.onsets import polish_onsets, refine_onsets
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.ranking import (  # noqa: F401 (log10_chi2_sf: re-exported)
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.ranking import (  # noqa: F401 (log10_chi2_sf: re-exported)
     RankEntry,
     effect_sizes,
     log10_chi2_sf,
     rank_entry,
     screened_singles,
 )
-from jaxcal.diagnosis.screen import (
+from jaxcal.diagnosis.fitting.screen import (
     ONSET_GRID,
     ONSET_GRID_DYNAMIC,
     Screen,
@@ -60,7 +58,10 @@ from jaxcal.diagnosis.screen import (
     spec_for,
     warm_from,
 )
-from jaxcal.diagnosis.terms import model_inputs
+from jaxcal.diagnosis.kinds.linearization import remember
+from jaxcal.diagnosis.kinds.onsets import polish_onsets, refine_onsets
+from jaxcal.diagnosis.kinds.table import Candidate, nests
+from jaxcal.diagnosis.kinds.terms import model_inputs
 from jaxcal.model import Model
 
 ONSET_ROUNDS = 2  # profile a step's onsets at the fit, refit when one moved
@@ -111,7 +112,8 @@ class Identification(NamedTuple):
 
 def _profile_onsets(model, data, declared, members, fit, offset, cfg):
     """``(members, fit, intervals)`` with every per-unit step's onsets profiled at
-    the fitted point (:mod:`.onsets`) and the model refitted when one moved."""
+    the fitted point (:mod:`jaxcal.diagnosis.kinds.onsets`) and the model refitted
+    when one moved."""
     steps = [i for i, c in enumerate(members)
              if c.kind.profile == "step" and c.per_unit]  # fmt: skip
     intervals = {}
@@ -311,7 +313,7 @@ def identify(
         model: the model.
         data: the rows (with their noise model).
         declared: the calibrated parameters.
-        library: candidate effects (:func:`.kinds.build_library`).
+        library: candidate effects (:func:`jaxcal.diagnosis.kinds.table.build_library`).
         cfg: settings.
         null: the declared-only fit (the "before" calibration).
         offset: a fixed discrepancy term included in every refit (output units).

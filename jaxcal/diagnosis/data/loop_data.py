@@ -1,5 +1,5 @@
 """The diagnosis's view of a data set: :class:`LoopData`, built by
-:func:`jaxcal.diagnosis.prepare.prepare_data`.
+:func:`jaxcal.diagnosis.data.prepare.prepare_data`.
 
 Rows sorted by (unit, time) with their spline bases, the outputs of the residual, the
 noise model, and what cleaning did; the copies the loop makes (other noise, fewer rows,
@@ -13,7 +13,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from jaxcal.diagnosis.noise import NoiseModel, positions
+from jaxcal.diagnosis.residuals.noise import NoiseModel, positions
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -35,7 +35,8 @@ class LoopData:
             declared parameters).
         basis_candidate: ``[N, Kc]`` the smaller basis of candidate (undeclared)
             parameters: fewer functions, fewer degrees of freedom to pay for in BIC.
-        noise: the :class:`~jaxcal.diagnosis.noise.NoiseModel` (``noise_std`` is
+        noise: the :class:`~jaxcal.diagnosis.residuals.noise.NoiseModel` (``noise_std``
+        is
             its marginal std ``[S]``, ``noise_source`` how it was obtained).
         observed: ``[N, S]`` bool, False where an output is missing in a row.
         theta_true: ``[N, len(theta_names)]`` ground truth or ``None``.
@@ -95,7 +96,8 @@ class LoopData:
 
     def whiten(self, arr: np.ndarray) -> np.ndarray:
         """Prewhiten and standardise ``arr [N, S, ...]`` (output units) with the
-        noise model (:meth:`~jaxcal.diagnosis.noise.NoiseModel.whiten`); missing
+        noise model (:meth:`~jaxcal.diagnosis.residuals.noise.NoiseModel.whiten`);
+        missing
         outputs count as zero."""
         arr = np.asarray(arr, np.float64)
         mask = self.observed.reshape(self.observed.shape + (1,) * (arr.ndim - 2))

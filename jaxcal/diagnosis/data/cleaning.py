@@ -64,8 +64,8 @@ from jaxcal.calibrators.front.outliers import (
     outlier_rows,
     robust_scale,
 )
-from jaxcal.diagnosis.fitting import FitResult, fit_model
-from jaxcal.diagnosis.prepare import LoopData
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
 
 OUTLIER_ROUNDS = 4  # refits of the iterated rejection of wild readings
 NEIGHBOURS = 2  # rows on each side whose median a reading is compared with
@@ -237,7 +237,8 @@ def drop_outliers(model, data: LoopData, spec0, null: FitResult, cfg):
     :data:`OUTLIER_ROUNDS` refits).
 
     Those refits weigh each output by its own spread when the noise is the
-    provisional reference level (1 % of the mean ``|x|``, :mod:`.prepare`), not a
+    provisional reference level (1 % of the mean ``|x|``,
+    :mod:`jaxcal.diagnosis.data.prepare`), not a
     given or estimated one: weighted by the reference, a fit can trade one output
     for another (the reactor's temperature, 3.5 K for a 0.25 K sensor, was nearly
     unweighted and the heat transfer came out 30 % off), and that fit's misfit at

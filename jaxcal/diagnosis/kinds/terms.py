@@ -1,11 +1,14 @@
 """What a fit moves: the declared parameters and the candidate terms, as columns.
 
 A :class:`ModelSpec` names the declared parameters (a B-spline in time per unit,
-:mod:`.prepare`), for a model with memory an offset of each unit's initial state, and
-the candidate effects (:mod:`.kinds`: a ``fleet`` term has one coefficient shared by
+:mod:`jaxcal.diagnosis.data.prepare`), for a model with memory an offset of each unit's
+initial state, and
+the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`: a ``fleet`` term has one
+coefficient shared by
 all units, a ``units`` term one, or ``Kc`` for a smoothly changing parameter, per
 carrying unit). Every coefficient moves one channel of the extended model along its
-profile in time: a :class:`~.signatures.Tangent`. :func:`layout` lists them, local
+profile in time: a :class:`~jaxcal.diagnosis.kinds.signatures.Tangent`. :func:`layout`
+lists them, local
 (per unit) first, then shared; :func:`model_inputs` turns coefficients into the
 extended model's row inputs; :func:`num_params` and :func:`selection_penalty` are what
 the extended BIC charges for them.
@@ -20,9 +23,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaln
 
-from jaxcal.diagnosis.kinds import Candidate, natural_scale
-from jaxcal.diagnosis.prepare import LoopData
-from jaxcal.diagnosis.signatures import RowInputs, Tangent, zero_inputs
+from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.kinds.signatures import RowInputs, Tangent, zero_inputs
+from jaxcal.diagnosis.kinds.table import Candidate, natural_scale
 from jaxcal.model import Model
 
 STATE_STEP = 0.01  # natural step of an initial-state offset: 1 % of the state's size
@@ -34,7 +37,8 @@ class ModelSpec:
 
     Attributes:
         declared: the declared parameters, fitted per unit as splines.
-        terms: candidate effects (each in its form, :class:`~.kinds.Candidate`).
+        terms: candidate effects (each in its form,
+        :class:`~jaxcal.diagnosis.kinds.table.Candidate`).
         initial_state: a model with memory: fit an offset of each unit's initial
             state (its data may not start where the model's ``init`` puts it).
     """

@@ -24,7 +24,8 @@ that input is dropped from the full delta (ablation). With discrete operating co
 ``dependence`` is the informative one.
 
 Coloured noise: when the residual's noise is serially correlated (an AR(p) model per
-output, :mod:`.noise`), the regression is generalised least squares, the response and
+output, :mod:`jaxcal.diagnosis.residuals.noise`), the regression is generalised least
+squares, the response and
 the design whitened per output (``whiten``), so the cross-validated gain and its
 threshold are those of independent rows.
 """

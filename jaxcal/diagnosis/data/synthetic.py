@@ -3,7 +3,8 @@
 A *scenario* supplies the clean rows: conditions, all parameters (the declared ones
 drifting with a per-row health index), unit and cycle (e.g.
 :func:`jaxcal.models.turbofan_scenario.make_scenario` flies N-CMAPSS-like lives). This
-module switches one effect on in the extended model of :mod:`.signatures`, on every
+module switches one effect on in the extended model of
+:mod:`jaxcal.diagnosis.kinds.signatures`, on every
 unit or only on some (``carriers``), adds Gaussian noise at the model's reference
 relative level per output (``DiagnosisHints.noise_rel``, times ``noise_scale``), white
 or AR(1)-coloured along each unit's rows (``noise_ar``), and returns a
@@ -11,7 +12,8 @@ or AR(1)-coloured along each unit's rows (``noise_ar``), and returns a
 unit by unit from its initial state, the effect acting through the states.
 
 Effect kinds (:func:`kinds`; how each enters the model and is sized comes from the
-table of :mod:`.kinds`), drawn from ``SyntheticConfig.sizes`` (magnitude uniform in the
+table of :mod:`jaxcal.diagnosis.kinds.table`), drawn from ``SyntheticConfig.sizes``
+(magnitude uniform in the
 range, sign as noted; defaults :func:`default_sizes`):
 
 * ``none``: the clean data (false-alarm runs);
@@ -41,10 +43,15 @@ import jax
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.kinds import KINDS, TAU_CYCLES, natural_scale, offset_conditions
-from jaxcal.diagnosis.prepare import DEFAULT_NOISE_REL
-from jaxcal.diagnosis.signatures import signatures, zero_inputs
-from jaxcal.diagnosis.synthetic_effects import add_bump, apply_effect, kind_of
+from jaxcal.diagnosis.data.prepare import DEFAULT_NOISE_REL
+from jaxcal.diagnosis.data.synthetic_effects import add_bump, apply_effect, kind_of
+from jaxcal.diagnosis.kinds.signatures import signatures, zero_inputs
+from jaxcal.diagnosis.kinds.table import (
+    KINDS,
+    TAU_CYCLES,
+    natural_scale,
+    offset_conditions,
+)
 from jaxcal.model import Model
 from jaxcal.typedefs import PRNGKey
 
@@ -66,7 +73,8 @@ def kinds(model: Model) -> tuple[str, ...]:
 def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
     """kind -> ((low, high) magnitude, sign); sign +1, -1 or 0 (random).
 
-    From the kinds table (:mod:`.kinds`: natural steps, noise std, noise std relative
+    From the kinds table (:mod:`jaxcal.diagnosis.kinds.table`: natural steps, noise std,
+    noise std relative
     to the level, % of a condition's spread); registered effects in their own units
     (0.5 to 2 natural steps); the discrepancy bump 3 to 6 noise std.
     """
@@ -150,7 +158,8 @@ class SyntheticData(NamedTuple):
 
 
 class _Rows(NamedTuple):
-    """The minimum :func:`~.signatures.signatures` needs of a data set."""
+    """The minimum :func:`~jaxcal.diagnosis.kinds.signatures.signatures` needs of a
+    data set."""
 
     w: np.ndarray
     sensor_idx: np.ndarray

@@ -1,21 +1,22 @@
 """How one effect is switched on in the rows of a synthetic data set.
 
-:func:`apply_effect` puts an effect of the library (:mod:`.kinds`) into the extended
+:func:`apply_effect` puts an effect of the library (:mod:`jaxcal.diagnosis.kinds.table`)
+into the extended
 model's inputs, sized in physical units; :func:`add_bump` adds the effect outside the
 library, the discrepancy bump ``A sigma exp(-((w_c - c0) / width)^2)`` on one output
-(:mod:`.synthetic`).
+(:mod:`jaxcal.diagnosis.data.synthetic`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.diagnosis.kinds import KINDS, natural_scale
+from jaxcal.diagnosis.kinds.table import KINDS, natural_scale
 from jaxcal.model import Model
 
 
 def kind_of(model: Model, label: str):
-    """The :data:`~jaxcal.diagnosis.kinds.KINDS` entry of a study label."""
+    """The :data:`~jaxcal.diagnosis.kinds.table.KINDS` entry of a study label."""
     if label in KINDS:
         return KINDS[label]
     if label in [e.name for e in model.effects]:
@@ -30,7 +31,8 @@ def apply_effect(model, kind, tgt, size, parameter_physical, inputs, on, step_on
     Args:
         kind, tgt, size: the effect, its target and its size in the units of
             ``SyntheticConfig.sizes`` (``parameter_physical`` as there).
-        inputs: the extended model's row inputs (:func:`.signatures.zero_inputs`).
+        inputs: the extended model's row inputs
+        (:func:`jaxcal.diagnosis.kinds.signatures.zero_inputs`).
         on: ``[N]`` bool, the carriers' rows; step_on: ``[N]`` after a step's onset;
             tau: ``[N]`` drift time; health: ``[N]`` health index.
         std, level: ``[S]`` noise std and mean ``|x|`` of the outputs ``sensors``.
