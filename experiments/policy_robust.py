@@ -23,7 +23,7 @@ variant is one ``python -m jaxcal.train`` with the default preset and:
   explains), untrained, with the default training, and with ``effects``;
 * ``tune``, ``tune_effects``, ``rl_tune_effects``: ``tune.steps=<tune>`` (the kept
   actor tuned by gradient through the deployed filter on simulated units' theta
-  error, :mod:`jaxcal.training.tune_stage`) from the untrained start, the same with
+  error, :mod:`jaxcal.training.stages.tune`) from the untrained start, the same with
   ``effects``, and after the default training with ``effects``;
 * ``balanced``: the default with ``tune.effects=<effects>`` (a share of the tuning
   units with effects, the score half clean, half effects, clean not above the

@@ -86,7 +86,7 @@ class Problem:
         theta_low, theta_high: ``[P]`` box of the calibrated parameters.
         norm: training :class:`Normalisation` (float64 arrays; a training run's is
             computed in the run's dtype and carried unchanged:
-            :func:`jaxcal.training.calibration_data.training_norm`).
+            :func:`jaxcal.training.data.calibration.training_norm`).
         noise_std: ``[S]`` measurement noise std per used output.
         input_range: training :class:`InputRange` (flags far-out samples).
         noise_source: ``"given"`` or how it was estimated.

@@ -20,7 +20,7 @@ from jaxcal.envs.tracking import make_env_params, make_tracking_env
 from jaxcal.problem import Normalisation
 from jaxcal.training.components import make_agent
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data import load_calibration_data
+from jaxcal.training.data.ncmapss import load_calibration_data
 from jaxcal.training.pipeline import run_training
 from jaxcal.training.runner import evaluate_policy
 

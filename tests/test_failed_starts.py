@@ -23,8 +23,8 @@ from jaxcal.data.ncmapss_writer import NCMAPSSWriter
 from jaxcal.runs.atomic import host_tag, make_temp, release_temp, write_atomic
 from jaxcal.runs.folder import check_run_dir
 from jaxcal.settings import check_output_path, config_to_dict
-from jaxcal.training import run_data
 from jaxcal.training.config import resolve_config
+from jaxcal.training.data import run as run_data
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -136,7 +136,7 @@ def _split_units(run, split: str, data: str | None):
     problem = run.problem
     if data is not None:
         from jaxcal.data.readers import read_dataset
-        from jaxcal.training.tables import pad_units
+        from jaxcal.training.data.tables import pad_units
 
         rows = read_dataset(data, problem.model).for_model(
             problem.model, problem.output_names
@@ -171,7 +171,7 @@ def evaluate_run(
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
-    from jaxcal.training.scoring import score_units
+    from jaxcal.training.scoring.trajectories import score_units
 
     run = load_run(run_dir, trust_code=trust_code)
     units = _split_units(run, split, data)
@@ -218,7 +218,7 @@ def evaluate_run(
 
 def format_report(report: dict) -> str:
     """Human-readable summary of :func:`evaluate_run`."""
-    from jaxcal.training.scoring import describe_units
+    from jaxcal.training.scoring.trajectories import describe_units
 
     dep = report["deployment"]
     lat = dep["single_stream_latency_s"]

@@ -52,7 +52,7 @@ import time
 
 from jaxcal.cli.args import parse_command_line
 from jaxcal.training.config import TrainConfig, resolve_config
-from jaxcal.training.scoring import describe_units
+from jaxcal.training.scoring.trajectories import describe_units
 
 USAGE = (
     "usage: python -m jaxcal.train dataset=cmapss|agtf30|ncmapss|tiny | "

@@ -9,7 +9,7 @@ float32: float64 is switched on for the generation only (``with
 jax.enable_x64(True)``), so nothing of it leaks into the caller; the engine is loaded
 inside that scope, so its design constants take the float64 dtype. ``python -m
 jaxcal.generate`` (:mod:`jaxcal.cli.generate`) and the training job's missing data
-file (:func:`jaxcal.training.run_data.ensure_data_file`) both call it.
+file (:func:`jaxcal.training.data.run.ensure_data_file`) both call it.
 """
 
 from __future__ import annotations

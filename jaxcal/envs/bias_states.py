@@ -12,7 +12,7 @@ conditions that move and make theta's effect move with them while the bias stays
 The price is the other way round: where ``v`` is large, a change of theta is read
 in part as a bias, and clean data lose. ``v`` is therefore not set by hand but
 fitted, per output, by the tuning through the filter (``tune.bias``,
-:mod:`jaxcal.training.tune_stage`): the untrained policy has no bias states (the
+:mod:`jaxcal.training.stages.tune`): the untrained policy has no bias states (the
 filter as before, bit for bit), and the tuning starts them at a walk that changes
 nothing (:data:`START_WALK`) and keeps what the simulated units with and without
 undeclared effects agree on.

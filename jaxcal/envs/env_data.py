@@ -37,7 +37,7 @@ class EnvParams:
             absolute actions.
         x_target: [U, T, S] what the cost compares the prediction with; ``None``:
             the observations ``x``. Simulated units carry their noise-free outputs
-            here (:mod:`jaxcal.training.simulated`): the cost of a noisy target
+            here (:mod:`jaxcal.training.data.simulated`): the cost of a noisy target
             stops rewarding precision at the noise level, the clean one does not.
         x_noise: [S] the problem's measurement noise std (output units), which the
             filter step of ``EnvConfig.gn_filter`` weighs the outputs by; ``None``

@@ -143,7 +143,7 @@ def filter_feature(
     the UKF's ``theta_scale``) with a random walk ``q`` per sample (default
     :data:`FILTER_Q`, the UKF's) and
     the noise ``params.x_noise`` ``[S]`` (output units; what the training passes,
-    ``jaxcal.training.train_env.training_env_params``):
+    ``jaxcal.training.data.train_env.training_env_params``):
     ``P- = P + q^2 I``, ``S = J P- J^T + R``, ``K = P- J^T S^-1``, the step ``K r``
     and ``P = (I - K J) P- (I - K J)^T + K R K^T`` (the Joseph form, which keeps
     ``P`` symmetric positive definite in float32), Särkkä (2013), "Bayesian

@@ -3,7 +3,8 @@
 :func:`evaluate_method` runs a :class:`~jaxcal.paper.methods.Method` through every
 unit of a split (its jitted fleet runner: ``lax.scan`` over time, ``vmap`` over units),
 with the model perturbation of the paper's robustness tables if asked, and returns
-the scores of :func:`jaxcal.training.scoring.score_units` (theta RMSE pooled and per
+the scores of :func:`jaxcal.training.scoring.trajectories.score_units` (theta RMSE
+pooled and per
 parameter, tracking RMSE normalised by the training std and in sensor units) plus
 per-unit theta RMSE and the cost of the run:
 
@@ -35,7 +36,7 @@ from jaxcal.calibrators.interface import Calibrator, count_reasons
 from jaxcal.data.padded import Padded
 from jaxcal.paper.methods import Method
 from jaxcal.problem import Problem
-from jaxcal.training.scoring import score_units, theta_rmse
+from jaxcal.training.scoring.trajectories import score_units, theta_rmse
 
 Z90 = 1.6449  # two-sided 90 % quantile of the standard normal
 

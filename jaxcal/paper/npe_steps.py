@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from jaxcal.paper import npe
-from jaxcal.training.scoring import theta_rmse
+from jaxcal.training.scoring.trajectories import theta_rmse
 
 STEPS = ("fit-ds1-NPE", "eval-ds1-NPE-clean", "latency-ds1-NPE")
 

@@ -2,7 +2,7 @@
 
 A :class:`Suite` holds everything the evaluation steps of one data set share, loaded
 once and kept: the splits as the reference policy run read them (same sensors,
-parameters, validation units and stride, :func:`jaxcal.training.data.
+parameters, validation units and stride, :func:`jaxcal.training.data.ncmapss.
 load_calibration_data`), their :class:`~jaxcal.problem.Problem`, the engine
 and the built methods. Its step functions return JSON-ready dicts:
 
@@ -56,7 +56,7 @@ from jaxcal.paper.simulate import (
 from jaxcal.paper.steps import load_params, save_params
 from jaxcal.physics.engine import ENVELOPES
 from jaxcal.runs.folder import DATA_FILE, read_json
-from jaxcal.training.data import load_calibration_data
+from jaxcal.training.data.ncmapss import load_calibration_data
 
 
 @dataclasses.dataclass(frozen=True)

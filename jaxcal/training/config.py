@@ -346,7 +346,7 @@ def make_train_config(dataset: str = "cmapss", preset: str = "default") -> Train
 def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     """The ``default`` preset on any model's data (the ``file`` preset): the labels
     only score and the model makes the labelled units the run needs
-    (:mod:`jaxcal.training.simulated`).
+    (:mod:`jaxcal.training.data.simulated`).
 
     The box is the model's bounds and a deployed policy starts from the model's
     nominal values, as the UKF does; the policy trains on the training units and on

@@ -201,7 +201,7 @@ class BudgetConfig:
     # "val_tracking": the one with the lowest validation *tracking* RMSE among the
     # scored chunks (label-free early stopping: theta labels are never used).
     # "sim_theta": the lowest theta RMSE (in box widths) on units simulated along the
-    # validation units' conditions (jaxcal.training.simulated; no label either).
+    # validation units' conditions (jaxcal.training.data.simulated; no label either).
     select: Literal["last", "val_tracking", "sim_theta"] = "val_tracking"
     # Early stopping: the session ends after this many scored chunks in a row that
     # do not lower the selection's score (scored every eval_every chunks; None:
@@ -255,7 +255,7 @@ class BudgetConfig:
 @dataclasses.dataclass(frozen=True)
 class SimulationConfig:
     """Units simulated from the model wherever a run needs true theta
-    (:mod:`jaxcal.training.simulated`): the user's labels are for scoring only."""
+    (:mod:`jaxcal.training.data.simulated`): the user's labels are for scoring only."""
 
     # what the policy trains on: "data" (the training units, cost on their noisy
     # outputs), "simulated" (simulated copies of them, cost on the noise-free
@@ -270,16 +270,16 @@ class SimulationConfig:
     band: Literal["auto", "simulated", "labelled"] = "auto"
     band_copies: int = 8  # simulated copies of each validation unit for the band
     # the theta paths of the units the band is fitted and the policy selected on:
-    # "box" (drawn across the box, jaxcal.training.sim_paths.theta_paths) or "data"
+    # "box" (drawn across the box, jaxcal.training.data.sim_paths.theta_paths) or "data"
     # (the UKF's estimates on the training and validation units, smoothed:
-    # jaxcal.training.sim_paths.estimated_drifts)
+    # jaxcal.training.data.sim_paths.estimated_drifts)
     paths: Literal["box", "data"] = "box"
     # the log cost's floor when training on simulated units: "noise" (the noise
     # std's RMS in the cost's normalised units) or "env" (env.cost_floor as given)
     cost_floor: Literal["noise", "env"] = "env"
     # share of the simulated training units that carry one undeclared effect on
     # their outputs (a sensor bias, step, drift, gain error or AR(1)-coloured
-    # noise, 1-4 noise stds: jaxcal.training.sim_effects), their cost still on the
+    # noise, 1-4 noise stds: jaxcal.training.data.sim_effects), their cost still on the
     # noise-free outputs: the policy learns to hold under model error. 0: none
     effects: float = 0.0
 
@@ -319,7 +319,7 @@ class SimulationConfig:
 class TuneConfig:
     """The kept actor tuned by gradient through the deployed filter on simulated
     units' theta error, kept where the selection units agree
-    (:mod:`jaxcal.training.tune_stage`). It does not change the actor-critic's
+    (:mod:`jaxcal.training.stages.tune`). It does not change the actor-critic's
     training, so a run may be resumed with other values."""
 
     steps: int = 0  # Adam steps (0: off)

@@ -1,7 +1,7 @@
 """The policy of a training run: trained with its deployable checkpoints, and the
 one the run keeps.
 
-:func:`train_kept_policy` runs the host loop (:func:`jaxcal.training.policy_stage.
+:func:`train_kept_policy` runs the host loop (:func:`jaxcal.training.stages.policy.
 train_policy`) with the run's budget. Besides the runner checkpoints, every
 checkpoint step saves the deployable
 :class:`~jaxcal.calibrators.methods.policy.calibrator.
@@ -25,9 +25,9 @@ from jaxcal.envs.tracking import EnvParams
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_BEST_DIR, POLICY_DIR
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.policy_scoring import PolicyScoring
-from jaxcal.training.policy_stage import ChunkScoring, PolicyResult, train_policy
 from jaxcal.training.runner import initial_agent_state
+from jaxcal.training.scoring.policy import PolicyScoring
+from jaxcal.training.stages.policy import ChunkScoring, PolicyResult, train_policy
 from jaxcal.typedefs import PRNGKey
 
 
@@ -35,7 +35,7 @@ class KeptPolicy(NamedTuple):
     """What :func:`train_kept_policy` trained and kept.
 
     Attributes:
-        result: the host loop's :class:`~jaxcal.training.policy_stage.PolicyResult`.
+        result: the host loop's :class:`~jaxcal.training.stages.policy.PolicyResult`.
         last: the deployable policy of the last chunk.
         selected: the policy the run keeps (``last`` without selection).
         selected_step: its chunk.
@@ -47,7 +47,7 @@ class KeptPolicy(NamedTuple):
             otherwise.
         val_out: the selected policy's run over the validation units, made when
             its chunk was scored in this session (``None``: not kept), for the
-            band (:func:`jaxcal.training.uncertainty_stage.band_runs`).
+            band (:func:`jaxcal.training.stages.uncertainty.band_runs`).
     """
 
     result: PolicyResult
@@ -81,7 +81,7 @@ def train_kept_policy(
         run_dir: the run folder.
         parts: the run's components (environment, agent, jitted chunk).
         train_params: the training units' :class:`EnvParams`.
-        scoring: the run's :class:`~jaxcal.training.policy_scoring.PolicyScoring`.
+        scoring: the run's :class:`~jaxcal.training.scoring.policy.PolicyScoring`.
         has_val: whether the run has validation units.
         target: the validation theta RMSE of time to target (``None``: not
             reported).

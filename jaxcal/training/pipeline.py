@@ -10,23 +10,23 @@
    (:func:`jaxcal.data.generation.generate_dataset`, a function call whose float64
    scope does not leak into training), then the train / val / test units and the one
    :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
-   file through :mod:`jaxcal.training.data`, any model's rows through
-   :mod:`jaxcal.training.tables`), with the run's one normalisation, computed there
+   file through :mod:`jaxcal.training.data.ncmapss`, any model's rows through
+   :mod:`jaxcal.training.data.tables`), with the run's one normalisation, computed there
    in the run's dtype (:func:`run_dtype`) and carried unchanged to the
    environment, the deployed policy and ``data.json``. Only then, every check of
    the config and the data passed, is the run folder created with its
    ``config.json`` (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that
    fails leaves nothing behind that would block the corrected command;
 3. the surrogate D is fitted on the training units' transitions or restored
-   (:mod:`jaxcal.training.surrogate_stage`); ``dynamics=physics`` skips it; data
+   (:mod:`jaxcal.training.stages.surrogate`); ``dynamics=physics`` skips it; data
    without true theta fit it on units simulated from the model
-   (:mod:`jaxcal.training.simulated`, which makes every labelled unit a run needs:
+   (:mod:`jaxcal.training.data.simulated`, which makes every labelled unit a run needs:
    the user's labels only score);
 4. the policy learns on the training units' (w, x) only, no theta label (the
-   environment's parameters: :mod:`jaxcal.training.train_env`; the host loop:
-   :mod:`jaxcal.training.policy_stage`, with the deployable checkpoints and the
+   environment's parameters: :mod:`jaxcal.training.data.train_env`; the host loop:
+   :mod:`jaxcal.training.stages.policy`, with the deployable checkpoints and the
    selection of :mod:`jaxcal.training.kept_policy` and the scores of
-   :mod:`jaxcal.training.policy_scoring`); a model with memory trains on its own
+   :mod:`jaxcal.training.scoring.policy`); a model with memory trains on its own
    step (``dynamics=physics``), the environment carrying its state, and episodes
    start from the reference state track
    (:func:`jaxcal.envs.memory.reference_states`: the model run along each unit with
@@ -42,11 +42,11 @@
    over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
    time, updates/s and env steps/s, the time to target (plus, for transparency, the
    scores of the last policy and of the last online actor;
-   :mod:`jaxcal.training.final_report`);
+   :mod:`jaxcal.training.scoring.final_report`);
 6. the kept policy's run over simulated units (or the labelled validation units,
    ``simulate.band``) fits its split-conformal theta band, written to
    ``uncertainty.json``; ``final.json`` gets the band's 90 % coverage on the test
-   units (:mod:`jaxcal.training.uncertainty_stage`) and what was simulated with
+   units (:mod:`jaxcal.training.stages.uncertainty`) and what was simulated with
    which noise (``simulated``).
 
 ``simulate.train=simulated`` (the default preset on any model's data) trains the
@@ -93,28 +93,28 @@ from jaxcal.training.components import (
     make_components,
 )
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData
-from jaxcal.training.final_report import final_report, with_tuning
-from jaxcal.training.kept_policy import train_kept_policy
-from jaxcal.training.model_source import (
-    check_source_unchanged,
-    model_source,
-    store_model_source,
-)
-from jaxcal.training.policy_scoring import make_policy_scoring
-from jaxcal.training.run_data import (  # noqa: F401 (re-exported)
+from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.run import (  # noqa: F401 (re-exported)
     GenerationError,
     ensure_data_file,
     model_spec,
     read_run_data,
     run_dtype,
 )
-from jaxcal.training.scoring import describe_units
-from jaxcal.training.simulated import Simulations, parse_noise
-from jaxcal.training.surrogate_stage import fit_or_restore_surrogate
-from jaxcal.training.train_env import make_training_env
-from jaxcal.training.tune_stage import tune_kept
-from jaxcal.training.uncertainty_stage import band_runs, fit_policy_band
+from jaxcal.training.data.simulated import Simulations, parse_noise
+from jaxcal.training.data.train_env import make_training_env
+from jaxcal.training.kept_policy import train_kept_policy
+from jaxcal.training.model_source import (
+    check_source_unchanged,
+    model_source,
+    store_model_source,
+)
+from jaxcal.training.scoring.final_report import final_report, with_tuning
+from jaxcal.training.scoring.policy import make_policy_scoring
+from jaxcal.training.scoring.trajectories import describe_units
+from jaxcal.training.stages.surrogate import fit_or_restore_surrogate
+from jaxcal.training.stages.tune import tune_kept
+from jaxcal.training.stages.uncertainty import band_runs, fit_policy_band
 
 
 def run_training(
@@ -278,7 +278,7 @@ def _fit_dynamics(
     cfg: TrainConfig, key, data: CalibrationData, sims, run_dir: Path, log
 ):
     """``(dyn_params, surrogate report)``: the surrogate D fitted or restored
-    (:mod:`jaxcal.training.surrogate_stage`; on simulated labelled units when the
+    (:mod:`jaxcal.training.stages.surrogate`; on simulated labelled units when the
     data carry no true theta), or ``(None, None)`` with ``dynamics=physics``."""
     if cfg.dynamics != "surrogate":
         return None, None

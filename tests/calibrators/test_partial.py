@@ -351,7 +351,7 @@ def test_training_leaves_partial_rows_out_and_the_diagnosis_uses_them(frame):
     data refuse it (or drop it, nonfinite="drop"); the diagnosis keeps it and leaves
     only its missing outputs out of the residual (issue 24), and says so."""
     from jaxcal.diagnosis.data.prepare import prepare_data
-    from jaxcal.training.tables import load_table_data
+    from jaxcal.training.data.tables import load_table_data
 
     opts = dict(theta=("leak",), test_units=[1])
     with pytest.raises(ValueError, match="column temp: 1 row"):

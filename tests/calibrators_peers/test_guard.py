@@ -247,7 +247,7 @@ def test_run_fleet_flags_masked_and_bad_rows_and_counts_them():
 
 
 def test_scores_use_valid_samples_only_and_count_the_flagged():
-    from jaxcal.training.scoring import score_units
+    from jaxcal.training.scoring.trajectories import score_units
 
     theta = np.zeros((1, 4, 1))
     theta_hat = np.array([[[0.1], [0.1], [5.0], [0.1]]])  # row 2: a held value

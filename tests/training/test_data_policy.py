@@ -16,7 +16,7 @@ from jaxcal.physics.constants import (
     VIRTUAL_SENSOR_NAMES,
 )
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data import load_calibration_data, read_options
+from jaxcal.training.data.ncmapss import load_calibration_data, read_options
 
 SENSORS = MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES
 

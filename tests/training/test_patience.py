@@ -5,8 +5,8 @@ import pytest
 
 from jaxcal.cli.train import format_final
 from jaxcal.training.config import resolve_config
-from jaxcal.training.final_report import training_gain
-from jaxcal.training.policy_stage import ChunkScoring, _out_of_patience
+from jaxcal.training.scoring.final_report import training_gain
+from jaxcal.training.stages.policy import ChunkScoring, _out_of_patience
 
 KEY = "val_sim_theta_rmse"
 
@@ -94,7 +94,7 @@ def test_training_windows_fit_the_longest_unit():
 def test_the_last_scored_chunk_is_reported_from_its_validation_scores():
     """final.json's ``val_last``: the last scored chunk's validation scores (no test
     pass of its own), and the console line names them."""
-    from jaxcal.training.final_report import _last_val
+    from jaxcal.training.scoring.final_report import _last_val
 
     records = [
         {"step": 5, "val_theta_rmse": 2.0, "val_tracking_rmse_norm": 0.2},

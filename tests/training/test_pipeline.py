@@ -17,10 +17,10 @@ from jaxcal.deploy import load_run
 from jaxcal.problem import Normalisation
 from jaxcal.runs.metrics_log import read_metrics
 from jaxcal.training.config import make_train_config, resolve_config
-from jaxcal.training.data import load_calibration_data
+from jaxcal.training.data.ncmapss import load_calibration_data
+from jaxcal.training.data.train_env import training_env_params
 from jaxcal.training.pipeline import ensure_data_file, read_run_data, run_training
-from jaxcal.training.scoring import theta_rmse, tracking_rmse
-from jaxcal.training.train_env import training_env_params
+from jaxcal.training.scoring.trajectories import theta_rmse, tracking_rmse
 
 # Per-chunk wall-clock fields differ between runs by nature.
 TIMING = {"chunk_seconds", "updates_per_s", "env_steps_per_s", "includes_compile",

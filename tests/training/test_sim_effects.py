@@ -4,7 +4,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxcal.training.sim_effects import KINDS, add_effects
+from jaxcal.training.data.sim_effects import KINDS, add_effects
 
 U, T, S = 400, 120, 3
 SD = np.array([0.1, 0.2, 0.3])
@@ -56,7 +56,7 @@ def test_the_selection_units_carry_the_training_share_of_effects(monkeypatch, sh
     effects (kept for holding under model error too); the band's units stay clean."""
     import types
 
-    import jaxcal.training.simulated as simulated
+    import jaxcal.training.data.simulated as simulated
     from jaxcal.training.config import resolve_config
 
     seen = []

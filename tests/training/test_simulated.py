@@ -1,4 +1,4 @@
-"""Labelled units simulated from the model (jaxcal.training.simulated)."""
+"""Labelled units simulated from the model (jaxcal.training.data.simulated)."""
 
 import jax
 import jax.numpy as jnp
@@ -7,9 +7,9 @@ import pytest
 
 import jaxcal
 from jaxcal.data.padded import Padded
-from jaxcal.training.data import training_problem
-from jaxcal.training.sim_paths import drift_paths, estimated_drifts, theta_paths
-from jaxcal.training.simulated import parse_noise, simulate_units
+from jaxcal.training.data.ncmapss import training_problem
+from jaxcal.training.data.sim_paths import drift_paths, estimated_drifts, theta_paths
+from jaxcal.training.data.simulated import parse_noise, simulate_units
 
 
 def _fn(w, theta):
@@ -153,7 +153,7 @@ def test_any_model_default_preset_uses_labels_to_score_only():
 def test_table_data_with_labels_to_score_only(tmp_path):
     import pandas as pd
 
-    from jaxcal.training.tables import load_table_data
+    from jaxcal.training.data.tables import load_table_data
 
     rng = np.random.default_rng(0)
     rows = []
@@ -228,8 +228,8 @@ def test_tuning_and_guard_units_are_labelled_and_the_clean_twin_is_effect_free()
     import dataclasses
 
     from jaxcal.training.config import make_train_config
-    from jaxcal.training.data import CalibrationData
-    from jaxcal.training.simulated import Simulations
+    from jaxcal.training.data.ncmapss import CalibrationData
+    from jaxcal.training.data.simulated import Simulations
 
     units = _units()
     problem = training_problem(

@@ -17,10 +17,11 @@ from jaxcal.calibrators.uncertainty.conformal import UNCERTAINTY_FILE, load_band
 from jaxcal.cli.train import format_final
 from jaxcal.data.padded import Padded
 from jaxcal.runs.metrics_log import read_metrics
-from jaxcal.training import pipeline, uncertainty_stage
+from jaxcal.training import pipeline
 from jaxcal.training.config import resolve_config
 from jaxcal.training.pipeline import run_training
-from jaxcal.training.uncertainty_stage import fit_policy_band, time_to_target
+from jaxcal.training.stages import uncertainty as uncertainty_stage
+from jaxcal.training.stages.uncertainty import fit_policy_band, time_to_target
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from jaxcal.cli.evaluate import main as evaluate_main
 from jaxcal.cli.train import format_final
 from jaxcal.cli.train import main as train_main
 from jaxcal.deploy import StreamingCalibrator
-from jaxcal.training.tables import hold_out_units, load_table_data
+from jaxcal.training.data.tables import hold_out_units, load_table_data
 
 
 def _toy(w, theta):

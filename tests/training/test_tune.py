@@ -10,8 +10,8 @@ from jaxcal.calibrators.interface import CalOutput
 from jaxcal.data.padded import Padded
 from jaxcal.training.config import resolve_config
 from jaxcal.training.config_sections import TuneConfig
-from jaxcal.training.final_report import with_tuning
-from jaxcal.training.tune_stage import tune_policy
+from jaxcal.training.scoring.final_report import with_tuning
+from jaxcal.training.stages.tune import tune_policy
 
 
 @struct.dataclass

@@ -6,7 +6,7 @@ model, parameters, test units), the selection (``budget.select`` and the chunk k
 the test scores of the kept policy, the validation scores of the kept chunk and
 of the last scored one, the counters, the training time and
 throughput (:func:`throughput`), the surrogate's report and the time to target
-(:func:`jaxcal.training.uncertainty_stage.time_to_target`). The band's coverage and
+(:func:`jaxcal.training.stages.uncertainty.time_to_target`). The band's coverage and
 what was simulated are added by the pipeline.
 """
 
@@ -18,9 +18,9 @@ from pathlib import Path
 
 from jaxcal.training.components import uses_filter
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData
+from jaxcal.training.data.ncmapss import CalibrationData
 from jaxcal.training.kept_policy import KeptPolicy
-from jaxcal.training.uncertainty_stage import time_to_target
+from jaxcal.training.stages.uncertainty import time_to_target
 
 
 def throughput(records: list[dict]) -> dict:

@@ -8,7 +8,8 @@ agent state (its
 Polyak-averaged target actor or its online one), the deployment calibrator's run over
 units (:mod:`jaxcal.calibrators.methods.policy.calibrator`, ``lax.scan`` vmapped over
 units, in the
-run's dtype), the scores of such a run (:func:`jaxcal.training.scoring.score_units`),
+run's dtype), the scores of such a run
+(:func:`jaxcal.training.scoring.trajectories.score_units`),
 the validation scores the host loop logs and selects by, and the test units' theta
 RMSE it may report (time to target; selection never reads it).
 """
@@ -28,9 +29,9 @@ from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.problem import Problem
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData
-from jaxcal.training.scoring import score_units, theta_rmse
-from jaxcal.training.uncertainty_stage import scored_mask
+from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.scoring.trajectories import score_units, theta_rmse
+from jaxcal.training.stages.uncertainty import scored_mask
 
 
 class PolicyScoring(NamedTuple):
@@ -42,7 +43,8 @@ class PolicyScoring(NamedTuple):
         run: ``(units, params, band=None) -> CalOutput``, the deployed policy over
             the units (with ``band``: its ``aux["theta_std"]``).
         score: ``(units, params, out=None) -> dict`` of
-            :func:`~jaxcal.training.scoring.score_units` (``out``: a run already
+            :func:`~jaxcal.training.scoring.trajectories.score_units` (``out``: a run
+            already
             made).
         val_scorer: ``agent_state -> dict``: the validation units' theta and
             tracking RMSE, and with ``budget.select=sim_theta`` the theta RMSE on

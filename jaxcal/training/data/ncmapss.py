@@ -1,14 +1,14 @@
 """Reading the calibration data set of a training run from an N-CMAPSS-layout file.
 
-:class:`~jaxcal.training.calibration_data.CalibrationData` is what training,
+:class:`~jaxcal.training.data.calibration.CalibrationData` is what training,
 evaluation and the paper's comparison read: the train / validation / test units as
 :class:`~jaxcal.data.padded.Padded` and the problem they define
-(:mod:`jaxcal.training.calibration_data`, whose names are re-exported here, the one
+(:mod:`jaxcal.training.data.calibration`, whose names are re-exported here, the one
 import path). Two sources make one:
 
 * :func:`load_calibration_data` (this module) reads an N-CMAPSS-layout HDF5 file (one
   of ours or any of NASA's DS01-DS08) for the turbofan;
-* :func:`jaxcal.training.tables.load_table_data` reads any model's rows (CSV,
+* :func:`jaxcal.training.data.tables.load_table_data` reads any model's rows (CSV,
   Parquet, C-MAPSS text) through :func:`jaxcal.data.readers.read_dataset`.
 
 Each unit is padded to the longest one of its split (the padding repeats the unit's
@@ -50,7 +50,7 @@ from jaxcal.model import Model
 from jaxcal.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
 from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
-from jaxcal.training.calibration_data import (  # noqa: F401 (re-exported: one import path)
+from jaxcal.training.data.calibration import (  # noqa: F401 (re-exported: one import path)
     CalibrationData,
     training_problem,
 )
@@ -179,8 +179,8 @@ def load_calibration_data(
         model: the turbofan model (``None``: the engine the file names,
             :func:`file_model`).
         norm_dtype: the dtype the problem's normalisation is computed in (a
-            training run's: :func:`jaxcal.training.run_data.run_dtype`;
-            :func:`~jaxcal.training.calibration_data.training_norm`).
+            training run's: :func:`jaxcal.training.data.run.run_dtype`;
+            :func:`~jaxcal.training.data.calibration.training_norm`).
 
     Returns:
         :class:`CalibrationData`.

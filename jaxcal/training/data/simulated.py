@@ -12,7 +12,7 @@ for precision below the noise level, which the cost of a noisy target cannot see
 (``log(e + n)^2`` is flat in ``e`` for ``|e| << |n|``).
 
 Theta trajectories are drawn across the box, or follow the drifts the UKF finds in
-the data (``simulate.paths``): :mod:`jaxcal.training.sim_paths`.
+the data (``simulate.paths``): :mod:`jaxcal.training.data.sim_paths`.
 
 The noise is the problem's: given (``noise=`` of the command line), else estimated
 by the front door's screening (a UKF pass over the training units,
@@ -29,9 +29,9 @@ import numpy as np
 from jaxcal.calibrators.methods.e2e.simulated import simulate_fleet
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
-from jaxcal.training.calibration_data import output_spread
-from jaxcal.training.sim_effects import add_effects
-from jaxcal.training.sim_paths import (
+from jaxcal.training.data.calibration import output_spread
+from jaxcal.training.data.sim_effects import add_effects
+from jaxcal.training.data.sim_paths import (
     drift_paths,
     estimated_drifts,
     front_ukf,
@@ -53,7 +53,7 @@ def simulate_units(
     along the ``drifts`` where given (:func:`estimated_drifts`, in turn over the
     copies' units: :func:`drift_paths`), else drawn (:func:`theta_paths`); a share
     ``effects`` of them with an undeclared effect on their noisy outputs
-    (:func:`~jaxcal.training.sim_effects.add_effects`; ``x_clean`` stays clean).
+    (:func:`~jaxcal.training.data.sim_effects.add_effects`; ``x_clean`` stays clean).
 
     Returns:
         ``(simulated, x_clean)``: the simulated units (noisy outputs, theta labels,
@@ -180,7 +180,7 @@ class Simulations:
     Args:
         cfg: the run's :class:`~jaxcal.training.config.TrainConfig` (``simulate``,
             ``noise``, ``seed``).
-        data: the run's :class:`~jaxcal.training.data.CalibrationData`.
+        data: the run's :class:`~jaxcal.training.data.ncmapss.CalibrationData`.
         log: where notes go.
     """
 
@@ -369,7 +369,7 @@ class Simulations:
         """``cfg`` with the log cost's floor at the noise (``simulate.cost_floor=
         noise``): the RMS of the noise std in the cost's normalised units, here each
         output's float64 spread over the training units
-        (:func:`~jaxcal.training.calibration_data.output_spread`, as it always was;
+        (:func:`~jaxcal.training.data.calibration.output_spread`, as it always was;
         the run's normalisation, in the run's dtype, differs from it in the last
         digits). Below the noise a simulated target's error is no longer worth a
         log-scale reward: a floor of 1e-4 made the policy trade the noise averaging

@@ -7,8 +7,9 @@ padded container) and the problem (model, declared parameters, used outputs, act
 box, normalisation over the training units in the run's dtype, training input
 range), which :func:`training_problem` derives from the training units: the run's
 one normalisation, made there once and carried, never recomputed. Its sources, an
-N-CMAPSS file (:mod:`jaxcal.training.data`, which re-exports these names) and any
-model's rows (:mod:`jaxcal.training.tables`), fill it.
+N-CMAPSS file (:mod:`jaxcal.training.data.ncmapss`, which re-exports these names) and
+any
+model's rows (:mod:`jaxcal.training.data.tables`), fill it.
 """
 
 from __future__ import annotations
@@ -113,7 +114,8 @@ def training_norm(train: Padded, dtype) -> Normalisation:
 def output_spread(train: Padded) -> np.ndarray:
     """``[S]`` each output's float64 std over the valid rows of the ``train`` units (a
     constant output 1): the scale of the provisional noise and of the cost floor of
-    simulated units (:meth:`jaxcal.training.simulated.Simulations.with_noise_floor`),
+    simulated units
+    (:meth:`jaxcal.training.data.simulated.Simulations.with_noise_floor`),
     which have always read the float64 spread, not the run's normalisation."""
     x = np.asarray(train.x, np.float64)[np.asarray(train.mask, bool)]
     return column_stats(x)[1]

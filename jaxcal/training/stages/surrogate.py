@@ -29,8 +29,8 @@ from jaxcal.surrogate.model import (
     SurrogateParams,
     init_surrogate_params,
 )
-from jaxcal.training.data import CalibrationData
-from jaxcal.training.scoring import describe_units
+from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.scoring.trajectories import describe_units
 from jaxcal.typedefs import PRNGKey
 
 

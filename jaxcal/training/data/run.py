@@ -5,8 +5,9 @@
 does not leak into training) and is readable; :func:`read_run_data` reads the train /
 val / test units and the one :class:`~jaxcal.problem.Problem`, its normalisation in
 the run's dtype (:func:`run_dtype`), the one the environment and the deployed policy
-read (an N-CMAPSS file through :mod:`jaxcal.training.data`, any model's rows through
-:mod:`jaxcal.training.tables`); :func:`model_spec` is the model spec a run folder
+read (an N-CMAPSS file through :mod:`jaxcal.training.data.ncmapss`, any model's rows
+through
+:mod:`jaxcal.training.data.tables`); :func:`model_spec` is the model spec a run folder
 stores. Nothing here writes to the
 run folder: :func:`jaxcal.training.pipeline.run_training` calls these before it
 creates one.
@@ -27,7 +28,7 @@ from jaxcal.data.ncmapss_io import ncmapss_info
 from jaxcal.model import Model
 from jaxcal.settings import check_output_path
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import (
+from jaxcal.training.data.ncmapss import (
     CalibrationData,
     file_model,
     load_calibration_data,
@@ -154,7 +155,7 @@ def read_run_data(
             f"data={path}: name the model its columns follow with model=<name | "
             "module:attr | path.py:attr>"
         )
-    from jaxcal.training.tables import load_table_data
+    from jaxcal.training.data.tables import load_table_data
 
     return load_table_data(
         path,

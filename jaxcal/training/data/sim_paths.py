@@ -1,6 +1,6 @@
 """Theta paths of simulated units: drawn across the box, or the data's own drifts.
 
-:mod:`jaxcal.training.simulated` makes labelled units along real units' conditions;
+:mod:`jaxcal.training.data.simulated` makes labelled units along real units' conditions;
 this module says how their theta moves.
 
 * :func:`theta_paths` draws degradation-like paths, per unit and parameter

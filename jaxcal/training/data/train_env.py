@@ -1,11 +1,11 @@
 """The units the policy trains on, as the tracking environment's parameters.
 
 :func:`make_training_env` takes the run's training fleet (the data's training units,
-their simulated copies or both: :meth:`jaxcal.training.simulated.Simulations.
+their simulated copies or both: :meth:`jaxcal.training.data.simulated.Simulations.
 training_fleet`) and makes the :class:`~jaxcal.envs.tracking.EnvParams` the policy
 learns on: the problem's normalisation (the run's one, computed in the run's dtype
 over the real training units when its data were read:
-:func:`jaxcal.training.calibration_data.training_norm`) cast to the run's dtype, exact;
+:func:`jaxcal.training.data.calibration.training_norm`) cast to the run's dtype, exact;
 for a model with memory the label-free reference states along each unit; for
 incremental actions the step gate (:func:`jaxcal.envs.increment.increment_step_ref`).
 """
@@ -24,8 +24,8 @@ from jaxcal.envs.tracking import EnvParams, make_env_params
 from jaxcal.problem import Problem
 from jaxcal.training.components import make_dynamics, uses_filter, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data import CalibrationData
-from jaxcal.training.simulated import Simulations
+from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.simulated import Simulations
 
 
 def make_training_env(

@@ -17,7 +17,7 @@ std:
   (the same marginal std, ``phi`` drawn in [0.5, 0.9]) on every output.
 
 Only the noisy outputs change: the cost's target stays the model's noise-free output
-(:mod:`jaxcal.training.simulated`), so tracking an effect is never rewarded, and
+(:mod:`jaxcal.training.data.simulated`), so tracking an effect is never rewarded, and
 the true theta stays the label.
 """
 

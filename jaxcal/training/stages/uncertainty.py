@@ -6,7 +6,8 @@ on
 units the policy never trained on, after selection: the selected policy's theta
 trajectories over them (the same jitted fleet run that scores units) give the
 per-bucket absolute errors. Those units are units simulated from the model along the
-validation units' conditions (:mod:`jaxcal.training.simulated`; no label needed) or,
+validation units' conditions (:mod:`jaxcal.training.data.simulated`; no label needed)
+or,
 for a turbofan file by default, the labelled validation units themselves
 (``simulate.band``). Its coverage is then measured on the test units' whole
 trajectories when they carry labels, the honest check of a band fitted elsewhere.
@@ -38,7 +39,7 @@ from jaxcal.calibrators.uncertainty.conformal import (
     save_band,
 )
 from jaxcal.data.padded import Padded
-from jaxcal.training.policy_stage import TARGET_KEY
+from jaxcal.training.stages.policy import TARGET_KEY
 
 BAND_LEVEL = 0.9  # the interval the band is fitted for and its coverage checked at
 
@@ -105,7 +106,7 @@ def fit_policy_band(
     Args:
         val, val_out: the units the band is fitted on (the labelled validation
             units, or units simulated from the model:
-            :mod:`jaxcal.training.simulated`) and the selected policy's run over
+            :mod:`jaxcal.training.data.simulated`) and the selected policy's run over
             them (``None``: there are none).
         test, test_out: the test units and the same policy's run over them.
         run_dir: the run folder.
