@@ -11,8 +11,7 @@ Per run, second calls (compiled), this machine's 2 cores, as ratios in one proce
   step) and the UKF's guarded step of :func:`jaxcal.calibrate` on the same
   problem, jitted with the same per-row compile options
   (:func:`jaxcal.calibrators.programs.packed.jit_per_row`) and fed one row at a time the
-  same
-  way (host numpy in and out); median and 95th percentile microseconds per row;
+  same way (host numpy in and out); median and 95th percentile microseconds per row;
 * a fleet: ``StreamingCalibrator.run`` over ``units`` streams of ``rows`` rows and
   the UKF's fleet runner over the same arrays; microseconds per row;
 * ``ops``: the kernels of both compiled stream steps (:func:`compiled_ops`).

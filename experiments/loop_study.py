@@ -1,8 +1,7 @@
 """Identification study of the closing-the-loop diagnosis over seeds and effect kinds.
 
 For every effect kind of :func:`jaxcal.diagnosis.data.synthetic.kinds` of the turbofan
-(the
-clean record, one undeclared health modifier -- kinds ``parameter`` (drifting) and
+(the clean record, one undeclared health modifier -- kinds ``parameter`` (drifting) and
 ``parameter_step`` (jumping mid-life) --, the six engine effects, a sensor bias / gain
 / drift / step and an effect outside the library) and every
 seed, a synthetic N-CMAPSS-like record (:mod:`jaxcal.models.turbofan_scenario`) with

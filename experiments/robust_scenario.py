@@ -21,8 +21,7 @@ effect. Here each record draws what the diagnosis does *not* assume (:func:`draw
 :func:`make_record` puts one effect of a kind (:mod:`jaxcal.diagnosis.kinds.table`) and
 physical size on the carriers through the extended model
 (:func:`jaxcal.diagnosis.kinds.signatures.signatures`; a model with memory is simulated
-with
-the effect in it) and adds the noise.
+with the effect in it) and adds the noise.
 """
 
 from __future__ import annotations

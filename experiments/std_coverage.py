@@ -451,8 +451,7 @@ heat exchanger's `dp_hot` 60x too small, and the UKF then followed that output's
 noise through `dp_coeff` with a std 50x too small: the `estimated` rows of
 `before_innovations`. Every reported std is also checked against the estimate's own
 row-to-row scatter (`jaxcal/calibrators/uncertainty/jitter_check.py`); none of the runs
-above
-needed it. Still over 0.95: the tank with the noise estimated (0.97-0.98; the
+above needed it. Still over 0.95: the tank with the noise estimated (0.97-0.98; the
 estimate is a little wide there, 0.958 with the true noise given) and the thermal
 model's `R_cs` (0.99 with the noise given too).
 """

@@ -15,11 +15,9 @@ reached ``budget.target_theta_rmse`` (2.5e-4 on Dataset #1), next to the paper's
 
 The deployment cost is measured in this run: the jitted single-sample step of
 :func:`jaxcal.calibrators.methods.policy.calibrator.make_stream_step` (policy pi* and
-one step of D, host
-numpy in and out) and the vmapped fleet runner of
+one step of D, host numpy in and out) and the vmapped fleet runner of
 :func:`~jaxcal.calibrators.methods.policy.calibrator.make_fleet_runner`, with the
-production
-architectures and fresh weights (the cost does not depend on the values).
+production architectures and fresh weights (the cost does not depend on the values).
 """
 
 from __future__ import annotations

@@ -89,8 +89,7 @@ class Measurement(NamedTuple):
     covariance ``R = diag((r * noise_std)^2)``, the least-squares residual unit
     ``r * noise_std``. The front door passes the measurement noise std itself with
     ``r = 1`` (:mod:`jaxcal.calibrators.programs.compiled`); the paper's methods pass
-    the
-    outputs' training std with ``r = 0.01``. ``centre`` only shifts the compared
+    the outputs' training std with ``r = 0.01``. ``centre`` only shifts the compared
     values (residuals are differences), e.g. the outputs' training mean.
     """
 

@@ -5,8 +5,7 @@ data's own operating conditions (:mod:`jaxcal.calibrators.methods.e2e.simulated`
 takes given
 weights; a trained policy is loaded from its run folder, gated by an absolute
 policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.methods.policy.gated`). Either
-is a
-``Calibrator`` built outside the compiled programs, run by one jitted fleet scan
+is a ``Calibrator`` built outside the compiled programs, run by one jitted fleet scan
 (:func:`make_runner`) with a sample check: the data's range for E2E, the run's own
 training range for a policy.
 """
@@ -88,8 +87,7 @@ def policy_calibrator(problem: Problem, cfg) -> tuple[Calibrator, SampleCheck | 
     training range, not the range of the data being calibrated); its names must
     match the problem, and the problem's model must be the run's own (by names and
     by outputs at probe points, :mod:`jaxcal.calibrators.methods.policy.run_model`).
-    With
-    ``anchor=<folder>`` (an absolute policy's run with its
+    With ``anchor=<folder>`` (an absolute policy's run with its
     band) the run, an incremental policy, is gated by it (:mod:`jaxcal.calibrators.
     gated`): the feedback while the model fits the data, the anchor where not."""
     # A run folder is read through jaxcal.runs.read_run (the deploy layer's loader,

@@ -12,8 +12,7 @@ still work. Writes ``report.md``, ``report.json`` and PNG figures to ``out`` (de
 per unit (report.json ``identified[i].units``: ``unit``, ``carries``, ``size``,
 ``size_std``, ``onset``; ``units.png``) and with the plausibility flags of the verdict
 (``flags``; :mod:`jaxcal.diagnosis.report.plausibility`), which the console line
-repeats,
-and, when effects were added, the extended model ``extended_model.json`` that
+repeats, and, when effects were added, the extended model ``extended_model.json`` that
 ``model=`` accepts on every command line (the loop closed: the twin tracks the effect
 in real time with any method).
 Arguments are ``key=value`` (``jaxcal.settings.parse_overrides``); an unknown key, a

@@ -13,8 +13,7 @@ consent (``trust_code=True``, or the same file named by the user in this process
 turbofan's ``RunMeta`` fields) are read too.
 
 The record it returns, :class:`~jaxcal.calibrators.methods.policy.trained.LoadedRun`,
-and what
-turns it into a calibrator live with the calibrators, which cannot import this
+and what turns it into a calibrator live with the calibrators, which cannot import this
 module (it needs the training job's config and components): they read a folder
 through :func:`jaxcal.runs.read_run`, which the package root fills with
 :func:`load_run`. :mod:`jaxcal.deploy` re-exports both sides for users.

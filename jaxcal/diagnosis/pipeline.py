@@ -8,34 +8,33 @@ offset fitted per unit) and every candidate acts through the states
 
 1. **Calibrate** the declared parameters (per-unit splines in time, jointly over
    the data): the "before" model.
-2. **Noise.** The noise model (:mod:`jaxcal.diagnosis.residuals.noise`: a level and an
-AR(p) colour per output,
-   or the given levels and an estimated colour) is fitted to this fit's residual,
-   quantised outputs are dropped and the fit is repeated on the prewhitened residual.
+2. **Noise.** The noise model (:mod:`jaxcal.diagnosis.residuals.noise`: a level and
+   an AR(p) colour per output, or the given levels and an estimated colour) is
+   fitted to this fit's residual, quantised outputs are dropped and the fit is
+   repeated on the prewhitened residual.
 3. **Trace** the prewhitened residual to the library
-(:func:`jaxcal.diagnosis.fitting.identify.identify`:
-   every kind in its fleet-wide and per-unit forms, steps with their onsets). The
-   noise model is then fitted again to the winner's residual (an effect left in the
-   residual inflates the estimated colour and level) and the trace repeated when it
-   changed by more than :data:`NOISE_SETTLED` (an iteration of Cochrane & Orcutt
-   1949; each refit starts where the last pass's ended); without a winner, to the best
-   candidate's residual, and the trace repeated when that lowered a level by more
-   than :data:`LEVEL_MOVE` (a misfit read as noise hides every candidate).
+   (:func:`jaxcal.diagnosis.fitting.identify.identify`: every kind in its fleet-wide
+   and per-unit forms, steps with their onsets). The noise model is then fitted
+   again to the winner's residual (an effect left in the residual inflates the
+   estimated colour and level) and the trace repeated when it changed by more than
+   :data:`NOISE_SETTLED` (an iteration of Cochrane & Orcutt 1949; each refit starts
+   where the last pass's ended); without a winner, to the best candidate's residual,
+   and the trace repeated when that lowered a level by more than :data:`LEVEL_MOVE`
+   (a misfit read as noise hides every candidate).
 4. **Fallback.** A cross-validated ``delta(w)`` is fitted to the residual of the best
    model so far (:mod:`jaxcal.diagnosis.fitting.discrepancy`, generalised least
-   squares). If it is
-   significant, the declared parameters and delta are fitted by backfitting, the
-   library is screened again against that model, and an effect is kept only if it is
-   still significant beyond delta; a library effect that explains the residual better
-   than delta alone (BIC with delta's degrees of freedom counted) is kept.
+   squares). If it is significant, the declared parameters and delta are fitted by
+   backfitting, the library is screened again against that model, and an effect is
+   kept only if it is still significant beyond delta; a library effect that explains
+   the residual better than delta alone (BIC with delta's degrees of freedom
+   counted) is kept.
 5. **Add** the chosen effect(s), refit, and report the errors before and after:
    tracking RMSE per output, theta RMSE where the truth is known and the whiteness of
    the prewhitened residual.
 6. **Per unit and plausibility.** Each added effect gets its size, carriers and onset
-   per unit (:mod:`jaxcal.diagnosis.report.units`), and the final fit is checked against
-   the model's bounds
-   and direction of wear (:mod:`jaxcal.diagnosis.report.plausibility`); triggered checks
-   are flags.
+   per unit (:mod:`jaxcal.diagnosis.report.units`), and the final fit is checked
+   against the model's bounds and direction of wear
+   (:mod:`jaxcal.diagnosis.report.plausibility`); triggered checks are flags.
 
 Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
 (the winner shares its signature with others within the BIC margin; the set is
@@ -153,8 +152,7 @@ class DiagnosisResult(NamedTuple):
 
     @property
     def extended_model(self):
-        """The model with every added effect as a parameter
-        (:mod:`jaxcal.diagnosis.report.extended`)."""
+        """The model with every added effect as a parameter."""
         from jaxcal.diagnosis.report.extended import extended_model
 
         return extended_model(self)
@@ -395,10 +393,8 @@ def _winner_basis(ident: Identification, margin: float) -> FitResult:
 
 
 def _best_fit(model, data, declared, ident: Identification, null, cfg):
-    """The fit of the best candidate, significant or not: the best-ranked one, or
-    the near miss (:class:`~jaxcal.diagnosis.fitting.identify.Identification`) on every
-    unit
-    where its summed unit score is larger.
+    """The fit of the best candidate, significant or not: the best-ranked one, or the
+    near miss (``Identification``) on every unit where its summed score is larger.
 
     An effect the declared parameters cannot follow leaves a misfit in the
     declared-only residual that the noise model reads as a high level and a strong

@@ -17,8 +17,7 @@ the same in every unit; the carriers go into its hints (``diagnosis.carriers``,
 :class:`~jaxcal.model.DiagnosisHints`), and :func:`jaxcal.calibrate` calibrates the
 parameter in the carriers only and holds it at its nominal value (0: no effect) with
 std 0 in every other unit (:mod:`jaxcal.calibrators.front.carriers`), so that a clean
-unit
-is calibrated as with the base model. The JSON is data;
+unit is calibrated as with the base model. The JSON is data;
 its base is code when it names a ``.py`` file or a module, which runs only with the
 user's consent (:mod:`jaxcal.trust`, ``docs/trust.md``): ``trust_code=True``, or the
 same file (same bytes) named by the user in this process. A base that is a registered

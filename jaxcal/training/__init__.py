@@ -16,8 +16,7 @@ scored by :mod:`~jaxcal.training.scoring.policy` (with the scores of
 environment
 that the deployed policy reproduces is :mod:`~jaxcal.training.scoring.rollout`), and
 the run's ``final.json`` is gathered by :mod:`~jaxcal.training.scoring.final_report`. A
-run
-folder's own model is kept by :mod:`~jaxcal.training.model_source`. The files of a
+run folder's own model is kept by :mod:`~jaxcal.training.model_source`. The files of a
 run folder are :mod:`jaxcal.runs`'; reading a trained run back is
 :mod:`jaxcal.deploy`'s.
 """

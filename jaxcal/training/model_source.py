@@ -33,8 +33,7 @@ session. Without it the load is refused with an error naming the copy and the fl
 A run never makes jaxcal import a module from the working directory or ``sys.path``
 on its own say-so, nor call any function but the one its consented copy names.
 :mod:`jaxcal.calibrators.methods.policy.run_model` compares a model passed to a run with
-the run's
-own.
+the run's own.
 """
 
 from __future__ import annotations

@@ -58,8 +58,7 @@ The deployed actor is ``budget.policy``: by default the Polyak-averaged target p
 of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
 runner checkpoints, every checkpoint step saves the deployable
 :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (actor, dynamics
-parameters,
-normalisation, action box) under ``policy/``, and the selected one under
+parameters, normalisation, action box) under ``policy/``, and the selected one under
 ``policy_best/``; :func:`jaxcal.deploy.loading.load_run` loads a run from those and
 ``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.
 

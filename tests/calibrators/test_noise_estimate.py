@@ -1,7 +1,6 @@
 """The front door's noise estimate where one parameter alone explains an output
 (``jaxcal/calibrators/front/screen.py``: one-step innovations, corrected for the share
-the
-update absorbs).
+the update absorbs).
 
 The heat exchanger's ``dp_coeff`` moves ``dp_hot`` and nothing else, so the filter
 can follow ``dp_hot``'s noise through it: the post-fit residual, the estimate before,

@@ -180,8 +180,7 @@ def calibrate(
         ValueError: unknown method or option, names that do not match the model,
             a given noise std outside the float dtype's range (``1e-300`` in
             float32), bad data (naming file, column and rows), no row that could be
-            used
-            (with the cause: the input checks, the model's non-finite outputs, a
+            used (with the cause: the input checks, the model's non-finite outputs, a
             noise too small for the arithmetic).
     """
     from jaxcal import cache

@@ -55,8 +55,7 @@ class CalibrationResult:
             autocorrelated (a model misfit, a drift the filter lags, a quantised
             output) that ``theta_std`` there is not a calibrated uncertainty
             (:mod:`jaxcal.calibrators.uncertainty.misfit_check`). ``None``: not checked
-            (no
-            ``theta_std``, or no screening pass to read the innovations from).
+            (no ``theta_std``, or no screening pass to read the innovations from).
         at_bound: ``[N]`` bool: the row's estimate reached a bound of the declared
             box (every method's ``theta`` is kept inside it; the data may call for
             a value beyond it, or the model misfits there). ``None``: not

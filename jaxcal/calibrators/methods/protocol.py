@@ -60,8 +60,7 @@ class Method:
         factory: a method on the model: ``factory(problem, cfg, measure=None) ->
             make(inputs) -> Calibrator`` pure in its compiled inputs
             (:class:`~jaxcal.calibrators.programs.compiled.Inputs`), ``measure`` a
-            static
-            model's ``F`` put in place of the problem's (the paper's perturbed
+            static model's ``F`` put in place of the problem's (the paper's perturbed
             model); ``None`` for a method without a model.
         label: its name in the paper's tables.
         reads_noise: it weighs the outputs by the measurement noise (a trained

@@ -12,8 +12,7 @@ A program on disk is keyed by what it was traced from: the model, named by jaxca
 source for the built-in models (``Model.origin``, set by :func:`jaxcal.models.load`)
 or by the digest of a user model's own jaxprs
 (:mod:`~jaxcal.calibrators.programs.traced_key`; a model whose jaxpr hides behaviour has
-none
-and is traced again in each process); jaxcal's source (every file of the package,
+none and is traced again in each process); jaxcal's source (every file of the package,
 hashed once per process), the JAX version, the problem's names and fixed values, the
 method's settings, the float type and the arguments' shapes.
 

@@ -1,8 +1,7 @@
 """A user model's identity across processes: a digest of the programs it traces to.
 
 :mod:`~jaxcal.calibrators.programs.on_disk` keeps a compiled calibrator on disk under a
-key
-that must name everything the program computes. For jaxcal's own models that is
+key that must name everything the program computes. For jaxcal's own models that is
 jaxcal's source (``Model.origin``). A user's function has no such name: its code,
 the arrays it closes over and the helpers it calls can change between processes
 while its name stays. What it computes is its jaxpr, though: tracing inlines every
@@ -26,8 +25,7 @@ object, and so the in-process programs keyed by its identity, stay the same.
 :func:`refresh` traces the model again (milliseconds: 15-40 ms for a small model,
 against a compilation of seconds) and :func:`fingerprint` gives the result, which
 :func:`~jaxcal.calibrators.programs.compiled.problem_key` holds: a changed function gets
-new
-programs, never the old one's answers. The fingerprint reads what a jaxpr shows and
+new programs, never the old one's answers. The fingerprint reads what a jaxpr shows and
 passes over what it does not (a host callback's Python function runs at every call,
 so it reads its globals afresh; a ``custom_vjp``'s backward pass is not used by the
 forward-mode calibrators), so every model that traces has one.

@@ -3,8 +3,7 @@
 A reading is wild when it departs from the median of its two neighbours on each
 side, in its unit, by more than ``outlier_z`` robust stds of such departures
 (:mod:`jaxcal.calibrators.front.outliers`, the front door's statistics). Judged against
-its
-neighbours, a fault that persists (a step, a drift, a bias) is never an outlier; an
+its neighbours, a fault that persists (a step, a drift, a bias) is never an outlier; an
 isolated reading off by orders of magnitude always is. ``cfg`` is the diagnosis's
 :class:`~jaxcal.diagnosis.pipeline.LoopConfig`.
 
@@ -227,8 +226,7 @@ def drop_outliers(model, data: LoopData, spec0, null: FitResult, cfg):
     """``(data, fit)`` without the rows holding a wild reading: one that departs from
     the median of its two neighbours on each side by more than ``outlier_z`` robust
     stds of such departures (:mod:`jaxcal.calibrators.front.outliers`), both as it is
-    and
-    at the declared parameters re-calibrated on its neighbours (module docstring: a
+    and at the declared parameters re-calibrated on its neighbours (module docstring: a
     transient the model follows is no outlier). Judged against its neighbours, a
     fault that persists (a step, a drift, a bias) is never an outlier; an isolated
     reading off by orders of magnitude always is. A wild reading drags the fit it is

@@ -17,8 +17,7 @@ outside the model's valid range (by less than
 static point) is clipped onto the bound, and the note says so.
 
 Noise: a :class:`~jaxcal.diagnosis.residuals.noise.NoiseModel` per output, white at the
-known
-std when given (synthetic data) or at the model's reference level
+known std when given (synthetic data) or at the model's reference level
 (``DiagnosisHints.noise_rel``, default 1 % of the mean ``|x|``) until
 :func:`jaxcal.diagnosis.residuals.noise.fit_noise` replaces it (level and AR colour)
 after a first calibration.

@@ -13,8 +13,7 @@ unit by unit from its initial state, the effect acting through the states.
 
 Effect kinds (:func:`kinds`; how each enters the model and is sized comes from the
 table of :mod:`jaxcal.diagnosis.kinds.table`), drawn from ``SyntheticConfig.sizes``
-(magnitude uniform in the
-range, sign as noted; defaults :func:`default_sizes`):
+(magnitude uniform in the range, sign as noted; defaults :func:`default_sizes`):
 
 * ``none``: the clean data (false-alarm runs);
 * ``parameter``: an undeclared parameter drifting from nominal with the unit's health

@@ -1,8 +1,7 @@
 """The fallback when the library does not explain the residual: a discrepancy delta(w).
 
 After the library is screened (:mod:`jaxcal.diagnosis.fitting.identify`), a
-cross-validated ``delta(w)`` is
-fitted to the residual of the best model so far
+cross-validated ``delta(w)`` is fitted to the residual of the best model so far
 (:mod:`jaxcal.diagnosis.fitting.discrepancy`, generalised
 least squares under the noise model). If it is significant, the declared parameters
 and delta are fitted by backfitting (Hastie & Tibshirani), the library is screened

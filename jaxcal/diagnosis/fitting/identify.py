@@ -1,7 +1,7 @@
 """Trace a residual to the library: screen every form, refit the finalists, rank.
 
 1. **Screen** (:mod:`jaxcal.diagnosis.fitting.screen`): at the declared-only fit, every
-candidate in each of
+   candidate in each of
    its forms — fleet-wide (one value) and in the units that carry it (the carriers and,
    for a step, the onsets chosen by the screen) — and every pair of the best
    ``pair_top`` whose members do not reproduce each other's signature is scored by the

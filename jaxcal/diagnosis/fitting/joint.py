@@ -3,13 +3,11 @@
 The model of a data set is the extended model of
 :mod:`jaxcal.diagnosis.kinds.signatures` with the terms of
 a :class:`~jaxcal.diagnosis.kinds.terms.ModelSpec`: per unit ``u`` the declared
-parameters
-``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
+parameters ``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
 :mod:`jaxcal.diagnosis.data.prepare`;
 ``scale`` the natural step), for a model with memory an offset of each unit's initial
 state, and the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`), each coefficient
-a column
-(:mod:`jaxcal.diagnosis.kinds.terms`).
+a column (:mod:`jaxcal.diagnosis.kinds.terms`).
 
 The fit minimises the sum of squares of the **prewhitened** residual (the noise
 model's AR filter per output, :mod:`jaxcal.diagnosis.residuals.noise`: generalised least

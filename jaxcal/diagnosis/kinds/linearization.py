@@ -85,8 +85,7 @@ def _linearize_program(model: Model, offset_idx: tuple, directions: int):
     directions given as an argument (:func:`_directional_row`, 0: the output
     alone; one shape for every data set of a model), built once per process and
     kept on disk across processes (:func:`jaxcal.calibrators.programs.on_disk.kept`,
-    under
-    the built-in model's name or a user model's traced digest): tracing the
+    under the built-in model's name or a user model's traced digest): tracing the
     turbofan's Newton solve took 30-35 s of every new process, the computation of a
     200-unit fit's evaluation 2-3 s."""
 

@@ -17,8 +17,8 @@ Estimation (:func:`fit_noise`):
    ``acorr_ljungbox``; colour AR(p) does not capture), the output's variance is
    inflated by its Bartlett long-run variance ratio (Newey & West 1987), a HAC
    fallback that keeps the tests conservative.
-A flexible fit absorbs part of the noise (:func:`projection_bias`), which is given
-back before the colour is chosen.
+   A flexible fit absorbs part of the noise (:func:`projection_bias`), which is given
+   back before the colour is chosen.
 """
 
 from __future__ import annotations

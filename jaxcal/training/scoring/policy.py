@@ -7,8 +7,7 @@ deployable :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` o
 agent state (its
 Polyak-averaged target actor or its online one), the deployment calibrator's run over
 units (:mod:`jaxcal.calibrators.methods.policy.calibrator`, ``lax.scan`` vmapped over
-units, in the
-run's dtype), the scores of such a run
+units, in the run's dtype), the scores of such a run
 (:func:`jaxcal.training.scoring.trajectories.score_units`),
 the validation scores the host loop logs and selects by, and the test units' theta
 RMSE it may report (time to target; selection never reads it).
@@ -44,8 +43,7 @@ class PolicyScoring(NamedTuple):
             the units (with ``band``: its ``aux["theta_std"]``).
         score: ``(units, params, out=None) -> dict`` of
             :func:`~jaxcal.training.scoring.trajectories.score_units` (``out``: a run
-            already
-            made).
+            already made).
         val_scorer: ``agent_state -> dict``: the validation units' theta and
             tracking RMSE, and with ``budget.select=sim_theta`` the theta RMSE on
             simulated units (``sim_theta_rmse``); ``None`` with neither.

@@ -7,16 +7,14 @@ units the policy never trained on, after selection: the selected policy's theta
 trajectories over them (the same jitted fleet run that scores units) give the
 per-bucket absolute errors. Those units are units simulated from the model along the
 validation units' conditions (:mod:`jaxcal.training.data.simulated`; no label needed)
-or,
-for a turbofan file by default, the labelled validation units themselves
+or, for a turbofan file by default, the labelled validation units themselves
 (``simulate.band``). Its coverage is then measured on the test units' whole
 trajectories when they carry labels, the honest check of a band fitted elsewhere.
 
 A policy built on a random-walk filter (``env.gauss_newton=filter``) gets a relative
 band: the conformal fit of its errors over the error its filter predicts on each
 sample, std and lag bias (:mod:`jaxcal.calibrators.uncertainty.lag_scale`). Its error is
-mostly
-a per-unit lag bias (a unit's drift rate times a lag its conditions set), which a
+mostly a per-unit lag bias (a unit's drift rate times a lag its conditions set), which a
 width pooled over units misses on the fast-drifting or weakly observed units: on the
 pump (seed 0) the pooled band covered the test units' leak 0.78, the relative one
 0.81.

@@ -1,7 +1,6 @@
 """Sliding-window least squares on the model (Levenberg-Marquardt,
 :mod:`jaxcal.calibrators.methods.ls.window`); with hidden states the moving-window fit
-of
-the parameters and the window's initial state
+of the parameters and the window's initial state
 (:mod:`jaxcal.calibrators.methods.ls.window_state`).
 """
 

@@ -9,8 +9,7 @@ config's ``r``):
 * :func:`make_least_squares` — a streaming calibrator (the interface of
   :mod:`jaxcal.calibrators.interface`). Its state is a ring buffer of the last
   ``window`` samples; each step inserts the new sample and runs ``num_iters`` LM
-  iterations on
-  ``sum_i ||(F(w_i, theta) - x_i) / (noise_std r)||^2
+  iterations on ``sum_i ||(F(w_i, theta) - x_i) / (noise_std r)||^2
   [+ ||(z - z_prev) / prior_std||^2]``, warm-started from the previous estimate
   ``z_prev``. The optional Gaussian prior (a Tikhonov term towards ``z_prev``)
   steadies poorly observed directions.
@@ -32,8 +31,7 @@ sum of squares (a masked residual, fixed shapes), so both take partial rows
 (``Calibrator.accepts_partial``).
 
 The streaming std is :func:`~jaxcal.calibrators.uncertainty.drift_std.drift_std`: honest
-when
-theta drifts within the window (``aux["laplace_std"]`` keeps the fit's own std).
+when theta drifts within the window (``aux["laplace_std"]`` keeps the fit's own std).
 """
 
 from __future__ import annotations

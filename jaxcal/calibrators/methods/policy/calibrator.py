@@ -3,8 +3,7 @@ and its jitted runners.
 
 The calibrator, the paper's deployment step (§3.1), is :func:`make_policy_calibrator`
 (:mod:`jaxcal.calibrators.methods.policy.step`, where its equations are); what it reads
-and
-carries, :class:`PolicyParams` and :class:`PolicyState`, is in
+and carries, :class:`PolicyParams` and :class:`PolicyState`, is in
 :mod:`jaxcal.calibrators.methods.policy.params`. Both are re-exported here, the one
 import
 path. This module runs it: over a fleet (:func:`make_fleet_runner`), one sample per

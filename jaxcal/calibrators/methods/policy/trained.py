@@ -45,8 +45,7 @@ class LoadedRun(NamedTuple):
             normalisation, training input range).
         params: the deployable
             :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (or its
-            incremental
-            variants).
+            incremental variants).
         actor: the actor module (static).
         dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
             :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
