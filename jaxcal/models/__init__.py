@@ -115,8 +115,6 @@ def load(spec: str | Model, *, trust_code: bool = False) -> Model:
     if spec in _REGISTRY:
         return _REGISTRY[spec]()
     if spec.endswith(".json"):  # a diagnosis's extended model (models/extended.py)
-        from jaxcal.models.extended import load_extended
-
         if not os.path.isfile(spec):
             raise ValueError(f"model={spec!r}: file not found")
         return load_extended(spec, trust_code=trust_code)
@@ -191,3 +189,24 @@ _BUILTIN.update(
 _REGISTRY.update(_BUILTIN)
 
 __all__ = ["available", "load", "register"]
+
+
+def load_extended(path: str, *, trust_code: bool = False) -> Model:
+    """The model of a diagnosis's ``extended_model.json`` (:mod:`.extended`): its base
+    loaded (a relative ``.py`` base resolved against the file's folder) and the added
+    effects put in.
+
+    Args:
+        path: the file.
+        trust_code: run its base when it is a ``.py`` file or a module (without:
+            only a registered name, or a file the user named in this process).
+
+    Raises:
+        ValueError: the file is not an extended model; UntrustedCodeError (a
+            ValueError) naming the file and the flag when the base needs consent.
+    """
+    from jaxcal.models.extended import build_extended, check_base_consent, read_extended
+
+    base, declared, added = read_extended(path)
+    check_base_consent(base, path, trust_code, available())
+    return build_extended(load(base, trust_code=trust_code), declared, added)

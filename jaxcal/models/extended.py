@@ -167,16 +167,15 @@ def resolve_base(spec: dict, path: str) -> str:
     return base
 
 
-def _check_base_consent(base: str, path: str, trust_code: bool) -> None:
+def check_base_consent(base: str, path: str, trust_code: bool, registered) -> None:
     """Refuse a ``.py`` or module base the user did not consent to run
-    (:func:`jaxcal.trust.require_consent`); a registered name passes."""
+    (:func:`jaxcal.trust.require_consent`); a name of ``registered`` passes."""
     import sys
 
     from jaxcal import trust
-    from jaxcal.models import available
 
     where, sep, attr = base.rpartition(":")
-    if base in available() or not sep:
+    if base in registered or not sep:
         return
     what = f"{path}: its base {base!r}"
     if where.endswith(".py") or os.sep in where:
@@ -200,21 +199,15 @@ def _check_base_consent(base: str, path: str, trust_code: bool) -> None:
     trust.require_consent(content, base, what, trust_code)
 
 
-def load_extended(path: str, *, trust_code: bool = False) -> Model:
-    """The model of an ``extended_model.json`` (a relative ``.py`` base is resolved
-    against the file's folder).
-
-    Args:
-        path: the file.
-        trust_code: run its base when it is a ``.py`` file or a module (without:
-            only a registered name, or a file the user named in this process).
+def read_extended(path: str) -> tuple[str, list[str], list[Added]]:
+    """``(base spec, declared, added)`` of an ``extended_model.json`` (a relative
+    ``.py`` base resolved against the file's folder), nothing loaded or run: the
+    models' loader (:func:`jaxcal.models.load`) loads the base after the consent
+    check (:func:`check_base_consent`) and builds the model (:func:`build_extended`).
 
     Raises:
-        ValueError: the file is not an extended model; UntrustedCodeError (a
-            ValueError) naming the file and the flag when the base needs consent.
+        ValueError: the file is not an extended model.
     """
-    from jaxcal.models import load
-
     try:
         with open(path) as f:
             spec = json.load(f)
@@ -234,5 +227,4 @@ def load_extended(path: str, *, trust_code: bool = False) -> Model:
             "'base', 'declared' and 'added' as written by jaxcal.diagnose)"
         ) from None
     added = [a._replace(units=_carrier_ids(a, path)) for a in added]
-    _check_base_consent(base, path, trust_code)
-    return build_extended(load(base, trust_code=trust_code), declared, added)
+    return base, declared, added

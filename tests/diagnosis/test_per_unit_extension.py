@@ -22,7 +22,8 @@ from jaxcal.calibrators.front.carriers import unit_groups
 from jaxcal.diagnosis.kinds.table import build_library
 from jaxcal.diagnosis.report.extended import added_parameters, extension_json
 from jaxcal.diagnosis.report.units import UnitEffect
-from jaxcal.models.extended import Added, build_extended, load_extended
+from jaxcal.models import load_extended
+from jaxcal.models.extended import Added, build_extended
 
 UNITS, ROWS, ONSET, STEP = 6, 100, 30, 1.5
 CARRIERS = (1, 3)
