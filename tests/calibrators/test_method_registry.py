@@ -108,10 +108,10 @@ def test_a_method_added_to_the_registry_runs_through_the_front_door(monkeypatch)
     rng = np.random.default_rng(0)
     w = rng.uniform(0.5, 1.5, 200)
     x = np.stack([0.4 * w, 0.4 + 0.7 * w], 1) + 0.01 * rng.standard_normal((200, 2))
+    box = (0.5, 0.0, 1.0)  # nominal, low, high
     m = jaxcal.Model.from_function(
-        model, conditions=["w"], parameters={"a": (0.5, 0.0, 1.0), "b": (0.5, 0.0, 1.0)},
-        outputs=["x1", "x2"],
-    )  # fmt: skip
+        model, conditions=["w"], parameters={"a": box, "b": box}, outputs=["x1", "x2"]
+    )
     data = pd.DataFrame({"unit": np.zeros(200, int), "time": np.arange(200), "w": w,
                          "x1": x[:, 0], "x2": x[:, 1]})  # fmt: skip
     got = jaxcal.calibrate(m, data, method="other", noise=0.01, progress=False)
