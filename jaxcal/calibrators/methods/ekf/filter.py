@@ -80,22 +80,16 @@ class EKFConfig:
 
 
 def make_ekf(
-    measure_fn: MeasureFn,
-    cfg: EKFConfig,
-    measurement: Measurement,
-    *,
-    theta0: Array,
-    theta_scale: Array | None = None,
-    theta_box: tuple[Array, Array] | None = None,
+    measure_fn: MeasureFn, cfg: EKFConfig, measurement: Measurement, **options
 ) -> Calibrator:
-    """The EKF of a static model ``F(w [Wd], theta [P]) -> x [S]``: arguments, state
+    """The EKF of a static model ``F(w [Wd], theta [P]) -> x [S]``: arguments
+    (``options``: ``theta0``, ``theta_scale``, ``theta_box``), state
     (:class:`~jaxcal.calibrators.ukf_steps.UKFState`) and outputs as
     :func:`~jaxcal.calibrators.ukf.make_ukf`. ``F`` must be jittable and
     differentiable in forward mode (``jax.jvp``)."""
     return make_joint_ekf(
-        static_transition(measure_fn), cfg, measurement, theta0=theta0,
-        theta_scale=theta_scale, theta_box=theta_box, clip_points=False,
-    )  # fmt: skip
+        static_transition(measure_fn), cfg, measurement, clip_points=False, **options
+    )
 
 
 def linearised(cfg: EKFConfig) -> Moments:
@@ -114,31 +108,21 @@ def linearised(cfg: EKFConfig) -> Moments:
 
 
 def make_joint_ekf(
-    transition: Transition,
-    cfg: EKFConfig,
-    measurement: Measurement,
-    *,
-    theta0: Array,
-    theta_scale: Array | None = None,
-    state_std: Array | None = None,
-    state_q: Array | None = None,
-    state_scale: Array | None = None,
-    theta_box: tuple[Array, Array] | None = None,
-    clip_points: bool = True,
+    transition: Transition, cfg: EKFConfig, measurement: Measurement, **options
 ) -> Calibrator:
     """The joint (augmented) state-and-parameter EKF of a model with memory.
 
-    Arguments and outputs as :func:`~jaxcal.calibrators.ukf.make_joint_ukf` (the
-    same skeleton, :func:`~jaxcal.calibrators.gaussian_filter.make_gaussian_filter`);
+    Arguments (``options``: ``theta0``, ``theta_scale``, ``state_std``, ``state_q``,
+    ``state_scale``, ``theta_box``, ``clip_points``) and outputs as
+    :func:`~jaxcal.calibrators.ukf.make_joint_ukf` (the same skeleton,
+    :func:`~jaxcal.calibrators.gaussian_filter.make_gaussian_filter`);
     ``clip_points`` clips the parameters the model is evaluated (and linearised) at
     into ``theta_box``. Each step evaluates ``transition.step`` once carrying ``Z +
     P`` forward-mode tangents, plus once more with ``cfg.posterior_xhat``.
     """
     return make_gaussian_filter(
-        linearised(cfg), transition, cfg, measurement, theta0=theta0,
-        theta_scale=theta_scale, state_std=state_std, state_q=state_q,
-        state_scale=state_scale, theta_box=theta_box, clip_points=clip_points,
-    )  # fmt: skip
+        linearised(cfg), transition, cfg, measurement, **options
+    )
 
 
 def linearised_predict(
