@@ -165,7 +165,7 @@ def screen(
         problem: the problem; its noise is the given one unless ``estimate``.
         data: the rows, as calibrated (``buckets`` index them).
         buckets: the rows as padded unit groups.
-        cfg: the UKF passes' settings (:class:`~jaxcal.calibrators.methods.UKF`).
+        cfg: the UKF passes' settings (:class:`~jaxcal.calibrators.methods.ukf.UKF`).
         estimate: estimate the noise (else judge against ``problem.noise_std``).
         threshold: the gate in standard deviations (``inf``: flag nothing).
 

@@ -36,22 +36,12 @@ REGISTRY: dict[str, Method] = {
 }
 METHODS: dict[str, type] = {name: m.config for name, m in REGISTRY.items()}
 
-# the configs of the paper's methods, by their old import path
-UKF = REGISTRY["ukf"].config
-LeastSquares = REGISTRY["ls"].config
-E2E = REGISTRY["e2e"].config
-Policy = REGISTRY["policy"].config
-
 __all__ = [
-    "E2E",
     "METHODS",
     "PACKAGES",
     "REGISTRY",
-    "UKF",
     "Built",
-    "LeastSquares",
     "Method",
-    "Policy",
     "build",
     "config",
     "get",

@@ -2,14 +2,14 @@
 given weights, else trained on simulations of the model over the box at the data's
 own conditions (E2E-sim, :mod:`jaxcal.calibrators.methods.e2e.simulated`); checked
 against the
-data's range (:mod:`jaxcal.calibrators.learned`)."""
+data's range."""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators.learned import e2e_calibrator, learned_built
+from jaxcal.calibrators.learned import learned_built
 from jaxcal.calibrators.methods.protocol import Method
 
 
@@ -38,6 +38,8 @@ def _range_check(problem):
 
 def build(problem, cfg: E2E, buckets, seed: int = 0):
     """The network (trained first without weights) run over the padded groups."""
+    from jaxcal.calibrators.methods.e2e.simulated import e2e_calibrator
+
     cal = e2e_calibrator(problem, buckets, seed, cfg)
     return learned_built(problem, cal, _range_check(problem))
 

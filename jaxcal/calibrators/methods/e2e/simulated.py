@@ -19,7 +19,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.calibrators.methods.e2e.network import (
+    E2EConfig,
+    _apply,
+    e2e_features,
+    e2e_training_rows,
+    fit_e2e_rows,
+    make_e2e_calibrator,
+    window_features,
+)
+from jaxcal.calibrators.uncertainty.conformal import fit_band
 from jaxcal.data.buckets import Buckets
+from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.problem import Problem
 
 
@@ -74,13 +85,6 @@ def _simulated(problem: Problem, buckets: Buckets, key_theta, key_noise, copies:
 def held_out_band(problem: Problem, buckets: Buckets, params, seed: int):
     """The split-conformal band of the trained ``params`` (module doc), on one
     simulated fleet drawn with a key the training never used."""
-    from jaxcal.calibrators.methods.e2e.network import (
-        _apply,
-        e2e_features,
-        window_features,
-    )
-    from jaxcal.calibrators.uncertainty.conformal import fit_band
-
     key = jax.random.fold_in(jax.random.key(seed), 0x42)  # not a training draw
     key_theta, key_noise = jax.random.split(key)
     hats, truths, masks = [], [], []
@@ -105,8 +109,6 @@ def fit_e2e_sim(
     parameter vector per simulated unit drawn uniformly in the box, and Gaussian
     output noise of the problem's std (``window``: G's input, see ``fit_e2e``).
     Simulated group by group of ``buckets`` (memory grows with the rows)."""
-    from jaxcal.calibrators.methods.e2e.network import e2e_training_rows, fit_e2e_rows
-
     key = jax.random.key(seed)
     key_theta, key_noise, key_fit = jax.random.split(key, 3)
     inputs, targets = [], []
@@ -117,4 +119,32 @@ def fit_e2e_sim(
         key_fit, np.concatenate(inputs), np.concatenate(targets), cfg,
         condition_dim=len(problem.model.condition_names),
         sensor_dim=len(problem.output_names), window=window,
+    )  # fmt: skip
+
+
+def e2e_calibrator(problem: Problem, buckets: Buckets, seed: int, cfg):
+    """A given E2E network, or one trained on simulations of the model (E2E-sim)."""
+    params = cfg.e2e
+    measure = problem.measure() if not problem.model.is_stateful else None
+    window = cfg.e2e_window
+    window = int((16 if measure is None else 0) if window is None else window)
+    if params is None:
+        fit = cfg.e2e_config or E2EConfig(
+            hidden_sizes=(64, 64),
+            fit=RegressorConfig(
+                learning_rate=1e-3, batch_size=256, num_epochs=60,
+                validation_fraction=0.1, patience=10,
+            ),
+        )  # fmt: skip
+        copies = int(cfg.e2e_copies)
+        params = fit_e2e_sim(problem, buckets, fit, seed, copies, window)[0]
+    # a std only where held-out simulations say what G's error is (not for given
+    # weights); every estimate projected into the declared box
+    band = held_out_band(problem, buckets, params, seed) if cfg.e2e is None else None
+    box = (problem.theta_low, problem.theta_high)
+    if measure is not None:
+        return make_e2e_calibrator(params, measure, box=box, band=band)
+    return make_e2e_calibrator(
+        params, transition=problem.transition(),
+        theta0=jnp.asarray(problem.theta_prior, buckets.dtype), box=box, band=band,
     )  # fmt: skip

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators.learned import learned_built, policy_calibrator
+from jaxcal.calibrators.learned import learned_built
 from jaxcal.calibrators.methods.protocol import Method
 
 
@@ -30,6 +30,10 @@ def build(problem, cfg: Policy, buckets, seed: int = 0):
     """The loaded policy run over the padded groups, checked against its run's
     training range."""
     del buckets, seed
+    # the run is read through jaxcal.runs.read_run (the deploy layer's loader, which
+    # the package root registers): imported when the method is asked for
+    from jaxcal.calibrators.methods.policy.trained import policy_calibrator
+
     cal, check = policy_calibrator(problem, cfg)
     return learned_built(problem, cal, check)
 

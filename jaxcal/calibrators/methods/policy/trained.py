@@ -32,6 +32,7 @@ from jaxcal.calibrators.methods.policy.gated import (
     make_gated_calibrator,
 )
 from jaxcal.calibrators.methods.policy.run_model import check_run_model  # noqa: F401 (re-exported)
+from jaxcal.calibrators.programs import compiled
 from jaxcal.runs import read_run
 
 
@@ -173,3 +174,56 @@ def check_anchor(run: LoadedRun, anchor: LoadedRun) -> None:
                 f"{list(getattr(anchor.problem, field))}, the run {run.run_dir} "
                 f"{list(getattr(run.problem, field))}: both must calibrate one problem"
             )
+
+
+def policy_calibrator(problem, cfg) -> tuple[Calibrator, SampleCheck | None]:
+    """A trained policy from ``run=<folder>`` and its sample check (the run's own
+    training range, not the range of the data being calibrated); its names must
+    match the problem, and the problem's model must be the run's own (by names and
+    by outputs at probe points, :mod:`jaxcal.calibrators.methods.policy.run_model`).
+    With ``anchor=<folder>`` (an absolute policy's run with its
+    band) the run, an incremental policy, is gated by it (:mod:`jaxcal.calibrators.
+    gated`): the feedback while the model fits the data, the anchor where not."""
+    run_dir, anchor_dir = cfg.run, cfg.anchor
+    if not run_dir:
+        raise ValueError("method='policy' needs run=<trained run folder>")
+    run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
+    _check_run(problem, run)
+    check_run_model(run, problem.model)  # the policy runs with the run's own model
+    anchor = None
+    # the feedback gated by an absolute policy (calibrators.methods.policy.gated)
+    if anchor_dir:
+        anchor = load_run(anchor_dir)
+        _check_run(problem, anchor)
+        check_run_model(anchor, problem.model)
+    # one calibrator per (run, checkpoint, anchor) in a process: a repeat call
+    # reuses its compiled program (the policy's weights are the program's constants)
+    key = (
+        str(run.run_dir), run.step,
+        None if anchor is None else (str(anchor.run_dir), anchor.step),
+    )  # fmt: skip
+    cal = compiled.cached_value(("policy", key), lambda: load_calibrator(run, anchor))
+    return cal, run_check(run)
+
+
+def _check_run(problem, run) -> None:
+    """A loaded run's names must match the problem's (else a ValueError)."""
+    run_dir = run.run_dir
+    names = run.problem.theta_names
+    if tuple(names) != problem.theta_names:
+        raise ValueError(
+            f"run {run_dir} calibrates {list(names)}, not "
+            f"{list(problem.theta_names)}: pass theta={list(names)}"
+        )
+    if run.problem.model.condition_names != problem.model.condition_names:
+        raise ValueError(
+            f"run {run_dir} was trained on model {run.problem.model.name!r} with "
+            f"conditions {list(run.problem.model.condition_names)}, not "
+            f"{list(problem.model.condition_names)}"
+        )
+    outputs = run.problem.output_names
+    if tuple(outputs) != problem.output_names:
+        raise ValueError(
+            f"run {run_dir} uses outputs {list(outputs)}, the data give "
+            f"{list(problem.output_names)}: pass outputs={list(outputs)}"
+        )
