@@ -22,7 +22,7 @@ from jaxcal.training.components import make_agent
 from jaxcal.training.config import resolve_config
 from jaxcal.training.data.ncmapss import load_calibration_data
 from jaxcal.training.pipeline import run_training
-from jaxcal.training.runner import evaluate_policy
+from tests.support.policy_rollout import evaluate_policy
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,7 @@ job (data -> surrogate D -> policy -> band -> test scores) through its stages
 :mod:`~jaxcal.training.data.train_env` and the machinery of
 :mod:`~jaxcal.training.components` and :mod:`~jaxcal.training.runner`. A policy is
 scored by :mod:`~jaxcal.training.scoring.policy` (with the scores of
-:mod:`~jaxcal.training.scoring.trajectories`; the rollout through the training
-environment
-that the deployed policy reproduces is :mod:`~jaxcal.training.scoring.rollout`), and
+:mod:`~jaxcal.training.scoring.trajectories`), and
 the run's ``final.json`` is gathered by :mod:`~jaxcal.training.scoring.final_report`. A
 run folder's own model is kept by :mod:`~jaxcal.training.model_source`. The files of a
 run folder are :mod:`jaxcal.runs`'; reading a trained run back is

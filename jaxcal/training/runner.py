@@ -16,9 +16,7 @@ once (``donate_argnums=0``) and logs between chunks::
 The environment parameters (data, normalisation, dynamics parameters) are an argument of
 the chunk rather than part of the runner state: they are not donated, not duplicated
 when vmapping over seeds (``in_axes=(0, None)``), and a new data set or surrogate does
-not trigger recompilation. :func:`evaluate_policy`
-(:mod:`jaxcal.training.scoring.rollout`, re-exported here) runs the deterministic policy
-once through every whole unit trajectory.
+not trigger recompilation.
 """
 
 from __future__ import annotations
@@ -40,10 +38,6 @@ from jaxcal.agents.buffer import (
 )
 from jaxcal.agents.common import Agent
 from jaxcal.envs.tracking import Env, EnvParams, check_env_params
-from jaxcal.training.scoring.rollout import (  # noqa: F401 (re-exported: one import path)
-    EvalOutput,
-    evaluate_policy,
-)
 from jaxcal.typedefs import Array, Metrics, PRNGKey
 
 

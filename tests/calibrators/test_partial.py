@@ -20,17 +20,13 @@ import pytest
 import jaxcal
 from jaxcal.calibrators.interface import Measurement, run_calibrator
 from jaxcal.calibrators.methods.e2e.network import E2EConfig
-from jaxcal.calibrators.methods.ls.window import (
-    FitConfig,
-    LeastSquaresConfig,
-    fit_least_squares,
-    make_least_squares,
-)
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
 from jaxcal.calibrators.methods.ls.window_state import make_window_least_squares
 from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
 from jaxcal.data.readers import read_dataset
 from jaxcal.nets.mlp import RegressorConfig
 from jaxcal.problem import Transition
+from tests.support.ls_fit import FitConfig, fit_least_squares
 
 NUM_STEPS, NUM_SENSORS = 12, 4
 RUN = jax.jit(run_calibrator, static_argnums=0)

@@ -7,12 +7,8 @@ import numpy as np
 import pytest
 
 from jaxcal.calibrators.interface import Measurement, run_calibrator
-from jaxcal.calibrators.methods.ls.window import (
-    FitConfig,
-    LeastSquaresConfig,
-    fit_least_squares,
-    make_least_squares,
-)
+from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig, make_least_squares
+from tests.support.ls_fit import FitConfig, fit_least_squares
 
 TRUTH = jnp.array([0.4, -0.7, 0.2])
 

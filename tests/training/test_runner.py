@@ -28,12 +28,8 @@ from jaxcal.agents.common import Agent
 from jaxcal.agents.configs import CLACConfig
 from jaxcal.envs.tracking import EnvConfig, make_tracking_env
 from jaxcal.problem import Normalisation
-from jaxcal.training.runner import (
-    RunnerConfig,
-    evaluate_policy,
-    init_runner,
-    make_train_chunk,
-)
+from jaxcal.training.runner import RunnerConfig, init_runner, make_train_chunk
+from tests.support.policy_rollout import evaluate_policy
 
 FAST_AGENT = dict(
     actor_lr=1e-3,

@@ -128,13 +128,8 @@ def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callab
 
 def cached_value(key: tuple, build: Callable):
     """``build()`` made once per ``key`` in this process (kept like a program; its
-    first entry names its kind in :func:`builds`)."""
+    first entry names its kind in the build counts)."""
     return _remember(("value", key), key[0], None, build)
-
-
-def builds() -> dict:
-    """``{kind: programs built}`` in this process (a repeat call builds none)."""
-    return dict(_COUNTS)
 
 
 def clear() -> None:

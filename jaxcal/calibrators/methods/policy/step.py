@@ -10,7 +10,8 @@ x-hat_{t-1} carried in the state, each new sample (w_t, x_t) gives
 with pi* = tanh(mean) the deterministic policy and ``box`` the environment's affine map
 to [theta_low, theta_high]. This is the training environment's step shifted by one
 index, so on samples t >= 1 the calibrator reproduces
-:func:`jaxcal.training.runner.evaluate_policy`. On the first sample there is no x-hat
+the environment's deterministic rollout
+(``tests/support/policy_rollout.py``). On the first sample there is no x-hat
 yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
 norm(w_0)])) and x-hat_0 = x_0.
 

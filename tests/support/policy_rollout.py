@@ -4,7 +4,7 @@
 environment from its first sample (``lax.scan`` over time, ``vmap`` over units), the
 reference the deployment calibrator
 (:mod:`jaxcal.calibrators.methods.policy.calibrator`) reproduces on
-samples t >= 1. :mod:`jaxcal.training.runner` re-exports it.
+samples t >= 1 (tests only).
 """
 
 from __future__ import annotations
