@@ -49,7 +49,7 @@ from jaxcal.calibrators.interface import (
     SampleCheck,
     run_fleet,
 )
-from jaxcal.calibrators.methods import REGISTRY, method_of
+from jaxcal.calibrators.methods import method_of
 from jaxcal.calibrators.methods.e2e.network import E2EParams, make_e2e_calibrator
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.calibrators.methods.policy.calibrator import make_policy_calibrator
@@ -367,24 +367,6 @@ def paper_config(method, ukf: UKFConfig, least_squares: LeastSquaresConfig):
     paper = dataclasses.asdict(ukf)
     settings = inner(**{k: paper[k] for k in names & set(paper)})
     return method.config(**{field: settings})
-
-
-def ukf_method(
-    engine, problem: Problem, cfg: UKFConfig = UKFConfig(), name: str = "UKF"
-) -> Method:
-    """The paper's UKF on F: prior at the box centre, parameters scaled by its
-    half-width (``prior_std = 1`` spans the box), q = r = 0.01 by default."""
-    return model_method(engine, problem, REGISTRY["ukf"].config(filter=cfg), name)
-
-
-def least_squares_method(
-    engine,
-    problem: Problem,
-    cfg: LeastSquaresConfig = LeastSquaresConfig(),
-    name: str = "LS",
-) -> Method:
-    """Sliding-window Levenberg-Marquardt on F, same prior and scaling as the UKF."""
-    return model_method(engine, problem, REGISTRY["ls"].config(solver=cfg), name)
 
 
 # ------------------------------------------------------------------ learned
