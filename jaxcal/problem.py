@@ -37,6 +37,11 @@ from jaxcal.model import Model
 CONSTANT_THETA_HALF_WIDTH = 0.01
 # A labelled parameter "varies" when its range exceeds this (files store exact zeros).
 VARYING_TOLERANCE = 1e-9
+# The one default of a missing noise std, before anything is estimated: this share of
+# each output's spread (the paper's r = 0.01 in units of the training std). The front
+# door then estimates the noise from the data; what cannot (a streamed fleet, a run
+# that stored none) keeps this start and says so in ``noise_source``.
+PROVISIONAL_NOISE_SHARE = 0.01
 
 
 def labelled_box(
@@ -281,7 +286,7 @@ class Problem:
 def _noise_vector(noise, names: Sequence[str], norm: Normalisation):
     """The ``[S]`` noise std of a mapping / sequence / None (1 % of the spread)."""
     if noise is None:
-        return 0.01 * norm.x_std, "provisional (1 % of each output's spread)"
+        return provisional_noise(norm.x_std)
     if isinstance(noise, Mapping):
         unknown = [k for k in noise if k not in names]
         missing = [n for n in names if n not in noise]
@@ -301,3 +306,10 @@ def _noise_vector(noise, names: Sequence[str], norm: Normalisation):
     if not np.all(np.isfinite(values) & (values > 0)):
         raise ValueError(f"noise std must be finite and > 0, got {values.tolist()}")
     return values, "given"
+
+
+def provisional_noise(spread, of: str = "each output's spread"):
+    """``(noise_std [S], noise_source)``: the default of a missing noise,
+    :data:`PROVISIONAL_NOISE_SHARE` of ``spread`` (float64)."""
+    share = PROVISIONAL_NOISE_SHARE * np.asarray(spread, np.float64)
+    return share, f"provisional ({PROVISIONAL_NOISE_SHARE * 100:g} % of {of})"

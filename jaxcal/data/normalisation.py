@@ -33,14 +33,17 @@ class Normalisation(NamedTuple):
         return cls(*column_stats(w, dtype), *column_stats(x, dtype))
 
 
-def column_stats(a: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+def column_stats(
+    a: np.ndarray, dtype=np.float64, rel: float = CONSTANT_REL_STD
+) -> tuple[np.ndarray, np.ndarray]:
     """``(mean, std)`` of each column of ``a [N, C]`` in ``dtype`` (``None``: the
-    array's own), NaN left out, a constant column's std 1: the arithmetic of
-    :meth:`Normalisation.of`."""
+    array's own), NaN left out, a column whose std is at most ``rel`` of its scale
+    gets std 1: the arithmetic of :meth:`Normalisation.of` and of the networks'
+    :func:`jaxcal.nets.mlp.fit_normalizer`."""
     a = np.asarray(a, dtype)
     if np.isnan(a).any():  # host branch: complete data keep their exact bits
         mean, std = np.nanmean(a, axis=0), np.nanstd(a, axis=0)
     else:
         mean, std = a.mean(axis=0), a.std(axis=0)
-    tiny = std <= CONSTANT_REL_STD * np.maximum(np.abs(mean), 1.0)
+    tiny = std <= rel * np.maximum(np.abs(mean), 1.0)
     return mean, np.where(tiny, 1.0, std).astype(a.dtype)

@@ -29,7 +29,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxcal.agents.networks import make_networks
 from jaxcal.calibrators.methods.policy.calibrator import (
@@ -42,7 +41,7 @@ from jaxcal.calibrators.methods.policy.calibrator import (
 from jaxcal.calibrators.methods.policy.trained import LoadedRun
 from jaxcal.calibrators.uncertainty.conformal import load_band
 from jaxcal.precision import require_x64
-from jaxcal.problem import Problem
+from jaxcal.problem import Problem, provisional_noise
 from jaxcal.runs.checkpoint import Checkpointer, load_config
 from jaxcal.runs.folder import (
     DATA_FILE,
@@ -97,15 +96,15 @@ def run_problem(
     # the older layout: RunMeta fields + the box and normalisation beside them,
     # mapped onto the current one
     ranges = ("w_low", "w_high", "x_low", "x_high")
-    x_std = np.asarray(data["norm"]["x_std"], np.float64)
+    noise_std, noise_source = provisional_noise(data["norm"]["x_std"])
     current = {
         **{
             k: data[k] for k in ("theta_names", "theta_base", "theta_low", "theta_high")
         },
         "output_names": data["sensors"],
         "norm": data["norm"],
-        "noise_std": 0.01 * x_std,
-        "noise_source": "provisional (1 % of each output's spread)",
+        "noise_std": noise_std,
+        "noise_source": noise_source,
         "input_range": {k: data[k] for k in ranges}
         if data.get("w_low") is not None
         else None,

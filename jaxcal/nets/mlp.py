@@ -27,6 +27,7 @@ import numpy as np
 import optax
 from flax import struct
 
+from jaxcal.data.normalisation import column_stats
 from jaxcal.nets.epochs import TrainState, chunked_mse, make_train_epoch, run_epochs
 from jaxcal.typedefs import Array, PRNGKey, PyTree
 
@@ -93,14 +94,13 @@ class Normalizer:
 def fit_normalizer(values: Array) -> Normalizer:
     """Mean and std over axis 0 of ``values [N, D]`` (host-side).
 
-    A feature that is (numerically) constant gets std 1, so that it passes through
-    centred instead of being blown up by a tiny divisor (e.g. a θ component that the
-    data set never varies).
+    A feature that is (numerically) constant, std at most 1e-6 of its scale, gets
+    std 1, so that it passes through centred instead of being blown up by a tiny
+    divisor (e.g. a θ component that the data set never varies): the data's
+    :func:`~jaxcal.data.normalisation.column_stats`, with a looser threshold, since
+    a float32 network cannot resolve a finer spread.
     """
-    v = np.asarray(values, dtype=np.float64)
-    mean = v.mean(axis=0)
-    std = v.std(axis=0)
-    std = np.where(std > 1e-6 * np.maximum(1.0, np.abs(mean)), std, 1.0)
+    mean, std = column_stats(values, np.float64, rel=1e-6)
     return Normalizer(
         mean=jnp.asarray(mean, jnp.float32), std=jnp.asarray(std, jnp.float32)
     )

@@ -100,11 +100,12 @@ from jaxcal.calibrators.methods.ukf import UKF, ukf_program
 from jaxcal.calibrators.model_based import model_inputs
 from jaxcal.data.buckets import Buckets, bucket_units
 from jaxcal.data.dataset import Dataset
-from jaxcal.problem import Problem
+from jaxcal.problem import PROVISIONAL_NOISE_SHARE, Problem
 
 SETTLE = 0.1  # share of each unit's rows left out of the noise while the filter settles
 NOISE_FLOOR_REL = 1e-6  # noise floor relative to the output's robust spread (or 1)
-PROVISIONAL_REL = 0.01  # first pass's noise relative to the output's robust spread
+# the first pass's noise: the one provisional share of the output's robust spread
+PROVISIONAL_REL = PROVISIONAL_NOISE_SHARE
 X84 = 3.5  # Hampel's X84 rejection rule: 5.2 MADs, i.e. 3.5 Gaussian std
 WIDE_INNOVATIONS = 3.0  # typical |innovation| / predicted std worth a note
 MIN_NOISE_ROWS = 20  # settled readings of an output below which its noise is noted

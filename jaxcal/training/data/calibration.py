@@ -20,7 +20,7 @@ import numpy as np
 from jaxcal.data.normalisation import column_stats
 from jaxcal.data.padded import Padded
 from jaxcal.model import Model
-from jaxcal.problem import InputRange, Normalisation, Problem
+from jaxcal.problem import InputRange, Normalisation, Problem, provisional_noise
 
 
 class CalibrationData(NamedTuple):
@@ -84,6 +84,7 @@ def training_problem(
     rows = np.asarray(train.mask, bool)
     w = np.asarray(train.w, np.float64)[rows]
     x = np.asarray(train.x, np.float64)[rows]
+    noise_std, noise_source = provisional_noise(output_spread(train))
     return Problem(
         model=model,
         theta_names=tuple(theta_names),
@@ -92,9 +93,9 @@ def training_problem(
         theta_low=np.asarray(theta_low, np.float64),
         theta_high=np.asarray(theta_high, np.float64),
         norm=training_norm(train, norm_dtype),
-        noise_std=0.01 * output_spread(train),
+        noise_std=noise_std,
         input_range=InputRange(w.min(0), w.max(0), x.min(0), x.max(0)),
-        noise_source="provisional (1 % of each output's spread)",
+        noise_source=noise_source,
     )
 
 
