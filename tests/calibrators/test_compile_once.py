@@ -120,3 +120,13 @@ def test_a_misspelt_option_lists_the_valid_ones():
         jaxcal.calibrate(STATIC, _data(STATIC, 0), "ukf", qq=0.1)
     with pytest.raises(ValueError, match="'state_q'.*options are.*'window'"):
         jaxcal.calibrate(MEMORY, _data(MEMORY, 0), "ls", state_q=0.1)
+
+
+def test_the_source_digest_covers_the_whole_package():
+    """A program kept on disk is keyed by every file of jaxcal, the model's physics
+    included, not only by the calibrators' own folder (the one its module sits in)."""
+    from pathlib import Path
+
+    from jaxcal.calibrators.programs import on_disk
+
+    assert on_disk.PACKAGE_ROOT == Path(jaxcal.__file__).resolve().parent

@@ -80,10 +80,14 @@ def serialisable(cls: type) -> type:
 serialisable(CalOutput)
 
 
+# the jaxcal package: a kept program is stale once any of its code or constants changes
+PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+
+
 @functools.cache
 def source_digest() -> str:
     """sha256 of every file of the jaxcal package (code and stored constants)."""
-    root = Path(__file__).resolve().parents[1]
+    root = PACKAGE_ROOT
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*")):
         if path.is_file() and path.suffix in (".py", ".json"):
