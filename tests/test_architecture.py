@@ -38,15 +38,20 @@ LAYERS = (
         "jaxcal.progress",
     ),
     ("jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.model"),
-    ("jaxcal.physics",),
     ("jaxcal.data",),
     ("jaxcal.problem",),
     ("jaxcal.models",),
     ("jaxcal.nets", "jaxcal.surrogate", "jaxcal.envs", "jaxcal.agents"),
     ("jaxcal.calibrators",),
-    ("jaxcal.training",),
+    # the turbofan's training data and fleet stream sit with the layers they feed
+    ("jaxcal.training", "jaxcal.models.turbofan.training"),
     ("jaxcal.deploy",),
-    ("jaxcal.diagnosis", "jaxcal.fleet", "jaxcal.paper"),
+    (
+        "jaxcal.diagnosis",
+        "jaxcal.fleet",
+        "jaxcal.paper",
+        "jaxcal.models.turbofan.fleet",
+    ),
     # the command lines, their shims, and the package root (the composition root:
     # the public names, imported lazily, and the run reader it hands jaxcal.runs)
     # (jaxcal.validate: a package only so that its shim is a __main__)

@@ -19,7 +19,7 @@ from support.synthetic_file import write_synthetic_ncmapss
 from jaxcal.cli import evaluate
 from jaxcal.cli.train import main as train_main
 from jaxcal.cli.train import parse_args
-from jaxcal.data.ncmapss_writer import NCMAPSSWriter
+from jaxcal.models.turbofan.data.ncmapss_writer import NCMAPSSWriter
 from jaxcal.runs.atomic import host_tag, make_temp, release_temp, write_atomic
 from jaxcal.runs.folder import check_run_dir
 from jaxcal.settings import check_output_path, config_to_dict
@@ -210,7 +210,7 @@ def test_a_killed_ncmapss_writer_leaves_a_temp_the_next_write_removes(tmp_path):
     target = tmp_path / "data.h5"
     code = (
         "import os, signal, sys\n"
-        "from jaxcal.data.ncmapss_writer import NCMAPSSWriter\n"
+        "from jaxcal.models.turbofan.data.ncmapss_writer import NCMAPSSWriter\n"
         "with NCMAPSSWriter(sys.argv[1]):\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
     )
