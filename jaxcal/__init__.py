@@ -24,14 +24,15 @@ This module is the composition root. Its acts at import: it hands the run-folder
 slot of :mod:`jaxcal.runs` the reader of :mod:`jaxcal.deploy.loading` (imported when a
 run is first read), so the policy method and the front door, below the training
 layer, take a run folder without importing a layer above their own; likewise it
-hands the turbofan's files (N-CMAPSS, C-MAPSS) to :data:`jaxcal.data.FILE_READERS`:
-the data layer imports nothing of the turbofan.
+hands the turbofan's files (N-CMAPSS, C-MAPSS) to :data:`jaxcal.data.FILE_READERS` and
+:data:`jaxcal.training.data.MODEL_FILES`: the core imports nothing of the turbofan.
 """
 
 import importlib
 
 from jaxcal import data as _data
 from jaxcal import runs as _runs
+from jaxcal.training import data as _training_data
 from jaxcal.version import __version__  # noqa: F401 (jaxcal.__version__)
 
 _EXPORTS = {
@@ -59,6 +60,10 @@ def _lazy(module: str, name: str):
 _runs.register_run_reader(_lazy("jaxcal.deploy.loading", "load_run"))
 _read_file = _lazy("jaxcal.models.turbofan.data.datasets", "read_file")
 _data.FILE_READERS.update(dict.fromkeys((".h5", ".hdf5", ".txt"), _read_file))
+_training_data.MODEL_FILES.update(
+    read=_lazy("jaxcal.models.turbofan.training", "read_data"),
+    generator=_lazy("jaxcal.models.turbofan.training", "generator"),
+)
 
 
 def __getattr__(name):

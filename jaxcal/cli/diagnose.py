@@ -105,7 +105,7 @@ def parse_args(argv: list[str]) -> tuple[DiagnoseConfig, dict]:
 
 
 def _rename(cfg: DiagnoseConfig) -> dict:
-    from jaxcal.models.turbofan.data.ncmapss_io import parse_rename
+    from jaxcal.data.table_checks import parse_rename
 
     return parse_rename(cfg.rename)
 

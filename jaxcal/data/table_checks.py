@@ -133,6 +133,19 @@ def renamed_columns(frame, rename: Mapping[str, str], source: str):
     return frame.rename(columns=dict(zip(frame.columns, after, strict=True)))
 
 
+def parse_rename(pairs: Sequence[str]) -> dict[str, str]:
+    """``("T_24:T24", ...)`` (the ``dataset.rename`` form) as ``{"T_24": "T24"}``."""
+    out = {}
+    for pair in pairs:
+        old, sep, new = pair.partition(":")
+        if not sep or not old or not new or ":" in new:
+            raise ValueError(
+                f"rename entries must be <file name>:<jaxcal name>, got {pair!r}"
+            )
+        out[old.strip()] = new.strip()
+    return out
+
+
 def check_ignore(ignore: Sequence[str], model: Model, source: str) -> None:
     """``ignore=`` skips columns; a condition cannot be skipped (the model needs
     every one), an output, true parameter or ``unit``/``time``/``split`` column can

@@ -15,8 +15,9 @@ from jaxcal.models.turbofan.physics.constants import (
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,
 )
-from jaxcal.models.turbofan.training import load_calibration_data, read_options
+from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.training.config import resolve_config
+from jaxcal.training.data.run import read_options
 
 SENSORS = MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES
 

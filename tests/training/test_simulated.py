@@ -7,7 +7,7 @@ import pytest
 
 import jaxcal
 from jaxcal.data.padded import Padded
-from jaxcal.models.turbofan.training import training_problem
+from jaxcal.training.data.calibration import training_problem
 from jaxcal.training.data.sim_paths import drift_paths, estimated_drifts, theta_paths
 from jaxcal.training.data.simulated import parse_noise, simulate_units
 
@@ -227,8 +227,8 @@ def test_tuning_and_guard_units_are_labelled_and_the_clean_twin_is_effect_free()
     twin is the selection units without their effects: same theta and noise."""
     import dataclasses
 
-    from jaxcal.models.turbofan.training import CalibrationData
     from jaxcal.training.config import make_train_config
+    from jaxcal.training.data.calibration import CalibrationData
     from jaxcal.training.data.simulated import Simulations
 
     units = _units()

@@ -1,13 +1,14 @@
-"""Reading the calibration data set of a training run from an N-CMAPSS-layout file.
+"""The turbofan's data of a training run: an N-CMAPSS-layout file, or generated.
 
 :class:`~jaxcal.training.data.calibration.CalibrationData` is what training,
 evaluation and the paper's comparison read: the train / validation / test units as
 :class:`~jaxcal.data.padded.Padded` and the problem they define
-(:mod:`jaxcal.training.data.calibration`, whose names are re-exported here, the one
-import path). Two sources make one:
+(:mod:`jaxcal.training.data.calibration`). Two sources make one:
 
 * :func:`load_calibration_data` (this module) reads an N-CMAPSS-layout HDF5 file (one
-  of ours or any of NASA's DS01-DS08) for the turbofan;
+  of ours or any of NASA's DS01-DS08) for the turbofan (:func:`read_data`: a
+  training run's, through :data:`jaxcal.training.data.MODEL_FILES`, as
+  :func:`generator` makes a missing file);
 * :func:`jaxcal.training.data.tables.load_table_data` reads any model's rows (CSV,
   Parquet, C-MAPSS text) through :func:`jaxcal.data.readers.read_dataset`.
 
@@ -39,7 +40,9 @@ logged and recorded in ``info["dropped"]``).
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -47,14 +50,18 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.data.padded import Padded
 from jaxcal.model import Model
 from jaxcal.models.turbofan.data.datasets import read_ncmapss_split
-from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info, parse_rename
+from jaxcal.models.turbofan.data.generation import (
+    dataset_preset,
+    generate_dataset,
+    summary_line,
+)
+from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
 from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, MEASURED_SENSOR_NAMES
 from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
-from jaxcal.training.data.calibration import (  # noqa: F401 (re-exported: one import path)
-    CalibrationData,
-    training_problem,
-)
+from jaxcal.training.config import TrainConfig
+from jaxcal.training.data.calibration import CalibrationData, training_problem
+from jaxcal.training.data.run import read_options, run_dtype
 
 
 def _json_attr(attrs: dict, key: str):
@@ -112,16 +119,6 @@ def split_units(
     if not train:
         raise ValueError(f"val_units {val} leave no training unit (dev units: {dev})")
     return train, val, test
-
-
-def read_options(dataset) -> dict:
-    """The reader options of a ``DataConfig`` (``jaxcal.training.config``) as keyword
-    args of :func:`load_calibration_data`: ``nonfinite`` and ``rename`` (older run
-    configs without these fields read with the defaults)."""
-    return {
-        "nonfinite": getattr(dataset, "nonfinite", "error"),
-        "rename": parse_rename(getattr(dataset, "rename", ())),
-    }
 
 
 def describe_dropped(dropped: dict) -> str:
@@ -314,3 +311,35 @@ def _provenance(path, info: dict, stride: int, dev, test, units, dropped) -> dic
         "units": units,
         "dropped": dropped,
     }
+
+
+def read_data(cfg: TrainConfig, path: str, *, units: dict, log, model):
+    """A training run's data (:func:`jaxcal.training.data.run.read_run_data`: the
+    arguments) when ``path`` is an N-CMAPSS file and ``model`` a turbofan (one that
+    wraps its engine) or ``None`` (:func:`file_model`); else ``None``: a table."""
+    is_h5 = Path(path).suffix.lower() in (".h5", ".hdf5")
+    if not is_h5 or (model is not None and model.native is None):
+        return None
+    options = read_options(cfg.dataset)
+    model = model or file_model(ncmapss_info(path, rename=options["rename"]))
+    return load_calibration_data(
+        path, sensors=cfg.sensors, theta=cfg.theta,
+        val_units=units.get("val", cfg.dataset.val_units),
+        val_fraction=cfg.dataset.val_fraction, stride=cfg.dataset.stride,
+        theta_margin=cfg.env.theta_margin, log=log,  # rows dropped: nonfinite=drop
+        model=model, norm_dtype=run_dtype(cfg, model), **options,
+    )  # fmt: skip
+
+
+def generator(name: str) -> Callable[[Path, bool], str]:
+    """``generate(path, progress)``: writes the data-set preset ``name``
+    (:data:`~jaxcal.models.turbofan.data.dataset_configs.DATASETS`; a bad name: a
+    ValueError now) and returns its summary line."""
+    preset = dataset_preset(name)
+
+    def generate(path: Path, progress: bool) -> str:
+        start = time.perf_counter()
+        summary = generate_dataset(preset, path, progress=progress)
+        return summary_line(summary, path, start)
+
+    return generate

@@ -3,7 +3,7 @@
 :func:`load_table_data` reads a file of rows named as the model names its variables
 (CSV, Parquet, NASA C-MAPSS text; :func:`jaxcal.data.readers.read_dataset`) or takes
 a :class:`~jaxcal.data.dataset.Dataset`, and returns the same
-:class:`~jaxcal.models.turbofan.training.CalibrationData` an N-CMAPSS file gives.
+:class:`~jaxcal.training.data.calibration.CalibrationData` an N-CMAPSS file gives.
 
 Splits are whole units (one unit is one stream; a window never mixes units):
 
@@ -32,9 +32,9 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.data.padded import Padded
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
-from jaxcal.models.turbofan.training import CalibrationData, training_problem
 from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
+from jaxcal.training.data.calibration import CalibrationData, training_problem
 
 SPLITS = ("train", "val", "test", "dev")
 

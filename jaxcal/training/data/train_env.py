@@ -21,10 +21,10 @@ from jaxcal.data.padded import Padded
 from jaxcal.envs.increment import increment_step_ref
 from jaxcal.envs.memory import as_stateful, reference_states
 from jaxcal.envs.tracking import EnvParams, make_env_params
-from jaxcal.models.turbofan.training import CalibrationData
 from jaxcal.problem import Problem
 from jaxcal.training.components import make_dynamics, uses_filter, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.data.simulated import Simulations
 
 

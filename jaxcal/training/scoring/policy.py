@@ -26,9 +26,9 @@ from jaxcal.calibrators.methods.policy.calibrator import (
 )
 from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
-from jaxcal.models.turbofan.training import CalibrationData
 from jaxcal.problem import Problem
 from jaxcal.training.config import TrainConfig
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.scoring.trajectories import score_units, theta_rmse
 from jaxcal.training.stages.uncertainty import scored_mask
 

@@ -21,7 +21,6 @@ import jax
 import numpy as np
 
 from jaxcal.data.padded import Padded
-from jaxcal.models.turbofan.training import CalibrationData
 from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import SURROGATE_DIR, SURROGATE_FILE, read_json, write_json
 from jaxcal.surrogate.fit import fit_surrogate, make_transitions, surrogate_errors
@@ -30,6 +29,7 @@ from jaxcal.surrogate.model import (
     SurrogateParams,
     init_surrogate_params,
 )
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.scoring.trajectories import describe_units
 from jaxcal.typedefs import PRNGKey
 

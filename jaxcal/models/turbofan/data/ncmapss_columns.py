@@ -5,14 +5,14 @@ names of the layout (:data:`~jaxcal.models.turbofan.data.ncmapss_layout.LAYOUT_N
 any order; X_s / X_v may also hold other jaxcal sensor names), so a renamed sensor
 (``T_24`` for ``T24``) is an error that lists what was expected and what was found,
 unless the caller maps it with ``rename={"T_24": "T24"}``
-(:func:`parse_rename` reads the command-line form).
+(:func:`~jaxcal.data.table_checks.parse_rename` reads the command-line form).
 :func:`split_layout` checks a split's datasets against the names.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import h5py
 import numpy as np
@@ -53,19 +53,6 @@ def _var_names(f: h5py.File, path: str, group: str) -> list[str]:
     return [
         (v.decode("ascii") if isinstance(v, bytes) else str(v)).strip() for v in raw
     ]
-
-
-def parse_rename(pairs: Sequence[str]) -> dict[str, str]:
-    """``("T_24:T24", ...)`` (the ``dataset.rename`` form) as ``{"T_24": "T24"}``."""
-    out = {}
-    for pair in pairs:
-        old, sep, new = pair.partition(":")
-        if not sep or not old or not new or ":" in new:
-            raise ValueError(
-                f"rename entries must be <file name>:<jaxcal name>, got {pair!r}"
-            )
-        out[old.strip()] = new.strip()
-    return out
 
 
 def _check_rename(rename, raw: dict, path: str) -> dict[str, str]:

@@ -16,7 +16,6 @@ temporary file in the destination directory and ``os.replace`` it into place onl
 everything succeeded.
 """
 
-from jaxcal.models.turbofan.data.ncmapss_columns import parse_rename
 from jaxcal.models.turbofan.data.ncmapss_layout import LAYOUT_NAMES, SPLITS
 from jaxcal.models.turbofan.data.ncmapss_reader import load_ncmapss, ncmapss_info
 from jaxcal.models.turbofan.data.ncmapss_writer import NCMAPSSWriter, write_ncmapss
@@ -27,6 +26,5 @@ __all__ = [
     "NCMAPSSWriter",
     "load_ncmapss",
     "ncmapss_info",
-    "parse_rename",
     "write_ncmapss",
 ]
