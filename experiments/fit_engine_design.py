@@ -1,10 +1,11 @@
 """Fit the ``cmapss`` (and ``agtf30``) design constants to real operating points.
 
 cmapss: the six FD002 operating conditions, early-life means of train_FD002.txt
-(``jaxcal.physics.reference``; recomputed from ``../shared/data/cmapss`` when present and
-checked). agtf30: the AGTF30 cruise and hot-day take-off points of physics_facts.md 6.3.
-The result is written to ``jaxcal/physics/fitted/<name>.json`` (the config's defaults,
-with the Newton start table) and a report to ``results/engine/fit_<name>.json``.
+(``jaxcal.models.turbofan.physics.reference``; recomputed from ``../shared/data/cmapss``
+when present and checked). agtf30: the AGTF30 cruise and hot-day take-off points of
+physics_facts.md 6.3. The result is written to
+``jaxcal/models/turbofan/physics/fitted/<name>.json`` (the config's defaults, with the
+Newton start table) and a report to ``results/engine/fit_<name>.json``.
 
     python experiments/fit_engine_design.py [cmapss|agtf30|all]
 """
@@ -20,12 +21,17 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxcal.physics import reference as ref
-from jaxcal.physics.configs import NOMINAL, design_to_flat
-from jaxcal.physics.design import design_point
-from jaxcal.physics.design_fit import FitParam, Target, ThetaParam, fit_design
-from jaxcal.physics.evaluation import evaluate_design
-from jaxcal.physics.guess import build_guess_table, tra_for_pcn
+from jaxcal.models.turbofan.physics import reference as ref
+from jaxcal.models.turbofan.physics.configs import NOMINAL, design_to_flat
+from jaxcal.models.turbofan.physics.design import design_point
+from jaxcal.models.turbofan.physics.design_fit import (
+    FitParam,
+    Target,
+    ThetaParam,
+    fit_design,
+)
+from jaxcal.models.turbofan.physics.evaluation import evaluate_design
+from jaxcal.models.turbofan.physics.guess import build_guess_table, tra_for_pcn
 from jaxcal.precision import enable_x64
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -165,7 +171,7 @@ def run(name: str) -> dict:
         raise FloatingPointError(
             f"fitted {name} design does not converge at its targets"
         )
-    from jaxcal.physics.constants import SENSOR_NAMES
+    from jaxcal.models.turbofan.physics.constants import SENSOR_NAMES
 
     rows = []
     for t in targets:

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcal.data.cmapss_text import load_cmapss_text
-from jaxcal.data.record import Record
+from jaxcal.models.turbofan.data.cmapss_text import load_cmapss_text
+from jaxcal.models.turbofan.data.record import Record
 
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmapss"
 SUBSETS = ("FD001", "FD002")

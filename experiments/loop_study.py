@@ -4,7 +4,7 @@ For every effect kind of :func:`jaxcal.diagnosis.data.synthetic.kinds` of the tu
 (the clean record, one undeclared health modifier -- kinds ``parameter`` (drifting) and
 ``parameter_step`` (jumping mid-life) --, the six engine effects, a sensor bias / gain
 / drift / step and an effect outside the library) and every
-seed, a synthetic N-CMAPSS-like record (:mod:`jaxcal.models.turbofan_scenario`) with
+seed, a synthetic N-CMAPSS-like record (:mod:`jaxcal.models.turbofan.scenario`) with
 exactly that effect is generated and diagnosed with the noise levels known. Measured:
 
 * **first**: the model the diagnosis adds is exactly the true effect ("ranked first");
@@ -40,7 +40,7 @@ from jaxcal.diagnosis.data.synthetic import SyntheticConfig, kinds, make_synthet
 from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
 from jaxcal.diagnosis.report.write import json_safe, write_text
 from jaxcal.models import load
-from jaxcal.models.turbofan_scenario import (
+from jaxcal.models.turbofan.scenario import (
     DISCREPANCY_BUMP,
     EFFECT_SIZES,
     STUDY_OUTPUTS,

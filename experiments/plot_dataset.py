@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcal.data.ncmapss_io import load_ncmapss, ncmapss_info
-from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.models.turbofan.data.ncmapss_io import load_ncmapss, ncmapss_info
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES
 from jaxcal.plotting import (
     plot_flight_profiles,
     plot_health_trajectories,

@@ -8,7 +8,7 @@ Draws a Dataset #1-like fleet of 10 units in which only HPT_eff_mod degrades (un
 
 It also prints the realised ranges of w over 300 flights next to the paper's Table 1,
 and, when the N-CMAPSS ground-truth CSV is at hand, its statistics next to the generator
-defaults of ``jaxcal.data.ground_truth``.
+defaults of ``jaxcal.models.turbofan.data.ground_truth``.
 
 Usage::
 
@@ -25,10 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.data import ground_truth
-from jaxcal.data.degradation import DegradationConfig, sample_unit_degradation
-from jaxcal.data.flights import FlightConfig, sample_flight
-from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.models.turbofan.data import ground_truth
+from jaxcal.models.turbofan.data.degradation import (
+    DegradationConfig,
+    sample_unit_degradation,
+)
+from jaxcal.models.turbofan.data.flights import FlightConfig, sample_flight
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES
 from jaxcal.plotting import plot_flight_profiles, plot_health_trajectories
 
 REPO = Path(__file__).resolve().parents[1]

@@ -2,7 +2,7 @@
 
 Runs one diagnosis (``python -m jaxcal.diagnose``'s pipeline) on a NASA C-MAPSS text
 file restricted to its first ``units`` units, or on a synthetic turbofan fleet of
-``units`` units (the loop study's record, :mod:`jaxcal.models.turbofan_scenario`,
+``units`` units (the loop study's record, :mod:`jaxcal.models.turbofan.scenario`,
 noise levels known), and prints one JSON object: rows, units, the verdict, wall and
 CPU seconds, peak resident memory, the seconds of each stage (``timings``, as in
 ``report.json``) and, with ``profile=true``, the functions with the most own time
@@ -68,7 +68,7 @@ def _load(cfg: ProfileConfig, model):
         import jax
 
         from jaxcal.diagnosis.data.synthetic import make_synthetic_data
-        from jaxcal.models.turbofan_scenario import FleetConfig, make_scenario
+        from jaxcal.models.turbofan.scenario import FleetConfig, make_scenario
 
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         from loop_study import KINDS, synthetic_config

@@ -35,12 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
-from jaxcal.data.flights import FlightConfig, sample_flight
 from jaxcal.diagnosis.data.prepare import DEFAULT_NOISE_REL
 from jaxcal.diagnosis.data.synthetic import ar1_noise, kind_of, rows_of
 from jaxcal.diagnosis.kinds.signatures import signatures, zero_inputs
 from jaxcal.diagnosis.kinds.table import TAU_CYCLES
-from jaxcal.models.turbofan_scenario import STUDY_OUTPUTS
+from jaxcal.models.turbofan.data.flights import FlightConfig, sample_flight
+from jaxcal.models.turbofan.scenario import STUDY_OUTPUTS
 
 SHAPES = ("linear", "exponential", "piecewise")
 U_MAX = 5

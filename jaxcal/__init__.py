@@ -20,15 +20,19 @@ shims that forward there). Importing the package loads nothing heavy: the names 
 are imported on first use, and float64 is switched on only by entry points
 (:func:`jaxcal.precision.enable_x64`).
 
-This module is the composition root. Its one act at import: it hands the run-folder
+This module is the composition root. Its acts at import: it hands the run-folder
 slot of :mod:`jaxcal.runs` the reader of :mod:`jaxcal.deploy.loading` (imported when a
 run is first read), so the policy method and the front door, below the training
-layer, take a run folder without importing a layer above their own.
+layer, take a run folder without importing a layer above their own; likewise it
+hands the turbofan's files (N-CMAPSS, C-MAPSS) to :data:`jaxcal.data.FILE_READERS` and
+:data:`jaxcal.training.data.MODEL_FILES`: the core imports nothing of the turbofan.
 """
 
 import importlib
 
+from jaxcal import data as _data
 from jaxcal import runs as _runs
+from jaxcal.training import data as _training_data
 from jaxcal.version import __version__  # noqa: F401 (jaxcal.__version__)
 
 _EXPORTS = {
@@ -46,14 +50,20 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def _read_run(run_dir, **options):
-    """:func:`jaxcal.deploy.loading.load_run`, imported on first use."""
-    from jaxcal.deploy.loading import load_run
+def _lazy(module: str, name: str):
+    """``module.name``, imported on first call."""
+    return lambda *args, **kwargs: getattr(importlib.import_module(module), name)(
+        *args, **kwargs
+    )
 
-    return load_run(run_dir, **options)
 
-
-_runs.register_run_reader(_read_run)
+_runs.register_run_reader(_lazy("jaxcal.deploy.loading", "load_run"))
+_read_file = _lazy("jaxcal.models.turbofan.data.datasets", "read_file")
+_data.FILE_READERS.update(dict.fromkeys((".h5", ".hdf5", ".txt"), _read_file))
+_training_data.MODEL_FILES.update(
+    read=_lazy("jaxcal.models.turbofan.training", "read_data"),
+    generator=_lazy("jaxcal.models.turbofan.training", "generator"),
+)
 
 
 def __getattr__(name):

@@ -102,7 +102,7 @@ class Model:
         hinted_fn: optional warm-started ``fn``, ``hinted_fn(w, theta, hint) ->
             (x, valid, next_hint)``: the same x to the model's solver tolerance,
             cheaper when ``hint`` is the previous call's along a stream (a fleet
-            vmaps it: ``jaxcal.physics.warm_start`` on a fall-back).
+            vmaps it: ``jaxcal.models.turbofan.physics.warm_start`` on a fall-back).
         initial_hint: ``initial_hint() -> hint``, the hint before any call.
         warm_fn, warm_size: optional ``warm_fn(w, theta, e, z0) -> (x, valid, z)``:
             from the solver start ``z0`` [warm_size] (NaN: its own), its solution

@@ -1,8 +1,9 @@
-"""The package's import graph: one way down a fixed order of layers, no cycle, and no
-command line below ``jaxcal/cli/``."""
+"""The package's import graph: one way down a fixed order of layers, no cycle, no
+command line below ``jaxcal/cli/``, and a core that imports nothing of the turbofan."""
 
 import ast
 import pathlib
+import re
 
 import pytest
 
@@ -38,15 +39,20 @@ LAYERS = (
         "jaxcal.progress",
     ),
     ("jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.model"),
-    ("jaxcal.physics",),
     ("jaxcal.data",),
     ("jaxcal.problem",),
     ("jaxcal.models",),
     ("jaxcal.nets", "jaxcal.surrogate", "jaxcal.envs", "jaxcal.agents"),
     ("jaxcal.calibrators",),
-    ("jaxcal.training",),
+    # the turbofan's training data and fleet stream sit with the layers they feed
+    ("jaxcal.training", "jaxcal.models.turbofan.training"),
     ("jaxcal.deploy",),
-    ("jaxcal.diagnosis", "jaxcal.fleet", "jaxcal.paper"),
+    (
+        "jaxcal.diagnosis",
+        "jaxcal.fleet",
+        "jaxcal.paper",
+        "jaxcal.models.turbofan.fleet",
+    ),
     # the command lines, their shims, and the package root (the composition root:
     # the public names, imported lazily, and the run reader it hands jaxcal.runs)
     # (jaxcal.validate: a package only so that its shim is a __main__)
@@ -271,3 +277,91 @@ def test_no_module_imports_back_the_package_that_imports_it(graph):
         if child.startswith(p + ".") and p in graph.get(child, ())
     )
     assert not loops, loops
+
+
+# The core: everything that calibrates any model. It imports nothing of the turbofan,
+# at module level or in a function (nor names its modules for importlib): the
+# registry (jaxcal.models), the paper, the command lines with their shims and the
+# composition root (jaxcal/__init__, which hands the turbofan's file readers to the
+# core's slots) sit above it and may.
+CORE = (
+    # the model protocol, the one problem and the host-only leaves
+    "jaxcal.model", "jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.problem",
+    "jaxcal.typedefs", "jaxcal.version", "jaxcal.precision", "jaxcal.settings",
+    "jaxcal.cache", "jaxcal.trust", "jaxcal.progress", "jaxcal.plotting",
+    "jaxcal.numerics", "jaxcal.runs",
+    # the data container and generic readers, the calibrators, the policy's learning,
+    # a trained run, the diagnosis and the fleet
+    "jaxcal.data", "jaxcal.calibrators", "jaxcal.nets", "jaxcal.surrogate",
+    "jaxcal.envs", "jaxcal.agents", "jaxcal.training", "jaxcal.deploy",
+    "jaxcal.diagnosis", "jaxcal.fleet",
+)  # fmt: skip
+ABOVE_THE_CORE = ("jaxcal.models", "jaxcal.paper", "jaxcal.cli", "jaxcal.validate")
+TURBOFAN = "jaxcal.models.turbofan"
+_TURBOFAN_PATH = re.compile(r"jaxcal\.models\.turbofan(\.\w+)*")
+
+
+def _in(module: str, entries) -> bool:
+    return any(module == e or module.startswith(e + ".") for e in entries)
+
+
+def _is_core(module: str) -> bool:
+    return _in(module, CORE) and module not in SHIMS  # jaxcal.fleet.__main__: a shim
+
+
+def _turbofan_imports(module: str, tree: ast.AST) -> list[str]:
+    """The turbofan modules ``tree`` (the module ``module``) imports anywhere, or
+    names in a string (``importlib.import_module("jaxcal.models.turbofan...")``)."""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolved against this module's package
+                package = module.split(".")[: -node.level]
+                base = ".".join([*package, base] if base else package)
+            found |= {base} | {f"{base}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            found |= {node.value} if _TURBOFAN_PATH.fullmatch(node.value) else set()
+    return sorted(n for n in found if n == TURBOFAN or n.startswith(TURBOFAN + "."))
+
+
+def test_every_module_is_core_or_above_it(trees):
+    above = (*ABOVE_THE_CORE, *SHIMS)
+    unplaced = [m for m in trees if m != "jaxcal" and not _in(m, (*CORE, *above))]
+    assert not unplaced, unplaced
+    assert not [m for m in trees if _is_core(m) and _in(m, above)]
+
+
+def test_the_core_imports_nothing_of_the_turbofan(trees):
+    offenders = {
+        m: found
+        for m, tree in trees.items()
+        if _is_core(m) and (found := _turbofan_imports(m, tree))
+    }
+    assert not offenders, offenders
+
+
+@pytest.mark.parametrize(
+    "source",
+    [
+        "import jaxcal.models.turbofan.physics.engine",
+        "from jaxcal.models.turbofan.model import is_turbofan",
+        "from jaxcal.models import turbofan",
+        "def f():\n    from jaxcal.models.turbofan.physics import constants",
+        "from ..models.turbofan.data import datasets",
+        "import importlib\nimportlib.import_module('jaxcal.models.turbofan.training')",
+    ],
+)
+def test_the_turbofan_check_finds_every_form_of_import(source):
+    assert _turbofan_imports("jaxcal.data.readers", ast.parse(source))
+
+
+def test_the_turbofan_check_lets_the_registry_and_prose_pass():
+    source = (
+        '"""Reads :mod:`jaxcal.models.turbofan.training` files."""\n'
+        "import jaxcal.models.extended\nfrom jaxcal.models import load\n"
+        "def f():\n    from jaxcal import models\n    return models.load('cmapss')\n"
+    )
+    assert not _turbofan_imports("jaxcal.data.readers", ast.parse(source))

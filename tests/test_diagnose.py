@@ -9,15 +9,18 @@ import numpy as np
 import pytest
 
 from jaxcal.cli.diagnose import main
-from jaxcal.data.cmapss_text import SENSOR_MAP
-from jaxcal.data.ncmapss_io import write_ncmapss
-from jaxcal.data.record import Record
 from jaxcal.diagnosis.data.synthetic import SyntheticConfig, make_synthetic_data
 from jaxcal.diagnosis.kinds.signatures import linearize
 from jaxcal.models import load
-from jaxcal.models.turbofan_scenario import EFFECT_SIZES, FleetConfig, make_scenario
-from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES
-from jaxcal.physics.reference import FD002_CONDITIONS
+from jaxcal.models.turbofan.data.cmapss_text import SENSOR_MAP
+from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+from jaxcal.models.turbofan.data.record import Record
+from jaxcal.models.turbofan.physics.constants import (
+    MEASURED_SENSOR_NAMES,
+    VIRTUAL_SENSOR_NAMES,
+)
+from jaxcal.models.turbofan.physics.reference import FD002_CONDITIONS
+from jaxcal.models.turbofan.scenario import EFFECT_SIZES, FleetConfig, make_scenario
 
 
 def _t2_offset_record(engine, size):

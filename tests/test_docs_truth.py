@@ -76,9 +76,9 @@ def _valid_keys() -> set[str]:
     from jaxcal.calibrators.methods import METHODS, options_of
     from jaxcal.cli import bench, diagnose, evaluate, fleet, generate, train, validate
     from jaxcal.cli.args import _USAGE_KEY
-    from jaxcal.data.dataset_configs import DatasetConfig
     from jaxcal.fleet.method import OPTION_PREFIXES
     from jaxcal.model import Model
+    from jaxcal.models.turbofan.data.dataset_configs import DatasetConfig
     from jaxcal.training.config import PRESET_NAMES, agent_presets, resolve_config
 
     keys = _dotted_keys(resolve_config([]))

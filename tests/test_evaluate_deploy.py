@@ -17,10 +17,10 @@ from jaxcal.calibrators.methods.policy.calibrator import stream_start_theta
 from jaxcal.cli.evaluate import main, parse_args
 from jaxcal.deploy import StreamingCalibrator, load_calibrator, load_run
 from jaxcal.envs.tracking import make_env_params, make_tracking_env
+from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.problem import Normalisation
 from jaxcal.training.components import make_agent
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data.ncmapss import load_calibration_data
 from jaxcal.training.pipeline import run_training
 from tests.support.policy_rollout import evaluate_policy
 

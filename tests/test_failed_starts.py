@@ -19,12 +19,12 @@ from support.synthetic_file import write_synthetic_ncmapss
 from jaxcal.cli import evaluate
 from jaxcal.cli.train import main as train_main
 from jaxcal.cli.train import parse_args
-from jaxcal.data.ncmapss_writer import NCMAPSSWriter
+from jaxcal.models.turbofan import training as turbofan_training
+from jaxcal.models.turbofan.data.ncmapss_writer import NCMAPSSWriter
 from jaxcal.runs.atomic import host_tag, make_temp, release_temp, write_atomic
 from jaxcal.runs.folder import check_run_dir
 from jaxcal.settings import check_output_path, config_to_dict
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data import run as run_data
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -104,7 +104,7 @@ def test_failed_data_generation_leaves_no_run_folder(tmp_path, monkeypatch, caps
         calls.append(cfg.name)
         raise fake_generate.error
 
-    monkeypatch.setattr(run_data, "generate_dataset", fake_generate)
+    monkeypatch.setattr(turbofan_training, "generate_dataset", fake_generate)
     for error, exit_code in ((RuntimeError("solver"), 1), (ValueError("bad"), 1)):
         fake_generate.error = error
         assert train_main(base + [f"path={tmp_path / 'data' / 'tiny.h5'}"]) == exit_code
@@ -210,7 +210,7 @@ def test_a_killed_ncmapss_writer_leaves_a_temp_the_next_write_removes(tmp_path):
     target = tmp_path / "data.h5"
     code = (
         "import os, signal, sys\n"
-        "from jaxcal.data.ncmapss_writer import NCMAPSSWriter\n"
+        "from jaxcal.models.turbofan.data.ncmapss_writer import NCMAPSSWriter\n"
         "with NCMAPSSWriter(sys.argv[1]):\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
     )

@@ -9,8 +9,8 @@ import h5py
 import pytest
 
 from jaxcal.cli.generate import main, parse_args
-from jaxcal.data.chunked_engine import jit_evaluate_engine
-from jaxcal.data.ncmapss_io import load_ncmapss
+from jaxcal.models.turbofan.data.chunked_engine import jit_evaluate_engine
+from jaxcal.models.turbofan.data.ncmapss_io import load_ncmapss
 from jaxcal.runs.atomic import host_tag
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxcal.physics.constants import HEALTH_NAMES
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES
 from jaxcal.plotting import (
     plot_flight_profiles,
     plot_health_trajectories,

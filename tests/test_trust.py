@@ -291,7 +291,7 @@ def test_a_json_specs_python_base_runs_only_with_consent(tmp_path):
 
 
 def test_a_data_files_engine_attribute_names_only_a_registered_model():
-    from jaxcal.training.data.ncmapss import file_model
+    from jaxcal.models.turbofan.training import file_model
 
     with pytest.raises(ValueError, match="never names code to run"):
         file_model({"attrs": {"engine": "os:getpid"}})

@@ -149,9 +149,9 @@ def _perturbable(method):
 
 def _parts_us(engine, w, theta, z, repeats: int) -> dict:
     """F's parts at one sample (see the module docstring)."""
-    from jaxcal.physics import cycle
-    from jaxcal.physics.design import design_point
-    from jaxcal.physics.evaluation import residual_fn
+    from jaxcal.models.turbofan.physics import cycle
+    from jaxcal.models.turbofan.physics.design import design_point
+    from jaxcal.models.turbofan.physics.evaluation import residual_fn
 
     d, dp = engine.design, engine.point
     effects = np.zeros(cycle.NUM_EFFECTS)

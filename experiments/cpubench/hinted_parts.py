@@ -1,10 +1,11 @@
 """Where the turbofan's warm-started single-sample solve spends its time (JSON).
 
 Issue 41 item 2 asks ``StreamingCalibrator.step`` on the turbofan for at most 200 us a
-row; the step is the engine's warm-started solve (:func:`jaxcal.physics.warm_start.
-evaluate_hinted`) plus a small network. This prints, from one process with JAX's calls
-on the calling thread and the variants' calls interleaved row by row along one smooth
-flight (so that a shared machine's load falls on all alike):
+row; the step is the engine's warm-started solve
+(:func:`jaxcal.models.turbofan.physics.warm_start. evaluate_hinted`) plus a small
+network. This prints, from one process with JAX's calls on the calling thread and the
+variants' calls interleaved row by row along one smooth flight (so that a shared
+machine's load falls on all alike):
 
 * ``solve_us``: the deployed solve (Broyden from the hint, the cold solve as a
   ``lax.cond`` fall-back, the checks), median and 10th percentile;
@@ -32,9 +33,9 @@ import numpy as np
 
 from jaxcal.calibrators.programs.packed import dispatch_is_synchronous
 from jaxcal.deploy import synchronous_dispatch
-from jaxcal.physics import cycle, solver, warm_start
-from jaxcal.physics.design import design_point
-from jaxcal.physics.engine import load_engine
+from jaxcal.models.turbofan.physics import cycle, solver, warm_start
+from jaxcal.models.turbofan.physics.design import design_point
+from jaxcal.models.turbofan.physics.engine import load_engine
 
 
 def _flight(rows: int):

@@ -11,10 +11,10 @@ against ours is reported as a check that the work is the same.
 
 Two measurement models:
 
-* ``engine``: the C-MAPSS-like turbofan F of ``jaxcal.physics.load_engine("cmapss")``
-  on the declared parameter HPT_eff_mod (the others at 0) and the 14 measured
-  sensors, through :func:`~jaxcal.paper.methods.measure_declared`; filterpy
-  calls
+* ``engine``: the C-MAPSS-like turbofan F of
+  ``jaxcal.models.turbofan.physics.engine.load_engine("cmapss")`` on the declared
+  parameter HPT_eff_mod (the others at 0) and the 14 measured sensors, through
+  :func:`~jaxcal.paper.methods.measure_declared`; filterpy calls
   the engine's evaluate jitted for one sample. F dominates the step here.
 * ``toy``: x = tanh(A theta + B w) with P = 4, S = 14, W = 4, cheap enough that the
   filters' own per-step overhead is what is measured; filterpy gets the same model in
@@ -118,12 +118,12 @@ def toy_model(seed: int = 0) -> Model:
 def engine_model() -> Model:
     """The ``cmapss`` engine on HPT_eff_mod and the 14 measured sensors."""
     from jaxcal.cli.bench import envelope_points
-    from jaxcal.physics import load_engine
-    from jaxcal.physics.constants import (
+    from jaxcal.models.turbofan.physics.constants import (
         MEASURED_SENSOR_NAMES,
         health_index,
         sensor_index,
     )
+    from jaxcal.models.turbofan.physics.engine import load_engine
 
     engine = load_engine("cmapss")
     declared, sensors = (

@@ -94,24 +94,6 @@ class SampleCheck(NamedTuple):
         x_box = (None, None) if x_low is None else widen(x_low, x_high, "x")
         return cls(*w_box, *x_box)
 
-    @classmethod
-    def from_envelope(cls, envelope) -> SampleCheck:
-        """The w box of an engine's :class:`~jaxcal.physics.engine.Envelope`.
-
-        alt, Mach and TRA are its bounds; T2 is bounded by the hull of its ISA
-        deviation band (``isa_total_temperature`` is monotone in alt and Mach). A
-        sample inside the hull but off the band is caught after the step: the
-        engine then gives NaN and the row is flagged ``state_nonfinite``.
-        """
-        from jaxcal.physics.atmosphere import isa_total_temperature
-
-        alt, mach = envelope.alt_ft, envelope.mach
-        t2_low = float(isa_total_temperature(alt[1], mach[0])) + envelope.t2_dev_r[0]
-        t2_high = float(isa_total_temperature(alt[0], mach[1])) + envelope.t2_dev_r[1]
-        low = np.array([alt[0], mach[0], envelope.tra_pct[0], t2_low])
-        high = np.array([alt[1], mach[1], envelope.tra_pct[1], t2_high])
-        return cls(w_low=low, w_high=high)
-
 
 def is_partial(x: Array) -> Array:
     """``[]`` bool: ``x [S]`` has some outputs missing (NaN) and the others finite.

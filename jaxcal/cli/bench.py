@@ -23,8 +23,8 @@ import numpy as np
 
 from jaxcal.cache import enable_compilation_cache
 from jaxcal.cli.args import flags_as_overrides, parse_command_line
-from jaxcal.physics import load_engine
-from jaxcal.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.engine import load_engine
 from jaxcal.precision import enable_x64, float_dtype
 from jaxcal.runs.atomic import write_atomic
 from jaxcal.settings import check_output_path, parse_overrides

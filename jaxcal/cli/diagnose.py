@@ -105,7 +105,7 @@ def parse_args(argv: list[str]) -> tuple[DiagnoseConfig, dict]:
 
 
 def _rename(cfg: DiagnoseConfig) -> dict:
-    from jaxcal.data.ncmapss_io import parse_rename
+    from jaxcal.data.table_checks import parse_rename
 
     return parse_rename(cfg.rename)
 
@@ -117,15 +117,16 @@ def load_data(cfg: DiagnoseConfig, model):
     turbofan readers count the rows, ``Dataset.dropped_rows``), never passed on in
     silence.
     """
-    from jaxcal.data.readers import read_dataset, read_ncmapss_split
+    from jaxcal.data.readers import read_dataset
+    from jaxcal.models.turbofan.data.datasets import read_ncmapss_split
 
     if not os.path.isfile(cfg.data):
         raise ValueError(f"data={cfg.data!r}: file not found")
     ext = os.path.splitext(cfg.data)[1].lower()
     units = list(cfg.units) or None
     if ext in (".h5", ".hdf5"):
-        from jaxcal.data.ncmapss_io import ncmapss_info
-        from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
+        from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
+        from jaxcal.models.turbofan.physics.constants import MEASURED_SENSOR_NAMES
 
         rename = _rename(cfg)
         stride = cfg.stride

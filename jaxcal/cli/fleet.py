@@ -151,7 +151,7 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     Raises:
         ValueError: naming the bad key, option or flag and the expected form.
     """
-    from jaxcal.fleet.sources import is_ncmapss
+    from jaxcal.models.turbofan.fleet import is_ncmapss
 
     rest, flags = split_cluster_args(argv)
     fleet_tokens, option_tokens = _split_tokens(rest)
@@ -218,14 +218,17 @@ def run(cfg: FleetConfig) -> dict:
     from jaxcal.fleet.sources import open_source
     from jaxcal.fleet.streaming import units_per_chunk
     from jaxcal.models import load
+    from jaxcal.models.turbofan.fleet import is_ncmapss, open_ncmapss
+    from jaxcal.models.turbofan.model import FLEET_NOISE, is_turbofan
 
     model = load(cfg.model or cfg.engine, trust_code=cfg.trust_code)
     noise = parse_noise(cfg.noise)
-    require_noise(model, cfg.method, noise)
+    default_noise = FLEET_NOISE if is_turbofan(model) else None
+    require_noise(model, cfg.method, noise, default_noise)
     theta, outputs, loaded = _names(cfg, model)
     if cfg.theta0 and len(cfg.theta0) != len(theta):
         raise ValueError(f"theta0 needs one value per theta name {list(theta)}")
-    source = open_source(
+    source = (open_ncmapss if is_ncmapss(cfg.data) else open_source)(
         cfg.data, model, outputs=outputs, split=cfg.split, units=cfg.units,
         stride=cfg.stride, max_len=cfg.max_len,
     )  # fmt: skip
@@ -235,6 +238,7 @@ def run(cfg: FleetConfig) -> dict:
     def problem_of(names):
         return build_problem(
             model, source, theta=names, method=cfg.method, noise=noise,
+            default_noise=default_noise,
             theta0=[start[k] for k in names] if start else (),
         )  # fmt: skip
 
@@ -297,7 +301,7 @@ def _names(cfg: FleetConfig, model):
     """``(theta, outputs, loaded)``: the calibrated parameters and the outputs used,
     a policy's run loaded (``None`` for another method): a trained policy fixes its
     names, the defaults; otherwise the model's default parameters."""
-    from jaxcal.fleet.method import default_theta
+    from jaxcal.models.turbofan.model import FLEET_THETA, is_turbofan
 
     theta, outputs, loaded = cfg.theta, cfg.outputs or cfg.sensors, None
     if methods.get(cfg.method).needs_run:  # a trained run fixes its names: its own
@@ -306,7 +310,8 @@ def _names(cfg: FleetConfig, model):
         loaded = load_run(cfg.run, trust_code=cfg.trust_code)
         theta = theta or loaded.problem.theta_names
         outputs = outputs or loaded.problem.output_names
-    return tuple(theta) or default_theta(model), outputs, loaded
+    default = FLEET_THETA if is_turbofan(model) else tuple(model.parameter_names)
+    return tuple(theta) or default, outputs, loaded
 
 
 def main(argv: list[str] | None = None) -> int:

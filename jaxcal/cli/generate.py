@@ -5,14 +5,16 @@ Usage::
     python -m jaxcal.generate dataset=cmapss [out=data/cmapss.h5] [field=value ...]
     python -m jaxcal.generate dataset=agtf30 seed=1 sensor_snr_db=70
 
-``dataset`` picks a preset of :data:`jaxcal.data.dataset_configs.DATASETS` (cmapss,
-agtf30, tiny); every other ``key=value`` overrides a field of
-:class:`~jaxcal.data.dataset_configs.DatasetConfig` (``dataset.seed=1`` works too).
-``out`` defaults to ``data/<dataset>.h5``. The file is written atomically, with the
-resolved config as the JSON root attribute ``config``; the temporary file of a run that
-was killed mid-way is removed by the next run writing the same ``out``. A bad argument
-(with the valid keys), or an ``out`` that cannot be written (empty, a folder, under a
-file, in a read-only folder), prints the error and exits with code 2 before any work.
+``dataset`` picks a preset of
+:data:`jaxcal.models.turbofan.data.dataset_configs.DATASETS` (cmapss, agtf30, tiny);
+every other ``key=value`` overrides a field of
+:class:`~jaxcal.models.turbofan.data.dataset_configs.DatasetConfig` (``dataset.seed=1``
+works too). ``out`` defaults to ``data/<dataset>.h5``. The file is written atomically,
+with the resolved config as the JSON root attribute ``config``; the temporary file of a
+run that was killed mid-way is removed by the next run writing the same ``out``. A bad
+argument (with the valid keys), or an ``out`` that cannot be written (empty, a folder,
+under a file, in a read-only folder), prints the error and exits with code 2 before any
+work.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ import sys
 import time
 
 from jaxcal.cli.args import parse_command_line
-from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
-from jaxcal.data.generation import dataset_preset
+from jaxcal.models.turbofan.data.dataset_configs import DATASETS, DatasetConfig
+from jaxcal.models.turbofan.data.generation import dataset_preset
 from jaxcal.settings import check_output_path, parse_overrides
 
 USAGE = (
@@ -81,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # Heavy imports after argument checks: a typo fails fast, without loading JAX.
     from jaxcal.cache import enable_compilation_cache
-    from jaxcal.data.generation import generate_dataset, summary_line
+    from jaxcal.models.turbofan.data.generation import generate_dataset, summary_line
 
     enable_compilation_cache()  # the engine's solve compiles in ~45 s; reruns reuse it
     print(f"generating {cfg.name!r} ({cfg.kind}, engine {cfg.engine}) -> {out}")

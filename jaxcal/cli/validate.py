@@ -26,12 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.cli.args import flags_as_overrides, parse_command_line
-from jaxcal.physics import reference as ref
-from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.physics.audit import audit_point
-from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, SENSOR_NAMES
-from jaxcal.physics.engine import Engine, load_engine
-from jaxcal.physics.guess import tra_for_pcn
+from jaxcal.models.turbofan.physics import reference as ref
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.audit import audit_point
+from jaxcal.models.turbofan.physics.constants import MEASURED_SENSOR_NAMES, SENSOR_NAMES
+from jaxcal.models.turbofan.physics.engine import Engine, load_engine
+from jaxcal.models.turbofan.physics.guess import tra_for_pcn
 from jaxcal.precision import enable_x64
 from jaxcal.runs.atomic import write_atomic
 from jaxcal.settings import check_output_path, parse_overrides

@@ -5,8 +5,8 @@ holds every unit padded to a common length ``T`` with its valid length, so that
 calibrators, training, evaluation and the fleet runners all read one type. The
 readers fill it, :meth:`jaxcal.data.dataset.Dataset.padded` (any model's rows, units
 in order of first appearance, remembering each cell's row) and
-:func:`jaxcal.data.readers.read_ncmapss_padded` (turbofan units in ascending id order,
-with their flight numbers); simulations of units build it directly.
+:func:`jaxcal.models.turbofan.data.datasets.read_ncmapss_padded` (turbofan units in
+ascending id order, with their flight numbers); simulations of units build it directly.
 Padding repeats each unit's last valid row (never zeros a model would choke on) and is
 masked out. It is a ``NamedTuple`` of arrays (``None`` for what a source lacks), so it
 is a pytree that jitted code can take whole.

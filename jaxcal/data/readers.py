@@ -34,10 +34,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from jaxcal.data import FILE_READERS
 from jaxcal.data.dataset import Dataset, partial_rows
-from jaxcal.data.padded import Padded
-from jaxcal.data.record import apply_nonfinite_policy
 from jaxcal.data.table_checks import (
+    apply_nonfinite_policy,
     check_ignore,
     check_model_columns,
     check_unique_times,
@@ -153,67 +153,6 @@ def dataset_from_arrays(
     return data
 
 
-def dataset_from_record(record, split: str | None = None) -> Dataset:
-    """An N-CMAPSS / C-MAPSS :class:`~jaxcal.data.record.Record` -> Dataset."""
-    from jaxcal.physics.constants import CONDITION_NAMES, HEALTH_NAMES
-
-    n = record.num_rows
-    return Dataset(
-        w=record.w,
-        x=record.x,
-        condition_names=CONDITION_NAMES,
-        output_names=tuple(record.x_names),
-        unit=record.unit,
-        time=record.cycle,
-        theta=record.theta,
-        theta_names=HEALTH_NAMES if record.theta is not None else (),
-        split=None if split is None else np.full(n, split),
-        source=record.source,
-        dropped=record.dropped,
-        dropped_rows=record.dropped_rows,
-    )
-
-
-def read_ncmapss_split(path, split: str, *, label: bool = True, **options) -> Dataset:
-    """One split of an N-CMAPSS file as a Dataset (``label``: with its split column;
-    ``options``: those of :func:`~jaxcal.data.ncmapss_io.load_ncmapss`)."""
-    from jaxcal.data.ncmapss_io import load_ncmapss
-
-    record = load_ncmapss(path, split, **options)
-    return dataset_from_record(record, split if label else None)
-
-
-def read_ncmapss_padded(
-    path, split: str, *, max_len: int | None = None, dtype=np.float64, **options
-) -> Padded:
-    """The units of one split of an N-CMAPSS file padded to ``max_len`` (``None``:
-    the longest; a longer unit is an error): ascending ids, file order within a
-    unit, flight numbers in ``cycle``, all ten health modifiers in ``theta``
-    (:meth:`~jaxcal.data.record.Record.padded`; ``options`` as for
-    :func:`read_ncmapss_split`)."""
-    from jaxcal.data.ncmapss_io import load_ncmapss
-
-    return load_ncmapss(path, split, **options).padded(dtype, max_len)
-
-
-def _concat(parts: list[Dataset], source: str) -> Dataset:
-    first = parts[0]
-    cat = lambda f: np.concatenate([getattr(p, f) for p in parts])  # noqa: E731
-    has_theta = all(p.theta is not None for p in parts)
-    return Dataset(
-        w=cat("w"),
-        x=cat("x"),
-        condition_names=first.condition_names,
-        output_names=first.output_names,
-        unit=cat("unit"),
-        time=cat("time"),
-        theta=cat("theta") if has_theta else None,
-        theta_names=first.theta_names if has_theta else (),
-        split=cat("split") if all(p.split is not None for p in parts) else None,
-        source=source,
-    )
-
-
 def read_dataset(
     source,
     model: Model | None = None,
@@ -292,18 +231,9 @@ def _read_file(
             nonfinite=nonfinite, row_offset=2 if ext == ".csv" else 0,
             partial=partial,
         )  # fmt: skip
-    if ext in (".h5", ".hdf5"):
-        from jaxcal.data.ncmapss_io import ncmapss_info
-
-        splits = [s for s in ("dev", "test") if s in ncmapss_info(path)["splits"]]
-        options = {"nonfinite": nonfinite, "rename": rename, **reader_options}
-        parts = [read_ncmapss_split(path, split, **options) for split in splits]
-        return _concat(parts, path)
-    if ext == ".txt":
-        from jaxcal.data.cmapss_text import load_cmapss_text
-
-        return dataset_from_record(
-            load_cmapss_text(path, nonfinite=nonfinite, **reader_options)
+    if ext in FILE_READERS:  # the turbofan's N-CMAPSS and C-MAPSS files
+        return FILE_READERS[ext](
+            path, nonfinite=nonfinite, rename=rename, **reader_options
         )
     raise ValueError(
         f"{path}: unknown data file type {ext!r}; expected .csv, .parquet, .h5/.hdf5 "

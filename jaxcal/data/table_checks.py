@@ -3,8 +3,9 @@
 its index, column names and ``ignore=`` are read,
 that its columns fit the model and are numeric, its unit and time ids, and the two
 facts about units that padding relies on (a time is not repeated within a unit; a
-unit lies in one split). Each failure is a ``ValueError`` naming the file
-or frame, the columns, units or times, and what to do.
+unit lies in one split), and what every reader (the turbofan's N-CMAPSS and C-MAPSS
+readers too) does with non-finite rows (:data:`NONFINITE_POLICIES`). Each failure is
+a ``ValueError`` naming the file or frame, the columns, units or times, and what to do.
 """
 
 from __future__ import annotations
@@ -23,6 +24,13 @@ _DECIMAL_COMMA = re.compile(r"\s*[-+]?\d*,\d+([eE][-+]?\d+)?\s*")
 _DECIMAL_POINT = re.compile(r"\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*")
 INT64_MAX = np.iinfo(np.int64).max
 EXACT_FLOAT = 2**53  # integers above this are not all exact in float64
+# What a reader does with a row holding NaN / Inf in a column it returns.
+# "error": refuse (ValueError naming file, columns, first rows, counts); "drop": drop
+# the row and report it in Record.dropped; "keep": leave it for a caller that guards
+# every sample itself (the streaming runners skip and flag such samples).
+NONFINITE_POLICIES: tuple[str, ...] = ("error", "drop", "keep")
+# Row numbers named per column in a non-finite error (the count covers the rest).
+MAX_ROWS_NAMED = 5
 
 
 def read_csv_table(path: str):
@@ -123,6 +131,19 @@ def renamed_columns(frame, rename: Mapping[str, str], source: str):
             f"{repeated}): drop or rename the extra column"
         )
     return frame.rename(columns=dict(zip(frame.columns, after, strict=True)))
+
+
+def parse_rename(pairs: Sequence[str]) -> dict[str, str]:
+    """``("T_24:T24", ...)`` (the ``dataset.rename`` form) as ``{"T_24": "T24"}``."""
+    out = {}
+    for pair in pairs:
+        old, sep, new = pair.partition(":")
+        if not sep or not old or not new or ":" in new:
+            raise ValueError(
+                f"rename entries must be <file name>:<jaxcal name>, got {pair!r}"
+            )
+        out[old.strip()] = new.strip()
+    return out
 
 
 def check_ignore(ignore: Sequence[str], model: Model, source: str) -> None:
@@ -278,3 +299,113 @@ def _as_int(value) -> int | None:
     if isinstance(value, str) and re.fullmatch(r"\s*[-+]?\d+\s*", value):
         return int(value)
     return None
+
+
+def check_nonfinite_policy(policy: str) -> str:
+    """``policy`` if it is one of :data:`NONFINITE_POLICIES`, else a clear error."""
+    if policy not in NONFINITE_POLICIES:
+        raise ValueError(
+            f"nonfinite must be one of {list(NONFINITE_POLICIES)}, got {policy!r}"
+        )
+    return policy
+
+
+def nonfinite_rows(
+    columns: Mapping[str, np.ndarray],
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Rows holding a NaN or Inf, overall and per column.
+
+    Args:
+        columns: name -> ``[N]`` values; every column has the same ``N``.
+
+    Returns:
+        ``(bad [N] bool, {name: [k] sorted positions})``; the dict holds only the
+        columns that have a non-finite value.
+    """
+    bad, where = None, {}
+    for name, values in columns.items():
+        finite = np.isfinite(values)
+        bad = ~finite if bad is None else bad | ~finite
+        if not finite.all():
+            where[name] = np.flatnonzero(~finite)
+    return (np.zeros(0, bool) if bad is None else bad), where
+
+
+def nonfinite_message(
+    where: Mapping[str, np.ndarray],
+    num_bad: int,
+    num_rows: int,
+    *,
+    source: str,
+    row_of=None,
+    row_word: str = "row",
+) -> str:
+    """The error of ``nonfinite="error"``: file, each column, first rows, counts.
+
+    Args:
+        where: column -> positions of its non-finite rows (:func:`nonfinite_rows`).
+        num_bad: rows with any non-finite value; ``num_rows``: rows checked.
+        source: the file (and split) named first in the message.
+        row_of: positions -> row numbers as the user sees them in the file (line
+            numbers of a text file, file rows of an HDF5 split); ``None``: positions.
+        row_word: ``"row"`` or ``"line"``.
+    """
+    row_of = (lambda pos: pos) if row_of is None else row_of
+    parts = []
+    for name, pos in where.items():
+        first = ", ".join(str(int(r)) for r in row_of(pos[:MAX_ROWS_NAMED]))
+        more = ", ..." if pos.size > MAX_ROWS_NAMED else ""
+        plural = "s" if pos.size > 1 else ""
+        parts.append(
+            f"column {name}: {pos.size} {row_word}{plural} ({row_word}{plural} "
+            f"{first}{more})"
+        )
+    return (
+        f"{source}: non-finite values (NaN or Inf) in {num_bad} of {num_rows} "
+        f"{row_word}s; " + "; ".join(parts) + ". Fix the file, or drop these rows "
+        "with nonfinite='drop' (train / evaluate: dataset.nonfinite=drop)"
+    )
+
+
+def apply_nonfinite_policy(
+    columns: Mapping[str, np.ndarray],
+    policy: str,
+    *,
+    source: str,
+    row_of=None,
+    row_word: str = "row",
+) -> tuple[np.ndarray | None, dict[str, int]]:
+    """What a reader does with the non-finite rows of the columns it returns.
+
+    Args:
+        columns: name -> ``[N]`` values the reader returns.
+        policy: one of :data:`NONFINITE_POLICIES`.
+        source, row_of, row_word: as for :func:`nonfinite_message`.
+
+    Returns:
+        ``(keep, dropped)``: ``keep`` is the ``[N]`` bool mask of rows to keep, or
+        ``None`` when every row stays; ``dropped`` maps each column to its number of
+        dropped rows (empty unless ``policy == "drop"`` found some).
+
+    Raises:
+        ValueError: ``policy == "error"`` and a value is NaN or Inf (the message names
+            the file, each affected column, its first rows and its count).
+    """
+    check_nonfinite_policy(policy)
+    if policy == "keep":
+        return None, {}
+    bad, where = nonfinite_rows(columns)
+    if not where:
+        return None, {}
+    if policy == "error":
+        raise ValueError(
+            nonfinite_message(
+                where,
+                int(bad.sum()),
+                int(bad.size),
+                source=source,
+                row_of=row_of,
+                row_word=row_word,
+            )
+        )
+    return ~bad, {name: int(pos.size) for name, pos in where.items()}

@@ -5,7 +5,7 @@
   identical results to the single-device path.
 * :mod:`~jaxcal.fleet.streaming` — :func:`calibrate_stream` over chunks of units with
   one compiled program and an incremental, atomic HDF5 output
-  (:mod:`~jaxcal.fleet.results`); :mod:`~jaxcal.fleet.ncmapss_source` reads the chunks
+  (:mod:`~jaxcal.fleet.results`); :mod:`jaxcal.models.turbofan.fleet` reads the chunks
   from an N-CMAPSS file.
 * :mod:`~jaxcal.fleet.distributed` — ``jax.distributed`` set-up and
   :func:`calibrate_distributed` for units split over processes.

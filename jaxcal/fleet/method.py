@@ -36,8 +36,6 @@ METHOD_ALIASES = {"least_squares": "ls"}  # the fleet's old method name
 # ``<prefix>.<option>=value`` of the old nested configs -> the flat option
 OPTION_PREFIXES = {"ukf": "ukf", "least_squares": "ls", "ls": "ls"}
 NOT_ON_COMMAND_LINE = ("e2e", "e2e_config")  # Python objects: jaxcal.calibrate
-TURBOFAN_THETA = ("HPT_eff_mod",)  # the turbofan's default declared parameter
-DEFAULT_NOISE_SHARE = 0.01  # the turbofan's noise: 1 % of each output's spread
 
 
 class FleetMethod(NamedTuple):
@@ -164,22 +162,10 @@ def parse_noise(text: str) -> dict[str, float] | float | None:
     return value
 
 
-def is_turbofan(model: Model) -> bool:
-    """The model wraps the turbofan engine (``cmapss``, ``agtf30``, extended)."""
-    from jaxcal.physics.engine import Engine
-
-    return isinstance(getattr(model, "native", None), Engine)
-
-
-def default_theta(model: Model) -> tuple[str, ...]:
-    """The declared parameters when ``theta=`` is not given: the turbofan's
-    ``HPT_eff_mod`` (the fleet's default so far), every parameter of another."""
-    return TURBOFAN_THETA if is_turbofan(model) else tuple(model.parameter_names)
-
-
-def require_noise(model: Model, method: str, noise) -> None:
-    """A ValueError when ``method`` on ``model`` needs ``noise=`` and has none."""
-    if noise is None and methods.get(method).reads_noise and not is_turbofan(model):
+def require_noise(model: Model, method: str, noise, default_noise=None) -> None:
+    """A ValueError when ``method`` on ``model`` needs ``noise=`` and has none (nor
+    a ``default_noise``, :func:`build_problem`)."""
+    if noise is None and methods.get(method).reads_noise and default_noise is None:
         raise ValueError(
             f"model {model.name!r}: pass noise= (the measurement noise std, "
             "name:std,... per output or one number for all); the fleet has a "
@@ -195,6 +181,7 @@ def build_problem(
     theta: Sequence[str],
     method: str,
     noise: dict[str, float] | float | None = None,
+    default_noise: tuple[float, str] | None = None,
     theta0: Sequence[float] = (),
 ) -> Problem:
     """The :class:`Problem` of a :class:`~jaxcal.fleet.sources.FleetSource`.
@@ -206,12 +193,15 @@ def build_problem(
             normalisation).
         theta: declared parameters. method: the method table's name.
         noise: :func:`parse_noise`'s value (``None``: the module docstring).
+        default_noise: ``(share, label)``, the model's noise without ``noise=``:
+            ``share`` of each output's spread (the turbofan's,
+            :data:`jaxcal.models.turbofan.model.FLEET_NOISE`; None: noise= is needed).
         theta0: prior mean per declared parameter (``()``: the nominal values).
 
     Raises:
         ValueError: names that do not match, a missing ``noise=``, a bad ``theta0``.
     """
-    require_noise(model, method, noise)
+    require_noise(model, method, noise, default_noise)
     outputs = source.outputs
     given = [noise] * len(outputs) if isinstance(noise, float) else noise
     problem = Problem.build(
@@ -223,11 +213,10 @@ def build_problem(
             x_mean=np.asarray(x_mean, np.float64), x_std=np.asarray(x_std, np.float64)
         )
         problem = dataclasses.replace(problem, norm=norm)
-    if noise is None and is_turbofan(model):
+    if noise is None and default_noise is not None:
+        share, label = default_noise
         problem = problem.with_noise(
-            DEFAULT_NOISE_SHARE * problem.norm.x_std,
-            "the turbofan's default: 1 % of each output's spread "
-            f"({source.norm_source})",
+            share * problem.norm.x_std, f"{label} ({source.norm_source})"
         )
     if theta0:
         if len(theta0) != len(problem.theta_names):

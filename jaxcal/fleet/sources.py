@@ -1,16 +1,16 @@
 """The data of a fleet run: a sample to build the problem on, and a stream of chunks.
 
-``python -m jaxcal.fleet`` reads two kinds of source (:func:`open_source`):
+``python -m jaxcal.fleet`` reads two kinds of source:
 
 * an **N-CMAPSS HDF5 file** (``.h5`` / ``.hdf5``; the turbofan's layout) is streamed:
   the unit column is scanned for the units and their lengths, the output statistics
-  come from the file's reference attributes or one blocked pass
-  (:mod:`jaxcal.fleet.ncmapss_source`), and the problem is built on the rows of the
-  first selected unit with those statistics; nothing reads the whole split;
+  come from the file's reference attributes or one blocked pass, and the problem is
+  built on the rows of the first selected unit with those statistics; nothing reads
+  the whole split (:func:`jaxcal.models.turbofan.fleet.open_ncmapss`, the turbofan's);
 * any other data source of the front door (CSV, Parquet, NASA C-MAPSS ``.txt``:
-  :func:`jaxcal.data.readers.read_dataset`) is a table held in memory: the problem is
-  built on all its rows and the chunks are cut from its padded units
-  (:func:`~jaxcal.fleet.streaming.iter_array_chunks`).
+  :func:`jaxcal.data.readers.read_dataset`) is a table held in memory
+  (:func:`open_source`): the problem is built on all its rows and the chunks are cut
+  from its padded units (:func:`~jaxcal.fleet.streaming.iter_array_chunks`).
 
 Rows with NaN / Inf are kept in both (the runners skip and flag them one by one, so
 the output has one row per input row); the problem is built on the clean rows.
@@ -19,20 +19,15 @@ Units come in ascending id, rows in time order within a unit.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple
 
-import h5py
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
 from jaxcal.fleet.streaming import UnitChunk, iter_array_chunks
 from jaxcal.model import Model
-
-NCMAPSS_EXTENSIONS = (".h5", ".hdf5")
-NCMAPSS_DEFAULT_SPLIT = "test"
 
 
 class FleetSource(NamedTuple):
@@ -67,11 +62,6 @@ class FleetSource(NamedTuple):
     complete: bool
 
 
-def is_ncmapss(path: str) -> bool:
-    """A file the fleet streams in the N-CMAPSS layout (by its extension)."""
-    return os.path.splitext(os.fspath(path))[1].lower() in NCMAPSS_EXTENSIONS
-
-
 def clean_rows(data: Dataset) -> Dataset:
     """The rows a problem can be built on: finite conditions, outputs finite or
     missing (a partial row)."""
@@ -80,21 +70,6 @@ def clean_rows(data: Dataset) -> Dataset:
     if not ok.any():
         raise ValueError(f"{data.source}: no row with finite values")
     return data if ok.all() else data.take(ok)
-
-
-def file_sensors(path: str) -> tuple[str, ...]:
-    """An N-CMAPSS file's ``observed_sensors`` attribute, else its measured sensors
-    ``X_s``."""
-    from jaxcal.physics.constants import MEASURED_SENSOR_NAMES
-
-    with h5py.File(path, "r") as f:
-        observed = f.attrs.get("observed_sensors")
-        names = [n.decode().strip() for n in f["X_s_var"][()]] if "X_s_var" in f else []
-    if isinstance(observed, bytes):
-        observed = observed.decode()
-    if isinstance(observed, str) and observed:
-        return tuple(json.loads(observed))
-    return tuple(n for n in names if n in MEASURED_SENSOR_NAMES)
 
 
 def open_source(
@@ -107,16 +82,13 @@ def open_source(
     stride: int = 1,
     max_len: int = 0,
 ) -> FleetSource:
-    """The :class:`FleetSource` of a file (module docstring).
+    """The :class:`FleetSource` of a table (module docstring).
 
     Args:
-        path: ``.h5`` / ``.hdf5`` (N-CMAPSS layout), or any file
-            :func:`~jaxcal.data.readers.read_dataset` reads.
+        path: any file :func:`~jaxcal.data.readers.read_dataset` reads.
         model: the model whose names the columns follow.
-        outputs: outputs to use (``()``: the file's ``observed_sensors`` else
-            ``X_s`` for an N-CMAPSS file, every model output of a table).
-        split: an N-CMAPSS split (``dev`` / ``test``, default ``test``), or the
-            label of a table's ``split`` column (default: every row).
+        outputs: outputs to use (``()``: every model output of the table).
+        split: the label of a table's ``split`` column (default: every row).
         units: unit ids to keep (``()``: all).
         stride: keep file rows ``0, stride, 2 stride, ...``.
         max_len: padded length ``T`` (0: the longest selected unit).
@@ -127,12 +99,10 @@ def open_source(
     """
     if not os.path.isfile(path):
         raise ValueError(f"data file not found: {path}")
-    if is_ncmapss(path):
-        return _ncmapss(path, model, outputs, split, units, stride, max_len)
     return _table(path, model, outputs, split, units, stride, max_len)
 
 
-def _positions(unit_ids: np.ndarray, units) -> np.ndarray:
+def unit_positions(unit_ids: np.ndarray, units) -> np.ndarray:
     """The positions in ``unit_ids`` of the ids ``units`` (``None``: every one).
 
     Raises:
@@ -145,49 +115,6 @@ def _positions(unit_ids: np.ndarray, units) -> np.ndarray:
     if missing:
         raise ValueError(f"chunks: unit(s) {missing} are not among the selected units")
     return np.flatnonzero(np.isin(unit_ids, units))
-
-
-def _ncmapss(path, model, outputs, split, units, stride, max_len) -> FleetSource:
-    from jaxcal.data.readers import read_ncmapss_split
-    from jaxcal.fleet.ncmapss_source import (
-        iter_ncmapss_chunks,
-        sensor_norm,
-        unit_lengths,
-    )
-    from jaxcal.physics.constants import CONDITION_NAMES
-
-    if tuple(model.condition_names) != tuple(CONDITION_NAMES):
-        raise ValueError(
-            f"{path}: an N-CMAPSS file holds the turbofan's conditions "
-            f"{list(CONDITION_NAMES)}; model {model.name!r} has "
-            f"{list(model.condition_names)}: give its data as a table (.csv, .parquet)"
-        )
-    split = split or NCMAPSS_DEFAULT_SPLIT
-    outputs = tuple(outputs) or file_sensors(path)
-    wanted = list(units) or None
-    unit_ids, lengths = unit_lengths(path, split, wanted, stride=stride)
-    length = max_len or int(lengths.max())
-    x_stats, norm_source = sensor_norm(path, split, outputs, wanted, stride=stride)
-    first = read_ncmapss_split(
-        path, split, units=unit_ids[:1], sensors=list(outputs), stride=stride,
-        nonfinite="keep",
-    )  # fmt: skip
-    sample = clean_rows(first.for_model(model, outputs))
-
-    def chunks(theta_names, chunk_units, process_index=0, num_processes=1, units=None):
-        truth = sample.theta is not None and set(theta_names) <= set(sample.theta_names)
-        ids = unit_ids[_positions(unit_ids, units)]
-        return iter_ncmapss_chunks(
-            path, split, ids, max_len=length, chunk_units=chunk_units,
-            sensors=outputs, theta_names=tuple(theta_names) if truth else None,
-            stride=stride, process_index=process_index, num_processes=num_processes,
-        )  # fmt: skip
-
-    return FleetSource(
-        sample=sample, outputs=outputs, x_stats=x_stats, unit_ids=unit_ids,
-        max_len=length, description=f"{path}[{split}]", norm_source=norm_source,
-        chunks=chunks, complete=False,
-    )  # fmt: skip
 
 
 def _table(path, model, outputs, split, units, stride, max_len) -> FleetSource:
@@ -222,7 +149,7 @@ def _table(path, model, outputs, split, units, stride, max_len) -> FleetSource:
     }
 
     def chunks(theta_names, chunk_units, process_index=0, num_processes=1, units=None):
-        pos = _positions(unit_ids, units)
+        pos = unit_positions(unit_ids, units)
         rows = fill[pos]
         extras = {k: v[pos] for k, v in per_step.items()}
         if data.theta is not None and set(theta_names) <= set(data.theta_names):

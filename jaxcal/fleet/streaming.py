@@ -14,7 +14,7 @@ gathers chunk ``k`` and appends its valid rows to the output file
 (:class:`~jaxcal.fleet.results.FleetResultWriter`: atomic, process 0 only). At any time
 a process holds at most two input chunks and one gathered output chunk. Chunks come from
 any iterable of :class:`UnitChunk`: :func:`iter_array_chunks` cuts in-memory arrays,
-:func:`jaxcal.fleet.ncmapss_source.iter_ncmapss_chunks` reads an N-CMAPSS file.
+:func:`jaxcal.models.turbofan.fleet.iter_ncmapss_chunks` reads an N-CMAPSS file.
 Units are independent, so chunked results equal one-shot results unit for unit.
 A ``check`` (:class:`~jaxcal.calibrators.interface.SampleCheck`) flags and skips bad
 samples; their flags go to the file and their counts per reason to the summary.

@@ -163,7 +163,7 @@ def _builtin(name: str) -> Model:
 
 def _turbofan(name: str) -> Callable[[], Model]:
     def factory() -> Model:
-        from jaxcal.models.turbofan import load_turbofan
+        from jaxcal.models.turbofan.model import load_turbofan
 
         return load_turbofan(name)
 

@@ -24,8 +24,8 @@ a continuation in parameter space that keeps the balance on its physical branch.
 
 Users: :mod:`jaxcal.calibrators.methods.ls.window` (sliding window and batch fit),
 :mod:`jaxcal.calibrators.methods.ls.window_state` (moving horizon, box projection),
-:mod:`jaxcal.physics.design_fit` (hinted) and :mod:`jaxcal.diagnosis.fitting.joint`,
-whose
+:mod:`jaxcal.models.turbofan.physics.design_fit` (hinted) and
+:mod:`jaxcal.diagnosis.fitting.joint`, whose
 normal equations have arrow structure and are solved by Schur complement on the host
 with this module's damping, acceptance and covariance: a dense Jacobian there would
 have one column block per unit (260 units in C-MAPSS FD002).

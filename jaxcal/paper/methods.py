@@ -58,7 +58,7 @@ from jaxcal.calibrators.programs.compiled import inputs_of
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.envs.memory import HintedDynamics
 from jaxcal.envs.tracking import Dynamics
-from jaxcal.physics.constants import health_index, sensor_index
+from jaxcal.models.turbofan.physics.constants import health_index, sensor_index
 from jaxcal.problem import Problem
 from jaxcal.typedefs import Array, PRNGKey
 
@@ -247,7 +247,8 @@ def measure_declared(
             engine: ``lambda w, th: engine.evaluate(w, th)[0]``).
         theta_base: ``[P_full]`` values of all parameters (undeclared ones stay here).
         declared_idx: positions in ``theta_full`` of the declared parameters, or their
-            names in the turbofan's ``jaxcal.physics.constants.HEALTH_NAMES``.
+            names in the turbofan's
+            ``jaxcal.models.turbofan.physics.constants.HEALTH_NAMES``.
         sensor_idx: positions in ``x_full`` of the sensors to return, or their names in
             ``SENSOR_NAMES``; ``None`` keeps all.
 
@@ -347,7 +348,7 @@ def model_method(engine, problem: Problem, table_cfg, name: str) -> Method:
     info = {"model": f"F ({problem.model.name})", **dataclasses.asdict(cfg)}
     # the engine's valid inputs; a model without an envelope checks finiteness only
     envelope = getattr(engine, "envelope", None)
-    check = None if envelope is None else SampleCheck.from_envelope(envelope)
+    check = None if envelope is None else SampleCheck(*envelope.w_box())
     return make_method(
         name, build, jnp.float64, info, check=check,
         deploy_fn=lambda: on(declared_model(engine, problem)),

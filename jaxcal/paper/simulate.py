@@ -18,9 +18,9 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from jaxcal.data.chunked_engine import NUM_UNKNOWNS, jit_evaluate_engine
 from jaxcal.data.padded import Padded
-from jaxcal.physics.constants import HEALTH_NAMES, sensor_index
+from jaxcal.models.turbofan.data.chunked_engine import NUM_UNKNOWNS, jit_evaluate_engine
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, sensor_index
 from jaxcal.problem import Problem
 
 
@@ -29,10 +29,10 @@ def evaluate_declared(
 ) -> tuple[np.ndarray, np.ndarray]:
     """F at ``N`` samples: the declared parameters set, the others at ``theta_base``.
 
-    Calls the data generator's compiled engine (:data:`jaxcal.data.chunked_engine.
-    jit_evaluate_engine`, Newton started at the design point): with the generator's
-    chunk size the program is shared with data generation. Needs float64
-    (``jax.enable_x64``) like every engine call.
+    Calls the data generator's compiled engine
+    (:data:`jaxcal.models.turbofan.data.chunked_engine. jit_evaluate_engine`, Newton
+    started at the design point): with the generator's chunk size the program is shared
+    with data generation. Needs float64 (``jax.enable_x64``) like every engine call.
 
     Args:
         engine: the loaded engine of ``problem.model.name``.

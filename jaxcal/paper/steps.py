@@ -5,8 +5,9 @@ atomically when it finishes (with its wall time, its estimate, its seed and conf
 is skipped — its JSON read back — when the experiment runs again. The work:
 
 * :func:`ensure_dataset`: a data file from a generator preset, built in-process by the
-  same function as ``python -m jaxcal.generate`` (:func:`jaxcal.data.builders.
-  build_dataset`), or an existing file checked against that preset;
+  same function as ``python -m jaxcal.generate``
+  (:func:`jaxcal.models.turbofan.data.builders. build_dataset`), or an existing file
+  checked against that preset;
 * :func:`save_params` / :func:`load_params`: trained network weights (the E2E
   baselines) as flax msgpack, so an evaluation step can run after a restart.
 """
@@ -96,7 +97,7 @@ def ensure_dataset(cfg, path: str | os.PathLike, *, progress: bool = True) -> di
     """The data file of generator config ``cfg`` at ``path``, built if missing.
 
     Args:
-        cfg: a :class:`jaxcal.data.dataset_configs.DatasetConfig`.
+        cfg: a :class:`jaxcal.models.turbofan.data.dataset_configs.DatasetConfig`.
         path: the ``.h5`` file.
         progress: show a tqdm bar over generation blocks.
 
@@ -107,8 +108,8 @@ def ensure_dataset(cfg, path: str | os.PathLike, *, progress: bool = True) -> di
         ValueError: an existing file was generated with another config (the message
             names the differing fields; delete the file to regenerate it).
     """
-    from jaxcal.data.builders import build_dataset
-    from jaxcal.data.ncmapss_io import ncmapss_info
+    from jaxcal.models.turbofan.data.builders import build_dataset
+    from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
 
     path = Path(path)
     wanted = config_to_dict(cfg)

@@ -2,7 +2,7 @@
 
 A :class:`Suite` holds everything the evaluation steps of one data set share, loaded
 once and kept: the splits as the reference policy run read them (same sensors,
-parameters, validation units and stride, :func:`jaxcal.training.data.ncmapss.
+parameters, validation units and stride, :func:`jaxcal.models.turbofan.training.
 load_calibration_data`), their :class:`~jaxcal.problem.Problem`, the engine
 and the built methods. Its step functions return JSON-ready dicts:
 
@@ -33,6 +33,8 @@ from jaxcal.calibrators.methods.e2e.network import E2EConfig, fit_e2e, init_e2e_
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.data.padded import Padded
+from jaxcal.models.turbofan.physics.engine import ENVELOPES
+from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.paper.compare import (
     MethodRun,
     evaluate_method,
@@ -54,9 +56,7 @@ from jaxcal.paper.simulate import (
     subset_units,
 )
 from jaxcal.paper.steps import load_params, save_params
-from jaxcal.physics.engine import ENVELOPES
 from jaxcal.runs.folder import DATA_FILE, read_json
-from jaxcal.training.data.ncmapss import load_calibration_data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +112,7 @@ class Suite:
     def engine(self):
         """The data set's engine (loaded on first use, in float64)."""
         if self._engine is None:
-            from jaxcal.physics import load_engine
+            from jaxcal.models.turbofan.physics.engine import load_engine
 
             with jax.enable_x64(True):  # else its design constants load as float32
                 self._engine = load_engine(self.problem.model.name)
@@ -207,7 +207,7 @@ class Suite:
             }
             # the engine's envelope, without loading the engine (G has no model)
             envelope = ENVELOPES.get(self.problem.model.name)
-            check = None if envelope is None else SampleCheck.from_envelope(envelope)
+            check = None if envelope is None else SampleCheck(*envelope.w_box())
             return e2e_method(params, name, info, check)
         if name == "CLAC-gate":  # the two policies composed (gate_steps)
             from jaxcal.paper.gate_steps import gated_method

@@ -6,7 +6,7 @@ job (data -> surrogate D -> policy -> band -> test scores) through its stages
 (``*_stage``; the policy's host loop and the policy it keeps in
 :mod:`~jaxcal.training.kept_policy`), on the data of :mod:`~jaxcal.training.data.run`
 (the :mod:`~jaxcal.training.data.calibration` records, read from an N-CMAPSS file by
-:mod:`~jaxcal.training.data.ncmapss` or from any model's rows by
+:mod:`~jaxcal.models.turbofan.training` or from any model's rows by
 :mod:`~jaxcal.training.data.tables`, with simulated units from
 :mod:`~jaxcal.training.data.simulated`), the training environment of
 :mod:`~jaxcal.training.data.train_env` and the machinery of

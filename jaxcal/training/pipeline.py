@@ -7,10 +7,10 @@
    writable, and a stored config must match for a resume
    (:func:`jaxcal.runs.folder.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
-   (:func:`jaxcal.data.generation.generate_dataset`, a function call whose float64
-   scope does not leak into training), then the train / val / test units and the one
-   :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
-   file through :mod:`jaxcal.training.data.ncmapss`, any model's rows through
+   (the turbofan's, :data:`jaxcal.training.data.MODEL_FILES`, a function call whose
+   float64 scope does not leak into training), then the train / val / test units and the
+   one :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
+   file through :mod:`jaxcal.models.turbofan.training`, any model's rows through
    :mod:`jaxcal.training.data.tables`), with the run's one normalisation, computed there
    in the run's dtype (:func:`run_dtype`) and carried unchanged to the
    environment, the deployed policy and ``data.json``. Only then, every check of
@@ -92,7 +92,7 @@ from jaxcal.training.components import (
     make_components,
 )
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.data.run import (  # noqa: F401 (re-exported)
     GenerationError,
     ensure_data_file,

@@ -35,8 +35,8 @@ from jaxcal.calibrators.methods.policy.calibrator import (
     make_policy_calibrator,
 )
 from jaxcal.calibrators.ukf import UKFConfig, make_ukf
-from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.physics.engine import ENVELOPES
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.engine import ENVELOPES
 
 NUM_STEPS, NUM_SENSORS, NUM_PARAMS = 9, 3, 2
 BAD = 4  # index of the poisoned sample
@@ -220,7 +220,7 @@ def test_from_range_widens_by_the_span_and_rejects_bad_boxes():
 
 def test_envelope_box_holds_the_envelope_corners():
     env = ENVELOPES["cmapss"]
-    check = SampleCheck.from_envelope(env)
+    check = SampleCheck(*env.w_box())
     for alt in env.alt_ft:
         for mach in env.mach:
             for dev in env.t2_dev_r:

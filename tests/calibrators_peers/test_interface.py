@@ -15,8 +15,8 @@ from jaxcal.calibrators.interface import (
     run_calibrator,
     run_fleet,
 )
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES
 from jaxcal.paper.methods import measure_declared  # the turbofan's, for the paper
-from jaxcal.physics.constants import HEALTH_NAMES
 
 NUM_STEPS, NUM_SENSORS, NUM_CONDITIONS = 7, 3, 2
 

@@ -11,16 +11,16 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxcal.data.builders import build_dataset
-from jaxcal.data.chunked_engine import (
+from jaxcal.models.turbofan.data.builders import build_dataset
+from jaxcal.models.turbofan.data.chunked_engine import (
     RowBlock,
     jit_evaluate_engine,
     solve_rows,
 )
-from jaxcal.data.dataset_configs import DATASETS, DatasetConfig
-from jaxcal.data.ncmapss_io import LAYOUT_NAMES, load_ncmapss
-from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.data.dataset_configs import DATASETS, DatasetConfig
+from jaxcal.models.turbofan.data.ncmapss_io import LAYOUT_NAMES, load_ncmapss
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.constants import (
     HEALTH_NAMES,
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,

@@ -6,7 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxcal.data.cmapss_text import EXTRA_MAP, SENSOR_MAP, load_cmapss_text
+from jaxcal.models.turbofan.data.cmapss_text import (
+    EXTRA_MAP,
+    SENSOR_MAP,
+    load_cmapss_text,
+)
 
 # The six FD002 operating conditions (alt kft, Mach, TRA, T2 degR), data_facts.md §1.3.
 CONDITIONS = (

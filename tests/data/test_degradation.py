@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.data.degradation import (
+from jaxcal.models.turbofan.data.degradation import (
     DEFAULT_FACTORIAL_LEVELS,
     DegradationConfig,
     factorial_fault_scenarios,
@@ -15,14 +15,14 @@ from jaxcal.data.degradation import (
     slice_cycles,
     theta_per_sample,
 )
-from jaxcal.data.ground_truth import (
+from jaxcal.models.turbofan.data.ground_truth import (
     DEFAULT_EOL_THETA_RANGE,
     EOL_CYCLES_BY_CLASS,
     ONSET_CYCLES_BY_CLASS,
     load_fault_ground_truth,
     summarize_ground_truth,
 )
-from jaxcal.physics.constants import HEALTH_NAMES, health_index
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, health_index
 
 C_MAX = 104
 NUM_UNITS = 30

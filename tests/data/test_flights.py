@@ -6,14 +6,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.data.flights import (
+from jaxcal.models.turbofan.data.flights import (
     CruiseBand,
     FlightConfig,
     sample_cruise_band,
     sample_flight,
     smooth_noise,
 )
-from jaxcal.physics.atmosphere import isa_static, isa_total_temperature, ram_ratio
+from jaxcal.models.turbofan.physics.atmosphere import (
+    isa_static,
+    isa_total_temperature,
+    ram_ratio,
+)
 
 
 def delta_isa(alt_ft, mach, t2_r):

@@ -6,7 +6,7 @@ import pytest
 
 from jaxcal.data.dataset import Dataset
 from jaxcal.data.padded import Padded
-from jaxcal.data.record import Record
+from jaxcal.models.turbofan.data.record import Record
 
 
 def make_record(with_theta=True) -> Record:

@@ -8,14 +8,14 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxcal.data.ncmapss_io import (
+from jaxcal.models.turbofan.data.ncmapss_io import (
     NCMAPSSWriter,
     load_ncmapss,
     ncmapss_info,
     write_ncmapss,
 )
-from jaxcal.data.record import Record
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.data.record import Record
+from jaxcal.models.turbofan.physics.constants import (
     AUX_NAMES,
     CONDITION_NAMES,
     HEALTH_NAMES,

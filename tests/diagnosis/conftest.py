@@ -12,7 +12,7 @@ import pytest
 
 from jaxcal.diagnosis.data.synthetic import SyntheticConfig, make_synthetic_data
 from jaxcal.models import load
-from jaxcal.models.turbofan_scenario import (
+from jaxcal.models.turbofan.scenario import (
     DISCREPANCY_BUMP,
     EFFECT_SIZES,
     STUDY_OUTPUTS,

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from jaxcal.data.readers import dataset_from_record
-from jaxcal.data.record import Record
 from jaxcal.diagnosis.data.prepare import prepare_data as _prepare
 from jaxcal.diagnosis.data.prepare import spline_basis
 from jaxcal.diagnosis.fitting.identify import log10_chi2_sf
 from jaxcal.diagnosis.fitting.joint import GramStats, schur_solve
 from jaxcal.diagnosis.residuals.noise_fit import fit_noise, quantised
 from jaxcal.models import load
+from jaxcal.models.turbofan.data.datasets import dataset_from_record
+from jaxcal.models.turbofan.data.record import Record
 
 
 def prepare_data(record, **kwargs):

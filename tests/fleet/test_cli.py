@@ -202,9 +202,9 @@ MODEL = Model.from_function(
 
 def test_ncmapss_file_streamed_with_a_model_from_a_file(tmp_path, capsys):
     """The N-CMAPSS path with any model of its names: a cheap analytic one."""
-    from jaxcal.data.ncmapss_io import write_ncmapss
-    from jaxcal.data.record import Record
-    from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+    from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+    from jaxcal.models.turbofan.data.record import Record
+    from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, SENSOR_NAMES
 
     (tmp_path / "toy.py").write_text(TOY_TURBOFAN)
     from jaxcal.models import load
@@ -256,11 +256,11 @@ def test_ncmapss_file_streamed_with_a_model_from_a_file(tmp_path, capsys):
 @pytest.mark.slow
 def test_engine_ukf_run_recovers_theta(tmp_path):
     """A tiny engine fleet: 3 units with constant HPT efficiency loss, 2 devices."""
-    from jaxcal.data.ncmapss_io import write_ncmapss
-    from jaxcal.data.record import Record
-    from jaxcal.physics import load_engine
-    from jaxcal.physics.atmosphere import isa_total_temperature
-    from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+    from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+    from jaxcal.models.turbofan.data.record import Record
+    from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+    from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+    from jaxcal.models.turbofan.physics.engine import load_engine
 
     engine = load_engine("cmapss")
     rng = np.random.default_rng(0)

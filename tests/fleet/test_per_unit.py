@@ -274,9 +274,9 @@ MODEL = Model.from_function(
 def test_ncmapss_file_streams_the_carriers_runs(tmp_path, capsys):
     """An N-CMAPSS file (streamed, never read whole) with a T30 offset in unit 2 of
     1, 2, 3: the runs read only their units' rows."""
-    from jaxcal.data.ncmapss_io import write_ncmapss
-    from jaxcal.data.record import Record
-    from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
+    from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+    from jaxcal.models.turbofan.data.record import Record
+    from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, SENSOR_NAMES
 
     (tmp_path / "toy.py").write_text(TOY_TURBOFAN)
     model = load(f"{tmp_path / 'toy.py'}:MODEL", trust_code=True)

@@ -9,9 +9,6 @@ import pytest
 from fleet_worker import problem, reference, ukf
 
 from jaxcal.calibrators.interface import REASON_CODE, Calibrator, SampleCheck
-from jaxcal.data.ncmapss_io import load_ncmapss, write_ncmapss
-from jaxcal.data.record import Record
-from jaxcal.fleet.ncmapss_source import iter_ncmapss_chunks, sensor_norm, unit_lengths
 from jaxcal.fleet.results import FleetResultWriter, read_results
 from jaxcal.fleet.sharded import make_unit_mesh
 from jaxcal.fleet.streaming import (
@@ -21,7 +18,13 @@ from jaxcal.fleet.streaming import (
     plan_chunks,
     units_per_chunk,
 )
-from jaxcal.physics.constants import MEASURED_SENSOR_NAMES, VIRTUAL_SENSOR_NAMES
+from jaxcal.models.turbofan.data.ncmapss_io import load_ncmapss, write_ncmapss
+from jaxcal.models.turbofan.data.record import Record
+from jaxcal.models.turbofan.fleet import iter_ncmapss_chunks, sensor_norm, unit_lengths
+from jaxcal.models.turbofan.physics.constants import (
+    MEASURED_SENSOR_NAMES,
+    VIRTUAL_SENSOR_NAMES,
+)
 
 NAMES = dict(theta_names=("a", "b"), sensor_names=("s0", "s1", "s2"))
 

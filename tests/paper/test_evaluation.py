@@ -17,6 +17,7 @@ from support.paper_problem import paper_problem
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.data.padded import Padded
+from jaxcal.models.turbofan.physics.constants import HEALTH_NAMES, SENSOR_NAMES
 from jaxcal.paper.compare import (
     evaluate_method,
     limit_units,
@@ -32,7 +33,6 @@ from jaxcal.paper.methods import (
 )
 from jaxcal.paper.report import write_report
 from jaxcal.paper.simulate import gather_units, subset_units
-from jaxcal.physics.constants import HEALTH_NAMES, SENSOR_NAMES
 from jaxcal.problem import Problem
 
 SENSORS = ("T24", "T30", "T48", "Nc")

@@ -7,16 +7,16 @@ from flax import struct
 from support.paper_problem import paper_problem
 
 from jaxcal.data.padded import Padded
-from jaxcal.paper.identifiability import (
-    identifiability_study,
-    split_error,
-    weak_directions,
-)
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.physics.constants import (
     HEALTH_NAMES,
     SENSOR_NAMES,
     health_index,
     sensor_index,
+)
+from jaxcal.paper.identifiability import (
+    identifiability_study,
+    split_error,
+    weak_directions,
 )
 
 SENSORS = ("T24", "T30", "T48", "Nc")

@@ -12,7 +12,7 @@ from jaxcal.calibrators.methods.policy.calibrator import (
     make_policy_calibrator,
 )
 from jaxcal.envs.memory import HintedDynamics
-from jaxcal.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
 
 THETA = ["HPT_eff_mod", "LPT_flow_mod"]
 OUTPUTS = ["T30", "T50", "Nc", "Ps30"]
@@ -36,7 +36,7 @@ def _flight(n=10):
 
 @pytest.fixture(scope="module")
 def setup():
-    from jaxcal.models.turbofan import load_turbofan
+    from jaxcal.models.turbofan.model import load_turbofan
     from jaxcal.training.components import _dynamics
 
     with jax.enable_x64(True):

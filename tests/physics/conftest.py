@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxcal.physics import load_engine
+from jaxcal.models.turbofan.physics.engine import load_engine
 
 BATCH = 16
 

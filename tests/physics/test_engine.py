@@ -6,15 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.physics import load_engine
-from jaxcal.physics.atmosphere import isa_total_temperature
-from jaxcal.physics.audit import audit_point
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.audit import audit_point
+from jaxcal.models.turbofan.physics.constants import (
     HEALTH_NAMES,
     MEASURED_SENSOR_NAMES,
     SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,
 )
+from jaxcal.models.turbofan.physics.engine import load_engine
 
 CRUISE = np.array([35000.0, 0.78, 85.0, float(isa_total_temperature(35000.0, 0.78))])
 SLS = np.array([0.0, 0.0, 100.0, 518.67])

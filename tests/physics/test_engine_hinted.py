@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from jaxcal.model import Model
-from jaxcal.physics import load_engine, solver
-from jaxcal.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics import solver
+from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
+from jaxcal.models.turbofan.physics.engine import load_engine
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "engine_f_bits.npz"
 
@@ -68,8 +69,8 @@ def test_hinted_stream_matches_cold(engine, fns):
 
 
 def _exact_jinv(engine, w, theta, z):
-    from jaxcal.physics import cycle
-    from jaxcal.physics.evaluation import residual_fn
+    from jaxcal.models.turbofan.physics import cycle
+    from jaxcal.models.turbofan.physics.evaluation import residual_fn
 
     params = (engine.design, engine.point, w, theta, jnp.zeros(cycle.NUM_EFFECTS))
     return np.linalg.inv(np.asarray(jax.jacfwd(residual_fn)(z, params)))
@@ -116,8 +117,8 @@ def test_model_without_hint_passes_it_through():
 
 
 def test_turbofan_model_restrict_hinted(engine, fns):
-    from jaxcal.models.turbofan import load_turbofan
-    from jaxcal.physics.constants import SENSOR_NAMES
+    from jaxcal.models.turbofan.model import load_turbofan
+    from jaxcal.models.turbofan.physics.constants import SENSOR_NAMES
 
     w, theta = _stream(3)
     cold, _ = fns
@@ -139,7 +140,7 @@ def test_physics_dynamics_of_the_turbofan_carry_the_hint(engine, fns):
     # the training pipeline's physics transition is hinted for deployment streams and
     # plain (the cold F) when called as the training environment calls it
     from jaxcal.envs.memory import HintedDynamics
-    from jaxcal.models.turbofan import load_turbofan
+    from jaxcal.models.turbofan.model import load_turbofan
     from jaxcal.training.components import _dynamics
 
     w, theta = _stream(4)

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcal.data.cmapss_text import load_cmapss_text
-from jaxcal.physics.constants import SENSOR_NAMES
+from jaxcal.models.turbofan.data.cmapss_text import load_cmapss_text
+from jaxcal.models.turbofan.physics.constants import SENSOR_NAMES
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 CHECKED = (

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxcal.physics import thermo
+from jaxcal.models.turbofan.physics import thermo
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.model import Model
-from jaxcal.physics.constants import CONDITION_NAMES, HEALTH_NAMES, SENSOR_NAMES
+from jaxcal.models.turbofan.physics.constants import (
+    CONDITION_NAMES,
+    HEALTH_NAMES,
+    SENSOR_NAMES,
+)
 from jaxcal.problem import InputRange, Normalisation, Problem
 
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxcal.data.ncmapss_io import write_ncmapss
-from jaxcal.data.record import Record
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+from jaxcal.models.turbofan.data.record import Record
+from jaxcal.models.turbofan.physics.constants import (
     HEALTH_NAMES,
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,

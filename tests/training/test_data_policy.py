@@ -9,14 +9,15 @@ import numpy as np
 import pytest
 
 from jaxcal.cli.train import main
-from jaxcal.data.ncmapss_io import write_ncmapss
-from jaxcal.data.record import Record
-from jaxcal.physics.constants import (
+from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss
+from jaxcal.models.turbofan.data.record import Record
+from jaxcal.models.turbofan.physics.constants import (
     MEASURED_SENSOR_NAMES,
     VIRTUAL_SENSOR_NAMES,
 )
+from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.training.config import resolve_config
-from jaxcal.training.data.ncmapss import load_calibration_data, read_options
+from jaxcal.training.data.run import read_options
 
 SENSORS = MEASURED_SENSOR_NAMES + VIRTUAL_SENSOR_NAMES
 

@@ -14,10 +14,10 @@ import pytest
 from support.synthetic_file import write_synthetic_ncmapss
 
 from jaxcal.deploy import load_run
+from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.problem import Normalisation
 from jaxcal.runs.metrics_log import read_metrics
 from jaxcal.training.config import make_train_config, resolve_config
-from jaxcal.training.data.ncmapss import load_calibration_data
 from jaxcal.training.data.train_env import training_env_params
 from jaxcal.training.pipeline import ensure_data_file, read_run_data, run_training
 from jaxcal.training.scoring.trajectories import theta_rmse, tracking_rmse

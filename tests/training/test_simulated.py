@@ -7,7 +7,7 @@ import pytest
 
 import jaxcal
 from jaxcal.data.padded import Padded
-from jaxcal.training.data.ncmapss import training_problem
+from jaxcal.training.data.calibration import training_problem
 from jaxcal.training.data.sim_paths import drift_paths, estimated_drifts, theta_paths
 from jaxcal.training.data.simulated import parse_noise, simulate_units
 
@@ -228,7 +228,7 @@ def test_tuning_and_guard_units_are_labelled_and_the_clean_twin_is_effect_free()
     import dataclasses
 
     from jaxcal.training.config import make_train_config
-    from jaxcal.training.data.ncmapss import CalibrationData
+    from jaxcal.training.data.calibration import CalibrationData
     from jaxcal.training.data.simulated import Simulations
 
     units = _units()

@@ -2,7 +2,7 @@
 
 A *scenario* supplies the clean rows: conditions, all parameters (the declared ones
 drifting with a per-row health index), unit and cycle (e.g.
-:func:`jaxcal.models.turbofan_scenario.make_scenario` flies N-CMAPSS-like lives). This
+:func:`jaxcal.models.turbofan.scenario.make_scenario` flies N-CMAPSS-like lives). This
 module switches one effect on in the extended model of
 :mod:`jaxcal.diagnosis.kinds.signatures`, on every
 unit or only on some (``carriers``), adds Gaussian noise at the model's reference

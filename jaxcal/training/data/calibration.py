@@ -7,7 +7,7 @@ padded container) and the problem (model, declared parameters, used outputs, act
 box, normalisation over the training units in the run's dtype, training input
 range), which :func:`training_problem` derives from the training units: the run's
 one normalisation, made there once and carried, never recomputed. Its sources, an
-N-CMAPSS file (:mod:`jaxcal.training.data.ncmapss`, which re-exports these names) and
+N-CMAPSS file (:mod:`jaxcal.models.turbofan.training`, the turbofan's) and
 any model's rows (:mod:`jaxcal.training.data.tables`), fill it.
 """
 

@@ -180,7 +180,7 @@ class Simulations:
     Args:
         cfg: the run's :class:`~jaxcal.training.config.TrainConfig` (``simulate``,
             ``noise``, ``seed``).
-        data: the run's :class:`~jaxcal.training.data.ncmapss.CalibrationData`.
+        data: the run's :class:`~jaxcal.training.data.calibration.CalibrationData`.
         log: where notes go.
     """
 

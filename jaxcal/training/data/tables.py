@@ -3,7 +3,7 @@
 :func:`load_table_data` reads a file of rows named as the model names its variables
 (CSV, Parquet, NASA C-MAPSS text; :func:`jaxcal.data.readers.read_dataset`) or takes
 a :class:`~jaxcal.data.dataset.Dataset`, and returns the same
-:class:`~jaxcal.training.data.ncmapss.CalibrationData` an N-CMAPSS file gives.
+:class:`~jaxcal.training.data.calibration.CalibrationData` an N-CMAPSS file gives.
 
 Splits are whole units (one unit is one stream; a window never mixes units):
 
@@ -34,7 +34,7 @@ from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.precision import float_dtype
 from jaxcal.problem import VARYING_TOLERANCE, labelled_box
-from jaxcal.training.data.ncmapss import CalibrationData, training_problem
+from jaxcal.training.data.calibration import CalibrationData, training_problem
 
 SPLITS = ("train", "val", "test", "dev")
 

@@ -24,7 +24,7 @@ from jaxcal.envs.tracking import EnvParams, make_env_params
 from jaxcal.problem import Problem
 from jaxcal.training.components import make_dynamics, uses_filter, uses_gauss_newton
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.data.simulated import Simulations
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from jaxcal.training.components import uses_filter
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.kept_policy import KeptPolicy
 from jaxcal.training.stages.uncertainty import time_to_target
 

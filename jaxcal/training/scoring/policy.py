@@ -28,7 +28,7 @@ from jaxcal.data.padded import Padded
 from jaxcal.envs.tracking import EnvParams
 from jaxcal.problem import Problem
 from jaxcal.training.config import TrainConfig
-from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.scoring.trajectories import score_units, theta_rmse
 from jaxcal.training.stages.uncertainty import scored_mask
 

@@ -29,7 +29,7 @@ from jaxcal.surrogate.model import (
     SurrogateParams,
     init_surrogate_params,
 )
-from jaxcal.training.data.ncmapss import CalibrationData
+from jaxcal.training.data.calibration import CalibrationData
 from jaxcal.training.scoring.trajectories import describe_units
 from jaxcal.typedefs import PRNGKey
 

@@ -131,7 +131,8 @@ def make_policy_calibrator(
         warm_start: carry the model's solver hint from sample to sample (a
             :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise): a
             stream, one sample per call, and a fleet (the turbofan's hinted solve
-            batches with a rule of its own, ``jaxcal.physics.warm_start``).
+            batches with a rule of its own,
+            ``jaxcal.models.turbofan.physics.warm_start``).
         start_at_first_sample: a model with memory starts its state at the first
             sample the step is fed (a stream whose first state was made before any
             row). ``False`` where ``init`` is given the first ok row, as

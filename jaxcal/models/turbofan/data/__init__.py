@@ -1,0 +1,1 @@
+"""jaxcal.models.turbofan.data."""
