@@ -68,12 +68,3 @@ def nozzle_flow(pt, tt, p_amb, area_in2, gamma, cd=1.0):
         * (1.0 + 0.5 * (g - 1.0) * m2) ** (-(g + 1.0) / (2.0 * (g - 1.0)))
     )
     return cd * area_in2 * pt / jnp.sqrt(tt) * flow_fn, mach
-
-
-def nozzle_gross_thrust(w, pt, tt, p_amb, area_in2, gamma, mach, cv=1.0):
-    """Gross thrust [lbf] = W V_e / g_c + (P_e - P_amb) A (throat exit, convergent)."""
-    g = gamma
-    ts = tt / (1.0 + 0.5 * (g - 1.0) * mach**2)
-    v = mach * jnp.sqrt(g * GC * R_FT_LBF * ts) * cv
-    pe = pt * (ts / tt) ** (g / (g - 1.0))
-    return w * v / GC + (pe - p_amb) * area_in2
