@@ -44,7 +44,7 @@ from jaxcal.models.turbofan.scenario import (
     DISCREPANCY_BUMP,
     EFFECT_SIZES,
     STUDY_OUTPUTS,
-    FleetConfig,
+    ScenarioConfig,
     make_scenario,
 )
 from jaxcal.precision import enable_x64
@@ -88,7 +88,7 @@ def synthetic_config(declared) -> SyntheticConfig:
 def run_one(model, cfg: StudyConfig, kind: str, seed: int) -> dict:
     """Generate and diagnose one record; the facts the summary needs."""
     scenario = make_scenario(
-        FleetConfig(
+        ScenarioConfig(
             num_units=cfg.units,
             rows_per_cycle=cfg.rows_per_cycle,
             cycle_stride=cfg.cycle_stride,

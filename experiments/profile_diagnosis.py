@@ -68,14 +68,14 @@ def _load(cfg: ProfileConfig, model):
         import jax
 
         from jaxcal.diagnosis.data.synthetic import make_synthetic_data
-        from jaxcal.models.turbofan.scenario import FleetConfig, make_scenario
+        from jaxcal.models.turbofan.scenario import ScenarioConfig, make_scenario
 
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         from loop_study import KINDS, synthetic_config
 
         declared = ("HPT_eff_mod",)
         scenario = make_scenario(
-            FleetConfig(
+            ScenarioConfig(
                 num_units=cfg.units, rows_per_cycle=cfg.rows_per_cycle,
                 cycle_stride=cfg.cycle_stride, declared=declared,
             )

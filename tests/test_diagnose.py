@@ -20,7 +20,7 @@ from jaxcal.models.turbofan.physics.constants import (
     VIRTUAL_SENSOR_NAMES,
 )
 from jaxcal.models.turbofan.physics.reference import FD002_CONDITIONS
-from jaxcal.models.turbofan.scenario import EFFECT_SIZES, FleetConfig, make_scenario
+from jaxcal.models.turbofan.scenario import EFFECT_SIZES, ScenarioConfig, make_scenario
 
 
 def _t2_offset_record(engine, size):
@@ -31,7 +31,7 @@ def _t2_offset_record(engine, size):
         sizes=EFFECT_SIZES,
         parameter_physical=True,
     )
-    fleet = FleetConfig(num_units=2, rows_per_cycle=2, cycle_stride=2)
+    fleet = ScenarioConfig(num_units=2, rows_per_cycle=2, cycle_stride=2)
     syn = make_synthetic_data(
         jax.random.key(3), engine, "t2_offset", cfg, make_scenario(fleet), size=size
     )

@@ -16,13 +16,13 @@ from jaxcal.models.turbofan.scenario import (
     DISCREPANCY_BUMP,
     EFFECT_SIZES,
     STUDY_OUTPUTS,
-    FleetConfig,
+    ScenarioConfig,
     make_scenario,
 )
 
 DECLARED = ("HPT_eff_mod",)
 # Two units, every other cycle, two samples per flight: ~150 rows, one engine chunk.
-SMALL = FleetConfig(num_units=2, rows_per_cycle=2, cycle_stride=2, declared=DECLARED)
+SMALL = ScenarioConfig(num_units=2, rows_per_cycle=2, cycle_stride=2, declared=DECLARED)
 STUDY = SyntheticConfig(
     sensors=STUDY_OUTPUTS,
     declared=DECLARED,

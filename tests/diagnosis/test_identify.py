@@ -135,9 +135,9 @@ def test_fan_loss_in_some_engines_of_a_fleet_is_marked_per_unit(engine, study_co
     two of six engines; the per-unit verdict lists exactly those two."""
     STUDY = study_config  # noqa: N806 (the conftest's name)
     from jaxcal.diagnosis.data.synthetic import make_synthetic_data
-    from jaxcal.models.turbofan.scenario import FleetConfig, make_scenario
+    from jaxcal.models.turbofan.scenario import ScenarioConfig, make_scenario
 
-    fleet = FleetConfig(
+    fleet = ScenarioConfig(
         num_units=6, rows_per_cycle=1, cycle_stride=3, declared=DECLARED
     )
     syn = make_synthetic_data(

@@ -53,7 +53,7 @@ DISCREPANCY_BUMP = ("Mach", (0.45, 0.65), 0.12)  # condition, centre range, widt
 
 
 @dataclasses.dataclass(frozen=True)
-class FleetConfig:
+class ScenarioConfig:
     """Static settings of :func:`make_scenario`."""
 
     num_units: int = 3
@@ -65,7 +65,7 @@ class FleetConfig:
     def __post_init__(self):
         if self.num_units < 1 or self.rows_per_cycle < 1 or self.cycle_stride < 1:
             raise ValueError(
-                "FleetConfig: num_units, rows_per_cycle, cycle_stride >= 1"
+                "ScenarioConfig: num_units, rows_per_cycle, cycle_stride >= 1"
             )
 
 
@@ -93,7 +93,7 @@ def _sample_fleet(key_deg, key_flight, deg_cfg, flight_cfg, classes):
     return deg, flights
 
 
-def make_scenario(cfg: FleetConfig):
+def make_scenario(cfg: ScenarioConfig):
     """``scenario(keys [4]) -> FleetRows`` for :func:`~jaxcal.diagnosis.data.synthetic.
     make_synthetic_data` (keys: flight class, degradation, flights, kept rows)."""
 
