@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export JAX_PLATFORMS ?= cpu
 
-.PHONY: setup install test test-all lint format train validate bench-engine bench battery paper npe-setup docs clean
+.PHONY: setup install test test-long test-all lint format train validate bench-engine bench battery paper npe-setup docs clean
 
 setup: $(STAMP)
 
@@ -20,12 +20,17 @@ install: setup
 # The suite on $(TEST_WORKERS) pytest-xdist workers, one test file per worker at a time
 # (module-scoped fixtures built once; tests/conftest.py hands out the longest files
 # first). TEST_WORKERS=0 runs it in this process; `python -m pytest tests/<file>.py`
-# runs one file without workers.
+# runs one file without workers. The long studies (marked slow: each has a faster test
+# of the same behaviour in `make test`) run in `make test-long`; `make test-all` runs
+# both.
 TEST_WORKERS ?= 2
 XDIST := -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 test: $(STAMP)
 	$(BIN)/python -m pytest tests $(XDIST)
+
+test-long: $(STAMP)
+	$(BIN)/python -m pytest tests -m slow $(XDIST)
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest tests -m '' $(XDIST)

@@ -21,10 +21,26 @@ from pathlib import Path  # noqa: E402
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
+# Clear JAX's caches after a module only past this many memory mappings: under a third
+# of the kernel's limit (the next module has the rest), and high enough that most
+# modules keep the programs the ones before them compiled (the turbofan's evaluation
+# and linearisation of the session fixtures: a clear after every module made each
+# next module trace and compile them again).
+MAX_MAPPINGS = 20_000
+
+
+def _num_mappings() -> int:
+    """This process's memory mappings (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
-    """Drop each test module's compiled programs when it ends.
+    """Drop the compiled programs when a module ends with many mappings.
 
     Every loaded XLA:CPU executable holds its own memory mappings; one pytest process
     running the whole suite otherwise accumulates them past the kernel's limit
@@ -32,25 +48,29 @@ def _release_compiled_programs():
     paper's quick run) and the next load crashes the process.
     """
     yield
-    jax.clear_caches()
-    gc.collect()
+    if _num_mappings() > MAX_MAPPINGS:
+        jax.clear_caches()
+        gc.collect()
 
 
-# The longest test files (warm compilation cache, one worker; the numbers are seconds
-# measured on 2 cores), longest first. Under pytest-xdist they are handed out first:
-# left to their place in the collection, the 2-3 minute quick paper run would start
-# near the end and keep one worker busy alone for minutes.
+# The longest test files (setup + call: seconds on 2 quiet cores with a
+# warm compilation cache). Under pytest-xdist they are handed out first: left to their
+# place in the collection, the 2-minute quick paper run would start near the end and
+# keep one worker busy alone for minutes. With a cold cache the order also decides who
+# compiles a shared program: diagnosis/test_identify.py and test_diagnose.py compile the
+# same turbofan linearisation, so they are kept apart (run at once, both workers compile
+# it; measured: 1,010 s of the workers' time against 479 s one after the other).
 LONGEST_FIRST = (
-    "test_paper_quick.py",  # 190: experiments/paper.py preset=quick
-    "diagnosis/test_identify.py",  # 160
-    "physics/test_engine.py",  # 96
-    "test_readme.py",  # 73: each README block with ukf, ls and e2e
-    "paper/test_stream_form.py",  # 68
-    "physics/test_engine_hinted.py",  # 67
-    "calibrators_peers/test_guard.py",  # 48
-    "test_diagnose.py",  # 48
-    "training/test_train_any_model.py",  # 33
-    "fleet/test_distributed.py",  # 31
+    "test_paper_quick.py",  # 131: experiments/paper.py preset=quick
+    "diagnosis/test_identify.py",  # 18 warm; cold it compiles the linearisation
+    "physics/test_engine.py",  # 67
+    "test_readme.py",  # 8: each README block with ukf, ls and e2e
+    "paper/test_stream_form.py",  # 69
+    "physics/test_engine_hinted.py",  # 50
+    "calibrators_peers/test_guard.py",  # 5
+    "test_diagnose.py",  # 29
+    "training/test_train_any_model.py",  # 63
+    "fleet/test_distributed.py",  # 14
 )
 
 

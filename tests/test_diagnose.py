@@ -129,6 +129,13 @@ def engine():
     return load("cmapss")
 
 
+@pytest.fixture(scope="module")
+def t2_record(engine):
+    """``_t2_offset_record(engine, 2.0)``, built once for the two N-CMAPSS tests (each
+    writes its own file from it and leaves it unchanged)."""
+    return _t2_offset_record(engine, 2.0)
+
+
 def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
     data = tmp_path / "train_FAKE.txt"
     _write_cmapss(data, engine, np.random.default_rng(0), t30_bias=25.0)
@@ -165,8 +172,8 @@ def test_cli_writes_report_and_finds_a_t30_offset(tmp_path, engine, capsys):
     assert "## Before / after" in (out / "report.md").read_text()
 
 
-def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engine):
-    record = _t2_offset_record(engine, 2.0)
+def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, t2_record):
+    record = t2_record
     path = tmp_path / "N-CMAPSS_fake.h5"
     write_ncmapss(path, record, record)
     out = tmp_path / "out"
@@ -178,8 +185,8 @@ def test_cli_on_an_ncmapss_file_finds_an_inlet_temperature_offset(tmp_path, engi
     assert rep["identified"][0]["size"] == pytest.approx(2.0, rel=0.1)
 
 
-def test_cli_drops_nan_rows_and_says_so(tmp_path, engine, capsys):
-    record = _t2_offset_record(engine, 2.0)
+def test_cli_drops_nan_rows_and_says_so(tmp_path, t2_record, capsys):
+    record = t2_record
     x = record.x.copy()
     x[10:17, record.x_names.index("T30")] = np.nan  # a sensor drop-out
     x[40, record.x_names.index("P50")] = np.inf

@@ -8,6 +8,8 @@ from jaxcal.diagnosis.data.synthetic import kinds
 from jaxcal.diagnosis.pipeline import diagnose
 
 
+# make test-long: every kind over three seeds; one record per family in make test:
+# tests/diagnosis/test_identify.py
 @pytest.mark.slow
 def test_identification_rate_over_seeds_and_kinds(engine, synthetic):
     first, alarms, fallbacks = [], [], []

@@ -253,6 +253,8 @@ def test_ncmapss_file_streamed_with_a_model_from_a_file(tmp_path, capsys):
     )
 
 
+# make test-long: the fleet CLI on the turbofan (the engine compiles); the same CLI in
+# make test on a model from a file: test_ncmapss_file_streamed_with_a_model_from_a_file
 @pytest.mark.slow
 def test_engine_ukf_run_recovers_theta(tmp_path):
     """A tiny engine fleet: 3 units with constant HPT efficiency loss, 2 devices."""

@@ -84,6 +84,26 @@ def fleet(tmp_path_factory):
     return folder, data, *paths
 
 
+@pytest.fixture(scope="module")
+def split_run(fleet, tmp_path_factory):
+    """``(summary, arrays, attrs)`` of the UKF over the fleet with the carriers' model
+    on one process (chunks of 2 units), run once: the per-unit checks and the
+    two-process comparison read the same run."""
+    import contextlib
+    import io
+
+    _, data, model_path, _ = fleet
+    out = tmp_path_factory.mktemp("split") / "split.h5"
+    argv = [f"model={model_path}", f"data={data}", "method=ukf", NOISE_ARG,
+            "chunk_units=2", f"out={out}"]  # fmt: skip
+    printed, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(err):
+        code = main(argv)
+    assert code == 0, err.getvalue()
+    summary = json.loads(printed.getvalue().strip().splitlines()[-1])
+    return (summary, *read_results(out))
+
+
 def _run(argv, capsys) -> tuple[dict, dict, dict]:
     assert main(argv) == 0, capsys.readouterr().err
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -113,13 +133,11 @@ def test_runs_follow_the_units_and_their_carriers(fleet):
 
 
 def test_non_carriers_hold_the_offset_at_zero_and_carriers_track_it(
-    fleet, tmp_path, capsys
+    fleet, split_run, tmp_path, capsys
 ):
     folder, data, model_path, _ = fleet
     common = [f"data={data}", "method=ukf", NOISE_ARG, "chunk_units=2"]
-    summary, got, attrs = _run(
-        [f"model={model_path}", *common, f"out={tmp_path / 'split.h5'}"], capsys
-    )
+    summary, got, attrs = split_run
     assert summary["theta_names"] == [*DECLARED, OFFSET]
     assert attrs["theta_names"] == [*DECLARED, OFFSET]
     assert summary["num_rows"] == len(UNITS) * ROWS and summary["num_units"] == 4
@@ -161,9 +179,9 @@ def test_non_carriers_hold_the_offset_at_zero_and_carriers_track_it(
     assert np.any(every["theta"][held, j] != 0.0)
 
 
-def test_two_processes_write_the_same_file(fleet, tmp_path, capsys):
+def test_two_processes_write_the_same_file(fleet, split_run, tmp_path):
     """The runs' collectives in the same order in both processes: the file equals
-    one process's."""
+    one process's (the same command line, ``split_run``)."""
     _, data, model_path, _ = fleet
     args = [
         f"model={model_path}",
@@ -172,7 +190,7 @@ def test_two_processes_write_the_same_file(fleet, tmp_path, capsys):
         NOISE_ARG,
         "chunk_units=2",
     ]
-    _, a, _ = _run([*args, f"out={tmp_path / 'one.h5'}"], capsys)
+    a = split_run[1]
     argv = ["-m", "jaxcal.fleet", *args]
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     cluster = ["--coordinator", f"127.0.0.1:{free_port()}", "--num-processes", "2"]

@@ -146,6 +146,8 @@ def test_clac_recovers_theta_on_held_out_units(linear_run):
     assert float(history[-1]["cost"]) < 0.05
 
 
+# make test-long: 40 chunks on a nonlinear two-parameter problem; the same training
+# and scoring in make test: test_clac_recovers_theta_on_held_out_units
 @pytest.mark.slow
 def test_clac_recovers_two_parameters_on_nonlinear_problem():
     problem, train, test, env = _problem(param_dim=2, interaction=0.3)
