@@ -27,6 +27,9 @@ import pytest  # noqa: E402
 # and linearisation of the session fixtures: a clear after every module made each
 # next module trace and compile them again).
 MAX_MAPPINGS = 20_000
+# ... or past this resident memory: a loaded turbofan program keeps ~0.4 GB of host
+# state (results/loop/profile.md), and two workers share the machine's memory.
+MAX_RSS_KB = 4_000_000
 
 
 def _num_mappings() -> int:
@@ -38,9 +41,20 @@ def _num_mappings() -> int:
         return 0
 
 
+def _rss_kb() -> int:
+    """This process's resident memory in kB (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/status") as status:
+            line = next(x for x in status if x.startswith("VmRSS:"))
+        return int(line.split()[1])
+    except (OSError, StopIteration, ValueError):
+        return 0
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
-    """Drop the compiled programs when a module ends with many mappings.
+    """Drop the compiled programs when a module ends with many mappings or much
+    resident memory.
 
     Every loaded XLA:CPU executable holds its own memory mappings; one pytest process
     running the whole suite otherwise accumulates them past the kernel's limit
@@ -48,7 +62,7 @@ def _release_compiled_programs():
     paper's quick run) and the next load crashes the process.
     """
     yield
-    if _num_mappings() > MAX_MAPPINGS:
+    if _num_mappings() > MAX_MAPPINGS or _rss_kb() > MAX_RSS_KB:
         jax.clear_caches()
         gc.collect()
 
