@@ -27,7 +27,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from jaxcal.models import load as load_model
-from jaxcal.plotting import unit_traces_figure
 from jaxcal.problem import Problem
 from jaxcal.runs.atomic import write_atomic_with
 from jaxcal.settings import check_output_path
@@ -232,6 +231,10 @@ class CalibrationResult:
         Returns:
             A ``matplotlib.figure.Figure`` (no pyplot state; ``fig.savefig(path)``).
         """
+        # light --help: matplotlib loads for a figure only (the train and fleet
+        # command lines import this module before their arguments are checked)
+        from jaxcal.plotting import unit_traces_figure
+
         known = self.variable_units()
         labels = [
             n if known.get(n, "-") == "-" else f"{n} [{known[n]}]"
