@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import re
+import sys
 import typing
 from collections.abc import Sequence
 from typing import Any
@@ -39,8 +40,6 @@ def parse_command_line(
     Returns:
         ``(parsed, None)`` to go on, or ``(None, exit_code)`` to stop.
     """
-    import sys
-
     args = sys.argv[1:] if argv is None else list(argv)
     if any(a in ("-h", "--help", "help") for a in args):
         print(doc or "")
@@ -144,6 +143,8 @@ class ClusterArgs:
         Raises:
             ValueError: naming the bad setting and the expected form.
         """
+        # light --help: every command line imports this module (the cluster's code
+        # loads when asked)
         from jaxcal.fleet.distributed import process_settings
 
         coordinator, num_processes, process_id = process_settings(

@@ -105,6 +105,7 @@ def parse_args(argv: list[str]) -> tuple[DiagnoseConfig, dict]:
 
 
 def _rename(cfg: DiagnoseConfig) -> dict:
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.data.table_checks import parse_rename
 
     return parse_rename(cfg.rename)
@@ -117,6 +118,7 @@ def load_data(cfg: DiagnoseConfig, model):
     turbofan readers count the rows, ``Dataset.dropped_rows``), never passed on in
     silence.
     """
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.data.readers import read_dataset
     from jaxcal.models.turbofan.data.datasets import read_ncmapss_split
 
@@ -125,6 +127,7 @@ def load_data(cfg: DiagnoseConfig, model):
     ext = os.path.splitext(cfg.data)[1].lower()
     units = list(cfg.units) or None
     if ext in (".h5", ".hdf5"):
+        # light --help: imported after the arguments are checked (jaxcal.cli.args)
         from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
         from jaxcal.models.turbofan.physics.constants import MEASURED_SENSOR_NAMES
 
@@ -165,6 +168,7 @@ def output_dir(cfg: DiagnoseConfig) -> str:
 def run(cfg: DiagnoseConfig) -> dict:
     """Diagnose ``cfg.data`` and write the report (process 0 of a cluster); returns
     the report dict."""
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     import jax
 
     from jaxcal.cache import enable_compilation_cache
@@ -231,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
     cfg, cluster = parsed
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.fleet.distributed import initialize
 
     try:  # before any JAX computation
@@ -243,10 +248,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxcal.diagnose: {err}", file=sys.stderr)
         return 2
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     import jax
 
     if jax.process_index() != 0:  # the writer's test of run(): process 0 reports
         return 0
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.diagnosis.report.markdown import effect_line
 
     units = rep["data"]["units"]

@@ -38,6 +38,7 @@ model is a copy of a model file (or a module) runs that code only with
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
@@ -108,6 +109,7 @@ def measure_latency(calibrator, w, x, repeats: int) -> dict:
     Returns:
         ``{"median_s", "min_s", "repeats"}``.
     """
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     import numpy as np
 
     calibrator.reset()
@@ -128,13 +130,13 @@ def measure_latency(calibrator, w, x, repeats: int) -> dict:
 
 def _split_units(run, split: str, data: str | None):
     """The scored units: the run's recorded split, or every unit of ``data``."""
-    import dataclasses
-
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.runs.folder import DATA_FILE, read_json
     from jaxcal.training.pipeline import read_run_data
 
     problem = run.problem
     if data is not None:
+        # light --help: imported after the arguments are checked (jaxcal.cli.args)
         from jaxcal.data.readers import read_dataset
         from jaxcal.training.data.tables import pad_units
 
@@ -168,6 +170,7 @@ def evaluate_run(
     """Scores and deployment cost of a run on one split, or on every unit of the
     file ``data``, gated by the run ``anchor`` if given (see the module docstring);
     ``trust_code``: run the runs' model code (``docs/trust.md``)."""
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     import numpy as np
 
     from jaxcal.deploy import StreamingCalibrator, load_run
@@ -218,6 +221,7 @@ def evaluate_run(
 
 def format_report(report: dict) -> str:
     """Human-readable summary of :func:`evaluate_run`."""
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.training.scoring.trajectories import describe_units
 
     dep = report["deployment"]
@@ -265,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     args, code = parse_command_line(argv, parse_args, __doc__, USAGE)
     if code is not None:
         return code
+    # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.cache import enable_compilation_cache
     from jaxcal.deploy import synchronous_dispatch
     from jaxcal.deploy.loading import needs_x64

@@ -61,11 +61,27 @@ import sys
 from typing import Any
 
 import h5py
+import jax
 import numpy as np
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.calibrators import methods
+from jaxcal.calibrators.front.carriers import nominal_values
 from jaxcal.cli.args import CLUSTER_USAGE, parse_command_line, split_cluster_args
-from jaxcal.fleet.method import OPTION_PREFIXES, canonical, method_options, parse_noise
+from jaxcal.fleet.distributed import initialize
+from jaxcal.fleet.method import (
+    OPTION_PREFIXES,
+    build_problem,
+    canonical,
+    make_method,
+    method_options,
+    parse_noise,
+    require_noise,
+)
+from jaxcal.fleet.results import FleetResultWriter
+from jaxcal.fleet.sharded import make_unit_mesh
+from jaxcal.fleet.streaming import units_per_chunk
+from jaxcal.precision import enable_x64
 from jaxcal.settings import check_output_path, config_to_dict, parse_overrides
 
 USAGE = (
@@ -151,6 +167,7 @@ def parse_args(argv: list[str]) -> tuple[FleetConfig, dict]:
     Raises:
         ValueError: naming the bad key, option or flag and the expected form.
     """
+    # the turbofan's and the method's code load after the arguments are checked
     from jaxcal.models.turbofan.fleet import is_ncmapss
 
     rest, flags = split_cluster_args(argv)
@@ -208,15 +225,9 @@ def run(cfg: FleetConfig) -> dict:
     A parameter that acts in some units only (an extended model's carriers) is
     calibrated in those units and held at its nominal value with std 0 in the
     others, as by ``jaxcal.calibrate`` (:mod:`jaxcal.fleet.per_unit`)."""
-    import jax
-
-    from jaxcal.calibrators.front.carriers import nominal_values
-    from jaxcal.fleet.method import build_problem, make_method, require_noise
+    # the turbofan's, the sources' and the runs' code load when the fleet runs
     from jaxcal.fleet.per_unit import plan_runs, stream_runs
-    from jaxcal.fleet.results import FleetResultWriter
-    from jaxcal.fleet.sharded import make_unit_mesh
     from jaxcal.fleet.sources import open_source
-    from jaxcal.fleet.streaming import units_per_chunk
     from jaxcal.models import load
     from jaxcal.models.turbofan.fleet import is_ncmapss, open_ncmapss
     from jaxcal.models.turbofan.model import FLEET_NOISE, is_turbofan
@@ -301,10 +312,12 @@ def _names(cfg: FleetConfig, model):
     """``(theta, outputs, loaded)``: the calibrated parameters and the outputs used,
     a policy's run loaded (``None`` for another method): a trained policy fixes its
     names, the defaults; otherwise the model's default parameters."""
+    # the turbofan loads only for a model that asks for it
     from jaxcal.models.turbofan.model import FLEET_THETA, is_turbofan
 
     theta, outputs, loaded = cfg.theta, cfg.outputs or cfg.sensors, None
     if methods.get(cfg.method).needs_run:  # a trained run fixes its names: its own
+        # the deploy layer loads only for a trained run
         from jaxcal.deploy import load_run
 
         loaded = load_run(cfg.run, trust_code=cfg.trust_code)
@@ -320,10 +333,6 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
     cfg, cluster = parsed
-    from jaxcal.cache import enable_compilation_cache
-    from jaxcal.fleet.distributed import initialize
-    from jaxcal.precision import enable_x64
-
     # Before any JAX computation: the cluster, then float64 (the engine's solver).
     try:
         initialize(**cluster)
@@ -337,8 +346,6 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, KeyError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    import jax
-
     if jax.process_index() == 0:
         print(json.dumps(summary))
     return 0

@@ -23,9 +23,14 @@ import os
 import sys
 import time
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.cli.args import parse_command_line
 from jaxcal.models.turbofan.data.dataset_configs import DATASETS, DatasetConfig
-from jaxcal.models.turbofan.data.generation import dataset_preset
+from jaxcal.models.turbofan.data.generation import (
+    dataset_preset,
+    generate_dataset,
+    summary_line,
+)
 from jaxcal.settings import check_output_path, parse_overrides
 
 USAGE = (
@@ -80,10 +85,6 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
     cfg, out = parsed
-
-    # Heavy imports after argument checks: a typo fails fast, without loading JAX.
-    from jaxcal.cache import enable_compilation_cache
-    from jaxcal.models.turbofan.data.generation import generate_dataset, summary_line
 
     enable_compilation_cache()  # the engine's solve compiles in ~45 s; reruns reuse it
     print(f"generating {cfg.name!r} ({cfg.kind}, engine {cfg.engine}) -> {out}")

@@ -50,7 +50,9 @@ import os
 import sys
 import time
 
+from jaxcal.cache import enable_compilation_cache
 from jaxcal.cli.args import parse_command_line
+from jaxcal.precision import enable_x64
 from jaxcal.training.config import TrainConfig, resolve_config
 from jaxcal.training.scoring.trajectories import describe_units
 
@@ -191,6 +193,7 @@ def _model_needs_x64(spec: str) -> bool:
     """Whether the run's model needs float64, asked before it is loaded where
     possible: the turbofans (an N-CMAPSS file's engine, or named) do; any other model
     is loaded and asked (a bad spec is reported by the training job)."""
+    # the registry loads only for model=
     from jaxcal.models import load
 
     if spec in ("", "cmapss", "agtf30"):
@@ -208,8 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     if code is not None:
         return code
 
-    from jaxcal.cache import enable_compilation_cache
-    from jaxcal.precision import enable_x64
+    # the training job loads after the arguments are checked
     from jaxcal.runs.folder import FINAL_FILE
     from jaxcal.training.pipeline import GenerationError, run_training
 

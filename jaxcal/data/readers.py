@@ -33,6 +33,7 @@ import os
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from jaxcal.data import FILE_READERS
 from jaxcal.data.dataset import Dataset, partial_rows
@@ -214,8 +215,6 @@ def _read_file(
     in :func:`read_dataset`)."""
     ext = os.path.splitext(path)[1].lower()
     if ext in (".csv", ".parquet", ".pq"):
-        import pandas as pd
-
         if model is None:
             raise ValueError(f"{path}: reading a table needs the model it follows")
         try:

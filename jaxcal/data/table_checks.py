@@ -14,6 +14,7 @@ import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from jaxcal.model import Model
 from jaxcal.model_spec import TABLE_COLUMNS
@@ -43,8 +44,6 @@ def read_csv_table(path: str):
     number with a decimal comma is read as those numbers (a column mixing ``2,5``
     and ``2.5`` is an error naming it). A header with both is an error saying so.
     """
-    import pandas as pd
-
     with open(path, encoding="utf-8", errors="replace") as f:
         header = f.readline()
     if ";" not in header:
@@ -64,8 +63,6 @@ def read_csv_table(path: str):
 def _number_column(values, name: str, path: str):
     """A ``;``-separated file's text column as numbers (decimal comma or point), or
     as text when it is not numbers (a ``split`` column)."""
-    import pandas as pd
-
     text = values.dropna().astype(str)
     comma = text.str.fullmatch(_DECIMAL_COMMA.pattern)
     point = text.str.fullmatch(_DECIMAL_POINT.pattern)

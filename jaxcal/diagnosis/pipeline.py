@@ -63,6 +63,7 @@ from jaxcal.diagnosis.fitting.ranking import effect_sizes
 from jaxcal.diagnosis.fitting.screen import init_from, spec_for
 from jaxcal.diagnosis.kinds.table import Candidate, build_library
 from jaxcal.diagnosis.kinds.terms import ModelSpec
+from jaxcal.diagnosis.report.extended import extended_model
 from jaxcal.diagnosis.report.plausibility import plausibility_flags
 from jaxcal.diagnosis.report.units import fleet_summary, unit_effects, unit_trajectories
 from jaxcal.diagnosis.residuals.noise import MAX_ORDER, ljung_box_p
@@ -70,6 +71,7 @@ from jaxcal.diagnosis.residuals.noise_fit import fit_noise, quantised
 from jaxcal.diagnosis.residuals.summaries import ResidualSummary, summarize_residuals
 from jaxcal.diagnosis.timing import StageClock
 from jaxcal.model import Model
+from jaxcal.models import load
 
 NOISE_ROUNDS = 2  # noise model <-> declared-only fit alternations
 LEVEL_MOVE = 1.25  # a best candidate that lowers a noise level this much: retrace
@@ -153,8 +155,6 @@ class DiagnosisResult(NamedTuple):
     @property
     def extended_model(self):
         """The model with every added effect as a parameter."""
-        from jaxcal.diagnosis.report.extended import extended_model
-
         return extended_model(self)
 
 
@@ -338,8 +338,6 @@ def _checked_request(model: Model | str, declared) -> tuple[Model, tuple[str, ..
     """The model (a ``jaxcal.models.load`` spec loaded) and the declared parameters,
     which must be distinct parameters of it."""
     if not isinstance(model, Model):
-        from jaxcal.models import load
-
         model = load(model)
     declared = tuple(declared)
     if not declared or len(set(declared)) != len(declared):

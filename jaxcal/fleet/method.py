@@ -24,10 +24,12 @@ import typing
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.calibrators import methods
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
+from jaxcal.data.buckets import bucket_units
 from jaxcal.model import Model
 from jaxcal.problem import Problem
 from jaxcal.settings import coerce
@@ -241,10 +243,6 @@ def make_method(problem: Problem, cfg, source, seed: int = 0) -> FleetMethod:
                 "set: give the data as a table (.csv, .parquet), or use "
                 "jaxcal.calibrate"
             )
-        import jax.numpy as jnp
-
-        from jaxcal.data.buckets import bucket_units
-
         buckets = bucket_units(source.sample, jnp.zeros((), float).dtype)
     calibrator = method.make(problem, cfg, buckets, seed)
     return FleetMethod(problem, calibrator, method.check(problem, cfg))

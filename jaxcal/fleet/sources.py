@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
+from jaxcal.data.readers import read_dataset
 from jaxcal.fleet.streaming import UnitChunk, iter_array_chunks
 from jaxcal.model import Model
 
@@ -118,8 +119,6 @@ def unit_positions(unit_ids: np.ndarray, units) -> np.ndarray:
 
 
 def _table(path, model, outputs, split, units, stride, max_len) -> FleetSource:
-    from jaxcal.data.readers import read_dataset
-
     data = read_dataset(path, model, nonfinite="keep").for_model(model, outputs)
     if split:
         data = data.select_split(split)

@@ -29,6 +29,7 @@ from collections.abc import Callable
 
 from jaxcal import cache, trust
 from jaxcal.model import Model
+from jaxcal.models.extended import build_extended, check_base_consent, read_extended
 from jaxcal.precision import is_x64
 
 _REGISTRY: dict[str, Callable[[], Model]] = {}
@@ -163,6 +164,7 @@ def _builtin(name: str) -> Model:
 
 def _turbofan(name: str) -> Callable[[], Model]:
     def factory() -> Model:
+        # lazy: the registry imports a model when it is loaded
         from jaxcal.models.turbofan.model import load_turbofan
 
         return load_turbofan(name)
@@ -171,12 +173,14 @@ def _turbofan(name: str) -> Callable[[], Model]:
 
 
 def _heat_exchanger() -> Model:
+    # lazy: the registry imports a model when it is loaded
     from jaxcal.models.heat_exchanger import heat_exchanger_model
 
     return heat_exchanger_model()
 
 
 def _thermal() -> Model:
+    # lazy: the registry imports a model when it is loaded
     from jaxcal.models.thermal import thermal_model
 
     return thermal_model()
@@ -205,8 +209,6 @@ def load_extended(path: str, *, trust_code: bool = False) -> Model:
         ValueError: the file is not an extended model; UntrustedCodeError (a
             ValueError) naming the file and the flag when the base needs consent.
     """
-    from jaxcal.models.extended import build_extended, check_base_consent, read_extended
-
     base, declared, added = read_extended(path)
     check_base_consent(base, path, trust_code, available())
     return build_extended(load(base, trust_code=trust_code), declared, added)

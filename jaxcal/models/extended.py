@@ -29,12 +29,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal import trust
 from jaxcal.model import Model, Parameter
 
 FORMAT = "jaxcal.extended_model/1"
@@ -170,10 +172,6 @@ def resolve_base(spec: dict, path: str) -> str:
 def check_base_consent(base: str, path: str, trust_code: bool, registered) -> None:
     """Refuse a ``.py`` or module base the user did not consent to run
     (:func:`jaxcal.trust.require_consent`); a name of ``registered`` passes."""
-    import sys
-
-    from jaxcal import trust
-
     where, sep, attr = base.rpartition(":")
     if base in registered or not sep:
         return

@@ -41,6 +41,7 @@ from jaxcal.calibrators.uncertainty.conformal import (
     band_to_json,
     fit_band,
 )
+from jaxcal.deploy.loading import load_run, needs_x64
 from jaxcal.paper.compare import evaluate_method
 from jaxcal.paper.methods import Method, make_method
 from jaxcal.runs.atomic import write_atomic
@@ -105,8 +106,6 @@ def fit_step(suite, *, window: int = DEFAULT_WINDOW) -> dict:
         "val_coverage90", "sensitivity", "threshold_median", "window",
         "fit_seconds", "gate"}``.
     """
-    from jaxcal.deploy.loading import load_run, needs_x64
-
     tic = time.perf_counter()
     val = suite.data.val
     with jax.enable_x64(needs_x64(suite.runs[FEEDBACK])):

@@ -30,6 +30,7 @@ import io
 import json
 import time
 import warnings
+from importlib.util import find_spec
 from pathlib import Path
 
 import jax
@@ -79,8 +80,6 @@ class NPEConfig:
 
 def is_available() -> bool:
     """Whether ``sbi`` and ``torch`` are installed (found, not imported: cheap)."""
-    from importlib.util import find_spec
-
     return all(find_spec(name) is not None for name in ("sbi", "torch"))
 
 
@@ -92,6 +91,7 @@ def require_sbi():
             to install the extra.
     """
     try:
+        # optional: sbi and torch (the npe extra)
         import torch
         from sbi import inference, neural_nets, utils
     except Exception as err:  # ImportError, or a broken torch build

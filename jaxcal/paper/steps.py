@@ -23,6 +23,8 @@ from pathlib import Path
 import jax
 from flax import serialization
 
+from jaxcal.models.turbofan.data.builders import build_dataset
+from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
 from jaxcal.progress import progress_bar
 from jaxcal.runs.folder import read_json, write_atomic, write_json
 from jaxcal.settings import config_to_dict
@@ -108,9 +110,6 @@ def ensure_dataset(cfg, path: str | os.PathLike, *, progress: bool = True) -> di
         ValueError: an existing file was generated with another config (the message
             names the differing fields; delete the file to regenerate it).
     """
-    from jaxcal.models.turbofan.data.builders import build_dataset
-    from jaxcal.models.turbofan.data.ncmapss_io import ncmapss_info
-
     path = Path(path)
     wanted = config_to_dict(cfg)
     if path.is_file():

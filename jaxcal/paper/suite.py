@@ -33,7 +33,8 @@ from jaxcal.calibrators.methods.e2e.network import E2EConfig, fit_e2e, init_e2e_
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.data.padded import Padded
-from jaxcal.models.turbofan.physics.engine import ENVELOPES
+from jaxcal.deploy.loading import load_run, needs_x64
+from jaxcal.models.turbofan.physics.engine import ENVELOPES, load_engine
 from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.paper.compare import (
     MethodRun,
@@ -41,6 +42,7 @@ from jaxcal.paper.compare import (
     limit_units,
     measure_latency,
 )
+from jaxcal.paper.gate_steps import gated_method
 from jaxcal.paper.methods import (
     Method,
     e2e_method,
@@ -112,8 +114,6 @@ class Suite:
     def engine(self):
         """The data set's engine (loaded on first use, in float64)."""
         if self._engine is None:
-            from jaxcal.models.turbofan.physics.engine import load_engine
-
             with jax.enable_x64(True):  # else its design constants load as float32
                 self._engine = load_engine(self.problem.model.name)
         return self._engine
@@ -210,12 +210,8 @@ class Suite:
             check = None if envelope is None else SampleCheck(*envelope.w_box())
             return e2e_method(params, name, info, check)
         if name == "CLAC-gate":  # the two policies composed (gate_steps)
-            from jaxcal.paper.gate_steps import gated_method
-
             return gated_method(self)
         if name in self.runs:
-            from jaxcal.deploy.loading import load_run, needs_x64
-
             # a policy on the engines' F loads its float64 params under x64 (the
             # process may not have trained it: a reused run)
             with jax.enable_x64(needs_x64(self.runs[name])):

@@ -41,6 +41,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import importlib.util
+import json
 import os
 import re
 import sys
@@ -52,6 +53,7 @@ from typing import NamedTuple
 from jaxcal import trust
 from jaxcal.model import Model
 from jaxcal.models import available, load
+from jaxcal.models.extended import Added, build_extended, resolve_base
 from jaxcal.runs.atomic import write_atomic
 from jaxcal.runs.folder import DATA_FILE, read_json, write_json
 from jaxcal.runs.lock import hold_run
@@ -133,10 +135,6 @@ def model_source(spec: str) -> ModelSource:
 def _extended_source(spec: str) -> ModelSource:
     """An extended model: its JSON copied (the base rewritten to the run's own
     copy of it) and the base stored by the rules of :func:`model_source`."""
-    import json
-
-    from jaxcal.models.extended import resolve_base
-
     path = Path(spec).absolute()
     try:
         ext = json.loads(path.read_text())
@@ -330,10 +328,6 @@ def _module_consent(run_dir: Path, module: str, attr: str, trust_code: bool) -> 
 
 def _load_extended(run_dir: Path, record: dict, trust_code: bool) -> Model:
     """An extension from its checked copy, over its base loaded from the run."""
-    import json
-
-    from jaxcal.models.extended import Added, build_extended
-
     path = _copy_path(run_dir, record)
     content = path.read_bytes()
     if _sha256(content) != record.get("sha256"):

@@ -31,7 +31,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from jaxcal.calibrators.front.result import CalibrationResult
+from jaxcal.calibrators.methods import get
 from jaxcal.data.dataset import Dataset
+from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
 from jaxcal.problem import Problem
 
@@ -43,8 +45,6 @@ def applies(model: Model, theta: Sequence[str] | None, method: str, options) -> 
     parameter has carriers and ``method`` calibrates a chosen set (module doc)."""
     carriers = model.diagnosis.carriers or {}
     names = model.parameter_names if theta is None else tuple(theta)
-    from jaxcal.calibrators.methods import get  # the registry imports the methods
-
     if not get(method).chooses_parameters(options):
         return False
     return any(n in carriers for n in names)
@@ -126,8 +126,6 @@ def calibrate_split(
     order (module doc), a note naming the groups among its notes and on the
     console; ``result`` is ``None`` where every unit of ``data`` (read, the
     readers' ``options`` taken out) carries every parameter of ``theta``."""
-    from jaxcal.data.readers import read_dataset
-
     reader = {k: options.pop(k) for k in READER_OPTIONS if k in options}
     data = read_dataset(data, model, **reader)
     names = model.parameter_names if theta is None else tuple(theta)

@@ -97,8 +97,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from jaxcal import cache
 from jaxcal.calibrators import methods
-from jaxcal.calibrators.front import carriers
+from jaxcal.calibrators.front import carriers, screen_memo
 from jaxcal.calibrators.front.outliers import OUTLIER_Z
 from jaxcal.calibrators.front.result import CalibrationResult
 from jaxcal.calibrators.front.rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
@@ -120,8 +121,10 @@ from jaxcal.data.buckets import bucket_units
 from jaxcal.data.dataset import clip_jitter
 from jaxcal.data.readers import read_dataset
 from jaxcal.model import Model
+from jaxcal.models import load
 from jaxcal.precision import is_x64, require_x64
 from jaxcal.problem import Problem
+from jaxcal.progress import progress_bar
 
 _READER_OPTIONS = ("rename", "ignore", "nonfinite")
 METHODS = tuple(methods.METHODS)  # the method table's names
@@ -183,9 +186,6 @@ def calibrate(
             used (with the cause: the input checks, the model's non-finite outputs, a
             noise too small for the arithmetic).
     """
-    from jaxcal import cache
-    from jaxcal.models import load
-
     methods.get(method)  # an unknown name: the registered ones listed
     cache.ensure_default()  # compile once per machine (jaxcal.cache)
 
@@ -311,8 +311,6 @@ def _progress(total: int, enabled: bool):
     :data:`PROGRESS_AFTER` seconds (a first call compiles; E2E trains; the
     turbofan's filter passes take seconds each); in a log file, a line per stage
     (:mod:`jaxcal.progress`)."""
-    from jaxcal.progress import progress_bar
-
     return progress_bar(
         total=total, desc="jaxcal.calibrate", delay=PROGRESS_AFTER, leave=False,
         disable=not enabled, file=sys.stderr,
@@ -427,14 +425,13 @@ def _screen(cfg, problem, data, buckets, noise, threshold):
     level, or a given noise with outlier flags off. The passes are the method's own
     UKF, else a default one with the method's state settings; the same rows and
     settings are screened once per process (:mod:`.screen_memo`)."""
-    from jaxcal.calibrators.front.screen_memo import screened
-
     method = methods.method_of(cfg)
     if noise is None and not method.reads_noise:
         return None
     if noise is not None and threshold == np.inf:
         return None
     cfg = method.screening(cfg)
-    return screened(  # once per data set in a process (a second method reuses it)
+    # once per data set in a process (a second method reuses it)
+    return screen_memo.screened(
         problem, data, buckets, cfg, estimate=noise is None, threshold=threshold
     )

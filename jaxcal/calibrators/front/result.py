@@ -22,9 +22,14 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 
+from jaxcal.models import load as load_model
 from jaxcal.problem import Problem
 from jaxcal.runs.atomic import write_atomic_with
+from jaxcal.settings import check_output_path
 
 META_KEY = b"jaxcal.result"  # the Parquet schema-metadata key of a saved result
 FORMAT_VERSION = 1
@@ -149,8 +154,6 @@ class CalibrationResult:
     def to_frame(self):
         """A pandas DataFrame: unit, time, theta (and ``<name>_std``), x-hat
         (``<name>_hat``), valid, reason, partial, misfit, at_bound."""
-        import pandas as pd
-
         cols = {"unit": self.unit, "time": self.time}
         for j, name in enumerate(self.theta_names):
             cols[name] = self.theta[:, j]
@@ -228,6 +231,8 @@ class CalibrationResult:
         Returns:
             A ``matplotlib.figure.Figure`` (no pyplot state; ``fig.savefig(path)``).
         """
+        # light --help: matplotlib loads for a figure only (the train and fleet
+        # command lines import this module before their arguments are checked)
         from jaxcal.plotting import unit_traces_figure
 
         known = self.variable_units()
@@ -271,11 +276,6 @@ class CalibrationResult:
         Returns:
             The path.
         """
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        from jaxcal.settings import check_output_path
-
         check_output_path(os.fspath(path), "path")  # a folder, under a file, ...
         columns = self._columns()
         names = [
@@ -329,8 +329,6 @@ class CalibrationResult:
             ValueError: no such file, not a Parquet file, not a jaxcal result, or
                 a ``model`` that is not the result's; the message names the file.
         """
-        import pyarrow.parquet as pq
-
         if not Path(path).is_file():
             what = "not a file" if Path(path).exists() else "no such file"
             raise ValueError(f"{path}: {what}")
@@ -434,8 +432,6 @@ def _read(table, columns, dtype) -> np.ndarray | None:
 
 def _problem(meta: Mapping, model, path) -> Problem:
     """The saved problem on ``model`` (checked to have the result's variables)."""
-    from jaxcal.models import load as load_model
-
     model = load_model(model)
     data = meta.get("problem")
     if data is None:

@@ -128,6 +128,7 @@ def check_options(method: str, options: dict, config_type=None) -> None:
             )
     config_ = options.get("e2e_config")
     if config_ is not None:
+        # cycle: the e2e package imports this module (through calibrators.learned)
         from jaxcal.calibrators.methods.e2e.network import E2EConfig
 
         if not isinstance(config_, E2EConfig):

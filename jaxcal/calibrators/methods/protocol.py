@@ -32,6 +32,7 @@ def _all_options(options: dict) -> bool:
 def default_screening(cfg):
     """A default UKF's settings with the method's hidden-state settings
     (``state_std``, ``state_q``) where it has them."""
+    # cycle: the ukf package (its Method) imports this module
     from jaxcal.calibrators.methods.ukf import UKF  # the registry's own UKF
 
     return UKF(

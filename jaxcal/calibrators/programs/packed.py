@@ -42,6 +42,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import xla_bridge
 
 from jaxcal.typedefs import Array
 
@@ -66,8 +67,6 @@ def synchronous_dispatch() -> None:
     if dispatch_is_synchronous():
         return
     # JAX has no public test of a started backend; without it the flag is still set
-    from jax._src import xla_bridge
-
     started = getattr(xla_bridge, "backends_are_initialized", lambda: False)()
     if started:
         raise RuntimeError(

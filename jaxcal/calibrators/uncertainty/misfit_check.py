@@ -124,6 +124,8 @@ def ar_long_run_ratio(series: np.ndarray) -> float:
     sum(phi))^2``: ``(1 + phi) / (1 - phi)`` for an AR(1). Unlike the Bartlett
     estimate (:func:`long_run_ratio`), whose bandwidth truncates a slowly decaying
     autocorrelation, it is not biased low for a persistent noise."""
+    # light --help: scipy loads when a misfit is checked (the train and fleet
+    # command lines import the front door before their arguments are checked)
     from scipy.linalg import solve_toeplitz
 
     n = len(series)

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 import jax
 import numpy as np
+from jax._src import distributed  # JAX's own savers wait on its client this way
 
 
 def evaluate_split(
@@ -116,8 +117,6 @@ _BARRIERS = itertools.count()  # the same sequence in every process
 def _wait_for_all() -> None:
     """Block until every process reaches this point (the cluster's coordination
     service, not a collective: no 30 s limit)."""
-    from jax._src import distributed  # JAX's own savers wait on its client this way
-
     client = distributed.global_state.client
     if client is not None:
         barrier = f"jaxcal.diagnosis.data.sharding.{next(_BARRIERS)}"

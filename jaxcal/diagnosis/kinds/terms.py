@@ -20,6 +20,7 @@ import dataclasses
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 from scipy.special import gammaln
 
@@ -123,8 +124,6 @@ def _channel_index(model: Model, cand: Candidate) -> int:
 def state_scale(model: Model, data: LoopData) -> np.ndarray:
     """``[Z]`` natural step of each initial-state offset: :data:`STATE_STEP` of the
     state's size at the nominal parameters and the data's mean conditions."""
-    import jax.numpy as jnp
-
     z0 = np.abs(
         np.asarray(model.init_state(jnp.asarray(data.w.mean(0)), model.nominal))
     ).reshape(-1)

@@ -41,6 +41,7 @@ import numpy as np
 from jaxcal.diagnosis.kinds.table import natural_scale
 from jaxcal.model import Model
 from jaxcal.models.extended import FORMAT, Added, build_extended
+from jaxcal.runs.atomic import write_atomic
 
 BOUND_STEPS = 50.0  # a new parameter's bounds: at least this many natural steps
 BOUND_FIT = 3.0  # ... and this many times the largest fitted size
@@ -125,8 +126,6 @@ def extension_json(res, base_spec: str) -> dict:
 
 def write_extended(out_dir: str, res, base_spec: str) -> str:
     """Write ``extended_model.json`` into ``out_dir`` (atomically); its path."""
-    from jaxcal.runs.atomic import write_atomic
-
     path = os.path.join(out_dir, "extended_model.json")
     spec = extension_json(res, base_spec)
     base_path = base_spec.rsplit(":", 1)[0] if ":" in base_spec else ""

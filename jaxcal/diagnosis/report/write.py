@@ -21,11 +21,13 @@ import os
 
 import numpy as np
 from matplotlib.figure import Figure
+from scipy import stats as sps
 
 from jaxcal.diagnosis.fitting.identify import Identification
 from jaxcal.diagnosis.pipeline import DiagnosisResult, Stage
 from jaxcal.diagnosis.report.extended import added_parameters, write_extended
 from jaxcal.diagnosis.report.markdown import render_markdown
+from jaxcal.diagnosis.report.units import units_json
 from jaxcal.diagnosis.residuals.summaries import summary_table
 from jaxcal.plotting import plot_stacked_traces, save_figure
 from jaxcal.runs.atomic import write_atomic
@@ -104,10 +106,6 @@ ONSET_RULE = (
 
 def _identified(res: DiagnosisResult, alpha: float) -> list[dict]:
     """The added effects with their fleet and per-unit verdicts."""
-    from scipy import stats as sps
-
-    from jaxcal.diagnosis.report.units import units_json
-
     z = float(sps.norm.isf(alpha / max(res.data.num_units, 1)))
     out = []
     for entry, eff in zip(res.identified, res.unit_effects, strict=True):

@@ -21,6 +21,9 @@ import functools
 from typing import NamedTuple
 
 import numpy as np
+from scipy import stats
+from statsmodels.tsa.arima_process import arma_acf
+from statsmodels.tsa.stattools import levinson_durbin
 
 MAX_ORDER = 3  # highest AR order tried
 WHITENESS_LAGS = 10  # Ljung–Box lags of the whiteness checks
@@ -157,9 +160,6 @@ def ar_rows(phi: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=256)
 def _ar_rows(phi_key: tuple) -> np.ndarray:
-    from statsmodels.tsa.arima_process import arma_acf
-    from statsmodels.tsa.stattools import levinson_durbin
-
     phi = np.asarray(phi_key, np.float64)
     p = phi.shape[0]
     if p == 0:
@@ -191,8 +191,6 @@ def ljung_box_p(e: np.ndarray, lags: int = WHITENESS_LAGS) -> np.ndarray:
     ``h`` lags it reads: statsmodels forms every lag of the column (``np.correlate``
     in full, O(N^2): 5 s a column of 158,000 rows, a third of a 1,000-unit diagnosis).
     """
-    from scipy import stats
-
     n = e.shape[0]
     lags = int(min(lags, max(n // 5, 1)))
     out = np.ones(e.shape[1])

@@ -24,6 +24,8 @@ Estimation (:func:`fit_noise`):
 from __future__ import annotations
 
 import numpy as np
+from statsmodels.tsa.arima_process import arma_acf
+from statsmodels.tsa.stattools import levinson_durbin
 
 from jaxcal.diagnosis.residuals.noise import (
     MAX_ORDER,
@@ -74,8 +76,6 @@ def pooled_acov(u: np.ndarray, starts: np.ndarray, max_lag: int) -> np.ndarray:
 def select_order(acov: np.ndarray, n: int, max_order: int) -> tuple[int, np.ndarray]:
     """AR order by BIC ``n ln v_p + p ln n`` and its coefficients (Durbin–Levinson
     on one output's autocovariances ``acov [L + 1]``)."""
-    from statsmodels.tsa.stattools import levinson_durbin
-
     if acov[0] <= 0 or max_order == 0:
         return 0, np.zeros(0)
     acf = acov[: max_order + 1] / acov[0]
@@ -151,8 +151,6 @@ def projection_bias(
     on short units absorb much of a coloured noise's low frequencies: uncorrected,
     colour and level come out low (the restricted-likelihood bias; Harville 1977).
     """
-    from statsmodels.tsa.arima_process import arma_acf
-
     n, num_s = cols.shape[0], cols.shape[1]
     pos = positions(data.starts, n)
     out = np.zeros((num_s, max_lag + 1))

@@ -49,6 +49,7 @@ import numpy as np
 from jaxcal.data.dataset import Dataset
 from jaxcal.data.padded import Padded
 from jaxcal.model import Model
+from jaxcal.models import available, load
 from jaxcal.models.turbofan.data.datasets import read_ncmapss_split
 from jaxcal.models.turbofan.data.generation import (
     dataset_preset,
@@ -287,8 +288,6 @@ def file_model(info: dict) -> Model:
     :func:`~jaxcal.models.turbofan.data.ncmapss_io.ncmapss_info`) names (its ``engine``
     attribute), else ``cmapss``; only a registered name: a data file never names code to
     run (``docs/trust.md``)."""
-    from jaxcal.models import available, load
-
     engine = _json_attr(info["attrs"], "engine")
     name = str(engine) if engine else "cmapss"
     if name not in available():

@@ -24,10 +24,12 @@ import numpy as np
 
 from jaxcal.data.table_checks import parse_rename
 from jaxcal.model import Model
+from jaxcal.models import load
 from jaxcal.settings import check_output_path
 from jaxcal.training.config import TrainConfig
 from jaxcal.training.data import MODEL_FILES
 from jaxcal.training.data.calibration import CalibrationData
+from jaxcal.training.data.tables import load_table_data
 
 
 class GenerationError(RuntimeError):
@@ -130,8 +132,6 @@ def read_run_data(
     Raises:
         ValueError: a bad ``model=`` spec, a table without ``model=``, or bad data.
     """
-    from jaxcal.models import load
-
     path = str(path or cfg.dataset.path)
     if model is None and cfg.model:
         model = load(cfg.model)
@@ -144,8 +144,6 @@ def read_run_data(
             f"data={path}: name the model its columns follow with model=<name | "
             "module:attr | path.py:attr>"
         )
-    from jaxcal.training.data.tables import load_table_data
-
     return load_table_data(
         path,
         model,

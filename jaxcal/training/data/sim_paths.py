@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import pandas as pd
 
+from jaxcal.calibrators.front.door import calibrate
 from jaxcal.data.padded import Padded
 from jaxcal.problem import Problem
 
@@ -49,8 +51,6 @@ def theta_paths(
 def _frame(problem: Problem, units: Padded):
     """``units``' valid rows as the front door's frame, and their ``(unit, time)``
     indexes."""
-    import pandas as pd
-
     model = problem.model
     u, t = np.nonzero(np.asarray(units.mask, bool))
     frame = pd.DataFrame(
@@ -68,8 +68,6 @@ def front_ukf(problem: Problem, units: Padded, noise=None):
     """The front door's UKF on ``units``
     (:func:`jaxcal.calibrators.front.door.calibrate`) and the rows' ``(unit, time)``
     indexes."""
-    from jaxcal.calibrators.front.door import calibrate
-
     frame, index = _frame(problem, units)
     result = calibrate(
         problem.model,

@@ -21,6 +21,7 @@ by the front door's screening (a UKF pass over the training units,
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import jax
@@ -376,8 +377,6 @@ class Simulations:
         of the steady state for speed (``results/policy_any_model``)."""
         if self.cfg.train == "data" or self.cfg.cost_floor != "noise":
             return cfg
-        import dataclasses
-
         spread = output_spread(self.data.train)
         floor = float(np.sqrt(np.mean((self.problem().noise_std / spread) ** 2)))
 

@@ -29,15 +29,16 @@ class E2E:
 
 
 def _range_check(problem):
-    from jaxcal.calibrators.methods.policy.calibrator import (
-        range_check,  # E2E's own imports
-    )
+    # lazy: the registry imports every method package; the implementations load
+    # when a method is built (the policy's: its envs and networks)
+    from jaxcal.calibrators.methods.policy.calibrator import range_check
 
     return range_check(problem)
 
 
 def build(problem, cfg: E2E, buckets, seed: int = 0):
     """The network (trained first without weights) run over the padded groups."""
+    # lazy: the registry imports every method package; the simulator loads when built
     from jaxcal.calibrators.methods.e2e.simulated import e2e_calibrator
 
     cal = e2e_calibrator(problem, buckets, seed, cfg)

@@ -31,6 +31,7 @@ import numpy as np
 from flax import struct
 
 from jaxcal.calibrators.interface import Calibrator, CalStepOutput, MeasureFn
+from jaxcal.calibrators.uncertainty.conformal import band_std
 from jaxcal.nets.mlp import (
     MLP,
     Normalizer,
@@ -342,8 +343,6 @@ def make_e2e_calibrator(
         )
         aux = None
         if band is not None:
-            from jaxcal.calibrators.uncertainty.conformal import band_std
-
             aux = {"theta_std": band_std(band, state.count).astype(theta.dtype)}
         return new_state, CalStepOutput(theta=theta, xhat=xhat, aux=aux)
 

@@ -43,6 +43,7 @@ def prepare(options: dict, theta, outputs):
     the defaults."""
     if not options.get("run"):
         return options, theta, outputs
+    # lazy: imported when the method is asked for (see build)
     from jaxcal.calibrators.methods.policy.trained import load_run
 
     run = options["run"] = load_run(options["run"])
@@ -52,6 +53,7 @@ def prepare(options: dict, theta, outputs):
 
 
 def _check(problem, cfg: Policy):
+    # lazy: imported when the method is asked for (see build)
     from jaxcal.calibrators.methods.policy.trained import run_check
 
     del problem

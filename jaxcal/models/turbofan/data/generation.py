@@ -60,6 +60,8 @@ def generate_dataset(
         ValueError: engine samples that do not converge
             (:func:`~jaxcal.models.turbofan.data.builders.build_dataset`).
     """
+    # light --help: the engine and the file writers load when a data set is made
+    # (python -m jaxcal.generate imports this module before its arguments are checked)
     from jaxcal.models.turbofan.data.builders import build_dataset
 
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcal.models.turbofan.physics.design import EngineDesign
+from jaxcal.models.turbofan.physics.guess import GuessTable
 from jaxcal.models.turbofan.physics.maps import CompressorShape, TurbineShape
 
 # PCNfR_dmd(TRA): quadratic through (100 %, 100 %) and (60 %, 84.93 %) from FD002, with a
@@ -122,10 +123,6 @@ def fitted_values(name: str) -> dict[str, float]:
 
 def stored_guess_table(name: str):
     """The Newton start table stored with the fit, or None."""
-    from jaxcal.models.turbofan.physics.guess import (
-        GuessTable,  # local: guess imports design only
-    )
-
     z = _fitted_file(name).get("guess_table")
     return None if z is None else GuessTable(z=jnp.asarray(z, dtype=float))
 
