@@ -49,7 +49,6 @@ class FitConfig(Tolerance):
             )
 
 
-
 class FitInfo(NamedTuple):
     """Diagnostics of :func:`fit_least_squares` (``theta`` units where relevant)."""
 
@@ -59,7 +58,6 @@ class FitInfo(NamedTuple):
     cov: Array  # [P, P] s^2 (J^T J)^-1, s^2 = 2 cost / (num_residuals - P)
     theta_std: Array  # [P] sqrt(diag(cov))
     converged: Array  # [] bool, a tolerance was met with a finite cost
-
 
 
 def fit_least_squares(
