@@ -39,6 +39,7 @@ from jaxcal.models.turbofan.physics.cycle import EFFECT_NAMES, NUM_UNKNOWNS
 from jaxcal.models.turbofan.physics.engine import Engine, load_engine
 from jaxcal.models.turbofan.physics.reference import FD002_EARLY_MEANS, FD002_EARLY_STD
 from jaxcal.precision import is_x64
+from jaxcal.problem import PROVISIONAL_NOISE_SHARE
 
 # Natural size of one unit of each engine effect, and its unit (reporting scale).
 EFFECT_SCALE = {
@@ -55,8 +56,13 @@ HEALTH_SCALE = 0.01  # health modifiers are diagnosed in steps of 1 %
 # Set by the fan-speed controller (TRA schedule): no information about the engine.
 CONTROLLER_SET = ("Nf", "NRf", "Nf_dmd", "PCNfR_dmd")
 FLEET_THETA = ("HPT_eff_mod",)  # the fleet's default declared parameter
-# the fleet's default noise without noise=: 1 % of each output's spread
-FLEET_NOISE = (0.01, "the turbofan's default: 1 % of each output's spread")
+# the fleet's default noise without noise=: the one provisional share (1 %) of each
+# output's spread (jaxcal.problem.PROVISIONAL_NOISE_SHARE)
+FLEET_NOISE = (
+    PROVISIONAL_NOISE_SHARE,
+    f"the turbofan's default: {PROVISIONAL_NOISE_SHARE * 100:g} % of each output's "
+    "spread",
+)
 
 # Outputs without a measured C-MAPSS noise level borrow the relative level of an
 # output of the same kind (temperature, pressure, speed, flow).
