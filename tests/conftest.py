@@ -77,10 +77,10 @@ def _release_compiled_programs():
 LONGEST_FIRST = (
     "test_paper_quick.py",  # 131: experiments/paper.py preset=quick
     "diagnosis/test_identify.py",  # 18 warm; cold it compiles the linearisation
-    "physics/test_engine.py",  # 67
+    "models/turbofan/physics/test_engine.py",  # 67
     "test_readme.py",  # 8: each README block with ukf, ls and e2e
     "paper/test_stream_form.py",  # 69
-    "physics/test_engine_hinted.py",  # 50
+    "models/turbofan/physics/test_engine_hinted.py",  # 50
     "calibrators_peers/test_guard.py",  # 5
     "test_diagnose.py",  # 29
     "training/test_train_any_model.py",  # 63

@@ -8,7 +8,7 @@ import numpy as np
 from jaxcal.models.turbofan.data.cmapss_text import load_cmapss_text
 from jaxcal.models.turbofan.physics.constants import SENSOR_NAMES
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[3] / "fixtures"
 CHECKED = (
     "T24",
     "T30",

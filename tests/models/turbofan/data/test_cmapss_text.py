@@ -123,7 +123,7 @@ def test_missing_and_mismatched_files(tmp_path):
 
 
 def _experiment_module():
-    script = Path(__file__).resolve().parents[2] / "experiments" / "load_cmapss.py"
+    script = Path(__file__).resolve().parents[4] / "experiments" / "load_cmapss.py"
     spec = importlib.util.spec_from_file_location("load_cmapss_experiment", script)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -13,7 +13,7 @@ from jaxcal.models.turbofan.physics import solver
 from jaxcal.models.turbofan.physics.atmosphere import isa_total_temperature
 from jaxcal.models.turbofan.physics.engine import load_engine
 
-FIXTURE = Path(__file__).parents[1] / "fixtures" / "engine_f_bits.npz"
+FIXTURE = Path(__file__).parents[3] / "fixtures" / "engine_f_bits.npz"
 
 
 @pytest.fixture(scope="module")
