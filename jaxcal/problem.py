@@ -308,8 +308,11 @@ def _noise_vector(noise, names: Sequence[str], norm: Normalisation):
     return values, "given"
 
 
-def provisional_noise(spread, of: str = "each output's spread"):
+def provisional_noise(spread):
     """``(noise_std [S], noise_source)``: the default of a missing noise,
-    :data:`PROVISIONAL_NOISE_SHARE` of ``spread`` (float64)."""
+    :data:`PROVISIONAL_NOISE_SHARE` of each output's ``spread`` (float64)."""
     share = PROVISIONAL_NOISE_SHARE * np.asarray(spread, np.float64)
-    return share, f"provisional ({PROVISIONAL_NOISE_SHARE * 100:g} % of {of})"
+    return (
+        share,
+        f"provisional ({PROVISIONAL_NOISE_SHARE * 100:g} % of each output's spread)",
+    )

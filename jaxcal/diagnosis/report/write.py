@@ -223,22 +223,10 @@ def _stacked_residuals(path, res: DiagnosisResult) -> str:
         if j >= d.num_sensors:
             ax.set_visible(False)
             continue
-        ax.plot(
-            idx,
-            res.before.fit.evaluation.resid[idx, j],
-            ".",
-            ms=1.5,
-            color="0.6",
-            label="before",
-        )
-        ax.plot(
-            idx,
-            res.after.fit.evaluation.resid[idx, j],
-            ".",
-            ms=1.5,
-            color="tab:blue",
-            label="after",
-        )
+        pairs = (("before", res.before, "0.6"), ("after", res.after, "tab:blue"))
+        for label, stage, color in pairs:
+            resid = stage.fit.evaluation.resid[idx, j]
+            ax.plot(idx, resid, ".", ms=1.5, color=color, label=label)
         for b in d.starts[1:-1]:
             ax.axvline(b, color="0.8", lw=0.5, ls=":")
         ax.set_title(f"{d.sensor_names[j]} [{d.sensor_units[j]}]", fontsize=9)
