@@ -16,6 +16,7 @@ SHIMS = {
     "jaxcal.diagnose": "jaxcal.cli.diagnose",
     "jaxcal.generate": "jaxcal.cli.generate",
     "jaxcal.bench": "jaxcal.cli.bench",
+    "jaxcal.prognose": "jaxcal.cli.prognose",
     "jaxcal.fleet.__main__": "jaxcal.cli.fleet",
     "jaxcal.validate.__main__": "jaxcal.cli.validate",
 }
@@ -52,6 +53,7 @@ LAYERS = (
         "jaxcal.fleet",
         "jaxcal.paper",
         "jaxcal.models.turbofan.fleet",
+        "jaxcal.prognosis",
     ),
     # the command lines, their shims, and the package root (the composition root:
     # the public names, imported lazily, and the run reader it hands jaxcal.runs)
@@ -291,10 +293,10 @@ CORE = (
     "jaxcal.cache", "jaxcal.trust", "jaxcal.progress", "jaxcal.plotting",
     "jaxcal.numerics", "jaxcal.runs",
     # the data container and generic readers, the calibrators, the policy's learning,
-    # a trained run, the diagnosis and the fleet
+    # a trained run, the diagnosis, the fleet and the prognosis
     "jaxcal.data", "jaxcal.calibrators", "jaxcal.nets", "jaxcal.surrogate",
     "jaxcal.envs", "jaxcal.agents", "jaxcal.training", "jaxcal.deploy",
-    "jaxcal.diagnosis", "jaxcal.fleet",
+    "jaxcal.diagnosis", "jaxcal.fleet", "jaxcal.prognosis",
 )  # fmt: skip
 ABOVE_THE_CORE = ("jaxcal.models", "jaxcal.paper", "jaxcal.cli", "jaxcal.validate")
 TURBOFAN = "jaxcal.models.turbofan"

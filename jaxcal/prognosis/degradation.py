@@ -1,0 +1,206 @@
+"""The fleet's degradation model, learned from run-to-failure units.
+
+Each calibrated health parameter of a unit follows a smooth trend in its age,
+``theta_p(t) = phi(t / t_ref) . beta_p`` with a polynomial basis ``phi`` (degree 3 by
+default), plus noise. Fitting every run-to-failure unit by weighted least squares gives
+the fleet's distribution of trends, a Gaussian prior ``beta_p ~ N(mu_p, Sigma_p)`` over
+units — the hierarchical form of the Bayesian degradation model of Gebraeel et al.
+(IIE Transactions 37, 2005), with a polynomial in place of their exponential so that
+the posterior of a unit stays closed form (:mod:`jaxcal.prognosis.predict`).
+
+The **failure boundary** of a parameter is where the units ended: the mean and spread of
+each training unit's fitted trend at its last row (its end of life). A boundary only
+decides end of life when the units end near it (its spread over the drift that leads
+to it, ``tightness``, at most :attr:`DegradationConfig.max_tightness`); a user may
+declare a boundary instead (``boundary={name: limit}``), which then always decides.
+
+The residual noise is the filtered estimate's: the calibrators' estimates are
+autocorrelated, so the std of the residual is widened by ``sqrt((1 + r1) / (1 - r1))``
+with ``r1`` its lag-one autocorrelation (the effective sample size of an AR(1) series),
+and by ``noise_scale`` (learned on held-out training units by
+:func:`jaxcal.prognosis.pipeline.learn_noise_scale` unless given).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.prognosis.trajectories import Trajectories
+
+MIN_UNITS = 3  # the fleet's spread of trends needs a few run-to-failure units
+
+
+@dataclasses.dataclass(frozen=True)
+class DegradationConfig:
+    degree: int = 3  # polynomial degree of a parameter's trend in age
+    # a learned boundary decides end of life only if the units' spread at their end is
+    # at most this share of the mean drift from start to end
+    max_tightness: float = 0.35
+    ridge: float = 1e-8  # keeps a short unit's least-squares solve well posed
+
+
+@dataclasses.dataclass(frozen=True)
+class DegradationModel:
+    """What the run-to-failure units teach (module docstring); arrays are ``[P, ...]``.
+
+    Attributes:
+        names: the parameters.
+        time_scale: ages are divided by it (the training units' median life).
+        prior_mean, prior_cov: ``[P, D]``, ``[P, D, D]`` the fleet's trend distribution.
+        noise: ``[P]`` residual std about a trend, autocorrelation-widened.
+        noise_scale: the further factor on ``noise`` (held-out calibrated).
+        boundary, boundary_std: ``[P]`` where the units end, and its spread.
+        direction: ``[P]`` +1 if the parameter rises to its boundary, -1 if it falls.
+        tightness: ``[P]`` boundary spread / drift (NaN for a declared boundary).
+        decides: ``[P]`` the boundaries that decide end of life.
+        declared: ``[P]`` the boundaries the user gave.
+        lives: ``[U]`` the training units' lives (last minus first time, plus one).
+    """
+
+    names: tuple[str, ...]
+    time_scale: float
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    noise: np.ndarray
+    noise_scale: float
+    boundary: np.ndarray
+    boundary_std: np.ndarray
+    direction: np.ndarray
+    tightness: np.ndarray
+    decides: np.ndarray
+    declared: np.ndarray
+    lives: np.ndarray
+
+    @property
+    def degree(self) -> int:
+        return self.prior_mean.shape[1] - 1
+
+    def to_json(self) -> dict:
+        return {
+            "parameters": list(self.names),
+            "trend": f"polynomial of degree {self.degree} in age / {self.time_scale:g}",
+            "noise": dict(zip(self.names, self.noise.tolist(), strict=True)),
+            "noise_scale": self.noise_scale,
+            "boundary": {
+                n: {
+                    "value": float(b), "std": float(s), "direction": int(d),
+                    "tightness": None if not np.isfinite(t) else float(t),
+                    "decides": bool(c), "declared": bool(k),
+                }  # fmt: skip
+                for n, b, s, d, t, c, k in zip(
+                    self.names, self.boundary, self.boundary_std, self.direction,
+                    self.tightness, self.decides, self.declared, strict=True,
+                )  # fmt: skip
+            },
+            "training_units": int(self.lives.size),
+            "training_life": {
+                "mean": float(self.lives.mean()),
+                "min": float(self.lives.min()),
+                "max": float(self.lives.max()),
+            },
+        }
+
+
+def basis(s, degree: int):
+    """``[..., D]`` the polynomial basis ``(1, s, s^2, ...)`` at scaled ages ``s``."""
+    return s[..., None] ** jnp.arange(degree + 1)
+
+
+@functools.partial(jax.jit, static_argnames="degree")
+def _fit_all(s, y, mask, degree: int, ridge: float):
+    """``beta [U, P, D]``, residuals ``[U, T, P]`` of every unit's trend (vmapped)."""
+
+    def one(s_u, y_u, m_u):  # s_u, m_u [T]; y_u [T]
+        a = basis(s_u, degree) * m_u[:, None]
+        gram = a.T @ a + ridge * jnp.eye(degree + 1)
+        beta = jnp.linalg.solve(gram, a.T @ (y_u * m_u))
+        return beta, (y_u - basis(s_u, degree) @ beta) * m_u
+
+    per_param = jax.vmap(one, in_axes=(None, 1, None), out_axes=(0, 1))
+    return jax.vmap(per_param)(s, y, mask)
+
+
+def fit(
+    train: Trajectories,
+    config: DegradationConfig = DegradationConfig(),
+    boundary: Mapping[str, float] | None = None,
+    noise_scale: float = 1.0,
+) -> DegradationModel:
+    """The :class:`DegradationModel` of run-to-failure trajectories ``train``.
+
+    Each unit's last used row is its end of life. ``boundary``: parameter -> declared
+    limit (its end of life, whatever the units did). Raises ``ValueError`` for fewer
+    than :data:`MIN_UNITS` units, a declared boundary naming no parameter, or no
+    boundary that decides (naming each one's tightness).
+    """
+    boundary = dict(boundary or {})
+    unknown = sorted(set(boundary) - set(train.names))
+    if unknown:
+        raise ValueError(
+            f"boundary names {unknown}: not calibrated parameters {list(train.names)}"
+        )
+    num_units = train.unit.size
+    if num_units < MIN_UNITS:
+        raise ValueError(
+            f"train: {num_units} run-to-failure unit(s); the fleet's degradation needs "
+            f"at least {MIN_UNITS}"
+        )
+    lives = train.now - train.start + 1.0
+    time_scale = float(np.median(lives))
+    s = train.time / time_scale
+    mask = train.mask.astype(np.float64)
+    beta, res = _fit_all(s, train.theta, mask, config.degree, config.ridge)
+    beta, res = np.asarray(beta), np.asarray(res)
+    dof = mask.sum() - num_units * (config.degree + 1)
+    sigma = np.sqrt((res**2).sum(axis=(0, 1)) / max(dof, 1.0))
+    lag = (res[:, 1:] * res[:, :-1]).sum(axis=(0, 1)) / np.maximum(
+        (res**2).sum(axis=(0, 1)), 1e-300
+    )
+    rho = np.clip(lag, 0.0, 0.95)
+    noise = np.maximum(sigma * np.sqrt((1 + rho) / (1 - rho)), 1e-12)
+
+    phi_end = np.asarray(basis(train.now / time_scale, config.degree))  # [U, D]
+    phi_start = np.asarray(basis(train.start / time_scale, config.degree))
+    end = np.einsum("ud,upd->up", phi_end, beta)
+    start = np.einsum("ud,upd->up", phi_start, beta)
+    drift = end.mean(0) - start.mean(0)
+    learned = end.mean(0)
+    spread = end.std(0, ddof=1)
+    tightness = spread / np.maximum(np.abs(drift), 1e-300)
+    declared = np.array([n in boundary for n in train.names])
+    value = np.array([boundary.get(n, b) for n, b in zip(train.names, learned, strict=True)])
+    direction = np.sign(np.where(declared, value - start.mean(0), drift))
+    direction = np.where(direction == 0, 1.0, direction)
+    decides = declared | (tightness <= config.max_tightness)
+    if not decides.any():
+        detail = ", ".join(
+            f"{n} {t:.2f}" for n, t in zip(train.names, tightness, strict=True)
+        )
+        raise ValueError(
+            "no parameter's end of life is consistent across the training units "
+            f"(tightness, the spread at the end over the drift to it: {detail}; at most "
+            f"{config.max_tightness} decides): declare a limit with boundary=name:value"
+        )
+    cov = np.stack([np.cov(beta[:, p].T) for p in range(len(train.names))])
+    cov = cov + 1e-12 * np.eye(config.degree + 1)  # a singular spread stays invertible
+    return DegradationModel(
+        names=train.names,
+        time_scale=time_scale,
+        prior_mean=beta.mean(0),
+        prior_cov=cov,
+        noise=noise,
+        noise_scale=float(noise_scale),
+        boundary=value,
+        boundary_std=np.where(declared, 0.0, spread),
+        direction=direction,
+        tightness=np.where(declared, np.nan, tightness),
+        decides=decides,
+        declared=declared,
+        lives=lives,
+    )
