@@ -1,0 +1,219 @@
+"""``prognose``: calibrate a fleet, learn how its units degrade, predict each test unit's RUL.
+
+The steps, each timed in :attr:`Prognosis.timings`:
+
+1. **calibrate** the run-to-failure units (``train``) and the units in service
+   (``test``) with any method of :func:`jaxcal.calibrate` (the UKF by default). The
+   test units use the noise the training calibration settled on (given or estimated),
+   so that both fleets' trajectories are filtered alike.
+2. **learn** the fleet's degradation (:mod:`jaxcal.prognosis.degradation`): the trend
+   prior and the failure boundaries from the training units' ends.
+3. **check the intervals on held-out training units**: each fold's units are cut at
+   random ages (a unit seen before its end, as a test unit is), predicted by the model
+   learned on the other folds, and scored against their known end; the noise scale
+   is the smallest of :data:`NOISE_SCALES` whose held-out coverage reaches the nominal
+   one (the sharpest honest interval), unless ``noise_scale`` is given.
+4. **predict** (:mod:`jaxcal.prognosis.predict`).
+
+:func:`prognose_trajectories` runs steps 2-4 on trajectories from anywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+
+import jax
+import numpy as np
+
+from jaxcal.calibrators.front.door import calibrate
+from jaxcal.models import load
+from jaxcal.prognosis import degradation
+from jaxcal.prognosis.predict import RulPrediction, predict
+from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
+
+NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.0)
+CHECK_SAMPLES = 300  # RUL samples per held-out unit (the check needs coverage, not tails)
+CHECK_CUTS = 2  # random ages per held-out training unit
+# a held-out unit is cut so that this share of its life, at least, is still to come or
+# already seen: a cut at the very start or the very end checks nothing
+CUT_RANGE = (0.05, 0.8)
+
+
+@dataclasses.dataclass(frozen=True)
+class PrognosisConfig:
+    method: str = "ukf"  # the calibration method (any of jaxcal.calibrate's)
+    coverage: float = 0.9  # nominal coverage of the RUL interval
+    samples: int = 1000  # RUL samples per test unit
+    degree: int = 3  # the trend's polynomial degree in age
+    max_tightness: float = 0.35  # see degradation.DegradationConfig
+    noise_scale: float | None = None  # None: learned on held-out training units
+    folds: int = 5  # held-out folds of the training units
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Prognosis:
+    """What :func:`prognose` found (module docstring)."""
+
+    prediction: RulPrediction
+    model: degradation.DegradationModel
+    train: Trajectories
+    test: Trajectories
+    noise_check: dict
+    timings: dict
+    notes: tuple[str, ...]
+
+
+def _check_noise(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
+    """Held-out coverage and RMSE of each noise scale (step 3 of the module docstring)."""
+    rng = np.random.default_rng(cfg.seed)
+    num = train.unit.size
+    folds = np.array_split(rng.permutation(num), min(cfg.folds, num))
+    rows = train.mask.sum(1)
+    coverage, rmse = np.zeros(len(NOISE_SCALES)), np.zeros(len(NOISE_SCALES))
+    hits = {s: [] for s in NOISE_SCALES}
+    for fold_index, fold in enumerate(folds):
+        held = np.zeros(num, bool)
+        held[fold] = True
+        learned = degradation.fit(
+            train.units(~held), _deg_config(cfg), boundary=boundary
+        )
+        cut_units = np.repeat(np.flatnonzero(held), CHECK_CUTS)
+        share = rng.uniform(*CUT_RANGE, size=cut_units.size)
+        keep = np.maximum(np.round(rows[cut_units] * (1 - share)), MIN_ROWS).astype(int)
+        base = train.units(np.zeros(num, bool))  # an empty fleet of the same layout
+        cut = dataclasses.replace(
+            base,
+            unit=train.unit[cut_units],
+            time=train.time[cut_units],
+            theta=train.theta[cut_units],
+            std=train.std[cut_units],
+            mask=train.mask[cut_units],
+        ).truncated(keep)
+        truth = train.now[cut_units] - cut.now
+        for scale in NOISE_SCALES:
+            pred = predict(
+                dataclasses.replace(learned, noise_scale=scale),
+                cut,
+                jax.random.PRNGKey(cfg.seed + fold_index),
+                num_samples=CHECK_SAMPLES,
+                coverage=cfg.coverage,
+            )
+            hits[scale].append(
+                np.stack(
+                    [(truth >= pred.rul_low) & (truth <= pred.rul_high),
+                     (pred.rul - truth) ** 2]
+                )
+            )  # fmt: skip
+    for i, scale in enumerate(NOISE_SCALES):
+        both = np.concatenate(hits[scale], axis=1)
+        coverage[i], rmse[i] = both[0].mean(), np.sqrt(both[1].mean())
+    reached = np.flatnonzero(coverage >= cfg.coverage)
+    chosen = NOISE_SCALES[reached[0]] if reached.size else NOISE_SCALES[-1]
+    return {
+        "scales": list(NOISE_SCALES),
+        "coverage": coverage.tolist(),
+        "rmse": rmse.tolist(),
+        "chosen": chosen,
+        "cases": int(sum(len(f) for f in folds) * CHECK_CUTS),
+    }
+
+
+def _deg_config(cfg: PrognosisConfig) -> degradation.DegradationConfig:
+    return degradation.DegradationConfig(
+        degree=cfg.degree, max_tightness=cfg.max_tightness
+    )
+
+
+def prognose_trajectories(
+    train: Trajectories,
+    test: Trajectories,
+    boundary: Mapping[str, float] | None = None,
+    config: PrognosisConfig = PrognosisConfig(),
+    *,
+    timings: dict | None = None,
+    notes: Sequence[str] = (),
+) -> Prognosis:
+    """Steps 2-4 of the module docstring on calibrated trajectories."""
+    if tuple(test.names) != tuple(train.names):
+        raise ValueError(
+            f"test trajectories of {list(test.names)}, training ones of "
+            f"{list(train.names)}: expected the same parameters"
+        )
+    timings = dict(timings or {})
+    start = time.perf_counter()
+    if config.noise_scale is None:
+        check = _check_noise(train, config, boundary)
+        scale = check["chosen"]
+    else:
+        check, scale = {"chosen": float(config.noise_scale)}, float(config.noise_scale)
+    timings["check"] = time.perf_counter() - start
+    start = time.perf_counter()
+    model = degradation.fit(train, _deg_config(config), boundary, noise_scale=scale)
+    timings["learn"] = time.perf_counter() - start
+    start = time.perf_counter()
+    pred = predict(
+        model, test, jax.random.PRNGKey(config.seed),
+        num_samples=config.samples, coverage=config.coverage,
+    )  # fmt: skip
+    timings["predict"] = time.perf_counter() - start
+    notes = list(notes)
+    censored = int((pred.censored > 0.5).sum())
+    if censored:
+        notes.append(
+            f"{censored} unit(s) cross no boundary within the horizon in most samples: "
+            "their RUL is the horizon, a lower bound"
+        )
+    return Prognosis(pred, model, train, test, check, timings, tuple(notes))
+
+
+def prognose(
+    model,
+    train,
+    test,
+    theta: Sequence[str] | None = None,
+    noise=None,
+    boundary: Mapping[str, float] | None = None,
+    config: PrognosisConfig = PrognosisConfig(),
+    *,
+    outputs: Sequence[str] | None = None,
+    progress: bool = True,
+) -> Prognosis:
+    """Calibrate ``train`` (run to failure) and ``test`` (in service), then predict.
+
+    Args:
+        model: a :class:`~jaxcal.model.Model` or a ``jaxcal.models.load`` spec.
+        train, test: paths or :class:`~jaxcal.data.dataset.Dataset` s; every training
+            unit's last row is its end of life.
+        theta: the calibrated health parameters (default: all the model's).
+        noise: as :func:`jaxcal.calibrate`'s (default: estimated on ``train``).
+        boundary: parameter -> declared failure limit (default: learned).
+        config: :class:`PrognosisConfig`.
+        outputs: the outputs to calibrate on (default: every one in the data).
+        progress: progress lines on stderr.
+    """
+    model = load(model)
+    timings, notes = {}, []
+    start = time.perf_counter()
+    cal = calibrate(
+        model, train, config.method, theta, noise, outputs=outputs,
+        seed=config.seed, progress=progress,
+    )  # fmt: skip
+    timings["calibrate_train"] = time.perf_counter() - start
+    start = time.perf_counter()
+    cal_test = calibrate(
+        model, test, config.method, cal.theta_names, cal.noise,
+        outputs=cal.output_names, seed=config.seed, progress=progress,
+    )  # fmt: skip
+    timings["calibrate_test"] = time.perf_counter() - start
+    notes += [f"train: {n}" for n in cal.notes] + [f"test: {n}" for n in cal_test.notes]
+    return prognose_trajectories(
+        from_result(cal, label="train"),
+        from_result(cal_test, label="test"),
+        boundary,
+        config,
+        timings=timings,
+        notes=notes,
+    )
