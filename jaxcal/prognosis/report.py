@@ -118,10 +118,12 @@ def plot_unit(fig: Figure, path: str, result, u: int, truth=None) -> str:
     end = now + float(p.rul_high[u])
     if truth is not None:
         end = max(end, now + float(truth))
+    # the test trajectories may list the units in another order than the prediction
+    row = [unit_label(x) for x in test.unit].index(unit_label(p.unit[u]))
     t_band = p.trend_time[u]
     right = min(float(t_band[-1]), end + 0.15 * (end - float(t_band[0])))
     shown = t_band <= right
-    mask = test.mask[u]
+    mask = test.mask[row]
     for ax, name in zip(axes.ravel(), decide, strict=True):
         k, j, b = (
             _index(p.names, name),
@@ -140,8 +142,8 @@ def plot_unit(fig: Figure, path: str, result, u: int, truth=None) -> str:
         )
         ax.plot(t_band[shown], mid[shown], color="C0", lw=1.2, label="trend median")
         ax.plot(
-            test.time[u, mask],
-            test.theta[u, mask, j],
+            test.time[row, mask],
+            test.theta[row, mask, j],
             ".",
             ms=3,
             color="k",
@@ -218,7 +220,9 @@ def plot_fleet(path: str, prediction, truth=None) -> str:
     return save_figure(fig, path)
 
 
-def write_prognosis(out, result, *, truth=None, source=None, config=None) -> dict:
+def write_prognosis(
+    out, result, *, truth=None, source=None, config=None, progress: bool = True
+) -> dict:
     """Write ``rul.csv``, ``report.json``, ``report.md`` and the figures into ``out``.
 
     Args:
@@ -227,6 +231,7 @@ def write_prognosis(out, result, *, truth=None, source=None, config=None) -> dic
         truth: ``[U]`` true RULs in the test units' order, or None.
         source: what the data came from (``{"train": path, "test": path, ...}``).
         config: the run's settings (a dataclass or a dict), stored as given.
+        progress: a progress line on stderr while the unit figures are drawn.
 
     Returns:
         The report dict (as in ``report.json``, with ``figures`` and ``out``).
@@ -244,7 +249,9 @@ def write_prognosis(out, result, *, truth=None, source=None, config=None) -> dic
         layout="constrained",
     )
     units = {}
-    bar = progress_bar(range(len(p.unit)), desc="prognosis plots", leave=False)
+    bar = progress_bar(
+        range(len(p.unit)), desc="prognosis plots", leave=False, disable=not progress
+    )
     for u in bar:
         name = f"unit_{unit_label(p.unit[u])}.png"
         t_u = None if truth is None else truth[u]
