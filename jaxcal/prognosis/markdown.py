@@ -55,7 +55,7 @@ def _unit_table(rep: dict) -> list[str]:
             f"{r['driver']} ({_f(r['driver_share'], '.0%')})",
             _f(r["censored"], ".0%"),
         ]
-        if i == TABLE_FIRST and picked != list(range(len(rows))):
+        if i > TABLE_FIRST and i - 1 not in picked:  # a gap before the worst
             lines.append("| … |" + " |" * (len(cells) - 1))
         lines.append("| " + " | ".join(cells) + " |")
     return lines
@@ -76,8 +76,8 @@ def render_markdown(rep: dict) -> str:
         f"{rep['samples']} sampled first crossings of a deciding boundary "
         f"({', '.join(decide)}), with the central {rep['coverage']:.0%} interval.",
         "",
-        f"Sources: `{json.dumps(rep['sources'])}`. Predictions: [rul.csv](rul.csv); "
-        "everything: [report.json](report.json).",
+        (f"Sources: `{json.dumps(rep['sources'])}`. " if rep["sources"] else "")
+        + "Predictions: [rul.csv](rul.csv); everything: [report.json](report.json).",
         "",
         "## Failure boundaries",
         "",
