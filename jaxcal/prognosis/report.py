@@ -36,6 +36,7 @@ from jaxcal.runs.atomic import write_atomic
 from jaxcal.settings import config_to_dict
 
 CSV_COLUMNS = ("unit", "rul", "rul_low", "rul_high")
+FLEET_TOP = 1.4  # the fleet figure's axes end at this many times the largest RUL
 
 
 def unit_label(unit) -> str:
@@ -205,8 +206,9 @@ def plot_fleet(path: str, prediction, truth=None) -> str:
                 alpha=0.8,
                 label=label,
             )
-        top = float(max(truth.max(), p.rul_high.max()))
+        top = FLEET_TOP * float(max(truth.max(), p.rul.max()))
         ax.plot([0, top], [0, top], color="0.4", lw=1, ls="--")
+        ax.set_xlim(0, top)
         ax.set_xlabel("true RUL (cycles)")
         ax.legend(fontsize=8)
     else:
@@ -220,6 +222,12 @@ def plot_fleet(path: str, prediction, truth=None) -> str:
             elinewidth=0.7,
         )
         ax.set_xlabel("test units, sorted by predicted RUL")
+        top = FLEET_TOP * float(p.rul.max())
+    # a censored interval reaches the horizon: the axis stops short of it (said)
+    clipped = int((p.rul_high > top).sum())
+    ax.set_ylim(0, top)
+    if clipped:
+        ax.set_title(f"{clipped} interval(s) reach above the plot", fontsize=9)
     ax.set_ylabel(f"predicted RUL, {p.coverage:.0%} interval (cycles)")
     return save_figure(fig, path)
 
