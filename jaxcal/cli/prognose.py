@@ -59,7 +59,8 @@ class PrognoseConfig:
     boundary: tuple[str, ...] = ()  # declared failure limits, name:value
     coverage: float = 0.9  # nominal coverage of the RUL interval
     samples: int = 1000  # RUL samples per unit
-    degree: int = 3  # polynomial degree of a parameter's trend in age
+    # polynomial degree of a parameter's trend in age (None: chosen on held-out units)
+    degree: int | None = None
     max_tightness: float = 0.35  # a learned boundary decides at most this tightness
     noise_scale: float | None = None  # None: learned on held-out training units
     folds: int = 5  # held-out folds of the noise-scale check
@@ -123,7 +124,7 @@ def parse_args(argv: list[str]) -> PrognoseConfig:
     if not 0.0 < cfg.coverage < 1.0:
         raise ValueError(f"coverage={cfg.coverage}: expected a share in (0, 1)")
     for field, low in (("samples", 10), ("degree", 1), ("folds", 2)):
-        if getattr(cfg, field) < low:
+        if getattr(cfg, field) is not None and getattr(cfg, field) < low:
             raise ValueError(f"{field}={getattr(cfg, field)}: expected at least {low}")
     if cfg.max_tightness <= 0:
         raise ValueError(f"max_tightness={cfg.max_tightness}: expected > 0")

@@ -21,6 +21,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 from jaxcal.prognosis.degradation import DegradationModel, basis
 from jaxcal.prognosis.trajectories import Trajectories
@@ -43,7 +44,8 @@ class RulPrediction:
         censored: the share of samples with no crossing within the horizon.
         coverage: the interval's nominal coverage.
         trend_time: ``[U, G]`` ages of the trend bands.
-        trend: ``[U, P, 3, G]`` the posterior trend's low / median / high quantiles.
+        trend: ``[U, P, 3, G]`` the posterior trend's low / median / high quantiles
+            (the trend's own uncertainty, without the noise about it).
         samples: ``[U, K]`` RUL samples (for scoring and plots).
         names: the parameters.
     """
@@ -106,9 +108,14 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, ban
         censored = ~jnp.any(any_cross & decides[None, :], axis=1)
         if not bands:  # the held-out check needs no trend bands
             return rul, driver, censored
+        # the posterior trend at an age is Gaussian (phi . m, phi^T Lambda^-1 phi): its
+        # quantiles are exact, no samples needed
         plot = start + (now + horizon - start) * jnp.linspace(0.0, 1.0, PLOT_GRID)
-        band = jnp.einsum("gd,kpd->kpg", basis(plot, degree), beta)
-        band = jnp.moveaxis(jnp.quantile(band, quant, axis=0), 0, 1)  # [P, 3, G]
+        phi = basis(plot, degree)  # [G, D]
+        half = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, phi.T, lower=True))
+        sd = jnp.sqrt(jnp.sum(half(lam_chol) ** 2, axis=1))  # [P, G]
+        centre = mean @ phi.T  # [P, G]
+        band = centre[:, None, :] + quant[None, :, None] * sd[:, None, :]  # [P, 3, G]
         return rul, driver, censored, plot, band
 
     keys = jax.random.split(key, arrays[0].shape[0])
@@ -138,7 +145,7 @@ def predict(
     prior = (
         model.prior_mean, model.prior_cov, model.noise * model.noise_scale,
         model.boundary, model.boundary_std, model.direction, model.decides,
-        np.array([tail, 0.5, 1.0 - tail]),
+        scipy.stats.norm.ppf([tail, 0.5, 1.0 - tail]),
     )  # fmt: skip
     arrays = (
         traj.time / scale, traj.theta, traj.mask.astype(np.float64),
