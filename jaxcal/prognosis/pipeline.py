@@ -103,24 +103,28 @@ def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
     cases = 0
     for fold, (kept, cut, truth) in enumerate(_held_out_cases(train, cfg)):
         cases += truth.size
+        # every scale in one call: the cut units repeated once per scale
+        each = np.tile(np.arange(truth.size), len(scales))
+        batch = dataclasses.replace(
+            cut, unit=cut.unit[each], time=cut.time[each], theta=cut.theta[each],
+            std=cut.std[each], mask=cut.mask[each],
+        )  # fmt: skip
+        per_unit = np.repeat(np.asarray(scales, float), truth.size)
         for i, degree in enumerate(degrees):
-            learned = degradation.fit(
-                kept, _deg_config(cfg, degree), boundary=boundary
-            )
-            for j, scale in enumerate(scales):
-                pred = predict(
-                    dataclasses.replace(learned, noise_scale=scale),
-                    cut,
-                    jax.random.PRNGKey(cfg.seed + fold),
-                    num_samples=CHECK_SAMPLES,
-                    coverage=cfg.coverage,
-                    bands=False,
-                )
-                inside = (truth >= pred.rul_low) & (truth <= pred.rul_high)
+            learned = degradation.fit(kept, _deg_config(cfg, degree), boundary=boundary)
+            pred = predict(
+                learned, batch, jax.random.PRNGKey(cfg.seed + fold),
+                num_samples=CHECK_SAMPLES, coverage=cfg.coverage, bands=False,
+                noise_scale=per_unit,
+            )  # fmt: skip
+            truths = truth[each]
+            inside = (truths >= pred.rul_low) & (truths <= pred.rul_high)
+            for j in range(len(scales)):
+                part = slice(j * truth.size, (j + 1) * truth.size)
                 hits[i, j] += (
-                    inside.sum(),
-                    ((pred.rul - truth) ** 2).sum(),
-                    crps(pred.samples, truth).sum(),
+                    inside[part].sum(),
+                    ((pred.rul[part] - truth) ** 2).sum(),
+                    crps(pred.samples[part], truth).sum(),
                 )
     coverage, rmse = hits[..., 0] / cases, np.sqrt(hits[..., 1] / cases)
     mean_crps = hits[..., 2] / cases

@@ -72,7 +72,7 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, ban
     prec = jnp.linalg.inv(cov)  # [P, D, D]
 
     def one_unit(args):
-        key, s, y, mask, now, start = args  # s, mask [T]; y [T, P]; scalars
+        key, s, y, mask, now, start, scale = args  # s, mask [T]; y [T, P]; scalars
         a = basis(s, degree) * mask[:, None]  # [T, D]
 
         def posterior(y_p, mu_p, prec_p, noise_p):
@@ -82,7 +82,9 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, ban
             mean = jax.scipy.linalg.cho_solve((lam_chol, True), rhs)
             return mean, lam_chol
 
-        mean, lam_chol = jax.vmap(posterior, in_axes=(1, 0, 0, 0))(y, mu, prec, noise)
+        mean, lam_chol = jax.vmap(posterior, in_axes=(1, 0, 0, 0))(
+            y, mu, prec, noise * scale
+        )
         k_beta, k_bound = jax.random.split(key)
         z = jax.random.normal(k_beta, (num_samples,) + mean.shape)  # [K, P, D]
         # beta = mean + L^-T z has covariance Lambda^-1 (L the Cholesky factor)
@@ -130,9 +132,12 @@ def predict(
     num_samples: int = 1000,
     coverage: float = 0.9,
     bands: bool = True,
+    noise_scale=None,
 ) -> RulPrediction:
     """The :class:`RulPrediction` of every unit of ``traj`` under ``model``
-    (``bands=False``: no trend bands, ``trend_time`` and ``trend`` are empty)."""
+    (``bands=False``: no trend bands, ``trend_time`` and ``trend`` are empty;
+    ``noise_scale [U]``: each unit's noise scale, in place of the model's — the
+    held-out check predicts every scale in one call)."""
     if tuple(traj.names) != tuple(model.names):
         raise ValueError(
             f"trajectories of {list(traj.names)}, but the degradation model was learned "
@@ -143,13 +148,17 @@ def predict(
     scale = model.time_scale
     tail = (1.0 - coverage) / 2.0
     prior = (
-        model.prior_mean, model.prior_cov, model.noise * model.noise_scale,
+        model.prior_mean, model.prior_cov, model.noise,
         model.boundary, model.boundary_std, model.direction, model.decides,
         scipy.stats.norm.ppf([tail, 0.5, 1.0 - tail]),
     )  # fmt: skip
     arrays = (
         traj.time / scale, traj.theta, traj.mask.astype(np.float64),
         traj.now / scale, traj.start / scale,
+        np.broadcast_to(
+            model.noise_scale if noise_scale is None else np.asarray(noise_scale, float),
+            traj.unit.shape,
+        ),
     )  # fmt: skip
     horizon = HORIZON_LIVES * float(model.lives.max()) / scale
     out = jax.device_get(
