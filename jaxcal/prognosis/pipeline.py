@@ -10,9 +10,10 @@ The steps, each timed in :attr:`Prognosis.timings`:
    prior and the failure boundaries from the training units' ends.
 3. **check the intervals on held-out training units**: each fold's units are cut at
    random ages (a unit seen before its end, as a test unit is), predicted by the model
-   learned on the other folds, and scored against their known end; the noise scale
-   is the smallest of :data:`NOISE_SCALES` whose held-out coverage reaches the nominal
-   one (the sharpest honest interval), unless ``noise_scale`` is given.
+   learned on the other folds, and scored against their known end; the trend degree
+   (:data:`DEGREES`) and noise scale (:data:`NOISE_SCALES`) are those of the lowest
+   held-out CRPS, a proper score of the whole predicted distribution (calibrated and
+   sharp at once), unless given.
 4. **predict** (:mod:`jaxcal.prognosis.predict`).
 
 :func:`prognose_trajectories` runs steps 2-4 on trajectories from anywhere.
@@ -31,9 +32,11 @@ from jaxcal.calibrators.front.door import calibrate
 from jaxcal.models import load
 from jaxcal.prognosis import degradation
 from jaxcal.prognosis.predict import RulPrediction, predict
+from jaxcal.prognosis.score import crps
 from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
 
-NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.0)
+NOISE_SCALES = (1.0, 1.5, 2.0, 3.0)
+DEGREES = (1, 2, 3)  # trend degrees the held-out check chooses from
 CHECK_SAMPLES = 300  # RUL samples per held-out unit (the check needs coverage, not tails)
 CHECK_CUTS = 2  # random ages per held-out training unit
 # a held-out unit is cut so that this share of its life, at least, is still to come or
@@ -46,9 +49,11 @@ class PrognosisConfig:
     method: str = "ukf"  # the calibration method (any of jaxcal.calibrate's)
     coverage: float = 0.9  # nominal coverage of the RUL interval
     samples: int = 1000  # RUL samples per test unit
-    degree: int = 3  # the trend's polynomial degree in age
+    # the trend's polynomial degree in age and the noise scale; None: chosen on
+    # held-out training units (module docstring)
+    degree: int | None = None
+    noise_scale: float | None = None
     max_tightness: float = 0.35  # see degradation.DegradationConfig
-    noise_scale: float | None = None  # None: learned on held-out training units
     folds: int = 5  # held-out folds of the training units
     seed: int = 0
 
@@ -66,65 +71,74 @@ class Prognosis:
     notes: tuple[str, ...]
 
 
-def _check_noise(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
-    """Held-out coverage and RMSE of each noise scale (step 3 of the module docstring)."""
+def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
+    """Per fold: the training units kept, and the held-out units cut at random ages
+    with their true RULs (step 3 of the module docstring)."""
     rng = np.random.default_rng(cfg.seed)
     num = train.unit.size
-    folds = np.array_split(rng.permutation(num), min(cfg.folds, num))
     rows = train.mask.sum(1)
-    coverage, rmse = np.zeros(len(NOISE_SCALES)), np.zeros(len(NOISE_SCALES))
-    hits = {s: [] for s in NOISE_SCALES}
-    for fold_index, fold in enumerate(folds):
+    for fold in np.array_split(rng.permutation(num), min(cfg.folds, num)):
         held = np.zeros(num, bool)
         held[fold] = True
-        learned = degradation.fit(
-            train.units(~held), _deg_config(cfg), boundary=boundary
-        )
-        cut_units = np.repeat(np.flatnonzero(held), CHECK_CUTS)
+        cut_units = np.repeat(fold, CHECK_CUTS)
         share = rng.uniform(*CUT_RANGE, size=cut_units.size)
         keep = np.maximum(np.round(rows[cut_units] * (1 - share)), MIN_ROWS).astype(int)
-        base = train.units(np.zeros(num, bool))  # an empty fleet of the same layout
         cut = dataclasses.replace(
-            base,
+            train,
             unit=train.unit[cut_units],
             time=train.time[cut_units],
             theta=train.theta[cut_units],
             std=train.std[cut_units],
             mask=train.mask[cut_units],
         ).truncated(keep)
-        truth = train.now[cut_units] - cut.now
-        for scale in NOISE_SCALES:
-            pred = predict(
-                dataclasses.replace(learned, noise_scale=scale),
-                cut,
-                jax.random.PRNGKey(cfg.seed + fold_index),
-                num_samples=CHECK_SAMPLES,
-                coverage=cfg.coverage,
+        yield train.units(~held), cut, train.now[cut_units] - cut.now
+
+
+def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
+    """Held-out CRPS, coverage and RMSE of each trend degree and noise scale; the
+    choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`)."""
+    degrees = DEGREES if cfg.degree is None else (cfg.degree,)
+    scales = NOISE_SCALES if cfg.noise_scale is None else (cfg.noise_scale,)
+    hits = np.zeros((len(degrees), len(scales), 3))
+    cases = 0
+    for fold, (kept, cut, truth) in enumerate(_held_out_cases(train, cfg)):
+        cases += truth.size
+        for i, degree in enumerate(degrees):
+            learned = degradation.fit(
+                kept, _deg_config(cfg, degree), boundary=boundary
             )
-            hits[scale].append(
-                np.stack(
-                    [(truth >= pred.rul_low) & (truth <= pred.rul_high),
-                     (pred.rul - truth) ** 2]
+            for j, scale in enumerate(scales):
+                pred = predict(
+                    dataclasses.replace(learned, noise_scale=scale),
+                    cut,
+                    jax.random.PRNGKey(cfg.seed + fold),
+                    num_samples=CHECK_SAMPLES,
+                    coverage=cfg.coverage,
+                    bands=False,
                 )
-            )  # fmt: skip
-    for i, scale in enumerate(NOISE_SCALES):
-        both = np.concatenate(hits[scale], axis=1)
-        coverage[i], rmse[i] = both[0].mean(), np.sqrt(both[1].mean())
-    reached = np.flatnonzero(coverage >= cfg.coverage)
-    chosen = NOISE_SCALES[reached[0]] if reached.size else NOISE_SCALES[-1]
+                inside = (truth >= pred.rul_low) & (truth <= pred.rul_high)
+                hits[i, j] += (
+                    inside.sum(),
+                    ((pred.rul - truth) ** 2).sum(),
+                    crps(pred.samples, truth).sum(),
+                )
+    coverage, rmse = hits[..., 0] / cases, np.sqrt(hits[..., 1] / cases)
+    mean_crps = hits[..., 2] / cases
+    i, j = np.unravel_index(np.argmin(mean_crps), mean_crps.shape)
     return {
-        "scales": list(NOISE_SCALES),
+        "degrees": list(degrees),
+        "scales": list(scales),
+        "crps": mean_crps.tolist(),
         "coverage": coverage.tolist(),
         "rmse": rmse.tolist(),
-        "chosen": chosen,
-        "cases": int(sum(len(f) for f in folds) * CHECK_CUTS),
+        "degree": int(degrees[i]),
+        "noise_scale": float(scales[j]),
+        "cases": int(cases),
     }
 
 
-def _deg_config(cfg: PrognosisConfig) -> degradation.DegradationConfig:
-    return degradation.DegradationConfig(
-        degree=cfg.degree, max_tightness=cfg.max_tightness
-    )
+def _deg_config(cfg: PrognosisConfig, degree: int) -> degradation.DegradationConfig:
+    return degradation.DegradationConfig(degree=degree, max_tightness=cfg.max_tightness)
 
 
 def prognose_trajectories(
@@ -144,14 +158,13 @@ def prognose_trajectories(
         )
     timings = dict(timings or {})
     start = time.perf_counter()
-    if config.noise_scale is None:
-        check = _check_noise(train, config, boundary)
-        scale = check["chosen"]
-    else:
-        check, scale = {"chosen": float(config.noise_scale)}, float(config.noise_scale)
+    check = _check(train, config, boundary)
     timings["check"] = time.perf_counter() - start
     start = time.perf_counter()
-    model = degradation.fit(train, _deg_config(config), boundary, noise_scale=scale)
+    model = degradation.fit(
+        train, _deg_config(config, check["degree"]), boundary,
+        noise_scale=check["noise_scale"],
+    )  # fmt: skip
     timings["learn"] = time.perf_counter() - start
     start = time.perf_counter()
     pred = predict(

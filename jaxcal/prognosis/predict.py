@@ -63,8 +63,8 @@ class RulPrediction:
     names: tuple[str, ...]
 
 
-@functools.partial(jax.jit, static_argnames=("num_samples", "degree"))
-def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon):
+@functools.partial(jax.jit, static_argnames=("num_samples", "degree", "bands"))
+def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, bands):
     """The per-unit RUL samples, driver indices and trend bands (mapped over units)."""
     mu, cov, noise, bound, bound_std, direction, decides, quant = prior
     prec = jnp.linalg.inv(cov)  # [P, D, D]
@@ -104,10 +104,12 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon):
         rul = jnp.min(end, axis=1) - now  # [K]
         driver = jnp.argmin(end, axis=1)
         censored = ~jnp.any(any_cross & decides[None, :], axis=1)
+        if not bands:  # the held-out check needs no trend bands
+            return rul, driver, censored
         plot = start + (now + horizon - start) * jnp.linspace(0.0, 1.0, PLOT_GRID)
         band = jnp.einsum("gd,kpd->kpg", basis(plot, degree), beta)
-        bands = jnp.moveaxis(jnp.quantile(band, quant, axis=0), 0, 1)  # [P, 3, G]
-        return rul, driver, censored, plot, bands
+        band = jnp.moveaxis(jnp.quantile(band, quant, axis=0), 0, 1)  # [P, 3, G]
+        return rul, driver, censored, plot, band
 
     keys = jax.random.split(key, arrays[0].shape[0])
     return jax.lax.map(one_unit, (keys, *arrays), batch_size=UNIT_BATCH)
@@ -120,8 +122,10 @@ def predict(
     *,
     num_samples: int = 1000,
     coverage: float = 0.9,
+    bands: bool = True,
 ) -> RulPrediction:
-    """The :class:`RulPrediction` of every unit of ``traj`` under ``model``."""
+    """The :class:`RulPrediction` of every unit of ``traj`` under ``model``
+    (``bands=False``: no trend bands, ``trend_time`` and ``trend`` are empty)."""
     if tuple(traj.names) != tuple(model.names):
         raise ValueError(
             f"trajectories of {list(traj.names)}, but the degradation model was learned "
@@ -141,9 +145,11 @@ def predict(
         traj.now / scale, traj.start / scale,
     )  # fmt: skip
     horizon = HORIZON_LIVES * float(model.lives.max()) / scale
-    rul, driver, censored, plot, bands = jax.device_get(
-        _predict_all(key, arrays, prior, num_samples, model.degree, horizon)
+    out = jax.device_get(
+        _predict_all(key, arrays, prior, num_samples, model.degree, horizon, bands)
     )
+    rul, driver, censored = out[:3]
+    plot, band = out[3:] if bands else (np.zeros((rul.shape[0], 0)),) * 2
     rul = np.maximum(rul * scale, 0.0)
     low, mid, high = np.quantile(rul, [tail, 0.5, 1.0 - tail], axis=1)
     counts = np.stack([(driver == p).sum(1) for p in range(len(model.names))], 1)
@@ -158,7 +164,7 @@ def predict(
         censored=censored.mean(1),
         coverage=coverage,
         trend_time=plot * scale,
-        trend=bands,
+        trend=band,
         samples=rul,
         names=model.names,
     )
