@@ -156,24 +156,32 @@ def _run(model, paths, truth, cfg, boundary, out: str) -> dict:
     train = result.train
     last = train.theta[np.arange(train.unit.size), train.mask.sum(1) - 1]
     drivers = {n: int(sum(d == n for d in pred.driver)) for n in THETA}
+    start = time.perf_counter()
     try:
         from jaxcal.prognosis.report import write_prognosis
     except ImportError:  # the report writer is another helper's, maybe not there yet
         report = "skipped: jaxcal.prognosis.report.write_prognosis is not there"
         print(f"note: {report}", file=sys.stderr)
     else:
-        write_prognosis(result, out=out, truth=truth)
-        report = out
+        try:
+            write_prognosis(
+                out, result, truth=truth, source=paths, config=cfg, progress=False
+            )
+            report = out
+        except Exception as err:  # noqa: BLE001 - the scores above stand without it
+            report = f"failed: {type(err).__name__}: {err}"
+            print(f"note: write_prognosis {report}", file=sys.stderr)
+    report_seconds = time.perf_counter() - start
     return {
         "boundary": "declared" if boundary else "learned",
         "score": {
-            **score(pred.rul, pred.rul_low, pred.rul_high, truth),
+            **score(pred.rul, pred.rul_low, pred.rul_high, truth, pred.samples),
             "median_width": float(np.median(width)),
             "units_high_at_horizon": int(np.sum(pred.censored >= 0.05)),
         },
-        "seconds": {**result.timings, "total": wall},
-        "noise_scale": result.noise_check["chosen"],
-        "noise_check": result.noise_check,
+        "seconds": {**result.timings, "total": wall, "report": report_seconds},
+        "chosen": {k: result.noise_check[k] for k in ("degree", "noise_scale")},
+        "held_out_check": result.noise_check,
         "degradation": result.model.to_json(),
         "calibrated_end": {
             n: {"mean": float(last[:, i].mean()), "std": float(last[:, i].std())}
@@ -181,6 +189,27 @@ def _run(model, paths, truth, cfg, boundary, out: str) -> dict:
         },
         "drivers": drivers,
         "censored_units": int((pred.censored > 0.5).sum()),
+        "units": [
+            {
+                "unit": int(u),
+                "now": float(n),
+                "truth": float(t),
+                "rul": float(r),
+                "low": float(lo),
+                "high": float(hi),
+                "censored": float(c),
+            }
+            for u, n, t, r, lo, hi, c in zip(
+                pred.unit,
+                pred.now,
+                truth,
+                pred.rul,
+                pred.rul_low,
+                pred.rul_high,
+                pred.censored,
+                strict=True,
+            )
+        ],  # fmt: skip
         "notes": list(result.notes),
         "report": report,
     }
@@ -223,7 +252,11 @@ def main(argv: list[str]) -> int:
     with open(os.path.join(cfg.out, "summary.json"), "w") as handle:
         json.dump(summary, handle, indent=2)
     brief = {
-        run: {**summary[run]["score"], "seconds": summary[run]["seconds"]}
+        run: {
+            **summary[run]["score"],
+            "chosen": summary[run]["chosen"],
+            "seconds": summary[run]["seconds"],
+        }
         for run in ("declared", "learned")
     }
     print(json.dumps({"fleet": plausible, **brief}, indent=2))
