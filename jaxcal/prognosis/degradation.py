@@ -12,7 +12,8 @@ The **failure boundary** of a parameter is where the units ended: the mean and s
 each training unit's fitted trend at its last row (its end of life). A boundary only
 decides end of life when the units end near it (its spread over the drift that leads
 to it, ``tightness``, at most :attr:`DegradationConfig.max_tightness`); a user may
-declare a boundary instead (``boundary={name: limit}``), which then always decides.
+declare boundaries instead (``boundary={name: limit}``): then those, and only those,
+decide.
 
 The residual noise is the filtered estimate's: the calibrators' estimates are
 autocorrelated, so the std of the residual is widened by ``sqrt((1 + r1) / (1 - r1))``
@@ -34,6 +35,7 @@ import numpy as np
 from jaxcal.prognosis.trajectories import Trajectories
 
 MIN_UNITS = 3  # the fleet's spread of trends needs a few run-to-failure units
+SHRINK = 0.01  # diagonal loading of the trend prior's covariance (share of its diagonal)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +128,17 @@ def _fit_all(s, y, mask, degree: int, ridge: float):
     return jax.vmap(per_param)(s, y, mask)
 
 
+def require_units(num_units: int, degree: int, label: str = "train") -> None:
+    """Raise ``ValueError`` unless ``num_units`` run-to-failure units can give a trend
+    prior of ``degree``: its covariance over units needs more units than coefficients."""
+    need = max(MIN_UNITS, degree + 2)
+    if num_units < need:
+        raise ValueError(
+            f"{label}: {num_units} run-to-failure unit(s); the fleet's degradation "
+            f"needs at least {need} for a trend of degree {degree} (lower degree=)"
+        )
+
+
 def fit(
     train: Trajectories,
     config: DegradationConfig = DegradationConfig(),
@@ -146,11 +159,7 @@ def fit(
             f"boundary names {unknown}: not calibrated parameters {list(train.names)}"
         )
     num_units = train.unit.size
-    if num_units < MIN_UNITS:
-        raise ValueError(
-            f"train: {num_units} run-to-failure unit(s); the fleet's degradation needs "
-            f"at least {MIN_UNITS}"
-        )
+    require_units(num_units, config.degree)
     lives = train.now - train.start + 1.0
     time_scale = float(np.median(lives))
     s = train.time / time_scale
@@ -177,7 +186,8 @@ def fit(
     value = np.array([boundary.get(n, b) for n, b in zip(train.names, learned, strict=True)])
     direction = np.sign(np.where(declared, value - start.mean(0), drift))
     direction = np.where(direction == 0, 1.0, direction)
-    decides = declared | (tightness <= config.max_tightness)
+    # a declared limit is the user saying what ends a life: then only declared ones do
+    decides = declared if declared.any() else tightness <= config.max_tightness
     if not decides.any():
         detail = ", ".join(
             f"{n} {t:.2f}" for n, t in zip(train.names, tightness, strict=True)
@@ -188,7 +198,8 @@ def fit(
             f"{config.max_tightness} decides): declare a limit with boundary=name:value"
         )
     cov = np.stack([np.cov(beta[:, p].T) for p in range(len(train.names))])
-    cov = cov + 1e-12 * np.eye(config.degree + 1)  # a singular spread stays invertible
+    # a little diagonal loading: a spread over few units is noisy, and must invert
+    cov = cov * (1.0 + SHRINK * np.eye(config.degree + 1))
     return DegradationModel(
         names=train.names,
         time_scale=time_scale,

@@ -109,19 +109,30 @@ def render_markdown(rep: dict) -> str:
     if check.get("scales"):
         lines += [
             "",
-            "## Noise scale (held-out training units)",
+            "## Trend degree and noise scale (held-out training units)",
             "",
-            "| scale | coverage | RMSE |",
-            "|---|---|---|",
+            f"{check['cases']} cases: training units cut at random ages, predicted by "
+            "the model learned on the other folds. Chosen: the lowest CRPS (bold).",
+            "",
+            "| degree | noise scale | CRPS | coverage | RMSE |",
+            "|---|---|---|---|---|",
         ]
-        for sc, cov, err in zip(
-            check["scales"],
-            check.get("coverage", []),
-            check.get("rmse", []),
-            strict=False,
-        ):
-            mark = " **chosen**" if sc == check.get("chosen") else ""
-            lines.append(f"| {_f(sc, '.3g')}{mark} | {_f(cov, '.3f')} | {_f(err)} |")
+        for i, degree in enumerate(check["degrees"]):
+            for j, scale in enumerate(check["scales"]):
+                chosen = degree == check["degree"] and scale == check["noise_scale"]
+                cells = [
+                    str(degree), _f(scale, ".3g"), _f(check["crps"][i][j]),
+                    _f(check["coverage"][i][j], ".3f"), _f(check["rmse"][i][j]),
+                ]  # fmt: skip
+                if chosen:
+                    cells = [f"**{c}**" for c in cells]
+                lines.append("| " + " | ".join(cells) + " |")
+    elif check:
+        lines += [
+            "",
+            f"Trend degree {check['degree']} and noise scale {check['noise_scale']:g} "
+            "given (no held-out check).",
+        ]
     lines += [
         "",
         "## Units",

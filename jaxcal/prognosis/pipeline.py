@@ -71,13 +71,22 @@ class Prognosis:
     notes: tuple[str, ...]
 
 
+def _folds(num: int, folds: int) -> int:
+    """The folds of ``num`` units: ``folds``, or one per unit (leave one out) when the
+    units kept by a fold would be too few for a trend prior."""
+    folds = min(folds, num)
+    if num - -(-num // folds) < degradation.MIN_UNITS:
+        folds = num
+    return folds
+
+
 def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
     """Per fold: the training units kept, and the held-out units cut at random ages
     with their true RULs (step 3 of the module docstring)."""
     rng = np.random.default_rng(cfg.seed)
     num = train.unit.size
     rows = train.mask.sum(1)
-    for fold in np.array_split(rng.permutation(num), min(cfg.folds, num)):
+    for fold in np.array_split(rng.permutation(num), _folds(num, cfg.folds)):
         held = np.zeros(num, bool)
         held[fold] = True
         cut_units = np.repeat(fold, CHECK_CUTS)
@@ -97,7 +106,16 @@ def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
 def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
     """Held-out CRPS, coverage and RMSE of each trend degree and noise scale; the
     choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`)."""
+    num = train.unit.size
+    if num - 1 < degradation.MIN_UNITS:
+        raise ValueError(
+            f"train: {num} run-to-failure unit(s); choosing the trend degree and noise "
+            f"scale on held-out units needs at least {degradation.MIN_UNITS + 1} (or "
+            "give both degree= and noise_scale=)"
+        )
+    kept = num - -(-num // _folds(num, cfg.folds))  # the fewest units a fold keeps
     degrees = DEGREES if cfg.degree is None else (cfg.degree,)
+    degrees = tuple(d for d in degrees if d + 2 <= kept) or (min(degrees),)
     scales = NOISE_SCALES if cfg.noise_scale is None else (cfg.noise_scale,)
     hits = np.zeros((len(degrees), len(scales), 3))
     cases = 0
@@ -162,7 +180,12 @@ def prognose_trajectories(
         )
     timings = dict(timings or {})
     start = time.perf_counter()
-    check = _check(train, config, boundary)
+    if config.degree is not None and config.noise_scale is not None:
+        degradation.require_units(train.unit.size, config.degree)
+        check = {"degree": config.degree, "noise_scale": float(config.noise_scale)}
+    else:
+        degradation.require_units(train.unit.size, min(DEGREES))
+        check = _check(train, config, boundary)
     timings["check"] = time.perf_counter() - start
     start = time.perf_counter()
     model = degradation.fit(

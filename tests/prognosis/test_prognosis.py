@@ -138,6 +138,10 @@ def test_a_declared_boundary_overrides_and_always_decides(toy):
     np.testing.assert_allclose(model.boundary, [LIMIT + 0.1, 2.0])
     np.testing.assert_array_equal(model.boundary_std, [0.0, 0.0])
     assert np.isnan(model.tightness).all()
+    # once a limit is declared, only declared limits decide: a learned one that happens
+    # to be tight does not end lives the user has said end otherwise
+    only = degradation.fit(train, boundary={"noise": 2.0})
+    np.testing.assert_array_equal(only.decides, [False, True])
     # a higher limit on a falling parameter is reached earlier: shorter lives
     earlier = prognose_trajectories(
         train, test, {"health": LIMIT + 0.1}, dataclasses.replace(FAST, seed=3)
@@ -168,8 +172,8 @@ def test_errors_name_the_problem(toy):
     two = train.units(np.arange(15) < 2)
     with pytest.raises(ValueError, match="train: 2 run-to-failure unit"):
         degradation.fit(two)
-    with pytest.raises(ValueError, match="run-to-failure unit.*at least 3"):
-        prognose_trajectories(two, test, None, FAST)
+    with pytest.raises(ValueError, match="run-to-failure unit.*at least 5"):
+        prognose_trajectories(two, test, None, FAST)  # FAST: a cubic trend
     with pytest.raises(ValueError, match=r"boundary names \['wear'\]"):
         prognose_trajectories(train, test, {"wear": 1.0}, FAST)
     with pytest.raises(ValueError, match="no parameter's end of life is consistent"):
@@ -188,27 +192,39 @@ def test_errors_name_the_problem(toy):
         from_arrays(unit, time, theta, NAMES, label="train")
 
 
-# The held-out check (pipeline._check) fits each fold's model on the other training
-# units, so its degradation.fit sees fewer units than the user gave.
-@pytest.mark.xfail(strict=True, raises=ValueError, reason="check fits 2 of 3 units")
-def test_three_training_units_are_enough(toy):
-    """MIN_UNITS is 3; with 3 units every fold's fit has 2, and is refused."""
+def test_three_training_units_are_enough_for_a_given_linear_trend(toy):
     train, test, _, _ = toy
-    prognose_trajectories(train.units(np.arange(15) < 3), test, None, FAST)
+    few = dataclasses.replace(FAST, degree=1)
+    result = prognose_trajectories(train.units(np.arange(15) < 3), test, None, few)
+    assert np.all(np.isfinite(result.prediction.rul))
 
 
-@pytest.mark.xfail(
-    strict=True, raises=AssertionError, reason="the fold, not the fleet, is counted"
+def test_four_training_units_are_enough_for_the_held_out_check(toy):
+    """Leave-one-out keeps 3 units a fold; only a linear trend has a prior there."""
+    train, test, _, _ = toy
+    free = dataclasses.replace(FAST, degree=None, noise_scale=None)
+    result = prognose_trajectories(train.units(np.arange(15) < 4), test, None, free)
+    assert result.noise_check["degrees"] == [1]
+    assert result.noise_check["cases"] == 4 * 2  # every unit held out, cut twice
+
+
+@pytest.mark.parametrize(
+    "units, degree, match",
+    [
+        (2, 1, "train: 2 run-to-failure unit.*at least 3"),
+        (4, 3, "train: 4 run-to-failure unit.*at least 5 for a trend of degree 3"),
+        (3, None, "train: 3 run-to-failure unit.*held-out units needs at least 4"),
+    ],
 )
-def test_too_few_training_units_names_the_fleet_count(toy):
+def test_too_few_training_units_name_the_fleet_count(toy, units, degree, match):
     train, test, _, _ = toy
-    with pytest.raises(ValueError, match="train: 2 run-to-failure unit"):
-        prognose_trajectories(train.units(np.arange(15) < 2), test, None, FAST)
+    cfg = dataclasses.replace(
+        FAST, degree=degree, noise_scale=None if degree is None else 1.0
+    )
+    with pytest.raises(ValueError, match=match):
+        prognose_trajectories(train.units(np.arange(15) < units), test, None, cfg)
 
 
-# markdown.py's check table reads the old noise_check layout (flat coverage per scale,
-# "chosen"); pipeline._check now gives [degree][scale] lists, "degree", "noise_scale".
-@pytest.mark.xfail(strict=True, raises=TypeError, reason="markdown: old check layout")
 def test_write_prognosis_takes_a_real_prognosis(toy, tmp_path):
     from jaxcal.prognosis.report import write_prognosis
 
