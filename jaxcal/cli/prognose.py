@@ -13,7 +13,7 @@ predicts each test unit's RUL with a ``coverage`` interval
 :func:`jaxcal.models.load` spec; ``engine=`` is its old name and ``cmapss`` the
 default, where ``theta`` and ``outputs`` default to the C-MAPSS HPC pair and physical
 sensors (:data:`jaxcal.models.turbofan.model.PROGNOSIS_THETA`, ``PROGNOSIS_OUTPUTS``).
-``boundary=name:value,...`` declares a failure limit (it then always decides);
+``boundary=name:value,...`` declares failure limits (then only those decide);
 without it the boundaries are learned from the training units' last cycles.
 ``truth=`` (one true RUL per line, in test-unit order: NASA's ``RUL_FD00x.txt``)
 scores the prediction. Writes ``rul.csv`` (columns ``unit,rul,rul_low,rul_high``),
@@ -59,8 +59,8 @@ class PrognoseConfig:
     boundary: tuple[str, ...] = ()  # declared failure limits, name:value
     coverage: float = 0.9  # nominal coverage of the RUL interval
     samples: int = 1000  # RUL samples per unit
-    # polynomial degree of a parameter's trend in age (None: chosen on held-out units)
-    degree: int | None = None
+    # a parameter's trend family in age: polyN or expL (None: chosen on held-out units)
+    trend: str | None = None
     max_tightness: float = 0.35  # a learned boundary decides at most this tightness
     noise_scale: float | None = None  # None: learned on held-out training units
     folds: int = 5  # held-out folds of the noise-scale check
@@ -123,8 +123,12 @@ def parse_args(argv: list[str]) -> PrognoseConfig:
     parse_boundary(cfg.boundary)
     if not 0.0 < cfg.coverage < 1.0:
         raise ValueError(f"coverage={cfg.coverage}: expected a share in (0, 1)")
-    for field, low in (("samples", 10), ("degree", 1), ("folds", 2)):
-        if getattr(cfg, field) is not None and getattr(cfg, field) < low:
+    if cfg.trend is not None:
+        from jaxcal.prognosis.degradation import check_trend  # light: no jax at import
+
+        check_trend(cfg.trend)
+    for field, low in (("samples", 10), ("folds", 2)):
+        if getattr(cfg, field) < low:
             raise ValueError(f"{field}={getattr(cfg, field)}: expected at least {low}")
     if cfg.max_tightness <= 0:
         raise ValueError(f"max_tightness={cfg.max_tightness}: expected > 0")
@@ -161,7 +165,7 @@ def run(cfg: PrognoseConfig) -> dict:
         model.parameter_index(theta)  # a bad name fails before the data is read
     config = PrognosisConfig(
         method=cfg.method, coverage=cfg.coverage, samples=cfg.samples,
-        degree=cfg.degree, max_tightness=cfg.max_tightness,
+        trend=cfg.trend, max_tightness=cfg.max_tightness,
         noise_scale=cfg.noise_scale, folds=cfg.folds, seed=cfg.seed,
     )  # fmt: skip
     result = prognose(

@@ -1,12 +1,14 @@
 """The fleet's degradation model, learned from run-to-failure units.
 
 Each calibrated health parameter of a unit follows a smooth trend in its age,
-``theta_p(t) = phi(t / t_ref) . beta_p`` with a polynomial basis ``phi`` (degree 3 by
-default), plus noise. Fitting every run-to-failure unit by weighted least squares gives
+``theta_p(t) = phi(t / t_ref) . beta_p`` with a basis ``phi`` (:func:`basis`: a
+polynomial, or a line plus an exponential, the wear of damage-propagation models),
+plus noise. Fitting every run-to-failure unit by weighted least squares gives
 the fleet's distribution of trends, a Gaussian prior ``beta_p ~ N(mu_p, Sigma_p)`` over
 units — the hierarchical form of the Bayesian degradation model of Gebraeel et al.
-(IIE Transactions 37, 2005), with a polynomial in place of their exponential so that
-the posterior of a unit stays closed form (:mod:`jaxcal.prognosis.predict`).
+(IIE Transactions 37, 2005), with the exponential's rate fixed per family (chosen on
+held-out units) so that the trend is linear in its coefficients and the posterior of a
+unit stays closed form (:mod:`jaxcal.prognosis.predict`).
 
 The **failure boundary** of a parameter is where the units ended: the mean and spread of
 each training unit's fitted trend at its last row (its end of life). A boundary only
@@ -40,7 +42,7 @@ SHRINK = 0.01  # diagonal loading of the trend prior's covariance (share of its 
 
 @dataclasses.dataclass(frozen=True)
 class DegradationConfig:
-    degree: int = 3  # polynomial degree of a parameter's trend in age
+    trend: str = "poly3"  # a parameter's trend family in age (see basis)
     # a learned boundary decides end of life only if the units' spread at their end is
     # at most this share of the mean drift from start to end
     max_tightness: float = 0.35
@@ -63,6 +65,7 @@ class DegradationModel:
         decides: ``[P]`` the boundaries that decide end of life.
         declared: ``[P]`` the boundaries the user gave.
         lives: ``[U]`` the training units' lives (last minus first time, plus one).
+        trend: the trend family (:func:`basis`).
     """
 
     names: tuple[str, ...]
@@ -79,14 +82,12 @@ class DegradationModel:
     declared: np.ndarray
     lives: np.ndarray
 
-    @property
-    def degree(self) -> int:
-        return self.prior_mean.shape[1] - 1
+    trend: str = "poly3"
 
     def to_json(self) -> dict:
         return {
             "parameters": list(self.names),
-            "trend": f"polynomial of degree {self.degree} in age / {self.time_scale:g}",
+            "trend": f"{self.trend} in age / {self.time_scale:g} ({describe(self.trend)})",
             "noise": dict(zip(self.names, self.noise.tolist(), strict=True)),
             "noise_scale": self.noise_scale,
             "boundary": {
@@ -109,33 +110,74 @@ class DegradationModel:
         }
 
 
-def basis(s, degree: int):
-    """``[..., D]`` the polynomial basis ``(1, s, s^2, ...)`` at scaled ages ``s``."""
-    return s[..., None] ** jnp.arange(degree + 1)
+def _parse(trend: str) -> tuple[str, float]:
+    """``("poly", N)`` or ``("exp", L)`` of a trend name (:func:`basis`)."""
+    kind = next((k for k in ("poly", "exp") if str(trend).startswith(k)), "")
+    try:
+        number = float(str(trend)[len(kind):]) if kind else float("nan")
+    except ValueError:
+        number = float("nan")
+    if not number > 0:
+        raise ValueError(
+            f"trend {trend!r}: expected polyN (a polynomial of degree N >= 1) or expL "
+            "(1, age and exp(L age) - 1, L > 0), e.g. poly2, exp2"
+        )
+    return kind, number
 
 
-@functools.partial(jax.jit, static_argnames="degree")
-def _fit_all(s, y, mask, degree: int, ridge: float):
+def check_trend(trend: str) -> str:
+    """``trend`` if it names a trend family (:func:`basis`), else ``ValueError``."""
+    kind, number = _parse(trend)
+    if kind == "poly" and number != int(number):
+        raise ValueError(f"trend {trend!r}: a polynomial's degree is a whole number")
+    return trend
+
+
+def size(trend: str) -> int:
+    """The number of basis functions (coefficients) of ``trend``."""
+    kind, number = _parse(trend)
+    return int(number) + 1 if kind == "poly" else 3
+
+
+def describe(trend: str) -> str:
+    kind, number = _parse(trend)
+    if kind == "poly":
+        return f"a polynomial of degree {int(number)}"
+    return f"a + b age + c (exp({number:g} age) - 1): wear that accelerates"
+
+
+def basis(s, trend: str):
+    """``[..., D]`` the trend's basis at scaled ages ``s``: ``polyN`` the powers
+    ``(1, s, ..., s^N)``; ``expL`` ``(1, s, exp(L s) - 1)``, the exponential wear of
+    damage-propagation models (Saxena et al., PHM 2008) with a linear part."""
+    kind, number = _parse(trend)
+    if kind == "poly":
+        return s[..., None] ** jnp.arange(int(number) + 1)
+    return jnp.stack([jnp.ones_like(s), s, jnp.expm1(number * s)], axis=-1)
+
+
+@functools.partial(jax.jit, static_argnames="trend")
+def _fit_all(s, y, mask, trend: str, ridge: float):
     """``beta [U, P, D]``, residuals ``[U, T, P]`` of every unit's trend (vmapped)."""
 
     def one(s_u, y_u, m_u):  # s_u, m_u [T]; y_u [T]
-        a = basis(s_u, degree) * m_u[:, None]
-        gram = a.T @ a + ridge * jnp.eye(degree + 1)
+        a = basis(s_u, trend) * m_u[:, None]
+        gram = a.T @ a + ridge * jnp.eye(size(trend))
         beta = jnp.linalg.solve(gram, a.T @ (y_u * m_u))
-        return beta, (y_u - basis(s_u, degree) @ beta) * m_u
+        return beta, (y_u - basis(s_u, trend) @ beta) * m_u
 
     per_param = jax.vmap(one, in_axes=(None, 1, None), out_axes=(0, 1))
     return jax.vmap(per_param)(s, y, mask)
 
 
-def require_units(num_units: int, degree: int, label: str = "train") -> None:
-    """Raise ``ValueError`` unless ``num_units`` run-to-failure units can give a trend
-    prior of ``degree``: its covariance over units needs more units than coefficients."""
-    need = max(MIN_UNITS, degree + 2)
+def require_units(num_units: int, trend: str, label: str = "train") -> None:
+    """Raise ``ValueError`` unless ``num_units`` run-to-failure units can give a prior
+    of ``trend``: its covariance over units needs more units than coefficients."""
+    need = max(MIN_UNITS, size(trend) + 1)
     if num_units < need:
         raise ValueError(
             f"{label}: {num_units} run-to-failure unit(s); the fleet's degradation "
-            f"needs at least {need} for a trend of degree {degree} (lower degree=)"
+            f"needs at least {need} for a {trend} trend (a simpler trend= needs fewer)"
         )
 
 
@@ -159,14 +201,15 @@ def fit(
             f"boundary names {unknown}: not calibrated parameters {list(train.names)}"
         )
     num_units = train.unit.size
-    require_units(num_units, config.degree)
+    check_trend(config.trend)
+    require_units(num_units, config.trend)
     lives = train.now - train.start + 1.0
     time_scale = float(np.median(lives))
     s = train.time / time_scale
     mask = train.mask.astype(np.float64)
-    beta, res = _fit_all(s, train.theta, mask, config.degree, config.ridge)
+    beta, res = _fit_all(s, train.theta, mask, config.trend, config.ridge)
     beta, res = np.asarray(beta), np.asarray(res)
-    dof = mask.sum() - num_units * (config.degree + 1)
+    dof = mask.sum() - num_units * size(config.trend)
     sigma = np.sqrt((res**2).sum(axis=(0, 1)) / max(dof, 1.0))
     lag = (res[:, 1:] * res[:, :-1]).sum(axis=(0, 1)) / np.maximum(
         (res**2).sum(axis=(0, 1)), 1e-300
@@ -174,8 +217,8 @@ def fit(
     rho = np.clip(lag, 0.0, 0.95)
     noise = np.maximum(sigma * np.sqrt((1 + rho) / (1 - rho)), 1e-12)
 
-    phi_end = np.asarray(basis(train.now / time_scale, config.degree))  # [U, D]
-    phi_start = np.asarray(basis(train.start / time_scale, config.degree))
+    phi_end = np.asarray(basis(train.now / time_scale, config.trend))  # [U, D]
+    phi_start = np.asarray(basis(train.start / time_scale, config.trend))
     end = np.einsum("ud,upd->up", phi_end, beta)
     start = np.einsum("ud,upd->up", phi_start, beta)
     drift = end.mean(0) - start.mean(0)
@@ -199,7 +242,7 @@ def fit(
         )
     cov = np.stack([np.cov(beta[:, p].T) for p in range(len(train.names))])
     # a little diagonal loading: a spread over few units is noisy, and must invert
-    cov = cov * (1.0 + SHRINK * np.eye(config.degree + 1))
+    cov = cov * (1.0 + SHRINK * np.eye(size(config.trend)))
     return DegradationModel(
         names=train.names,
         time_scale=time_scale,
@@ -214,4 +257,5 @@ def fit(
         decides=decides,
         declared=declared,
         lives=lives,
+        trend=config.trend,
     )

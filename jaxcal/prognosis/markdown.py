@@ -99,29 +99,30 @@ def render_markdown(rep: dict) -> str:
             "",
             "## Score against the truth",
             "",
-            "| units | RMSE | mean error | PHM08 score | coverage | mean width |",
-            "|---|---|---|---|---|---|",
+            "| units | RMSE | mean error | PHM08 score | coverage | mean width | CRPS |",
+            "|---|---|---|---|---|---|---|",
             f"| {s['units']} | {s['rmse']:.2f} | {s['mean_error']:+.2f} | "
             f"{s['phm08_score']:.1f} | {s['coverage']:.3f} "
-            f"(nominal {rep['coverage']:.2f}) | {s['mean_width']:.1f} |",
+            f"(nominal {rep['coverage']:.2f}) | {s['mean_width']:.1f} | "
+            f"{_f(s.get('crps'))} |",
         ]
     check = rep.get("noise_check") or {}
     if check.get("scales"):
         lines += [
             "",
-            "## Trend degree and noise scale (held-out training units)",
+            "## Trend and noise scale (held-out training units)",
             "",
             f"{check['cases']} cases: training units cut at random ages, predicted by "
             "the model learned on the other folds. Chosen: the lowest CRPS (bold).",
             "",
-            "| degree | noise scale | CRPS | coverage | RMSE |",
+            "| trend | noise scale | CRPS | coverage | RMSE |",
             "|---|---|---|---|---|",
         ]
-        for i, degree in enumerate(check["degrees"]):
+        for i, trend in enumerate(check["trends"]):
             for j, scale in enumerate(check["scales"]):
-                chosen = degree == check["degree"] and scale == check["noise_scale"]
+                chosen = trend == check["trend"] and scale == check["noise_scale"]
                 cells = [
-                    str(degree), _f(scale, ".3g"), _f(check["crps"][i][j]),
+                    trend, _f(scale, ".3g"), _f(check["crps"][i][j]),
                     _f(check["coverage"][i][j], ".3f"), _f(check["rmse"][i][j]),
                 ]  # fmt: skip
                 if chosen:
@@ -130,7 +131,7 @@ def render_markdown(rep: dict) -> str:
     elif check:
         lines += [
             "",
-            f"Trend degree {check['degree']} and noise scale {check['noise_scale']:g} "
+            f"Trend {check['trend']} and noise scale {check['noise_scale']:g} "
             "given (no held-out check).",
         ]
     lines += [

@@ -10,8 +10,8 @@ The steps, each timed in :attr:`Prognosis.timings`:
    prior and the failure boundaries from the training units' ends.
 3. **check the intervals on held-out training units**: each fold's units are cut at
    random ages (a unit seen before its end, as a test unit is), predicted by the model
-   learned on the other folds, and scored against their known end; the trend degree
-   (:data:`DEGREES`) and noise scale (:data:`NOISE_SCALES`) are those of the lowest
+   learned on the other folds, and scored against their known end; the trend family
+   (:data:`TRENDS`) and noise scale (:data:`NOISE_SCALES`) are those of the lowest
    held-out CRPS, a proper score of the whole predicted distribution (calibrated and
    sharp at once), unless given.
 4. **predict** (:mod:`jaxcal.prognosis.predict`).
@@ -36,7 +36,8 @@ from jaxcal.prognosis.score import crps
 from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
 
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0)
-DEGREES = (1, 2, 3)  # trend degrees the held-out check chooses from
+# the trend families the held-out check chooses from (degradation.basis)
+TRENDS = ("poly1", "poly2", "poly3", "exp1", "exp2", "exp4")
 CHECK_SAMPLES = 300  # RUL samples per held-out unit (the check needs coverage, not tails)
 CHECK_CUTS = 2  # random ages per held-out training unit
 # a held-out unit is cut so that this share of its life, at least, is still to come or
@@ -49,9 +50,9 @@ class PrognosisConfig:
     method: str = "ukf"  # the calibration method (any of jaxcal.calibrate's)
     coverage: float = 0.9  # nominal coverage of the RUL interval
     samples: int = 1000  # RUL samples per test unit
-    # the trend's polynomial degree in age and the noise scale; None: chosen on
+    # the trend family (degradation.basis) and the noise scale; None: chosen on
     # held-out training units (module docstring)
-    degree: int | None = None
+    trend: str | None = None
     noise_scale: float | None = None
     max_tightness: float = 0.35  # see degradation.DegradationConfig
     folds: int = 5  # held-out folds of the training units
@@ -104,20 +105,21 @@ def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
 
 
 def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
-    """Held-out CRPS, coverage and RMSE of each trend degree and noise scale; the
+    """Held-out CRPS, coverage and RMSE of each trend family and noise scale; the
     choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`)."""
     num = train.unit.size
     if num - 1 < degradation.MIN_UNITS:
         raise ValueError(
-            f"train: {num} run-to-failure unit(s); choosing the trend degree and noise "
-            f"scale on held-out units needs at least {degradation.MIN_UNITS + 1} (or "
-            "give both degree= and noise_scale=)"
+            f"train: {num} run-to-failure unit(s); choosing the trend and noise scale "
+            f"on held-out units needs at least {degradation.MIN_UNITS + 1} (or give "
+            "both trend= and noise_scale=)"
         )
     kept = num - -(-num // _folds(num, cfg.folds))  # the fewest units a fold keeps
-    degrees = DEGREES if cfg.degree is None else (cfg.degree,)
-    degrees = tuple(d for d in degrees if d + 2 <= kept) or (min(degrees),)
+    trends = TRENDS if cfg.trend is None else (cfg.trend,)
+    fits = tuple(t for t in trends if degradation.size(t) + 1 <= kept)
+    trends = fits or (min(trends, key=degradation.size),)
     scales = NOISE_SCALES if cfg.noise_scale is None else (cfg.noise_scale,)
-    hits = np.zeros((len(degrees), len(scales), 3))
+    hits = np.zeros((len(trends), len(scales), 3))
     cases = 0
     for fold, (kept, cut, truth) in enumerate(_held_out_cases(train, cfg)):
         cases += truth.size
@@ -128,8 +130,8 @@ def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
             std=cut.std[each], mask=cut.mask[each],
         )  # fmt: skip
         per_unit = np.repeat(np.asarray(scales, float), truth.size)
-        for i, degree in enumerate(degrees):
-            learned = degradation.fit(kept, _deg_config(cfg, degree), boundary=boundary)
+        for i, trend in enumerate(trends):
+            learned = degradation.fit(kept, _deg_config(cfg, trend), boundary=boundary)
             pred = predict(
                 learned, batch, jax.random.PRNGKey(cfg.seed + fold),
                 num_samples=CHECK_SAMPLES, coverage=cfg.coverage, bands=False,
@@ -148,19 +150,19 @@ def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
     mean_crps = hits[..., 2] / cases
     i, j = np.unravel_index(np.argmin(mean_crps), mean_crps.shape)
     return {
-        "degrees": list(degrees),
+        "trends": list(trends),
         "scales": list(scales),
         "crps": mean_crps.tolist(),
         "coverage": coverage.tolist(),
         "rmse": rmse.tolist(),
-        "degree": int(degrees[i]),
+        "trend": trends[i],
         "noise_scale": float(scales[j]),
         "cases": int(cases),
     }
 
 
-def _deg_config(cfg: PrognosisConfig, degree: int) -> degradation.DegradationConfig:
-    return degradation.DegradationConfig(degree=degree, max_tightness=cfg.max_tightness)
+def _deg_config(cfg: PrognosisConfig, trend: str) -> degradation.DegradationConfig:
+    return degradation.DegradationConfig(trend=trend, max_tightness=cfg.max_tightness)
 
 
 def prognose_trajectories(
@@ -180,16 +182,18 @@ def prognose_trajectories(
         )
     timings = dict(timings or {})
     start = time.perf_counter()
-    if config.degree is not None and config.noise_scale is not None:
-        degradation.require_units(train.unit.size, config.degree)
-        check = {"degree": config.degree, "noise_scale": float(config.noise_scale)}
+    if config.trend is not None:
+        degradation.check_trend(config.trend)
+    if config.trend is not None and config.noise_scale is not None:
+        degradation.require_units(train.unit.size, config.trend)
+        check = {"trend": config.trend, "noise_scale": float(config.noise_scale)}
     else:
-        degradation.require_units(train.unit.size, min(DEGREES))
+        degradation.require_units(train.unit.size, "poly1")
         check = _check(train, config, boundary)
     timings["check"] = time.perf_counter() - start
     start = time.perf_counter()
     model = degradation.fit(
-        train, _deg_config(config, check["degree"]), boundary,
+        train, _deg_config(config, check["trend"]), boundary,
         noise_scale=check["noise_scale"],
     )  # fmt: skip
     timings["learn"] = time.perf_counter() - start

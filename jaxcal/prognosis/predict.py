@@ -65,15 +65,15 @@ class RulPrediction:
     names: tuple[str, ...]
 
 
-@functools.partial(jax.jit, static_argnames=("num_samples", "degree", "bands"))
-def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, bands):
+@functools.partial(jax.jit, static_argnames=("num_samples", "trend", "bands"))
+def _predict_all(key, arrays, prior, num_samples: int, trend: str, horizon, bands):
     """The per-unit RUL samples, driver indices and trend bands (mapped over units)."""
     mu, cov, noise, bound, bound_std, direction, decides, quant = prior
     prec = jnp.linalg.inv(cov)  # [P, D, D]
 
     def one_unit(args):
         key, s, y, mask, now, start, scale = args  # s, mask [T]; y [T, P]; scalars
-        a = basis(s, degree) * mask[:, None]  # [T, D]
+        a = basis(s, trend) * mask[:, None]  # [T, D]
 
         def posterior(y_p, mu_p, prec_p, noise_p):
             lam = prec_p + a.T @ a / noise_p**2
@@ -92,7 +92,7 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, ban
         beta = mean + jax.vmap(lambda zz: solve(lam_chol, zz))(z)  # [K, P, D]
         b = bound + bound_std * jax.random.normal(k_bound, (num_samples, bound.size))
         grid = now + horizon * jnp.linspace(0.0, 1.0, GRID)  # [G]
-        curve = jnp.einsum("gd,kpd->kpg", basis(grid, degree), beta)  # [K, P, G]
+        curve = jnp.einsum("gd,kpd->kpg", basis(grid, trend), beta)  # [K, P, G]
         gap = direction[None, :, None] * (curve - b[:, :, None])  # >= 0: crossed
         crossed = gap >= 0
         first = jnp.argmax(crossed, axis=-1)  # [K, P]
@@ -113,7 +113,7 @@ def _predict_all(key, arrays, prior, num_samples: int, degree: int, horizon, ban
         # the posterior trend at an age is Gaussian (phi . m, phi^T Lambda^-1 phi): its
         # quantiles are exact, no samples needed
         plot = start + (now + horizon - start) * jnp.linspace(0.0, 1.0, PLOT_GRID)
-        phi = basis(plot, degree)  # [G, D]
+        phi = basis(plot, trend)  # [G, D]
         half = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, phi.T, lower=True))
         sd = jnp.sqrt(jnp.sum(half(lam_chol) ** 2, axis=1))  # [P, G]
         centre = mean @ phi.T  # [P, G]
@@ -162,7 +162,7 @@ def predict(
     )  # fmt: skip
     horizon = HORIZON_LIVES * float(model.lives.max()) / scale
     out = jax.device_get(
-        _predict_all(key, arrays, prior, num_samples, model.degree, horizon, bands)
+        _predict_all(key, arrays, prior, num_samples, model.trend, horizon, bands)
     )
     rul, driver, censored = out[:3]
     plot, band = out[3:] if bands else (np.zeros((rul.shape[0], 0)),) * 2

@@ -98,7 +98,7 @@ def report_dict(result, *, truth=None, source=None, config=None) -> dict:
         "units": unit_rows(p, truth),
     }
     if truth is not None:
-        rep["score"] = score(p.rul, p.rul_low, p.rul_high, truth)
+        rep["score"] = score(p.rul, p.rul_low, p.rul_high, truth, p.samples)
     return json_safe(rep)
 
 

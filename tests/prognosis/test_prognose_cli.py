@@ -158,7 +158,7 @@ def _fake_pipeline(result):
         method: str = "ukf"
         coverage: float = 0.9
         samples: int = 1000
-        degree: int = 3
+        trend: str | None = None
         max_tightness: float = 0.35
         noise_scale: float | None = None
         folds: int = 5

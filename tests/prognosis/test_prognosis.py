@@ -29,8 +29,8 @@ from jaxcal.prognosis import (
 
 LIMIT = 0.6  # the toy's failure boundary on `health`
 NAMES = ("health", "noise")
-# one trend degree and noise scale: the held-out check scores one choice, faster
-FAST = PrognosisConfig(samples=300, degree=3, noise_scale=1.0)
+# one trend and noise scale: the held-out check scores one choice, faster
+FAST = PrognosisConfig(samples=300, trend="poly3", noise_scale=1.0)
 
 
 def _toy_fleet(seed: int, num_units: int, *, cut: bool, wear: bool = False):
@@ -70,14 +70,14 @@ def _toy_fleet(seed: int, num_units: int, *, cut: bool, wear: bool = False):
 @pytest.fixture(scope="module")
 def toy():
     """15 run-to-failure units and 60 cut ones, predicted with the noise scale the
-    held-out check chooses (the degree fixed at 3, to keep it fast) and the learned
+    held-out check chooses (the trend fixed to poly3, to keep it fast) and the learned
     boundary."""
     train_rows, _ = _toy_fleet(0, 15, cut=False)
     test_rows, truth = _toy_fleet(1, 60, cut=True)
     train = from_arrays(*train_rows, NAMES, label="train")
     test = from_arrays(*test_rows, NAMES, label="test")
     result = prognose_trajectories(
-        train, test, config=PrognosisConfig(samples=300, degree=3)
+        train, test, config=PrognosisConfig(samples=300, trend="poly3")
     )
     return train, test, truth, result
 
@@ -103,7 +103,7 @@ def test_interval_coverage_is_near_nominal(toy):
     # honest, not vacuous: the intervals are narrower than the spread of the truths
     assert s["mean_width"] < 1.5 * truth.std(), s
     check = result.noise_check
-    assert check["degrees"] == [3] and check["cases"] == 30
+    assert check["trends"] == ["poly3"] and check["cases"] == 30
     assert check["noise_scale"] in check["scales"]
     j = check["scales"].index(check["noise_scale"])
     assert check["crps"][0][j] == min(check["crps"][0])  # the lowest held-out CRPS
@@ -194,7 +194,7 @@ def test_errors_name_the_problem(toy):
 
 def test_three_training_units_are_enough_for_a_given_linear_trend(toy):
     train, test, _, _ = toy
-    few = dataclasses.replace(FAST, degree=1)
+    few = dataclasses.replace(FAST, trend="poly1")
     result = prognose_trajectories(train.units(np.arange(15) < 3), test, None, few)
     assert np.all(np.isfinite(result.prediction.rul))
 
@@ -202,24 +202,24 @@ def test_three_training_units_are_enough_for_a_given_linear_trend(toy):
 def test_four_training_units_are_enough_for_the_held_out_check(toy):
     """Leave-one-out keeps 3 units a fold; only a linear trend has a prior there."""
     train, test, _, _ = toy
-    free = dataclasses.replace(FAST, degree=None, noise_scale=None)
+    free = dataclasses.replace(FAST, trend=None, noise_scale=None)
     result = prognose_trajectories(train.units(np.arange(15) < 4), test, None, free)
-    assert result.noise_check["degrees"] == [1]
+    assert result.noise_check["trends"] == ["poly1"]
     assert result.noise_check["cases"] == 4 * 2  # every unit held out, cut twice
 
 
 @pytest.mark.parametrize(
-    "units, degree, match",
+    "units, trend, match",
     [
-        (2, 1, "train: 2 run-to-failure unit.*at least 3"),
-        (4, 3, "train: 4 run-to-failure unit.*at least 5 for a trend of degree 3"),
+        (2, "poly1", "train: 2 run-to-failure unit.*at least 3"),
+        (4, "poly3", "train: 4 run-to-failure unit.*at least 5 for a poly3 trend"),
         (3, None, "train: 3 run-to-failure unit.*held-out units needs at least 4"),
     ],
 )
-def test_too_few_training_units_name_the_fleet_count(toy, units, degree, match):
+def test_too_few_training_units_name_the_fleet_count(toy, units, trend, match):
     train, test, _, _ = toy
     cfg = dataclasses.replace(
-        FAST, degree=degree, noise_scale=None if degree is None else 1.0
+        FAST, trend=trend, noise_scale=None if trend is None else 1.0
     )
     with pytest.raises(ValueError, match=match):
         prognose_trajectories(train.units(np.arange(15) < units), test, None, cfg)
@@ -305,7 +305,7 @@ def test_prognose_end_to_end_on_the_heat_exchanger():
     train, _ = _hx_fleet(model, 10, 6, cut=False)
     test, truth = _hx_fleet(model, 11, 3, cut=True)
     assert not set(model.parameter_names) & set(train.columns)  # unlabelled
-    config = PrognosisConfig(samples=300, degree=3, noise_scale=2.0)
+    config = PrognosisConfig(samples=300, trend="poly3", noise_scale=2.0)
     result = prognose(
         model, train, test, theta=("fouling", "dp_coeff"), noise=HX_NOISE,
         boundary={"fouling": HX_LIMIT}, config=config, progress=False,

@@ -54,8 +54,8 @@ def prognosis(num_train: int = 8, num_test: int = 8, samples: int = 200):
     test, truth = fleet(num_test, 1, cut=True)
     model = fit(train)
     pred = predict(model, test, jax.random.key(0), num_samples=samples)
-    check = {"degrees": [3], "scales": [1.0, 2.0], "crps": [[4.0, 3.0]],
-             "coverage": [[0.8, 0.9]], "rmse": [[5.0, 5.0]], "degree": 3,
+    check = {"trends": ["poly3"], "scales": [1.0, 2.0], "crps": [[4.0, 3.0]],
+             "coverage": [[0.8, 0.9]], "rmse": [[5.0, 5.0]], "trend": "poly3",
              "noise_scale": 2.0, "cases": 16}  # fmt: skip
     result = StandIn(
         prediction=pred, model=model, train=train, test=test, noise_check=check,
