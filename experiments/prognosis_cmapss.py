@@ -101,7 +101,10 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
     fds = [fd for fd in ("FD001", "FD002") if fd in rows]
 
     def row(label: str, key: str, fmt: str) -> str:
-        cells = [fmt.format(rows[fd][key]) if fd in rows else "–" for fd in ("FD001", "FD002")]
+        cells = [
+            fmt.format(rows[fd][key]) if fd in rows else "–"
+            for fd in ("FD001", "FD002")
+        ]
         return f"| {label} | " + " | ".join(cells) + " |"
 
     lines += [
@@ -110,7 +113,11 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
         row("90 % interval coverage", "coverage", "{:.2f}"),
         row("mean interval width (cycles)", "mean_width", "{:.0f}"),
         row("mean error (cycles, + late)", "mean_error", "{:+.2f}"),
-        row("RMSE if capped at 125 (the literature's target convention)", "rmse_capped_125", "{:.2f}"),
+        row(
+            "RMSE if capped at 125 (the literature's target convention)",
+            "rmse_capped_125",
+            "{:.2f}",
+        ),
         row("wall time, calibration included (s)", "seconds", "{:.0f}"),
     ]  # fmt: skip
     for label, fd1, fd2 in PUBLISHED:
@@ -128,9 +135,16 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
 def main(argv: list[str]) -> int:
     try:
         cfg = parse_overrides(argv, PrognosisCmapssConfig())
-        missing = [p for fd in cfg.files for p in _paths(cfg.data_dir, fd) if not os.path.isfile(p)]
+        missing = [
+            p
+            for fd in cfg.files
+            for p in _paths(cfg.data_dir, fd)
+            if not os.path.isfile(p)
+        ]
         if missing:
-            raise FileNotFoundError(f"C-MAPSS file(s) not found: {', '.join(missing)} (set data_dir=)")
+            raise FileNotFoundError(
+                f"C-MAPSS file(s) not found: {', '.join(missing)} (set data_dir=)"
+            )
     except (ValueError, FileNotFoundError) as err:
         print(f"prognosis_cmapss: {err}", file=sys.stderr)
         return 2
@@ -139,7 +153,9 @@ def main(argv: list[str]) -> int:
     rows = {}
     for fd in cfg.files:
         rows[fd] = _run(cfg, fd)
-        print(f"{fd}: " + ", ".join(f"{k} {v}" for k, v in rows[fd].items()), flush=True)
+        print(
+            f"{fd}: " + ", ".join(f"{k} {v}" for k, v in rows[fd].items()), flush=True
+        )
     from jaxcal.diagnosis.report.write import write_text
 
     write_text(os.path.join(cfg.out, "README.md"), _readme(cfg, rows, argv))

@@ -21,6 +21,7 @@ TYPOS = [
     ("validate", ["engin=agtf30"], "engine"),
     ("validate", ["--engin", "agtf30"], "--engine"),  # a flag spelling
     ("bench", ["engine", "batchh=8"], "batch"),
+    ("prognose", ["train=a.csv", "test=b.csv", "out=o", "boundry=x:1"], "boundary"),
 ]
 
 
@@ -36,7 +37,8 @@ def test_a_typo_gets_one_line_with_the_closest_key(tool, argv, closest, capsys):
 
 
 @pytest.mark.parametrize(
-    "tool", ["train", "evaluate", "diagnose", "fleet", "generate", "validate", "bench"]
+    "tool",
+    ["train", "evaluate", "diagnose", "fleet", "generate", "validate", "bench", "prognose"],
 )
 @pytest.mark.parametrize("flag", ["--help", "-h"])
 def test_help_prints_the_usage_and_exits_0(tool, flag, capsys):

@@ -3,8 +3,8 @@
 ``prognose(model, train, test, ...)`` calibrates run-to-failure units and units in
 service, learns from the former how the health parameters degrade and where units fail
 (:mod:`~jaxcal.prognosis.degradation`), and predicts each unit's first crossing of a
-failure boundary with an interval (:mod:`~jaxcal.prognosis.predict`). The command line is
-``python -m jaxcal.prognose`` (docs/prognosis.md).
+failure boundary with an interval (:mod:`~jaxcal.prognosis.predict`). The command line
+is ``python -m jaxcal.prognose`` (docs/prognosis.md).
 """
 
 from jaxcal.prognosis.degradation import DegradationConfig, DegradationModel, fit

@@ -37,7 +37,9 @@ import numpy as np
 from jaxcal.prognosis.trajectories import Trajectories
 
 MIN_UNITS = 3  # the fleet's spread of trends needs a few run-to-failure units
-SHRINK = 0.01  # diagonal loading of the trend prior's covariance (share of its diagonal)
+SHRINK = (
+    0.01  # diagonal loading of the trend prior's covariance (share of its diagonal)
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,23 +84,34 @@ class DegradationModel:
     declared: np.ndarray
     lives: np.ndarray
 
+    rho: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     trend: str = "poly3"
 
     def to_json(self) -> dict:
         return {
             "parameters": list(self.names),
-            "trend": f"{self.trend} in age / {self.time_scale:g} ({describe(self.trend)})",
+            "trend": f"{self.trend} in age / {self.time_scale:g}",
+            "trend_form": describe(self.trend),
             "noise": dict(zip(self.names, self.noise.tolist(), strict=True)),
             "noise_scale": self.noise_scale,
             "boundary": {
                 n: {
-                    "value": float(b), "std": float(s), "direction": int(d),
+                    "value": float(b),
+                    "std": float(s),
+                    "direction": int(d),
                     "tightness": None if not np.isfinite(t) else float(t),
-                    "decides": bool(c), "declared": bool(k),
+                    "decides": bool(c),
+                    "declared": bool(k),
                 }  # fmt: skip
                 for n, b, s, d, t, c, k in zip(
-                    self.names, self.boundary, self.boundary_std, self.direction,
-                    self.tightness, self.decides, self.declared, strict=True,
+                    self.names,
+                    self.boundary,
+                    self.boundary_std,
+                    self.direction,
+                    self.tightness,
+                    self.decides,
+                    self.declared,
+                    strict=True,
                 )  # fmt: skip
             },
             "training_units": int(self.lives.size),
@@ -114,7 +127,7 @@ def _parse(trend: str) -> tuple[str, float]:
     """``("poly", N)`` or ``("exp", L)`` of a trend name (:func:`basis`)."""
     kind = next((k for k in ("poly", "exp") if str(trend).startswith(k)), "")
     try:
-        number = float(str(trend)[len(kind):]) if kind else float("nan")
+        number = float(str(trend)[len(kind) :]) if kind else float("nan")
     except ValueError:
         number = float("nan")
     if not number > 0:
@@ -215,7 +228,7 @@ def fit(
         (res**2).sum(axis=(0, 1)), 1e-300
     )
     rho = np.clip(lag, 0.0, 0.95)
-    noise = np.maximum(sigma * np.sqrt((1 + rho) / (1 - rho)), 1e-12)
+    noise = np.maximum(sigma * np.sqrt(1 - rho**2), 1e-12)  # the AR(1) innovation
 
     phi_end = np.asarray(basis(train.now / time_scale, config.trend))  # [U, D]
     phi_start = np.asarray(basis(train.start / time_scale, config.trend))
@@ -226,7 +239,9 @@ def fit(
     spread = end.std(0, ddof=1)
     tightness = spread / np.maximum(np.abs(drift), 1e-300)
     declared = np.array([n in boundary for n in train.names])
-    value = np.array([boundary.get(n, b) for n, b in zip(train.names, learned, strict=True)])
+    value = np.array(
+        [boundary.get(n, b) for n, b in zip(train.names, learned, strict=True)]
+    )
     direction = np.sign(np.where(declared, value - start.mean(0), drift))
     direction = np.where(direction == 0, 1.0, direction)
     # a declared limit is the user saying what ends a life: then only declared ones do
@@ -237,7 +252,8 @@ def fit(
         )
         raise ValueError(
             "no parameter's end of life is consistent across the training units "
-            f"(tightness, the spread at the end over the drift to it: {detail}; at most "
+            f"(tightness, the spread at the end over the drift to it: {detail}; at "
+            "most "
             f"{config.max_tightness} decides): declare a limit with boundary=name:value"
         )
     cov = np.stack([np.cov(beta[:, p].T) for p in range(len(train.names))])
@@ -249,6 +265,7 @@ def fit(
         prior_mean=beta.mean(0),
         prior_cov=cov,
         noise=noise,
+        rho=rho,
         noise_scale=float(noise_scale),
         boundary=value,
         boundary_std=np.where(declared, 0.0, spread),

@@ -99,7 +99,8 @@ def render_markdown(rep: dict) -> str:
             "",
             "## Score against the truth",
             "",
-            "| units | RMSE | mean error | PHM08 score | coverage | mean width | CRPS |",
+            "| units | RMSE | mean error | PHM08 score | coverage | mean width "
+            "| CRPS |",
             "|---|---|---|---|---|---|---|",
             f"| {s['units']} | {s['rmse']:.2f} | {s['mean_error']:+.2f} | "
             f"{s['phm08_score']:.1f} | {s['coverage']:.3f} "

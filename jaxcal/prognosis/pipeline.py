@@ -1,4 +1,4 @@
-"""``prognose``: calibrate a fleet, learn how its units degrade, predict each test unit's RUL.
+"""``prognose``: calibrate a fleet, learn how its units degrade, predict their RUL.
 
 The steps, each timed in :attr:`Prognosis.timings`:
 
@@ -38,7 +38,9 @@ from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0)
 # the trend families the held-out check chooses from (degradation.basis)
 TRENDS = ("poly1", "poly2", "poly3", "exp1", "exp2", "exp4")
-CHECK_SAMPLES = 300  # RUL samples per held-out unit (the check needs coverage, not tails)
+CHECK_SAMPLES = (
+    300  # RUL samples per held-out unit (the check needs coverage, not tails)
+)
 CHECK_CUTS = 2  # random ages per held-out training unit
 # a held-out unit is cut so that this share of its life, at least, is still to come or
 # already seen: a cut at the very start or the very end checks nothing

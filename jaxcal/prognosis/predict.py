@@ -2,7 +2,8 @@
 
 For each unit and parameter the trend's posterior given the unit's own trajectory is
 closed form (Bayesian linear regression on the fleet's prior, Bishop, *PRML* eq. 3.50-
-3.51): ``Lambda = Sigma^-1 + A^T A / s^2``, ``m = Lambda^-1 (Sigma^-1 mu + A^T y / s^2)``.
+3.51): ``Lambda = Sigma^-1 + A^T A / s^2``,
+``m = Lambda^-1 (Sigma^-1 mu + A^T y / s^2)``, on the AR(1)-whitened rows.
 Trends drawn from it, and boundaries drawn from the fleet's spread, are followed from
 the unit's age ``now`` over a horizon of twice the longest training life; the first
 crossing (linearly interpolated between grid points) is the sample's end of life, the
@@ -68,22 +69,30 @@ class RulPrediction:
 @functools.partial(jax.jit, static_argnames=("num_samples", "trend", "bands"))
 def _predict_all(key, arrays, prior, num_samples: int, trend: str, horizon, bands):
     """The per-unit RUL samples, driver indices and trend bands (mapped over units)."""
-    mu, cov, noise, bound, bound_std, direction, decides, quant = prior
+    mu, cov, noise, rho, bound, bound_std, direction, decides, quant = prior
     prec = jnp.linalg.inv(cov)  # [P, D, D]
+
+    def whiten(v, r):
+        """Prais-Winsten: the AR(1) residual's rows made independent (valid rows are a
+        prefix of the unit's, so a row and the one before it are both used)."""
+        head = v[:1] * jnp.sqrt(1.0 - r**2)
+        return jnp.concatenate([head, v[1:] - r * v[:-1]])
 
     def one_unit(args):
         key, s, y, mask, now, start, scale = args  # s, mask [T]; y [T, P]; scalars
-        a = basis(s, trend) * mask[:, None]  # [T, D]
+        phi = basis(s, trend)  # [T, D]
 
-        def posterior(y_p, mu_p, prec_p, noise_p):
+        def posterior(y_p, mu_p, prec_p, noise_p, rho_p):
+            a = whiten(phi, rho_p) * mask[:, None]
+            yw = whiten(y_p, rho_p) * mask
             lam = prec_p + a.T @ a / noise_p**2
-            rhs = prec_p @ mu_p + a.T @ (y_p * mask) / noise_p**2
+            rhs = prec_p @ mu_p + a.T @ yw / noise_p**2
             lam_chol = jnp.linalg.cholesky(lam)
             mean = jax.scipy.linalg.cho_solve((lam_chol, True), rhs)
             return mean, lam_chol
 
-        mean, lam_chol = jax.vmap(posterior, in_axes=(1, 0, 0, 0))(
-            y, mu, prec, noise * scale
+        mean, lam_chol = jax.vmap(posterior, in_axes=(1, 0, 0, 0, 0))(
+            y, mu, prec, noise * scale, rho
         )
         k_beta, k_bound = jax.random.split(key)
         z = jax.random.normal(k_beta, (num_samples,) + mean.shape)  # [K, P, D]
@@ -114,7 +123,9 @@ def _predict_all(key, arrays, prior, num_samples: int, trend: str, horizon, band
         # quantiles are exact, no samples needed
         plot = start + (now + horizon - start) * jnp.linspace(0.0, 1.0, PLOT_GRID)
         phi = basis(plot, trend)  # [G, D]
-        half = jax.vmap(lambda l: jax.scipy.linalg.solve_triangular(l, phi.T, lower=True))
+        half = jax.vmap(
+            lambda l: jax.scipy.linalg.solve_triangular(l, phi.T, lower=True)
+        )
         sd = jnp.sqrt(jnp.sum(half(lam_chol) ** 2, axis=1))  # [P, G]
         centre = mean @ phi.T  # [P, G]
         band = centre[:, None, :] + quant[None, :, None] * sd[:, None, :]  # [P, 3, G]
@@ -140,7 +151,8 @@ def predict(
     held-out check predicts every scale in one call)."""
     if tuple(traj.names) != tuple(model.names):
         raise ValueError(
-            f"trajectories of {list(traj.names)}, but the degradation model was learned "
+            f"trajectories of {list(traj.names)}, but the degradation model was "
+            "learned "
             f"on {list(model.names)}"
         )
     if not 0.0 < coverage < 1.0:
@@ -148,7 +160,7 @@ def predict(
     scale = model.time_scale
     tail = (1.0 - coverage) / 2.0
     prior = (
-        model.prior_mean, model.prior_cov, model.noise,
+        model.prior_mean, model.prior_cov, model.noise, model.rho,
         model.boundary, model.boundary_std, model.direction, model.decides,
         scipy.stats.norm.ppf([tail, 0.5, 1.0 - tail]),
     )  # fmt: skip
@@ -156,7 +168,9 @@ def predict(
         traj.time / scale, traj.theta, traj.mask.astype(np.float64),
         traj.now / scale, traj.start / scale,
         np.broadcast_to(
-            model.noise_scale if noise_scale is None else np.asarray(noise_scale, float),
+            model.noise_scale
+            if noise_scale is None
+            else np.asarray(noise_scale, float),
             traj.unit.shape,
         ),
     )  # fmt: skip

@@ -36,7 +36,8 @@ def score(rul, low, high, truth, samples=None) -> dict:
     rul, low, high, truth = (np.asarray(v, np.float64) for v in (rul, low, high, truth))
     if truth.shape != rul.shape:
         raise ValueError(
-            f"truth has {truth.size} values for {rul.size} predicted units; expected one "
+            f"truth has {truth.size} values for {rul.size} predicted units; expected "
+            "one "
             "true RUL per unit, in unit order"
         )
     err = rul - truth

@@ -73,7 +73,7 @@ class Trajectories:
         )
 
     def truncated(self, keep_rows: np.ndarray) -> Trajectories:
-        """Each unit's first ``keep_rows [U]`` used rows (a unit seen earlier in life)."""
+        """Each unit's first ``keep_rows [U]`` used rows (a unit seen earlier on)."""
         rank = np.cumsum(self.mask, axis=1)
         return dataclasses.replace(
             self, mask=self.mask & (rank <= np.asarray(keep_rows)[:, None])
@@ -119,17 +119,23 @@ def from_arrays(
                 f"{MIN_ROWS} rows with a finite estimate"
             )
         if np.unique(time[r]).size != r.size:
-            raise ValueError(f"{label}: unit {u} repeats a time; expected one row per time")
+            raise ValueError(
+                f"{label}: unit {u} repeats a time; expected one row per time"
+            )
     length = max(r.size for r in rows)
     order = [r[np.argsort(time[r], kind="stable")] for r in rows]
-    pad = np.stack([np.concatenate([r, np.full(length - r.size, r[-1])]) for r in order])
+    pad = np.stack(
+        [np.concatenate([r, np.full(length - r.size, r[-1])]) for r in order]
+    )
     mask = np.arange(length)[None, :] < np.array([r.size for r in order])[:, None]
     return Trajectories(
         unit=ids, time=time[pad], theta=theta[pad], std=std[pad], mask=mask, names=names
     )
 
 
-def from_result(result, names: Sequence[str] | None = None, *, label="rows") -> Trajectories:
+def from_result(
+    result, names: Sequence[str] | None = None, *, label="rows"
+) -> Trajectories:
     """The trajectories of a :class:`~jaxcal.calibrators.front.result.CalibrationResult`
     (its ``theta``, ``theta_std`` and ``valid``), of ``names`` (default: all)."""
     traj = from_arrays(
