@@ -95,14 +95,7 @@ def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
         cut_units = np.repeat(fold, CHECK_CUTS)
         share = rng.uniform(*CUT_RANGE, size=cut_units.size)
         keep = np.maximum(np.round(rows[cut_units] * (1 - share)), MIN_ROWS).astype(int)
-        cut = dataclasses.replace(
-            train,
-            unit=train.unit[cut_units],
-            time=train.time[cut_units],
-            theta=train.theta[cut_units],
-            std=train.std[cut_units],
-            mask=train.mask[cut_units],
-        ).truncated(keep)
+        cut = train.units(cut_units).truncated(keep)
         yield train.units(~held), cut, train.now[cut_units] - cut.now
 
 
@@ -127,10 +120,7 @@ def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
         cases += truth.size
         # every scale in one call: the cut units repeated once per scale
         each = np.tile(np.arange(truth.size), len(scales))
-        batch = dataclasses.replace(
-            cut, unit=cut.unit[each], time=cut.time[each], theta=cut.theta[each],
-            std=cut.std[each], mask=cut.mask[each],
-        )  # fmt: skip
+        batch = cut.units(each)
         per_unit = np.repeat(np.asarray(scales, float), truth.size)
         for i, trend in enumerate(trends):
             learned = degradation.fit(kept, _deg_config(cfg, trend), boundary=boundary)

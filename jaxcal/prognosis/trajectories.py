@@ -60,16 +60,18 @@ class Trajectories:
             self, theta=self.theta[..., idx], std=self.std[..., idx], names=tuple(names)
         )
 
-    def units(self, keep: np.ndarray) -> Trajectories:
-        """The units where ``keep [U]`` is True."""
-        keep = np.asarray(keep, bool)
+    def units(self, which: np.ndarray) -> Trajectories:
+        """The units picked by ``which``: a ``[U]`` bool mask, or indices (repeats
+        allowed: a unit may be seen twice, cut at two ages)."""
+        which = np.asarray(which)
+        index = np.flatnonzero(which) if which.dtype == bool else which
         return dataclasses.replace(
             self,
-            unit=self.unit[keep],
-            time=self.time[keep],
-            theta=self.theta[keep],
-            std=self.std[keep],
-            mask=self.mask[keep],
+            unit=self.unit[index],
+            time=self.time[index],
+            theta=self.theta[index],
+            std=self.std[index],
+            mask=self.mask[index],
         )
 
     def truncated(self, keep_rows: np.ndarray) -> Trajectories:
