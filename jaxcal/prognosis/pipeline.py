@@ -247,7 +247,7 @@ def prognose(
     notes += [f"train: {n}" for n in cal.notes] + [f"test: {n}" for n in cal_test.notes]
     return prognose_trajectories(
         from_result(cal, label="train"),
-        from_result(cal_test, label="test"),
+        from_result(cal_test, label="test", min_rows=1),
         boundary,
         config,
         timings=timings,

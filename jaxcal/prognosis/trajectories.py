@@ -83,15 +83,24 @@ class Trajectories:
 
 
 def from_arrays(
-    unit, time, theta, names: Sequence[str], std=None, valid=None, *, label="rows"
+    unit,
+    time,
+    theta,
+    names: Sequence[str],
+    std=None,
+    valid=None,
+    *,
+    label="rows",
+    min_rows: int = MIN_ROWS,
 ) -> Trajectories:
     """:class:`Trajectories` from per-row arrays ``unit [N]``, ``time [N]``,
     ``theta [N, P]`` (optional ``std [N, P]``, ``valid [N]``).
 
     Rows are grouped by unit in first-appearance order and sorted by time within a
     unit. Raises ``ValueError`` naming the unit for a unit with fewer than
-    :data:`MIN_ROWS` usable rows or a time that repeats, and naming the rows for a
-    non-finite time.
+    ``min_rows`` usable rows (a run-to-failure unit's trend needs :data:`MIN_ROWS`; a
+    unit to predict needs one: with few rows its posterior is mostly the fleet's
+    prior) or a time that repeats, and naming the rows for a non-finite time.
     """
     unit = np.asarray(unit)
     time = np.asarray(time, np.float64)
@@ -111,37 +120,44 @@ def from_arrays(
             "expected a number (cycle) per row"
         )
     ok &= np.all(np.isfinite(theta), axis=1)
-    ids, first = np.unique(unit, return_index=True)
+    ids, first, inverse = np.unique(unit, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))  # a unit's place in first-appearance order
     ids = ids[np.argsort(first)]
-    rows = [np.flatnonzero((unit == u) & ok) for u in ids]
-    for u, r in zip(ids, rows, strict=True):
-        if r.size < MIN_ROWS:
-            raise ValueError(
-                f"{label}: unit {u} has {r.size} usable row(s); a trend needs at least "
-                f"{MIN_ROWS} rows with a finite estimate"
-            )
-        if np.unique(time[r]).size != r.size:
-            raise ValueError(
-                f"{label}: unit {u} repeats a time; expected one row per time"
-            )
-    length = max(r.size for r in rows)
-    order = [r[np.argsort(time[r], kind="stable")] for r in rows]
-    pad = np.stack(
-        [np.concatenate([r, np.full(length - r.size, r[-1])]) for r in order]
-    )
-    mask = np.arange(length)[None, :] < np.array([r.size for r in order])[:, None]
+    key = rank[inverse.ravel()]
+    used = np.flatnonzero(ok)
+    order = used[np.lexsort((time[used], key[used]))]  # by unit, then by time
+    counts = np.bincount(key[used], minlength=ids.size)
+    short = np.flatnonzero(counts < min_rows)
+    if short.size:
+        u = short[0]
+        raise ValueError(
+            f"{label}: unit {ids[u]} has {counts[u]} usable row(s); expected at least "
+            f"{min_rows} with a finite estimate"
+            + (f" ({short.size} units short)" if short.size > 1 else "")
+        )
+    repeats = np.flatnonzero((np.diff(key[order]) == 0) & (np.diff(time[order]) == 0))
+    if repeats.size:
+        raise ValueError(
+            f"{label}: unit {ids[key[order[repeats[0]]]]} repeats a time; expected "
+            "one row per time"
+        )
+    length = int(counts.max())
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    # each unit's rows, its last one repeated as padding
+    pad = order[starts[:, None] + np.minimum(np.arange(length), counts[:, None] - 1)]
+    mask = np.arange(length)[None, :] < counts[:, None]
     return Trajectories(
         unit=ids, time=time[pad], theta=theta[pad], std=std[pad], mask=mask, names=names
     )
 
 
 def from_result(
-    result, names: Sequence[str] | None = None, *, label="rows"
+    result, names: Sequence[str] | None = None, *, label="rows", min_rows=MIN_ROWS
 ) -> Trajectories:
     """The trajectories of a :class:`~jaxcal.calibrators.front.result.CalibrationResult`
     (its ``theta``, ``theta_std`` and ``valid``), of ``names`` (default: all)."""
     traj = from_arrays(
         result.unit, result.time, result.theta, result.theta_names,
-        std=result.theta_std, valid=result.valid, label=label,
+        std=result.theta_std, valid=result.valid, label=label, min_rows=min_rows,
     )  # fmt: skip
     return traj if names is None else traj.select(names)

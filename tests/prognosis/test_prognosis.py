@@ -21,6 +21,7 @@ from jaxcal.prognosis import (
     degradation,
     from_arrays,
     phm08_score,
+    predict,
     prognose,
     prognose_trajectories,
     read_truth,
@@ -165,6 +166,26 @@ def test_the_driver_is_the_parameter_whose_boundary_comes_first():
     life = pred.now + truth
     wear_rul = 0.5 * life - pred.now  # the wear limit is reached at half life
     np.testing.assert_allclose(pred.rul[early], wear_rul[early], atol=12.0)
+
+
+def test_rows_are_grouped_by_unit_and_sorted_by_time_in_any_order():
+    unit = np.array(["b", "a", "b", "a", "b", "a"])
+    time = np.array([3.0, 2.0, 1.0, 1.0, 2.0, 3.0])
+    theta = np.column_stack([time * 10 + (unit == "b"), time])
+    traj = from_arrays(unit, time, theta, NAMES)
+    assert traj.unit.tolist() == ["b", "a"]  # first-appearance order
+    np.testing.assert_array_equal(traj.time, [[1, 2, 3], [1, 2, 3]])
+    np.testing.assert_array_equal(traj.theta[..., 0], [[11, 21, 31], [10, 20, 30]])
+
+
+def test_a_unit_to_predict_may_have_a_single_row(toy):
+    """Its posterior is the fleet's prior moved by one point: a RUL, a wide interval."""
+    train, test, _, result = toy
+    one = from_arrays([7], [5.0], [[0.99, 0.0]], NAMES, min_rows=1)
+    pred = predict(result.model, one, jax.random.PRNGKey(0), num_samples=300)
+    assert np.isfinite(pred.rul[0]) and pred.rul_low[0] < pred.rul[0] < pred.rul_high[0]
+    lives = result.model.lives
+    assert lives.min() - 5 - 30 < pred.rul[0] < lives.max()  # within the fleet's lives
 
 
 def test_errors_name_the_problem(toy):
