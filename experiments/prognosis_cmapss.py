@@ -51,6 +51,16 @@ class PrognosisCmapssConfig:
     method: str = "ukf"
     seed: int = 0
     out: str = "results/prognosis"
+    all_figures: bool = False  # a figure of every test unit (else a selection)
+
+
+def _shown(units, truth, rul) -> list:
+    """The units drawn for the committed pages (every unit's figure is ~35 kB): one
+    per tenth of the true RULs and the five worst predictions."""
+    by_truth = np.argsort(truth, kind="stable")
+    spread = by_truth[np.linspace(0, by_truth.size - 1, 10).round().astype(int)]
+    worst = np.argsort(-np.abs(rul - truth), kind="stable")[:5]
+    return [units[i] for i in sorted(set(spread) | set(worst))]
 
 
 def _paths(data_dir: str, fd: str) -> tuple[str, str, str]:
@@ -78,6 +88,7 @@ def _run(cfg: PrognosisCmapssConfig, fd: str) -> dict:
         os.path.join(cfg.out, fd), result, truth=truth,
         source={"train": train, "test": test, "truth": truth_path},
         config={**config_to_dict(cfg), "file": fd},
+        unit_figures=None if cfg.all_figures else _shown(pred.unit, truth, pred.rul),
     )  # fmt: skip
     return scores
 
@@ -86,8 +97,10 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
     lines = [
         "# Remaining useful life on NASA C-MAPSS, from the calibrated twin",
         "",
-        f"Command: `python experiments/prognosis_cmapss.py {' '.join(argv)}`".rstrip()
-        + "` (one file per folder below: `rul.csv`, `report.md`, figures).",
+        "Command: `"
+        + f"python experiments/prognosis_cmapss.py {' '.join(argv)}".rstrip()
+        + "` (one folder per file below: `rul.csv`, `report.md`, figures; the"
+        " command line `python -m jaxcal.prognose` writes the same folder).",
         "",
         "The UKF calibrates the `cmapss` engine's HPC efficiency and flow on every row "
         "of the training and test units; the fleet's trend prior and failure boundary "

@@ -42,9 +42,9 @@ def _unit_table(rep: dict) -> list[str]:
     ]
     for i in picked:
         r = rows[i]
-        link = rep["figures"]["units"][r["unit"]]
+        link = rep["figures"]["units"].get(r["unit"])  # drawn units only
         cells = [
-            f"[{r['unit']}]({link})",
+            f"[{r['unit']}]({link})" if link else r["unit"],
             _f(r["now"], ".0f"),
             _f(r["rul"]),
             f"[{_f(r['low'])}, {_f(r['high'])}]",
@@ -145,7 +145,8 @@ def render_markdown(rep: dict) -> str:
         "",
         f"![predicted RUL]({rep['figures']['fleet']})",
         "",
-        f"One figure per unit in [{UNITS_DIR}/]({UNITS_DIR}/) (linked above).",
+        f"{len(rep['figures']['units'])} unit figure(s) in [{UNITS_DIR}/]({UNITS_DIR}/)"
+        " (linked above).",
     ]
     if rep["notes"]:
         lines += ["", "## Notes", "", *(f"- {n}" for n in rep["notes"])]

@@ -233,7 +233,14 @@ def plot_fleet(path: str, prediction, truth=None) -> str:
 
 
 def write_prognosis(
-    out, result, *, truth=None, source=None, config=None, progress: bool = True
+    out,
+    result,
+    *,
+    truth=None,
+    source=None,
+    config=None,
+    progress: bool = True,
+    unit_figures=None,
 ) -> dict:
     """Write ``rul.csv``, ``report.json``, ``report.md`` and the figures into ``out``.
 
@@ -244,6 +251,7 @@ def write_prognosis(
         source: what the data came from (``{"train": path, "test": path, ...}``).
         config: the run's settings (a dataclass or a dict), stored as given.
         progress: a progress line on stderr while the unit figures are drawn.
+        unit_figures: the units (ids) to draw a figure of; None: every unit.
 
     Returns:
         The report dict (as in ``report.json``, with ``figures`` and ``out``).
@@ -259,9 +267,13 @@ def write_prognosis(
     height = 1.1 + 2.2 * int(np.sum(result.model.decides))
     fig = Figure(figsize=(7.0, height))
     units = {}
-    bar = progress_bar(
-        range(len(p.unit)), desc="prognosis plots", leave=False, disable=not progress
-    )
+    wanted = None if unit_figures is None else {unit_label(u) for u in unit_figures}
+    drawn = [
+        u
+        for u in range(len(p.unit))
+        if wanted is None or unit_label(p.unit[u]) in wanted
+    ]
+    bar = progress_bar(drawn, desc="prognosis plots", leave=False, disable=not progress)
     for u in bar:
         name = f"unit_{unit_label(p.unit[u])}.png"
         t_u = None if truth is None else truth[u]

@@ -254,6 +254,24 @@ def test_write_prognosis_takes_a_real_prognosis(toy, tmp_path):
     assert (tmp_path / "rul.csv").is_file() and (tmp_path / "report.md").is_file()
 
 
+def test_write_prognosis_draws_the_units_asked_for_and_links_only_those(toy, tmp_path):
+    from jaxcal.prognosis.report import unit_label, write_prognosis
+
+    _, _, truth, result = toy
+    first = unit_label(result.prediction.unit[0])
+    rep = write_prognosis(
+        tmp_path, result, truth=truth, progress=False, unit_figures=[first]
+    )
+    assert sorted(p.name for p in (tmp_path / "units").iterdir()) == [
+        f"unit_{first}.png"
+    ]
+    assert list(rep["figures"]["units"]) == [first]
+    page = (tmp_path / "report.md").read_text()
+    assert f"[{first}](units/unit_{first}.png)" in page
+    second = unit_label(result.prediction.unit[1])
+    assert f"units/unit_{second}.png" not in page
+
+
 def test_phm08_and_score_on_hand_computed_cases():
     # d = -13: exp(13/13) - 1; d = 10: exp(10/10) - 1; d = 0: 0
     assert phm08_score(np.array([-13.0])) == pytest.approx(np.e - 1.0)
