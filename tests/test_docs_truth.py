@@ -74,7 +74,9 @@ def _dotted_keys(cfg, prefix: str = "") -> set[str]:
 def _valid_keys() -> set[str]:
     from jaxcal.calibrators.front.door import _READER_OPTIONS, calibrate
     from jaxcal.calibrators.methods import METHODS, options_of
-    from jaxcal.cli import bench, diagnose, evaluate, fleet, generate, train, validate
+    from jaxcal.cli import (
+        bench, diagnose, evaluate, fleet, generate, prognose, train, validate,
+    )  # fmt: skip
     from jaxcal.cli.args import _USAGE_KEY
     from jaxcal.fleet.method import OPTION_PREFIXES
     from jaxcal.model import Model
@@ -87,11 +89,11 @@ def _valid_keys() -> set[str]:
             keys |= _dotted_keys(agent, "agent.")
     for cfg in (
         diagnose.DiagnoseConfig, fleet.FleetConfig, DatasetConfig, bench.BenchArgs,
-        validate.ValidateArgs,
+        validate.ValidateArgs, prognose.PrognoseConfig,
     ):  # fmt: skip
         keys |= _dotted_keys(cfg)
     keys |= set(evaluate.KEYS)
-    for cli in (train, evaluate, diagnose, fleet, generate, validate, bench):
+    for cli in (train, evaluate, diagnose, fleet, generate, validate, bench, prognose):
         keys |= {a for a, _ in _USAGE_KEY.findall(cli.USAGE) if a}
     for method, config_type in METHODS.items():
         options = set(options_of(config_type))
