@@ -67,6 +67,9 @@ class DegradationModel:
         decides: ``[P]`` the boundaries that decide end of life.
         declared: ``[P]`` the boundaries the user gave.
         lives: ``[U]`` the training units' lives (last minus first time, plus one).
+        rho: ``[P]`` the lag-one autocorrelation of the noise about a trend.
+        end_mean, end_std: ``[P]`` where the training units' trends end (the learned
+            boundary, kept beside a declared one to compare).
         trend: the trend family (:func:`basis`).
     """
 
@@ -85,6 +88,8 @@ class DegradationModel:
     lives: np.ndarray
 
     rho: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    end_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    end_std: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     trend: str = "poly3"
 
     def to_json(self) -> dict:
@@ -102,8 +107,9 @@ class DegradationModel:
                     "tightness": None if not np.isfinite(t) else float(t),
                     "decides": bool(c),
                     "declared": bool(k),
-                }  # fmt: skip
-                for n, b, s, d, t, c, k in zip(
+                    "training_ends": {"mean": float(m), "std": float(e)},
+                }
+                for n, b, s, d, t, c, k, m, e in zip(
                     self.names,
                     self.boundary,
                     self.boundary_std,
@@ -111,8 +117,10 @@ class DegradationModel:
                     self.tightness,
                     self.decides,
                     self.declared,
+                    self.end_mean,
+                    self.end_std,
                     strict=True,
-                )  # fmt: skip
+                )
             },
             "training_units": int(self.lives.size),
             "training_life": {
@@ -266,6 +274,8 @@ def fit(
         prior_cov=cov,
         noise=noise,
         rho=rho,
+        end_mean=learned,
+        end_std=spread,
         noise_scale=float(noise_scale),
         boundary=value,
         boundary_std=np.where(declared, 0.0, spread),

@@ -114,10 +114,12 @@ def render_markdown(rep: dict) -> str:
             "## Trend and noise scale (held-out training units)",
             "",
             f"{check['cases']} cases: training units cut at random ages, predicted by "
-            "the model learned on the other folds. Chosen: the lowest CRPS (bold).",
+            "the model learned on the other folds. Chosen (bold): the lowest CRPS "
+            "among the honest pairs, whose coverage is within two binomial standard "
+            "errors of the nominal one.",
             "",
-            "| trend | noise scale | CRPS | coverage | RMSE |",
-            "|---|---|---|---|---|",
+            "| trend | noise scale | CRPS | coverage | RMSE | honest |",
+            "|---|---|---|---|---|---|",
         ]
         for i, trend in enumerate(check["trends"]):
             for j, scale in enumerate(check["scales"]):
@@ -125,6 +127,8 @@ def render_markdown(rep: dict) -> str:
                 cells = [
                     trend, _f(scale, ".3g"), _f(check["crps"][i][j]),
                     _f(check["coverage"][i][j], ".3f"), _f(check["rmse"][i][j]),
+                    "–" if "honest" not in check
+                    else ("yes" if check["honest"][i][j] else "no"),
                 ]  # fmt: skip
                 if chosen:
                     cells = [f"**{c}**" for c in cells]

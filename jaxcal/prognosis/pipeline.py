@@ -12,8 +12,9 @@ The steps, each timed in :attr:`Prognosis.timings`:
    random ages (a unit seen before its end, as a test unit is), predicted by the model
    learned on the other folds, and scored against their known end; the trend family
    (:data:`TRENDS`) and noise scale (:data:`NOISE_SCALES`) are those of the lowest
-   held-out CRPS, a proper score of the whole predicted distribution (calibrated and
-   sharp at once), unless given.
+   held-out CRPS (a proper score of the whole predicted distribution) among the pairs
+   whose held-out coverage is honest (within two binomial standard errors of the
+   nominal one), unless given; if none is, the best covered, and a note says so.
 4. **predict** (:mod:`jaxcal.prognosis.predict`).
 
 :func:`prognose_trajectories` runs steps 2-4 on trajectories from anywhere.
@@ -35,7 +36,7 @@ from jaxcal.prognosis.predict import RulPrediction, predict
 from jaxcal.prognosis.score import crps
 from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
 
-NOISE_SCALES = (1.0, 1.5, 2.0, 3.0)
+NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)
 # the trend families the held-out check chooses from (degradation.basis)
 TRENDS = ("poly1", "poly2", "poly3", "exp1", "exp2", "exp4")
 CHECK_SAMPLES = (
@@ -101,7 +102,8 @@ def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
 
 def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
     """Held-out CRPS, coverage and RMSE of each trend family and noise scale; the
-    choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`)."""
+    choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`) among the honest
+    pairs (module docstring)."""
     num = train.unit.size
     if num - 1 < degradation.MIN_UNITS:
         raise ValueError(
@@ -140,17 +142,51 @@ def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
                 )
     coverage, rmse = hits[..., 0] / cases, np.sqrt(hits[..., 1] / cases)
     mean_crps = hits[..., 2] / cases
-    i, j = np.unravel_index(np.argmin(mean_crps), mean_crps.shape)
+    # honest: held-out coverage within two binomial standard errors of the nominal
+    slack = 2.0 * np.sqrt(cfg.coverage * (1.0 - cfg.coverage) / cases)
+    honest = coverage >= cfg.coverage - slack
+    pick = np.where(honest, mean_crps, np.inf) if honest.any() else -coverage
+    i, j = np.unravel_index(np.argmin(pick), pick.shape)
     return {
         "trends": list(trends),
         "scales": list(scales),
         "crps": mean_crps.tolist(),
         "coverage": coverage.tolist(),
         "rmse": rmse.tolist(),
+        "honest": honest.tolist(),
         "trend": trends[i],
         "noise_scale": float(scales[j]),
         "cases": int(cases),
     }
+
+
+def _check_notes(check: dict, cfg: PrognosisConfig) -> list[str]:
+    if "honest" not in check or np.any(check["honest"]):
+        return []
+    best = max(max(row) for row in check["coverage"])
+    return [
+        f"no trend and noise scale reached the nominal {cfg.coverage:.0%} coverage on "
+        f"held-out training units (at best {best:.2f}): the intervals are too narrow "
+        "(a biased calibration, or test units unlike the training ones)"
+    ]
+
+
+def _boundary_notes(model: degradation.DegradationModel) -> list[str]:
+    """A declared limit the training units' calibrated ends do not reach (or pass):
+    the calibration lags or is biased there, and the RULs with it."""
+    notes = []
+    for p in np.flatnonzero(model.declared):
+        mean, std = model.end_mean[p], model.end_std[p]
+        if abs(model.boundary[p] - mean) > 2.0 * std:
+            notes.append(
+                f"the training units end at a calibrated {model.names[p]} of "
+                f"{mean:.4g} +- {std:.2g}, not at the declared "
+                f"{model.boundary[p]:.4g}: "
+                "the calibrated estimate lags or is biased there, so the RULs are too "
+                "long or too short (without boundary= the limit is learned from the "
+                "calibrated ends)"
+            )
+    return notes
 
 
 def _deg_config(cfg: PrognosisConfig, trend: str) -> degradation.DegradationConfig:
@@ -195,7 +231,7 @@ def prognose_trajectories(
         num_samples=config.samples, coverage=config.coverage,
     )  # fmt: skip
     timings["predict"] = time.perf_counter() - start
-    notes = list(notes)
+    notes = list(notes) + _check_notes(check, config) + _boundary_notes(model)
     censored = int((pred.censored > 0.5).sum())
     if censored:
         notes.append(

@@ -148,6 +148,9 @@ def test_a_declared_boundary_overrides_and_always_decides(toy):
         train, test, {"health": LIMIT + 0.1}, dataclasses.replace(FAST, seed=3)
     )
     assert np.all(earlier.prediction.rul < result.prediction.rul)
+    # the training units end near LIMIT, not at the declared LIMIT + 0.1: said so
+    assert any("not at the declared 0.7" in n for n in earlier.notes), earlier.notes
+    assert not any("not at the declared" in n for n in result.notes)
     assert np.median(result.prediction.rul - earlier.prediction.rul) > 5.0
 
 
