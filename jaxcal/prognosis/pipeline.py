@@ -3,9 +3,9 @@
 The steps, each timed in :attr:`Prognosis.timings`:
 
 1. **calibrate** the run-to-failure units (``train``) and the units in service
-   (``test``) with any method of :func:`jaxcal.calibrate` (the UKF by default). The
-   test units use the noise the training calibration settled on (given or estimated),
-   so that both fleets' trajectories are filtered alike.
+   (``test``) with any method of :func:`jaxcal.calibrate` (the UKF by default), in one
+   call: one compiled program runs both fleets, with one noise (given, or estimated
+   on both), so that their trajectories are filtered alike.
 2. **learn** the fleet's degradation (:mod:`jaxcal.prognosis.degradation`): the trend
    prior and the failure boundaries from the training units' ends.
 3. **check the intervals on held-out training units**: each fold's units are cut at
@@ -30,11 +30,13 @@ import jax
 import numpy as np
 
 from jaxcal.calibrators.front.door import calibrate
+from jaxcal.data.dataset import Dataset
+from jaxcal.data.readers import read_dataset
 from jaxcal.models import load
 from jaxcal.prognosis import degradation
 from jaxcal.prognosis.predict import RulPrediction, predict
 from jaxcal.prognosis.score import crps
-from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_result
+from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_arrays
 
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)
 # the trend families the held-out check chooses from (degradation.basis)
@@ -260,32 +262,59 @@ def prognose(
         train, test: paths or :class:`~jaxcal.data.dataset.Dataset` s; every training
             unit's last row is its end of life.
         theta: the calibrated health parameters (default: all the model's).
-        noise: as :func:`jaxcal.calibrate`'s (default: estimated on ``train``).
+        noise: as :func:`jaxcal.calibrate`'s (default: estimated on both fleets).
         boundary: parameter -> declared failure limit (default: learned).
         config: :class:`PrognosisConfig`.
         outputs: the outputs to calibrate on (default: every one in the data).
         progress: progress lines on stderr.
     """
     model = load(model)
-    timings, notes = {}, []
+    timings = {}
     start = time.perf_counter()
+    both, shift, num_train = _one_fleet(model, train, test, outputs)
     cal = calibrate(
-        model, train, config.method, theta, noise, outputs=outputs,
-        seed=config.seed, progress=progress,
-    )  # fmt: skip
-    timings["calibrate_train"] = time.perf_counter() - start
-    start = time.perf_counter()
-    cal_test = calibrate(
-        model, test, config.method, cal.theta_names, cal.noise,
-        outputs=cal.output_names, seed=config.seed, progress=progress,
-    )  # fmt: skip
-    timings["calibrate_test"] = time.perf_counter() - start
-    notes += [f"train: {n}" for n in cal.notes] + [f"test: {n}" for n in cal_test.notes]
-    return prognose_trajectories(
-        from_result(cal, label="train"),
-        from_result(cal_test, label="test", min_rows=1),
-        boundary,
-        config,
-        timings=timings,
-        notes=notes,
+        model, both, config.method, theta, noise, seed=config.seed, progress=progress
     )
+    timings["calibrate"] = time.perf_counter() - start
+    notes = [f"calibration: {n}" for n in cal.notes]
+    if cal.notes:
+        notes.append(
+            "(the calibration ran both fleets at once: test unit u is unit "
+            f"u + {shift} in its notes)"
+        )
+    rows = {"train": slice(0, num_train), "test": slice(num_train, None)}
+    traj = {
+        part: from_arrays(
+            cal.unit[sl] - (shift if part == "test" else 0),
+            cal.time[sl],
+            cal.theta[sl],
+            cal.theta_names,
+            std=None if cal.theta_std is None else cal.theta_std[sl],
+            valid=cal.valid[sl],
+            label=part,
+            min_rows=1 if part == "test" else MIN_ROWS,
+        )  # fmt: skip
+        for part, sl in rows.items()
+    }
+    return prognose_trajectories(
+        traj["train"], traj["test"], boundary, config, timings=timings, notes=notes
+    )
+
+
+def _one_fleet(model, train, test, outputs):
+    """``(data, shift, rows of train)``: the training and test units as one data set
+    (test unit ids shifted by ``shift`` past the training ones), so that one compiled
+    calibration runs both fleets in one batch, with one noise estimate."""
+    a = read_dataset(train, model).for_model(model, outputs)
+    b = read_dataset(test, model).for_model(model, a.output_names)
+    shift = int(a.unit.max()) + 1 - int(b.unit.min())
+    both = Dataset(
+        w=np.concatenate([a.w, b.w]),
+        x=np.concatenate([a.x, b.x]),
+        condition_names=a.condition_names,
+        output_names=a.output_names,
+        unit=np.concatenate([a.unit, b.unit + shift]),
+        time=np.concatenate([a.time, b.time]),
+        source=f"{a.source} + {b.source}",
+    )
+    return both, shift, a.num_rows

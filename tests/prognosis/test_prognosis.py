@@ -352,10 +352,11 @@ def test_prognose_end_to_end_on_the_heat_exchanger():
         model, train, test, theta=("fouling", "dp_coeff"), noise=HX_NOISE,
         boundary={"fouling": HX_LIMIT}, config=config, progress=False,
     )  # fmt: skip
-    assert set(result.timings) == {
-        "calibrate_train", "calibrate_test", "check", "learn", "predict"
-    }  # fmt: skip
+    assert set(result.timings) == {"calibrate", "check", "learn", "predict"}
     assert result.train.names == ("fouling", "dp_coeff") and result.train.unit.size == 6
+    # both fleets ran in one calibration; the test units keep their own ids
+    assert result.test.unit.tolist() == [1, 2, 3]
+    assert result.train.unit.tolist() == [1, 2, 3, 4, 5, 6]
     # the UKF's fouling at each training unit's end is near the limit it failed at
     end = result.train.theta[np.arange(6), result.train.mask.sum(1) - 1, 0]
     np.testing.assert_allclose(end, HX_LIMIT, atol=0.06)
