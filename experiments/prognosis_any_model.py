@@ -19,7 +19,8 @@ conditions and outputs, as a user's data would be.
 ``jaxcal.prognose`` then runs twice: with ``boundary={"fouling": limit}`` declared,
 and with the boundary learned from the training units' ends. Prints and writes
 ``<out>/summary.json`` (fleet plausibility, RMSE, coverage, PHM08 score, seconds per
-stage), a `README.md` and each run's report (``jaxcal.prognosis.report.write_prognosis``).
+stage), a ``README.md`` and each run's report
+(``jaxcal.prognosis.report.write_prognosis``).
 """
 
 from __future__ import annotations

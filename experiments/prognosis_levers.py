@@ -170,7 +170,7 @@ def _page(r: dict, argv: list[str]) -> str:
         + "` (one UKF calibration; every number below on the same trajectories).",
         "",
         f"`prognose` chose **{r['chosen'][0]}**, noise scale **{r['chosen'][1]:g}** "
-        "(lowest held-out CRPS).",
+        "(lowest held-out CRPS among the honest pairs).",
         "",
         "## 1. Trend family and noise scale",
         "",

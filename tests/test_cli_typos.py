@@ -38,7 +38,16 @@ def test_a_typo_gets_one_line_with_the_closest_key(tool, argv, closest, capsys):
 
 @pytest.mark.parametrize(
     "tool",
-    ["train", "evaluate", "diagnose", "fleet", "generate", "validate", "bench", "prognose"],
+    [
+        "train",
+        "evaluate",
+        "diagnose",
+        "fleet",
+        "generate",
+        "validate",
+        "bench",
+        "prognose",
+    ],
 )
 @pytest.mark.parametrize("flag", ["--help", "-h"])
 def test_help_prints_the_usage_and_exits_0(tool, flag, capsys):

@@ -75,7 +75,14 @@ def _valid_keys() -> set[str]:
     from jaxcal.calibrators.front.door import _READER_OPTIONS, calibrate
     from jaxcal.calibrators.methods import METHODS, options_of
     from jaxcal.cli import (
-        bench, diagnose, evaluate, fleet, generate, prognose, train, validate,
+        bench,
+        diagnose,
+        evaluate,
+        fleet,
+        generate,
+        prognose,
+        train,
+        validate,
     )  # fmt: skip
     from jaxcal.cli.args import _USAGE_KEY
     from jaxcal.fleet.method import OPTION_PREFIXES
