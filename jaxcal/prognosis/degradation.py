@@ -37,9 +37,10 @@ import numpy as np
 from jaxcal.prognosis.trajectories import Trajectories
 
 MIN_UNITS = 3  # the fleet's spread of trends needs a few run-to-failure units
-SHRINK = (
-    0.01  # diagonal loading of the trend prior's covariance (share of its diagonal)
-)
+SHRINK = 0.01  # diagonal loading of the trend prior's covariance (share of diagonal)
+# two groups of drifts this many pooled stds apart: a second fault mode (_carriers)
+SEPARATION = 4.0
+MIN_CARRIERS = 0.1  # the degraded group holds at least this share of the units
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +71,8 @@ class DegradationModel:
         rho: ``[P]`` the lag-one autocorrelation of the noise about a trend.
         end_mean, end_std: ``[P]`` where the training units' trends end (the learned
             boundary, kept beside a declared one to compare).
+        carriers: ``[U, P]`` the training units whose end each parameter marks
+            (:func:`_carriers`).
         trend: the trend family (:func:`basis`).
     """
 
@@ -90,6 +93,7 @@ class DegradationModel:
     rho: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     end_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     end_std: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    carriers: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     trend: str = "poly3"
 
     def to_json(self) -> dict:
@@ -108,8 +112,9 @@ class DegradationModel:
                     "decides": bool(c),
                     "declared": bool(k),
                     "training_ends": {"mean": float(m), "std": float(e)},
+                    "carriers": int(c_count),
                 }
-                for n, b, s, d, t, c, k, m, e in zip(
+                for n, b, s, d, t, c, k, m, e, c_count in zip(
                     self.names,
                     self.boundary,
                     self.boundary_std,
@@ -119,6 +124,7 @@ class DegradationModel:
                     self.declared,
                     self.end_mean,
                     self.end_std,
+                    self.carriers.sum(0),
                     strict=True,
                 )
             },
@@ -191,6 +197,35 @@ def _fit_all(s, y, mask, trend: str, ridge: float):
     return jax.vmap(per_param)(s, y, mask)
 
 
+def _carriers(drift: np.ndarray) -> np.ndarray:
+    """``[U]`` the units whose end of life a parameter marks, from its drift over each
+    unit's record: every unit, unless the drifts split into two groups
+    :data:`SEPARATION` pooled stds apart (Otsu's split of the sorted drifts), the larger
+    one degraded and the other not — units that failed by another fault mode (C-MAPSS
+    FD003/FD004: HPC or fan). Then the degraded group, if it holds at least
+    :data:`MIN_CARRIERS` of the units."""
+    every = np.ones(drift.size, bool)
+    y = drift * (np.sign(drift.sum()) or 1.0)  # degradation along the fleet's way
+    order = np.sort(y)
+    n = y.size
+    k = np.arange(2, n - 1)  # left group order[:k], right order[k:], 2+ units each
+    if k.size == 0:
+        return every
+    c1, c2 = np.cumsum(order), np.cumsum(order**2)
+    left_mean, right_mean = c1[k - 1] / k, (c1[-1] - c1[k - 1]) / (n - k)
+    within = (c2[k - 1] - k * left_mean**2) + (
+        (c2[-1] - c2[k - 1]) - (n - k) * right_mean**2
+    )
+    between = k * (n - k) * (right_mean - left_mean) ** 2  # Otsu: n^2 x between var
+    best = int(np.argmax(between))
+    pooled = np.sqrt(max(within[best], 0.0) / (n - 2))
+    gap = right_mean[best] - left_mean[best]
+    enough = n - k[best] >= max(MIN_UNITS, MIN_CARRIERS * n)
+    if gap > SEPARATION * pooled and left_mean[best] < gap / SEPARATION and enough:
+        return y >= order[k[best]]
+    return every
+
+
 def require_units(num_units: int, trend: str, label: str = "train") -> None:
     """Raise ``ValueError`` unless ``num_units`` run-to-failure units can give a prior
     of ``trend``: its covariance over units needs more units than coefficients."""
@@ -242,9 +277,16 @@ def fit(
     phi_start = np.asarray(basis(train.start / time_scale, config.trend))
     end = np.einsum("ud,upd->up", phi_end, beta)
     start = np.einsum("ud,upd->up", phi_start, beta)
-    drift = end.mean(0) - start.mean(0)
-    learned = end.mean(0)
-    spread = end.std(0, ddof=1)
+    # per parameter, the units whose end it marks (all, but for a second fault mode)
+    carriers = np.stack(
+        [_carriers(end[:, p] - start[:, p]) for p in range(end.shape[1])], 1
+    )
+    count = carriers.sum(0)
+    drift = (carriers * (end - start)).sum(0) / count
+    learned = (carriers * end).sum(0) / count
+    spread = np.sqrt(
+        (carriers * (end - learned) ** 2).sum(0) / np.maximum(count - 1, 1)
+    )
     tightness = spread / np.maximum(np.abs(drift), 1e-300)
     declared = np.array([n in boundary for n in train.names])
     value = np.array(
@@ -276,6 +318,7 @@ def fit(
         rho=rho,
         end_mean=learned,
         end_std=spread,
+        carriers=carriers,
         noise_scale=float(noise_scale),
         boundary=value,
         boundary_std=np.where(declared, 0.0, spread),

@@ -175,8 +175,29 @@ def _check_notes(check: dict, cfg: PrognosisConfig) -> list[str]:
 
 def _boundary_notes(model: degradation.DegradationModel) -> list[str]:
     """A declared limit the training units' calibrated ends do not reach (or pass):
-    the calibration lags or is biased there, and the RULs with it."""
+    the calibration lags or is biased there, and the RULs with it; training units no
+    learned boundary marks: a failure the calibrated parameters do not see."""
     notes = []
+    if not model.declared.any():
+        carried = model.carriers[:, model.decides].any(axis=1)
+        if not carried.all():
+            notes.append(
+                f"{int((~carried).sum())} of {carried.size} training units end far "
+                "from every deciding boundary: they failed by a mode the calibrated "
+                "parameters do not show (calibrate its parameters, theta=)"
+            )
+        split = [
+            f"{n} ({int(c)} of {carried.size})"
+            for n, c, d in zip(
+                model.names, model.carriers.sum(0), model.decides, strict=True
+            )
+            if d and c < carried.size
+        ]
+        if split:
+            notes.append(
+                "boundaries learned from the units that degraded in them (the others "
+                f"failed by another mode): {', '.join(split)}"
+            )
     for p in np.flatnonzero(model.declared):
         mean, std = model.end_mean[p], model.end_std[p]
         if abs(model.boundary[p] - mean) > 2.0 * std:

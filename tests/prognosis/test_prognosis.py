@@ -191,6 +191,47 @@ def test_a_unit_to_predict_may_have_a_single_row(toy):
     assert lives.min() - 5 - 30 < pred.rul[0] < lives.max()  # within the fleet's lives
 
 
+def _two_mode_fleet(seed: int, num_units: int, *, cut: bool):
+    """Half the units fail when `a` falls to 0.6, the other half when `b` does; the
+    parameter of the other mode stays near new (C-MAPSS FD003: HPC or fan)."""
+    rng = np.random.default_rng(seed)
+    unit, time, theta, truth, mode = [], [], [], [], []
+    for u in range(num_units):
+        life = int(rng.integers(80, 140))
+        stop = int(rng.uniform(0.4, 0.9) * life) if cut else life
+        t = np.arange(1.0, stop + 1.0)
+        worn = 1.0 - 0.4 * np.expm1(t / 40.0) / np.expm1(life / 40.0)  # 0.6 at life
+        new = 1.0 - 0.01 * t / life
+        pair = (worn, new) if u % 2 == 0 else (new, worn)
+        noisy = np.stack(pair, 1) + 0.005 * rng.standard_normal((t.size, 2))
+        unit += [u + 1] * t.size
+        time.append(t)
+        theta.append(noisy)
+        truth.append(life - stop)
+        mode.append("ab"[u % 2])
+    rows = (unit, np.concatenate(time), np.concatenate(theta))
+    return from_arrays(*rows, ("a", "b")), np.array(truth, float), mode
+
+
+def test_two_fault_modes_each_learn_their_boundary_from_their_carriers():
+    train, _, _ = _two_mode_fleet(0, 20, cut=False)
+    test, truth, mode = _two_mode_fleet(1, 12, cut=True)
+    result = prognose_trajectories(train, test, None, FAST)
+    model = result.model
+    np.testing.assert_array_equal(model.carriers.sum(0), [10, 10])
+    np.testing.assert_array_equal(model.decides, [True, True])
+    np.testing.assert_allclose(model.boundary, [0.6, 0.6], atol=0.02)
+    assert list(result.prediction.driver) == mode  # each unit's own mode drives it
+    err = result.prediction.rul - truth
+    assert np.sqrt(np.mean(err**2)) < 0.4 * truth.std()
+    assert any(
+        "learned from the units that degraded in them" in n for n in result.notes
+    )
+    # with one mode's parameter left out, its units are said to fail unseen
+    only_a = prognose_trajectories(train.select(["a"]), test.select(["a"]), None, FAST)
+    assert any("10 of 20 training units end far" in n for n in only_a.notes)
+
+
 def test_errors_name_the_problem(toy):
     train, test, _, _ = toy
     two = train.units(np.arange(15) < 2)
