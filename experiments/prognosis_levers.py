@@ -38,12 +38,12 @@ from jaxcal.prognosis import (
     DegradationConfig,
     PrognosisConfig,
     fit,
-    pipeline,
     predict,
     prognose,
     read_truth,
     score,
 )
+from jaxcal.prognosis.check import held_out_cases
 from jaxcal.settings import parse_overrides
 
 DEFAULT_DIR = os.path.join(
@@ -81,7 +81,7 @@ def _held_out(train, trend, scale, seed) -> dict:
     """The held-out check's cases scored by RMSE over all and below :data:`NEAR`."""
     errors, truths = [], []
     cfg = PrognosisConfig(seed=seed)
-    for fold, (kept, cut, truth) in enumerate(pipeline._held_out_cases(train, cfg)):
+    for fold, (kept, cut, truth) in enumerate(held_out_cases(train, cfg)):
         model = dataclasses.replace(
             fit(kept, DegradationConfig(trend=trend)), noise_scale=scale
         )

@@ -123,8 +123,8 @@ def parse_args(argv: list[str]) -> PrognoseConfig:
     parse_boundary(cfg.boundary)
     if not 0.0 < cfg.coverage < 1.0:
         raise ValueError(f"coverage={cfg.coverage}: expected a share in (0, 1)")
-    if cfg.trend is not None:
-        from jaxcal.prognosis.degradation import check_trend  # light: no jax at import
+    if cfg.trend is not None:  # imported here: --help and the other checks load no jax
+        from jaxcal.prognosis.trends import check_trend
 
         check_trend(cfg.trend)
     for field, low in (("samples", 10), ("folds", 2)):

@@ -9,12 +9,9 @@ The steps, each timed in :attr:`Prognosis.timings`:
 2. **learn** the fleet's degradation (:mod:`jaxcal.prognosis.degradation`): the trend
    prior and the failure boundaries from the training units' ends.
 3. **check the intervals on held-out training units**: each fold's units are cut at
-   random ages (a unit seen before its end, as a test unit is), predicted by the model
-   learned on the other folds, and scored against their known end; the trend family
-   (:data:`TRENDS`) and noise scale (:data:`NOISE_SCALES`) are those of the lowest
-   held-out CRPS (a proper score of the whole predicted distribution) among the pairs
-   whose held-out coverage is honest (within two binomial standard errors of the
-   nominal one), unless given; if none is, the best covered, and a note says so.
+   random ages and predicted from the other folds; the trend family and noise scale
+   are those of the lowest held-out CRPS among the honest pairs, unless given
+   (:mod:`jaxcal.prognosis.check`).
 4. **predict** (:mod:`jaxcal.prognosis.predict`).
 
 :func:`prognose_trajectories` runs steps 2-4 on trajectories from anywhere.
@@ -33,21 +30,11 @@ from jaxcal.calibrators.front.door import calibrate
 from jaxcal.data.dataset import Dataset
 from jaxcal.data.readers import read_dataset
 from jaxcal.models import load
+from jaxcal.prognosis import check as held_out
 from jaxcal.prognosis import degradation
 from jaxcal.prognosis.predict import RulPrediction, predict
-from jaxcal.prognosis.score import crps
 from jaxcal.prognosis.trajectories import MIN_ROWS, Trajectories, from_arrays
-
-NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)
-# the trend families the held-out check chooses from (degradation.basis)
-TRENDS = ("poly1", "poly2", "poly3", "exp1", "exp2", "exp4")
-CHECK_SAMPLES = (
-    300  # RUL samples per held-out unit (the check needs coverage, not tails)
-)
-CHECK_CUTS = 2  # random ages per held-out training unit
-# a held-out unit is cut so that this share of its life, at least, is still to come or
-# already seen: a cut at the very start or the very end checks nothing
-CUT_RANGE = (0.05, 0.8)
+from jaxcal.prognosis.trends import check_trend
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +42,7 @@ class PrognosisConfig:
     method: str = "ukf"  # the calibration method (any of jaxcal.calibrate's)
     coverage: float = 0.9  # nominal coverage of the RUL interval
     samples: int = 1000  # RUL samples per test unit
-    # the trend family (degradation.basis) and the noise scale; None: chosen on
+    # the trend family (jaxcal.prognosis.trends) and the noise scale; None: chosen on
     # held-out training units (module docstring)
     trend: str | None = None
     noise_scale: float | None = None
@@ -75,102 +62,6 @@ class Prognosis:
     noise_check: dict
     timings: dict
     notes: tuple[str, ...]
-
-
-def _folds(num: int, folds: int) -> int:
-    """The folds of ``num`` units: ``folds``, or one per unit (leave one out) when the
-    units kept by a fold would be too few for a trend prior."""
-    folds = min(folds, num)
-    if num - -(-num // folds) < degradation.MIN_UNITS:
-        folds = num
-    return folds
-
-
-def _held_out_cases(train: Trajectories, cfg: PrognosisConfig):
-    """Per fold: the training units kept, and the held-out units cut at random ages
-    with their true RULs (step 3 of the module docstring)."""
-    rng = np.random.default_rng(cfg.seed)
-    num = train.unit.size
-    rows = train.mask.sum(1)
-    for fold in np.array_split(rng.permutation(num), _folds(num, cfg.folds)):
-        held = np.zeros(num, bool)
-        held[fold] = True
-        cut_units = np.repeat(fold, CHECK_CUTS)
-        share = rng.uniform(*CUT_RANGE, size=cut_units.size)
-        keep = np.maximum(np.round(rows[cut_units] * (1 - share)), MIN_ROWS).astype(int)
-        cut = train.units(cut_units).truncated(keep)
-        yield train.units(~held), cut, train.now[cut_units] - cut.now
-
-
-def _check(train: Trajectories, cfg: PrognosisConfig, boundary) -> dict:
-    """Held-out CRPS, coverage and RMSE of each trend family and noise scale; the
-    choice is the lowest CRPS (:func:`~jaxcal.prognosis.score.crps`) among the honest
-    pairs (module docstring)."""
-    num = train.unit.size
-    if num - 1 < degradation.MIN_UNITS:
-        raise ValueError(
-            f"train: {num} run-to-failure unit(s); choosing the trend and noise scale "
-            f"on held-out units needs at least {degradation.MIN_UNITS + 1} (or give "
-            "both trend= and noise_scale=)"
-        )
-    kept = num - -(-num // _folds(num, cfg.folds))  # the fewest units a fold keeps
-    trends = TRENDS if cfg.trend is None else (cfg.trend,)
-    fits = tuple(t for t in trends if degradation.size(t) + 1 <= kept)
-    trends = fits or (min(trends, key=degradation.size),)
-    scales = NOISE_SCALES if cfg.noise_scale is None else (cfg.noise_scale,)
-    hits = np.zeros((len(trends), len(scales), 3))
-    cases = 0
-    for fold, (kept, cut, truth) in enumerate(_held_out_cases(train, cfg)):
-        cases += truth.size
-        # every scale in one call: the cut units repeated once per scale
-        each = np.tile(np.arange(truth.size), len(scales))
-        batch = cut.units(each)
-        per_unit = np.repeat(np.asarray(scales, float), truth.size)
-        for i, trend in enumerate(trends):
-            learned = degradation.fit(kept, _deg_config(cfg, trend), boundary=boundary)
-            pred = predict(
-                learned, batch, jax.random.PRNGKey(cfg.seed + fold),
-                num_samples=CHECK_SAMPLES, coverage=cfg.coverage, bands=False,
-                noise_scale=per_unit,
-            )  # fmt: skip
-            truths = truth[each]
-            inside = (truths >= pred.rul_low) & (truths <= pred.rul_high)
-            for j in range(len(scales)):
-                part = slice(j * truth.size, (j + 1) * truth.size)
-                hits[i, j] += (
-                    inside[part].sum(),
-                    ((pred.rul[part] - truth) ** 2).sum(),
-                    crps(pred.samples[part], truth).sum(),
-                )
-    coverage, rmse = hits[..., 0] / cases, np.sqrt(hits[..., 1] / cases)
-    mean_crps = hits[..., 2] / cases
-    # honest: held-out coverage within two binomial standard errors of the nominal
-    slack = 2.0 * np.sqrt(cfg.coverage * (1.0 - cfg.coverage) / cases)
-    honest = coverage >= cfg.coverage - slack
-    pick = np.where(honest, mean_crps, np.inf) if honest.any() else -coverage
-    i, j = np.unravel_index(np.argmin(pick), pick.shape)
-    return {
-        "trends": list(trends),
-        "scales": list(scales),
-        "crps": mean_crps.tolist(),
-        "coverage": coverage.tolist(),
-        "rmse": rmse.tolist(),
-        "honest": honest.tolist(),
-        "trend": trends[i],
-        "noise_scale": float(scales[j]),
-        "cases": int(cases),
-    }
-
-
-def _check_notes(check: dict, cfg: PrognosisConfig) -> list[str]:
-    if "honest" not in check or np.any(check["honest"]):
-        return []
-    best = max(max(row) for row in check["coverage"])
-    return [
-        f"no trend and noise scale reached the nominal {cfg.coverage:.0%} coverage on "
-        f"held-out training units (at best {best:.2f}): the intervals are too narrow "
-        "(a biased calibration, or test units unlike the training ones)"
-    ]
 
 
 def _boundary_notes(model: degradation.DegradationModel) -> list[str]:
@@ -212,10 +103,6 @@ def _boundary_notes(model: degradation.DegradationModel) -> list[str]:
     return notes
 
 
-def _deg_config(cfg: PrognosisConfig, trend: str) -> degradation.DegradationConfig:
-    return degradation.DegradationConfig(trend=trend, max_tightness=cfg.max_tightness)
-
-
 def prognose_trajectories(
     train: Trajectories,
     test: Trajectories,
@@ -234,17 +121,17 @@ def prognose_trajectories(
     timings = dict(timings or {})
     start = time.perf_counter()
     if config.trend is not None:
-        degradation.check_trend(config.trend)
+        check_trend(config.trend)
     if config.trend is not None and config.noise_scale is not None:
         degradation.require_units(train.unit.size, config.trend)
         check = {"trend": config.trend, "noise_scale": float(config.noise_scale)}
     else:
         degradation.require_units(train.unit.size, "poly1")
-        check = _check(train, config, boundary)
+        check = held_out.choose(train, config, boundary)
     timings["check"] = time.perf_counter() - start
     start = time.perf_counter()
     model = degradation.fit(
-        train, _deg_config(config, check["trend"]), boundary,
+        train, held_out.deg_config(config, check["trend"]), boundary,
         noise_scale=check["noise_scale"],
     )  # fmt: skip
     timings["learn"] = time.perf_counter() - start
@@ -254,7 +141,7 @@ def prognose_trajectories(
         num_samples=config.samples, coverage=config.coverage,
     )  # fmt: skip
     timings["predict"] = time.perf_counter() - start
-    notes = list(notes) + _check_notes(check, config) + _boundary_notes(model)
+    notes = list(notes) + held_out.notes(check, config) + _boundary_notes(model)
     censored = int((pred.censored > 0.5).sum())
     if censored:
         notes.append(

@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from jaxcal.prognosis.degradation import DegradationModel, basis
+from jaxcal.prognosis.degradation import DegradationModel
 from jaxcal.prognosis.trajectories import Trajectories
+from jaxcal.prognosis.trends import basis
 
 GRID = 512  # crossing search points over the horizon (interpolated between them)
 PLOT_GRID = 160  # points of the trend bands drawn from the first row to the horizon
