@@ -142,6 +142,14 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
             + ", ".join(f"{n} ({k} units)" for n, k in rows[fd]["drivers"].items())
             + "."
         )
+    lines += [
+        "",
+        "What limits the accuracy, lever by lever (trend family, noise scale, noise "
+        "model, a denoised health index): [levers/](levers/README.md) "
+        "(`python experiments/prognosis_levers.py`). The same prognosis on a model of "
+        "our own, from unlabelled CSVs: [heat_exchanger/](heat_exchanger/README.md) "
+        "(`python experiments/prognosis_any_model.py`).",
+    ]
     return "\n".join(lines) + "\n"
 
 
