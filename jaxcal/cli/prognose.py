@@ -154,6 +154,8 @@ def run(cfg: PrognoseConfig) -> dict:
     from jaxcal.prognosis.score import read_truth
 
     noise = parse_noise(cfg.noise)  # a bad value fails before the model loads
+    # a bad truth file fails before the calibration; its count is checked after
+    truth = read_truth(cfg.truth) if cfg.truth else None
     enable_x64()
     enable_compilation_cache()
     model = load(cfg.model_spec)
@@ -173,8 +175,7 @@ def run(cfg: PrognoseConfig) -> dict:
         boundary=parse_boundary(cfg.boundary) or None, config=config,
         outputs=outputs,
     )  # fmt: skip
-    truth = None
-    if cfg.truth:
+    if truth is not None:
         truth = read_truth(cfg.truth, num_units=len(result.prediction.unit))
     source = {"train": cfg.train, "test": cfg.test, "truth": cfg.truth or None}
     settings = {

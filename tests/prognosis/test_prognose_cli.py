@@ -201,6 +201,21 @@ def test_command_line_end_to_end_with_a_stand_in_pipeline(
     assert stored["config"]["prognosis"]["seed"] == 0
 
 
+def test_a_bad_truth_file_fails_before_the_calibration(
+    toy, files, tmp_path, monkeypatch, capsys
+):
+    result, _ = toy
+    with open(files["truth"], "w") as handle:
+        handle.write("12\nabc\n")
+    fake = _fake_pipeline(result)
+    monkeypatch.setitem(sys.modules, "jaxcal.prognosis.pipeline", fake)
+    argv = [f"train={files['train']}", f"test={files['test']}",
+            f"out={tmp_path / 'out'}", f"truth={files['truth']}"]  # fmt: skip
+    assert main(argv) == 2
+    assert "line 2: 'abc' is not a number" in capsys.readouterr().err
+    assert fake.calls == []  # nothing calibrated
+
+
 def test_the_real_pipeline_takes_what_the_command_line_passes():
     pipeline = pytest.importorskip("jaxcal.prognosis.pipeline")
     fields = {f.name for f in dataclasses.fields(pipeline.PrognosisConfig)}
