@@ -1,6 +1,7 @@
 """Remaining useful life on NASA C-MAPSS FD001 / FD002, scored against NASA's truth.
 
-For each file: the ``cmapss`` engine's HPC efficiency and flow are calibrated by the UKF
+For each file: the ``cmapss`` engine's HPC and fan efficiency and flow
+(:data:`~jaxcal.models.turbofan.model.PROGNOSIS_THETA`) are calibrated by the UKF
 on the run-to-failure units (``train_FD00x.txt``) and on the test units
 (``test_FD00x.txt``); the fleet's degradation and failure boundary are learned from the
 training units' ends, and each test unit's RUL is predicted with a 90 % interval
@@ -102,11 +103,12 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
         + "` (one folder per file below: `rul.csv`, `report.md`, figures; the"
         " command line `python -m jaxcal.prognose` writes the same folder).",
         "",
-        "The UKF calibrates the `cmapss` engine's HPC efficiency and flow on every row "
-        "of the training and test units; the fleet's trend prior and failure boundary "
-        "come from the training units' ends; each test unit's RUL is the median first "
-        "crossing of the boundary by its posterior trend, with a 90 % interval "
-        "(docs/prognosis.md).",
+        "The UKF calibrates the `cmapss` engine's HPC and fan efficiency and flow "
+        f"(`theta={','.join(PROGNOSIS_THETA)}`, the command line's default) on every "
+        "row of the training and test units; the fleet's trend prior and failure "
+        "boundary come from the training units' ends; each test unit's RUL is the "
+        "median first crossing of the boundary by its posterior trend, with a 90 % "
+        "interval (docs/prognosis.md).",
         "",
         "| | FD001 | FD002 |",
         "|---|---|---|",
@@ -146,9 +148,14 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
         "",
         "What limits the accuracy, lever by lever (trend family, noise scale, noise "
         "model, a denoised health index): [levers/](levers/README.md) "
-        "(`python experiments/prognosis_levers.py`). The same prognosis on a model of "
-        "our own, from unlabelled CSVs: [heat_exchanger/](heat_exchanger/README.md) "
-        "(`python experiments/prognosis_any_model.py`).",
+        "(`python experiments/prognosis_levers.py`; measured with the HPC pair, "
+        "`theta=HPC_eff_mod,HPC_flow_mod`, the default before the fan pair joined "
+        "it). The same prognosis on a model of our own, from unlabelled CSVs: "
+        "[heat_exchanger/](heat_exchanger/README.md) "
+        "(`python experiments/prognosis_any_model.py`). On a fleet of two fault "
+        "modes (HPC or fan, the shape of FD003/FD004, written by the engine): "
+        "[two_modes/](two_modes/README.md) "
+        "(`python experiments/prognosis_two_modes.py`).",
     ]
     return "\n".join(lines) + "\n"
 

@@ -17,6 +17,16 @@ to it, ``tightness``, at most :attr:`DegradationConfig.max_tightness`); a user m
 declare boundaries instead (``boundary={name: limit}``): then those, and only those,
 decide.
 
+**Fault modes.** When the fleet failed by more than one mode (C-MAPSS FD003/FD004: a
+unit's HPC or its fan degrades), a parameter's drifts split into the units it carries to
+their end and the others (:func:`_carriers`), and one Gaussian over all units would
+give every unit half of each mode's drift. The prior is then a mixture: one Gaussian
+per carrier pattern (the set of parameters a unit carries) that enough units share,
+weighted by their share of those units. A unit's posterior weighs each mode by how
+well it explains the unit's own trajectory (its marginal likelihood,
+:mod:`jaxcal.prognosis.predict`). A fleet of one mode (C-MAPSS FD001/FD002) has one
+component, the Gaussian above.
+
 The residual noise is the filtered estimate's: the calibrators' estimates are
 autocorrelated, so the std of the residual is widened by ``sqrt((1 + r1) / (1 - r1))``
 with ``r1`` its lag-one autocorrelation (the effective sample size of an AR(1) series),
@@ -60,7 +70,10 @@ class DegradationModel:
     Attributes:
         names: the parameters.
         time_scale: ages are divided by it (the training units' median life).
-        prior_mean, prior_cov: ``[P, D]``, ``[P, D, D]`` the fleet's trend distribution.
+        prior_mean, prior_cov: ``[M, P, D]``, ``[M, P, D, D]`` the fleet's trend
+            distribution per fault mode (``M = 1`` for a fleet of one mode).
+        mode_weight: ``[M]`` each mode's share of the training units.
+        modes: ``[M, P]`` the parameters each mode carries to its end.
         noise: ``[P]`` residual std about a trend, autocorrelation-widened.
         noise_scale: the further factor on ``noise`` (held-out calibrated).
         boundary, boundary_std: ``[P]`` where the units end, and its spread.
@@ -95,6 +108,8 @@ class DegradationModel:
     end_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     end_std: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     carriers: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    mode_weight: np.ndarray = dataclasses.field(default_factory=lambda: np.ones(1))
+    modes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     trend: str = "poly3"
 
     def to_json(self) -> dict:
@@ -129,6 +144,13 @@ class DegradationModel:
                     strict=True,
                 )
             },
+            "modes": [
+                {
+                    "carries": [n for n, c in zip(self.names, m, strict=True) if c],
+                    "weight": float(w),
+                }
+                for m, w in zip(self.modes, self.mode_weight, strict=True)
+            ],
             "training_units": int(self.lives.size),
             "training_life": {
                 "mean": float(self.lives.mean()),
@@ -179,6 +201,28 @@ def _carriers(drift: np.ndarray) -> np.ndarray:
     if gap > SEPARATION * pooled and left_mean[best] < gap / SEPARATION and enough:
         return y >= order[k[best]]
     return every
+
+
+def _modes(carriers: np.ndarray, need: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The fault modes: ``([M, P] carrier patterns, [M] unit masks)``, one per pattern
+    of :func:`_carriers` that at least ``need`` units share (a mode's prior needs more
+    units than trend coefficients); a single mode of every unit when fewer than two
+    patterns have so many."""
+    patterns, inverse = np.unique(carriers, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    counts = np.bincount(inverse, minlength=len(patterns))
+    kept = np.flatnonzero(counts >= need)
+    if kept.size < 2:
+        return np.ones((1, carriers.shape[1]), bool), [np.ones(len(carriers), bool)]
+    return patterns[kept], [inverse == k for k in kept]
+
+
+def _prior(beta: np.ndarray, trend: str) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian over units of trend coefficients ``beta [U, P, D]``:
+    ``([P, D] mean, [P, D, D] covariance)``, its diagonal loaded by :data:`SHRINK`."""
+    cov = np.stack([np.cov(beta[:, p].T) for p in range(beta.shape[1])])
+    # a little diagonal loading: a spread over few units is noisy, and must invert
+    return beta.mean(0), cov * (1.0 + SHRINK * np.eye(size(trend)))
 
 
 def require_units(num_units: int, trend: str, label: str = "train") -> None:
@@ -261,14 +305,16 @@ def fit(
             "most "
             f"{config.max_tightness} decides): declare a limit with boundary=name:value"
         )
-    cov = np.stack([np.cov(beta[:, p].T) for p in range(len(train.names))])
-    # a little diagonal loading: a spread over few units is noisy, and must invert
-    cov = cov * (1.0 + SHRINK * np.eye(size(config.trend)))
+    modes, members = _modes(carriers, max(MIN_UNITS, size(config.trend) + 1))
+    priors = [_prior(beta[m], config.trend) for m in members]
+    counts = np.array([m.sum() for m in members], float)
     return DegradationModel(
         names=train.names,
         time_scale=time_scale,
-        prior_mean=beta.mean(0),
-        prior_cov=cov,
+        prior_mean=np.stack([p[0] for p in priors]),
+        prior_cov=np.stack([p[1] for p in priors]),
+        mode_weight=counts / counts.sum(),
+        modes=modes,
         noise=noise,
         rho=rho,
         end_mean=learned,

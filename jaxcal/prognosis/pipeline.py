@@ -89,6 +89,17 @@ def _boundary_notes(model: degradation.DegradationModel) -> list[str]:
                 "boundaries learned from the units that degraded in them (the others "
                 f"failed by another mode): {', '.join(split)}"
             )
+        if len(model.modes) > 1:
+            modes = "; ".join(
+                f"{', '.join(n for n, c in zip(model.names, m, strict=True) if c)} "
+                f"({w:.0%})"
+                for m, w in zip(model.modes, model.mode_weight, strict=True)
+            )
+            notes.append(
+                f"the trend prior is a mixture of {len(model.modes)} fault modes, each "
+                f"one Gaussian over its units (the parameters it carries, its share): "
+                f"{modes}"
+            )
     for p in np.flatnonzero(model.declared):
         mean, std = model.end_mean[p], model.end_std[p]
         if abs(model.boundary[p] - mean) > 2.0 * std:

@@ -10,8 +10,12 @@ crossing (linearly interpolated between grid points) is the sample's end of life
 earliest over the deciding parameters, which names the **driver**. The RUL is the
 median of ``end - now`` over the samples, its interval the central ``coverage`` share; a
 sample that never crosses within the horizon counts as the horizon (said in
-``censored``). Everything is one jitted program ``vmap``ped over samples and parameters
-and mapped over units in batches (``lax.map``), so memory stays bounded on big fleets.
+``censored``). With several fault modes (:mod:`jaxcal.prognosis.degradation`) each
+sample first draws the unit's mode from its posterior (the modes' weights times the
+marginal likelihood of the unit's rows under each, Bishop eq. 3.86), then its trend;
+the trend bands are the likeliest mode's. Everything is one jitted program
+``vmap``ped over samples and parameters and mapped over units in batches
+(``lax.map``), so memory stays bounded on big fleets.
 """
 
 from __future__ import annotations
@@ -70,8 +74,9 @@ class RulPrediction:
 @functools.partial(jax.jit, static_argnames=("num_samples", "trend", "bands"))
 def _predict_all(key, arrays, prior, num_samples: int, trend: str, horizon, bands):
     """The per-unit RUL samples, driver indices and trend bands (mapped over units)."""
-    mu, cov, noise, rho, bound, bound_std, direction, decides, quant = prior
-    prec = jnp.linalg.inv(cov)  # [P, D, D]
+    mu, cov, log_w, noise, rho, bound, bound_std, direction, decides, quant = prior
+    mixture = mu.shape[0] > 1  # fault modes (degradation module docstring)
+    prec = jnp.linalg.inv(cov if mixture else cov[0])  # [M, P, D, D] or [P, D, D]
 
     def whiten(v, r):
         """Prais-Winsten: the AR(1) residual's rows made independent (valid rows are a
@@ -90,16 +95,38 @@ def _predict_all(key, arrays, prior, num_samples: int, trend: str, horizon, band
             rhs = prec_p @ mu_p + a.T @ yw / noise_p**2
             lam_chol = jnp.linalg.cholesky(lam)
             mean = jax.scipy.linalg.cho_solve((lam_chol, True), rhs)
-            return mean, lam_chol
+            # the log marginal likelihood of the rows, up to what every mode shares
+            # (Bishop, PRML eq. 3.86): m^T Lambda m - mu^T Sigma^-1 mu, log dets
+            log_ev = (
+                0.5 * (rhs @ mean - mu_p @ prec_p @ mu_p)
+                + 0.5 * (jnp.linalg.slogdet(prec_p)[1])
+                - jnp.sum(jnp.log(jnp.diag(lam_chol)))
+            )
+            return mean, lam_chol, log_ev
 
-        mean, lam_chol = jax.vmap(posterior, in_axes=(1, 0, 0, 0, 0))(
-            y, mu, prec, noise * scale, rho
-        )
+        per_param = jax.vmap(posterior, in_axes=(1, 0, 0, 0, 0))
         k_beta, k_bound = jax.random.split(key)
-        z = jax.random.normal(k_beta, (num_samples,) + mean.shape)  # [K, P, D]
         # beta = mean + L^-T z has covariance Lambda^-1 (L the Cholesky factor)
         solve = jax.vmap(lambda l, zz: jax.scipy.linalg.solve_triangular(l.T, zz.T).T)
-        beta = mean + jax.vmap(lambda zz: solve(lam_chol, zz))(z)  # [K, P, D]
+        if not mixture:
+            mean, lam_chol, _ = per_param(y, mu[0], prec, noise * scale, rho)
+            z = jax.random.normal(k_beta, (num_samples,) + mean.shape)  # [K, P, D]
+            beta = mean + jax.vmap(lambda zz: solve(lam_chol, zz))(z)  # [K, P, D]
+        else:
+            means, chols, log_ev = jax.vmap(
+                per_param, in_axes=(None, 0, 0, None, None)
+            )(y, mu, prec, noise * scale, rho)  # [M, P, D], [M, P, D, D], [M, P]
+            logits = log_w + log_ev.sum(1)
+            mode = jax.random.categorical(
+                jax.random.fold_in(key, 1), logits, shape=(num_samples,)
+            )
+            z = jax.random.normal(k_beta, (num_samples,) + means.shape[1:])
+            each = jax.vmap(lambda m, l: m + jax.vmap(lambda zz: solve(l, zz))(z))(
+                means, chols
+            )  # [M, K, P, D]
+            beta = each[mode, jnp.arange(num_samples)]
+            best = jnp.argmax(logits)  # the bands show the likeliest mode's trend
+            mean, lam_chol = means[best], chols[best]
         b = bound + bound_std * jax.random.normal(k_bound, (num_samples, bound.size))
         grid = now + horizon * jnp.linspace(0.0, 1.0, GRID)  # [G]
         curve = jnp.einsum("gd,kpd->kpg", basis(grid, trend), beta)  # [K, P, G]
@@ -161,7 +188,8 @@ def predict(
     scale = model.time_scale
     tail = (1.0 - coverage) / 2.0
     prior = (
-        model.prior_mean, model.prior_cov, model.noise, model.rho,
+        model.prior_mean, model.prior_cov, np.log(model.mode_weight),
+        model.noise, model.rho,
         model.boundary, model.boundary_std, model.direction, model.decides,
         scipy.stats.norm.ppf([tail, 0.5, 1.0 - tail]),
     )  # fmt: skip

@@ -251,7 +251,9 @@ def write_prognosis(
         source: what the data came from (``{"train": path, "test": path, ...}``).
         config: the run's settings (a dataclass or a dict), stored as given.
         progress: a progress line on stderr while the unit figures are drawn.
-        unit_figures: the units (ids) to draw a figure of; None: every unit.
+        unit_figures: the units (ids) to draw a figure of; None: every unit. Unit
+            figures of an earlier run in ``out`` that this run does not draw are
+            removed.
 
     Returns:
         The report dict (as in ``report.json``, with ``figures`` and ``out``).
@@ -280,6 +282,11 @@ def write_prognosis(
         plot_unit(fig, os.path.join(out, UNITS_DIR, name), result, u, t_u)
         units[unit_label(p.unit[u])] = f"{UNITS_DIR}/{name}"
     bar.close()
+    # a unit figure of an earlier run into the same folder would pass for this one's
+    for name in os.listdir(os.path.join(out, UNITS_DIR)):
+        if name.startswith("unit_") and name.endswith(".png"):
+            if name not in {os.path.basename(v) for v in units.values()}:
+                os.remove(os.path.join(out, UNITS_DIR, name))
     rep["figures"] = {"fleet": "rul.png", "units": units}
     rep["timings"]["report"] = time.time() - start
     write_atomic(os.path.join(out, "report.json"), json.dumps(rep, indent=2) + "\n")

@@ -16,6 +16,7 @@ import pytest
 from support.prognosis_toy import prognosis
 
 from jaxcal.cli.prognose import main, parse_args, parse_boundary
+from jaxcal.models.turbofan.model import PROGNOSIS_THETA
 from jaxcal.prognosis.report import CSV_COLUMNS, write_prognosis
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -112,7 +113,7 @@ def test_settings_default_to_the_turbofan_and_take_every_field(files, tmp_path):
 
 def test_turbofan_defaults_name_its_parameters_and_outputs():
     from jaxcal.models import load
-    from jaxcal.models.turbofan.model import PROGNOSIS_OUTPUTS, PROGNOSIS_THETA
+    from jaxcal.models.turbofan.model import PROGNOSIS_OUTPUTS
 
     model = load("cmapss")
     model.parameter_index(PROGNOSIS_THETA)
@@ -193,7 +194,7 @@ def test_command_line_end_to_end_with_a_stand_in_pipeline(
     assert main(argv) == 0
     said = capsys.readouterr().out
     assert "8 test units, RMSE" in said and str(out) in said
-    assert fake.calls[0]["theta"] == ["HPC_eff_mod", "HPC_flow_mod"]  # the defaults
+    assert fake.calls[0]["theta"] == list(PROGNOSIS_THETA)  # the defaults
     assert fake.calls[0]["outputs"][:2] == ["T24", "T30"]
     assert fake.calls[0]["boundary"] == {"HPC_eff_mod": -0.05}
     stored = json.loads((out / "report.json").read_text())

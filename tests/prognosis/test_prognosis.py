@@ -232,6 +232,30 @@ def test_two_fault_modes_each_learn_their_boundary_from_their_carriers():
     assert any("10 of 20 training units end far" in n for n in only_a.notes)
 
 
+def test_two_fault_modes_give_a_mixture_prior_sharper_than_one_gaussian(monkeypatch):
+    """Each mode's units give its own Gaussian: a unit is not lent half of the other
+    mode's drift, so its RUL is nearer the truth and its interval narrower."""
+    train, _, _ = _two_mode_fleet(0, 20, cut=False)
+    test, truth, mode = _two_mode_fleet(1, 12, cut=True)
+    mixed = prognose_trajectories(train, test, None, FAST)
+    np.testing.assert_array_equal(mixed.model.modes, [[False, True], [True, False]])
+    np.testing.assert_allclose(mixed.model.mode_weight, [0.5, 0.5])
+    assert [m["carries"] for m in mixed.model.to_json()["modes"]] == [["b"], ["a"]]
+    assert any("mixture of 2 fault modes" in n for n in mixed.notes)
+    kept = degradation._modes  # one mode of every unit: the single Gaussian
+    monkeypatch.setattr(degradation, "_modes", lambda c, need: kept(c, len(c) + 1))
+    single = prognose_trajectories(train, test, None, FAST)
+    assert single.model.prior_mean.shape[0] == 1
+    rmse, width = {}, {}
+    for name, res in (("mixed", mixed), ("single", single)):
+        pred = res.prediction
+        assert list(pred.driver) == mode
+        rmse[name] = np.sqrt(np.mean((pred.rul - truth) ** 2))
+        width[name] = np.mean(pred.rul_high - pred.rul_low)
+    assert rmse["mixed"] < 0.5 * rmse["single"]
+    assert width["mixed"] < 0.7 * width["single"]
+
+
 def test_errors_name_the_problem(toy):
     train, test, _, _ = toy
     two = train.units(np.arange(15) < 2)
@@ -314,6 +338,16 @@ def test_write_prognosis_draws_the_units_asked_for_and_links_only_those(toy, tmp
     assert f"[{first}](units/unit_{first}.png)" in page
     second = unit_label(result.prediction.unit[1])
     assert f"units/unit_{second}.png" not in page
+    # written again into the same folder with another unit: the first one's figure,
+    # not this run's, is gone; a file of the user's is left alone
+    (tmp_path / "units" / "notes.txt").write_text("mine")
+    write_prognosis(
+        tmp_path, result, truth=truth, progress=False, unit_figures=[second]
+    )
+    assert sorted(p.name for p in (tmp_path / "units").iterdir()) == [
+        "notes.txt",
+        f"unit_{second}.png",
+    ]
 
 
 def test_phm08_and_score_on_hand_computed_cases():
