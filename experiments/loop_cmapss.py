@@ -216,7 +216,7 @@ def main(argv: list[str]) -> int:
     ]
     for fd, path in paths.items():
         start = time.time()
-        data = read_dataset(path)
+        data = read_dataset(path, model)
         res = diagnose(
             data, model, cfg.declared, loop_cfg, max_rows=cfg.max_rows or None,
             progress=True,

@@ -92,7 +92,7 @@ def _load(cfg: ProfileConfig, model):
     path = cfg.data if cfg.data.endswith(".txt") else os.path.join(
         DATA_DIR, f"train_{cfg.data}.txt"
     )  # fmt: skip
-    data = read_dataset(os.path.normpath(path))
+    data = read_dataset(os.path.normpath(path), model)
     units = sorted(set(data.unit.tolist()))[: cfg.units]
     return data, ("HPC_eff_mod", "HPC_flow_mod"), units, None
 

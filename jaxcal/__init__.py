@@ -13,26 +13,17 @@ Layers (imports flow one way, downwards; ``tests/test_architecture.py`` holds th
 order): the host-only leaves (``runs/``, ``settings``, ``precision``, ``cache``,
 ``numerics/``, ``plotting``) -> ``model`` -> ``physics/`` -> ``data/`` -> ``problem``
 -> ``models/`` -> ``nets/`` / ``surrogate/`` / ``envs/`` / ``agents/`` ->
-``calibrators/`` (the methods and the front door) -> ``training/`` (the job and its
-config) -> ``deploy/`` (loading a run, streaming) -> ``diagnosis/`` / ``fleet/`` /
-``paper/`` -> ``cli/`` (every ``python -m jaxcal.<tool>``; the old module paths are
-shims that forward there). Importing the package loads nothing heavy: the names below
-are imported on first use, and float64 is switched on only by entry points
-(:func:`jaxcal.precision.enable_x64`).
-
-This module is the composition root. Its acts at import: it hands the run-folder
-slot of :mod:`jaxcal.runs` the reader of :mod:`jaxcal.deploy.loading` (imported when a
-run is first read), so the policy method and the front door, below the training
-layer, take a run folder without importing a layer above their own; likewise it
-hands the turbofan's files (N-CMAPSS, C-MAPSS) to :data:`jaxcal.data.FILE_READERS` and
-:data:`jaxcal.training.data.MODEL_FILES`: the core imports nothing of the turbofan.
+``calibrators/`` (the methods, the front door, reading a trained run) -> ``training/``
+(the job) -> ``deploy/`` (streaming) -> ``diagnosis/`` / ``fleet/`` / ``paper/`` ->
+``cli/`` (every ``python -m jaxcal.<tool>``; the old module paths are shims that
+forward there). A model carries its own file formats (``Model.file_readers``); the
+registry names the built-in models' training files (``jaxcal.models.TRAINING_FILES``).
+Importing the package loads nothing heavy: the names below are imported on first use,
+and float64 is switched on only by entry points (:func:`jaxcal.precision.enable_x64`).
 """
 
 import importlib
 
-from jaxcal import data as _data
-from jaxcal import runs as _runs
-from jaxcal.training import data as _training_data
 from jaxcal.version import __version__  # noqa: F401 (jaxcal.__version__)
 
 _EXPORTS = {
@@ -48,22 +39,6 @@ _EXPORTS = {
 }
 
 __all__ = sorted(_EXPORTS)
-
-
-def _lazy(module: str, name: str):
-    """``module.name``, imported on first call."""
-    return lambda *args, **kwargs: getattr(importlib.import_module(module), name)(
-        *args, **kwargs
-    )
-
-
-_runs.register_run_reader(_lazy("jaxcal.deploy.loading", "load_run"))
-_read_file = _lazy("jaxcal.models.turbofan.data.datasets", "read_file")
-_data.FILE_READERS.update(dict.fromkeys((".h5", ".hdf5", ".txt"), _read_file))
-_training_data.MODEL_FILES.update(
-    read=_lazy("jaxcal.models.turbofan.training", "read_data"),
-    generator=_lazy("jaxcal.models.turbofan.training", "generator"),
-)
 
 
 def __getattr__(name):

@@ -29,7 +29,7 @@ extension inputs the diagnosis may add, with ``effect_fn(w, theta, e) -> x``).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax.numpy as jnp
@@ -111,6 +111,11 @@ class Model:
             :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
             programs can be kept on disk, :mod:`jaxcal.calibrators.programs.on_disk`);
             None for any other model.
+        file_readers: the model's own file formats, ``{".ext": reader(path, *,
+            nonfinite, rename, **options) -> Dataset}``, that
+            :func:`jaxcal.data.readers.read_dataset` reads beside the tables (the
+            turbofan's N-CMAPSS ``.h5`` and C-MAPSS ``.txt``); set with
+            ``dataclasses.replace``.
     """
 
     name: str
@@ -132,6 +137,9 @@ class Model:
     warm_fn: Callable[[Array, Array, Array, Array], Any] | None = None
     warm_size: int = 0
     origin: str | None = None
+    file_readers: Mapping[str, Callable[..., Any]] = dataclasses.field(
+        default_factory=dict
+    )
 
     # ---------------------------------------------------------------- builders
 

@@ -44,7 +44,17 @@ LAYERS = (
     ("jaxcal.problem",),
     ("jaxcal.models",),
     ("jaxcal.nets", "jaxcal.surrogate", "jaxcal.envs", "jaxcal.agents"),
-    ("jaxcal.calibrators",),
+    # the policy method reads a trained run itself (calibrators.methods.policy.
+    # loading): the training job's config, runner, components and model source,
+    # which import nothing above, sit at its layer
+    (
+        "jaxcal.calibrators",
+        "jaxcal.training.config",
+        "jaxcal.training.config_sections",
+        "jaxcal.training.runner",
+        "jaxcal.training.components",
+        "jaxcal.training.model_source",
+    ),
     # the turbofan's training data and fleet stream sit with the layers they feed
     ("jaxcal.training", "jaxcal.models.turbofan.training"),
     ("jaxcal.deploy",),
@@ -55,8 +65,8 @@ LAYERS = (
         "jaxcal.models.turbofan.fleet",
         "jaxcal.prognosis",
     ),
-    # the command lines, their shims, and the package root (the composition root:
-    # the public names, imported lazily, and the run reader it hands jaxcal.runs)
+    # the command lines, their shims, and the package root (the public names,
+    # imported lazily)
     # (jaxcal.validate: a package only so that its shim is a __main__)
     ("jaxcal.cli", *SHIMS, "jaxcal.validate", "jaxcal"),
 )
@@ -283,9 +293,8 @@ def test_no_module_imports_back_the_package_that_imports_it(graph):
 
 # The core: everything that calibrates any model. It imports nothing of the turbofan,
 # at module level or in a function (nor names its modules for importlib): the
-# registry (jaxcal.models), the paper, the command lines with their shims and the
-# composition root (jaxcal/__init__, which hands the turbofan's file readers to the
-# core's slots) sit above it and may.
+# registry (jaxcal.models, which names the turbofan's files), the paper, the command
+# lines with their shims and the package root sit above it and may.
 CORE = (
     # the model protocol, the one problem and the host-only leaves
     "jaxcal.model", "jaxcal.model_contract", "jaxcal.model_spec", "jaxcal.problem",

@@ -1,5 +1,7 @@
 """The Model protocol, the Dataset container, its readers and the Problem."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,6 +151,25 @@ def test_csv_and_parquet_read_into_the_same_dataset(tmp_path):
     assert np.all(np.diff(a.time[padded.rows[0]]) > 0)
 
 
+def test_a_model_carries_its_own_file_formats(tmp_path):
+    path = tmp_path / "d.own"
+    path.write_text("rows")
+    seen = {}
+
+    def reader(p, *, nonfinite, rename, **options):
+        seen.update(path=p, nonfinite=nonfinite, rename=rename, **options)
+        return read_dataset(_frame(), _model())
+
+    model = dataclasses.replace(_model(), file_readers={".own": reader})
+    data = read_dataset(path, model, nonfinite="drop", stride=2)
+    assert data.num_rows == 12
+    assert seen == {"path": str(path), "nonfinite": "drop", "rename": None, "stride": 2}
+    with pytest.raises(ValueError, match=r"type '.own'; .*read with the model"):
+        read_dataset(path)
+    with pytest.raises(ValueError, match=r"type '.own'; expected .csv, .parquet$"):
+        read_dataset(path, _model())
+
+
 def test_unknown_and_missing_columns_list_expected_and_found(tmp_path):
     frame = _frame().rename(columns={"y1": "Y_one"})
     with pytest.raises(ValueError, match=r"unknown columns \['Y_one'\].*found"):
@@ -200,7 +221,7 @@ def test_models_load_specs(tmp_path):
 
 
 def test_a_run_folder_of_the_older_layout_reads_as_the_same_problem():
-    from jaxcal.deploy.loading import run_problem
+    from jaxcal.calibrators.methods.policy.loading import run_problem
 
     model = _model()
     frame = _frame()

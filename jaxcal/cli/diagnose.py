@@ -120,7 +120,7 @@ def load_data(cfg: DiagnoseConfig, model):
     """
     # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.data.readers import read_dataset
-    from jaxcal.models.turbofan.data.datasets import read_ncmapss_split
+    from jaxcal.models.turbofan.data.datasets import read_file, read_ncmapss_split
 
     if not os.path.isfile(cfg.data):
         raise ValueError(f"data={cfg.data!r}: file not found")
@@ -144,7 +144,7 @@ def load_data(cfg: DiagnoseConfig, model):
             stride=stride, rename=rename, nonfinite="drop",
         )  # fmt: skip
     if ext == ".txt":
-        data = read_dataset(cfg.data, nonfinite="drop")
+        data = read_file(cfg.data, nonfinite="drop", rename=None)  # C-MAPSS text
         return data if units is None else data.select_units(units)
     if ext in (".csv", ".parquet", ".pq"):
         data = read_dataset(

@@ -271,8 +271,8 @@ def main(argv: list[str] | None = None) -> int:
         return code
     # light --help: imported after the arguments are checked (jaxcal.cli.args)
     from jaxcal.cache import enable_compilation_cache
+    from jaxcal.calibrators.methods.policy.loading import needs_x64
     from jaxcal.deploy import synchronous_dispatch
-    from jaxcal.deploy.loading import needs_x64
     from jaxcal.precision import enable_x64
     from jaxcal.runs.folder import EVALUATION_FILE, write_json
 

@@ -1,5 +1,2 @@
-"""jaxcal.data. :data:`FILE_READERS`: extension -> ``reader(path, *, nonfinite,
-rename, **options) -> Dataset`` of the files that are not tables; the composition root
-(:mod:`jaxcal`) registers the turbofan's (N-CMAPSS ``.h5``, C-MAPSS ``.txt``)."""
-
-FILE_READERS: dict = {}
+"""jaxcal.data: the rows container and the generic readers (tables); a model's own
+file formats are the model's (:attr:`jaxcal.model.Model.file_readers`)."""

@@ -1,7 +1,8 @@
 """Every source of calibration data becomes a :class:`~jaxcal.data.dataset.Dataset`.
 
-:func:`read_dataset` takes a path (``.csv``, ``.parquet``, ``.h5``/``.hdf5`` in the
-N-CMAPSS layout, NASA C-MAPSS ``.txt``), a pandas DataFrame, numpy arrays through
+:func:`read_dataset` takes a path (``.csv``, ``.parquet``, or a file the model reads
+itself, :attr:`~jaxcal.model.Model.file_readers`: the turbofan's N-CMAPSS ``.h5`` /
+``.hdf5`` and NASA C-MAPSS ``.txt``), a pandas DataFrame, numpy arrays through
 :func:`dataset_from_arrays`, or a Dataset (returned as is).
 
 Tables (CSV, Parquet, DataFrame) name their columns as the model names its
@@ -35,7 +36,6 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from jaxcal.data import FILE_READERS
 from jaxcal.data.dataset import Dataset, partial_rows
 from jaxcal.data.table_checks import (
     apply_nonfinite_policy,
@@ -168,14 +168,15 @@ def read_dataset(
 
     Args:
         source: a path, a pandas DataFrame or a Dataset.
-        model: the model whose names the columns follow (needed for tables).
+        model: the model whose names the columns follow (needed for tables and
+            for the model's own files).
         rename: see the module docstring.
         ignore: see the module docstring.
         nonfinite: see the module docstring.
         partial: keep the partial rows of a table (module docstring); the
             N-CMAPSS and C-MAPSS readers apply ``nonfinite`` to every row.
-        reader_options: passed to the N-CMAPSS reader (``units``, ``sensors``,
-            ``stride``) or the C-MAPSS text reader.
+        reader_options: passed to the model's own reader (the turbofan's N-CMAPSS
+            reader: ``units``, ``sensors``, ``stride``; its C-MAPSS text reader).
 
     Raises:
         ValueError: unknown file type, unreadable file, column mismatch or
@@ -230,11 +231,16 @@ def _read_file(
             nonfinite=nonfinite, row_offset=2 if ext == ".csv" else 0,
             partial=partial,
         )  # fmt: skip
-    if ext in FILE_READERS:  # the turbofan's N-CMAPSS and C-MAPSS files
-        return FILE_READERS[ext](
-            path, nonfinite=nonfinite, rename=rename, **reader_options
-        )
+    readers = {} if model is None else model.file_readers
+    if ext in readers:  # the model's own files (the turbofan's N-CMAPSS, C-MAPSS)
+        return readers[ext](path, nonfinite=nonfinite, rename=rename, **reader_options)
+    own = f" or {model.name}'s own {', '.join(sorted(readers))}" if readers else ""
     raise ValueError(
-        f"{path}: unknown data file type {ext!r}; expected .csv, .parquet, .h5/.hdf5 "
-        "(N-CMAPSS layout) or .txt (NASA C-MAPSS)"
+        f"{path}: unknown data file type {ext!r}; expected .csv, .parquet{own}"
+        + (
+            " (a model's own files, as the turbofan's N-CMAPSS .h5/.hdf5 and C-MAPSS "
+            ".txt, are read with the model: read_dataset(path, model))"
+            if model is None
+            else ""
+        )
     )

@@ -52,21 +52,21 @@ program, before any JAX computation (or set ``JAX_CPU_ENABLE_ASYNC_DISPATCH=fals
 JAX then runs each step on the calling thread instead of handing it to a thread pool,
 about half the cost of a small model's step; the results are the same bits.
 
-The package holds deployment: :mod:`jaxcal.deploy.loading` reads a run folder
-(:func:`load_run`), :mod:`jaxcal.deploy.streaming` runs it sample by sample; the
-record of a loaded run and its calibrator are the policy method's
-(:mod:`jaxcal.calibrators.methods.policy.trained`), re-exported here. A run whose model
-needs float64
-with ``dynamics=physics`` needs x64 enabled first (``jaxcal.precision.enable_x64()``).
+The package holds deployment: :mod:`jaxcal.deploy.streaming` runs a run sample by
+sample; reading a run folder (:func:`load_run`), the record of a loaded run and its
+calibrator are the policy method's (:mod:`jaxcal.calibrators.methods.policy.loading`,
+:mod:`~jaxcal.calibrators.methods.policy.trained`), re-exported here. A run whose model
+needs float64 with ``dynamics=physics`` needs x64 enabled first
+(``jaxcal.precision.enable_x64()``).
 """
 
 from jaxcal.calibrators.methods.policy.trained import (
     LoadedRun,
     load_calibrator,
+    load_run,
     run_check,
 )
 from jaxcal.calibrators.programs.packed import synchronous_dispatch
-from jaxcal.deploy.loading import load_run
 from jaxcal.deploy.streaming import StepInfo, StreamingCalibrator
 from jaxcal.training.model_source import adopt_model_file
 

@@ -44,8 +44,8 @@ from jaxcal.calibrators.methods.policy.calibrator import (
 from jaxcal.calibrators.methods.policy.gated import DEFAULT_WINDOW, gate_state
 from jaxcal.calibrators.methods.policy.trained import (
     LoadedRun,
-    as_loaded,
     load_calibrator,
+    load_run,
     run_check,
 )
 from jaxcal.calibrators.programs.packed import (
@@ -98,7 +98,7 @@ class StreamingCalibrator:
         *,
         trust_code: bool = False,
     ):
-        self.run_info = as_loaded(run, trust_code=trust_code)
+        self.run_info = load_run(run, trust_code=trust_code)
         self.synchronous = dispatch_is_synchronous()
         problem = self.run_info.problem
         self.sensors = problem.output_names
@@ -124,7 +124,7 @@ class StreamingCalibrator:
             actor, dynamics, self._params, self._band, warm_start=True
         )
         self.anchor_info = (
-            None if anchor is None else as_loaded(anchor, trust_code=trust_code)
+            None if anchor is None else load_run(anchor, trust_code=trust_code)
         )
         if self.anchor_info is not None:
             self._gated(self._carry0)

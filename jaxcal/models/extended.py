@@ -142,7 +142,8 @@ def build_extended(
                 x, info = base.evaluate(w + w_off, full)
             return x * (1.0 + mult) + add, info
 
-        return Model.from_function(fn, diagnosis=hints, **common)
+        model = Model.from_function(fn, diagnosis=hints, **common)
+        return dataclasses.replace(model, file_readers=base.file_readers)
 
     def step(z, w, theta):
         full, _, w_off, add, mult = split(theta)
@@ -154,7 +155,7 @@ def build_extended(
         return base.init_state(w0 + w_off, full)
 
     model = Model.from_step(step, init_state=init, states=base.states, **common)
-    return dataclasses.replace(model, diagnosis=hints)
+    return dataclasses.replace(model, diagnosis=hints, file_readers=base.file_readers)
 
 
 def resolve_base(spec: dict, path: str) -> str:

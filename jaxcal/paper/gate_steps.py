@@ -35,13 +35,13 @@ from jaxcal.calibrators.methods.policy.gated import (
     gate_threshold,
     make_gated_calibrator,
 )
+from jaxcal.calibrators.methods.policy.loading import load_run, needs_x64
 from jaxcal.calibrators.uncertainty.conformal import (
     band_coverage,
     band_from_json,
     band_to_json,
     fit_band,
 )
-from jaxcal.deploy.loading import load_run, needs_x64
 from jaxcal.paper.compare import evaluate_method
 from jaxcal.paper.methods import Method, make_method
 from jaxcal.runs.atomic import write_atomic

@@ -31,9 +31,9 @@ from jaxcal.calibrators.interface import SampleCheck
 from jaxcal.calibrators.methods import REGISTRY
 from jaxcal.calibrators.methods.e2e.network import E2EConfig, fit_e2e, init_e2e_params
 from jaxcal.calibrators.methods.ls.window import LeastSquaresConfig
+from jaxcal.calibrators.methods.policy.loading import load_run, needs_x64
 from jaxcal.calibrators.ukf import UKFConfig
 from jaxcal.data.padded import Padded
-from jaxcal.deploy.loading import load_run, needs_x64
 from jaxcal.models.turbofan.physics.engine import ENVELOPES, load_engine
 from jaxcal.models.turbofan.training import load_calibration_data
 from jaxcal.paper.compare import (

@@ -15,6 +15,7 @@ scored by :mod:`~jaxcal.training.scoring.policy` (with the scores of
 :mod:`~jaxcal.training.scoring.trajectories`), and
 the run's ``final.json`` is gathered by :mod:`~jaxcal.training.scoring.final_report`. A
 run folder's own model is kept by :mod:`~jaxcal.training.model_source`. The files of a
-run folder are :mod:`jaxcal.runs`'; reading a trained run back is
-:mod:`jaxcal.deploy`'s.
+run folder are :mod:`jaxcal.runs`'; reading a trained run back is the policy
+method's (:mod:`jaxcal.calibrators.methods.policy.loading`: the config, runner,
+components and model source sit at its layer, ``tests/test_architecture.py``).
 """

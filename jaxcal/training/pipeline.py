@@ -7,12 +7,12 @@
    writable, and a stored config must match for a resume
    (:func:`jaxcal.runs.folder.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
-   (the turbofan's, :data:`jaxcal.training.data.MODEL_FILES`, a function call whose
-   float64 scope does not leak into training), then the train / val / test units and the
-   one :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an N-CMAPSS
-   file through :mod:`jaxcal.models.turbofan.training`, any model's rows through
-   :mod:`jaxcal.training.data.tables`), with the run's one normalisation, computed there
-   in the run's dtype (:func:`run_dtype`) and carried unchanged to the
+   (the turbofan's, named by :data:`jaxcal.models.TRAINING_FILES`, a function call
+   whose float64 scope does not leak into training), then the train / val / test units
+   and the one :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an
+   N-CMAPSS file through :mod:`jaxcal.models.turbofan.training`, any model's rows
+   through :mod:`jaxcal.training.data.tables`), with the run's one normalisation,
+   computed there in the run's dtype (:func:`run_dtype`) and carried unchanged to the
    environment, the deployed policy and ``data.json``. Only then, every check of
    the config and the data passed, is the run folder created with its
    ``config.json`` (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that
@@ -59,7 +59,7 @@ of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides t
 runner checkpoints, every checkpoint step saves the deployable
 :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (actor, dynamics
 parameters, normalisation, action box) under ``policy/``, and the selected one under
-``policy_best/``; :func:`jaxcal.deploy.loading.load_run` loads a run from those and
+``policy_best/``; :func:`jaxcal.deploy.load_run` loads a run from those and
 ``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.
 
 No x64 switch here: a model that needs float64 (``model.x64``) with

@@ -56,6 +56,6 @@ def test_the_gain_over_a_random_start_is_reported_and_matches_the_start_run(
     assert start["training_gain"]["start"] == pytest.approx(gain["start"], rel=1e-5)
     assert "did not improve on its untrained start" in out
     # deployable: the untrained policy was kept as chunk 0
-    from jaxcal.deploy.loading import load_run
+    from jaxcal.calibrators.methods.policy.loading import load_run
 
     assert load_run(runs_dir / "start").step == 0

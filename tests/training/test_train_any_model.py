@@ -285,7 +285,7 @@ def test_default_preset_filter_step_prior_and_chunk_0_train_and_deploy(tmp_path)
     filter's step and starts as it (gain 1); the untrained policy is scored as chunk
     0, every scoring logs each parameter's simulated error, and the deployed policy
     carries the filter (its noise, its covariance) and the actor's prior."""
-    from jaxcal.deploy.loading import load_run
+    from jaxcal.calibrators.methods.policy.loading import load_run
     from jaxcal.runs.metrics_log import read_metrics
 
     path = tmp_path / "nolabel.csv"
@@ -347,7 +347,7 @@ def test_tune_keeps_a_tuned_policy_only_where_selection_agrees(tmp_path, effects
     filter; final.json says what it did, and the run deploys the tuned actor
     (``policy_tuned/``) exactly when it lowered the selection's theta error. With
     ``tune.effects`` the score is half effects, and the clean units may not lose."""
-    from jaxcal.deploy.loading import load_run
+    from jaxcal.calibrators.methods.policy.loading import load_run
 
     path = tmp_path / "nolabel.csv"
     _frame(labels=False).to_csv(path, index=False)

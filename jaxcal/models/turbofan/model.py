@@ -21,6 +21,7 @@ validated study library, experiments/loop_study.py). Health modifiers lose in se
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -157,7 +158,7 @@ def turbofan_model(engine: Engine) -> Model:
         x, info, hint = evaluate_engine_hinted(engine, w, theta, hint)
         return x, ModelInfo(valid=info.converged, native=info), hint
 
-    return Model.from_function(
+    model = Model.from_function(
         fn,
         conditions=dict(zip(CONDITION_NAMES, CONDITION_UNITS, strict=True)),
         parameters=parameters,
@@ -175,6 +176,17 @@ def turbofan_model(engine: Engine) -> Model:
         warm_fn=warm,
         warm_size=NUM_UNKNOWNS,
     )
+    readers = dict.fromkeys((".h5", ".hdf5", ".txt"), read_file)
+    return dataclasses.replace(model, file_readers=readers)
+
+
+def read_file(path: str, **options):
+    """An N-CMAPSS (``.h5``/``.hdf5``) or C-MAPSS (``.txt``) file -> Dataset
+    (:func:`jaxcal.models.turbofan.data.datasets.read_file`: ``options``)."""
+    # lazy: the readers load pandas and h5py, a model without a file need not
+    from jaxcal.models.turbofan.data.datasets import read_file as read
+
+    return read(path, **options)
 
 
 def _evaluate(engine: Engine, w, theta):

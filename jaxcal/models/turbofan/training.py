@@ -7,7 +7,7 @@ evaluation and the paper's comparison read: the train / validation / test units 
 
 * :func:`load_calibration_data` (this module) reads an N-CMAPSS-layout HDF5 file (one
   of ours or any of NASA's DS01-DS08) for the turbofan (:func:`read_data`: a
-  training run's, through :data:`jaxcal.training.data.MODEL_FILES`, as
+  training run's, named by :data:`jaxcal.models.TRAINING_FILES`, as
   :func:`generator` makes a missing file);
 * :func:`jaxcal.training.data.tables.load_table_data` reads any model's rows (CSV,
   Parquet, C-MAPSS text) through :func:`jaxcal.data.readers.read_dataset`.

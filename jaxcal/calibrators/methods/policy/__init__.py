@@ -30,8 +30,8 @@ def build(problem, cfg: Policy, buckets, seed: int = 0):
     """The loaded policy run over the padded groups, checked against its run's
     training range."""
     del buckets, seed
-    # the run is read through jaxcal.runs.read_run (the deploy layer's loader, which
-    # the package root registers): imported when the method is asked for
+    # lazy: the run's reader (the training job's config and networks) is imported
+    # when the method is asked for
     from jaxcal.calibrators.methods.policy.trained import policy_calibrator
 
     cal, check = policy_calibrator(problem, cfg)

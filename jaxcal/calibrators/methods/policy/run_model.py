@@ -106,7 +106,7 @@ def check_run_model(run, given: Model) -> None:
     """Refuse ``given`` unless it is ``run``'s own model by names and outputs.
 
     Args:
-        run: a :class:`~jaxcal.deploy.loading.LoadedRun`.
+        run: a :class:`~jaxcal.calibrators.methods.policy.loading.LoadedRun`.
         given: the model a caller passed along with the run.
 
     Raises:

@@ -8,19 +8,14 @@ gated by an anchor run where asked), :func:`run_check` (its training range as th
 sample check) and :func:`check_run_model` (the model given is the run's own,
 :mod:`jaxcal.calibrators.methods.policy.run_model`).
 
-Reading a run folder needs the training job's config and components, which sit
-above the calibrators. So :func:`load_run` here reads through the one slot of
-:mod:`jaxcal.runs` (:func:`jaxcal.runs.read_run`), which the package root fills with
-the reader of :mod:`jaxcal.deploy.loading`: every import arrow runs downwards, and
-the policy method still takes a run folder. Users import all of this from
-:mod:`jaxcal.deploy`.
+The run folder is read by :mod:`jaxcal.calibrators.methods.policy.loading`
+(:func:`load_run`, with the training job's config and components, which sit at this
+layer). Users import all of this from :mod:`jaxcal.deploy`.
 """
 
 from __future__ import annotations
 
 import os
-from pathlib import Path
-from typing import Any, NamedTuple
 
 from jaxcal.calibrators.interface import Calibrator, SampleCheck
 from jaxcal.calibrators.methods.policy.calibrator import (
@@ -31,70 +26,9 @@ from jaxcal.calibrators.methods.policy.gated import (
     feedback_sensitivity,
     make_gated_calibrator,
 )
+from jaxcal.calibrators.methods.policy.loading import LoadedRun, load_run
 from jaxcal.calibrators.methods.policy.run_model import check_run_model  # noqa: F401 (re-exported)
 from jaxcal.calibrators.programs import compiled
-from jaxcal.runs import read_run
-
-
-class LoadedRun(NamedTuple):
-    """A trained policy ready to run (:func:`jaxcal.deploy.load_run`).
-
-    Attributes:
-        run_dir: the run folder.
-        config: its resolved :class:`~jaxcal.training.config.TrainConfig`.
-        problem: the run's :class:`~jaxcal.problem.Problem` (model, names, box,
-            normalisation, training input range).
-        params: the deployable
-            :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (or its
-            incremental variants).
-        actor: the actor module (static).
-        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
-            :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
-        step: the checkpoint step (chunks trained) the policy comes from.
-        band: the calibrated error band of the kept policy
-            (:class:`~jaxcal.calibrators.uncertainty.conformal.ThetaBand` of
-            ``uncertainty.json``, fitted on the validation units at the end of
-            training); ``None`` for a run without one.
-        model_source: what the run stores of its model (``data.json``
-            ``"model_source"``, :mod:`jaxcal.training.model_source`); ``None`` for a
-            run of the older layout (its registered model's name, if it had one).
-    """
-
-    run_dir: Path
-    config: Any
-    problem: Any
-    params: Any
-    actor: Any
-    dynamics: Any
-    step: int
-    band: Any = None
-    model_source: dict | None = None
-
-    @property
-    def meta(self):
-        """The problem, under the name older callers use (``range_check(run.meta)``)."""
-        return self.problem
-
-
-def load_run(
-    run_dir: str | os.PathLike | LoadedRun,
-    *,
-    which: str = "selected",
-    step: int | None = None,
-    trust_code: bool = False,
-) -> LoadedRun:
-    """A run's policy, read by :func:`jaxcal.deploy.loading.load_run` (see there,
-    and ``trust_code``); a :class:`LoadedRun` passes through unchanged."""
-    if isinstance(run_dir, LoadedRun):
-        return run_dir
-    return read_run(run_dir, which=which, step=step, trust_code=trust_code)
-
-
-def as_loaded(
-    run: str | os.PathLike | LoadedRun, *, trust_code: bool = False
-) -> LoadedRun:
-    """``run`` loaded (a :class:`LoadedRun` passes through)."""
-    return load_run(run, trust_code=trust_code)
 
 
 def run_check(run: LoadedRun) -> SampleCheck | None:
@@ -131,7 +65,7 @@ def load_calibrator(
         ValueError: the anchor has no band, its names differ from the run's, or the
             run is not an incremental policy.
     """
-    run = as_loaded(run_dir)
+    run = load_run(run_dir)
     # run_fleet gives init the first ok row; a stream (warm_start) makes its first
     # state before any row and starts the model's state at its first sample
     cal = make_policy_calibrator(
@@ -140,7 +74,7 @@ def load_calibrator(
     )  # fmt: skip
     if anchor is None:
         return cal
-    anchor = as_loaded(anchor)
+    anchor = load_run(anchor)
     check_anchor(run, anchor)
     anchor_cal = make_policy_calibrator(
         anchor.actor, anchor.dynamics, anchor.params, anchor.band,
@@ -187,7 +121,7 @@ def policy_calibrator(problem, cfg) -> tuple[Calibrator, SampleCheck | None]:
     run_dir, anchor_dir = cfg.run, cfg.anchor
     if not run_dir:
         raise ValueError("method='policy' needs run=<trained run folder>")
-    run = run_dir if isinstance(run_dir, LoadedRun) else load_run(run_dir)
+    run = load_run(run_dir)
     _check_run(problem, run)
     check_run_model(run, problem.model)  # the policy runs with the run's own model
     anchor = None

@@ -1,6 +1,6 @@
 """The turbofan's files as :class:`~jaxcal.data.dataset.Dataset` s: :func:`read_file`
 (N-CMAPSS ``.h5``/``.hdf5``, C-MAPSS ``.txt``) for :func:`jaxcal.data.readers.
-read_dataset` (:data:`jaxcal.data.FILE_READERS`); one split of an N-CMAPSS file."""
+read_dataset` (the turbofan model's ``file_readers``); one split of an N-CMAPSS file."""
 
 import os
 

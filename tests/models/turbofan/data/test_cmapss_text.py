@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import jaxcal
 from jaxcal.models.turbofan.data.cmapss_text import (
     EXTRA_MAP,
     SENSOR_MAP,
@@ -120,6 +121,16 @@ def test_missing_and_mismatched_files(tmp_path):
         load_cmapss_text(path, tmp_path / "RUL_FD001.txt")
     with pytest.raises(ValueError, match="only meaningful for a test file"):
         load_cmapss_text(path, tmp_path / "RUL_FD001.txt", kind="train")
+
+
+def test_the_turbofan_model_reads_its_files_through_read_dataset(tmp_path):
+    path = write_cmapss(tmp_path / "train_FD001.txt", [3, 2])
+    model = jaxcal.models.load("cmapss")
+    assert sorted(model.file_readers) == [".h5", ".hdf5", ".txt"]
+    data = jaxcal.read_dataset(path, model)
+    assert data.num_rows == 5 and data.units.tolist() == [1, 2]
+    with pytest.raises(ValueError, match="unknown data file type '.txt'"):
+        jaxcal.read_dataset(path)  # the file's format is the model's
 
 
 def _experiment_module():

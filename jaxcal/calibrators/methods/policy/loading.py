@@ -12,11 +12,9 @@ consent (``trust_code=True``, or the same file named by the user in this process
 :mod:`jaxcal.trust`, ``docs/trust.md``); ``data.json`` files of the older layout (the
 turbofan's ``RunMeta`` fields) are read too.
 
-The record it returns, :class:`~jaxcal.calibrators.methods.policy.trained.LoadedRun`,
-and what turns it into a calibrator live with the calibrators, which cannot import this
-module (it needs the training job's config and components): they read a folder
-through :func:`jaxcal.runs.read_run`, which the package root fills with
-:func:`load_run`. :mod:`jaxcal.deploy` re-exports both sides for users.
+The policy method reads a run here, with the training job's config, components and
+model source, which import nothing above the calibrators (``tests/test_architecture.py``
+places them at this layer); :mod:`jaxcal.deploy` re-exports :func:`load_run`.
 
 Float64: a run whose model needs it (``model.x64``) with ``dynamics=physics`` is
 refused with a clear message unless x64 is enabled; the command lines enable it.
@@ -26,6 +24,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +37,6 @@ from jaxcal.calibrators.methods.policy.calibrator import (
     filter_settings,
     with_output_states,
 )
-from jaxcal.calibrators.methods.policy.trained import LoadedRun
 from jaxcal.calibrators.uncertainty.conformal import load_band
 from jaxcal.precision import require_x64
 from jaxcal.problem import Problem, provisional_noise
@@ -62,6 +60,46 @@ from jaxcal.training.model_source import load_run_model, recorded_source
 
 # Runs of the older data.json layout are the turbofan's, which needs float64.
 _LEGACY_X64 = True
+
+
+class LoadedRun(NamedTuple):
+    """A trained policy ready to run (:func:`jaxcal.deploy.load_run`).
+
+    Attributes:
+        run_dir: the run folder.
+        config: its resolved :class:`~jaxcal.training.config.TrainConfig`.
+        problem: the run's :class:`~jaxcal.problem.Problem` (model, names, box,
+            normalisation, training input range).
+        params: the deployable
+            :class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (or its
+            incremental variants).
+        actor: the actor module (static).
+        dynamics: the transition x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (static), a
+            :class:`~jaxcal.envs.memory.StatefulDynamics` for a model with memory.
+        step: the checkpoint step (chunks trained) the policy comes from.
+        band: the calibrated error band of the kept policy
+            (:class:`~jaxcal.calibrators.uncertainty.conformal.ThetaBand` of
+            ``uncertainty.json``, fitted on the validation units at the end of
+            training); ``None`` for a run without one.
+        model_source: what the run stores of its model (``data.json``
+            ``"model_source"``, :mod:`jaxcal.training.model_source`); ``None`` for a
+            run of the older layout (its registered model's name, if it had one).
+    """
+
+    run_dir: Path
+    config: Any
+    problem: Any
+    params: Any
+    actor: Any
+    dynamics: Any
+    step: int
+    band: Any = None
+    model_source: dict | None = None
+
+    @property
+    def meta(self):
+        """The problem, under the name older callers use (``range_check(run.meta)``)."""
+        return self.problem
 
 
 def needs_x64(run_dir: str | os.PathLike) -> bool:
@@ -113,7 +151,7 @@ def run_problem(
 
 
 def load_run(
-    run_dir: str | os.PathLike,
+    run_dir: str | os.PathLike | LoadedRun,
     *,
     which: str = "selected",
     step: int | None = None,
@@ -122,7 +160,7 @@ def load_run(
     """Load a run's policy.
 
     Args:
-        run_dir: the run folder.
+        run_dir: the run folder (a :class:`LoadedRun` passes through unchanged).
         which: ``"selected"``: the policy the run kept (``budget.select``: the best
             validation tracking RMSE, or the last one); ``"last"``: the latest
             checkpoint.
@@ -143,6 +181,8 @@ def load_run(
             ValueError) naming the model copy and ``trust_code`` when its code needs
             the user's consent.
     """
+    if isinstance(run_dir, LoadedRun):
+        return run_dir
     if which not in ("selected", "last"):
         raise ValueError(f"which must be 'selected' or 'last', got {which!r}")
     run_dir = Path(run_dir)
