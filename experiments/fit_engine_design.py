@@ -90,8 +90,10 @@ def cmapss_targets() -> tuple[np.ndarray, list[Target]]:
     condition 7 (HPC_eff/HPC_flow fitted jointly) and condition 6 (healthy): it pins the
     booster/HPC matching that the six healthy points leave loose.
     """
-    sig_rel = {"T24": 0.003, "T30": 0.004, "T50": 0.004, "P15": 0.003, "P30": 0.004,
-               "Nc": 0.003, "NRc": 0.003, "BPR": 0.005, "W31": 0.005, "W32": 0.005}  # fmt: skip
+    sig_rel = {
+        "T24": 0.003, "T30": 0.004, "T50": 0.004, "P15": 0.003, "P30": 0.004,
+        "Nc": 0.003, "NRc": 0.003, "BPR": 0.005, "W31": 0.005, "W32": 0.005,
+    }  # fmt: skip
     targets = []
     for k in range(6):
         for s, rel in sig_rel.items():
@@ -129,8 +131,10 @@ def agtf30_targets(base) -> tuple[np.ndarray, list[Target]]:
 
 
 def agtf30_params() -> list[FitParam]:
-    keep = ["w2_d", "bpr_d", "pr_fan_d", "eta_fan_d", "pr_lpc_d", "eta_lpc_d", "pr_hpc_d",
-            "eta_hpc_d", "t4_d", "eta_hpt_d", "eta_lpt_d", "nc_d", "bleed_hpt", "bleed_lpt"]  # fmt: skip
+    keep = [
+        "w2_d", "bpr_d", "pr_fan_d", "eta_fan_d", "pr_lpc_d", "eta_lpc_d", "pr_hpc_d",
+        "eta_hpc_d", "t4_d", "eta_hpt_d", "eta_lpt_d", "nc_d", "bleed_hpt", "bleed_lpt",
+    ]  # fmt: skip
     params = [FitParam(k, _DESIGN_PRIORS[k]) for k in keep]
     params = [FitParam("nc_d", 300.0) if p.name == "nc_d" else p for p in params]
     params += [FitParam(f"{c}.{k}", s, pos) for c in ("fan", "lpc", "hpc")
@@ -158,7 +162,7 @@ def run(name: str) -> dict:
     res = fit_design(
         base, params, conds, thetas, targets, theta_params=theta_params, verbose=True
     )
-    for tp, v in zip(theta_params, res.theta):
+    for tp, v in zip(theta_params, res.theta, strict=True):
         thetas[tp.k, tp.index] = v
     fit_s = time.time() - t0
     design = res.design
@@ -178,8 +182,10 @@ def run(name: str) -> dict:
         model = float(x[t.k, SENSOR_NAMES.index(t.sensor)])
         if t.k_ref >= 0:
             model -= float(x[t.k_ref, SENSOR_NAMES.index(t.sensor)])
-        rows.append({"condition": t.k, "sensor": t.sensor, "target": t.value,
-                     "model": model, "error_pct": 100 * (model - t.value) / t.value})  # fmt: skip
+        rows.append({
+            "condition": t.k, "sensor": t.sensor, "target": t.value, "model": model,
+            "error_pct": 100 * (model - t.value) / t.value,
+        })  # fmt: skip
     flat = design_to_flat(design)
     out_pkg = ROOT / "jaxcal" / "physics" / "fitted" / f"{name}.json"
     payload = {
@@ -198,16 +204,18 @@ def run(name: str) -> dict:
         "converged": np.asarray(info.converged).tolist(),
         "parameters": {
             p.name: {"value": flat[p.name], "u": float(u), "u_std": float(s)}
-            for p, u, s in zip(params, res.u, res.u_std)
+            for p, u, s in zip(params, res.u, res.u_std, strict=False)
         },  # fmt: skip
         "targets": rows,
         "fitted_theta": {
-            f"cond{tp.k}.{tp.index}": float(v) for tp, v in zip(theta_params, res.theta)
+            f"cond{tp.k}.{tp.index}": float(v)
+            for tp, v in zip(theta_params, res.theta, strict=True)
         },
     }
     _atomic_json(ROOT / "results" / "engine" / f"fit_{name}.json", report)
     errs = np.array([abs(r["error_pct"]) for r in rows])
-    print(f"{name}: fit {fit_s:.0f} s, cost {res.cost_history[0]:.4g} -> {res.cost_history[-1]:.4g}, "
+    print(f"{name}: fit {fit_s:.0f} s, "
+          f"cost {res.cost_history[0]:.4g} -> {res.cost_history[-1]:.4g}, "
           f"median |err| {np.median(errs):.3f} %, max {errs.max():.3f} %")  # fmt: skip
     for r in rows:
         print(f"  cond {r['condition']} {r['sensor']:>5}: target {r['target']:10.4f} "

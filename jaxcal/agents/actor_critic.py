@@ -303,4 +303,3 @@ def make_actor_critic(
 
     actor = learners.networks.actor
     return Agent(init, make_act(actor), update, observation_size, action_size)
-

@@ -12,7 +12,8 @@ predicts each test unit's RUL with a ``coverage`` interval
 (:func:`jaxcal.prognosis.pipeline.prognose`). ``model=`` is any
 :func:`jaxcal.models.load` spec; ``engine=`` is its old name and ``cmapss`` the
 default, where ``theta`` and ``outputs`` default to the C-MAPSS HPC and fan pairs and
-the physical sensors (:data:`jaxcal.models.turbofan.model.PROGNOSIS_THETA`, ``PROGNOSIS_OUTPUTS``).
+the physical sensors (:data:`jaxcal.models.turbofan.model.PROGNOSIS_THETA`,
+``PROGNOSIS_OUTPUTS``).
 ``boundary=name:value,...`` declares failure limits (then only those decide);
 without it the boundaries are learned from the training units' last cycles.
 ``truth=`` (one true RUL per line, in test-unit order: NASA's ``RUL_FD00x.txt``)

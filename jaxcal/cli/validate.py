@@ -7,8 +7,8 @@ envelope grid; the flag spellings ``--out PATH``, ``--engine agtf30`` and ``--qu
 work too).
 Exit status 1 when any check fails. Checks: conservation, FD002 table, FD001 HPC
 signature, HPT-efficiency signature, envelope convergence (and rejection outside it),
-DS02 ranges, gradients vs finite differences, Jacobian rank and condition number, plus the
-AGTF30 operating points for that configuration.
+DS02 ranges, gradients vs finite differences, Jacobian rank and condition number, plus
+the AGTF30 operating points for that configuration.
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ S = {n: i for i, n in enumerate(SENSOR_NAMES)}
 
 
 def _check(name, value, threshold, passed, **details):
-    return {"check": name, "value": value, "threshold": threshold, "passed": bool(passed),
-            **details}  # fmt: skip
+    return {"check": name, "value": value, "threshold": threshold,
+            "passed": bool(passed), **details}  # fmt: skip
 
 
 def _w(rows):
@@ -58,7 +58,9 @@ def check_conservation(engine: Engine, f) -> dict:
     th = np.zeros((n, 10))
     th[:, 4:] = rng.uniform(-0.04, 0.0, (n, 6))
     x, info = f(w, th)
-    audit = jax.jit(jax.vmap(lambda a, b, z: audit_point(engine.design, a, b, jnp.zeros(6), z)))
+    audit = jax.jit(
+        jax.vmap(lambda a, b, z: audit_point(engine.design, a, b, jnp.zeros(6), z))
+    )
     a = audit(w, th, info.z)
     conv = np.asarray(info.converged)
     worst = {k: float(np.max(np.asarray(v)[conv])) for k, v in a._asdict().items()}
@@ -77,7 +79,8 @@ def check_fd002(f) -> dict:
         table[s] = [round(float(v), 3) for v in e]
         errs.extend(np.abs(e))
     med, mx = float(np.median(errs)), float(np.max(errs))
-    return _check("FD002 six conditions: |error| % (median / max)", [med, mx], [1.0, 3.0],
+    return _check("FD002 six conditions: |error| % (median / max)",
+                  [med, mx], [1.0, 3.0],
                   med <= 1.0 and mx <= 3.0 and bool(np.all(info.converged)),
                   error_pct_per_sensor_condition=table)  # fmt: skip
 
@@ -91,7 +94,9 @@ def check_fd001(f) -> dict:
     x, _ = f(w0, th)
     x = np.asarray(x)
     idx = [S[n] for n in names]
-    sens = np.stack([(x[1, idx] - x[0, idx]) / -0.01, (x[2, idx] - x[0, idx]) / -0.01], 1)
+    sens = np.stack(
+        [(x[1, idx] - x[0, idx]) / -0.01, (x[2, idx] - x[0, idx]) / -0.01], 1
+    )
     # weighted least squares for (HPC_eff, HPC_flow), clipped to the box [-0.05, 0]
     pair, *_ = np.linalg.lstsq(sens / np.abs(tgt)[:, None], np.sign(tgt), rcond=None)
     pair = np.clip(pair, -0.05, 0.0)
@@ -101,10 +106,13 @@ def check_fd001(f) -> dict:
     xf = np.asarray(xf)
     model = xf[1, idx] - xf[0, idx]
     ratio = model / tgt
-    ok = bool(np.all(np.sign(model) == np.sign(tgt)) and np.all(np.abs(ratio - 1) <= 0.3))
+    ok = bool(
+        np.all(np.sign(model) == np.sign(tgt)) and np.all(np.abs(ratio - 1) <= 0.3)
+    )
     return _check("FD001 HPC signature: worst |model/data - 1|",
                   float(np.max(np.abs(ratio - 1))), 0.3, ok,
-                  fitted_pair={"HPC_eff_mod": float(pair[0]), "HPC_flow_mod": float(pair[1])},
+                  fitted_pair={"HPC_eff_mod": float(pair[0]),
+                               "HPC_flow_mod": float(pair[1])},
                   model=dict(zip(names, model.round(4).tolist(), strict=False)),
                   data=ref.FD001_HPC_SIGNATURE)  # fmt: skip
 
@@ -135,12 +143,13 @@ def check_hpt_signature(f) -> dict:
 
 def envelope_grid(quick: bool, alt_max: float = 42000.0, mach_max: float = 0.85):
     """engine.md check 5: alt 0-42 kft, Mach 0-0.85 (clipped to the configuration's own
-    envelope), TRA 20-100, T2 ISA -30 to +40 degR; theta = 0 and every component alone at
-    its bound (-0.06 / +0.02, fan and LPC to -0.25)."""
+    envelope), TRA 20-100, T2 ISA -30 to +40 degR; theta = 0 and every component alone
+    at its bound (-0.06 / +0.02, fan and LPC to -0.25)."""
     n = (4, 4, 5, 3) if quick else (8, 7, 9, 4)
     g = np.array(list(itertools.product(np.linspace(0, alt_max, n[0]),
                                         np.linspace(0, mach_max, n[1]),
-                                        np.linspace(20, 100, n[2]), np.linspace(-30, 40, n[3]))))  # fmt: skip
+                                        np.linspace(20, 100, n[2]),
+                                        np.linspace(-30, 40, n[3]))))  # fmt: skip
     lo = np.array([-0.25] * 4 + [-0.06] * 6)
     thetas = [np.zeros(10)]
     for j in range(10):
@@ -153,7 +162,9 @@ def envelope_grid(quick: bool, alt_max: float = 42000.0, mach_max: float = 0.85)
 
 def check_envelope(engine: Engine, f, quick: bool) -> list[dict]:
     env = engine.envelope
-    w, thetas = envelope_grid(quick, min(42000.0, env.alt_ft[1]), min(0.85, env.mach[1]))
+    w, thetas = envelope_grid(
+        quick, min(42000.0, env.alt_ft[1]), min(0.85, env.mach[1])
+    )
     conv = []
     worst_iters = 0
     for t in thetas:
@@ -192,23 +203,30 @@ def check_envelope(engine: Engine, f, quick: bool) -> list[dict]:
             messages.append(None)
         except ValueError as err:
             messages.append(str(err))
-    named = all(m is not None and ("w[..., '" in m or "theta[..., '" in m) for m in messages)
-    out.append(_check("outside the envelope: converged is False and evaluate_checked names "
-                      "the field", flagged and named, True, flagged and named,
+    named = all(
+        m is not None and ("w[..., '" in m or "theta[..., '" in m) for m in messages
+    )
+    out.append(_check("outside the envelope: converged is False and evaluate_checked "
+                      "names the field", flagged and named, True, flagged and named,
                       messages=messages))  # fmt: skip
     return out
 
 
 def check_ds02(f) -> dict:
-    """Phase-sampled operating points of DS02-like flights (alt 10-35 kft, Mach 0.26-0.75,
-    TRA 24-88): climb, cruise and descent relations between alt, Mach and TRA."""
+    """Phase-sampled operating points of DS02-like flights (alt 10-35 kft,
+    Mach 0.26-0.75, TRA 24-88): climb, cruise and descent relations between alt, Mach
+    and TRA."""
     rng = np.random.default_rng(2)
     n = 1200
     phase = rng.integers(0, 3, n)
-    alt = np.where(phase == 1, rng.uniform(25000, 35000, n), rng.uniform(10000, 35000, n))
+    alt = np.where(
+        phase == 1, rng.uniform(25000, 35000, n), rng.uniform(10000, 35000, n)
+    )
     mach = np.where(phase == 1, rng.uniform(0.65, 0.75, n),
-                    0.26 + (0.74 - 0.26) * (alt - 10000) / 25000 + rng.uniform(-0.05, 0.05, n))  # fmt: skip
-    tra = np.select([phase == 0, phase == 1], [rng.uniform(72, 88, n), rng.uniform(55, 80, n)],
+                    0.26 + (0.74 - 0.26) * (alt - 10000) / 25000
+                    + rng.uniform(-0.05, 0.05, n))  # fmt: skip
+    tra = np.select([phase == 0, phase == 1],
+                    [rng.uniform(72, 88, n), rng.uniform(55, 80, n)],
                     rng.uniform(24, 40, n))  # fmt: skip
     w = _w(np.stack([alt, np.clip(mach, 0.26, 0.75), tra, rng.uniform(-25, 25, n)], 1))
     x, info = f(w, np.zeros((n, 10)))
@@ -221,26 +239,28 @@ def check_ds02(f) -> dict:
         worst = max(worst, lo / v.min() - 1 if v.min() < lo else 0.0,
                     v.max() / hi - 1 if v.max() > hi else 0.0)  # fmt: skip
     ok = worst <= 0.15 and bool(np.all(info.converged))
-    return _check("DS02 envelope: worst excursion beyond the DS02 ranges", float(worst), 0.15,
-                  ok, ranges=ranges, points=n)  # fmt: skip
+    return _check("DS02 envelope: worst excursion beyond the DS02 ranges", float(worst),
+                  0.15, ok, ranges=ranges, points=n)  # fmt: skip
 
 
 def check_gradients(engine: Engine) -> list[dict]:
     """jacfwd (implicit-function gradients) vs central differences, and identifiability.
 
     Identifiability: at a single operating point the 14 measured sensors can never fix
-    all of HPT_eff, HPT_flow, LPT_eff and LPT_flow, because P45 (between the turbines) is
-    not measured: raising P45 while HPT_eff, LPT_eff and LPT_flow compensate keeps every
-    measured station unchanged (capacity and power of both turbines are four equations in
-    those modifiers and one free pressure). This holds for any 0-D cycle, so the check is
-    made the way calibration uses data: on a cruise segment (four cruise points), where
-    the null direction of one point is seen by the others. The single-point rank with and
-    without P45 is reported too.
+    all of HPT_eff, HPT_flow, LPT_eff and LPT_flow, because P45 (between the turbines)
+    is not measured: raising P45 while HPT_eff, LPT_eff and LPT_flow compensate keeps
+    every measured station unchanged (capacity and power of both turbines are four
+    equations in those modifiers and one free pressure). This holds for any 0-D cycle,
+    so the check is made the way calibration uses data: on a cruise segment (four cruise
+    points), where the null direction of one point is seen by the others. The
+    single-point rank with and without P45 is reported too.
     """
     th0 = jnp.full(10, -0.005)
     cruise = [(35000.0, 0.78, 85.0), (35000.0, 0.78, 75.0), (33000.0, 0.74, 80.0),
               (31000.0, 0.72, 70.0)]  # fmt: skip
-    ws = jnp.array([[a, m, t, float(isa_total_temperature(a, m))] for a, m, t in cruise])
+    ws = jnp.array(
+        [[a, m, t, float(isa_total_temperature(a, m))] for a, m, t in cruise]
+    )
     w0 = ws[0]
 
     def xs(w, th):
@@ -250,16 +270,19 @@ def check_gradients(engine: Engine) -> list[dict]:
     jw = np.asarray(jax.jit(jax.jacfwd(xs, argnums=0))(w0, th0))
     f = jax.jit(xs)
     h_th = 1e-6
-    fd_t = np.stack([(np.asarray(f(w0, th0.at[j].add(h_th))) - np.asarray(f(w0, th0.at[j].add(-h_th))))
+    fd_t = np.stack([(np.asarray(f(w0, th0.at[j].add(h_th)))
+                      - np.asarray(f(w0, th0.at[j].add(-h_th))))
                      / (2 * h_th) for j in range(10)], 1)  # fmt: skip
     h_w = np.array([1.0, 1e-5, 1e-4, 1e-3])
-    fd_w = np.stack([(np.asarray(f(w0.at[j].add(h_w[j]), th0)) - np.asarray(f(w0.at[j].add(-h_w[j]), th0)))
+    fd_w = np.stack([(np.asarray(f(w0.at[j].add(h_w[j]), th0))
+                      - np.asarray(f(w0.at[j].add(-h_w[j]), th0)))
                      / (2 * h_w[j]) for j in range(4)], 1)  # fmt: skip
 
     def rel(a, b):
-        # entries relative to themselves, floored at 1e-4 of their sensor's largest entry
-        # (sensors the controller holds, Nf, have exactly zero derivative rows)
-        floor = 1e-4 * np.max(np.abs(b), axis=1, keepdims=True) + 1e-12 * np.max(np.abs(b))
+        # entries relative to themselves, floored at 1e-4 of their sensor's largest
+        # entry (sensors the controller holds, Nf, have exactly zero derivative rows)
+        floor = (1e-4 * np.max(np.abs(b), axis=1, keepdims=True)
+                 + 1e-12 * np.max(np.abs(b)))  # fmt: skip
         return float(np.max(np.abs(a - b) / (np.abs(b) + floor)))
 
     e_t, e_w = rel(jt, fd_t), rel(jw, fd_w)
@@ -267,7 +290,8 @@ def check_gradients(engine: Engine) -> list[dict]:
     def normalised(w):
         x = np.asarray(f(w, th0))
         j = np.asarray(jax.jit(jax.jacfwd(xs, argnums=1))(w, th0))
-        return j / np.abs(x)[:, None] * 0.01  # sensors relative, parameters in 1 % steps
+        # sensors relative, parameters in 1 % steps
+        return j / np.abs(x)[:, None] * 0.01
 
     def rank_cond(j):
         sv = np.linalg.svd(j, compute_uv=False)
@@ -279,14 +303,14 @@ def check_gradients(engine: Engine) -> list[dict]:
     with_p45 = rank_cond(jn[0][np.append(ms, S["P45"])])
     segment = rank_cond(np.concatenate([j[ms] for j in jn]))
     return [
-        _check("gradients: jacfwd vs central differences, max relative error (theta / w)",
-               [e_t, e_w], 1e-5, max(e_t, e_w) <= 1e-5),  # fmt: skip
-        _check("identifiability: rank of d(14 sensors)/d(10 theta) on a cruise segment "
-               "(condition number)", segment[0], 10, segment[0] == 10,
+        _check("gradients: jacfwd vs central differences, max relative error "
+               "(theta / w)", [e_t, e_w], 1e-5, max(e_t, e_w) <= 1e-5),
+        _check("identifiability: rank of d(14 sensors)/d(10 theta) on a cruise "
+               "segment (condition number)", segment[0], 10, segment[0] == 10,
                condition_number=segment[1], single_point_rank=single[0],
                single_point_rank_with_P45=with_p45[0],
-               single_point_condition_with_P45=with_p45[1]),  # fmt: skip
-    ]
+               single_point_condition_with_P45=with_p45[1]),
+    ]  # fmt: skip
 
 
 def check_agtf30(engine: Engine, f) -> dict:
@@ -296,12 +320,12 @@ def check_agtf30(engine: Engine, f) -> dict:
         w = np.array([alt, mach, float(tra_for_pcn(engine.design, pcn)), t2])
         x, _ = f(w[None], np.zeros((1, 10)))
         x = np.asarray(x)[0]
-        errs[name] = {s: round(100 * (x[S[s]] / v - 1), 3) for s, v in pt["values"].items()
-                      if s != "T2"}  # fmt: skip
+        errs[name] = {s: round(100 * (x[S[s]] / v - 1), 3)
+                      for s, v in pt["values"].items() if s != "T2"}  # fmt: skip
     allv = np.abs([v for d in errs.values() for v in d.values()])
     med, mx = float(np.median(allv)), float(np.max(allv))
-    return _check("AGTF30 cruise / take-off points: |error| % (median / max)", [med, mx],
-                  "reported", True, error_pct=errs)  # fmt: skip
+    return _check("AGTF30 cruise / take-off points: |error| % (median / max)",
+                  [med, mx], "reported", True, error_pct=errs)  # fmt: skip
 
 
 def run(engine_name: str, quick: bool) -> dict:
@@ -318,7 +342,8 @@ def run(engine_name: str, quick: bool) -> dict:
         checks.append(check_ds02(f))
     checks += check_gradients(engine)
     return {"engine": engine_name, "seconds": time.time() - t0,
-            "all_passed": all(c["passed"] for c in checks), "checks": checks}  # fmt: skip
+            "all_passed": all(c["passed"] for c in checks),
+            "checks": checks}  # fmt: skip
 
 
 def _fmt(v):
@@ -367,7 +392,10 @@ def main(argv=None) -> int:
     result = run(args.engine, args.quick)
     for c in result["checks"]:
         flag = "PASS" if c["passed"] else "FAIL"
-        print(f"[{flag}] {c['check']}: {_fmt(c['value'])} (threshold {_fmt(c['threshold'])})")
+        print(
+            f"[{flag}] {c['check']}: {_fmt(c['value'])} "
+            f"(threshold {_fmt(c['threshold'])})"
+        )
     out = Path(args.out or f"results/engine/validation_{args.engine}.json")
     write_atomic(out, json.dumps(result, indent=1, default=float))
     print(f"{'all checks passed' if result['all_passed'] else 'SOME CHECKS FAILED'} "

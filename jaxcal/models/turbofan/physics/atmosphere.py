@@ -1,8 +1,9 @@
 """ISA atmosphere, ram and inlet conditions (physics_facts.md section 2.1).
 
 All functions are pure ``jax.numpy`` and broadcast over any batch shape. Altitude in ft,
-temperatures in degR, pressures in psia. An off-standard day is carried by T2: the ambient
-static temperature is backed out of the ram relation, the ambient pressure stays ISA.
+temperatures in degR, pressures in psia. An off-standard day is carried by T2: the
+ambient static temperature is backed out of the ram relation, the ambient pressure stays
+ISA.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """Conservation audit of a solved operating point (engine.md check 1).
 
 Recomputes the balances from the station values, independently of the residual vector
-the solver drove to zero: whole-engine mass and energy, and the two shaft power balances.
-Energy in: air W2 h(T2) + fuel Wf (h_ref + eta_b LHV). Energy out: bypass W18 h(T21),
-core exhaust W50 h(T50, FAR50), customer bleed h(T30), shaft offtake, and the mechanical
-losses (1 - eta_m) of both spools.
+the solver drove to zero: whole-engine mass and energy, and the two shaft power
+balances. Energy in: air W2 h(T2) + fuel Wf (h_ref + eta_b LHV). Energy out: bypass W18
+h(T21), core exhaust W50 h(T50, FAR50), customer bleed h(T30), shaft offtake, and the
+mechanical losses (1 - eta_m) of both spools.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ class Audit(NamedTuple):
 
 
 def audit_point(d: EngineDesign, w, theta, effects, z) -> Audit:
-    """Relative imbalances at the solution ``z`` of one sample (all ~1e-12 when solved)."""
+    """Relative imbalances at the solution ``z`` of one sample (all ~1e-12 when
+    solved)."""
     dp = design_point(d)
     _, st = cycle.balance(d, dp, w, theta, effects, z)
     mass_in = st.w2 + st.wf

@@ -2,8 +2,9 @@
 
 Each step is a pure function of station quantities (English units: degR, psia, lbm/s,
 BTU/lbm) and returns the exit station. Cooling flows follow pyCycle / T-MATS
-(physics_facts.md 2.5): flow entering ahead of the rotor is mixed in first and does work,
-flow entering at the exit is mixed after the expansion; mixing is an enthalpy balance.
+(physics_facts.md 2.5): flow entering ahead of the rotor is mixed in first and does
+work, flow entering at the exit is mixed after the expansion; mixing is an enthalpy
+balance.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ def burner_exit(w3b, t30, wf, eta_b, lhv, unroll: bool = False):
 
 
 def burner_far_for_t4(t30, t4, eta_b, lhv):
-    """FAR that gives exit temperature T4 (design mode), closed form of the same balance.
+    """FAR that gives exit temperature T4 (design mode), closed form of the same
+    balance.
 
     With h_gas(T, f) = h_air(T) + f/(1+f) H_b(T):
     FAR = (h_air(T4) - h_air(T30)) / (h_ref + eta_b LHV - h_air(T4) - H_b(T4)).

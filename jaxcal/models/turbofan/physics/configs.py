@@ -1,10 +1,10 @@
 """The two engine configurations, ``cmapss`` and ``agtf30``: nominal design constants.
 
 Nominal values come from physics_facts.md (sections 2, 5 and 6); the constants that the
-data determine are then fitted by ``experiments/fit_engine_design.py`` (gradient-based least
-squares on the differentiable model) and stored in ``jaxcal/models/turbofan/physics/fitted/<name>.json``,
-which :func:`load_design` applies on top of the nominal values. The difference between the
-two engines is data, not code.
+data determine are then fitted by ``experiments/fit_engine_design.py`` (gradient-based
+least squares on the differentiable model) and stored in
+``jaxcal/models/turbofan/physics/fitted/<name>.json``, which :func:`load_design` applies
+on top of the nominal values. The difference between the two engines is data, not code.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from jaxcal.models.turbofan.physics.design import EngineDesign
 from jaxcal.models.turbofan.physics.guess import GuessTable
 from jaxcal.models.turbofan.physics.maps import CompressorShape, TurbineShape
 
-# PCNfR_dmd(TRA): quadratic through (100 %, 100 %) and (60 %, 84.93 %) from FD002, with a
-# curvature that gives about 66.5 % at TRA 23.5 (the lowest N-CMAPSS throttle, Nf ~ 1470
-# rpm); the curvature is refitted with the design constants.
+# PCNfR_dmd(TRA): quadratic through (100 %, 100 %) and (60 %, 84.93 %) from FD002, with
+# a curvature that gives about 66.5 % at TRA 23.5 (the lowest N-CMAPSS throttle,
+# Nf ~ 1470 rpm); the curvature is refitted with the design constants.
 _PCN = dict(pcn_60=84.93, pcn_100=100.0, pcn_curv=-16.75575253)
 
 

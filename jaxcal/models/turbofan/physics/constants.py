@@ -2,8 +2,9 @@
 
 This module owns the *vocabulary* of the project: the N-CMAPSS names of the operating
 conditions ``W``, the health modifiers ``T`` and the sensors ``X_s`` / ``X_v``, plus the
-C-MAPSS (2008) extra outputs. Everything is in the units of the N-CMAPSS files (ft, -, %,
-degR, psia, rpm, lbm/s) so that our data and real NASA files mean the same thing.
+C-MAPSS (2008) extra outputs. Everything is in the units of the N-CMAPSS files
+(ft, -, %, degR, psia, rpm, lbm/s) so that our data and real NASA files mean the same
+thing.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from __future__ import annotations
 CONDITION_NAMES: tuple[str, ...] = ("alt", "Mach", "TRA", "T2")
 CONDITION_UNITS: tuple[str, ...] = ("ft", "-", "%", "degR")
 
-# Health modifiers theta, exactly N-CMAPSS ``T_var`` order. 0 = healthy, -0.01 = 1 % loss.
+# Health modifiers theta, exactly N-CMAPSS ``T_var`` order.
+# 0 = healthy, -0.01 = 1 % loss.
 HEALTH_NAMES: tuple[str, ...] = (
     "fan_eff_mod",
     "fan_flow_mod",
@@ -74,7 +76,8 @@ K_PER_R = 5.0 / 9.0
 
 
 def sensor_index(names: tuple[str, ...] | list[str]) -> list[int]:
-    """Indices of ``names`` in :data:`SENSOR_NAMES`, with a clear error for unknown ones.
+    """Indices of ``names`` in :data:`SENSOR_NAMES`, with a clear error for unknown
+    ones.
 
     Args:
         names: sensor names, each one of :data:`SENSOR_NAMES`.
@@ -91,10 +94,12 @@ def sensor_index(names: tuple[str, ...] | list[str]) -> list[int]:
 
 
 def health_index(names: tuple[str, ...] | list[str]) -> list[int]:
-    """Indices of ``names`` in :data:`HEALTH_NAMES`, with a clear error for unknown ones."""
+    """Indices of ``names`` in :data:`HEALTH_NAMES`, with a clear error for unknown
+    ones."""
     unknown = [n for n in names if n not in HEALTH_NAMES]
     if unknown:
         raise ValueError(
-            f"unknown health parameter(s) {unknown}; valid names are {list(HEALTH_NAMES)}"
+            f"unknown health parameter(s) {unknown}; "
+            f"valid names are {list(HEALTH_NAMES)}"
         )
     return [HEALTH_NAMES.index(n) for n in names]

@@ -6,10 +6,11 @@ Nine unknowns z, all dimensionless and 0 at the design point:
     z5 ln((PR_HPT-1)/(PR_HPT_d-1))   z6 same for the LPT   z7 ln(NcR_HPC/NcR_HPC_d)
     z8 ln(Wf_corr/Wf_corr_d)
 
-Nine residuals, each normalised by its design value: fan, LPC and HPC flow compatibility,
-HPT and LPT flow capacity, core and bypass nozzle flow, HP and LP shaft power balance.
-The closure is C-MAPSS-like: the physical fan speed is set by the corrected-speed demand
-of the TRA schedule, Nf = NRf_dmd sqrt(T2/518.67), and the fuel flow is solved.
+Nine residuals, each normalised by its design value: fan, LPC and HPC flow
+compatibility, HPT and LPT flow capacity, core and bypass nozzle flow, HP and LP shaft
+power balance. The closure is C-MAPSS-like: the physical fan speed is set by the
+corrected-speed demand of the TRA schedule, Nf = NRf_dmd sqrt(T2/518.67), and the fuel
+flow is solved.
 
 ``effects`` extends the model with the parametric effects the closing-the-loop library
 needs (see :data:`EFFECT_NAMES`); all zero reproduces the plain engine. The gas path's

@@ -1,13 +1,14 @@
 """Engine design constants and the design-point calculation.
 
 An engine configuration is *data*: an :class:`EngineDesign` pytree of design-point cycle
-values, losses, bleeds, controller schedule and map shapes. :func:`design_point` runs the
-cycle once at the design condition in "design mode" (pyCycle's design/off-design split,
-physics_facts.md 3.1): compressor pressure ratios, efficiencies and T4 are given; turbine
-pressure ratios follow from the shaft power balances and nozzle areas from the nozzle flow
-equations. The map scalars it returns make the off-design balance at the design condition
-solve exactly at beta = beta_d and relative speeds 1, which is also the Newton start point.
-Everything is differentiable, so design constants can be fitted to data by least squares.
+values, losses, bleeds, controller schedule and map shapes. :func:`design_point` runs
+the cycle once at the design condition in "design mode" (pyCycle's design/off-design
+split, physics_facts.md 3.1): compressor pressure ratios, efficiencies and T4 are given;
+turbine pressure ratios follow from the shaft power balances and nozzle areas from the
+nozzle flow equations. The map scalars it returns make the off-design balance at the
+design condition solve exactly at beta = beta_d and relative speeds 1, which is also the
+Newton start point. Everything is differentiable, so design constants can be fitted to
+data by least squares.
 """
 
 from __future__ import annotations

@@ -1,17 +1,17 @@
 """The public engine model: ``load_engine(name).evaluate(w, theta) -> (x, info)``.
 
-``evaluate`` is pure: it works under ``jax.jit``, ``jax.vmap`` (it also accepts any leading
-batch shape itself) and ``jax.jacfwd`` / ``jax.grad`` with respect to ``w``, ``theta`` and
-the design constants, the latter through the implicit-function theorem at the Newton
-solution (:mod:`jaxcal.models.turbofan.physics.solver`). The solve runs in float64 when
-JAX has x64 enabled (:func:`jaxcal.precision.enable_x64`, done by every jaxcal entry
-point); in float32 the tolerances are relaxed accordingly and ``info.converged`` says
-whether they were met.
+``evaluate`` is pure: it works under ``jax.jit``, ``jax.vmap`` (it also accepts any
+leading batch shape itself) and ``jax.jacfwd`` / ``jax.grad`` with respect to ``w``,
+``theta`` and the design constants, the latter through the implicit-function theorem at
+the Newton solution (:mod:`jaxcal.models.turbofan.physics.solver`). The solve runs in
+float64 when JAX has x64 enabled (:func:`jaxcal.precision.enable_x64`, done by every
+jaxcal entry point); in float32 the tolerances are relaxed accordingly and
+``info.converged`` says whether they were met.
 
-``info.converged`` is False whenever the balance did not close, any output is not finite,
-or the inputs lie outside the model's envelope (:class:`Envelope`): a NaN in ``x`` never
-comes without that flag. :meth:`Engine.evaluate_checked` is the host-side entry point that
-raises a clear error naming the offending field and its valid range.
+``info.converged`` is False whenever the balance did not close, any output is not
+finite, or the inputs lie outside the model's envelope (:class:`Envelope`): a NaN in
+``x`` never comes without that flag. :meth:`Engine.evaluate_checked` is the host-side
+entry point that raises a clear error naming the offending field and its valid range.
 """
 
 from __future__ import annotations
@@ -155,8 +155,9 @@ _design_point = jax.jit(design_point)
 def load_engine(name: str, *, fitted: bool = True) -> Engine:
     """The engine configuration ``name`` in {"cmapss", "agtf30"}.
 
-    With ``fitted`` (default) the stored fit of the design constants and its Newton start
-    table are used; otherwise the nominal constants (the table is then built here).
+    With ``fitted`` (default) the stored fit of the design constants and its Newton
+    start table are used; otherwise the nominal constants (the table is then built
+    here).
     """
     design = load_design(name, fitted=fitted)
     table = stored_guess_table(name) if fitted else None

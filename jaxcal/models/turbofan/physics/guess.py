@@ -1,13 +1,14 @@
 """Newton start points: a small table of solved balances over (fan speed demand, Mach).
 
 In corrected quantities a two-spool turbofan's operating point depends mostly on the
-corrected fan speed and the flight Mach number (ram and nozzle pressure ratios); altitude,
-off-standard days and health modifiers move it only a little. Starting Newton from the
-design point converges over most of the envelope but not at flight idle, so the table is
-built once per design by *continuation*: from the design point along Mach at 100 % demand,
-then along the fan-speed demand for each Mach column, each solve warm-started from the
-previous one. :func:`initial_guess` interpolates it bilinearly. The table is stored with
-the fitted design constants, so loading an engine costs nothing.
+corrected fan speed and the flight Mach number (ram and nozzle pressure ratios);
+altitude, off-standard days and health modifiers move it only a little. Starting Newton
+from the design point converges over most of the envelope but not at flight idle, so the
+table is built once per design by *continuation*: from the design point along Mach at
+100 % demand, then along the fan-speed demand for each Mach column, each solve
+warm-started from the previous one. :func:`initial_guess` interpolates it bilinearly.
+The table is stored with the fitted design constants, so loading an engine costs
+nothing.
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ def _residual(z, params):
 
 
 def build_guess_table(d: EngineDesign, dp: DesignPoint) -> GuessTable:
-    """Solve the balance on the (PCN_GRID x MACH_GRID) grid by continuation (sea level)."""
+    """Solve the balance on the (PCN_GRID x MACH_GRID) grid by continuation
+    (sea level)."""
     cfg = solver.SolverConfig(max_iter=30)
     pcn = jnp.asarray(PCN_GRID)
     i100 = int(np.argmin(np.abs(PCN_GRID - 100.0)))
@@ -72,10 +74,14 @@ def build_guess_table(d: EngineDesign, dp: DesignPoint) -> GuessTable:
 
     def column(mach):
         frac = jnp.linspace(0.0, 1.0, _MACH_SUBSTEPS + 1)[1:]
-        path_m = jnp.stack([jnp.full_like(frac, pcn[i100]), d.mach_d + frac * (mach - d.mach_d)], 1)
+        path_m = jnp.stack(
+            [jnp.full_like(frac, pcn[i100]), d.mach_d + frac * (mach - d.mach_d)], 1
+        )
         z100, _ = march(jnp.zeros(cycle.NUM_UNKNOWNS), path_m)
         down = jnp.stack([pcn[:i100][::-1], jnp.full((i100,), mach)], 1)
-        up = jnp.stack([pcn[i100 + 1 :], jnp.full((len(PCN_GRID) - i100 - 1,), mach)], 1)
+        up = jnp.stack(
+            [pcn[i100 + 1 :], jnp.full((len(PCN_GRID) - i100 - 1,), mach)], 1
+        )
         _, z_down = march(z100, down)
         _, z_up = march(z100, up)
         return jnp.concatenate([z_down[::-1], z100[None], z_up], 0)
@@ -85,9 +91,14 @@ def build_guess_table(d: EngineDesign, dp: DesignPoint) -> GuessTable:
 
 
 def initial_guess(table: GuessTable, pcn, mach):
-    """Bilinear interpolation of the table at (PCNfR_dmd %, Mach), clamped at the edges."""
-    fp = jnp.clip((pcn - PCN_GRID[0]) / (PCN_GRID[1] - PCN_GRID[0]), 0.0, len(PCN_GRID) - 1.0)
-    fm = jnp.clip((mach - MACH_GRID[0]) / (MACH_GRID[1] - MACH_GRID[0]), 0.0, len(MACH_GRID) - 1.0)
+    """Bilinear interpolation of the table at (PCNfR_dmd %, Mach), clamped at the
+    edges."""
+    fp = jnp.clip(
+        (pcn - PCN_GRID[0]) / (PCN_GRID[1] - PCN_GRID[0]), 0.0, len(PCN_GRID) - 1.0
+    )
+    fm = jnp.clip(
+        (mach - MACH_GRID[0]) / (MACH_GRID[1] - MACH_GRID[0]), 0.0, len(MACH_GRID) - 1.0
+    )
     i0 = jnp.clip(jnp.floor(fp).astype(jnp.int32), 0, len(PCN_GRID) - 2)
     j0 = jnp.clip(jnp.floor(fm).astype(jnp.int32), 0, len(MACH_GRID) - 2)
     a, b = fp - i0, fm - j0

@@ -1,16 +1,18 @@
 """Smooth analytic component maps (physics_facts.md 3.1 and 3.3).
 
-Real map tables are piecewise linear and give kinks in the Jacobian of the balance; these
-closed forms are C-infinity, so a fixed-iteration Newton solve and implicit gradients stay
-well behaved. Every map is *scaled* at the design point (pyCycle ``MapScalars`` / T-MATS
-convention): at relative corrected speed n = 1 and map coordinate beta = beta_d the map
-returns exactly the design corrected flow, pressure ratio and efficiency.
+Real map tables are piecewise linear and give kinks in the Jacobian of the balance;
+these closed forms are C-infinity, so a fixed-iteration Newton solve and implicit
+gradients stay well behaved. Every map is *scaled* at the design point (pyCycle
+``MapScalars`` / T-MATS convention): at relative corrected speed n = 1 and map
+coordinate beta = beta_d the map returns exactly the design corrected flow, pressure
+ratio and efficiency.
 
 Compressor (n = Nc/Nc_d, beta in about [0, 1], 0 = choke side, 1 = surge side):
 
     Wc  = Wc_d n^a (1 + k_w (beta_d - beta))
     PR  = 1 + (PR_d - 1) n^b (1 + k_p (beta - beta_d))
-    eta = eta_d [1 - c_n ((n - n_pk)^2 - (1 - n_pk)^2) - c_b ((beta - b_pk)^2 - (beta_d - b_pk)^2)]
+    eta = eta_d [1 - c_n ((n - n_pk)^2 - (1 - n_pk)^2)
+                   - c_b ((beta - b_pk)^2 - (beta_d - b_pk)^2)]
 
 Far outside the mapped region the pressure rise and the efficiency island are floored by
 softplus functions (physics_facts.md 3.3: "keep it positive with a softplus floor"), so

@@ -1,10 +1,12 @@
-"""Convergent nozzle flow with a smooth choked / unchoked transition (physics_facts 2.7).
+"""Convergent nozzle flow with a smooth choked / unchoked transition
+(physics_facts 2.7).
 
 The throat static pressure is a smooth maximum of the ambient pressure and the critical
-pressure Pt/PR_cr, so the flow is C-infinity in (Pt, P_amb) and the balance Jacobian has no
-kink where the nozzle chokes. Flow per unit area:
+pressure Pt/PR_cr, so the flow is C-infinity in (Pt, P_amb) and the balance Jacobian has
+no kink where the nozzle chokes. Flow per unit area:
 
-    W sqrt(Tt) / (A Pt) = sqrt(gamma g_c / R) M (1 + (gamma-1)/2 M^2)^(-(gamma+1)/(2(gamma-1)))
+    W sqrt(Tt) / (A Pt) = sqrt(gamma g_c / R) M
+                          (1 + (gamma-1)/2 M^2)^(-(gamma+1)/(2(gamma-1)))
 
 with M from Pt/Ps. A is in in^2, Pt in psia, Tt in degR, W in lbm/s.
 """
@@ -38,7 +40,9 @@ def _mach_from_m2(m2):
     """
     eps = _M2_LINEAR
     safe = jnp.maximum(m2, eps)
-    return jnp.where(m2 > eps, jnp.sqrt(safe), 0.5 * (m2 / jnp.sqrt(eps) + jnp.sqrt(eps)))
+    return jnp.where(
+        m2 > eps, jnp.sqrt(safe), 0.5 * (m2 / jnp.sqrt(eps) + jnp.sqrt(eps))
+    )
 
 
 def nozzle_flow(pt, tt, p_amb, area_in2, gamma, cd=1.0):

@@ -1,17 +1,17 @@
 """Reference numbers the engine model is fitted to and checked against.
 
 Every number is derived from a named source (design/physics_facts.md, data_facts.md) so
-that validation runs without the raw files. ``experiments/fit_engine_design.py`` recomputes
-the FD002 table from ``../shared/data/cmapss`` when the files are present and checks it
-against these constants.
+that validation runs without the raw files. ``experiments/fit_engine_design.py``
+recomputes the FD002 table from ``../shared/data/cmapss`` when the files are present and
+checks it against these constants.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# FD002 operating conditions: mean op settings of the first 25 cycles of all 260 training
-# units, clustered by altitude (alt ft, Mach, TRA %, T2 degR = C-MAPSS s1).
+# FD002 operating conditions: mean op settings of the first 25 cycles of all 260
+# training units, clustered by altitude (alt ft, Mach, TRA %, T2 degR = C-MAPSS s1).
 FD002_CONDITIONS = np.array(
     [
         [0.0, 0.0, 100.0, 518.67],
@@ -64,13 +64,19 @@ FD002_CHECKED_SENSORS = (
 # FD001 (sea-level static, TRA 100) late-life minus early-life means: HPC degradation
 # signature, engine.md check 3.
 FD001_HPC_SIGNATURE: dict[str, float] = {
-    "T24": 1.2, "T30": 14.0, "T50": 24.0, "P30": -2.4, "Nc": 40.0, "BPR": 0.1, "W31": -0.46,
+    "T24": 1.2, "T30": 14.0, "T50": 24.0, "P30": -2.4, "Nc": 40.0, "BPR": 0.1,
+    "W31": -0.46,
 }  # fmt: skip
 FD001_CONDITION = np.array([0.0, 0.0, 100.0, 518.67])
 
 # pyCycle CFM56-class cycle, HPT efficiency -1 % at fixed fan speed, mean over 27
 # conditions (physics_facts.md 3.2 / 8): engine.md check 4 (within a factor of 2).
-HPT_EFF_SIGNATURE: dict[str, float] = {"T48": 17.4, "T50": 13.4, "Nc": -23.0, "Wf_pct": 0.81}
+HPT_EFF_SIGNATURE: dict[str, float] = {
+    "T48": 17.4,
+    "T50": 13.4,
+    "Nc": -23.0,
+    "Wf_pct": 0.81,
+}
 
 # N-CMAPSS DS02 dev-set sensor ranges and flight envelope (data_facts.md 4).
 DS02_ENVELOPE = {"alt": (10000.0, 35000.0), "Mach": (0.26, 0.75), "TRA": (24.0, 88.0)}

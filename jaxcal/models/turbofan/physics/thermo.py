@@ -3,18 +3,20 @@
 Walsh & Fletcher, *Gas Turbine Performance*, 2nd ed., eq. F3.23-F3.27 (physics_facts.md
 2.2): with Tz = T[K]/1000,
 
-    cp_air = sum_{i=0..8} A_i Tz^i,   cp_gas = cp_air + FAR/(1+FAR) sum_{i=0..7} B_i Tz^i
+    cp_air = sum_{i=0..8} A_i Tz^i,
+    cp_gas = cp_air + FAR/(1+FAR) sum_{i=0..7} B_i Tz^i
 
-in kJ/(kg K). Enthalpy h = int cp dT and the entropy function phi = int cp/T dT are closed
-form for a polynomial; isentropic steps solve phi(T_s) = phi(T_in) + R ln(PR) and enthalpy
-inversions solve h(T) = h_target with a few fixed Newton iterations (both monotone, so a
-fixed count is enough: 4 iterations reach 1e-13 relative from the constant-gamma guess).
+in kJ/(kg K). Enthalpy h = int cp dT and the entropy function phi = int cp/T dT are
+closed form for a polynomial; isentropic steps solve phi(T_s) = phi(T_in) + R ln(PR) and
+enthalpy inversions solve h(T) = h_target with a few fixed Newton iterations (both
+monotone, so a fixed count is enough: 4 iterations reach 1e-13 relative from the
+constant-gamma guess).
 
 Units: the public functions take degR and return BTU/lbm and BTU/(lbm degR); the
 polynomial lives in SI and is converted here, in one place. The combustion-products
-enthalpy is referenced so that h_gas(T_ref) = h_air(T_ref) at T_ref = 298.15 K: the fuel's
-lower heating value is defined at that reference, which makes the burner energy balance
-W_air h_air(T3) + Wf (h_ref + eta_b LHV) = (W_air + Wf) h_gas(T4) exact.
+enthalpy is referenced so that h_gas(T_ref) = h_air(T_ref) at T_ref = 298.15 K: the
+fuel's lower heating value is defined at that reference, which makes the burner energy
+balance W_air h_air(T3) + Wf (h_ref + eta_b LHV) = (W_air + Wf) h_gas(T4) exact.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ def _fuel_weight(far):
 
 
 def cp(t_r, far=0.0):
-    """Specific heat at constant pressure [BTU/(lbm degR)] at T [degR] and fuel-air ratio."""
+    """Specific heat at constant pressure [BTU/(lbm degR)] at T [degR] and
+    fuel-air ratio."""
     tz = _tz(t_r)
     cp_kj = _poly(_A, tz)
     if not _is_air(far):
@@ -81,7 +84,8 @@ def cp(t_r, far=0.0):
 
 
 def enthalpy(t_r, far=0.0):
-    """Specific enthalpy [BTU/lbm] (air: from 0 K; products: matched to air at 298.15 K)."""
+    """Specific enthalpy [BTU/lbm] (air: from 0 K; products: matched to air
+    at 298.15 K)."""
     tz = _tz(t_r)
     h = _poly_int(_A, tz)
     if not _is_air(far):

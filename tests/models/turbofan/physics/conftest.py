@@ -20,7 +20,8 @@ def cmapss():
 
 @pytest.fixture(scope="session")
 def evaluate(cmapss):
-    """evaluate(w [n,4], theta [n,10]) -> (x [n,S], info) through one compiled program."""
+    """evaluate(w [n,4], theta [n,10]) -> (x [n,S], info) through one compiled
+    program."""
     f = jax.jit(cmapss.evaluate)
 
     def run(w, theta):

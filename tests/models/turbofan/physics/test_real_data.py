@@ -1,5 +1,5 @@
-"""The fitted cmapss engine against real NASA C-MAPSS numbers (small fixtures of FD002 and
-FD001 in tests/fixtures, made by experiments/make_test_fixtures.py)."""
+"""The fitted cmapss engine against real NASA C-MAPSS numbers (small fixtures of FD002
+and FD001 in tests/fixtures, made by experiments/make_test_fixtures.py)."""
 
 from pathlib import Path
 
@@ -47,7 +47,8 @@ def test_fd001_hpc_degradation_signature_signs(evaluate):
     data = []
     for s in names:
         v = rec.columns([s])
-        data.append(np.mean([v[rec.unit == u][-20:].mean() - v[rec.unit == u][:20].mean()
+        data.append(np.mean([v[rec.unit == u][-20:].mean()
+                             - v[rec.unit == u][:20].mean()
                              for u in rec.units]))  # fmt: skip
     w = np.tile([0.0, 0.0, 100.0, 518.67], (2, 1))
     th = np.zeros((2, 10))
@@ -58,4 +59,4 @@ def test_fd001_hpc_degradation_signature_signs(evaluate):
     assert info.converged.all()
     np.testing.assert_array_equal(np.sign(model), np.sign(data))
     ratio = model / np.array(data)
-    assert np.all((ratio > 0.5) & (ratio < 2.0)), dict(zip(names, ratio))
+    assert np.all((ratio > 0.5) & (ratio < 2.0)), dict(zip(names, ratio, strict=True))
