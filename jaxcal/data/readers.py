@@ -184,6 +184,12 @@ def read_dataset(
     """
     if isinstance(source, Dataset):
         return source
+    if model is not None and not isinstance(model, Model):
+        load = f": jaxcal.models.load({model!r})" if isinstance(model, str) else ""
+        raise ValueError(
+            f"model: got {type(model).__name__} {model!r}; read_dataset needs a "
+            f"jaxcal.Model{load}"
+        )
     if hasattr(source, "columns") and hasattr(source, "to_numpy"):
         if model is None:
             raise ValueError("reading a DataFrame needs the model its columns follow")

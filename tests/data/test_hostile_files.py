@@ -148,3 +148,13 @@ def test_output_paths_that_cannot_be_written_are_refused_before_any_work(
     with FleetResultWriter(deep, theta_names=("p",), sensor_names=("y1",)):
         pass
     assert os.path.isfile(deep)
+
+
+def test_a_model_spec_string_is_an_error_that_says_how_to_load_it(model, tmp_path):
+    path = tmp_path / "plain.csv"
+    _frame().to_csv(path, index=False)
+    with pytest.raises(ValueError, match=r"model: got str 'cmapss'.*models\.load"):
+        read_dataset(path, "cmapss")
+    with pytest.raises(ValueError, match="model: got int 3; read_dataset needs"):
+        read_dataset(path, 3)
+    assert read_dataset(path, model).num_rows == 5
