@@ -155,7 +155,10 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
         "(`python experiments/prognosis_any_model.py`). On a fleet of two fault "
         "modes (HPC or fan, the shape of FD003/FD004, written by the engine): "
         "[two_modes/](two_modes/README.md) "
-        "(`python experiments/prognosis_two_modes.py`).",
+        "(`python experiments/prognosis_two_modes.py`), and with FD002's six "
+        "operating conditions (FD004's shape): "
+        "[two_modes_six_conditions/](two_modes_six_conditions/README.md) "
+        "(`... conditions=FD002`).",
     ]
     return "\n".join(lines) + "\n"
 

@@ -6,7 +6,9 @@ engine itself, so that the command a user types on such a file can be scored aga
 a known truth:
 
 * 100 training units run to failure and 100 test units cut short, sea-level conditions
-  as FD001's (altitude, Mach and TRA drawn about FD001's means and spreads);
+  as FD001's (altitude, Mach and TRA drawn about FD001's means and spreads; FD003's
+  shape), or with ``conditions=FD002`` each cycle's conditions drawn from FD002's rows
+  (its six operating conditions: FD004's shape);
 * each unit degrades its HPC (efficiency and flow) or its fan (efficiency and flow),
   half of the units each, along the run-to-failure law of
   :mod:`jaxcal.models.turbofan.data.degradation` (a random initial wear, a linear
@@ -81,6 +83,14 @@ class TwoModesConfig:
     seed: int = 0
     units: int = 100  # training units; as many test units
     life: tuple[int, int] = (128, 362)  # FD001's range of training lives
+    # operating conditions: FD001's (sea level) or FD002's six (FD004's shape), each
+    # cycle's drawn from that file's rows
+    conditions: str = "FD001"
+    data_dir: str = os.path.normpath(
+        os.path.join(
+            os.path.dirname(os.path.abspath(__file__)), "../../shared/data/cmapss"
+        )
+    )
     data: str = "data/two_modes"
     out: str = "results/prognosis/two_modes"
 
@@ -118,7 +128,21 @@ def _units(rng, cfg: TwoModesConfig, names, test: bool):
     return out
 
 
-def _write(path: str, model, units, rng) -> None:
+def _conditions(cfg: TwoModesConfig, rng, n: int) -> np.ndarray:
+    """``[n, 4]`` altitude (ft), Mach, TRA and T2 of ``n`` cycles: FD001's sea level
+    with its jitter, or (``conditions=FD002``) rows drawn from FD002's six."""
+    if cfg.conditions == "FD001":
+        alt = rng.normal(0.0, 2.2, n)  # ft: FD001's op1 spread, 0.0022 kft
+        mach = rng.normal(0.0, 2.9e-4, n)
+        return np.stack([alt, mach, np.full(n, 100.0), np.full(n, 518.67)], 1)
+    if cfg.conditions != "FD002":
+        raise ValueError(f"conditions must be FD001 or FD002, got {cfg.conditions!r}")
+    table = np.loadtxt(os.path.join(cfg.data_dir, "train_FD002.txt"))
+    rows = table[rng.integers(0, len(table), n)]
+    return np.stack([rows[:, 2] * 1000.0, rows[:, 3], rows[:, 4], rows[:, 5]], 1)
+
+
+def _write(path: str, model, units, rng, cfg: TwoModesConfig) -> None:
     """The units' rows in C-MAPSS's 26 columns (one vmapped evaluation of them all)."""
     theta = np.concatenate([th for _, th, _ in units])
     n = theta.shape[0]
@@ -126,9 +150,7 @@ def _write(path: str, model, units, rng) -> None:
         [np.full(len(th), k + 1) for k, (_, th, _) in enumerate(units)]
     )
     cycle = np.concatenate([np.arange(1, len(th) + 1) for _, th, _ in units])
-    alt = rng.normal(0.0, 2.2, n)  # ft: FD001's op1 spread, 0.0022 kft
-    mach = rng.normal(0.0, 2.9e-4, n)
-    w = np.stack([alt, mach, np.full(n, 100.0), np.full(n, 518.67)], 1)
+    w = _conditions(cfg, rng, n)
     evaluate = jax.jit(jax.vmap(lambda w, th: model.evaluate(w, th)[0]))
     x = np.asarray(evaluate(jnp.asarray(w), jnp.asarray(theta)))
     if not np.isfinite(x).all():
@@ -143,7 +165,8 @@ def _write(path: str, model, units, rng) -> None:
     for s, key in EXTRA_MAP.items():
         cols[s] = extra.get(key, np.full(n, HT_BLEED))
     table = np.column_stack(
-        [uid, cycle, alt / 1000.0, mach, w[:, 2]] + [cols[s] for s in range(1, 22)]
+        [uid, cycle, w[:, 0] / 1000.0, w[:, 1], w[:, 2]]
+        + [cols[s] for s in range(1, 22)]
     )
     tmp = path + ".tmp"
     np.savetxt(tmp, table, fmt="%.8g")
@@ -199,13 +222,22 @@ def _run(cfg, files, theta, modes, label):
     return scores
 
 
+def _big(v: float) -> str:
+    """A score as an integer, or in powers of ten past seven digits."""
+    return f"{v:.0f}" if v < 1e7 else f"{v:.2e}"
+
+
 def _is_default(label: str, row: dict) -> bool:
     return RUNS[label][1] and tuple(row["theta"]) == PROGNOSIS_THETA
 
 
-def _readme(rows: dict, argv) -> str:
+def _readme(rows: dict, argv, conditions: str = "FD001") -> str:
+    shape = {
+        "FD001": "FD003's shape: one operating condition, FD001's sea level",
+        "FD002": "FD004's shape: six operating conditions, drawn from FD002's rows",
+    }[conditions]
     lines = [
-        "# Prognosis on a fleet with two fault modes (FD003/FD004's shape)",
+        f"# Prognosis on a fleet with two fault modes ({shape})",
         "",
         f"`python experiments/prognosis_two_modes.py {' '.join(argv)}`".replace(
             " `", "`"
@@ -227,7 +259,7 @@ def _readme(rows: dict, argv) -> str:
         lines.append(
             f"| {label}{' (the default)' if _is_default(label, s) else ''}"
             f": {', '.join(s['theta'])} | {s['rmse']:.2f} | "
-            f"{s['rmse_HPC']:.2f} | {s['rmse_fan']:.2f} | {s['phm08_score']:.0f} | "
+            f"{s['rmse_HPC']:.2f} | {s['rmse_fan']:.2f} | {_big(s['phm08_score'])} | "
             f"{s['coverage']:.2f} | {s['driver_is_mode']:.2f} | {s['seconds']:.0f} |"
         )
     lines += ["", "Reports: " + ", ".join(f"[{k}]({k}/report.md)" for k in rows), ""]
@@ -251,8 +283,8 @@ def main(argv: list[str]) -> int:
     files = tuple(
         os.path.join(cfg.data, f"{k}_two_modes.txt") for k in ("train", "test", "RUL")
     )
-    _write(files[0], model, train_units, rng)
-    _write(files[1], model, test_units, rng)
+    _write(files[0], model, train_units, rng, cfg)
+    _write(files[1], model, test_units, rng, cfg)
     with open(files[2], "w") as f:
         f.write("\n".join(str(rul) for _, _, rul in test_units) + "\n")
     modes = [m for m, _, _ in test_units]
@@ -264,7 +296,7 @@ def main(argv: list[str]) -> int:
     from jaxcal.diagnosis.report.write import write_text
 
     write_text(os.path.join(cfg.out, "results.json"), json.dumps(rows, indent=1))
-    write_text(os.path.join(cfg.out, "README.md"), _readme(rows, argv))
+    write_text(os.path.join(cfg.out, "README.md"), _readme(rows, argv, cfg.conditions))
     return 0
 
 
