@@ -11,9 +11,11 @@ Grouping: units sorted by length, longest first; a group takes the next unit whi
 ``units x longest <= MAX_PADDING x rows`` still holds. A unit longer than half the
 group's longest always fits, so each new group's longest is at most half the last
 one's: at most ``log2(longest) + 1`` groups (compiled shapes), cells at most
-``MAX_PADDING`` times the rows. Each group keeps the units' order of first
-appearance; :meth:`Buckets.to_rows` scatters per-group ``[U_b, T_b, ...]`` values
-back to the data set's rows.
+``MAX_PADDING`` times the rows. A group of under :data:`MIN_GROUP_SHARE` of the
+fleet's rows then joins the group before it, if that one's cells stay within
+``2 MAX_PADDING`` of its rows: a program of its own would cost more. Each group
+keeps the units' order of first appearance; :meth:`Buckets.to_rows` scatters
+per-group ``[U_b, T_b, ...]`` values back to the data set's rows.
 """
 
 from __future__ import annotations
@@ -27,6 +29,11 @@ from jaxcal.data.dataset import Dataset
 from jaxcal.data.padded import Padded
 
 MAX_PADDING = 2.0  # padded cells of a group / its rows
+# a group of fewer rows than this share of the fleet's joins the group before it while
+# that one's cells stay within twice MAX_PADDING of its rows: each group is a program
+# compiled and loaded of its own (the turbofan's: ~30 s to compile, ~0.4 GB resident,
+# results/loop/profile.md), more than a few padded cells cost
+MIN_GROUP_SHARE = 1.0 / 16.0
 
 
 class Buckets(NamedTuple):
@@ -121,4 +128,22 @@ def _group_units(data: Dataset, max_padding: float) -> list[np.ndarray]:
         current.append(ids[i])
         rows += n
     groups.append(np.asarray(current))
-    return groups
+    return _fold_small(groups, dict(zip(ids, lengths, strict=True)), max_padding)
+
+
+def _fold_small(groups, length: dict, max_padding: float) -> list[np.ndarray]:
+    """``groups`` with each one of under :data:`MIN_GROUP_SHARE` of the rows joined
+    to the group before it, while that one's cells stay within ``2 max_padding`` of
+    its rows (the groups longest first, so the one before sets the padded length)."""
+    total = sum(length.values())
+    out = [groups[0]]
+    for group in groups[1:]:
+        rows = sum(length[u] for u in group)
+        merged = np.concatenate([out[-1], group])
+        cells = merged.size * length[out[-1][0]]
+        small = rows < MIN_GROUP_SHARE * total
+        if small and cells <= 2.0 * max_padding * sum(length[u] for u in merged):
+            out[-1] = merged
+        else:
+            out.append(group)
+    return out

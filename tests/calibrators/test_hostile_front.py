@@ -288,6 +288,22 @@ def test_a_skewed_fleet_is_padded_in_groups_of_similar_length(skewed):
     np.testing.assert_array_equal(np.sort(buckets.unit_ids), np.arange(10))
 
 
+def test_a_group_of_few_rows_joins_the_one_before(monkeypatch):
+    """Ten units of 100 rows and twelve of one: the greedy rule leaves the last two
+    one-row units a group (and a compiled program) of their own; holding 2 of the
+    1,012 rows, they join the first group, whose cells stay within twice the bound."""
+    lengths = [100] * 10 + [1] * 12
+    frame = make_frame(num_units=1, length=sum(lengths)).sort_values("time")
+    unit = np.repeat(np.arange(len(lengths)), lengths)
+    time = np.arange(len(unit)) - np.repeat(np.cumsum([0, *lengths[:-1]]), lengths)
+    data = read_dataset(frame.assign(unit=unit, time=time), MODEL)
+    (part,) = bucket_units(data, np.float64).parts
+    assert part.mask.shape == (22, 100) and part.mask.sum() == 1012
+    monkeypatch.setattr(jaxcal.data.buckets, "MIN_GROUP_SHARE", 0.0)
+    parts = bucket_units(data, np.float64).parts
+    assert [p.mask.shape for p in parts] == [(20, 100), (2, 1)]
+
+
 def test_a_skewed_fleet_calibrates_as_one_padded_array(skewed, monkeypatch):
     grouped = _calibrate(MODEL, skewed, "ukf")
     monkeypatch.setattr(jaxcal.data.buckets, "MAX_PADDING", np.inf)  # one group
