@@ -20,10 +20,9 @@ identity so it can be closed over or passed as a static argument of ``jax.jit``:
         outputs=("y1", "y2"))
     x, info = model.evaluate(w, theta)     # info.valid: finite and in range
 
-Optional hooks: ``condition_range`` (the valid input box of ``w``; samples outside
-are flagged, never silently used), ``input_check`` (a finer validity predicate, e.g.
-the turbofan's temperature-deviation envelope) and ``effects`` (model-specific
-extension inputs the diagnosis may add, with ``effect_fn(w, theta, e) -> x``).
+Optional hooks: ``condition_range`` (the valid box of ``w``; samples outside are
+flagged), ``input_check`` (a finer validity predicate), ``effects`` (extension inputs
+the diagnosis may add, ``effect_fn(w, theta, e) -> x``) and ``file_readers``.
 """
 
 from __future__ import annotations
@@ -107,15 +106,10 @@ class Model:
         warm_fn, warm_size: optional ``warm_fn(w, theta, e, z0) -> (x, valid, z)``:
             from the solver start ``z0`` [warm_size] (NaN: its own), its solution
             ``z`` (:mod:`jaxcal.diagnosis.kinds.linearization`).
-        origin: ``"jaxcal.models:<name>"`` for a built-in model loaded by
-            :func:`jaxcal.models.load` (its code is jaxcal's own, so its compiled
-            programs can be kept on disk, :mod:`jaxcal.calibrators.programs.on_disk`);
-            None for any other model.
-        file_readers: the model's own file formats, ``{".ext": reader(path, *,
-            nonfinite, rename, **options) -> Dataset}``, that
-            :func:`jaxcal.data.readers.read_dataset` reads beside the tables (the
-            turbofan's N-CMAPSS ``.h5`` and C-MAPSS ``.txt``); set with
-            ``dataclasses.replace``.
+        origin: ``"jaxcal.models:<name>"`` for a built-in model (its compiled
+            programs can be kept on disk, :mod:`jaxcal.calibrators.programs.on_disk`).
+        file_readers: ``{".ext": reader(path, *, nonfinite, rename, **options) ->
+            Dataset}``, the model's own files for ``read_dataset`` (the turbofan's).
     """
 
     name: str
@@ -137,9 +131,7 @@ class Model:
     warm_fn: Callable[[Array, Array, Array, Array], Any] | None = None
     warm_size: int = 0
     origin: str | None = None
-    file_readers: Mapping[str, Callable[..., Any]] = dataclasses.field(
-        default_factory=dict
-    )
+    file_readers: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
 
     # ---------------------------------------------------------------- builders
 

@@ -283,10 +283,10 @@ def write_prognosis(
         units[unit_label(p.unit[u])] = f"{UNITS_DIR}/{name}"
     bar.close()
     # a unit figure of an earlier run into the same folder would pass for this one's
+    kept = {os.path.basename(v) for v in units.values()}
     for name in os.listdir(os.path.join(out, UNITS_DIR)):
-        if name.startswith("unit_") and name.endswith(".png"):
-            if name not in {os.path.basename(v) for v in units.values()}:
-                os.remove(os.path.join(out, UNITS_DIR, name))
+        if name.startswith("unit_") and name.endswith(".png") and name not in kept:
+            os.remove(os.path.join(out, UNITS_DIR, name))
     rep["figures"] = {"fleet": "rul.png", "units": units}
     rep["timings"]["report"] = time.time() - start
     write_atomic(os.path.join(out, "report.json"), json.dumps(rep, indent=2) + "\n")
