@@ -278,7 +278,6 @@ class _PackedStream:
     def __init__(self, step, packing: Packing, consts, num_w: int, *, warm_solve=False):
         const_packing = Packing.of(consts, alone_from=4096)
         self._consts = jax.device_put(const_packing.pack(consts))
-        self._num_w = num_w
         layout: list = []  # (offset, size) of theta, std, reason, gate in the read
 
         @functools.partial(jit_per_row, warm_solve=warm_solve)
