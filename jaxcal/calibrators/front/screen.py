@@ -34,20 +34,17 @@ off its passes:
   pass assumed (the steady state of ``e_t = (1 - k) e_{t-1} + k n_t``, ``nu_t = n_t -
   e_{t-1}``), so ``R = var(nu) (2 - k) / 2``. A truth that drifts by ``D`` in
   variance per row adds ``D / (2k)``, and a model misfit adds its share: both widen
-  the noise, never narrow it. The post-fit residual, used before, is narrowed by
-  the share the update absorbs: where one parameter alone explains an output (the
-  heat exchanger's ``dp_coeff`` and ``dp_hot``) the filter follows the noise, the
-  residual is nearly nothing and the noise came out 60x too small; this estimator
-  gives 0.196 for a true 0.2. Schedule: a first level from a pass on a provisional
+  the noise, never narrow it. (The post-fit residual is narrowed by the share the
+  update absorbs: where one parameter alone explains an output the filter follows
+  the noise and the residual is nearly nothing.) Schedule: a first level from a pass
+  on a provisional
   noise (1 % of each output's robust spread), rejecting with Hampel's X84 rule
   (:data:`X84`) so that a wild row's wake is not averaged in, and a pass on that
   level; the outlier passes on that level; the noise from the innovations of the
   last pass, which skipped the outliers (where a candidate was cleared, one more
-  pass skipping only the outliers): two to four passes. (Until issue 26's last
-  stop the level was found again from the provisional noise with the outliers
-  skipped, two passes more: the estimate does not depend on the noise a pass
-  assumes: on NASA FD001 units 1-2, three outliers, the noise moved by 1.6 % on
-  ``epr``, 1.0 % on T50 and at most 0.4 % on the other outputs.)
+  pass skipping only the outliers): two to four passes. The level is not found
+  again with the outliers skipped: the estimate does not depend on the noise a pass
+  assumes.
 
 The UKF is compiled once per process for all passes and all calls (the noise and
 the outputs' centre are arguments of the compiled program,
@@ -65,14 +62,12 @@ Two faults are judged per output, not per row:
   :func:`~jaxcal.calibrators.front.outliers.stuck_runs`) while the filter expects it to
   move (a value of the run beyond the gate) is a frozen sensor, not a row of wild
   readings: judged per row, every row of the run would be skipped, its good outputs
-  with it (a stuck outflow cost the tank's level and temperature 18 rows of one
-  unit). The run's readings of that output are left out (missing: the rows are
+  with it. The run's readings of that output are left out (missing: the rows are
   partial, used on their other outputs; :attr:`Screen.data`), the screening starts
   again without them, and a note names the output, unit and rows.
 * **Too few rows for the noise.** The noise estimated from fewer than
-  :data:`MIN_NOISE_ROWS` settled readings of an output can be far off (three rows
-  of the tank gave 190x the true noise of its level): a note names the outputs and
-  their counts and asks for ``noise=``.
+  :data:`MIN_NOISE_ROWS` settled readings of an output can be far off: a note
+  names the outputs and their counts and asks for ``noise=``.
 """
 
 from __future__ import annotations

@@ -3,10 +3,9 @@
 The screening (:mod:`jaxcal.calibrators.front.screen`: the noise level and the outlier
 rows, from up to five UKF passes) depends on the model, the problem, the rows and
 the passes' filter settings, not on the method that calibrates afterwards. On a
-model with an iterative solver the passes are most of a call: the turbofan on NASA
-C-MAPSS FD001 units 1-2 pays about 1.5 s per pass, six passes with the method's own
-run. So a second method on the same rows (a user comparing the UKF with least
-squares), or the same call again, reuses the screening instead of repeating it: its
+model with an iterative solver the passes are most of a call, so a second method
+on the same rows (a user comparing the UKF with least squares), or the same call
+again, reuses the screening instead of repeating it: its
 result is kept per (model by identity, problem, rows, filter settings, noise given
 or estimated, outlier gate), the rows identified by a digest of their bytes.
 

@@ -2,9 +2,9 @@
 
 JAX's persistent compilation cache (:mod:`jaxcal.cache`) spares a new process the
 XLA compilation, but not the tracing that comes before it: to find the cached
-executable, JAX first traces the Python function into a jaxpr and lowers it, and for
-the turbofan (a Newton solve batched over sigma points and units) that is 25-40 s
-of every new process, against milliseconds of compute. ``jax.export`` serialises a
+executable, JAX first traces the Python function into a jaxpr and lowers it, which
+for a model with an iterative solver (the turbofan's Newton solve batched over sigma
+points and units) takes far longer than the compute. ``jax.export`` serialises a
 traced and lowered program; a later process deserialises it (milliseconds) and
 compiles it, which the persistent cache then answers.
 
@@ -28,8 +28,8 @@ the least recently used removed first.
 
 In a ``jax.distributed`` cluster, JAX writes its persistent cache from process 0 only
 (``jax._src.compiler._cache_write``), and a CPU executable is keyed by the device it
-runs on, so every other process would compile each program in every run (the
-turbofan's diagnosis programs: ~110 s of process 1's run). Such a process keeps the
+runs on, so every other process would compile each program in every run. Such a
+process keeps the
 compiled executable itself, beside the program, keyed by its place in the cluster
 (:func:`_compiled_here`); the same privacy rule covers it.
 """

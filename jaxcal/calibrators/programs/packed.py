@@ -14,22 +14,18 @@ per dtype. Values are unchanged (no dtype is converted); a leaf of an extended d
 (never as a process-wide flag): XLA's CPU runtime runs a program as a graph of
 kernels, starts every kernel whose inputs are ready, and hands part of a wide ready
 set to its thread pool. A stream's step is ~100 kernels of a few hundred flops each,
-and a hand-off to another thread costs more than the kernels it carries (a 2-core
-machine shared with other work most of all). XLA's default schedule keeps
-independent kernels apart for concurrency: the heat exchanger's step starts with 12
-kernels ready at once. The memory-optimised schedule reuses buffers, which orders the
-kernels into fewer ready at a time (3): measured on the four policy runs of
-``results/bench/stream_profile.md``, the compiled call 30 % faster, the same bits.
-Not for a model that carries a warm-started solve from row to row (the turbofan's
-Broyden, ``Model.evaluate_hinted``): there the schedule changed the solve's numbers
-(5e-8 on the outputs) and gained nothing (~395 us a row either way), so such a
-program keeps XLA's defaults (``warm_solve``).
+and a hand-off to another thread costs more than the kernels it carries. XLA's
+default schedule keeps independent kernels apart for concurrency; the
+memory-optimised schedule reuses buffers, which orders the kernels into fewer ready
+at a time: a faster call, the same bits (``results/bench/stream_profile.md``). Not
+for a model that carries a warm-started solve from row to row (the turbofan's
+Broyden, ``Model.evaluate_hinted``): there the schedule changes the solve's numbers
+and gains nothing, so such a program keeps XLA's defaults (``warm_solve``).
 
 :func:`synchronous_dispatch` goes one step further, for the whole process: JAX's CPU
 client hands every call to a thread of its own and the caller waits for it, which on
-a step of ~100 small kernels costs as much as the kernels. Run on the calling thread,
-``StreamingCalibrator.step`` took half the time on the four small models
-(``results/bench/stream_profile.md``, round 4). JAX reads that setting once, when its
+a step of ~100 small kernels costs as much as the kernels
+(``results/bench/stream_profile.md``). JAX reads that setting once, when its
 CPU backend starts, so it is an entry point's call (as ``enable_x64``), never a
 library's.
 """

@@ -7,23 +7,23 @@ the arrays it closes over and the helpers it calls can change between processes
 while its name stays. What it computes is its jaxpr, though: tracing inlines every
 helper and records every captured array as a constant, so two functions with the
 same jaxpr and constants give the same program. Tracing the model alone at the
-shapes the calibrators call it with costs milliseconds, against the ~1 s of
-tracing and lowering a whole calibrator in every new process.
+shapes the calibrators call it with costs far less than tracing and lowering a whole
+calibrator in every new process.
 
 The digest covers the model's functions (``step_fn``, ``init_state_fn``,
 ``input_check``, ``effect_fn``, ``warm_fn``), each traced and, where differentiable, its
 forward-mode derivative traced too: a ``jax.custom_jvp`` rule is opaque in the
 primal jaxpr (printed by name only), and the calibrators use first derivatives
 (least squares' Jacobian, the filter feature's). Anything whose behaviour a jaxpr
-does not show refuses a digest (the model is then traced in every process, as
-before): a host callback, a ``custom_vjp`` (its backward pass is a Python
-function), a warm-started ``hinted_fn``, or any function that fails to trace.
+does not show refuses a digest (the model is then traced in every process): a host
+callback, a ``custom_vjp`` (its backward pass is a Python function), a warm-started
+``hinted_fn``, or any function that fails to trace.
 
 The same digest tells a model whose function changed within a process: a function
 reading a global that was reassigned traces to other constants, while the model
 object, and so the in-process programs keyed by its identity, stay the same.
-:func:`refresh` traces the model again (milliseconds: 15-40 ms for a small model,
-against a compilation of seconds) and :func:`fingerprint` gives the result, which
+:func:`refresh` traces the model again (milliseconds, against a compilation of
+seconds) and :func:`fingerprint` gives the result, which
 :func:`~jaxcal.calibrators.programs.compiled.problem_key` holds: a changed function gets
 new programs, never the old one's answers. The fingerprint reads what a jaxpr shows and
 passes over what it does not (a host callback's Python function runs at every call,

@@ -19,18 +19,14 @@ online; :func:`update_trend` estimates it from the policy's own theta by Brown's
 double exponential smoothing (discounted least squares of a line, Brown 1963,
 "Smoothing, forecasting and prediction", ch. 7), which needs two vectors of state.
 
-Why the band needs it (issue 27, ``results/policy_any_model``): a policy built on the
+Why the band needs it (``results/policy_any_model``): a policy built on the
 filter's step lags a drift by its rate times a lag that depends on the unit's
-conditions. On the pump (seed 0) the leak lags 6-11 samples by conditions and drifts
-0.00015-0.0004 per sample by unit, so its error is mostly a per-unit bias; a band of
-one width per time bucket, pooled over simulated units, covered single real units
-from 0.62 to 0.98 and the three test units 0.78. Scaling the band by this predicted
-error (:func:`jaxcal.calibrators.uncertainty.conformal.fit_band` with ``scale``) widens
-it on
-the units that drift fast or are observed weakly: the three test units' leak 0.81.
-It does not make single units alike: the rate estimated online is noisy, and the
-lag also depends on the noise's own slow wander, so a few test units can still
-fall below the level.
+conditions, so its error is mostly a per-unit bias that a band of one width per time
+bucket, pooled over simulated units, covers unevenly. Scaling the band by this
+predicted error (:func:`jaxcal.calibrators.uncertainty.conformal.fit_band` with
+``scale``) widens it on the units that drift fast or are observed weakly. It does not
+make single units alike: the rate estimated online is noisy, and the lag also
+depends on the noise's own slow wander.
 """
 
 from __future__ import annotations

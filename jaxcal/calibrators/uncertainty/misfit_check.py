@@ -8,22 +8,13 @@ size argument behind the HAC variance of Newey & West 1987, Econometrica 55); an
 parameter absorbs the part of the misfit its sensitivity can explain, a bias that
 no residual shows.
 
-The second is why the std is flagged here and not widened. On the battery example
-(an ECM tracking PyBaMM SPMe cells through 18 mV of model error; the example's
-settings, noise given) the UKF's one-step innovations have a long-run variance 38-41x
-their variance on every cell alike, yet R0 needs a std 2.5x to 8.7x wider from cell
-1 to cell 4 (Q 1.5x to 2.2x): R0's error is a bias that grows with the cell's loss
-of active material (5 mOhm, 15 std, by cycle 19 of cell 4), which the ECM's R0
-absorbs and the truth leaves out. Widening by the colour (the square root of the
-cell's ratio, x6.2) brought the 90 % coverage of R0 on the test cells 3-4 from 0.134
-to 0.786 and pushed Q's from 0.513 to 1.000; with the noise estimated, R0 0.118 ->
-0.544, Q 0.345 -> 0.876 (``experiments/misfit_battery.py``,
-``results/std_coverage/misfit_battery.md``). No single factor read off the residuals
-makes both honest. (Least squares' std, checked online against its own later
-estimates, covered R0 0.853 and Q 0.904 there;
-its error is twice the UKF's on R0, five times on Q; it is flagged all the same:
-the flag is about the model and the data, and a check against its own later
-estimates cannot see a bias they share.)
+The second is why the std is flagged here and not widened: on the battery example
+(an ECM tracking PyBaMM SPMe cells) the innovations' colour is alike on every cell
+while R0's error is a bias growing with the cell's loss of active material; no
+single factor read off the residuals makes both parameters' stds honest
+(``experiments/misfit_battery.py``, ``results/std_coverage/misfit_battery.md``).
+Least squares is flagged all the same: a check against its own later estimates
+cannot see a bias they share.
 
 So, per unit and output, the one-step innovations of the screening's UKF pass
 (``x_t - E[x_t | past]`` over its predicted std: white for a filter whose model and
@@ -31,33 +22,24 @@ noise are right, Mehra 1970, IEEE TAC 15) are read over the unit's settled used 
 in time order, and their long-run variance ratio estimated with the Bartlett kernel
 and Andrews' (1991, Econometrica 59) AR(1) plug-in bandwidth. A unit is flagged
 where an output's ratio exceeds :data:`COLOURED` (the std at least 2x too small from
-the colour alone): ``result.misfit`` marks its rows and a note names it. On the
-well-specified cases of ``experiments/std_coverage.py`` (heat exchanger, tank,
-thermal model; noise given or estimated; UKF and least squares) the largest ratio
-was 1.22; on the battery 17-41 (13 in least squares' screening pass).
+the colour alone): ``result.misfit`` marks its rows and a note names it.
 
-Two more readings of the same innovations (issue 42, the newcomer's reactor of
-``experiments/reactor.py``). A misfit that starts late (a 1.5 K bias on a temperature
-sensor from row 300 of 500) colours a few dozen rows, then the parameters absorb it:
-over the whole unit its ratio stays near 1, the std is 3-7x too small. Page's CUSUM of
-the innovations (:func:`shift_statistic`) sees it: flagged past :data:`SHIFTED`
-stds. And a noise that is itself coloured (AR(1) of 0.8 on both outputs) leaves
-innovations with a ratio of 2-3.4, under the flag, and a UKF std 1.6-2.6x too small
-(coverage 0.52-0.70): where the innovations fit an AR(p) noise (Yule-Walker, BIC
-order) without shift and under the flag, the std of a method that assumes white noise
+Two more readings of the same innovations (``experiments/reactor.py``). A misfit
+that starts late colours a few dozen rows before the parameters absorb it, so the
+whole unit's ratio stays near 1: Page's CUSUM of the innovations
+(:func:`shift_statistic`) flags it past :data:`SHIFTED` stds. And a noise that is
+itself coloured leaves a ratio under the flag with a std too small: where the
+innovations fit an AR(p) noise (Yule-Walker, BIC order) without shift and under the
+flag, the std of a method that assumes white noise
 (:attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`) is widened by the
 square root of that AR fit's long-run variance ratio (:func:`ar_long_run_ratio`; the
-Bartlett estimate, bandwidth-truncated, reads a persistent colour low): coverage
-0.86-0.98 per unit. Why this widening and not the battery's: there the colour came from
-a bias the parameters absorb, which no factor
-read off the residuals fixes; here from the noise, whose long-run variance is what
-the estimate's variance scales with (fewer independent rows).
+Bartlett estimate, bandwidth-truncated, reads a persistent colour low). Why widen
+here and not for the battery: here the colour comes from the noise, whose long-run
+variance is what the estimate's variance scales with (fewer independent rows).
 
 A filter that lags a drift faster than its random walk, or an output quantised far
 coarser than its noise, colours the innovations too, and its std is no more to be
-trusted: the note names all three causes. On NASA FD001 units 1-4 (the turbofan model
-on real data) every unit is flagged: farB 42 (read as the constant 0.03), NRf 12.8,
-Nf 11.6, epr 9.0 (read to two decimals).
+trusted: the note names all three causes.
 """
 
 from __future__ import annotations
