@@ -33,31 +33,27 @@ Partial rows: a row with some outputs missing (NaN or an empty cell; conditions
 finite, at least one output finite) is read and kept. The UKF and least squares
 update on its observed outputs (``valid`` True, ``reason`` ``ok``); E2E and a policy
 cannot take a NaN input and skip it (``valid`` False, ``reason`` ``x_partial``).
-Either way ``result.partial`` marks it. The flag is a field of its own, not a reason,
-so that ``reason != "ok"`` still means "skipped" everywhere: a used partial row is
-not a skipped one. Its ``xhat`` holds the model's prediction of the missing outputs.
+Either way ``result.partial`` marks it: a flag of its own, not a reason, so that
+``reason != "ok"`` still means "skipped" everywhere. Its ``xhat`` holds the model's
+prediction of the missing outputs.
 
 Noise: ``noise={output: std}``; when omitted it is estimated from the data, robustly,
 from the one-step innovations of UKF passes (:mod:`jaxcal.calibrators.front.screen`;
 ``result.noise_source`` says so). A reported ``theta_std`` is never below the
-estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.uncertainty.jitter_check`: a
-filter
-given a noise far too small follows it, with a std that says otherwise). Where the
-screening pass's one-step innovations are clearly autocorrelated (a model misfit, a
-drift the filter lags, a quantised output) the unit's std, which assumes white noise,
-is no calibrated uncertainty: it is withheld there (NaN; ``misfit="keep"`` reports
-it anyway), ``result.misfit`` marks those units' rows and a note names them and says
-why (:mod:`jaxcal.calibrators.uncertainty.misfit_check`; not checked without a screening
+estimate's own row-to-row scatter (:mod:`jaxcal.calibrators.uncertainty.jitter_check`).
+Where the screening pass's one-step innovations are clearly autocorrelated the
+unit's std, which assumes white noise, is withheld (NaN; ``misfit="keep"`` reports it
+anyway), ``result.misfit`` marks those units' rows and a note says why
+(:mod:`jaxcal.calibrators.uncertainty.misfit_check`; not checked without a screening
 pass).
 
 No single bad row decides anything for the other rows:
 
 * **Outliers.** The same UKF passes flag wild readings (an innovation beyond
   ``outlier_z`` = 6 robust stds, :mod:`jaxcal.calibrators.front.screen`): they are
-  skipped
-  by every method, left out of the noise, and reported as ``reason == "outlier"``.
-  With a given noise they are still flagged, judged against that noise (or the
-  data's own spread where wider). ``outlier_z=None`` turns the flags off; the policy
+  skipped by every method, left out of the noise, and reported as ``reason ==
+  "outlier"``. With a given noise they are judged against that noise (or the data's
+  own spread where wider). ``outlier_z=None`` turns the flags off; the policy
   without ``noise=`` is not screened (nothing to judge by).
 * **Skipped rows** (flagged for any reason) report the estimate carried from the
   unit's last used row, or before its first one the prior (``theta`` the nominal
@@ -73,17 +69,14 @@ No single bad row decides anything for the other rows:
   (:mod:`jaxcal.data.buckets`), one compiled program per group shape.
 
 Compiled once: the UKF and least squares are compiled once per process and method
-settings (the data, noise and prior are arguments: :mod:`jaxcal.calibrators.
-compiled`), and once per machine through JAX's persistent compilation cache, on by
-default (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns it off). The screening is
-done once per data set in a process (:mod:`jaxcal.calibrators.front.screen_memo`). A
-user's model is traced again on every call (milliseconds): where a global its
-function reads has changed, the programs are built anew, never reused with the old
-value (:mod:`jaxcal.calibrators.programs.traced_key`).
+settings (:mod:`jaxcal.calibrators.programs.compiled`) and once per machine through
+JAX's persistent compilation cache (:mod:`jaxcal.cache`; ``JAXCAL_CACHE=0`` turns
+it off); the screening once per data set in a process
+(:mod:`jaxcal.calibrators.front.screen_memo`); a changed global of a user's model
+builds new programs (:mod:`jaxcal.calibrators.programs.traced_key`).
 
-The result in the data's row order, and the console line counting the skipped rows,
-are assembled by :mod:`jaxcal.calibrators.front.rows`. A parameter that acts in some
-units only (an extended model's per-unit effect, ``model.diagnosis.carriers``) is
+The result in the data's row order is assembled by :mod:`jaxcal.calibrators.front.
+rows`. A parameter that acts in some units only (``model.diagnosis.carriers``) is
 calibrated in its carriers and held at its nominal value elsewhere
 (:mod:`jaxcal.calibrators.front.carriers`).
 """
