@@ -185,7 +185,7 @@ def calibrate(
     model = load(model)
     dtype = _dtype(model)
     if model.origin is None:  # a user's function may read a global changed since
-        traced_key.refresh(model, dtype)  # new programs if it did (15-40 ms)
+        traced_key.refresh(model, dtype)  # new programs if it did
     theta = _names(theta, "theta", "parameter", model.parameter_names)
     outputs = _names(outputs, "outputs", "output", model.output_names)
     if carriers.applies(model, theta, method, options):  # some units only: per group

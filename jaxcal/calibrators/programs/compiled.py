@@ -1,9 +1,8 @@
 """Model-based calibrators compiled once per process.
 
-``jaxcal.calibrate`` used to build new closures on every call, each capturing the
-call's numbers (noise, outputs' centre, prior) as constants of a new program, so
-every call compiled again: seconds for a toy model, a minute and more for the
-turbofan, whose compute is milliseconds. Here a program is built once per
+A closure capturing a call's numbers (noise, outputs' centre, prior) as constants
+would make every call compile again, which on a model with an iterative solver
+costs far more than its compute. So a program is built once per
 (model, calibrated parameters, outputs, their base values, method settings, float
 dtype, kind) and kept; everything that changes from call to call is an argument
 (:class:`Inputs`). A repeat call with data of the same padded shape reuses the

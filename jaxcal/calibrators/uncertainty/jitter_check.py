@@ -1,11 +1,9 @@
 """A reported theta std is at least the estimate's own row-to-row scatter.
 
 A filter's std is only as honest as the noise it was given. Given a noise far too
-small on an output that one parameter alone explains (the heat exchanger's
-``dp_coeff`` and ``dp_hot``; the front door's noise estimate read it 60x too small
-before it took the innovations), the filter follows that output's noise with a std
-that says it knows the parameter to a fraction of what its estimate moves from one
-row to the next: 2 % of the rows within its 90 % interval (``results/std_coverage``).
+small on an output that one parameter alone explains, the filter follows that
+output's noise with a std that says it knows the parameter to a fraction of what its
+estimate moves from one row to the next (``results/std_coverage``).
 
 The estimate itself shows it. For a parameter that drifts slowly against the
 sampling, ``theta_t - theta_{t-1} = e_t - e_{t-1}`` plus a negligible drift, with

@@ -210,10 +210,8 @@ def widening(colour: Colour, white_std: bool) -> np.ndarray:
     """``[N]`` the factor a method's std is widened by: :attr:`Colour.widen` for a
     std that assumes white noise (``white_std``, the method's
     :attr:`~jaxcal.calibrators.methods.protocol.Method.white_std`), 1 for least
-    squares, whose
-    online check against its own later estimates already scales its std to the
-    errors it makes (measured on the reactor with AR(1) noise of 0.8: widened,
-    its coverage per unit 0.95-1.0, the std 1.3x to 4x too wide)."""
+    squares, whose online check against its own later estimates already scales its
+    std to the errors it makes (widened, it would be too wide)."""
     if white_std:
         return colour.widen
     return np.ones_like(colour.widen)

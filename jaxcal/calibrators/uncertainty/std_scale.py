@@ -7,10 +7,10 @@ interval covers ~100 %. The shape of the std over time (wide at the start, narro
 as the filter locks on) is informative; its level is not. So the std is kept and
 multiplied by a scale ``s`` fitted on held-out units with known theta, per bucket of
 samples since a unit's start (the buckets of
-:mod:`jaxcal.calibrators.uncertainty.conformal`)
-and per parameter: with the normalised scores ``|theta_hat - theta| / std`` of the
-bucket, ``s`` is their split-conformal ``level`` quantile (Lei et al. 2018, §2.2)
-divided by ``z`` (1.6449 for 90 %), so that ``+-z s std`` holds ``level`` of the
+:mod:`jaxcal.calibrators.uncertainty.conformal`) and per parameter: with the
+normalised scores ``|theta_hat - theta| / std`` of the bucket, ``s`` is their
+split-conformal ``level`` quantile (Lei et al. 2018, §2.2) divided by ``z`` (1.6449
+for 90 %), so that ``+-z s std`` holds ``level`` of the
 held-out errors. The estimate itself is never touched.
 
 ``t`` is the number of scored samples of the unit before this one (flagged samples

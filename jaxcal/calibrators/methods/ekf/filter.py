@@ -24,10 +24,10 @@ Why forward mode: with ``L = chol(P' + jitter I)``, ``F_a P' F_a^T = (F_a L)(F_a
 L)^T`` and alike, and ``G L`` is ``n = Z + P`` Jacobian-vector products along the
 columns of ``L``. They are taken as ``jax.jvp`` vmapped over the columns with the
 primal unbatched: one pass carries the model's evaluation once and its ``n``
-tangents together, against the UKF's ``2n + 1`` sigma-point evaluations. (Measured:
-``jax.linearize`` splits a loop in the model into a primal pass that stores its
-residuals and a tangent pass, 2x slower on a ``fori_loop`` model, and re-runs a
-``while_loop`` solver whole in the tangent pass.) Forward mode goes through
+tangents together, against the UKF's ``2n + 1`` sigma-point evaluations
+(``jax.linearize`` splits a loop in the model into a primal pass that stores its
+residuals and a slower tangent pass, and re-runs a ``while_loop`` solver whole in
+the tangent pass). Forward mode goes through
 ``while_loop`` solvers, which reverse mode does not, and ``n`` is small where the
 number of outputs need not be. The tangent rows ``G L`` are the "linearised
 deviations" of unit weight that the UKF's update

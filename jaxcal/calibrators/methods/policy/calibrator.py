@@ -97,8 +97,8 @@ def make_fleet_runner(
     (and once more with a ``check``). Returns a ``CalOutput`` with ``valid`` and
     ``reason`` per sample. A model with a warm-started solve (the turbofan's) carries
     it along each unit, as a stream does: the theta of streaming the unit's rows
-    one by one (to 1e-12), at about half the cold solve's cost a row over 16 units
-    (``results/bench/stream_profile.md``, round 4).
+    one by one (to 1e-12), at a fraction of the cold solve's cost
+    (``results/bench/stream_profile.md``).
     """
 
     def run(

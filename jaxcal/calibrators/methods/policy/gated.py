@@ -12,7 +12,7 @@ The gate chooses per sample with the one fact that separates the cases, which th
 feedback already computes: whether the model can explain the data. Its prediction
 error r_t = RMS_s((x_t - F(w_t, theta_{t-1})) / sigma_x) collapses to the solver's
 floor (1e-12) once the feedback has converged on a right model, and stays at the size
-of the model error otherwise (0.35 or more under F x 1.02, measured on Dataset #1).
+of the model error otherwise.
 The threshold is what the anchor's own uncertainty could explain: a theta off by the
 anchor's 90 % half-width h_p moves the normalised outputs by about J_p h_p, J_p the
 feedback's RMS sensitivity (``increment_step_ref``), so

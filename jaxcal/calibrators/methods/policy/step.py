@@ -124,10 +124,9 @@ def make_policy_calibrator(
         params: :class:`PolicyParams` (may be traced).
         band: the run's calibrated error band
             (:mod:`jaxcal.calibrators.uncertainty.conformal`, fitted on its validation
-            units);
-            ``None``: no uncertainty. A relative band scales the error the policy's
-            filter predicts (:func:`filter_scale`; an incremental policy with the
-            filter feature only).
+            units); ``None``: no uncertainty. A relative band scales the error the
+            policy's filter predicts (:func:`filter_scale`; an incremental policy
+            with the filter feature only).
         warm_start: carry the model's solver hint from sample to sample (a
             :class:`~jaxcal.envs.memory.HintedDynamics`; ignored otherwise): a
             stream, one sample per call, and a fleet (the turbofan's hinted solve
@@ -138,8 +137,7 @@ def make_policy_calibrator(
             row). ``False`` where ``init`` is given the first ok row, as
             ``run_calibrator`` does: the state ``init`` made is that start already,
             and over a fleet (under ``vmap``) the step would compute the start at
-            every row only to discard it (the reactor's settling run: 2.4x the
-            UKF's cost per row).
+            every row only to discard it.
 
     Returns:
         A :class:`~jaxcal.calibrators.interface.Calibrator`; ``aux`` is
