@@ -11,8 +11,7 @@ Folders by job:
 * :mod:`.uncertainty`: honest stds (conformal bands, the checks of a reported std);
 * here: the interface and its guarded runners (:mod:`.interface`, :mod:`.guard`),
   the Gaussian filters' shared skeleton and steps (:mod:`.gaussian_filter`,
-  :mod:`.ukf`, :mod:`.ukf_steps`), methods on the model (:mod:`.model_based`) and
-  learned ones (:mod:`.learned`).
+  :mod:`.ukf`, :mod:`.ukf_steps`).
 """
 
 from jaxcal.calibrators.front.door import METHODS, calibrate

@@ -91,8 +91,8 @@ from jaxcal.calibrators.front.outliers import (
 )
 from jaxcal.calibrators.front.skipped import nothing_valid_error
 from jaxcal.calibrators.guard import MASKED, OK
+from jaxcal.calibrators.methods.on_model import model_inputs
 from jaxcal.calibrators.methods.ukf import UKF, ukf_program
-from jaxcal.calibrators.model_based import model_inputs
 from jaxcal.data.buckets import Buckets, bucket_units
 from jaxcal.data.dataset import Dataset
 from jaxcal.problem import PROVISIONAL_NOISE_SHARE, Problem

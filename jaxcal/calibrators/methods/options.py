@@ -4,8 +4,8 @@ Each method's config is a frozen, hashable dataclass of its package
 (:mod:`jaxcal.calibrators.methods`); :func:`config_of` turns keyword options into
 one (a misspelt option lists the valid ones and the closest match). A config is
 hashable, so it keys the compiled programs
-(:mod:`jaxcal.calibrators.programs.compiled`);
-what makes it a ready :class:`Built` for a problem is its method's ``build``.
+(:mod:`jaxcal.calibrators.programs.compiled`); what makes it a ready :class:`Built`
+for a problem is its method's ``build`` (a learned method's: :func:`learned_built`).
 """
 
 from __future__ import annotations
@@ -15,15 +15,19 @@ import difflib
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.calibrators.interface import Calibrator
+from jaxcal.calibrators.interface import Calibrator, run_fleet
+from jaxcal.data.padded import Padded
+from jaxcal.problem import Problem
 
 
 def _frozen(value):
     """A state option as a hashable value (a ``{state: value}`` as sorted pairs, an
     array as a tuple); what cannot be read is left for
-    :func:`~jaxcal.calibrators.model_based.state_option` to refuse with its
+    :func:`~jaxcal.calibrators.methods.on_model.state_option` to refuse with its
     message."""
     try:
         if isinstance(value, dict):
@@ -128,7 +132,7 @@ def check_options(method: str, options: dict, config_type=None) -> None:
             )
     config_ = options.get("e2e_config")
     if config_ is not None:
-        # cycle: the e2e package imports this module (through calibrators.learned)
+        # cycle: the e2e package imports this module
         from jaxcal.calibrators.methods.e2e.network import E2EConfig
 
         if not isinstance(config_, E2EConfig):
@@ -146,6 +150,26 @@ class Built(NamedTuple):
     run: Callable
     prior_std: np.ndarray
     calibrator: Calibrator | None = None  # E2E, a policy (the model-based: make())
+
+
+_FLEET = jax.jit(run_fleet, static_argnums=0)  # one dispatch cache per process
+
+
+def learned_built(problem: Problem, cal: Calibrator, check) -> Built:
+    """:class:`Built` of a learned method's calibrator, made outside the compiled
+    programs (an E2E network, a trained policy): the jitted fleet scan with the
+    method's sample ``check`` (the same calibrator object again runs without tracing
+    again), and a uniform's std over the box before a stream's first sample."""
+
+    def run(padded: Padded, skip=None):
+        mask = padded.mask if skip is None else padded.mask & ~np.asarray(skip)
+        return _FLEET(
+            cal, jnp.asarray(padded.w), jnp.asarray(padded.x),
+            jnp.asarray(mask), check=check,
+        )  # fmt: skip
+
+    uniform = problem.theta_half_width / np.sqrt(3.0)
+    return Built(run, uniform, cal)
 
 
 def options_of(config_type) -> tuple[str, ...]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from jaxcal.calibrators.learned import learned_built
+from jaxcal.calibrators.methods.options import learned_built
 from jaxcal.calibrators.methods.protocol import Method
 
 

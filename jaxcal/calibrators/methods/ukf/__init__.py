@@ -12,8 +12,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from jaxcal.calibrators.methods.on_model import on_model_method
-from jaxcal.calibrators.model_based import model_check
+from jaxcal.calibrators.methods.on_model import model_check, on_model_method
 from jaxcal.calibrators.programs import compiled
 from jaxcal.calibrators.ukf import UKFConfig, make_joint_ukf, make_ukf
 
