@@ -59,12 +59,10 @@ import numpy as np
 from jax import lax
 
 from jaxcal.calibrators.guard import (  # noqa: F401 (re-exported: one import path)
-    FLAG_REASONS,
     MASKED,
     OK,
     REASON_CODE,
     REASONS,
-    STATE_NONFINITE,
     GuardCarry,
     SampleCheck,
     count_reasons,

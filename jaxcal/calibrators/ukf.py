@@ -75,14 +75,10 @@ from jaxcal.calibrators.interface import (
 )
 from jaxcal.calibrators.ukf_steps import (  # noqa: F401 (re-exported: one import path)
     UKFConfig,
-    UKFState,
     joint_prior,
     predict,
-    process_noise,
     sigma_points,
-    step_aux,
     unscented_weights,
-    update,
 )
 from jaxcal.problem import Transition
 from jaxcal.typedefs import Array

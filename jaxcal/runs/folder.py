@@ -39,10 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxcal.runs.atomic import (  # noqa: F401 (re-exported: one import path)
-    is_pid_alive,
     make_temp,
-    release_temp,
-    remove_stale_temps,
     write_atomic,
 )
 from jaxcal.runs.checkpoint import CONFIG_FILE, save_config

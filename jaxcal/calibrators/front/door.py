@@ -95,11 +95,7 @@ from jaxcal.calibrators import methods
 from jaxcal.calibrators.front import carriers, screen_memo
 from jaxcal.calibrators.front.outliers import OUTLIER_Z
 from jaxcal.calibrators.front.result import CalibrationResult
-from jaxcal.calibrators.front.rows import (  # noqa: F401 (MANY_OUTLIERS: re-exported)
-    MANY_OUTLIERS,
-    flag_notes,
-    to_rows,
-)
+from jaxcal.calibrators.front.rows import flag_notes, to_rows
 from jaxcal.calibrators.front.skipped import nothing_valid_error
 from jaxcal.calibrators.guard import REASON_CODE
 from jaxcal.calibrators.programs import traced_key

@@ -44,9 +44,7 @@ from jaxcal.calibrators.methods.policy.params import (  # noqa: F401 (re-exporte
     PolicyParams,
     PolicyState,
     StartedIncrementPolicyParams,
-    counts,
     filter_settings,
-    initial_sensitivity,
     policy_params_from_env,
     with_output_states,
 )
