@@ -60,7 +60,7 @@ No single bad row decides anything for the other rows:
   values, ``theta_std`` the UKF's prior std or a uniform's over the box, ``xhat``
   ``nan``), with ``valid`` False. Every flag is counted on one console line (a
   ``UserWarning``, also in ``result.notes``); a calibration that keeps no row is an
-  error that says why (:mod:`jaxcal.calibrators.front.skipped`).
+  error that says why (:mod:`jaxcal.calibrators.front.rows`).
 * **Bounds.** Every method's ``theta`` lies inside the declared box: the UKF's mean
   and least squares' steps are projected onto it, any other method's estimate is
   clipped, and the rows whose estimate reached a bound are marked
@@ -95,8 +95,7 @@ from jaxcal.calibrators import methods
 from jaxcal.calibrators.front import carriers, screen_memo
 from jaxcal.calibrators.front.outliers import OUTLIER_Z
 from jaxcal.calibrators.front.result import CalibrationResult
-from jaxcal.calibrators.front.rows import flag_notes, to_rows
-from jaxcal.calibrators.front.skipped import nothing_valid_error
+from jaxcal.calibrators.front.rows import flag_notes, nothing_valid_error, to_rows
 from jaxcal.calibrators.guard import REASON_CODE
 from jaxcal.calibrators.programs import traced_key
 from jaxcal.calibrators.uncertainty.jitter_check import jitter_floor, jitter_note

@@ -89,7 +89,7 @@ from jaxcal.calibrators.front.outliers import (
     robust_scale,
     stuck_runs,
 )
-from jaxcal.calibrators.front.skipped import nothing_valid_error
+from jaxcal.calibrators.front.rows import nothing_valid_error
 from jaxcal.calibrators.guard import MASKED, OK
 from jaxcal.calibrators.methods.on_model import model_inputs
 from jaxcal.calibrators.methods.ukf import UKF, ukf_program
