@@ -220,8 +220,7 @@ def probed_update(
 def keep_where(ok: Array, new, old):
     """``new`` where ``ok`` else ``old``, leaf by leaf, as one select per dtype on
     the packed leaves (:mod:`jaxcal.calibrators.programs.packed`): a select per leaf is
-    a
-    kernel per leaf on XLA's CPU runtime, a dozen or more per sample."""
+    a kernel per leaf on XLA's CPU runtime, a dozen or more per sample."""
     packing = Packing.of(old)
     kept = [
         jnp.where(ok, a, b)

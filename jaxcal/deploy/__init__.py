@@ -19,23 +19,21 @@ turbofan or any other model::
 
 Guarded samples: a sample with NaN / Inf in ``w`` or ``x``, or far outside the run's
 training range (:func:`jaxcal.calibrators.methods.policy.calibrator.range_check`), is
-*skipped*: the
-carried state is left exactly as it was, ``step`` returns the last valid theta (before
-any valid sample the theta the stream starts from, inside the box) and the flag is
-readable (``cal.last_valid``, ``cal.last_reason``,
+*skipped*: the carried state is left exactly as it was, ``step`` returns the last valid
+theta (before any valid sample the theta the stream starts from, inside the box) and the
+flag is readable (``cal.last_valid``, ``cal.last_reason``,
 :meth:`StreamingCalibrator.step_info`; ``run(..., return_flags=True)``). The stream then
 continues as if the sample had never arrived. Runs trained before the range was stored
 check finiteness only.
 
 Semantics (:mod:`jaxcal.calibrators.methods.policy.calibrator`): the calibrator carries
-the model output
-x-hat internally; each sample gives theta_t = box(pi*(norm(x-hat_{t-1}), norm(x_t),
-norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1}, theta_t) (or F with
-``dynamics=physics``). A model with memory carries its hidden state z as well,
-z_0 = the state after the first sample with the prior theta
+the model output x-hat internally; each sample gives theta_t =
+box(pi*(norm(x-hat_{t-1}), norm(x_t), norm(w_t))) and x-hat_t = D(w_t, x-hat_{t-1},
+theta_t) (or F with ``dynamics=physics``). A model with memory carries its hidden state
+z as well, z_0 = the state after the first sample with the prior theta
 (:mod:`jaxcal.envs.memory`). :func:`load_calibrator` returns the same method as a
-:class:`~jaxcal.calibrators.interface.Calibrator`, so it runs beside the other
-methods through ``run_calibrator`` / ``run_fleet``; ``jaxcal.calibrate(model, data,
+:class:`~jaxcal.calibrators.interface.Calibrator`, so it runs beside the other methods
+through ``run_calibrator`` / ``run_fleet``; ``jaxcal.calibrate(model, data,
 method="policy", run=<folder>)`` does the same on a data file.
 
 A run folder is self-contained: ``data.json`` records its model, and a model file

@@ -10,8 +10,7 @@
 * :mod:`~jaxcal.fleet.distributed` — ``jax.distributed`` set-up and
   :func:`calibrate_distributed` for units split over processes.
 * ``python -m jaxcal.fleet`` — the command line (:mod:`jaxcal.cli.fleet`; see
-  ``docs/fleet.md``): any model
-  (``model=``) on an N-CMAPSS file or a table (``data=``,
+  ``docs/fleet.md``): any model (``model=``) on an N-CMAPSS file or a table (``data=``,
   :mod:`~jaxcal.fleet.sources`), the method built from the front door's method table
   (:mod:`~jaxcal.fleet.method`); a parameter some units carry (an extended model's
   carriers) held at nominal in the others (:mod:`~jaxcal.fleet.per_unit`).

@@ -4,14 +4,13 @@ An extended model's effect found in some units only lists its carriers
 (``model.diagnosis.carriers``, :mod:`jaxcal.models.extended`). As in
 :func:`jaxcal.calibrate` (:mod:`jaxcal.calibrators.front.carriers`, whose
 :func:`~jaxcal.calibrators.front.carriers.unit_groups` splits the units here too), each
-group
-of units is calibrated with the parameters it carries, and a parameter a unit does not
-carry reads its nominal value (0: no effect) with std 0 in that unit's rows of the
-file, whose columns stay every parameter (:class:`WidenedWriter`). Every group's
-problem is the fleet's (the same data sample, noise and normalisation; only the
-calibrated parameters differ), so a unit is calibrated exactly as a run of the same
-command with ``theta=`` its group's parameters; a policy, trained on its parameters,
-estimates them in every unit (:func:`~jaxcal.calibrators.front.carriers.applies`).
+group of units is calibrated with the parameters it carries, and a parameter a unit does
+not carry reads its nominal value (0: no effect) with std 0 in that unit's rows of the
+file, whose columns stay every parameter (:class:`WidenedWriter`). Every group's problem
+is the fleet's (the same data sample, noise and normalisation; only the calibrated
+parameters differ), so a unit is calibrated exactly as a run of the same command with
+``theta=`` its group's parameters; a policy, trained on its parameters, estimates them
+in every unit (:func:`~jaxcal.calibrators.front.carriers.applies`).
 
 The file keeps its order, units in ascending id: consecutive units of one group form a
 :class:`UnitRun`, streamed in chunks as the whole fleet would be, with its group's

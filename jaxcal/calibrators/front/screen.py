@@ -37,12 +37,11 @@ off its passes:
   the noise, never narrow it. (The post-fit residual is narrowed by the share the
   update absorbs: where one parameter alone explains an output the filter follows
   the noise and the residual is nearly nothing.) Schedule: a first level from a pass
-  on a provisional
-  noise (1 % of each output's robust spread), rejecting with Hampel's X84 rule
-  (:data:`X84`) so that a wild row's wake is not averaged in, and a pass on that
-  level; the outlier passes on that level; the noise from the innovations of the
-  last pass, which skipped the outliers (where a candidate was cleared, one more
-  pass skipping only the outliers): two to four passes. The level is not found
+  on a provisional noise (1 % of each output's robust spread), rejecting with Hampel's
+  X84 rule (:data:`X84`) so that a wild row's wake is not averaged in, and a pass on
+  that level; the outlier passes on that level; the noise from the innovations of the
+  last pass, which skipped the outliers (where a candidate was cleared, one more pass
+  skipping only the outliers): two to four passes. The level is not found
   again with the outliers skipped: the estimate does not depend on the noise a pass
   assumes.
 

@@ -112,8 +112,7 @@ def cached(kind: str, problem: Problem, settings: Hashable, dtype, build: Callab
     ``settings``, ``dtype``) in this process; ``build`` returns a jitted function.
     It is also kept on disk for the next process
     (:func:`~jaxcal.calibrators.programs.on_disk.kept`), under the built-in model's name
-    or
-    a user model's traced digest (:mod:`~jaxcal.calibrators.programs.traced_key`)."""
+    or a user model's traced digest (:mod:`~jaxcal.calibrators.programs.traced_key`)."""
     key = (kind, problem_key(problem, dtype), settings)
 
     def build_kept():

@@ -29,9 +29,8 @@ the least recently used removed first.
 In a ``jax.distributed`` cluster, JAX writes its persistent cache from process 0 only
 (``jax._src.compiler._cache_write``), and a CPU executable is keyed by the device it
 runs on, so every other process would compile each program in every run. Such a
-process keeps the
-compiled executable itself, beside the program, keyed by its place in the cluster
-(:func:`_compiled_here`); the same privacy rule covers it.
+process keeps the compiled executable itself, beside the program, keyed by its place in
+the cluster (:func:`_compiled_here`); the same privacy rule covers it.
 """
 
 from __future__ import annotations

@@ -26,9 +26,8 @@ A *relative* band (``fit_band(..., scale=...)``) is the same conformal fit on th
 errors divided by a per-sample scale the calibrator predicts online, and its std is
 that scale times the bucket's value: for a policy built on a random-walk filter, the
 filter's own std and lag bias (:mod:`jaxcal.calibrators.uncertainty.lag_scale`), which
-vary from
-unit to unit with its drift rate and its conditions where a pooled width does not
-(normalised conformal prediction, Lei et al. 2018, §5.2).
+vary from unit to unit with its drift rate and its conditions where a pooled width does
+not (normalised conformal prediction, Lei et al. 2018, §5.2).
 
 Host-side fitting (numpy, once per run) and a jittable lookup :func:`band_std` for
 the deployed calibrator. Files are written through the one atomic writer.

@@ -6,8 +6,7 @@ the Laplace std held the truth on 0-15 % of the rows of a drifting parameter
 (``experiments/std_coverage.py``, ``results/std_coverage``). So the reported std is the
 Gaussian-equivalent std (half-width / 1.6449, the convention of
 :mod:`jaxcal.calibrators.uncertainty.conformal`) of a 90 % interval of ``N(b, s_L^2 +
-v_b)``,
-times an online scale:
+v_b)``, times an online scale:
 
 * ``b = -L s``, the lag bias to first order: ``s`` theta's drift per sample, ``L =
   -(J^T J)^-1 J^T D`` the lag matrix, ``D`` the residual's response to a drift

@@ -1,8 +1,7 @@
 """The E2E network ``theta_t = G(w_t, x_t, x_{t-1})`` (Tian et al. §2.4, eq. e2e):
 given weights, else trained on simulations of the model over the box at the data's
 own conditions (E2E-sim, :mod:`jaxcal.calibrators.methods.e2e.simulated`); checked
-against the
-data's range."""
+against the data's range."""
 
 from __future__ import annotations
 

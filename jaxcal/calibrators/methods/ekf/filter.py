@@ -27,13 +27,12 @@ primal unbatched: one pass carries the model's evaluation once and its ``n``
 tangents together, against the UKF's ``2n + 1`` sigma-point evaluations
 (``jax.linearize`` splits a loop in the model into a primal pass that stores its
 residuals and a slower tangent pass, and re-runs a ``while_loop`` solver whole in
-the tangent pass). Forward mode goes through
-``while_loop`` solvers, which reverse mode does not, and ``n`` is small where the
-number of outputs need not be. The tangent rows ``G L`` are the "linearised
-deviations" of unit weight that the UKF's update
+the tangent pass). Forward mode goes through ``while_loop`` solvers, which reverse mode
+does not, and ``n`` is small where the number of outputs need not be. The tangent rows
+``G L`` are the "linearised deviations" of unit weight that the UKF's update
 (:func:`~jaxcal.calibrators.ukf_steps.update`) takes, so missing outputs, the
-log-likelihood and the symmetrised covariance are the UKF's code; on a linear model
-both filters are the exact Kalman filter and agree to round-off.
+log-likelihood and the symmetrised covariance are the UKF's code; on a linear model both
+filters are the exact Kalman filter and agree to round-off.
 
 The prior of a model with memory linearises ``z0 = init(w0, theta)`` at the prior
 mean (:func:`linear_joint_prior`). Box projection of the mean and clipping of the

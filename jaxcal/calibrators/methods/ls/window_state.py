@@ -10,12 +10,11 @@ the window and an arrival-cost prior on ``z_s``). Each step
    theta (the prior of the new window start, weight ``state_std``);
 2. shifts the new sample in (time order: the model is simulated forwards);
 3. runs ``num_iters`` Levenberg–Marquardt iterations on
-   ``sum_i ||(x_i(theta, z_s) - x_i) / (noise_std r)||^2
-   + ||(z_s - z_prior) / state_std||^2 [+ ||(u - u_prev) / prior_std||^2]``,
-   ``x_i`` simulated by ``lax.scan`` and differentiated by ``jax.jacfwd`` over the
-   ``P + Z`` unknowns; warm-started from the previous estimate. The iteration, its
-   box projection and the covariance are the one solver core's
-   (:mod:`jaxcal.numerics.levenberg_marquardt`).
+   ``sum_i ||(x_i(theta, z_s) - x_i) / (noise_std r)||^2 + ||(z_s - z_prior) /
+   state_std||^2 [+ ||(u - u_prev) / prior_std||^2]``, ``x_i`` simulated by ``lax.scan``
+   and differentiated by ``jax.jacfwd`` over the ``P + Z`` unknowns; warm-started from
+   the previous estimate. The iteration, its box projection and the covariance are the
+   one solver core's (:mod:`jaxcal.numerics.levenberg_marquardt`).
 
 A NaN in ``x_t`` is a missing output: it is left out of the residual (the sample's
 other outputs still count), so the calibrator takes partial rows
@@ -100,9 +99,8 @@ def make_window_least_squares(
         ``Calibrator(init, step)``; ``aux`` holds ``theta_std [P]`` (Laplace,
         widened by the window's lag behind a drifting theta:
         :func:`~jaxcal.calibrators.uncertainty.drift_std.drift_std`), ``laplace_std
-        [P]``,
-        ``cost []``, ``state [Z]`` (the state after the sample, simulated over the
-        window) and ``state_std [Z]`` (of the window start).
+        [P]``, ``cost []``, ``state [Z]`` (the state after the sample, simulated over
+        the window) and ``state_std [Z]`` (of the window start).
     """
     measurement = check_measurement(measurement)
     theta0, scale = check_prior(theta0, theta_scale)

@@ -1,9 +1,7 @@
 """A trained tracking policy (CLAC, LAC, SAC) from its run folder
 (:mod:`jaxcal.calibrators.methods.policy.trained`); an incremental policy gated by an
-absolute
-policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.methods.policy.gated`). It reads
-no
-measurement noise and is checked against its run's own training range."""
+absolute policy's run with ``anchor=`` (:mod:`jaxcal.calibrators.methods.policy.gated`).
+It reads no measurement noise and is checked against its run's own training range."""
 
 from __future__ import annotations
 

@@ -5,9 +5,8 @@ The calibrator, the paper's deployment step (§3.1), is :func:`make_policy_calib
 (:mod:`jaxcal.calibrators.methods.policy.step`, where its equations are); what it reads
 and carries, :class:`PolicyParams` and :class:`PolicyState`, is in
 :mod:`jaxcal.calibrators.methods.policy.params`. Both are re-exported here, the one
-import
-path. This module runs it: over a fleet (:func:`make_fleet_runner`), one sample per
-call (:func:`make_stream_step`), or one guarded sample per call
+import path. This module runs it: over a fleet (:func:`make_fleet_runner`), one sample
+per call (:func:`make_stream_step`), or one guarded sample per call
 (:func:`make_guarded_stream_step` from :func:`initial_guard_carry`).
 
 Everything the step reads is a leaf of :class:`PolicyParams`, so one jitted runner

@@ -12,10 +12,9 @@ The gate chooses per sample with the one fact that separates the cases, which th
 feedback already computes: whether the model can explain the data. Its prediction
 error r_t = RMS_s((x_t - F(w_t, theta_{t-1})) / sigma_x) collapses to the solver's
 floor (1e-12) once the feedback has converged on a right model, and stays at the size
-of the model error otherwise.
-The threshold is what the anchor's own uncertainty could explain: a theta off by the
-anchor's 90 % half-width h_p moves the normalised outputs by about J_p h_p, J_p the
-feedback's RMS sensitivity (``increment_step_ref``), so
+of the model error otherwise. The threshold is what the anchor's own uncertainty could
+explain: a theta off by the anchor's 90 % half-width h_p moves the normalised outputs by
+about J_p h_p, J_p the feedback's RMS sensitivity (``increment_step_ref``), so
 
     open_t  =  min(r_t, ..., r_{t-k+1})  <=  tau_t = sqrt(sum_p (J_p h_p(t))^2)
     theta_t =  theta_feedback_t if open_t else theta_anchor_t

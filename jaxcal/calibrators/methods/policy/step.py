@@ -9,9 +9,8 @@ x-hat_{t-1} carried in the state, each new sample (w_t, x_t) gives
 
 with pi* = tanh(mean) the deterministic policy and ``box`` the environment's affine map
 to [theta_low, theta_high]. This is the training environment's step shifted by one
-index, so on samples t >= 1 the calibrator reproduces
-the environment's deterministic rollout
-(``tests/support/policy_rollout.py``). On the first sample there is no x-hat
+index, so on samples t >= 1 the calibrator reproduces the environment's deterministic
+rollout (``tests/support/policy_rollout.py``). On the first sample there is no x-hat
 yet: x-hat = x_0 (as the environment's reset), theta_0 = box(pi*([norm(x_0), norm(x_0),
 norm(w_0)])) and x-hat_0 = x_0.
 
@@ -38,17 +37,15 @@ the turbofan's Newton solve) may also carry its solver hint from sample to sampl
 solver tolerance, at a fraction of the cold solve's cost; the first sample starts
 without one. The deployed stream and the fleet runner
 (:func:`~jaxcal.calibrators.methods.policy.calibrator.make_fleet_runner`: the turbofan's
-hinted solve
-batches with a rule of its own, the cold fall-back only at rows some unit needs it)
-do; the paper's scored methods keep the cold solve (and the paper's bits).
+hinted solve batches with a rule of its own, the cold fall-back only at rows some unit
+needs it) do; the paper's scored methods keep the cold solve (and the paper's bits).
 
 What the step reads and carries
 (:class:`~jaxcal.calibrators.methods.policy.params.PolicyParams`,
 :class:`~jaxcal.calibrators.methods.policy.params.PolicyState`) is in
 :mod:`jaxcal.calibrators.methods.policy.params`; the jitted runners over fleets and
-streams
-are in :mod:`jaxcal.calibrators.methods.policy.calibrator`, which re-exports both
-modules' names.
+streams are in :mod:`jaxcal.calibrators.methods.policy.calibrator`, which re-exports
+both modules' names.
 """
 
 from __future__ import annotations
@@ -198,8 +195,7 @@ def filter_scale(params: PolicyParams, cov: Array, trend: Array) -> Array:
     """``[P]`` the theta error the policy's filter predicts after a sample: its std
     and the lag bias of the drift ``trend`` shows
     (:func:`~jaxcal.calibrators.uncertainty.lag_scale.filter_error_scale`; a joint
-    filter's
-    theta block is its last ``P`` rows)."""
+    filter's theta block is its last ``P`` rows)."""
     num = params.theta_low.shape[-1]
     half = 0.5 * (params.theta_high - params.theta_low)
     return filter_error_scale(
