@@ -69,7 +69,7 @@ from jaxcal.calibrators.interface import (
     MeasureFn,
     Measurement,
     check_measurement,
-    check_scale,
+    check_prior,
     run_calibrator,
     run_fleet,
 )
@@ -233,10 +233,7 @@ def ukf_filter(
             f"x has {x.shape[-1]} sensors but measurement has "
             f"{measurement.centre.shape[0]}"
         )
-    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
-    if theta0.ndim != 1:
-        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
-    check_scale(theta_scale, theta0.shape[0], theta0.dtype)
+    theta0, _ = check_prior(theta0, theta_scale)
     return _ukf_filter_jit(
         measure_fn, cfg, unroll, w, x, measurement, theta0, theta_scale, mask
     )

@@ -43,7 +43,7 @@ from jaxcal.calibrators.interface import (
     MeasureFn,
     Measurement,
     check_measurement,
-    check_scale,
+    check_prior,
     inner_box,
 )
 from jaxcal.calibrators.uncertainty.drift_std import (
@@ -143,10 +143,7 @@ def make_least_squares(
         :func:`drift_std`), ``laplace_std [P]`` (the fit's alone) and ``cost []``.
     """
     measurement = check_measurement(measurement)
-    theta0 = jnp.asarray(theta0, dtype=jnp.result_type(float))
-    if theta0.ndim != 1:
-        raise ValueError(f"theta0 must be [P], got shape {theta0.shape}")
-    scale = check_scale(theta_scale, theta0.shape[0], theta0.dtype)
+    theta0, scale = check_prior(theta0, theta_scale)
     sigma = measurement.noise_std * cfg.r  # residual unit: one noise std
     box = inner_box(theta_box, scale)
 
