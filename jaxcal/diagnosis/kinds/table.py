@@ -18,9 +18,9 @@ An effect the model lacks is described by three independent choices:
 
 :class:`EffectKind` holds the rest of what a kind means: its natural step (the size
 of one fitted unit), its physical unit, the plausibility rules that apply to it
-(:mod:`jaxcal.diagnosis.report.plausibility`), how a study draws its size
-(:mod:`jaxcal.diagnosis.data.synthetic`) and how a
-report names it. :data:`KINDS` is the table; a new kind is one new entry.
+(:mod:`jaxcal.diagnosis.report.plausibility`) and how a study draws its size
+(:mod:`jaxcal.diagnosis.data.synthetic`). :data:`KINDS` is the table; a new kind is
+one new entry.
 """
 
 from __future__ import annotations
@@ -50,31 +50,24 @@ class EffectKind:
         profile: one of :data:`PROFILES`.
         fleet: True when the kind has a fleet-wide form; a spline or a step is per
             unit by nature (each unit its own trajectory or onset).
-        phrase: how a report says it, ``{target}`` filled in.
         rules: plausibility rules (:data:`jaxcal.diagnosis.report.plausibility.FLAGS`)
-        that apply.
-        draw: how a study sizes it: ``natural`` (natural steps of the target),
-            ``noise`` (noise std of the output), ``relative`` (noise std relative to
-            the output's mean level) or ``spread`` (% of the condition's std).
-        size_range: the default magnitude range of a drawn size, in ``draw`` units.
+            that apply.
+        size_range: the default magnitude range of a study's drawn size
+            (:mod:`jaxcal.diagnosis.data.synthetic`): in natural steps of the target
+            (parameter, effect), in the output's noise std (additive), in it relative
+            to the output's mean level (multiplicative) or in % of the condition's std.
         min_effect: the smallest size a unit must show to be listed as carrying it,
             in natural steps (:mod:`jaxcal.diagnosis.report.units`). A parameter's is
-            half a step: its
-            per-unit size is its change over the record, and a free parameter
-            absorbs the declared ones' mismatch as a slow change of a few tenths of
-            a step in every unit (NASA FD001, no fan fault: fan efficiency changed by
-            0.08-0.39 steps in all 100 units). The other kinds' is a tenth (half a
-            step listed a turbofan inlet offset at 5x its detectability, 11 standard
-            errors in every unit, in none).
+            half a step: its per-unit size is its change over the record, and a free
+            parameter absorbs the declared ones' mismatch as a slow change of a few
+            tenths of a step in every unit. The other kinds' is a tenth.
     """
 
     name: str
     channel: str
     profile: str
     fleet: bool
-    phrase: str
     rules: tuple[str, ...] = ()
-    draw: str = "noise"
     size_range: tuple[float, float] = (2.0, 5.0)
     min_effect: float = 0.1
 
@@ -134,43 +127,23 @@ def _kinds(*kinds: EffectKind) -> dict[str, EffectKind]:
 KINDS: dict[str, EffectKind] = _kinds(
     EffectKind(
         "parameter", "parameter", "spline", False,
-        "{target} changing over the units' lives",
-        ("outside_bounds", "better_than_new", "constant_from_start"), "natural",
-        (0.5, 2.0), min_effect=0.5,
+        ("outside_bounds", "better_than_new", "constant_from_start"), (0.5, 2.0),
+        min_effect=0.5,
     ),
     EffectKind(
         "parameter_step", "parameter", "step", False,
-        "a sudden change of {target} (damage)",
-        ("outside_bounds", "better_than_new"), "natural", (0.5, 2.0), min_effect=0.5,
+        ("outside_bounds", "better_than_new"), (0.5, 2.0), min_effect=0.5,
     ),
+    EffectKind("effect", "effect", "constant", True, ("outside_bounds",), (0.5, 2.0)),
+    EffectKind("condition_offset", "condition", "constant", True, (), (0.5, 2.0)),
+    EffectKind("sensor_bias", "additive", "constant", True),
+    EffectKind("sensor_gain", "multiplicative", "constant", True),
+    EffectKind("sensor_drift", "additive", "drift", True, size_range=(3.0, 6.0)),
     EffectKind(
-        "effect", "effect", "constant", True, "{target}", ("outside_bounds",),
-        "natural", (0.5, 2.0),
+        "sensor_gain_drift", "multiplicative", "drift", True, size_range=(3.0, 6.0)
     ),
-    EffectKind(
-        "condition_offset", "condition", "constant", True,
-        "the logged {target} off by a constant", (), "spread", (0.5, 2.0),
-    ),
-    EffectKind("sensor_bias", "additive", "constant", True, "a bias on {target}"),
-    EffectKind(
-        "sensor_gain", "multiplicative", "constant", True, "a gain error on {target}",
-        draw="relative",
-    ),
-    EffectKind(
-        "sensor_drift", "additive", "drift", True,
-        "an additive drift of {target}", size_range=(3.0, 6.0),
-    ),
-    EffectKind(
-        "sensor_gain_drift", "multiplicative", "drift", True,
-        "a multiplicative drift of {target}", draw="relative",
-        size_range=(3.0, 6.0),
-    ),
-    EffectKind(
-        "sensor_step", "additive", "step", False,
-        "a step on {target} (a bias from an onset)",
-    ),
+    EffectKind("sensor_step", "additive", "step", False),
 )  # fmt: skip
-SENSOR_KINDS = tuple(k for k, v in KINDS.items() if v.is_sensor)
 
 
 def natural_scale(model: Model, name: str) -> float:
