@@ -37,15 +37,21 @@ from scipy.special import gammaln
 
 from jaxcal.diagnosis.data.prepare import LoopData
 from jaxcal.diagnosis.fitting.joint import FitResult, GramStats, schur_solve
+from jaxcal.diagnosis.kinds.onsets import ONSET_CI
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
-from jaxcal.diagnosis.kinds.terms import ModelParams, ModelSpec, layout, term_profile
+from jaxcal.diagnosis.kinds.terms import (
+    ModelParams,
+    ModelSpec,
+    channel_index,
+    layout,
+    term_profile,
+)
 from jaxcal.model import Model
 
 ONSET_GRID = 128  # onsets scanned per unit (every row of a shorter unit)
 # a step through a model's states costs one simulation per onset: a coarser grid
 ONSET_GRID_DYNAMIC = 48
-ONSET_CI = 3.84  # chi2_1 95 % quantile: the onset's profile-likelihood interval
 _RIDGE = 1e-9
 
 
@@ -162,8 +168,8 @@ class Screen:
             cols = self._columns(smooth)
         else:
             # every derivative at once (one evaluation), the columns formed
-            # candidate by candidate: all at once were three transient copies of
-            # the fleet's rows times 67 columns (0.8 GB on NASA FD002)
+            # candidate by candidate (all at once: transient copies of the fleet's
+            # rows times every column)
             every = layout(self.model, self.data, ModelSpec((), tuple(smooth)))
             ev = self.null.evaluation
             like = signatures(self.model, self.data, ev.inputs, (), like=ev.sig,
@@ -312,12 +318,7 @@ class Screen:
             return self._steps[cand.name]
         data = self.data
         pos, first = data.position, data.starts[:-1]
-        channel = cand.kind.channel
-        idx = (
-            self.model.parameter_names.index(cand.target)
-            if channel == "parameter"
-            else self.model.output_index([cand.target])[0]
-        )
+        channel, idx = cand.kind.channel, channel_index(self.model, cand)
         dynamic = self.model.is_stateful and not cand.kind.is_sensor
         grid = self._grid(ONSET_GRID_DYNAMIC if dynamic else ONSET_GRID)
         if dynamic:  # the step response through the states: one tangent per onset

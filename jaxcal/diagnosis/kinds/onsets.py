@@ -19,10 +19,9 @@ parameters* (through the states for a model with memory). Every row within
 within ``chi2_1(0.95)`` of the maximum its 95 % profile-likelihood interval.
 
 The statistic is linear in the step's size; for a large step through a model's
-states, it can prefer a row next to the best one (seen: one row late, at an SSR 7
-above the truth's). :func:`polish_onsets` then moves each carrier's onset a row at a
-time while the model itself, evaluated with the onset moved, fits the unit's rows
-better (every unit at once: the units are independent).
+states, it can prefer a row next to the best one. :func:`polish_onsets` then moves
+each carrier's onset a row at a time while the model itself, evaluated with the onset
+moved, fits the unit's rows better (every unit at once: the units are independent).
 """
 
 from __future__ import annotations
@@ -33,17 +32,11 @@ from jaxcal.diagnosis.data.prepare import LoopData
 from jaxcal.diagnosis.fitting.joint import FitResult, evaluate_model
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
-from jaxcal.diagnosis.kinds.terms import layout
+from jaxcal.diagnosis.kinds.terms import channel_index, layout
 from jaxcal.model import Model
 
-ONSET_CI = 3.84  # chi2_1 95 % quantile, as the screen's interval
+ONSET_CI = 3.84  # chi2_1 95 % quantile: the onset's profile-likelihood interval
 _RIDGE = 1e-9
-
-
-def _channel_index(model: Model, cand: Candidate) -> int:
-    if cand.kind.channel == "parameter":
-        return model.parameter_names.index(cand.target)
-    return model.output_index([cand.target])[0]
 
 
 def _step_columns(model, data: LoopData, fit: FitResult, cand: Candidate, starts):
@@ -51,7 +44,7 @@ def _step_columns(model, data: LoopData, fit: FitResult, cand: Candidate, starts
     positions within each unit) at the fitted point."""
     ev = fit.evaluation
     pos = data.position
-    idx = _channel_index(model, cand)
+    idx = channel_index(model, cand)
     dynamic = model.is_stateful and not cand.kind.is_sensor
     num_k = starts.shape[1]
     if dynamic:  # through the states: one tangent per candidate onset

@@ -2,13 +2,11 @@
 
 A :class:`ModelSpec` names the declared parameters (a B-spline in time per unit,
 :mod:`jaxcal.diagnosis.data.prepare`), for a model with memory an offset of each unit's
-initial state, and
-the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`: a ``fleet`` term has one
-coefficient shared by
-all units, a ``units`` term one, or ``Kc`` for a smoothly changing parameter, per
-carrying unit). Every coefficient moves one channel of the extended model along its
-profile in time: a :class:`~jaxcal.diagnosis.kinds.signatures.Tangent`. :func:`layout`
-lists them, local
+initial state, and the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`: a
+``fleet`` term has one coefficient shared by all units, a ``units`` term one, or ``Kc``
+for a smoothly changing parameter, per carrying unit). Every coefficient moves one
+channel of the extended model along its profile in time: a
+:class:`~jaxcal.diagnosis.kinds.signatures.Tangent`. :func:`layout` lists them, local
 (per unit) first, then shared; :func:`model_inputs` turns coefficients into the
 extended model's row inputs; :func:`num_params` and :func:`selection_penalty` are what
 the extended BIC charges for them.
@@ -110,7 +108,9 @@ def term_profile(data: LoopData, cand: Candidate) -> np.ndarray:
     return cand.scale * prof
 
 
-def _channel_index(model: Model, cand: Candidate) -> int:
+def channel_index(model: Model, cand: Candidate) -> int:
+    """The index of ``cand``'s target among its channel's (parameters, effects,
+    conditions or outputs)."""
     channel = cand.kind.channel
     if channel == "parameter":
         return model.parameter_names.index(cand.target)
@@ -154,7 +154,7 @@ def layout(model: Model, data: LoopData, spec: ModelSpec) -> Layout:
         for cand in spec.terms:
             if cand.per_unit != local:
                 continue
-            channel, idx = cand.kind.channel, _channel_index(model, cand)
+            channel, idx = cand.kind.channel, channel_index(model, cand)
             prof = term_profile(data, cand)
             add("term", cand.key, local,
                 [Tangent(channel, idx, p) for p in prof.T])  # fmt: skip
