@@ -10,7 +10,7 @@ import pytest
 
 from jaxcal.cli.diagnose import main
 from jaxcal.diagnosis.data.synthetic import SyntheticConfig, make_synthetic_data
-from jaxcal.diagnosis.kinds.signatures import linearize
+from jaxcal.diagnosis.kinds.linearization import linearize
 from jaxcal.models import load
 from jaxcal.models.turbofan.data.cmapss_text import SENSOR_MAP
 from jaxcal.models.turbofan.data.ncmapss_io import write_ncmapss

@@ -8,8 +8,8 @@ from scipy import stats as sps
 
 from jaxcal.diagnosis.data.prepare import prepare_data as _prepare
 from jaxcal.diagnosis.data.prepare import spline_basis
-from jaxcal.diagnosis.fitting.identify import log10_chi2_sf
 from jaxcal.diagnosis.fitting.joint import GramStats, schur_solve
+from jaxcal.diagnosis.fitting.ranking import log10_chi2_sf
 from jaxcal.diagnosis.residuals.noise_fit import fit_noise, quantised
 from jaxcal.models import load
 from jaxcal.models.turbofan.data.datasets import dataset_from_record

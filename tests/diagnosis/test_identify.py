@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import DECLARED
 
-from jaxcal.diagnosis.kinds.signatures import CHUNK_ROWS, linearize
+from jaxcal.diagnosis.kinds.linearization import CHUNK_ROWS, linearize
 from jaxcal.diagnosis.kinds.table import KINDS, build_library
 from jaxcal.diagnosis.pipeline import diagnose
 

@@ -43,10 +43,9 @@ import numpy as np
 
 from jaxcal.diagnosis.data.prepare import LoopData
 from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
-from jaxcal.diagnosis.fitting.ranking import (  # noqa: F401 (log10_chi2_sf: re-exported)
+from jaxcal.diagnosis.fitting.ranking import (
     RankEntry,
     effect_sizes,
-    log10_chi2_sf,
     rank_entry,
     screened_singles,
 )
@@ -78,8 +77,8 @@ class IdentifyConfig:
     confound_r2: float = 0.9  # share of the winner's signal another reproduces
     absorbed_frac: float = 0.1  # projected / raw signature norm below this: absorbed
     max_iters: int = 20  # Levenberg–Marquardt iterations per refit
-    # forms tried: without "units" every effect is fleet-wide or on every unit (the
-    # diagnosis before issue 24; steps need the per-unit form and are left out)
+    # forms tried: without "units" every effect is fleet-wide or on every unit
+    # (steps need the per-unit form and are left out)
     forms: tuple[str, ...] = ("fleet", "units")
 
     def __post_init__(self):
@@ -181,7 +180,7 @@ class _Refits:
         model point kept, so its first evaluation costs none), else at the
         declared-only solution with the effects at zero."""
         # taken out: the caller handed the earlier fits over, and each is released
-        # once its refit has started (two noise passes' fits were FD002's peak)
+        # once its refit has started (bounds the memory)
         model, data, prev = self.model, self.data, self.warm.pop(name, None)
         init = None if prev is None else warm_from(prev, model, data, spec)
         if init is None:
@@ -214,9 +213,7 @@ class _Refits:
     def _slim_losers(self) -> None:
         """Slim (:func:`_slim`) every fit but the two :func:`_winner` can pick: the
         refitted entry and the refitted single of lowest BIC. An entry is refitted
-        once, so a fit that falls behind never comes back; holding every refit
-        whole until the screen ends was NASA FD002's peak memory (about 130 MB a
-        refit with its Jacobians)."""
+        once, so a fit that falls behind never comes back."""
         refitted = [self.entries[n] for n in self.fits]
         singles = [e for e in refitted if len(e.members) == 1]
         keep = {e.name for e in refitted if not np.isfinite(e.bic)}  # never guess
@@ -235,9 +232,8 @@ def _slim(fit: FitResult) -> FitResult:
     signatures of the per-unit columns, and the model's linearisation at its
     end point (its outputs and its own few derivatives: the next pass's refit
     starts there, :meth:`_Refits._start`). The prewhitened columns, the outputs
-    and row inputs are a fleet's rows times their columns each (about 130 MB of
-    one NASA FD002 refit with every Jacobian, held for every entry refitted); only
-    its own fit and the winner's verdicts read them."""
+    and row inputs are a fleet's rows times their columns each; only its own fit
+    and the winner's verdicts read them."""
     ev = fit.evaluation
     local = np.array(ev.sig.cols[:, :, : fit.layout.num_local])  # not a view
     sig = ev.sig._replace(y=None, x=None, cols=local)

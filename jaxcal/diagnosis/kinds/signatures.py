@@ -16,7 +16,7 @@ spline function, on one unit or on all): a :class:`Tangent`. Its **signature** i
 A static model's signatures are products of per-row Jacobians
 (:mod:`jaxcal.diagnosis.kinds.linearization`: ``jax.jacfwd`` with
 respect to all parameters, effects and offset conditions, one jitted function with a
-fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across processes) and
+fixed chunk of rows per model, kept on disk across processes) and
 the profiles; the last few points' Jacobians are reused (a refit starts where the
 fit before it ended), and only the residual's outputs are kept. A model with
 memory is simulated (**output error**): each unit from its initial state, by
@@ -38,12 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.diagnosis.data.sharding import evaluate_split
-from jaxcal.diagnosis.kinds.linearization import (  # noqa: F401 (CHUNK_ROWS, linearize: re-exported)
-    CHUNK_ROWS,
-    Linearization,
-    _linearized,
-    linearize,
-)
+from jaxcal.diagnosis.kinds.linearization import Linearization, _linearized
 from jaxcal.diagnosis.kinds.table import offset_conditions
 from jaxcal.model import Model
 from jaxcal.precision import require_x64
