@@ -60,8 +60,8 @@ _RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots 
 # side; a positive quantity (a resistance, a capacity) keeps at least half its lower
 # bound and a negative one at most half its upper bound. An effect the declared
 # parameters cannot follow otherwise drives them to where the model has no meaning
-# (seen: a thermal resistance fitted to zero, and every step from there diverged),
-# while a departure beyond the stated range stays possible and is flagged.
+# (a resistance at zero), while a departure beyond the stated range stays possible
+# and is flagged.
 FIT_BOX_MARGIN = 0.5
 # a quantity of one sign: its log range times this, away from zero (fit_box)
 FIT_BOX_AWAY = 1.0
@@ -132,8 +132,7 @@ def evaluate_model(
     inputs = model_inputs(model, data, lay, params)
     # signatures cost a forward pass per tangent (a model with memory) or a
     # derivative per direction (a static one): taken only when asked for
-    want = columns
-    sig = signatures(model, data, inputs, lay.tangents if want else ())
+    sig = signatures(model, data, inputs, lay.tangents if columns else ())
     yhat = sig.y if offset is None else sig.y + offset
     ok = sig.ok if valid is None else valid & sig.ok
     used = data.observed & ok[:, None]
@@ -142,7 +141,7 @@ def evaluate_model(
     ssr = float(np.sum(white**2))
     if valid is not None and np.any(valid & ~sig.ok):
         ssr = np.inf
-    cols = data.whiten(np.where(used[:, :, None], sig.cols, 0.0)) if want else None
+    cols = data.whiten(np.where(used[:, :, None], sig.cols, 0.0)) if columns else None
     return Evaluation(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
         cols,
@@ -157,8 +156,8 @@ def fit_box(model: Model) -> tuple[np.ndarray, np.ndarray]:
     log scale and keeps its sign: toward zero by the same share of its log range,
     the nearer of the two bounds holding; away from zero by :data:`FIT_BOX_AWAY` of
     it, the farther holding (a bound ratio of 4: half the low bound, four times the
-    high one). Seen: a thermal resistance 5x its detectability, at 1.8x its high
-    bound, out of the additive box's reach, was named a sensor drift; at 10x, 3.1x.
+    high one): a parameter of one sign far beyond its high bound stays within reach
+    rather than being read as another effect.
     """
     low = np.array([p.low for p in model.parameters], np.float64)
     high = np.array([p.high for p in model.parameters], np.float64)
@@ -358,8 +357,7 @@ def fit_model(
         step = schur_solve(stats, local_idx, global_idx, damping=damping)
         if damping <= _DAMPING.init and step.reduction <= rtol * max(ev.ssr, 1.0):
             # the linear model promises less than the stopping gain: converged
-            # without evaluating the step (a fleet evaluation whose only outcome
-            # was the stop: a third of a refit's, ~2 s of NASA FD001 each)
+            # without evaluating the step (a fleet evaluation)
             converged = True
             break
         it += 1
