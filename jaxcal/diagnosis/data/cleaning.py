@@ -1,4 +1,4 @@
-"""Wild readings left out of a diagnosis (issue 25: one bad reading spoils nothing).
+"""Wild readings left out of a diagnosis: one bad reading spoils nothing.
 
 A reading is wild when it departs from the median of its two neighbours on each
 side, in its unit, by more than ``outlier_z`` robust stds of such departures
@@ -7,12 +7,11 @@ its neighbours, a fault that persists (a step, a drift, a bias) is never an outl
 isolated reading off by orders of magnitude always is. ``cfg`` is the diagnosis's
 :class:`~jaxcal.diagnosis.pipeline.LoopConfig`.
 
-**A transient is not an outlier** (issue 43). A model with memory answers a change
-of its conditions (a set-point step) over a few rows, sharply. Where the fitted
-parameters are off (the first fit is weighted by a provisional noise), the residual
-has a sharp peak there too, and the peak's top row stood out from its neighbours'
-median: the reactor with AR(1) noise lost 2 to 4 rows per 3,000, each at a
-set-point change, rows the true parameters explain. Five things tell the two apart:
+**A transient is not an outlier.** A model with memory answers a change of its
+conditions (a set-point step) over a few rows, sharply. Where the fitted parameters
+are off (the first fit is weighted by a provisional noise), the residual has a sharp
+peak there too, whose top row stands out from its neighbours' median though the true
+parameters explain it. Five things tell the two apart:
 
 * A reading is also judged at the parameters **re-calibrated on its neighbours**:
   the residual linearised about the fit, ``r - J delta``, with ``J`` each row's
@@ -30,28 +29,22 @@ set-point change, rows the true parameters explain. Five things tell the two apa
   lone spike is followed by no ``delta``: its own row never enters it.
 * A reading may instead agree with the median of the :data:`SIDE_ROWS` rows before
   it or of those after it: the edge of a step (a sensor's, or a set point's) agrees
-  with its own side, where the median of both sides sits halfway up the step (the
-  reactor's +1.5 K thermometer step, AR(1) 0.8, lost both edge rows in each of its
-  two carriers). A spike agrees with neither side.
+  with its own side, where the median of both sides sits halfway up the step. A
+  spike agrees with neither side.
   A reading is wild only when it departs beyond ``outlier_z`` (each comparison in
   robust stds of its own departures) in all four: from both sides, from the rows
   before, from those after, and at the re-calibrated parameters.
 * A unit is judged against the wider of its own spread and the fleet's (units of at
   least :data:`UNIT_ROWS` rows): a fault whose effect follows the conditions
-  roughens every row of the units that carry it (the pumps' leak, conditions drawn
-  row by row: 41 of the carriers' rows, the fault's own evidence, were left out),
-  the front door's rule that a misfit which widens all the residuals is no outlier;
-  a few wild readings do not move a median.
+  roughens every row of the units that carry it, and the front door's rule holds
+  that a misfit which widens all the residuals is no outlier; a few wild readings do
+  not move a median.
 * A reading flagged in one round is nobody's neighbour in the next (two spikes a
   row apart, or one next to a unit's first row, made their neighbours look wild).
 * The refits of the iterated rejection weigh each output by its spread when the
   noise is still the reference level (:func:`drop_outliers`).
 
-Measured (``experiments/transients.py``, ``results/loop/transients.md``): the
-reactor, 6 units x 500 rows, AR(1) 0.8, noise estimated, 4 seeds: 2-4 rows left out
-per fleet before, none after; 10-sigma spikes in 0.5 % of the rows all found, with
-no other row (AR(1) 0.8 and white). The pumps' leak in 3 of 8 units
-(``tests/diagnosis/test_steps_and_colour.py``): 41 rows left out before, none after.
+``experiments/transients.py`` measures it (``results/loop/transients.md``).
 """
 
 from __future__ import annotations
@@ -122,7 +115,7 @@ def _around(half: int) -> np.ndarray:
 def _nan_median(values: np.ndarray, axis: int) -> np.ndarray:
     """The median along ``axis`` of the finite values (NaN where there is none):
     sorted, NaN last, the middle of the ``k`` finite ones (``np.nanmedian`` does the
-    same row by row, 10x slower on a fleet's windows)."""
+    same row by row, far slower on a fleet's windows)."""
     ordered = np.sort(values, axis=axis)
     count = np.sum(~np.isnan(values), axis=axis, keepdims=True)
     low = np.take_along_axis(ordered, np.maximum(count - 1, 0) // 2, axis=axis)
@@ -206,8 +199,8 @@ def _standardised(data: LoopData, fit: FitResult, flagged: np.ndarray):
     both = _neighbour_departures(resid, data, neighbour, _around(NEIGHBOURS))
     level = robust_scale(both, ~flagged)
     # the local fit weighs each output by its own spread, not by the provisional
-    # noise the fit was weighted by (1 % of the mean |x|: 3.5 K for the reactor's
-    # 0.25 K thermometer); an output without spread weighs nothing
+    # noise the fit was weighted by (1 % of the mean |x|, possibly far from the
+    # true noise); an output without spread weighs nothing
     weight = np.where(np.isfinite(level) & (level > 0), 1.0 / level, 0.0)
     sens = _sensitivity(data, fit, resid) * weight[:, None]
     departures = (
@@ -223,24 +216,15 @@ def _standardised(data: LoopData, fit: FitResult, flagged: np.ndarray):
 
 
 def drop_outliers(model, data: LoopData, spec0, null: FitResult, cfg):
-    """``(data, fit)`` without the rows holding a wild reading: one that departs from
-    the median of its two neighbours on each side by more than ``outlier_z`` robust
-    stds of such departures (:mod:`jaxcal.calibrators.front.outliers`), both as it is
-    and at the declared parameters re-calibrated on its neighbours (module docstring: a
-    transient the model follows is no outlier). Judged against its neighbours, a
-    fault that persists (a step, a drift, a bias) is never an outlier; an isolated
-    reading off by orders of magnitude always is. A wild reading drags the fit it is
-    in, so the rows are judged again, every one, by the fit without the flagged
-    ones, until the flags stop changing (iterated rejection; at most
-    :data:`OUTLIER_ROUNDS` refits).
+    """``(data, fit)`` without the rows holding a wild reading (module docstring).
 
-    Those refits weigh each output by its own spread when the noise is the
-    provisional reference level (1 % of the mean ``|x|``,
-    :mod:`jaxcal.diagnosis.data.prepare`), not a
-    given or estimated one: weighted by the reference, a fit can trade one output
-    for another (the reactor's temperature, 3.5 K for a 0.25 K sensor, was nearly
-    unweighted and the heat transfer came out 30 % off), and that fit's misfit at
-    each change of the conditions, the rows it was flagged on, goes with it."""
+    A wild reading drags the fit it is in, so the rows are judged again, every one,
+    by the fit without the flagged ones, until the flags stop changing (iterated
+    rejection; at most :data:`OUTLIER_ROUNDS` refits). Those refits weigh each
+    output by its own spread when the noise is the provisional reference level
+    (:mod:`jaxcal.diagnosis.data.prepare`), not a given or estimated one: weighted
+    by the reference, a fit can trade one output for another, and that fit's misfit
+    at each change of the conditions, the rows it was flagged on, goes with it."""
     if cfg.outlier_z is None:
         return data, null
     flagged, fit, found, judge = np.zeros(data.num_rows, bool), null, None, data
