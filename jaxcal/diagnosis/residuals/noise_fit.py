@@ -11,8 +11,8 @@ Estimation (:func:`fit_noise`):
    the robust scale of differences between nearest neighbours in (conditions, time)
    within a unit, ``1.4826 MAD(e_i - e_j) / sqrt(2)``: differencing cancels what the
    model misses smoothly, and after whitening neighbouring rows are independent, so
-   pairing them no longer underestimates the level (the estimator of before paired
-   raw rows that are neighbours in time, whose coloured noise is correlated);
+   pairing them does not underestimate the level (raw neighbours in time are
+   correlated by the colour);
 4. if the whitened residual still fails the Ljung–Box test (statsmodels
    ``acorr_ljungbox``; colour AR(p) does not capture), the output's variance is
    inflated by its Bartlett long-run variance ratio (Newey & West 1987), a HAC
@@ -36,8 +36,6 @@ from jaxcal.diagnosis.residuals.noise import (
 )
 
 HAC_ALPHA = 0.01  # a whitened residual failing Ljung–Box at this level is inflated
-
-
 CORRECTION_ROUNDS = 4  # fixed-point steps of the fit's absorption correction
 
 
@@ -228,7 +226,7 @@ def fit_noise(
         data: the rows (``w``, ``tau``, ``unit``, ``starts``, ``cycle``).
         sigma: a known marginal std ``[S]`` (only the colour is estimated).
         max_order: highest AR order (0: white noise and no HAC inflation either:
-            the rows taken as independent, the diagnosis before issue 24).
+            the rows taken as independent).
         cols: ``[N, S, L]`` the fit's per-unit columns (output units, not
             whitened): the autocovariances are then corrected for what the fit
             absorbed (:func:`projection_bias`, solved for the colour it implies).
