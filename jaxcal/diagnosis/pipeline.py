@@ -36,7 +36,7 @@ offset fitted per unit) and every candidate acts through the states
    against the model's bounds and direction of wear
    (:mod:`jaxcal.diagnosis.report.plausibility`); triggered checks are flags.
 
-Verdicts (:data:`VERDICTS`): ``none`` (nothing found), ``identified``, ``confounded``
+Verdicts: ``none`` (nothing found), ``identified``, ``confounded``
 (the winner shares its signature with others within the BIC margin; the set is
 reported, the winner stands in for it in the "after" model), ``discrepancy`` (delta
 only) and ``identified+discrepancy`` / ``confounded+discrepancy``.
@@ -76,28 +76,17 @@ from jaxcal.models import load
 NOISE_ROUNDS = 2  # noise model <-> declared-only fit alternations
 LEVEL_MOVE = 1.25  # a best candidate that lowers a noise level this much: retrace
 # a refitted noise model this close to the one in use (relative level and inflation,
-# AR coefficients; the same orders) has not changed: the trace is not repeated (NASA
-# FD001's third pass moved every level by at most 0.3 %: 9 fleet evaluations, the
-# same verdict and ranking)
+# AR coefficients; the same orders) has not changed: the trace is not repeated
 NOISE_SETTLED = 0.01
 # BLAS threads of the host algebra. Its products are small and per unit (a unit's
 # Gram blocks, its projections); OpenBLAS threads that spin beside JAX's own pool
-# on a loaded machine made them up to 20x slower (the onset scan of 30 FD001
-# units: 33 s with the machine's 2 threads, 1.7 s with 1).
+# on a loaded machine make them many times slower.
 BLAS_THREADS = 1
 # the stages timed in DiagnosisResult.timings / report.json (.timing), in run order
 STAGES = (
     "prepare", "calibrate", "outliers", "noise", "screen", "noise passes",
     "fallback", "per unit",
 )  # fmt: skip
-VERDICTS = (
-    "none",
-    "identified",
-    "confounded",
-    "discrepancy",
-    "identified+discrepancy",
-    "confounded+discrepancy",
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,16 +204,6 @@ def _effects_of(members, fit: FitResult, data) -> list:
     ]
 
 
-def _as_dataset(data) -> tuple[Dataset, int | None]:
-    """A Dataset and the reader's dropped-row count (``None``: not counted)."""
-    if isinstance(data, Dataset):
-        return data, data.dropped_rows
-    raise ValueError(
-        f"data must be a jaxcal Dataset (a file: jaxcal.data.readers.read_dataset), "
-        f"got {type(data)}"
-    )
-
-
 def _fit_noise(data: LoopData, fit: FitResult, given, cfg: LoopConfig) -> LoopData:
     """``data`` with the noise model refitted to ``fit``'s residual (quantised
     outputs dropped, with the reason)."""
@@ -273,13 +252,17 @@ def diagnose(
         :class:`DiagnosisResult`; ``timings`` holds each stage's wall seconds.
     """
     model, declared = _checked_request(model, declared)
-    dataset, dropped_rows = _as_dataset(data)
+    if not isinstance(data, Dataset):
+        raise ValueError(
+            "data must be a jaxcal Dataset (a file: "
+            f"jaxcal.data.readers.read_dataset), got {type(data)}"
+        )
     clock = StageClock(progress)
     try:
         with threadpool_limits(BLAS_THREADS, user_api="blas"):
             res = _run(
-                model, dataset, declared, cfg, clock, sensors=sensors, units=units,
-                max_rows=max_rows, noise_std=noise_std, dropped_rows=dropped_rows,
+                model, data, declared, cfg, clock, sensors=sensors, units=units,
+                max_rows=max_rows, noise_std=noise_std, dropped_rows=data.dropped_rows,
             )  # fmt: skip
     finally:
         clock.close()
@@ -331,7 +314,10 @@ def _run(model, dataset, declared, cfg, clock: StageClock, *, sensors, units,
     # the refits were kept for the noise passes alone (a fleet's rows times their
     # columns each): the winner's fit stays
     ident = ident._replace(fits={})
-    return _finish(model, data, declared, library, ident, null, cfg, clock)
+    with clock.stage("fallback"):
+        fell_back = fallback(model, data, declared, library, ident, null, cfg)
+    with clock.stage("per unit"):
+        return _verdicts(model, data, declared, library, ident, null, cfg, fell_back)
 
 
 def _checked_request(model: Model | str, declared) -> tuple[Model, tuple[str, ...]]:
@@ -379,10 +365,7 @@ def _winner_basis(ident: Identification, margin: float) -> FitResult:
     not separate from it), the one that leaves the least residual.
 
     The winner's own residual keeps whatever it misfits, and the noise model reads
-    that as a higher level, which keeps the rivals from separating (seen: a step in
-    a pressure coefficient won by a gain drift, its rival 0.7 BIC behind with the
-    larger likelihood ratio, the pressure's noise read 1.7x the truth; refitted to
-    the step's residual, 1.26x, the step wins by 12)."""
+    that as a higher level, which keeps the rivals from separating."""
     rivals = [e for e in ident.ranking
               if len(e.members) == 1 and e.name in ident.fits
               and e.bic <= ident.winner.bic + margin]  # fmt: skip
@@ -396,12 +379,9 @@ def _best_fit(model, data, declared, ident: Identification, null, cfg):
 
     An effect the declared parameters cannot follow leaves a misfit in the
     declared-only residual that the noise model reads as a high level and a strong
-    colour (seen: 20x the true level of a heat-flow output under a bias in three of
-    four units of a model with memory), and under that noise no candidate is
-    significant. The best candidate's residual is the better basis for the noise.
-    Under so inflated a noise no unit may show the effect on its own (seen: a heat
-    capacity's change 5x its detectability, the heat-flow noise read 8.5x too high,
-    every unit below its carrier price): the near miss is then the best candidate.
+    colour, and under that noise no candidate is significant. The best candidate's
+    residual is the better basis for the noise. Under so inflated a noise no unit may
+    show the effect on its own: the near miss is then the best candidate.
     """
     best = ident.ranking[0] if ident.ranking else None
     if ident.near_miss and (best is None or ident.near_miss[1] > best.lr_stat):
@@ -436,17 +416,6 @@ def _library(model, data: LoopData, declared, cfg: LoopConfig):
             f"calibrate={list(declared)}"
         )
     return library
-
-
-def _finish(model, data, declared, library, ident, null, cfg: LoopConfig, clock):
-    """Fallback, the added model, the stages, per-unit verdicts and flags."""
-    with clock.stage("fallback"):
-        best, offset, disc, final_ident, rescreen, note = fallback(
-            model, data, declared, library, ident, null, cfg
-        )
-    with clock.stage("per unit"):
-        return _verdicts(model, data, declared, library, ident, null, cfg,
-                         (best, offset, disc, final_ident, rescreen, note))  # fmt: skip
 
 
 def _verdicts(model, data, declared, library, ident, null, cfg, fell_back):
