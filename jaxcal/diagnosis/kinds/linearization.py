@@ -5,16 +5,15 @@ Forward derivatives along the directions a fit needs in (parameters, effects,
 offset conditions), in buckets of :data:`DIRECTION_BUCKET`, one jitted function with
 a fixed chunk of :data:`CHUNK_ROWS` rows per model, kept on disk across processes
 (``jaxcal.calibrators.programs.on_disk``), its chunks dispatched
-:data:`CHUNKS_IN_FLIGHT`
-ahead. A model whose solver can start from a nearby solution (``Model.warm_fn``: the
-turbofan's Newton solve) takes every derivative with the same program bucket by
-bucket, each bucket after the first started at the first's solution, and each point
-started at the last kept point's solution on the same rows; any other model takes
-every derivative in one pass. The last :data:`LINEARIZATIONS_KEPT` points are
-reused (a refit starts where the fit before it ended), an output-only point that
-differs from one of them on a few rows evaluates those rows alone
-(:data:`PIECED_SHARE`), and only the residual's outputs and a fit's own
-derivatives are kept.
+:data:`CHUNKS_IN_FLIGHT` ahead. A model whose solver can start from a nearby solution
+(``Model.warm_fn``: the turbofan's Newton solve) takes every derivative with the same
+program bucket by bucket, each bucket after the first started at the first's
+solution, and each point started at the last kept point's solution on the same rows;
+any other model takes every derivative in one pass. The last
+:data:`LINEARIZATIONS_KEPT` points are reused (a refit starts where the fit before it
+ended), an output-only point that differs from one of them on a few rows evaluates
+those rows alone (:data:`PIECED_SHARE`), and only the residual's outputs and a fit's
+own derivatives are kept.
 """
 
 from __future__ import annotations
@@ -85,9 +84,8 @@ def _linearize_program(model: Model, offset_idx: tuple, directions: int):
     directions given as an argument (:func:`_directional_row`, 0: the output
     alone; one shape for every data set of a model), built once per process and
     kept on disk across processes (:func:`jaxcal.calibrators.programs.on_disk.kept`,
-    under the built-in model's name or a user model's traced digest): tracing the
-    turbofan's Newton solve took 30-35 s of every new process, the computation of a
-    200-unit fit's evaluation 2-3 s."""
+    under the built-in model's name or a user model's traced digest): tracing a
+    model's solver costs far more than an evaluation."""
 
     def build():
         row = functools.partial(_directional_row, model, offset_idx)
@@ -105,8 +103,8 @@ def _linearize_program(model: Model, offset_idx: tuple, directions: int):
 class Linearization(NamedTuple):
     """A static model and its per-row Jacobians (``E`` model outputs): every
     derivative in ``jac_theta``, ``jac_effects``, ``jac_w``, or a fit's few in
-    ``jac`` alone (the full arrays ``None``: a fleet's rows times every direction
-    were 66 MB of zeros a point on NASA FD002, for the 4 a fit uses)."""
+    ``jac`` alone (the full arrays ``None``: a fleet's rows times every direction,
+    mostly zeros, for the few a fit uses)."""
 
     x: np.ndarray  # [N, E]
     jac_theta: np.ndarray | None  # [N, E, P_all]
@@ -196,10 +194,9 @@ def linearize(
     basis, every = _basis(model, offset_idx, directions)
     width = basis.shape[0]  # the wanted directions, then zero rows to a bucket
     if model.warm_fn is not None and width > DIRECTION_BUCKET:
-        # the turbofan's Newton solve is ~60 % of a bucket and its compiled program
-        # with every direction 0.43 GB resident (results/loop/profile.md, round 9):
-        # buckets of the fit's program, each after the first started at the
-        # first's solution (one Newton iteration), one program for everything
+        # the solve dominates a bucket and a program with every direction is large
+        # in memory: buckets of the fit's program, each after the first started at
+        # the first's solution (one Newton iteration), one program for everything
         blocks = [
             basis[i : i + DIRECTION_BUCKET] for i in range(0, width, DIRECTION_BUCKET)
         ]
@@ -242,8 +239,7 @@ def linearize(
 def _evaluate_rows(program, basis, arrays, keep, n, first, last):
     """``(x, jac, ok, z)`` of rows ``first .. last - 1`` in whole chunks: chunks are
     dispatched ahead and read back in order (they run on JAX's threads while the
-    host waits on the oldest; 2 cores: 0.55 s for 4096 rows of the turbofan against
-    0.91 s one chunk at a time)."""
+    host waits on the oldest)."""
 
     def read(start, stop, out):
         x, jac, ok, z = (np.asarray(a)[: stop - start] for a in out)
@@ -295,16 +291,14 @@ def _basis(model: Model, offset_idx: tuple, directions):
 
 # the last model points' linearisations: a fit starts where the one it refines
 # ended, and every refit of a candidate at the declared-only solution (its terms
-# at zero) evaluates the same point (27 % of the evaluations of a diagnosis)
+# at zero) evaluates the same point
 LINEARIZATIONS_KEPT = 4
 # An output-only evaluation whose inputs differ from a kept output-only one on at
 # most this share of the rows evaluates those rows alone and takes the others from
-# it. The onset polish of a step (:func:`jaxcal.diagnosis.kinds.onsets.polish_onsets`)
-# moves each
-# carrier's onset one row at a time and evaluates the fleet at every move: 45 % of
-# the evaluations of NASA FD002's first 30 units. A row's output does not depend on
-# the other rows of its chunk (the chunk is vmapped; bitwise the same, checked in
-# tests/diagnosis/test_linearization_reuse.py).
+# it: the onset polish of a step (:func:`jaxcal.diagnosis.kinds.onsets.polish_onsets`)
+# moves each carrier's onset one row at a time and evaluates the fleet at every move.
+# A row's output does not depend on the other rows of its chunk (the chunk is
+# vmapped; bitwise the same).
 PIECED_SHARE = 0.5
 _LINEARIZED: collections.OrderedDict = collections.OrderedDict()
 
@@ -371,8 +365,7 @@ def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
 def _nearest_solution(model, w_digest) -> np.ndarray | None:
     """The model solver's solution at the rows of the latest kept point on the
     same conditions (``None``: none kept, or the model has no ``warm_fn``): a fit's
-    next point is a step away, and the turbofan's Newton solve closes from it in 3
-    iterations instead of 4 from its guess table."""
+    next point is a step away, and the solver closes from it in fewer iterations."""
     for (kept_model, _, _), entry in reversed(_LINEARIZED.items()):
         if kept_model == model and entry.w_digest == w_digest:
             if entry.lin.z is not None:
