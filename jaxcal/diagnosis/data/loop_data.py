@@ -23,11 +23,9 @@ class LoopData:
     Attributes:
         w: ``[N, W]`` operating conditions (the model's order).
         x: ``[N, S]`` measured outputs of the residual.
-        sensor_names: ``S`` output names; ``sensor_idx`` their positions in the
-            model output.
-        sensor_idx: ``[S]`` int.
+        sensor_names: ``S`` output names; ``sensor_idx`` ``[S]`` their positions in
+            the model output.
         unit: ``[N]`` unit position ``0..U-1``; ``unit_ids`` ``[U]`` the record ids.
-        unit_ids: ``[U]`` int.
         starts: ``[U + 1]`` row offsets: unit ``u`` is rows ``starts[u]:starts[u+1]``.
         cycle: ``[N]`` float cycle number.
         tau: ``[N]`` (cycle - first cycle of the unit) / 100 (``TAU_CYCLES``).
@@ -35,9 +33,9 @@ class LoopData:
             declared parameters).
         basis_candidate: ``[N, Kc]`` the smaller basis of candidate (undeclared)
             parameters: fewer functions, fewer degrees of freedom to pay for in BIC.
-        noise: the :class:`~jaxcal.diagnosis.residuals.noise.NoiseModel` (``noise_std``
-        is
-            its marginal std ``[S]``, ``noise_source`` how it was obtained).
+        noise: the :class:`~jaxcal.diagnosis.residuals.noise.NoiseModel`
+            (``noise_std`` is its marginal std ``[S]``, ``noise_source`` how it was
+            obtained).
         observed: ``[N, S]`` bool, False where an output is missing in a row.
         theta_true: ``[N, len(theta_names)]`` ground truth or ``None``.
         row_index: ``[N]`` row of the data set (``Dataset.take`` order).
@@ -97,8 +95,7 @@ class LoopData:
     def whiten(self, arr: np.ndarray) -> np.ndarray:
         """Prewhiten and standardise ``arr [N, S, ...]`` (output units) with the
         noise model (:meth:`~jaxcal.diagnosis.residuals.noise.NoiseModel.whiten`);
-        missing
-        outputs count as zero."""
+        missing outputs count as zero."""
         arr = np.asarray(arr, np.float64)
         mask = self.observed.reshape(self.observed.shape + (1,) * (arr.ndim - 2))
         return self.noise.whiten(np.where(mask, arr, 0.0), self.position)

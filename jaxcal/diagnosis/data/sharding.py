@@ -10,13 +10,11 @@ a block of units; a model with memory's units), the blocks are exchanged with
 Jacobians. The host algebra after it (fits, noise models, tests, the fleet-wide
 criterion and the verdict) then runs in every process on the same arrays, so every
 process reaches the same verdict: a row's or a unit's evaluation does not depend on
-the others evaluated with it (vmapped; bitwise the same, checked in
-``tests/diagnosis/test_two_processes.py``), and the collectives come in the same
-order everywhere because the program and its data are the same.
+the others evaluated with it (vmapped; bitwise the same), and the collectives come in
+the same order everywhere because the program and its data are the same.
 
 With one process, or fewer blocks than processes (a few changed rows evaluated
-again), every process evaluates everything itself: no exchange, and one process
-runs exactly the code it ran before.
+again), every process evaluates everything itself: no exchange.
 """
 
 from __future__ import annotations

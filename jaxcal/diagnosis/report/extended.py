@@ -14,14 +14,12 @@ effect's size in real time, per unit, like any other parameter:
   that jumps, and a real-time calibrator follows either as it happens.
 
 An effect carried by some units only (the per-unit form,
-:mod:`jaxcal.diagnosis.report.units`) is added for
-its carriers: the units the verdict lists (``carries``; where none passes the
-per-unit test, the units the screen fitted it in), by their ids in the data
-(``units`` of :class:`~jaxcal.models.extended.Added`). Every other unit is
-calibrated with the parameter held at zero, as with the base model: tracked in all
-six units of a reactor fleet whose units 1 and 3 carried a sensor step, the clean
-units got false offsets of -0.13 to +0.33 K and worse parameters. A fleet-wide
-effect is added for every unit.
+:mod:`jaxcal.diagnosis.report.units`) is added for its carriers: the units the verdict
+lists (``carries``; where none passes the per-unit test, the units the screen fitted it
+in), by their ids in the data (``units`` of :class:`~jaxcal.models.extended.Added`).
+Every other unit is calibrated with the parameter held at zero, as with the base model:
+tracked where it is absent, it would take false values and worsen the other
+parameters. A fleet-wide effect is added for every unit.
 
 The other parameters are held at their nominal values. :func:`write_extended` stores
 the extension as ``extended_model.json`` beside the report; ``jaxcal.models.load``
