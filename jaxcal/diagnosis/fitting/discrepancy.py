@@ -25,9 +25,8 @@ that input is dropped from the full delta (ablation). With discrete operating co
 
 Coloured noise: when the residual's noise is serially correlated (an AR(p) model per
 output, :mod:`jaxcal.diagnosis.residuals.noise`), the regression is generalised least
-squares, the response and
-the design whitened per output (``whiten``), so the cross-validated gain and its
-threshold are those of independent rows.
+squares, the response and the design whitened per output (``whiten``), so the
+cross-validated gain and its threshold are those of independent rows.
 """
 
 from __future__ import annotations
@@ -272,14 +271,12 @@ def _one_output(whiten, s: int, num_s: int):
     return apply
 
 
-def predict_discrepancy(
-    disc: Discrepancy, w: np.ndarray, *, significant_only: bool = True
-) -> np.ndarray:
+def predict_discrepancy(disc: Discrepancy, w: np.ndarray) -> np.ndarray:
     """``[N, S]`` delta(w) in normalised units (zero for non-significant sensors)."""
     idx = list(disc.inputs)
     z = (w[:, idx] - disc.w_mean[idx]) / disc.w_std[idx]
     out = np.zeros((w.shape[0], len(disc.sensors)))
     for s, (sd, coef) in enumerate(zip(disc.sensors, disc.coef, strict=True)):
-        if sd.significant or not significant_only:
+        if sd.significant:
             out[:, s] = _monomials(z, sd.degree) @ coef
     return out
