@@ -211,18 +211,23 @@ def report_dict(
     return json_safe(out)
 
 
+def _sensor_axes(num_sensors: int, width: float, height: float):
+    """A figure with one panel per output, three a row: ``(fig, axes [S])``."""
+    cols = min(3, num_sensors)
+    rows = math.ceil(num_sensors / cols)
+    fig = Figure(figsize=(width * cols, height * rows + 0.6), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for ax in axes[num_sensors:]:
+        ax.set_visible(False)
+    return fig, axes[:num_sensors]
+
+
 def _stacked_residuals(path, res: DiagnosisResult) -> str:
     d = res.data
-    cols = min(3, d.num_sensors)
-    rows = math.ceil(d.num_sensors / cols)
-    fig = Figure(figsize=(4.2 * cols, 2.2 * rows + 0.6), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    fig, axes = _sensor_axes(d.num_sensors, 4.2, 2.2)
     stride = max(1, d.num_rows // 4000)
     idx = np.arange(0, d.num_rows, stride)
     for j, ax in enumerate(axes):
-        if j >= d.num_sensors:
-            ax.set_visible(False)
-            continue
         pairs = (("before", res.before, "0.6"), ("after", res.after, "tab:blue"))
         for label, stage, color in pairs:
             resid = stage.fit.evaluation.resid[idx, j]
@@ -242,15 +247,9 @@ def _explained(path, res: DiagnosisResult) -> str:
     d = res.data
     before, after = res.before.fit.evaluation, res.after.fit.evaluation
     explained = (after.yhat - before.yhat) / d.noise_std
-    cols = min(3, d.num_sensors)
-    rows = math.ceil(d.num_sensors / cols)
-    fig = Figure(figsize=(3.6 * cols, 3.0 * rows + 0.6), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    fig, axes = _sensor_axes(d.num_sensors, 3.6, 3.0)
     idx = np.arange(0, d.num_rows, max(1, d.num_rows // 3000))
     for j, ax in enumerate(axes):
-        if j >= d.num_sensors:
-            ax.set_visible(False)
-            continue
         ax.plot(explained[idx, j], before.resid[idx, j], ".", ms=2, alpha=0.5)
         lo = min(explained[:, j].min(), before.resid[:, j].min())
         hi = max(explained[:, j].max(), before.resid[:, j].max())
