@@ -102,10 +102,6 @@ def report_dict(result, *, truth=None, source=None, config=None) -> dict:
     return json_safe(rep)
 
 
-def _index(names, name: str) -> int:
-    return list(names).index(name)
-
-
 def plot_unit(fig: Figure, path: str, result, u: int, truth=None) -> str:
     """Draw test unit ``u`` into ``fig`` (cleared first, so one figure serves every
     unit) and save it to ``path``: per deciding parameter its calibrated trajectory,
@@ -130,11 +126,8 @@ def plot_unit(fig: Figure, path: str, result, u: int, truth=None) -> str:
     shown = t_band <= right
     mask = test.mask[row]
     for ax, name in zip(axes.ravel(), decide, strict=True):
-        k, j, b = (
-            _index(p.names, name),
-            _index(test.names, name),
-            _index(model.names, name),
-        )
+        k, j = list(p.names).index(name), list(test.names).index(name)
+        b = list(model.names).index(name)
         low, mid, high = p.trend[u, k]
         ax.fill_between(
             t_band[shown],
