@@ -1,12 +1,11 @@
 """The human-readable page of a diagnosis (report.md).
 
 Pure text from the report dict of :mod:`jaxcal.diagnosis.report.write` (no plotting).
-:func:`render_markdown`
-assembles the page from one function per section; numbers and one-line summaries are
-worded by :mod:`jaxcal.diagnosis.report.formatting` (re-exported here), so a console
-line (:mod:`jaxcal.cli.
-diagnose`, experiments/loop_cmapss.py) reads the same. Each added effect gets its
-per-unit table, carriers listed and the rest counted (:func:`_unit_table`).
+:func:`render_markdown` assembles the page from one function per section; numbers and
+one-line summaries are worded by :mod:`jaxcal.diagnosis.report.formatting` (re-exported
+here), so a console line (:mod:`jaxcal.cli.diagnose`, experiments/loop_cmapss.py) reads
+the same. Each added effect gets its per-unit table, carriers listed and the rest
+counted (:func:`_unit_table`).
 """
 
 from __future__ import annotations
