@@ -4,10 +4,9 @@ A :class:`RankEntry` holds a candidate model's likelihood-ratio statistic agains
 declared-only fit, its chi2 p-value (finite far into the tail, :func:`log10_chi2_sf`)
 and its extended BIC, whose price counts the coefficients and the choice of carriers
 of a per-unit term (module docstring of :mod:`jaxcal.diagnosis.fitting.identify`, step
-3).
-:func:`screened_singles` scores every candidate of the library in each of its forms at
-the declared-only fit (step 1); :func:`effect_sizes` reads the physical sizes of a
-refitted model's members.
+3). :func:`screened_singles` scores every candidate of the library in each of its
+forms at the declared-only fit (step 1); :func:`effect_sizes` reads the physical sizes
+of a refitted model's members.
 """
 
 from __future__ import annotations
@@ -23,6 +22,7 @@ from jaxcal.diagnosis.data.prepare import LoopData
 from jaxcal.diagnosis.fitting.joint import FitResult
 from jaxcal.diagnosis.fitting.screen import Screen
 from jaxcal.diagnosis.kinds.table import Candidate
+from jaxcal.diagnosis.kinds.terms import ModelSpec, selection_penalty
 
 
 class RankEntry(NamedTuple):
@@ -61,25 +61,13 @@ def log10_chi2_sf(x: float, df: int) -> float:
     return value / np.log(10.0)
 
 
-def _price(members: Sequence[Candidate], data: LoopData) -> tuple[int, float]:
-    """``(df, selection)`` of adding ``members``: coefficients (and onsets) and the
-    extended BIC's price of the units terms' carriers."""
-    df, sel, u = 0, 0.0, data.num_units
-    for c in members:
-        per = c.kind.num_free(data.num_candidate_knots)
-        if c.per_unit:
-            m = len(c.carriers)
-            df += per * m
-            sel += 2.0 * float(gammaln(u + 1) - gammaln(m + 1) - gammaln(u - m + 1))
-        else:
-            df += per
-    return df, sel
-
-
 def rank_entry(members, lr, null, data, sizes, stds, refit, detect) -> RankEntry:
     """The entry of ``members`` whose likelihood-ratio statistic against the
-    declared-only fit ``null`` is ``lr``: its price, p-value and BIC."""
-    df, sel = _price(members, data)
+    declared-only fit ``null`` is ``lr``: its price (coefficients and onsets, and the
+    extended BIC's price of the units terms' carriers), p-value and BIC."""
+    df = sum(c.kind.num_free(data.num_candidate_knots)
+             * (len(c.carriers) if c.per_unit else 1) for c in members)  # fmt: skip
+    sel = selection_penalty(data, ModelSpec((), tuple(members)))
     log_n = np.log(max(null.num_resid, 2))
     bic = null.bic - lr + df * log_n + sel
     return RankEntry(
