@@ -130,24 +130,19 @@ class NoiseModel(NamedTuple):
     def whiten_transpose(self, arr: np.ndarray, position: np.ndarray) -> np.ndarray:
         """The transpose of :meth:`whiten` applied to ``arr [N, S, ...]`` (so that
         ``whiten_transpose(whiten(x))`` applies the noise precision ``V``)."""
-        return _transpose_into(self, arr, position)
-
-
-def _transpose_into(model, arr, position):
-    """``W^T arr`` for the whitening ``W`` of ``model`` (along rows, per output)."""
-    arr = np.asarray(arr, np.float64)
-    scale = model.sigma * np.sqrt(model.inflation)
-    extra = (1,) * (arr.ndim - 2)
-    arr = arr / scale.reshape((1, -1) + extra)
-    if not model.order.any():
-        return arr
-    table = model.filter_table(position)
-    out = table[:, :, 0].reshape(table.shape[:2] + extra) * arr
-    for k in range(1, MAX_ORDER + 1):
-        coef = table[k:, :, k].reshape((arr.shape[0] - k, arr.shape[1]) + extra)
-        if np.any(coef):
-            out[:-k] += coef * arr[k:]
-    return out
+        arr = np.asarray(arr, np.float64)
+        scale = self.sigma * np.sqrt(self.inflation)
+        extra = (1,) * (arr.ndim - 2)
+        arr = arr / scale.reshape((1, -1) + extra)
+        if not self.order.any():
+            return arr
+        table = self.filter_table(position)
+        out = table[:, :, 0].reshape(table.shape[:2] + extra) * arr
+        for k in range(1, MAX_ORDER + 1):
+            coef = table[k:, :, k].reshape((arr.shape[0] - k, arr.shape[1]) + extra)
+            if np.any(coef):
+                out[:-k] += coef * arr[k:]
+        return out
 
 
 def ar_rows(phi: np.ndarray) -> np.ndarray:
