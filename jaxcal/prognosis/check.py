@@ -24,9 +24,8 @@ from jaxcal.prognosis.trends import size
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 5.0, 8.0)
 # the trend families the held-out check chooses from (jaxcal.prognosis.trends)
 TRENDS = ("poly1", "poly2", "poly3", "exp1", "exp2", "exp4")
-CHECK_SAMPLES = (
-    300  # RUL samples per held-out unit (the check needs coverage, not tails)
-)
+# RUL samples per held-out unit (the check needs coverage, not tails)
+CHECK_SAMPLES = 300
 CHECK_CUTS = 2  # random ages per held-out training unit
 # a held-out unit is cut so that this share of its life, at least, is still to come or
 # already seen: a cut at the very start or the very end checks nothing

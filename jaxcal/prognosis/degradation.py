@@ -302,8 +302,8 @@ def fit(
         raise ValueError(
             "no parameter's end of life is consistent across the training units "
             f"(tightness, the spread at the end over the drift to it: {detail}; at "
-            "most "
-            f"{config.max_tightness} decides): declare a limit with boundary=name:value"
+            f"most {config.max_tightness} decides): declare a limit with "
+            "boundary=name:value"
         )
     modes, members = _modes(carriers, max(MIN_UNITS, size(config.trend) + 1))
     priors = [_prior(beta[m], config.trend) for m in members]

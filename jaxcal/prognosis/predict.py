@@ -180,8 +180,7 @@ def predict(
     if tuple(traj.names) != tuple(model.names):
         raise ValueError(
             f"trajectories of {list(traj.names)}, but the degradation model was "
-            "learned "
-            f"on {list(model.names)}"
+            f"learned on {list(model.names)}"
         )
     if not 0.0 < coverage < 1.0:
         raise ValueError(f"coverage must be in (0, 1), got {coverage}")
