@@ -37,8 +37,7 @@ def score(rul, low, high, truth, samples=None) -> dict:
     if truth.shape != rul.shape:
         raise ValueError(
             f"truth has {truth.size} values for {rul.size} predicted units; expected "
-            "one "
-            "true RUL per unit, in unit order"
+            "one true RUL per unit, in unit order"
         )
     err = rul - truth
     extra = {} if samples is None else {"crps": float(crps(samples, truth).mean())}
