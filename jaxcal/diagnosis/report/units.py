@@ -280,23 +280,10 @@ def unit_effects(
         onset, ci = _carrier_onsets(
             data, cand, carries, traj, row_traj, delta, z_band, onset_ci
         )
-        out.append(
-            UnitEffect(
-                cand.name,
-                cand.form,
-                size,
-                size_std,
-                p,
-                carries,
-                onset,
-                ci,
-                delta,
-                row_traj,
-                start_value,
-                start_std,
-                cand.kind.min_effect,
-            )  # fmt: skip
-        )
+        out.append(UnitEffect(
+            cand.name, cand.form, size, size_std, p, carries, onset, ci, delta,
+            row_traj, start_value, start_std, cand.kind.min_effect,
+        ))  # fmt: skip
     return out
 
 
