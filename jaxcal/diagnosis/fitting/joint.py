@@ -55,7 +55,7 @@ from jaxcal.numerics.levenberg_marquardt import (
     next_damping,
 )
 
-_RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
+RIDGE = 1e-6  # on unit coefficients (1 = one natural step): keeps empty knots finite
 # The fit's box: each parameter's bounds widened by this share of their range on each
 # side; a positive quantity (a resistance, a capacity) keeps at least half its lower
 # bound and a negative one at most half its upper bound. An effect the declared
@@ -259,7 +259,7 @@ def schur_solve(
     gi = stats.num_local + np.asarray(global_idx, int)
     units = stats.gram.shape[0]
     a_mat = stats.gram[:, li[:, None], li[None, :]]
-    a_mat = a_mat + (damping * np.einsum("uii->ui", a_mat) + _RIDGE)[
+    a_mat = a_mat + (damping * np.einsum("uii->ui", a_mat) + RIDGE)[
         :, :, None
     ] * np.eye(li.size)
     b_mat = stats.gram[:, li[:, None], gi[None, :]]

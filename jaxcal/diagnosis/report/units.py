@@ -42,13 +42,11 @@ import numpy as np
 from scipy import stats as sps
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, gram_stats
+from jaxcal.diagnosis.fitting.joint import RIDGE, FitResult, gram_stats
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
 from jaxcal.diagnosis.kinds.terms import term_profile
 from jaxcal.model import Model
-
-_RIDGE = 1e-6  # as fitting._RIDGE: keeps a unit's empty knots finite
 
 
 class UnitTrajectories(NamedTuple):
@@ -107,7 +105,7 @@ def unit_trajectories(model: Model, data: LoopData, fit: FitResult) -> UnitTraje
     """``theta_u(t) - nominal`` and its pointwise std for every per-unit parameter."""
     stats, s2 = _unit_stats(data, fit)
     nl = fit.layout.num_local
-    a_mat = stats.gram[:, :nl, :nl] + _RIDGE * np.eye(nl)
+    a_mat = stats.gram[:, :nl, :nl] + RIDGE * np.eye(nl)
     cov = np.linalg.inv(a_mat) * s2[:, None, None]  # [U, l, l]
     first = data.starts[:-1][data.unit]
     value, std, change, change_std = {}, {}, {}, {}
@@ -151,7 +149,7 @@ def _term_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
     st = gram_stats(data, ev.white, cols, k + 1)
     # a unit on which the term has no signature (a step's non-carrier) gets a tiny
     # ridge, and NaN below, not a number from noise
-    a_mat = st.gram + np.diag(np.r_[np.full(k, _RIDGE), 1e-12])
+    a_mat = st.gram + np.diag(np.r_[np.full(k, RIDGE), 1e-12])
     with np.errstate(all="ignore"):
         step = np.linalg.solve(a_mat, st.score[:, :, None])[:, -1, 0]
         var = np.linalg.inv(a_mat)[:, -1, -1] * s2
@@ -183,7 +181,7 @@ def _spline_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
     k = prof.shape[1]
     z = np.concatenate([ev.cols[:, :, :nl][:, :, others], cols], axis=2)
     st = gram_stats(data, ev.white, z, z.shape[2])
-    a_mat = st.gram + _RIDGE * np.eye(z.shape[2])
+    a_mat = st.gram + RIDGE * np.eye(z.shape[2])
     step = np.linalg.solve(a_mat, st.score[:, :, None])[:, -k:, 0]
     cov = np.linalg.inv(a_mat)[:, -k:, -k:] * s2[:, None, None]
     first, last = data.starts[:-1], data.starts[1:] - 1
