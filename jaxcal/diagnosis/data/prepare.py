@@ -296,14 +296,19 @@ def _partial_rows_note(observed, chosen) -> list[str]:
     ]
 
 
+def reference_noise_rel(model: Model, outputs) -> np.ndarray:
+    """``[S]`` the model's reference noise std over each output's mean ``|x|``
+    (``DiagnosisHints.noise_rel``, else :data:`DEFAULT_NOISE_REL`)."""
+    rel = model.diagnosis.noise_rel or {}
+    return np.array([rel.get(s, DEFAULT_NOISE_REL) for s in outputs])
+
+
 def _start_noise(model: Model, chosen, x, noise_std) -> NoiseModel:
     """White noise at the given std, or at the model's reference level (a share of
     the mean ``|x|``) until :func:`jaxcal.diagnosis.residuals.noise.fit_noise`
     estimates it."""
     if noise_std is None:
-        rel = model.diagnosis.noise_rel or {}
-        std = np.array([rel.get(s, DEFAULT_NOISE_REL) for s in chosen])
-        std = std * np.nanmean(np.abs(x), axis=0)
+        std = reference_noise_rel(model, chosen) * np.nanmean(np.abs(x), axis=0)
         return NoiseModel.white(std, "reference")
     return NoiseModel.white(_given_noise(noise_std, chosen), "given")
 

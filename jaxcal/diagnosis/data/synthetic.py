@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 from jaxcal.data.dataset import Dataset
-from jaxcal.diagnosis.data.prepare import DEFAULT_NOISE_REL
+from jaxcal.diagnosis.data.prepare import reference_noise_rel
 from jaxcal.diagnosis.data.synthetic_effects import add_bump, apply_effect, kind_of
 from jaxcal.diagnosis.kinds.signatures import signatures, zero_inputs
 from jaxcal.diagnosis.kinds.table import (
@@ -253,7 +253,7 @@ def make_synthetic_data(
     rows = rows_of(w, unit, model.output_index(sensors))
     inputs = zero_inputs(model, w.shape[0], rows.num_units)._replace(theta=theta)
     level = np.abs(signatures(model, rows, inputs).x).mean(0)
-    std = _reference_noise(model, sensors, level) * cfg.noise_scale
+    std = reference_noise_rel(model, sensors) * level * cfg.noise_scale
     on = _carrier_rows(unit, carriers)
     ids = np.unique(unit[on]) if kind != "none" else np.zeros(0)
     onsets = _step_onsets(rng, kind, ids, unit, cycle, cfg.onset_range)
@@ -310,13 +310,6 @@ def _carrier_rows(unit: np.ndarray, carriers) -> np.ndarray:
     if bad:
         raise ValueError(f"carriers {bad} are not units of the scenario")
     return np.isin(unit, np.asarray(carriers))
-
-
-def _reference_noise(model: Model, sensors, level: np.ndarray) -> np.ndarray:
-    """``[S]`` noise std at the model's reference relative level of each output's
-    mean ``|x|`` (``DiagnosisHints.noise_rel``)."""
-    rel = model.diagnosis.noise_rel or {}
-    return np.array([rel.get(s, DEFAULT_NOISE_REL) for s in sensors]) * level
 
 
 def _step_onsets(rng, kind, ids, unit, cycle, onset_range) -> dict[int, float]:
