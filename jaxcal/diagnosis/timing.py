@@ -1,15 +1,14 @@
 """The diagnosis's stages timed, with a progress line as each starts.
 
 A fleet diagnosis runs for minutes; a user watching it (or its log) should see which
-stage it is in, and the report should say where the time went, so that a slow run
-can be read without a profiler. :class:`StageClock` keeps the wall seconds of each
-named stage (a stage entered twice adds up) and writes one progress line when a
-stage starts and, within a long stage, at most one per
-:data:`jaxcal.progress.LOG_EVERY` seconds as its batches advance
-(:func:`jaxcal.progress.progress_bar`: whole lines in a log, tqdm's line on a
-terminal). :func:`batch_progress` is how work deep in a stage (the model evaluated
-over the fleet's rows, batch after batch) reports its batches without the clock
-being passed down to it.
+stage it is in, and the report should say where the time went, so that a slow run can be
+read without a profiler. :class:`StageClock` keeps the wall seconds of each named stage
+(a stage entered twice adds up) and writes one progress line when a stage starts and,
+within a long stage, at most one per :data:`jaxcal.progress.LOG_EVERY` seconds as its
+batches advance (:func:`jaxcal.progress.progress_bar`: whole lines in a log, tqdm's line
+on a terminal). :func:`batch_progress` is how work deep in a stage (the model evaluated
+over the fleet's rows, batch after batch) reports its batches without the clock being
+passed down to it.
 """
 
 from __future__ import annotations

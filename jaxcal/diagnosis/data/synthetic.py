@@ -4,8 +4,8 @@ A *scenario* supplies the clean rows: conditions, all parameters (the declared o
 drifting with a per-row health index), unit and cycle (e.g.
 :func:`jaxcal.models.turbofan.scenario.make_scenario` flies N-CMAPSS-like lives). This
 module switches one effect on in the extended model of
-:mod:`jaxcal.diagnosis.kinds.signatures`, on every
-unit or only on some (``carriers``), adds Gaussian noise at the model's reference
+:mod:`jaxcal.diagnosis.kinds.signatures` (:func:`apply_effect`, :func:`add_bump`), on
+every unit or only on some (``carriers``), adds Gaussian noise at the model's reference
 relative level per output (``DiagnosisHints.noise_rel``, times ``noise_scale``), white
 or AR(1)-coloured along each unit's rows (``noise_ar``), and returns a
 :class:`~jaxcal.data.dataset.Dataset` with the truth. A model with memory is simulated
@@ -73,9 +73,8 @@ def default_sizes(model: Model) -> dict[str, tuple[tuple[float, float], int]]:
     """kind -> ((low, high) magnitude, sign); sign +1, -1 or 0 (random).
 
     From the kinds table (:mod:`jaxcal.diagnosis.kinds.table`: natural steps, noise std,
-    noise std relative
-    to the level, % of a condition's spread); registered effects in their own units
-    (0.5 to 2 natural steps); the discrepancy bump 3 to 6 noise std.
+    noise std relative to the level, % of a condition's spread); registered effects in
+    their own units (0.5 to 2 natural steps); the discrepancy bump 3 to 6 noise std.
     """
     out = {}
     for label in kinds(model)[1:]:

@@ -1,11 +1,10 @@
 """Trace a residual to the library: screen every form, refit the finalists, rank.
 
 1. **Screen** (:mod:`jaxcal.diagnosis.fitting.screen`): at the declared-only fit, every
-   candidate in each of
-   its forms — fleet-wide (one value) and in the units that carry it (the carriers and,
-   for a step, the onsets chosen by the screen) — and every pair of the best
-   ``pair_top`` whose members do not reproduce each other's signature is scored by the
-   linearised likelihood-ratio statistic of the prewhitened residual.
+   candidate in each of its forms — fleet-wide (one value) and in the units that carry
+   it (the carriers and, for a step, the onsets chosen by the screen) — and every pair
+   of the best ``pair_top`` whose members do not reproduce each other's signature is
+   scored by the linearised likelihood-ratio statistic of the prewhitened residual.
 2. **Refit.** The ``top_k`` singles and the pairs are fitted jointly with the declared
    parameters by Levenberg–Marquardt, which replaces their linearised numbers.
 3. **Rank** by the extended BIC, ``SSR + k ln n + 2 ln C(U, |C|)`` per units term

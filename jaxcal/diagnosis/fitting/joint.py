@@ -1,23 +1,23 @@
 """Joint Gauss–Newton fit of per-unit declared parameters and candidate effects.
 
 The model of a data set is the extended model of
-:mod:`jaxcal.diagnosis.kinds.signatures` with the terms of
-a :class:`~jaxcal.diagnosis.kinds.terms.ModelSpec`: per unit ``u`` the declared
+:mod:`jaxcal.diagnosis.kinds.signatures` with the terms of a
+:class:`~jaxcal.diagnosis.kinds.terms.ModelSpec`: per unit ``u`` the declared
 parameters ``theta_u(c) = nominal + scale sum_k B_k(c) a_uk`` (B-splines in time,
-:mod:`jaxcal.diagnosis.data.prepare`;
-``scale`` the natural step), for a model with memory an offset of each unit's initial
-state, and the candidate effects (:mod:`jaxcal.diagnosis.kinds.table`), each coefficient
-a column (:mod:`jaxcal.diagnosis.kinds.terms`).
+:mod:`jaxcal.diagnosis.data.prepare`; ``scale`` the natural step), for a model with
+memory an offset of each unit's initial state, and the candidate effects
+(:mod:`jaxcal.diagnosis.kinds.table`), each coefficient a column
+(:mod:`jaxcal.diagnosis.kinds.terms`).
 
-The fit minimises the sum of squares of the **prewhitened** residual (the noise
-model's AR filter per output, :mod:`jaxcal.diagnosis.residuals.noise`: generalised least
-squares), so its SSR is
-``-2 log L`` up to a constant and every likelihood-ratio statistic and standard error
-below accounts for the serial correlation of the noise. Levenberg–Marquardt (Nocedal &
-Wright 2006, sec. 10.3) with Marquardt damping ``lambda diag(J^T J)``: the damping's
-moves, the acceptance rule and the covariance are the one solver core's
-(:mod:`jaxcal.numerics.levenberg_marquardt`); the loop runs on the host and solves its
-own normal equations, because their structure is what makes the fit affordable.
+The fit minimises the sum of squares of the **prewhitened** residual (the noise model's
+AR filter per output, :mod:`jaxcal.diagnosis.residuals.noise`: generalised least
+squares), so its SSR is ``-2 log L`` up to a constant and every likelihood-ratio
+statistic and standard error below accounts for the serial correlation of the noise.
+Levenberg–Marquardt (Nocedal & Wright 2006, sec. 10.3) with Marquardt damping ``lambda
+diag(J^T J)``: the damping's moves, the acceptance rule and the covariance are the one
+solver core's (:mod:`jaxcal.numerics.levenberg_marquardt`); the loop runs on the host
+and solves its own normal equations, because their structure is what makes the fit
+affordable.
 
 The normal equations have arrow structure: each unit's coefficients couple only to its
 own rows and to the shared ones. :func:`schur_solve` eliminates the unit blocks
