@@ -262,26 +262,6 @@ def lac_actor_loss(
     }
 
 
-def action_change(
-    actor_params: PyTree, obs: Array, near_obs: Array, networks: Networks
-) -> Array:
-    """||pi*(s) - pi*(s_near)||_2 per row, pi* = tanh(mean) (paper eq. CLAC).
-
-    Args:
-        actor_params: policy parameters.
-        obs: s, ``[B, O]``.
-        near_obs: s_near (the next state of the same transition), ``[B, O]``.
-        networks: the agent's modules.
-
-    Returns:
-        ``[B]`` Euclidean distances (with a 1e-12 floor under the square root so that
-        the gradient is finite when both actions coincide).
-    """
-    mean, _ = networks.actor.apply(actor_params, jnp.concatenate([obs, near_obs]))
-    squashed = deterministic_action(mean)
-    return _safe_norm(squashed[: obs.shape[0]] - squashed[obs.shape[0] :])
-
-
 def clac_actor_loss(
     actor_params: PyTree,
     critic_params: PyTree,
@@ -297,8 +277,9 @@ def clac_actor_loss(
     """CLAC policy loss (paper eq. CLAC): eq. LAC + alpha mean_B ||pi*(s) - pi*(s')||.
 
     s_near is approximated by the next state s' of the same transition (paper: "we use
-    the adjacent time space state s_{t+1} ... to approximate s_near"); the distance is
-    :func:`action_change`, computed from the same policy pass as the LAC terms.
+    the adjacent time space state s_{t+1} ... to approximate s_near"); the distance
+    ||pi*(s) - pi*(s')||_2, pi* = tanh(mean), comes from the same policy pass as the
+    LAC terms.
 
     Returns:
         ``(loss, aux)`` with the :func:`lac_actor_loss` entries plus ``"action_change"``

@@ -29,41 +29,30 @@ Existing config dataclasses are reused, not redefined: ``SurrogateConfig`` (with
 environment's ``EnvConfig`` needs the data's dimensions, so the run-level knobs of the
 environment live in :class:`TrackingConfig` and ``EnvConfig`` is derived from it.
 
-What the ``default`` preset changes from ``absolute``, and why (``cmapss`` validation
-unit 6, one seed; results/paper/REPORT.md, "The RL calibrator"): ``dynamics=physics``,
-``env.action=increment`` (largest step half the box width), ``env.cost=log`` (a halving
-of the error weighs the same at every scale: with the squared cost the policy never
-learned to contract the error at idle, where the outputs barely see theta, and
-diverged there; validation theta RMSE 4.3e-4 squared vs 5.8e-5 log at equal
-updates), CLAC's smoothness threshold 0.1 instead of 0.002 (a feedback's action
-changes sign whenever the error does; at 0.002 the constraint held the action near
-constant and the error at 5e-4), and 40 chunks (the validation error is flat after
-about 20; Dataset #1: 35, :data:`DEFAULT_CHUNKS`).
+What the ``default`` preset changes from ``absolute``, and why (tuned on ``cmapss``
+validation unit 6, never on test units; results/paper/REPORT.md, "The RL calibrator"):
+``dynamics=physics``, ``env.action=increment`` (largest step half the box width),
+``env.cost=log`` (a halving of the error weighs the same at every scale: with the
+squared cost the policy never learned to contract the error at idle, where the
+outputs barely see theta), CLAC's smoothness threshold 0.1 instead of 0.002 (a
+feedback's action changes sign whenever the error does; at 0.002 the constraint held
+the action near constant) and :data:`DEFAULT_CHUNKS`.
 
-What the ``absolute`` preset changes from the paper, and why (tuned on the ``cmapss``
-data set's validation unit 6 only, never on test units; measurements in
+What the ``absolute`` preset changes from the paper, and why (same validation unit;
 ``results/train/README.md``):
 
 * initial entropy temperature 0.01 instead of 2, with its own Adam step 1e-3 instead
   of 1e-4: the tracking costs are of order 1e-3, so an entropy bonus weighted 2
   dominates the policy loss until the temperature has decayed, which at a log-step of
-  1e-4 per update takes most of the budget; from 0.01 it reaches the target entropy
-  -d within a few thousand updates (``preset=paper`` keeps 2 for comparison runs);
-* initial Lyapunov multiplier 1 instead of 0.1 (it saturates at its clip of 1 anyway
-  within the first ~10k updates);
-* actor learning rate 3e-4 instead of 1e-4 (1e-3 oscillated more); critic 3e-4 as in
-  the paper (1e-3 was slightly worse at equal updates);
+  1e-4 takes most of the budget (``preset=paper`` keeps 2);
+* initial Lyapunov multiplier 1 instead of 0.1 (it saturates at its clip of 1 anyway);
+* actor learning rate 3e-4 instead of 1e-4; critic 3e-4 as in the paper;
 * gamma = 0.9 instead of 0.99: the cost of an action is almost immediate (the policy
-  sets x-hat_{t+1} and is judged at t + 1); 0.9 is the value of the analytic runner
-  test, 0.5 was worse on validation, 0.99 was not tried within the budget;
+  sets x-hat_{t+1} and is judged at t + 1);
 * CLAC smoothness threshold 0.002 instead of the reference code's 0.02 (a change of
-  the squashed action in [-1, 1], i.e. about 2e-5 of HPT_eff_mod per step on
-  ``cmapss``; the true theta drifts far slower): ~1.5x lower validation theta RMSE at
-  equal updates (one seed).
+  the squashed action in [-1, 1]; the true theta drifts far slower).
 
-Every comparison above is a single seed on a shared, noisy machine: treat them as
-indications, not significant differences.
-
+Each was a single seed on a shared machine: indications, not significant differences.
 The ``paper`` preset keeps every agent value of the paper's appendix table.
 """
 
@@ -86,6 +75,7 @@ from jaxcal.training.config_sections import (  # noqa: F401 (re-exported)
     SimulationConfig,
     TrackingConfig,
     TuneConfig,
+    check_choices,
 )
 from jaxcal.training.runner import RunnerConfig
 
@@ -129,10 +119,7 @@ class TrainConfig:
     output: OutputConfig = OutputConfig()
 
     def __post_init__(self) -> None:
-        if self.dynamics not in ("surrogate", "physics"):
-            raise ValueError(
-                f"dynamics must be 'surrogate' or 'physics', got {self.dynamics!r}"
-            )
+        check_choices(self, "")
         if type(self.agent) not in AGENT_NAMES:
             raise ValueError(
                 f"agent must be one of {[c.__name__ for c in AGENT_NAMES]}, got "
@@ -185,53 +172,40 @@ DATASET_PRESETS: dict[str, DataConfig] = {
 # paper's CLAC reached 3.30e-4 in 6,200 s); other presets have none yet.
 TARGET_THETA_RMSE: dict[str, float] = {"cmapss": 2.5e-4}
 
-# the default preset's chunks per dataset preset (others: 40). Dataset #1's
-# validation tracking is lowest at chunk 35 of 40 (the kept chunk; validation theta
-# RMSE 8.62e-6 there, 8.87e-6 at 40): the last five chunks cost make train ~50 s
-# and kept nothing (results/train/make_train_time.md).
+# the default preset's chunks per dataset preset (others: 40): Dataset #1's
+# validation tracking is lowest at chunk 35 of 40 (results/train/make_train_time.md)
 DEFAULT_CHUNKS: dict[str, int] = {"cmapss": 35}
 
 # the default preset on any model's data (_any_model_defaults)
 ANY_MODEL_CHUNKS = 6
-# simulated copies of each training unit: with one copy (8 theta paths) the policy
-# learnt the paths, not the feedback (simulated theta RMSE rising from the first chunk
-# on the pump; 16 copies: falling)
+# simulated copies of each training unit: with one copy the policy learnt the
+# copies' theta paths, not the feedback
 ANY_MODEL_COPIES = 16
-# the deployed network's widths on any model: a 256-wide actor costs about 3 us a
-# row on a fleet of 100 units (its 256 x 256 product), above a small model's whole
-# UKF step (1.2-3.9 us); 64 wide: 0.7-1.1 us (results/bench/deploy.json)
+# the deployed network's widths on any model: a 256-wide actor's step costs more
+# than a small model's whole UKF step (results/bench/deploy.json)
 ANY_MODEL_ACTOR = (64, 64)
 # the samples the filter step's noise is averaged over on any model
 # (env.filter_adapt): a biased or drifting sensor is weighed less where spare
-# outputs show it (the heat exchanger's untrained policy under a 3-sigma bias on a
-# sensor: 0.75x the declared noise's theta error, clean unchanged;
-# results/policy_robust)
+# outputs show it (results/policy_robust)
 ANY_MODEL_FILTER_ADAPT = 32
 # the kept actor tuned by gradient through the filter on simulated units' theta
 # error (tune.steps), kept where the selection units agree and no guard set loses
 # (clean, drawn across the box, with effects); the actor-critic stops after
-# ANY_MODEL_PATIENCE scorings that do not beat its start (issue 41:
-# results/policy_any_model/issue41.md). Tuning on units with effects
-# (simulate.effects=0.5) taught the motor to sit still under a sensor drift and so
-# under its parameters' drifts (clean test error 1.41x the start's)
+# ANY_MODEL_PATIENCE scorings that do not beat its start
+# (results/policy_any_model/issue41.md)
 ANY_MODEL_TUNE_STEPS = 400
 ANY_MODEL_PATIENCE = 2
 # Tuned on clean units alone, the actor lost what the filter held under a fault on
-# one output the guard's mix rarely drew (a bias on the pump's head: 1.38x its
-# start, 1.44x the UKF; on the heat exchanger's duty 1.30x): half the tuning units
-# carry an effect and the score weighs them half (tune.effects), the clean
-# selection units within 5 % of the start (item 1's bar), the units drawn across
-# the box (faster changes than the data's) within 1.5x: within 2x, the motor's
-# test units (their parameters drift faster than the simulated ones) lost 13 %
-# clean, while the reactor held a sensor fault 0.68-0.76x its start
-# (results/policy_robust/robust)
+# one output the guard's mix rarely drew; tuned on effects alone, it learnt to sit
+# still under a drift. So half the tuning units carry an effect and the score
+# weighs them half (tune.effects), the clean selection units stay within 5 % of the
+# start and the units drawn across the box within 1.5x (results/policy_robust/robust)
 ANY_MODEL_TUNE_EFFECTS = 0.5
 ANY_MODEL_CLEAN_LIMIT = 1.05
 ANY_MODEL_BOX_TOLERANCE = 0.5
-# the tuning fits output-bias states in the filter beside the actor
-# (tune.bias, jaxcal.envs.bias_states): on the motor (memory) the test units'
-# theta error under a 3-sigma sensor bias fell from 0.88x the UKF's (the actor
-# tuned alone) to 0.51x, clean unchanged (results/policy_robust/bias)
+# the tuning fits output-bias states in the filter beside the actor (tune.bias,
+# jaxcal.envs.bias_states): a sensor bias is estimated, not read as theta
+# (results/policy_robust/bias)
 ANY_MODEL_TUNE_BIAS = True
 
 _TUNED_AGENT = dict(
@@ -349,27 +323,23 @@ def _any_model_defaults(cfg: TrainConfig, preset: str) -> TrainConfig:
     (:mod:`jaxcal.training.data.simulated`).
 
     The box is the model's bounds and a deployed policy starts from the model's
-    nominal values, as the UKF does; the policy trains on the training units and on
+    nominal values, as the UKF does. The policy trains on the training units and on
     simulated copies of them, the copies' log cost on their noise-free outputs with
     its floor at the noise (the data alone stop rewarding precision at the noise; the
-    copies alone lose what the data teach under model error: the battery's R0 error
-    16.7 mOhm on copies alone, 8.8 with both), for ``ANY_MODEL_CHUNKS`` chunks scored
-    after each; the kept one has the
-    lowest theta RMSE on simulated validation units, and its band is fitted on
-    simulated units, both along the theta drifts the UKF finds in the data
-    (``simulate.paths=data``); the policy observes an extended Kalman filter's step
-    on theta (and, where the outputs determine theta, the residual's Gauss-Newton
-    step) and the stream's age, and its untrained action is the filter's step
-    whole (``env.gauss_newton=filter``, ``env.filter_gain=1``,
-    ``env.filter_whole``; measured: ``results/policy_any_model/README.md``); its
-    actor is :data:`ANY_MODEL_ACTOR` wide, for a deployed step below the UKF's, and
-    its filter weighs each output by the noise its innovations show
-    (``env.filter_adapt``, :data:`ANY_MODEL_FILTER_ADAPT` samples). The
-    actor-critic stops after :data:`ANY_MODEL_PATIENCE` scorings without a
-    better policy, and the kept actor is then tuned by gradient through the filter
-    (``tune.steps``: :data:`ANY_MODEL_TUNE_STEPS`) on units half of which carry an
-    undeclared effect (``tune.effects``: :data:`ANY_MODEL_TUNE_EFFECTS`), with
-    the filter's output-bias states fitted beside it (``tune.bias``). The other
+    copies alone lose what the data teach under model error), for
+    :data:`ANY_MODEL_CHUNKS` chunks scored after each; the kept one has the lowest
+    theta RMSE on simulated validation units, and its band is fitted on simulated
+    units, both along the theta drifts the UKF finds in the data
+    (``simulate.paths=data``). The policy observes an extended Kalman filter's step on
+    theta (and, where the outputs determine theta, the residual's Gauss-Newton step)
+    and the stream's age, and its untrained action is the filter's step whole
+    (``env.gauss_newton=filter``, ``env.filter_gain=1``, ``env.filter_whole``;
+    ``results/policy_any_model/README.md``); its actor is :data:`ANY_MODEL_ACTOR`
+    wide, and its filter weighs each output by the noise its innovations show
+    (``env.filter_adapt``). The actor-critic stops after :data:`ANY_MODEL_PATIENCE`
+    scorings without a better policy, and the kept actor is then tuned by gradient
+    through the filter (``tune``) on units half of which carry an undeclared effect,
+    with the filter's output-bias states fitted beside it. The other
     presets keep their formulation; without labels they fit D and the band on
     simulated units as well.
     """

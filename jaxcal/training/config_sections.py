@@ -8,9 +8,27 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from typing import Literal
 
 from jaxcal.envs.tracking import check_action_options
+
+
+def check_choices(cfg: object, prefix: str) -> None:
+    """Raises ValueError naming ``prefix + field`` for a ``Literal`` field set to a
+    value outside its choices."""
+    hints = typing.get_type_hints(type(cfg))
+    for field in dataclasses.fields(cfg):
+        if typing.get_origin(hints[field.name]) is not Literal:
+            continue
+        choices = typing.get_args(hints[field.name])
+        value = getattr(cfg, field.name)
+        if value not in choices:
+            quoted = [repr(c) for c in choices]
+            raise ValueError(
+                f"{prefix}{field.name} must be {', '.join(quoted[:-1])} or "
+                f"{quoted[-1]}, got {value!r}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,14 +69,7 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.stride < 1:
             raise ValueError(f"dataset.stride must be >= 1, got {self.stride}")
-        if self.labels not in ("use", "score"):
-            raise ValueError(
-                f"dataset.labels must be 'use' or 'score', got {self.labels!r}"
-            )
-        if self.nonfinite not in ("error", "drop"):
-            raise ValueError(
-                f"dataset.nonfinite must be 'error' or 'drop', got {self.nonfinite!r}"
-            )
+        check_choices(self, "dataset.")
         bad = [p for p in self.rename if len(p.split(":")) != 2 or "" in p.split(":")]
         if bad:
             raise ValueError(
@@ -100,17 +111,15 @@ class TrackingConfig:
     # step through the model's Jacobian and the stream's age
     # (jaxcal.envs.increment.gauss_newton_features): "on", "off", or "auto" (on when
     # the outputs are at least as many as the calibrated parameters, so that one
-    # sample's step determines theta; off on the battery's one voltage for R0 and Q,
-    # where it measured far worse: results/policy_any_model), or "filter": as
-    # "auto", and where that is on, the step of an extended Kalman filter on theta
-    # carried along the stream (jaxcal.envs.increment.filter_feature), a share
-    # filter_gain of which is the untrained policy's action
+    # sample's step determines theta), or "filter": as "auto", and where that is on,
+    # the step of an extended Kalman filter on theta carried along the stream
+    # (jaxcal.envs.increment.filter_feature), a share filter_gain of which is the
+    # untrained policy's action
     gauss_newton: Literal["off", "on", "auto", "filter"] = "off"
     # with gauss_newton=filter: the untrained policy takes this share of the
     # filter's step and learns a correction of it (0: it learns the whole action).
     # 1: the untrained policy follows the extended Kalman filter, its noise the
-    # simulated units' (given or estimated); measured against 0.7 with a
-    # provisional noise on five models and two seeds (results/policy_any_model)
+    # simulated units' (given or estimated; results/policy_any_model)
     filter_gain: float = 1.0
     # with gauss_newton=filter: the filter's random walk per sample, in half-widths
     # of the box (the UKF's q, 0.01 by default): give the UKF's own where it is
@@ -122,9 +131,8 @@ class TrackingConfig:
     # with gauss_newton=filter: a unit gain is the extended Kalman filter: the
     # feature is its whole step at any residual (the increment's gate divided out)
     # and on a model with memory it filters the state with theta
-    # (jaxcal.envs.joint_filter); the
-    # default preset's. False: the gate's small-residual slope only, the state as
-    # simulated, as the runs before it were trained
+    # (jaxcal.envs.joint_filter). False: the gate's small-residual slope only, the
+    # state as simulated
     filter_whole: bool = False
     # weight of the theta error in the cost where the true theta is known (the
     # simulated training units; jaxcal.envs.tracking.theta_error_cost): the policy
@@ -152,16 +160,11 @@ class TrackingConfig:
             raise ValueError(
                 f"env.episode_length must be >= 1, got {self.episode_length}"
             )
-        if self.gauss_newton not in ("off", "on", "auto", "filter"):
-            raise ValueError(
-                f"env.gauss_newton must be 'off', 'on', 'auto' or 'filter', got "
-                f"{self.gauss_newton!r}"
-            )
+        check_choices(self, "env.")
         if self.gauss_newton in ("on", "filter") and self.action != "increment":
             raise ValueError(
                 f"env.gauss_newton={self.gauss_newton} needs env.action=increment "
-                "(it observes an "
-                "incremental action's residual)"
+                "(it observes an incremental action's residual)"
             )
         if not self.filter_q > 0.0 or not self.filter_prior_std > 0.0:
             raise ValueError(
@@ -171,10 +174,6 @@ class TrackingConfig:
         if not 0.0 <= self.filter_gain <= 1.0:
             raise ValueError(
                 f"env.filter_gain must be in [0, 1], got {self.filter_gain}"
-            )
-        if self.start not in ("centre", "prior"):
-            raise ValueError(
-                f"env.start must be 'centre' or 'prior', got {self.start!r}"
             )
         if self.theta_margin < 0:
             raise ValueError(f"env.theta_margin must be >= 0, got {self.theta_margin}")
@@ -219,8 +218,7 @@ class BudgetConfig:
     target_theta_rmse: float | None = None
     # An actor without a prior starts as a random network, never a candidate: its
     # untrained start is scored on the validation units after the training for
-    # final.json's training_gain only with this set (one more validation pass: the
-    # turbofan's took make train 20 s, its theta at a bound; issue 41).
+    # final.json's training_gain only with this set (one more validation pass).
     score_random_start: bool = False
 
     def __post_init__(self) -> None:
@@ -241,15 +239,7 @@ class BudgetConfig:
                 "budget.num_chunks and budget.eval_every must be >= 0 and "
                 f"budget.ckpt_every >= 1, got {self}"
             )
-        if self.policy not in ("target", "online"):
-            raise ValueError(
-                f"budget.policy must be 'target' or 'online', got {self.policy!r}"
-            )
-        if self.select not in ("last", "val_tracking", "sim_theta"):
-            raise ValueError(
-                "budget.select must be 'last', 'val_tracking' or 'sim_theta', got "
-                f"{self.select!r}"
-            )
+        check_choices(self, "budget.")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,24 +276,7 @@ class SimulationConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.effects <= 1.0:
             raise ValueError(f"simulate.effects must be in [0, 1], got {self.effects}")
-        if self.train not in ("data", "simulated", "both"):
-            raise ValueError(
-                "simulate.train must be 'data', 'simulated' or 'both', got "
-                f"{self.train!r}"
-            )
-        if self.band not in ("auto", "simulated", "labelled"):
-            raise ValueError(
-                "simulate.band must be 'auto', 'simulated' or 'labelled', got "
-                f"{self.band!r}"
-            )
-        if self.paths not in ("box", "data"):
-            raise ValueError(
-                f"simulate.paths must be 'box' or 'data', got {self.paths!r}"
-            )
-        if self.cost_floor not in ("noise", "env"):
-            raise ValueError(
-                f"simulate.cost_floor must be 'noise' or 'env', got {self.cost_floor!r}"
-            )
+        check_choices(self, "simulate.")
         if self.copies < 1 or self.band_copies < 1:
             raise ValueError(
                 "simulate.copies and simulate.band_copies must be >= 1, got "
@@ -333,15 +306,13 @@ class TuneConfig:
     clip: float = 1.0  # global gradient-norm clip (a long recursion's gradient)
     # a tuned policy is kept only if its theta RMSE on each guard set (clean,
     # drawn across the box, with effects: Simulations.guard_units) is at most
-    # (1 + this) x the start's: a policy 1.4-2.3x worse on one (the motor tuned on
-    # effects) is refused, one 27 % better on the data's drifts and 10 % worse on
-    # faster changes (the pump) is kept
+    # (1 + this) x the start's
     clean_tolerance: float = 0.15
     # a share of the tuning units with an undeclared effect (sim_effects.KINDS).
     # With it the score a tuned policy must lower is the mean over the clean
     # selection units and the effects guard, each over the start's, and the clean
     # selection units may not lose at all (clean_limit): tuned on effects alone,
-    # the reactor held a bias 2x better but lost 20 % clean (tune_levers/)
+    # a policy holds a bias better but loses on clean units
     effects: float = 0.0
     clean_limit: float = 1.0  # with effects: clean selection error <= this x start
     # with effects: the effects guard's weight in the score (the clean selection
