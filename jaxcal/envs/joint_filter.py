@@ -7,8 +7,7 @@ covariance ``C`` ``[Z + P, Z + P]`` of the state (its own units) and theta (half
 units ``u = theta / h``), as the UKF does with its sigma points. Carrying only the
 state's sensitivity ``dz / dtheta`` (theta held over the past) is not the same: with
 theta a random walk it overstates how much the current theta made the state and
-leaves out the spread of the state that past theta noise built. On the battery example
-that cost the capacity 2.6x the UKF's error, where this form measured 1.05x
+leaves out the spread of the state that past theta noise built
 (``results/policy_any_model``, "Under model error").
 
 One update at sample t, from the state after t-1 and the policy's theta (the filter's
@@ -29,8 +28,8 @@ policy (gain 1) is exactly this filter.
 The update's products of two 4-wide matrices (a reactor's two states and two
 parameters) are written out (:func:`_product`): XLA's CPU runtime runs such a dot as
 a call to Eigen per matrix, and over a fleet (``vmap`` over units) as one call per
-unit, ~0.7 us each: four of them were two thirds of the reactor fleet's cost per row
-(``results/bench/stream_profile.md``, round 3).
+unit, which dominates a small model's cost per row
+(``results/bench/stream_profile.md``).
 """
 
 from __future__ import annotations

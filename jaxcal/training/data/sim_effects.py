@@ -1,5 +1,5 @@
 """Undeclared effects put into simulated training units, so that a policy learns to
-hold under model error (issue 41, item 3).
+hold under model error.
 
 A filter is exact only where its model is: a biased sensor, a drifting gain or
 coloured noise is read as a parameter change. A policy can learn to discount them,

@@ -2,7 +2,7 @@
 
 The model is known, so a run never needs the user's labels: wherever training, the
 surrogate D or the uncertainty band needs true theta, units are simulated along the
-user's own operating conditions (issue 27). A simulated unit keeps a real unit's
+user's own operating conditions. A simulated unit keeps a real unit's
 conditions ``w`` and length, draws a theta trajectory inside the action box, runs the
 model along it (a model with memory from its own initial state) and adds Gaussian
 output noise of the problem's std. Its noise-free outputs are kept as well: the
@@ -238,7 +238,7 @@ class Simulations:
         share = self.cfg.effects if effects is None else max(effects, self.cfg.effects)
         sim, along = self._held_out_sims(3, share)
         # and clean units drawn across the box: tuned on the data's slow drifts
-        # alone, the pump's policy lost 2-3x on faster changes (guard_units checks)
+        # alone, a policy loses on faster changes (guard_units checks)
         self.used["tune"] = (
             f"units simulated along {along}, and clean units with theta drawn "
             "across the box"

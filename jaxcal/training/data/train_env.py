@@ -131,9 +131,7 @@ def training_env_params(
             increment_step_ref(dyn, params, problem.theta_prior, max_increment), dtype
         ),
         # the filter step's R (gn_filter): make_training_env passes the simulated
-        # units' noise (given or estimated). The provisional 1 % of each output's
-        # spread, used before, mis-weighs the outputs (the docs' tank: loss 4.1x
-        # the UKF at gain 0.7; 0.90x with its given noise at gain 1:
-        # results/policy_any_model)
+        # units' noise (given or estimated); the provisional 1 % of each output's
+        # spread mis-weighs the outputs (results/policy_any_model)
         x_noise=jnp.asarray(problem.noise_std if x_noise is None else x_noise, dtype),
     )

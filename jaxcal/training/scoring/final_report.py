@@ -140,8 +140,8 @@ def final_report(
         else "online",
         "selected_chunk": kept.selected_step,
         "test": test,
-        # the last chunk's validation scores, not a test pass of its own: one
-        # more run of the turbofan's test units cost make train 45 s (issue 41)
+        # the last chunk's validation scores, not a test pass of its own (one
+        # more run over the test units)
         "val_last": _last_val(records),
         "val_selected": {
             k[4:]: v for k, v in val_record.items() if k.startswith("val_")

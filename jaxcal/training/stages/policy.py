@@ -47,7 +47,7 @@ Scorer = Callable[[Any], dict]
 """``scorer(agent_state) -> {"theta_rmse": ..., "tracking_rmse_norm": ...}``."""
 
 # The time to target's score: the validation units' theta RMSE, scored with every
-# validation pass anyway (a separate test pass cost make train 45 s, issue 41).
+# validation pass anyway (a separate test pass would cost a run over the test units).
 TARGET_KEY = "val_theta_rmse"
 
 

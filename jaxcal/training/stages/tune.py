@@ -3,7 +3,7 @@
 The policy's actor is the analytic filter step plus a learned correction
 (:class:`~jaxcal.agents.networks.SquashedGaussianActor` ``prior``). The actor-critic
 learns that correction from the tracking cost alone, through a critic: it rarely
-moves the validation theta error below its start's (issue 41). In simulation the
+moves the validation theta error below its start's. In simulation the
 true theta is known and the deployed policy is one differentiable ``lax.scan``, so
 the correction can also be fitted the way KalmanNet fits its gain network (Revach
 et al., IEEE TSP 2022, §IV-B): by backpropagation through time of the theta error
@@ -44,8 +44,8 @@ from jaxcal.runs.checkpoint import Checkpointer
 from jaxcal.runs.folder import POLICY_TUNED_DIR
 from jaxcal.training.config_sections import TuneConfig
 
-# a scoring this many times the start's (or not finite) ends the tuning: on the
-# battery's cells the first scorings were 10-14x, 21x, and none came back below 1
+# a scoring this many times the start's (or not finite) ends the tuning: such a
+# tuning does not come back below its start
 DIVERGED = 2.0
 
 
