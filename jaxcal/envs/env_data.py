@@ -80,25 +80,11 @@ def make_env_params(
 ) -> EnvParams:
     """Validates the data and assembles :class:`EnvParams` (host-side).
 
-    Args:
-        w: [U, T, W] operating conditions; x: [U, T, S] observations.
-        lengths: [U] valid rows per unit, 2 <= lengths[u] <= T.
-        theta_low, theta_high: [P] action box, theta_low < theta_high.
-        dyn_params: the dynamics' parameters.
-        stats: the normalisation (a run's: its problem's ``norm``, the training
-            units' statistics, for test and held-out units too), cast to the
-            data's dtype.
-        z_ref: ``[U, T, Z]`` reference model states, finite on valid rows;
-            ``None``: a static model (no state).
-        step_ref: ``[P]`` positive gate scale of incremental actions; ``None``:
-            absolute actions.
-        x_target: ``[U, T, S]`` the cost's target, finite on valid rows; ``None``:
-            ``x`` itself.
-        theta_target: ``[U, T, P]`` the true theta where known, NaN elsewhere
-            (the cost's theta term); ``None``: none.
-
-    Returns:
-        :class:`EnvParams`.
+    The arguments are the fields of :class:`EnvParams`, checked: lengths in [2, T],
+    ``theta_low < theta_high``, ``w``, ``x``, ``z_ref`` and ``x_target`` finite on
+    valid rows, ``step_ref`` positive. ``stats`` is the normalisation (a run's: its
+    problem's ``norm``, the training units' statistics, for test and held-out units
+    too), cast to the data's dtype.
 
     Raises:
         ValueError: naming the offending field and the expected form.

@@ -3,64 +3,44 @@
 :func:`run_training` is what ``python -m jaxcal.train`` runs (paper §3 and Algorithm
 1, with the set-up choices of ``design/calibration.md``):
 
-1. the run folder ``<runs_dir>/<name>`` is checked, without writing: it must be
-   writable, and a stored config must match for a resume
-   (:func:`jaxcal.runs.folder.check_run_dir`);
+1. the run folder ``<runs_dir>/<name>`` is checked without writing: writable, and a
+   stored config must match for a resume (:func:`jaxcal.runs.folder.check_run_dir`);
 2. the data file is generated if it is missing and a generator preset is named
-   (the turbofan's, named by :data:`jaxcal.models.TRAINING_FILES`, a function call
-   whose float64 scope does not leak into training), then the train / val / test units
-   and the one :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`: an
-   N-CMAPSS file through :mod:`jaxcal.models.turbofan.training`, any model's rows
-   through :mod:`jaxcal.training.data.tables`), with the run's one normalisation,
-   computed there in the run's dtype (:func:`run_dtype`) and carried unchanged to the
-   environment, the deployed policy and ``data.json``. Only then, every check of
-   the config and the data passed, is the run folder created with its
-   ``config.json`` (:func:`jaxcal.runs.folder.prepare_run_dir`): a start that
-   fails leaves nothing behind that would block the corrected command;
-3. the surrogate D is fitted on the training units' transitions or restored
-   (:mod:`jaxcal.training.stages.surrogate`); ``dynamics=physics`` skips it; data
-   without true theta fit it on units simulated from the model
-   (:mod:`jaxcal.training.data.simulated`, which makes every labelled unit a run needs:
-   the user's labels only score);
-4. the policy learns on the training units' (w, x) only, no theta label (the
-   environment's parameters: :mod:`jaxcal.training.data.train_env`; the host loop:
-   :mod:`jaxcal.training.stages.policy`, with the deployable checkpoints and the
-   selection of :mod:`jaxcal.training.kept_policy` and the scores of
-   :mod:`jaxcal.training.scoring.policy`); a model with memory trains on its own
-   step (``dynamics=physics``), the environment carrying its state, and episodes
-   start from the reference state track
-   (:func:`jaxcal.envs.memory.reference_states`: the model run along each unit with
-   the prior theta, label-free, what the deployed calibrator carries from a unit's
-   first sample); validation units are scored every ``eval_every`` chunks (theta
-   RMSE for progress only; the label-free tracking RMSE also selects the kept
-   policy when ``budget.select=val_tracking``); with ``budget.target_theta_rmse``
-   set, the first scoring whose validation theta RMSE is at or below it gives the
-   job's time to target (reporting only);
+   (:data:`jaxcal.models.TRAINING_FILES`; its float64 scope does not leak into
+   training), then the train / val / test units and the one
+   :class:`~jaxcal.problem.Problem` are read (:func:`read_run_data`), with the run's
+   one normalisation, computed there in the run's dtype (:func:`run_dtype`) and
+   carried unchanged to the environment, the deployed policy and ``data.json``. Only
+   then, every check passed, is the run folder created with its ``config.json``
+   (:func:`jaxcal.runs.folder.prepare_run_dir`): a failed start leaves nothing that
+   would block the corrected command;
+3. the surrogate D is fitted or restored (:mod:`jaxcal.training.stages.surrogate`;
+   ``dynamics=physics`` skips it); data without true theta fit it on units simulated
+   from the model (:mod:`jaxcal.training.data.simulated`, which makes every labelled
+   unit a run needs: the user's labels only score);
+4. the policy learns on the training units' (w, x) only, no theta label
+   (:mod:`jaxcal.training.data.train_env`, :mod:`jaxcal.training.stages.policy`,
+   :mod:`jaxcal.training.kept_policy`, :mod:`jaxcal.training.scoring.policy`); a
+   model with memory trains on its own step, episodes starting from the label-free
+   reference state track (:func:`jaxcal.envs.memory.reference_states`); validation
+   units are scored every ``eval_every`` chunks (theta RMSE for progress and the
+   time to target only; the label-free tracking RMSE selects the kept policy under
+   ``budget.select=val_tracking``, simulated units' theta RMSE under ``sim_theta``);
 5. the kept policy runs once through every test unit's whole trajectory (the
-   deployment calibrator of :mod:`jaxcal.calibrators.methods.policy.calibrator`,
-   ``lax.scan`` vmapped
-   over units) and ``final.json`` gets the test theta RMSE, the tracking RMSE, wall
-   time, updates/s and env steps/s, the time to target (plus, for transparency, the
-   scores of the last policy and of the last online actor;
-   :mod:`jaxcal.training.scoring.final_report`);
+   deployment calibrator, :mod:`jaxcal.calibrators.methods.policy.calibrator`) and
+   ``final.json`` gets its scores, wall time and throughput
+   (:mod:`jaxcal.training.scoring.final_report`);
 6. the kept policy's run over simulated units (or the labelled validation units,
-   ``simulate.band``) fits its split-conformal theta band, written to
-   ``uncertainty.json``; ``final.json`` gets the band's 90 % coverage on the test
-   units (:mod:`jaxcal.training.stages.uncertainty`) and what was simulated with
-   which noise (``simulated``).
-
-``simulate.train=simulated`` (the default preset on any model's data) trains the
-policy on simulated copies of the training units, its cost on their noise-free
-outputs; ``budget.select=sim_theta`` keeps the policy with the lowest theta RMSE on
-simulated validation units.
+   ``simulate.band``) fits its split-conformal theta band (``uncertainty.json``;
+   :mod:`jaxcal.training.stages.uncertainty`), whose 90 % coverage on the test units
+   goes to ``final.json`` with what was simulated (``simulated``).
 
 The deployed actor is ``budget.policy``: by default the Polyak-averaged target policy
-of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Besides the
-runner checkpoints, every checkpoint step saves the deployable
-:class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` (actor, dynamics
-parameters, normalisation, action box) under ``policy/``, and the selected one under
-``policy_best/``; :func:`jaxcal.deploy.load_run` loads a run from those and
-``config.json`` / ``data.json`` (the model spec and ``Problem.to_json()``) alone.
+of Algorithm 1 (LAC, CLAC; SAC has none and deploys its online actor). Every
+checkpoint step also saves the deployable
+:class:`~jaxcal.calibrators.methods.policy.calibrator.PolicyParams` under ``policy/``
+and the selected one under ``policy_best/``; :func:`jaxcal.deploy.load_run` loads a
+run from those and ``config.json`` / ``data.json`` alone.
 
 No x64 switch here: a model that needs float64 (``model.x64``) with
 ``dynamics=physics`` is an error unless the caller enabled x64 (the command line

@@ -67,24 +67,25 @@ class PolicyResult(NamedTuple):
     stopped_early: bool
 
 
-def _checkpoint_item(runner: RunnerState, save_buffer: bool) -> dict:
-    """The saved pytree: runner fields as a dict (buffer optional), host copies.
-
-    Copies (not views) make the save independent of the next chunk, which donates
-    the device buffers of ``runner``.
-    """
-    item = {
+def _saved_fields(runner: RunnerState, save_buffer: bool) -> dict:
+    """The runner's fields as a checkpoint holds them (the buffer optional)."""
+    return {
         name: getattr(runner, name)
         for name in runner.__dataclass_fields__
         if save_buffer or name != "buffer"
     }
+
+
+def _checkpoint_item(runner: RunnerState, save_buffer: bool) -> dict:
+    """The saved pytree, host copies: copies (not views) make the save independent
+    of the next chunk, which donates the device buffers of ``runner``."""
     return jax.tree.map(
         lambda x: (
             x
             if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
             else np.array(x, copy=True)
         ),
-        item,
+        _saved_fields(runner, save_buffer),
     )
 
 
@@ -95,21 +96,12 @@ def _restore_runner(
     env: Env,
     save_buffer: bool,
 ) -> RunnerState:
-    target = {
-        name: getattr(abstract, name)
-        for name in abstract.__dataclass_fields__
-        if save_buffer or name != "buffer"
-    }
-    restored = ckpt.restore(None, target)
+    restored = ckpt.restore(None, _saved_fields(abstract, save_buffer))
     if not save_buffer:
         restored["buffer"] = init_buffer(
             cfg.buffer_size, env.observation_size, env.action_size
         )
     return RunnerState(**restored)
-
-
-def _scalars(metrics: dict) -> dict:
-    return {k: np.asarray(v).item() for k, v in metrics.items()}
 
 
 class ChunkScoring(NamedTuple):
@@ -328,7 +320,7 @@ def _timed_chunk(train_chunk, runner, train_params, runner_cfg, first: bool):
     updates_before = int(runner.num_updates)
     tic = time.perf_counter()
     runner, metrics = train_chunk(runner, train_params)
-    record = _scalars(jax.device_get(metrics))
+    record = {k: np.asarray(v).item() for k, v in jax.device_get(metrics).items()}
     seconds = time.perf_counter() - tic
     record.update(
         chunk_seconds=seconds,
