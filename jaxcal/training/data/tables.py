@@ -43,6 +43,13 @@ def _ids(units) -> list[int]:
     return [int(u) for u in units]
 
 
+def _last_share(units: list[int], fraction: float) -> list[int]:
+    """The last ``fraction`` of ``units`` (at least one; none where that would be
+    all of them, or with ``fraction = 0``)."""
+    num = max(1, round(fraction * len(units))) if fraction else 0
+    return units[len(units) - num :] if num < len(units) else []
+
+
 def hold_out_units(
     units: Sequence[int],
     test_units: Sequence[int] | None,
@@ -74,8 +81,7 @@ def hold_out_units(
         test = _ids(test_units)
     rest = [u for u in units if u not in test]
     if val_units is None:
-        num_val = max(1, round(val_fraction * len(rest))) if val_fraction else 0
-        val = rest[len(rest) - num_val :] if num_val < len(rest) else []
+        val = _last_share(rest, val_fraction)
     else:
         val = _ids(val_units)
         both = sorted(set(val) & set(test))
@@ -115,8 +121,7 @@ def split_by_column(
         train, dev = [], train + dev
     if dev:
         if val_units is None:
-            num = max(1, round(val_fraction * len(dev))) if val_fraction else 0
-            picked = dev[len(dev) - num :] if num < len(dev) else []
+            picked = _last_share(dev, val_fraction)
         else:
             picked = _ids(val_units)
             stray = sorted(set(picked) - set(dev))
@@ -150,19 +155,17 @@ def box_of(
     ``use_labels=False``: the model's bounds and nominal values, labels are for
     scoring only)."""
     base = model.nominal.copy()
-    if not use_labels:
-        idx = model.parameter_index(theta_names)
-        low, high = (b[idx] for b in model.bounds)
-        return low, high, base, "model bounds (labels for scoring only)"
-    for j, name in enumerate(dev.theta_names):
-        base[model.parameter_names.index(name)] = dev.theta[:, j].mean()
-    if dev.theta is not None and set(theta_names) <= set(dev.theta_names):
-        cols = [dev.theta_names.index(n) for n in theta_names]
-        low, high = labelled_box(dev.theta[:, cols], theta_margin)
-        return low, high, base, "labelled range"
+    if use_labels:
+        for j, name in enumerate(dev.theta_names):
+            base[model.parameter_names.index(name)] = dev.theta[:, j].mean()
+        if dev.theta is not None and set(theta_names) <= set(dev.theta_names):
+            cols = [dev.theta_names.index(n) for n in theta_names]
+            low, high = labelled_box(dev.theta[:, cols], theta_margin)
+            return low, high, base, "labelled range"
     idx = model.parameter_index(theta_names)
     low, high = (b[idx] for b in model.bounds)
-    return low, high, base, "model bounds"
+    which = "model bounds" if use_labels else "model bounds (labels for scoring only)"
+    return low, high, base, which
 
 
 def default_theta(model: Model, dev: Dataset) -> tuple[str, ...]:
