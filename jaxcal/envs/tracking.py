@@ -330,9 +330,6 @@ def make_tracking_env(dynamics: Dynamics | StatefulDynamics, cfg: EnvConfig) -> 
             [S]``, or a :class:`StatefulDynamics` for a model with memory;
             ``dyn_params`` is read from :attr:`EnvParams.dyn_params`.
         cfg: static sizes and episode length.
-
-    Returns:
-        :class:`Env`.
     """
     dyn = as_stateful(dynamics)
     # a model with memory under the whole filter: state and theta filtered jointly

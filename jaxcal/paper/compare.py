@@ -173,9 +173,6 @@ def evaluate_method(
         model_output: ``(w [N, W], theta [N, P]) -> x [N, S]`` evaluated at the valid
             samples when the method gives no model output (E2E); without it such a
             method gets no tracking score.
-
-    Returns:
-        :class:`MethodRun`.
     """
     dtype = method.dtype
     w, x = units.w.astype(dtype), units.x.astype(dtype)

@@ -13,7 +13,7 @@ interval. The estimate is the method's, unchanged; its test theta RMSE is report
 so that this can be checked against the ``eval-`` step.
 
 The evaluation steps keep no per-sample std, so this step runs the method over the
-test units once more (the UKF on Dataset #1: ~8 minutes on the shared CPU).
+test units once more.
 """
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ class PolicyScoring(NamedTuple):
             widths on labelled units (the selection's score on simulated ones).
         last_val_out: ``() -> CalOutput | None``, the last ``val_scorer`` call's run
             over the validation units: the band is fitted on the kept chunk's run,
-            made once when it was scored (the turbofan's unit: ~14 s a run).
+            made once when it was scored, not run again.
     """
 
     deployable: Callable[..., PolicyParams]

@@ -183,9 +183,6 @@ def train_policy(
             (the pipeline saves the deployable policy there).
         progress: show a tqdm bar.
         log: where one-line messages go.
-
-    Returns:
-        :class:`PolicyResult`.
     """
     run_dir = Path(run_dir)
     with Checkpointer(run_dir / CHECKPOINT_DIR, max_to_keep=max_to_keep) as ckpt:
