@@ -73,7 +73,9 @@ def test_stream_batch_and_calibrator_agree(trained):
     run_dir, _, data = trained
     units = data.test
     cal = StreamingCalibrator(run_dir)
-    assert cal.sensors == tuple(data.sensors) and cal.theta_names == ("HPT_eff_mod",)
+    assert cal.sensors == tuple(data.problem.output_names) and cal.theta_names == (
+        "HPT_eff_mod",
+    )
     theta, xhat = cal.run(units.w, units.x, units.mask)
     assert theta.shape == units.theta.shape and xhat.shape == units.x.shape
     length = int(units.lengths[1])
@@ -185,7 +187,10 @@ def test_batch_run_flags_and_scores_only_valid_samples(trained):
     theta_ok, _ = cal.run(units.w, units.x, units.mask)
     np.testing.assert_array_equal(theta[1], theta_ok[1])  # other units untouched
     meta = json.loads((run_dir / "data.json").read_text())["problem"]["input_range"]
-    assert len(meta["x_low"]) == len(data.sensors) and len(meta["w_high"]) == 4
+    assert (
+        len(meta["x_low"]) == len(data.problem.output_names)
+        and len(meta["w_high"]) == 4
+    )
 
 
 def test_evaluate_report_counts_flagged_samples(trained, capsys):

@@ -144,13 +144,13 @@ def run_training(
     check_dynamics(cfg.dynamics, model)  # a model with memory: physics only
     parse_noise(cfg.noise, problem.output_names)  # checked before any write
     dtype = run_dtype(cfg, model)  # the dtype data.problem.norm was computed in
+    units = {k: describe_units(v) for k, v in data.info["units"].items()}
     log(
-        f"model {model.name!r}; data {path}: theta {list(data.theta_names)} in "
-        f"[{', '.join(f'{v:.4g}' for v in data.theta_low)}] .. "
-        f"[{', '.join(f'{v:.4g}' for v in data.theta_high)}]; {len(data.sensors)} "
-        f"sensors; units train {describe_units(data.info['units']['train'])}, val "
-        f"{describe_units(data.info['units']['val'])}, test "
-        f"{describe_units(data.info['units']['test'])}"
+        f"model {model.name!r}; data {path}: theta {list(problem.theta_names)} in "
+        f"[{', '.join(f'{v:.4g}' for v in problem.theta_low)}] .. "
+        f"[{', '.join(f'{v:.4g}' for v in problem.theta_high)}]; "
+        f"{len(problem.output_names)} sensors; units train {units['train']}, val "
+        f"{units['val']}, test {units['test']}"
     )
     source = model_source(model_spec(cfg, model))  # a model a run can load again
     with hold_run(run_dir):  # one training of the name at a time, to its last write
@@ -240,7 +240,7 @@ def _train(
     band_out, scales = band_runs(
         scoring.run, band_units, data.test, kept.selected, made
     )
-    names = tuple(data.theta_names)
+    names = tuple(data.problem.theta_names)
     final.update(
         fit_policy_band(
             band_units, band_out, data.test, test_out, run_dir, names,

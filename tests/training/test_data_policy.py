@@ -92,7 +92,7 @@ def test_renamed_columns_refused_then_mapped(nan_file):
     data = load_calibration_data(
         str(nan_file), nonfinite="drop", rename={"T_24": "T24"}
     )
-    assert data.sensors == MEASURED_SENSOR_NAMES
+    assert data.problem.output_names == MEASURED_SENSOR_NAMES
 
 
 def test_train_cli_exits_2_naming_file_column_and_rows(nan_file, tmp_path, capsys):

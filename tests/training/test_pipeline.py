@@ -54,8 +54,8 @@ def quiet(_message):
 def test_data_selection_defaults_and_errors(data_file):
     data = load_calibration_data(str(data_file), theta_margin=0.1)
     # Only HPT_eff_mod varies in T; no observed_sensors attribute: the 14 X_s.
-    assert data.theta_names == ("HPT_eff_mod",)
-    assert len(data.sensors) == 14
+    assert data.problem.theta_names == ("HPT_eff_mod",)
+    assert len(data.problem.output_names) == 14
     assert data.train.unit_ids.tolist() == [1, 2] and data.val.unit_ids.tolist() == [3]
     assert data.test.unit_ids.tolist() == [4, 5]
     # Units have 120 + 7 k rows; each split is padded to its longest unit.
@@ -65,8 +65,8 @@ def test_data_selection_defaults_and_errors(data_file):
         [data.train.theta[data.train.mask], data.val.theta[data.val.mask]]
     )
     width = dev_theta.max() - dev_theta.min()
-    np.testing.assert_allclose(data.theta_low, dev_theta.min() - 0.1 * width)
-    np.testing.assert_allclose(data.theta_high, dev_theta.max() + 0.1 * width)
+    np.testing.assert_allclose(data.problem.theta_low, dev_theta.min() - 0.1 * width)
+    np.testing.assert_allclose(data.problem.theta_high, dev_theta.max() + 0.1 * width)
     chosen = load_calibration_data(
         str(data_file), sensors=("T48", "Nc"), theta=("HPT_eff_mod",), val_units=()
     )

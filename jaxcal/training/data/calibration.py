@@ -41,32 +41,6 @@ class CalibrationData(NamedTuple):
     problem: Problem
     info: dict
 
-    # Read-only views of the problem, for readers written against the older fields.
-    @property
-    def sensors(self) -> tuple[str, ...]:
-        return self.problem.output_names
-
-    @property
-    def theta_names(self) -> tuple[str, ...]:
-        return self.problem.theta_names
-
-    @property
-    def theta_low(self) -> np.ndarray:
-        return self.problem.theta_low
-
-    @property
-    def theta_high(self) -> np.ndarray:
-        return self.problem.theta_high
-
-    @property
-    def theta_base(self) -> np.ndarray:
-        return self.problem.theta_base
-
-    @property
-    def engine(self) -> str:
-        """The model's name (the engine configuration for the turbofan)."""
-        return self.problem.model.name
-
 
 def training_problem(
     model: Model,

@@ -132,7 +132,7 @@ def final_report(
         "seed": cfg.seed,
         "data": str(path),
         "model": data.problem.model.name,
-        "theta_names": list(data.theta_names),
+        "theta_names": list(data.problem.theta_names),
         "test_units": data.info["units"]["test"],
         "select": cfg.budget.select if kept.select else "last",
         "policy": cfg.budget.policy

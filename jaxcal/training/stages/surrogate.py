@@ -71,7 +71,11 @@ def fit_or_restore_surrogate(
     """
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / SURROGATE_DIR
-    dims = (data.train.w.shape[-1], len(data.sensors), len(data.theta_names))
+    dims = (
+        data.train.w.shape[-1],
+        len(data.problem.output_names),
+        len(data.problem.theta_names),
+    )
     with Checkpointer(ckpt_dir, max_to_keep=1) as ckpt:
         if ckpt.latest_step() is not None and (run_dir / SURROGATE_FILE).is_file():
             target = jax.eval_shape(
@@ -107,7 +111,7 @@ def fit_or_restore_surrogate(
         for split in ("val", "test"):
             units = getattr(data, split)
             if units is not None and units.theta is not None:
-                report[split] = _split_errors(params, units, data.sensors)
+                report[split] = _split_errors(params, units, data.problem.output_names)
         ckpt.save(0, params, wait=True)
     write_json(run_dir / SURROGATE_FILE, report)
     log(format_surrogate_report(report))
