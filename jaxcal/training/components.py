@@ -58,23 +58,17 @@ def make_agent(
 def env_config(cfg, condition_dim: int, sensor_dim: int, param_dim: int) -> EnvConfig:
     """The :class:`EnvConfig` of a run's
     :class:`~jaxcal.training.config.TrainConfig` and its data's dimensions (the one
-    place the run-level ``env.*`` fields are mapped)."""
+    place the run-level ``env.*`` fields are mapped: those of the same name as they
+    are, ``gauss_newton`` resolved)."""
+    names = {f.name for f in dataclasses.fields(EnvConfig)} - {"gauss_newton"}
+    same = {k: v for k, v in dataclasses.asdict(cfg.env).items() if k in names}
     return EnvConfig(
-        sensor_dim,
-        condition_dim,
-        param_dim,
-        episode_length=cfg.env.episode_length,
-        action=cfg.env.action,
-        max_increment=cfg.env.max_increment,
-        cost=cfg.env.cost,
-        cost_floor=cfg.env.cost_floor,
+        sensor_dim=sensor_dim,
+        condition_dim=condition_dim,
+        param_dim=param_dim,
         gauss_newton=uses_gauss_newton(cfg.env, sensor_dim, param_dim),
         gn_filter=uses_filter(cfg.env),
-        filter_q=cfg.env.filter_q,
-        filter_whole=cfg.env.filter_whole,
-        filter_prior_std=cfg.env.filter_prior_std,
-        theta_cost=cfg.env.theta_cost,
-        filter_adapt=cfg.env.filter_adapt,
+        **same,
     )
 
 
