@@ -8,9 +8,8 @@ function call whose float64 scope does not leak into training) and is readable;
 (:func:`run_dtype`), the one the environment and the deployed policy read (a model's
 own file through ``TRAINING_FILES``: the turbofan's N-CMAPSS files, any model's rows
 through :mod:`jaxcal.training.data.tables`); :func:`model_spec` is the model spec a
-run folder stores. Nothing here writes to the
-run folder: :func:`jaxcal.training.pipeline.run_training` calls these before it
-creates one.
+run folder stores. Nothing here writes to the run folder:
+:func:`jaxcal.training.pipeline.run_training` calls these before it creates one.
 """
 
 from __future__ import annotations
@@ -102,12 +101,8 @@ def model_spec(cfg: TrainConfig, model: Model) -> str:
 
 def read_options(dataset) -> dict:
     """The reader options of a ``DataConfig`` (``jaxcal.training.config``) as keyword
-    args of the readers: ``nonfinite`` and ``rename`` (older run
-    configs without these fields read with the defaults)."""
-    return {
-        "nonfinite": getattr(dataset, "nonfinite", "error"),
-        "rename": parse_rename(getattr(dataset, "rename", ())),
-    }
+    args of the readers: ``nonfinite`` and ``rename``."""
+    return {"nonfinite": dataset.nonfinite, "rename": parse_rename(dataset.rename)}
 
 
 def run_dtype(cfg: TrainConfig, model: Model):
