@@ -44,8 +44,7 @@ def _ids(units) -> list[int]:
 
 
 def _last_share(units: list[int], fraction: float) -> list[int]:
-    """The last ``fraction`` of ``units`` (at least one; none where that would be
-    all of them, or with ``fraction = 0``)."""
+    """The last ``fraction`` of ``units``: at least one, never all of them."""
     num = max(1, round(fraction * len(units))) if fraction else 0
     return units[len(units) - num :] if num < len(units) else []
 
