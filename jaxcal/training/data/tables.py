@@ -44,7 +44,7 @@ def _ids(units) -> list[int]:
 
 
 def _last_share(units: list[int], fraction: float) -> list[int]:
-    """The last ``fraction`` of ``units``: at least one, never all of them."""
+    """The last ``fraction`` of ``units``: none at 0, else at least one, never all."""
     num = max(1, round(fraction * len(units))) if fraction else 0
     return units[len(units) - num :] if num < len(units) else []
 
