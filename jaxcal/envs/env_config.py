@@ -63,23 +63,20 @@ class EnvConfig:
             stream's age (:func:`~jaxcal.envs.increment.gauss_newton_features`), so
             the network learns a gain schedule rather than the model's inverse.
         gn_filter: it also holds an extended Kalman filter's step on theta
-            (:func:`~jaxcal.envs.increment.filter_feature`), whose random walk per
-            sample is ``filter_q`` half-widths of the box and its prior std
-            ``filter_prior_std`` half-widths; ``filter_whole``: a unit
-            gain on it is the filter's whole step at any residual (the gate
-            divided out), and on a model with memory the filter is the joint one of
-            state and theta (:mod:`~jaxcal.envs.joint_filter`); ``False``: the
-            gate's small-residual slope and theta alone, the runs before it.
-        theta_cost: weight of the theta error in the cost, where the true theta is
-            known (``EnvParams.theta_target``, simulated units): the cost adds
-            ``theta_cost * mean_P(((theta - theta*) / h)^2)`` (``h`` the box's
-            half-widths) to the tracking cost before the log; 0: tracking alone
-            (the paper's).
-        filter_adapt: with ``gn_filter``, the filter on theta alone (a static
-            model's; not the joint filter of a model with memory) weighs
-            each output by the noise its innovations show, averaged over this many
+            (:func:`~jaxcal.envs.increment.filter_feature`), its random walk per
+            sample ``filter_q`` and its prior std ``filter_prior_std`` in half-widths
+            of the box; ``filter_whole``: a unit gain on it is the filter's whole
+            step at any residual (the gate divided out), on a model with memory the
+            joint filter of state and theta (:mod:`~jaxcal.envs.joint_filter`);
+            ``False``: the gate's small-residual slope and theta alone.
+        theta_cost: weight of ``mean_P(((theta - theta*) / h)^2)`` (``h`` the box's
+            half-widths) added to the tracking cost before the log where the true
+            theta is known (``EnvParams.theta_target``); 0: tracking alone (the
+            paper's).
+        filter_adapt: with ``gn_filter`` on a static model, the filter weighs each
+            output by the noise its innovations show, averaged over this many
             samples (:func:`~jaxcal.envs.increment.adapted_noise_scale`); 0: the
-            declared noise (the runs before it).
+            declared noise.
     """
 
     sensor_dim: int
