@@ -5,8 +5,8 @@
 * :class:`Optimized`: minimal pytree of ``params`` + ``opt_state`` for one optimised
   quantity (a network or a log-multiplier); the optimiser itself is closed over by the
   factory, so no callable ends up in the agent state.
-* :func:`gradient_step`, :func:`minimize`, :func:`polyak_update`,
-  :func:`init_log_multiplier`, :func:`make_act`: small helpers the agents compose.
+* :func:`minimize`, :func:`polyak_update`, :func:`init_log_multiplier`,
+  :func:`make_act`: small helpers the agents compose.
 """
 
 from __future__ import annotations
@@ -64,14 +64,6 @@ def init_optimized(
     return Optimized(params=params, opt_state=optimizer.init(params))
 
 
-def gradient_step(
-    optimizer: optax.GradientTransformation, state: Optimized, grads: PyTree
-) -> Optimized:
-    """One optimiser step: ``params <- params + optimizer.update(grads)``."""
-    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-    return Optimized(optax.apply_updates(state.params, updates), opt_state)
-
-
 def minimize(
     optimizer: optax.GradientTransformation,
     state: Optimized,
@@ -79,13 +71,11 @@ def minimize(
     *args: Any,
     **kwargs: Any,
 ) -> tuple[Optimized, Metrics]:
-    """One gradient step on ``loss_fn(state.params, *args, **kwargs) -> (loss, aux)``.
-
-    Returns:
-        ``(new_state, aux)``.
-    """
+    """One optimiser step on ``loss_fn(state.params, *args, **kwargs) -> (loss, aux)``:
+    ``params <- params + optimizer.update(grads)``; returns ``(new_state, aux)``."""
     grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, *args, **kwargs)
-    return gradient_step(optimizer, state, grads), aux
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    return Optimized(optax.apply_updates(state.params, updates), opt_state), aux
 
 
 def copy_tree(tree: PyTree) -> PyTree:
