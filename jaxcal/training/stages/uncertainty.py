@@ -2,8 +2,7 @@
 time-to-target summary of the run's records.
 
 The band (:mod:`jaxcal.calibrators.uncertainty.conformal`) is fitted by split conformal
-on
-units the policy never trained on, after selection: the selected policy's theta
+on units the policy never trained on, after selection: the selected policy's theta
 trajectories over them (the same jitted fleet run that scores units) give the
 per-bucket absolute errors. Those units are units simulated from the model along the
 validation units' conditions (:mod:`jaxcal.training.data.simulated`; no label needed)
@@ -15,9 +14,7 @@ A policy built on a random-walk filter (``env.gauss_newton=filter``) gets a rela
 band: the conformal fit of its errors over the error its filter predicts on each
 sample, std and lag bias (:mod:`jaxcal.calibrators.uncertainty.lag_scale`). Its error is
 mostly a per-unit lag bias (a unit's drift rate times a lag its conditions set), which a
-width pooled over units misses on the fast-drifting or weakly observed units: on the
-pump (seed 0) the pooled band covered the test units' leak 0.78, the relative one
-0.81.
+width pooled over units misses on the fast-drifting or weakly observed units.
 """
 
 from __future__ import annotations
