@@ -118,3 +118,47 @@ def test_a_noise_model_within_the_tolerance_has_settled():
     moved = old._replace(ar=np.array([[0.52, 0, 0], [0, 0, 0]]))
     assert not moved.settled(old, 0.01)
     assert not old._replace(order=np.array([1, 1])).settled(old, 0.01)
+
+
+def _whiten_table_wide(model, arr, position):
+    """The whitening as one pass of the whole array per lag over the full table:
+    the reference the chunked form must equal to the bit."""
+    from jaxcal.diagnosis.residuals.noise import MAX_ORDER
+
+    scale = model.sigma * np.sqrt(model.inflation)
+    extra = (1,) * (arr.ndim - 2)
+    table = model.filter_table(position)
+    out = table[:, :, 0].reshape(table.shape[:2] + extra) * arr
+    for k in range(1, MAX_ORDER + 1):
+        coef = table[k:, :, k].reshape((arr.shape[0] - k, arr.shape[1]) + extra)
+        if np.any(coef):
+            out[k:] += coef * arr[:-k]
+    return out / scale.reshape((1, -1) + extra)
+
+
+@pytest.mark.parametrize("shape", [(), (7,), (3, 2)])
+def test_whitening_in_chunks_is_the_table_form_to_the_bit(shape, monkeypatch):
+    """Units shorter than the AR order, a unit of one row, orders 0-3 per output,
+    NaN and -0.0 entries: the same bits (signs of zero and NaNs included), with
+    chunks of a few rows so that lags cross their edges."""
+    import jaxcal.diagnosis.residuals.noise as noise
+
+    monkeypatch.setattr(noise, "CHUNK_CELLS", 1)  # 64-row chunks
+    rng = np.random.default_rng(3)
+    lengths = np.array([1, 2, 150, 3, 97, 64, 65])
+    starts = np.r_[0, np.cumsum(lengths)]  # with the end
+    position = positions(starts, int(lengths.sum()))
+    order = np.array([0, 1, 2, 3, 3])
+    ar = np.zeros((5, noise.MAX_ORDER))
+    for s, p in enumerate(order):
+        ar[s, :p] = rng.uniform(-0.4, 0.6, p) / max(p, 1)
+    model = NoiseModel(rng.uniform(0.5, 2.0, 5), ar, order,
+                       np.where(order == 0, 1.3, 1.0), "estimated",
+                       np.full(5, np.nan))  # fmt: skip
+    arr = rng.normal(size=(position.size, 5) + shape)
+    arr[10, 2] = np.nan
+    arr[rng.random(arr.shape) < 0.05] = -0.0
+    new = model.whiten(arr, position)
+    ref = _whiten_table_wide(model, arr, position)
+    assert np.array_equal(new, ref, equal_nan=True)
+    assert np.array_equal(np.signbit(new), np.signbit(ref))
