@@ -102,3 +102,35 @@ def test_delta_alone_winning_adds_no_library_effect(monkeypatch):
     assert best == "delta alone" and disc is significant
     assert final.winner is None and final.winner_fit is None and final.confounded == []
     assert "parameter[fan_eff_mod]" in note
+
+
+def test_cross_validation_over_strengths_is_each_strength_alone_to_the_bit():
+    """A fold's products are computed once for every ridge strength: each row of the
+    CV error is the per-strength ridge fit's, recomputed from the rows, to the bit
+    (one shared design, and whitened per-output designs)."""
+    from jaxcal.diagnosis.fitting.discrepancy import _cv_sse, _designs, _folds, _ridge
+
+    rng = np.random.default_rng(7)
+    z = rng.normal(size=(600, 2))
+    y = rng.normal(size=(600, 3)) + np.c_[z[:, 0] ** 2, z[:, 1], 0 * z[:, 0]]
+    folds = _folds(np.repeat(np.arange(12), 50), 5)
+    ridges = (1e-6, 1e-2, 1.0)
+
+    def whiten(a):  # an AR(1)-like filter along rows, per output
+        out = np.array(a, float)
+        out[1:] -= 0.5 * np.asarray(a)[:-1]
+        return out
+
+    for wh in (None, whiten):
+        got = _cv_sse(z, y, folds, 2, ridges, wh)
+        yw = y if wh is None else wh(y)
+        for i, r in enumerate(ridges):
+            want = np.zeros(y.shape[1])
+            for f in np.unique(folds):
+                train, test = folds != f, folds == f
+                for s, phi in _designs(z, 2, y.shape[1], wh):
+                    cols = slice(None) if s is None else [s]
+                    coef, _ = _ridge(phi[train], yw[train][:, cols], r, with_df=False)
+                    err = yw[test][:, cols] - phi[test] @ coef
+                    want[cols] += np.sum(err**2, axis=0)
+            assert np.array_equal(got[i], want)

@@ -94,17 +94,17 @@ def _monomials(z: np.ndarray, degree: int) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _ridge(phi, y, ridge, *, with_df: bool = True):
+def _ridge(phi, y, ridge, *, with_df: bool = True, products=None):
     """Ridge solution (intercept unpenalised) for all columns of ``y`` and its df
-    (``None`` without ``with_df``: cross-validation needs only the solution)."""
-    n = phi.shape[0]
-    pen = ridge * n * np.eye(phi.shape[1])
+    (``None`` without ``with_df``: cross-validation needs only the solution).
+    ``products``: ``(phi^T phi, phi^T y)`` when already computed (they do not depend
+    on the strength, so a cross-validation fold computes them once for all)."""
+    gram0, rhs = (phi.T @ phi, phi.T @ y) if products is None else products
+    pen = ridge * phi.shape[0] * np.eye(phi.shape[1])
     pen[0, 0] = 0.0
-    gram = phi.T @ phi + pen
-    gram_inv = np.linalg.pinv(gram, hermitian=True)
-    coef = gram_inv @ (phi.T @ y)
-    df = float(np.sum(gram_inv * (phi.T @ phi))) if with_df else None
-    return coef, df
+    gram_inv = np.linalg.pinv(gram0 + pen, hermitian=True)
+    df = float(np.sum(gram_inv * gram0)) if with_df else None
+    return gram_inv @ rhs, df
 
 
 def _folds(groups: np.ndarray, num_folds: int) -> np.ndarray:
@@ -117,18 +117,25 @@ def _folds(groups: np.ndarray, num_folds: int) -> np.ndarray:
     )
 
 
-def _cv_sse(z, y, folds, degree, ridge, whiten=None, designs=None) -> np.ndarray:
-    """``[S]`` cross-validated sum of squared errors (of the whitened rows when
-    ``whiten`` is given: per-output designs, generalised least squares)."""
-    sse = np.zeros(y.shape[1])
+def _cv_sse(z, y, folds, degree, ridges, whiten=None, designs=None) -> np.ndarray:
+    """``[R, S]`` cross-validated sums of squared errors, one row per strength of
+    ``ridges`` (of the whitened rows when ``whiten`` is given: per-output designs,
+    generalised least squares)."""
+    sse = np.zeros((len(ridges), y.shape[1]))
     design = designs if designs is not None else _designs(z, degree, y.shape[1], whiten)
     yw = y if whiten is None else whiten(y)
     for f in np.unique(folds):
         train, test = folds != f, folds == f
+        yw_train, yw_test = yw[train], yw[test]
         for s, phi in design:
             cols = slice(None) if s is None else [s]
-            coef, _ = _ridge(phi[train], yw[train][:, cols], ridge, with_df=False)
-            sse[cols] += np.sum((yw[test][:, cols] - phi[test] @ coef) ** 2, axis=0)
+            phi_train, phi_test, y_train = phi[train], phi[test], yw_train[:, cols]
+            products = (phi_train.T @ phi_train, phi_train.T @ y_train)
+            for i, ridge in enumerate(ridges):
+                coef, _ = _ridge(phi_train, y_train, ridge, with_df=False,
+                                 products=products)  # fmt: skip
+                err = yw_test[:, cols] - phi_test @ coef
+                sse[i, cols] += np.sum(err**2, axis=0)
     return sse
 
 
@@ -215,7 +222,9 @@ def fit_discrepancy(
     degrees = cfg.degrees if inputs else (0,)
     grid = [(d, r) for d in degrees for r in cfg.ridges]
     designs = {d: _designs(z, d, resid.shape[1], whiten) for d in degrees}
-    cv = np.stack([_cv_sse(z, resid, folds, d, r, whiten, designs[d]) for d, r in grid])
+    cv = np.concatenate(
+        [_cv_sse(z, resid, folds, d, cfg.ridges, whiten, designs[d]) for d in degrees]
+    )  # [len(grid), S], the grid's order
     white = resid if whiten is None else whiten(resid)
     base = np.sum(white**2, axis=0)
     sensors, coefs = [], []
@@ -235,7 +244,8 @@ def fit_discrepancy(
                     if whiten is None
                     else _one_output(whiten, s, len(sensor_names))
                 )
-                return _cv_sse(z[:, cols], resid[:, [s]], folds, degree, r, part)[0]
+                sse = _cv_sse(z[:, cols], resid[:, [s]], folds, degree, [r], part)
+                return sse[0, 0]
 
             names = [condition_names[j] for j in inputs]
             dependence, unique = _gain_shares(
