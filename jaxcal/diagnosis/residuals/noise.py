@@ -158,10 +158,9 @@ def _whiten_rows(model: NoiseModel, arr, position, extra) -> np.ndarray:
     early = np.flatnonzero(position < p)
     table = model.filter_table(position[early])  # [E, S, MAX_ORDER + 1]
     stat = model.filter_table(np.array([p]))[0]  # [S, MAX_ORDER + 1]
-    late = np.flatnonzero(position >= p)
     lags = [
         k for k in range(1, MAX_ORDER + 1)
-        if (np.any(stat[:, k]) and np.any(late >= k))
+        if (np.any(stat[:, k]) and np.any(position[k:] >= p))
         or np.any(table[early >= k, :, k])
     ]  # fmt: skip
     coef = [stat[:, k].reshape((1, num_s) + extra) for k in range(MAX_ORDER + 1)]
