@@ -134,3 +134,46 @@ def test_cross_validation_over_strengths_is_each_strength_alone_to_the_bit():
                     err = yw[test][:, cols] - phi[test] @ coef
                     want[cols] += np.sum(err**2, axis=0)
             assert np.array_equal(got[i], want)
+
+
+def test_an_outputs_cross_validation_whitens_that_output_alone(monkeypatch):
+    """The per-output sub-models (what delta's gain depends on) whiten their own
+    output alone (``whiten(arr, outputs=[s])``): the same numbers as whitening every
+    output with the others at zero and keeping that one."""
+    import jaxcal.diagnosis.fitting.discrepancy as discrepancy
+    from jaxcal.diagnosis.residuals.noise import NoiseModel, positions
+
+    rng = np.random.default_rng(4)
+    n, lengths = 600, np.full(6, 100)
+    w = _conditions(rng, n)
+    bump = 3.0 * np.exp(-(((w[:, 1] - 0.55) / 0.12) ** 2))
+    resid = np.stack([bump + rng.normal(size=n), w[:, 2] / 30 + rng.normal(size=n),
+                      rng.normal(size=n)], axis=1)  # fmt: skip
+    pos = positions(np.r_[0, np.cumsum(lengths)], n)
+    noise = NoiseModel(np.ones(3), np.array([[0.5, 0.0], [0.3, 0.2], [0.0, 0.0]]),
+                       np.array([1, 2, 0]), np.ones(3), "estimated",
+                       np.full(3, np.nan))  # fmt: skip
+
+    def whiten(arr, outputs=None):
+        model = noise if outputs is None else noise.take(outputs)
+        return model.whiten(arr, pos)
+
+    groups = np.repeat(np.arange(6), 100)
+    names, cfg = ("a", "b", "c"), DiscrepancyConfig()
+    new = fit_discrepancy(w, resid, groups, names, cfg, NAMES, whiten)
+
+    def whole_then_one(whiten, s):  # the form it replaces: every output whitened
+        def apply(arr):
+            full = np.zeros((arr.shape[0], 3) + arr.shape[2:])
+            full[:, s] = arr[:, 0]
+            return whiten(full)[:, [s]]
+
+        return apply
+
+    monkeypatch.setattr(discrepancy, "_one_output", whole_then_one)
+    old = fit_discrepancy(w, resid, groups, names, cfg, NAMES, whiten)
+    assert new.sensors[0].significant and new.sensors[1].significant
+    assert new.sensors[1].unique  # the per-output sub-models were fitted
+    assert new.sensors == old.sensors
+    for a, b in zip(new.coef, old.coef, strict=True):
+        assert np.array_equal(a, b)

@@ -162,3 +162,24 @@ def test_whitening_in_chunks_is_the_table_form_to_the_bit(shape, monkeypatch):
     ref = _whiten_table_wide(model, arr, position)
     assert np.array_equal(new, ref, equal_nan=True)
     assert np.array_equal(np.signbit(new), np.signbit(ref))
+
+
+def test_an_output_whitened_alone_is_its_column_of_the_whole():
+    """``take([s])`` then whitening the one output gives the whole's column ``s``
+    (an output's rows are filtered with its own coefficients only): the numbers the
+    discrepancy's per-output cross-validation reads without whitening the others."""
+    rng = np.random.default_rng(5)
+    lengths = np.array([2, 150, 97, 65])
+    starts = np.r_[0, np.cumsum(lengths)]
+    position = positions(starts, int(lengths.sum()))
+    order = np.array([0, 1, 3, 2])
+    ar = np.zeros((4, 3))
+    for s, p in enumerate(order):
+        ar[s, :p] = rng.uniform(-0.4, 0.6, p) / max(p, 1)
+    model = NoiseModel(rng.uniform(0.5, 2.0, 4), ar, order, np.array([1.3, 1, 1, 1.1]),
+                       "estimated", np.full(4, np.nan))  # fmt: skip
+    arr = rng.normal(size=(position.size, 4, 6))
+    whole = model.whiten(arr, position)
+    for s in range(4):
+        alone = model.take([s]).whiten(arr[:, [s]], position)
+        assert np.array_equal(alone, whole[:, [s]])

@@ -92,13 +92,17 @@ class LoopData:
         """``[N]`` rows since the unit's first row."""
         return positions(self.starts, self.num_rows)
 
-    def whiten(self, arr: np.ndarray) -> np.ndarray:
+    def whiten(self, arr: np.ndarray, outputs=None) -> np.ndarray:
         """Prewhiten and standardise ``arr [N, S, ...]`` (output units) with the
         noise model (:meth:`~jaxcal.diagnosis.residuals.noise.NoiseModel.whiten`);
-        missing outputs count as zero."""
+        missing outputs count as zero. ``outputs``: ``arr`` holds these outputs
+        alone (indices; each output is whitened on its own, so the same numbers)."""
         arr = np.asarray(arr, np.float64)
-        mask = self.observed.reshape(self.observed.shape + (1,) * (arr.ndim - 2))
-        return self.noise.whiten(np.where(mask, arr, 0.0), self.position)
+        observed, noise = self.observed, self.noise
+        if outputs is not None:
+            observed, noise = observed[:, list(outputs)], noise.take(outputs)
+        mask = observed.reshape(observed.shape + (1,) * (arr.ndim - 2))
+        return noise.whiten(np.where(mask, arr, 0.0), self.position)
 
     @property
     def num_rows(self) -> int:

@@ -32,6 +32,7 @@ cross-validated gain and its threshold are those of independent rows.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -205,8 +206,9 @@ def fit_discrepancy(
         cfg: settings.
         condition_names: ``W`` names of the conditions in ``dependence`` / ``unique``
             (default ``w[0]``, ``w[1]``, ...).
-        whiten: ``[N, S, ...] -> [N, S, ...]`` prewhitening of normalised arrays
-            along rows (``None``: the noise is white).
+        whiten: ``whiten(arr, outputs=None)``, the prewhitening of normalised
+            arrays ``[N, S, ...]`` along rows, or of ``[N, len(outputs), ...]``
+            holding those outputs alone (``None``: the noise is white).
 
     Returns:
         :class:`Discrepancy`, one entry per sensor.
@@ -239,11 +241,7 @@ def fit_discrepancy(
         if gain > threshold:
 
             def sub(cols, degree, s=s, r=r):  # CV SSE of output s on some inputs
-                part = (
-                    None
-                    if whiten is None
-                    else _one_output(whiten, s, len(sensor_names))
-                )
+                part = None if whiten is None else _one_output(whiten, s)
                 sse = _cv_sse(z[:, cols], resid[:, [s]], folds, degree, [r], part)
                 return sse[0, 0]
 
@@ -270,15 +268,10 @@ def fit_discrepancy(
     return Discrepancy(tuple(sensors), tuple(coefs), inputs, w_mean, w_std)
 
 
-def _one_output(whiten, s: int, num_s: int):
-    """``whiten`` of output ``s`` (of ``num_s``) for arrays ``[N, 1, ...]``."""
-
-    def apply(arr):
-        full = np.zeros((arr.shape[0], num_s) + arr.shape[2:])
-        full[:, s] = arr[:, 0]
-        return whiten(full)[:, [s]]
-
-    return apply
+def _one_output(whiten, s: int):
+    """``whiten`` of output ``s`` alone, for arrays ``[N, 1, ...]`` (each output is
+    whitened on its own: the other outputs' rows are not computed)."""
+    return functools.partial(whiten, outputs=[s])
 
 
 def predict_discrepancy(disc: Discrepancy, w: np.ndarray) -> np.ndarray:

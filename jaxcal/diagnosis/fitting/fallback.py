@@ -29,14 +29,15 @@ from jaxcal.diagnosis.fitting.screen import spec_for
 
 
 def whiten_normalised(data: LoopData):
-    """Prewhitening of arrays in noise-std units (the discrepancy's residual)."""
+    """Prewhitening of arrays in noise-std units (the discrepancy's residual), of
+    every output or of ``outputs`` alone (:meth:`LoopData.whiten`)."""
     if data.noise.is_white:
         return None
-    sigma = data.noise_std
 
-    def whiten(arr):
+    def whiten(arr, outputs=None):
+        sigma = data.noise_std if outputs is None else data.noise_std[list(outputs)]
         shape = (1, -1) + (1,) * (arr.ndim - 2)
-        return data.whiten(arr * sigma.reshape(shape))
+        return data.whiten(arr * sigma.reshape(shape), outputs)
 
     return whiten
 
