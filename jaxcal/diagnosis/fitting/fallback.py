@@ -24,7 +24,7 @@ from jaxcal.diagnosis.fitting.discrepancy import (
     predict_discrepancy,
 )
 from jaxcal.diagnosis.fitting.identify import identify
-from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, resume_at
 from jaxcal.diagnosis.fitting.screen import spec_for
 
 
@@ -49,9 +49,11 @@ def _delta(data, resid, cfg) -> Discrepancy:
     )  # fmt: skip
 
 
-def _backfit(model, data, spec, init, cfg):
-    """Alternate theta (and effects) with delta(w): Hastie & Tibshirani backfitting."""
-    fit = fit_model(model, data, spec, init, max_iters=cfg.max_iters)
+def _backfit(model, data, spec, start: FitResult, cfg):
+    """Alternate theta (and effects) with delta(w): Hastie & Tibshirani backfitting,
+    from where ``start`` (a fit of the same terms) ended."""
+    resume_at(model, data, start)  # its first evaluation is start's own
+    fit = fit_model(model, data, spec, start.params, max_iters=cfg.max_iters)
     offset, disc = None, None
     for _ in range(cfg.discrepancy.backfit_rounds):
         raw = fit.evaluation.resid + (
@@ -115,7 +117,7 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
     disc = _delta(data, best.evaluation.resid, cfg)
     if not disc.any_significant:
         return best, None, None, ident, None, ""
-    fit_d, offset, disc = _backfit(model, data, spec0, null.params, cfg)
+    fit_d, offset, disc = _backfit(model, data, spec0, null, cfg)
     rescreen = identify(
         model, data, declared, library, cfg.identify, fit_d, offset=offset
     )._replace(fits={})  # read by the noise passes alone (pipeline), done by now
@@ -123,9 +125,7 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
     for screen in (ident, rescreen):
         if screen.winner is not None:
             spec = spec_for(declared, screen.winner.members, spec0.initial_state)
-            fit_w, off_w, disc_w = _backfit(
-                model, data, spec, screen.winner_fit.params, cfg
-            )
+            fit_w, off_w, disc_w = _backfit(model, data, spec, screen.winner_fit, cfg)
             options.append((_bic_with(fit_w, disc_w), fit_w, off_w, disc_w, screen))
     _, best, offset, disc, chosen = min(options, key=lambda o: o[0])
     # delta alone won: the rescreen's winner lost beside it and is not added (its

@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, resume_at
 from jaxcal.diagnosis.fitting.ranking import (
     RankEntry,
     effect_sizes,
@@ -56,10 +56,8 @@ from jaxcal.diagnosis.fitting.screen import (
     spec_for,
     warm_from,
 )
-from jaxcal.diagnosis.kinds.linearization import remember
 from jaxcal.diagnosis.kinds.onsets import polish_onsets, refine_onsets
 from jaxcal.diagnosis.kinds.table import Candidate, nests
-from jaxcal.diagnosis.kinds.terms import model_inputs
 from jaxcal.model import Model
 
 ONSET_ROUNDS = 2  # profile a step's onsets at the fit, refit when one moved
@@ -172,22 +170,24 @@ class _Refits:
     fits: dict = dataclasses.field(default_factory=dict)  # entry name -> FitResult
     onset_ci: dict = dataclasses.field(default_factory=dict)  # name -> {step: [U, 2]}
     warm: dict = dataclasses.field(default_factory=dict)  # name -> an earlier fit
+    null_lin: object = None  # the screen's linearisation at null (Screen.null_lin)
     slimmed: set = dataclasses.field(default_factory=set)  # fits already slim
 
     def _start(self, name: str, spec):
-        """Where the refit of ``name`` starts: where its earlier fit ended (its
-        model point kept, so its first evaluation costs none), else at the
-        declared-only solution with the effects at zero."""
+        """Where the refit of ``name`` starts: where its earlier fit ended, else at
+        the declared-only solution with the effects at zero; either point's
+        linearisation kept (:func:`.joint.resume_at`), so its first evaluation
+        costs none."""
         # taken out: the caller handed the earlier fits over, and each is released
         # once its refit has started (bounds the memory)
         model, data, prev = self.model, self.data, self.warm.pop(name, None)
         init = None if prev is None else warm_from(prev, model, data, spec)
         if init is None:
+            # the screen's linearisation of the declared-only point has every
+            # candidate's derivatives; the refits between evict it from the cache
+            resume_at(model, data, self.null, self.null_lin)
             return init_from(self.null, model, data, spec)
-        lin = prev.evaluation.sig.lin
-        if lin is not None and not model.is_stateful:
-            remember(model, data, model_inputs(model, data, prev.layout, prev.params),
-                     lin)  # fmt: skip
+        resume_at(model, data, prev)
         return init
 
     def refit(self, members) -> None:
@@ -331,7 +331,8 @@ def identify(
         e = rank_entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
     refits = _Refits(model, data, declared, null, offset, cfg, entries,
-                     warm={} if warm is None else warm)  # fmt: skip
+                     warm={} if warm is None else warm,
+                     null_lin=screen.null_lin)  # fmt: skip
     for e in singles[: cfg.top_k]:
         refits.refit(list(e.members))
     for pair in pairs:

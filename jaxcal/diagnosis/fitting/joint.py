@@ -35,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcal.diagnosis.data.prepare import LoopData
+from jaxcal.diagnosis.kinds.linearization import Linearization, remember
 from jaxcal.diagnosis.kinds.signatures import RowInputs, Signatures, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
 from jaxcal.diagnosis.kinds.terms import (
@@ -146,6 +147,20 @@ def evaluate_model(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
         cols,
     )  # fmt: skip
+
+
+def resume_at(
+    model: Model, data: LoopData, fit: FitResult, lin: Linearization | None = None
+) -> None:
+    """Keep the model's linearisation at ``fit``'s end point (or ``lin``, taken at
+    the same point with more derivatives) as the latest evaluated point
+    (:func:`~jaxcal.diagnosis.kinds.linearization.remember`): a fit that starts there
+    (the same entry under another noise model or discrepancy offset, a candidate at
+    the declared-only solution with its terms at zero) finds its first evaluation
+    without evaluating the fleet. A model with memory keeps none."""
+    lin = fit.evaluation.sig.lin if lin is None else lin
+    if lin is not None and not model.is_stateful:
+        remember(model, data, model_inputs(model, data, fit.layout, fit.params), lin)
 
 
 def fit_box(model: Model) -> tuple[np.ndarray, np.ndarray]:

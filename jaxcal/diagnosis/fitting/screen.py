@@ -148,6 +148,8 @@ class Screen:
             self._a_inv.append(np.linalg.inv(a))
             self._d.append(dm.T @ self.r[sl].reshape(-1))
         self._base = {}  # key -> whitened columns on every unit [N, S, k]
+        # a static model's linearisation at null with every candidate's derivatives
+        self.null_lin = None
         smooth = [c.with_form("units", range(data.num_units))
                   for c in self.library if c.kind.profile != "step"]  # fmt: skip
         if smooth:
@@ -174,6 +176,7 @@ class Screen:
             ev = self.null.evaluation
             like = signatures(self.model, self.data, ev.inputs, (), like=ev.sig,
                               cover=every.tangents)  # fmt: skip
+            self.null_lin = like.lin
             cols = np.empty(self.data.x.shape + (sum(widths),))
             start = 0
             for cand, k in zip(smooth, widths, strict=True):
