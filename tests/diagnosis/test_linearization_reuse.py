@@ -1,7 +1,8 @@
 """Model evaluations reused across nearby points (diagnosis.kinds.linearization).
 
-An output-only evaluation that differs from a kept one on a few rows evaluates those
-rows alone (the onset polish of a step moves one row per carrier at a time); the
+An evaluation that differs from a kept one (with the derivatives it wants) on a few
+rows evaluates those rows alone (the onset polish of a step moves one row per carrier
+at a time, and the refit at the moved onsets starts there); the
 result must be the full evaluation's (started, as the diagnosis starts it, at the kept
 point's solution), bit for bit, or the diagnosis's numbers move.
 """
@@ -51,7 +52,33 @@ def test_a_point_near_a_kept_one_evaluates_only_its_changed_rows(
         engine, data, inputs, frozenset()).x[5])  # fmt: skip
 
 
-def test_derivatives_or_many_changed_rows_are_evaluated_in_full(
+def test_a_point_near_a_kept_one_with_its_derivatives_evaluates_its_changed_rows(
+    engine, point, evaluated_rows
+):
+    """The refit at a step's moved onsets starts at a point that differs from the
+    fit's end on a few rows: its derivatives come from the kept point but on those
+    rows, the full evaluation's to the bit."""
+    data, inputs = point
+    j, k = (engine.parameter_names.index(n) for n in ("HPT_eff_mod", "LPT_eff_mod"))
+    wanted = frozenset({("parameter", j), ("parameter", k)})
+    kept = linearization._linearized(engine, data, inputs, wanted)
+    moved = inputs.theta.copy()
+    moved[[5, 300, 599], j] += 0.01
+    pieced = linearization._linearized(
+        engine, data, inputs._replace(theta=moved), frozenset({("parameter", k)})
+    )
+    assert evaluated_rows == [ROWS, 3]
+    full = linearization.linearize(
+        engine, data.w, moved, outputs=tuple(data.sensor_idx), directions=wanted,
+        start=kept.z,
+    )  # fmt: skip
+    assert pieced.directions == wanted
+    for a, b in ((pieced.x, full.x), (pieced.jac, full.jac), (pieced.z, full.z)):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(pieced.jac[300], kept.jac[300])
+
+
+def test_missing_derivatives_or_many_changed_rows_are_evaluated_in_full(
     engine, point, evaluated_rows
 ):
     data, inputs = point
@@ -63,7 +90,7 @@ def test_derivatives_or_many_changed_rows_are_evaluated_in_full(
         engine, data, inputs._replace(theta=moved), frozenset({("parameter", j)})
     )
     moved = inputs.theta.copy()
-    moved[: ROWS // 2 + 1, j] += 0.01  # beyond PIECED_SHARE of the rows
+    moved[: ROWS // 2 + 1, j] += 0.02  # beyond PIECED_SHARE of either kept point's
     linearization._linearized(engine, data, inputs._replace(theta=moved), frozenset())
     assert evaluated_rows == [ROWS, ROWS, ROWS]
 

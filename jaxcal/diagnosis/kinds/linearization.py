@@ -11,8 +11,8 @@ program bucket by bucket, each bucket after the first started at the first's
 solution, and each point started at the last kept point's solution on the same rows;
 any other model takes every derivative in one pass. The last
 :data:`LINEARIZATIONS_KEPT` points are reused (a refit starts where the fit before it
-ended), an output-only point that differs from one of them on a few rows evaluates
-those rows alone (:data:`PIECED_SHARE`), and only the residual's outputs and a fit's
+ended), a point that differs from one of them (with the derivatives wanted) on a few
+rows evaluates those rows alone (:data:`PIECED_SHARE`), and only the residual's outputs and a fit's
 own derivatives are kept.
 """
 
@@ -293,10 +293,11 @@ def _basis(model: Model, offset_idx: tuple, directions):
 # ended, and every refit of a candidate at the declared-only solution (its terms
 # at zero) evaluates the same point
 LINEARIZATIONS_KEPT = 4
-# An output-only evaluation whose inputs differ from a kept output-only one on at
-# most this share of the rows evaluates those rows alone and takes the others from
+# An evaluation whose inputs differ from a kept one (with the derivatives wanted) on
+# at most this share of the rows evaluates those rows alone and takes the others from
 # it: the onset polish of a step (:func:`jaxcal.diagnosis.kinds.onsets.polish_onsets`)
-# moves each carrier's onset one row at a time and evaluates the fleet at every move.
+# moves each carrier's onset one row at a time and evaluates the fleet at every move,
+# and the refit at the moved onsets starts there.
 # A row's output does not depend on the other rows of its chunk (the chunk is
 # vmapped; bitwise the same).
 PIECED_SHARE = 0.5
@@ -331,34 +332,35 @@ def _changed_rows(old: tuple, new: tuple) -> np.ndarray:
 
 
 def _pieced(model, w, w_digest, outputs, rows: tuple, directions):
-    """The output-only linearisation at ``rows`` from a kept output-only one at the
-    same conditions, only the rows whose inputs differ evaluated (``None``: no
-    kept point is near enough, or derivatives are wanted)."""
-    if directions:
-        return None
+    """The linearisation at ``rows`` from a kept one at the same conditions with at
+    least the derivatives ``directions``, only the rows whose inputs differ evaluated
+    (along the kept one's directions, so that its arrays take them); ``None``: no kept
+    point is near enough."""
     for (kept_model, kept_outputs, _), entry in reversed(_LINEARIZED.items()):
         base = entry.lin
         if (
             kept_model != model
             or kept_outputs != outputs
             or entry.w_digest != w_digest
-            or base.directions != frozenset()
+            or not base.covers(directions)
         ):
             continue
         changed = _changed_rows(entry.rows, rows)
         idx = np.flatnonzero(changed)
         if idx.size > PIECED_SHARE * changed.size:
             continue
-        x, ok = base.x.copy(), base.ok.copy()
-        z = None if base.z is None else base.z.copy()
-        if idx.size:
-            part = linearize(model, w[idx], *(a[idx] for a in rows),
-                             outputs=outputs, directions=frozenset(),
-                             start=None if z is None else z[idx])  # fmt: skip
-            x[idx], ok[idx] = part.x, part.ok
-            if z is not None:
-                z[idx] = part.z
-        return base._replace(x=x, ok=ok, z=z)
+        if not idx.size:
+            return base
+        part = linearize(model, w[idx], *(a[idx] for a in rows), outputs=outputs,
+                         directions=base.directions,
+                         start=None if base.z is None else base.z[idx])  # fmt: skip
+        merged = {}
+        for field in ("x", "jac_theta", "jac_effects", "jac_w", "ok", "jac", "z"):
+            old = getattr(base, field)
+            if old is not None:
+                merged[field] = old.copy()
+                merged[field][idx] = getattr(part, field)
+        return base._replace(**merged)
     return None
 
 
