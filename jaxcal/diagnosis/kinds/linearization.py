@@ -12,8 +12,8 @@ solution, and each point started at the last kept point's solution on the same r
 any other model takes every derivative in one pass. The last
 :data:`LINEARIZATIONS_KEPT` points are reused (a refit starts where the fit before it
 ended), a point that differs from one of them (with the derivatives wanted) on a few
-rows evaluates those rows alone (:data:`PIECED_SHARE`), and only the residual's outputs and a fit's
-own derivatives are kept.
+rows evaluates those rows alone (:data:`PIECED_SHARE`), and only the residual's outputs
+and a fit's own derivatives are kept.
 """
 
 from __future__ import annotations
