@@ -101,8 +101,10 @@ class LoopData:
         observed, noise = self.observed, self.noise
         if outputs is not None:
             observed, noise = observed[:, list(outputs)], noise.take(outputs)
-        mask = observed.reshape(observed.shape + (1,) * (arr.ndim - 2))
-        return noise.whiten(np.where(mask, arr, 0.0), self.position)
+        if not observed.all():  # the whitening does not write into arr: no copy
+            mask = observed.reshape(observed.shape + (1,) * (arr.ndim - 2))
+            arr = np.where(mask, arr, 0.0)
+        return noise.whiten(arr, self.position)
 
     @property
     def num_rows(self) -> int:
