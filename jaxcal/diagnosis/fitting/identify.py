@@ -56,6 +56,7 @@ from jaxcal.diagnosis.fitting.screen import (
     spec_for,
     warm_from,
 )
+from jaxcal.diagnosis.kinds.linearization import Linearization
 from jaxcal.diagnosis.kinds.onsets import polish_onsets, refine_onsets
 from jaxcal.diagnosis.kinds.table import Candidate, nests
 from jaxcal.model import Model
@@ -170,7 +171,8 @@ class _Refits:
     fits: dict = dataclasses.field(default_factory=dict)  # entry name -> FitResult
     onset_ci: dict = dataclasses.field(default_factory=dict)  # name -> {step: [U, 2]}
     warm: dict = dataclasses.field(default_factory=dict)  # name -> an earlier fit
-    null_lin: object = None  # the screen's linearisation at null (Screen.null_lin)
+    # the screen's linearisation at null with every derivative (Screen.null_lin)
+    null_lin: Linearization | None = None
     slimmed: set = dataclasses.field(default_factory=set)  # fits already slim
 
     def _start(self, name: str, spec):
