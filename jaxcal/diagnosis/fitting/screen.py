@@ -140,13 +140,15 @@ class Screen:
         self.used = ev.used
         self.log_n = float(np.log(max(null.num_resid, 2)))
         self.library = list(library)
-        self._a_inv, self._d = [], []
-        for u in range(data.num_units):
-            sl = self._rows(u)
-            dm = self.decl[sl].reshape(-1, self.decl.shape[2])
-            a = dm.T @ dm + 1e-6 * np.eye(dm.shape[1])
-            self._a_inv.append(np.linalg.inv(a))
-            self._d.append(dm.T @ self.r[sl].reshape(-1))
+        # each unit's rows (outputs flattened) on one [U, rows * S, ...] layout, zero
+        # past its end: per-unit products are batched matrix products
+        self._cell = (data.unit, data.position)
+        self._width = int(np.diff(data.starts).max())
+        self._decl_u = self._by_unit(self.decl)
+        self._r_u = self._by_unit(self.r)[..., 0]
+        gram = self._decl_u.transpose(0, 2, 1) @ self._decl_u
+        self._a_inv = np.linalg.inv(gram + 1e-6 * np.eye(gram.shape[1]))
+        self._d = (self._decl_u.transpose(0, 2, 1) @ self._r_u[..., None])[..., 0]
         self._base = {}  # key -> whitened columns on every unit [N, S, k]
         # a static model's linearisation at null with every candidate's derivatives
         self.null_lin = None
@@ -196,23 +198,24 @@ class Screen:
         sig = signatures(self.model, self.data, ev.inputs, tangents, like=like)
         return self.data.whiten(np.where(self.used[:, :, None], sig.cols, 0.0))
 
+    def _by_unit(self, arr: np.ndarray) -> np.ndarray:
+        """``[N, S, ...]`` rows -> ``[U, width * S, k]``, zero past each unit's end."""
+        out = np.zeros((self.data.num_units, self._width) + arr.shape[1:])
+        out[self._cell] = arr
+        return out.reshape(self.data.num_units, self._width * arr.shape[1], -1)
+
     def project(self, cols: np.ndarray):
         """Per unit ``(M_u [U, q, q], s_u [U, q], raw_u [U, q, q])``: Gram and score
         of ``cols [N, S, q]`` after projecting out the declared columns, and the raw
         Gram."""
-        q = cols.shape[2]
-        m, s, raw = (np.zeros((self.data.num_units, q, q)),
-                     np.zeros((self.data.num_units, q)),
-                     np.zeros((self.data.num_units, q, q)))  # fmt: skip
-        for u in range(self.data.num_units):
-            sl = self._rows(u)
-            z = cols[sl].reshape(-1, q)
-            dm = self.decl[sl].reshape(-1, self.decl.shape[2])
-            b = dm.T @ z
-            raw[u] = z.T @ z
-            m[u] = raw[u] - b.T @ self._a_inv[u] @ b
-            s[u] = z.T @ self.r[sl].reshape(-1) - b.T @ self._a_inv[u] @ self._d[u]
-        return m, s, raw
+        z = self._by_unit(cols)
+        zt = z.transpose(0, 2, 1)
+        raw = zt @ z
+        b = self._decl_u.transpose(0, 2, 1) @ z  # [U, q0, q]
+        ab = self._a_inv @ b
+        m = raw - b.transpose(0, 2, 1) @ ab
+        s = zt @ self._r_u[..., None] - ab.transpose(0, 2, 1) @ self._d[..., None]
+        return m, s[..., 0], raw
 
     # --------------------------------------------------------------- scores
 
@@ -222,7 +225,7 @@ class Screen:
             return self._step(cand)[0]
         m, s, _ = self.project(self._base[cand.name])
         u = self.data.num_units
-        lr = np.array([s[i] @ np.linalg.pinv(m[i]) @ s[i] for i in range(u)])
+        lr = np.einsum("ui,ui->u", (s[:, None, :] @ np.linalg.pinv(m))[:, 0], s)
         with np.errstate(all="ignore"):
             est = np.where(m[:, 0, 0] > 0, s[:, 0] / m[:, 0, 0], np.nan)
             var = np.where(m[:, 0, 0] > 0, 1.0 / m[:, 0, 0], np.nan)
@@ -289,15 +292,16 @@ class Screen:
         m, s, _ = self.project(np.concatenate([ci, cj], axis=2))
         m_ii, m_ji, m_jj = m[:, :ki, :ki], m[:, ki:, :ki], m[:, ki:, ki:]
         if cand_i.per_unit:
-            coef = np.stack([np.linalg.pinv(m_ii[u]) @ s[u, :ki]
-                             for u in range(m.shape[0])])  # fmt: skip
+            coef = (np.linalg.pinv(m_ii) @ s[:, :ki, None])[..., 0]
         else:
             coef = np.linalg.pinv(m_ii.sum(0)) @ s[:, :ki].sum(0)
             coef = np.broadcast_to(coef, (m.shape[0], ki))
         energy = np.einsum("ui,uij,uj->", coef, m_ii, coef)
         v = np.einsum("uji,ui->uj", m_ji, coef)
         if cand_j.per_unit:
-            proj = sum(v[u] @ np.linalg.pinv(m_jj[u]) @ v[u] for u in range(m.shape[0]))
+            proj = float(
+                np.einsum("ui,ui->", (v[:, None, :] @ np.linalg.pinv(m_jj))[:, 0], v)
+            )
         else:
             vs = v.sum(0)
             proj = float(vs @ np.linalg.pinv(m_jj.sum(0)) @ vs)
@@ -319,53 +323,120 @@ class Screen:
         """Scan a step's onset in every unit (module docstring); cached."""
         if cand.name in self._steps:
             return self._steps[cand.name]
-        data = self.data
-        pos, first = data.position, data.starts[:-1]
         channel, idx = cand.kind.channel, channel_index(self.model, cand)
-        dynamic = self.model.is_stateful and not cand.kind.is_sensor
-        grid = self._grid(ONSET_GRID_DYNAMIC if dynamic else ONSET_GRID)
-        if dynamic:  # the step response through the states: one tangent per onset
-            tangents = [
-                Tangent(channel, idx, cand.scale * (pos >= grid[data.unit, g]))
-                for g in range(grid.shape[1])
-            ]
-            raw = self._raw(tangents)
+        if self.model.is_stateful and not cand.kind.is_sensor:
+            out = self._dynamic_step(cand, channel, idx)
         else:
-            raw = self._raw([Tangent(channel, idx, np.full(data.num_rows, cand.scale))])
+            raw = self._raw(
+                [Tangent(channel, idx, np.full(self.data.num_rows, cand.scale))]
+            )
+            out = self._static_step(raw[:, :, 0])
+        self._steps[cand.name] = out
+        return out
+
+    def _best(self, stat, grid, ss, mm):
+        """Per unit: the onset maximising ``stat [U, G]``, its estimate and interval."""
+        first = self.data.starts[:-1]
+        k = np.argmax(stat, axis=1)
+        at = np.arange(stat.shape[0])
+        lr = stat[at, k]
+        near = stat >= (lr - ONSET_CI)[:, None]
+        ci = np.stack([np.where(near, grid, np.iinfo(int).max).min(1),
+                       np.where(near, grid, -1).max(1)], 1)  # fmt: skip
+        with np.errstate(all="ignore"):
+            est, var = ss[at, k] / mm[at, k], 1.0 / mm[at, k]
+        return UnitScores(lr, est, var, first + grid[at, k], first[:, None] + ci), k
+
+    def _static_step(self, raw: np.ndarray):
+        """A step in a static model's input or an output, every unit and onset at
+        once. The step from ``t0`` of the raw column ``a`` is ``a 1[t >= t0]``; its
+        prewhitened rows are the whole column's ``W`` from ``t0 + p`` on (``p`` the
+        AR order), zero before ``t0``, and ``p`` transient rows between that see the
+        step's first rows alone. So each onset's products with the declared columns
+        and the residual are suffix sums of the rows' products plus ``p`` rows:
+        O(N) for all onsets, not O(N G). Every whitened entry has the bits of the
+        step whitened alone; only the sums' order differs."""
+        data, noise = self.data, self.data.noise
+        pos, first = data.position, data.starts[:-1]
+        grid = self._grid(ONSET_GRID)
+        lags = int(noise.order.max())
+        scale = noise.sigma * np.sqrt(noise.inflation)
+        white = noise.whiten(raw, pos)  # [N, S]
+        decl = self.decl  # [N, S, q]
+        # per row: sum over outputs of W^2, D^T W, r W; suffix sums within units
+        # on a [U, width] layout (zero past each unit's end)
+        width = int(np.diff(data.starts).max()) + lags + 2
+        cell = (data.unit, pos)
+        per_row = np.zeros((data.num_units, width, decl.shape[2] + 2))
+        per_row[cell + (0,)] = np.einsum("ts,ts->t", white, white)
+        per_row[cell + (1,)] = np.einsum("ts,ts->t", self.r, white)
+        per_row[cell + (slice(2, None),)] = np.einsum("tsq,ts->tq", decl, white)
+        suffix = np.cumsum(per_row[:, ::-1], axis=1)[:, ::-1]
+        at = np.arange(data.num_units)[:, None]
+        sums = suffix[at, grid + lags]  # [U, G, 2 + q]
+        # the transient rows t0 + j, j < p: the filter over the step's rows alone
+        table = noise.filter_table(np.arange(width))  # [width, S, MAX_ORDER + 1]
+        length = np.diff(data.starts)
+        for j in range(lags):
+            t = grid + j  # [U, G] positions
+            inside = t < length[:, None]
+            row = np.where(inside, first[:, None] + t, 0)
+            z = table[t, :, 0] * raw[row]
+            for k in range(1, j + 1):
+                z = z + table[t, :, k] * raw[row - k]
+            z = np.where(inside[:, :, None], z / scale, 0.0)  # [U, G, S]
+            sums[:, :, 0] += np.einsum("ugs,ugs->ug", z, z)
+            sums[:, :, 1] += np.einsum("ugs,ugs->ug", self.r[row], z)
+            sums[:, :, 2:] += np.einsum("ugsq,ugs->ugq", decl[row], z)
+        a_inv = self._a_inv
+        b = sums[:, :, 2:]
+        mm = sums[:, :, 0] - np.einsum("ugi,uij,ugj->ug", b, a_inv, b)
+        ss = sums[:, :, 1] - np.einsum("ugi,uij,uj->ug", b, a_inv, self._d)
+        with np.errstate(all="ignore"):
+            stat = np.where(mm > _RIDGE, ss**2 / mm, 0.0)
+        scores, k = self._best(stat, grid, ss, mm)
+        onset = grid[np.arange(data.num_units), k][data.unit]  # per row
+        best = np.where((pos >= onset + lags)[:, None], white, 0.0)
+        for j in range(lags):  # the transient rows of the best onset
+            t = onset + j
+            rows = np.flatnonzero(pos == t)
+            z = table[t[rows], :, 0] * raw[rows]
+            for k_ in range(1, j + 1):
+                z = z + table[t[rows], :, k_] * raw[rows - k_]
+            best[rows] = z / scale
+        return scores, best[:, :, None]
+
+    def _dynamic_step(self, cand: Candidate, channel, idx):
+        """A parameter step through a model's states: one tangent per onset, each
+        unit's onsets whitened and projected together."""
+        data = self.data
+        pos = data.position
+        grid = self._grid(ONSET_GRID_DYNAMIC)
+        tangents = [
+            Tangent(channel, idx, cand.scale * (pos >= grid[data.unit, g]))
+            for g in range(grid.shape[1])
+        ]
+        raw = self._raw(tangents)
         num_u = data.num_units
-        lr = np.zeros(num_u)
-        est, var = np.full(num_u, np.nan), np.full(num_u, np.nan)
-        onset, ci = np.full(num_u, -1), np.full((num_u, 2), -1)
+        mm, ss = np.zeros((num_u, grid.shape[1])), np.zeros((num_u, grid.shape[1]))
         best_cols = np.zeros(data.x.shape + (1,))
         for u in range(num_u):
             sl = self._rows(u)
             p = pos[sl]
-            if dynamic:
-                steps = raw[sl]  # [n, S, G]
-            else:
-                on = p[:, None] >= grid[u][None, :]  # [n, G]
-                steps = raw[sl, :, :1] * on[:, None, :]
-            white = self.data.noise.whiten(
-                np.where(self.used[sl][:, :, None], steps, 0.0), p - p[0]
-            )
+            white = data.noise.whiten(raw[sl], p - p[0])
             n, s_dim, g = white.shape
             z = white.reshape(n * s_dim, g)
             dm = self.decl[sl].reshape(-1, self.decl.shape[2])
             b = dm.T @ z
-            mm = np.sum(z * z, 0) - np.einsum("ig,ij,jg->g", b, self._a_inv[u], b)
-            ss = z.T @ self.r[sl].reshape(-1) - b.T @ self._a_inv[u] @ self._d[u]
+            mm[u] = np.sum(z * z, 0) - np.einsum("ig,ij,jg->g", b, self._a_inv[u], b)
+            ss[u] = z.T @ self.r[sl].reshape(-1) - b.T @ self._a_inv[u] @ self._d[u]
             with np.errstate(all="ignore"):
-                stat = np.where(mm > _RIDGE, ss**2 / mm, 0.0)
-            k = int(np.argmax(stat))
-            lr[u] = stat[k]
-            est[u], var[u] = ss[k] / mm[k], 1.0 / mm[k]
-            onset[u] = first[u] + grid[u, k]
-            near = grid[u][stat >= stat[k] - ONSET_CI]
-            ci[u] = first[u] + np.array([near.min(), near.max()])
-            best_cols[sl, :, 0] = white[:, :, k]
-        out = (UnitScores(lr, est, var, onset, ci), best_cols)
-        self._steps[cand.name] = out
-        return out
+                stat = np.where(mm[u] > _RIDGE, ss[u] ** 2 / mm[u], 0.0)
+            best_cols[sl, :, 0] = white[:, :, int(np.argmax(stat))]
+        with np.errstate(all="ignore"):
+            stat = np.where(mm > _RIDGE, ss**2 / mm, 0.0)
+        scores, _ = self._best(stat, grid, ss, mm)
+        return scores, best_cols
 
     def _raw(self, tangents) -> np.ndarray:
         """Signatures ``[N, S, q]`` (not whitened) along ``tangents`` at the null."""
