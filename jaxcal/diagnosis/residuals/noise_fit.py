@@ -24,7 +24,7 @@ Estimation (:func:`fit_noise`):
 from __future__ import annotations
 
 import numpy as np
-from statsmodels.tsa.arima_process import arma_acf
+from scipy.linalg import solve_banded
 from statsmodels.tsa.stattools import levinson_durbin
 
 from jaxcal.diagnosis.residuals.noise import (
@@ -37,6 +37,7 @@ from jaxcal.diagnosis.residuals.noise import (
 
 HAC_ALPHA = 0.01  # a whitened residual failing Ljung–Box at this level is inflated
 CORRECTION_ROUNDS = 4  # fixed-point steps of the fit's absorption correction
+BIAS_ROWS = 8192  # rows of units taken together by projection_bias (memory)
 
 
 def detrend(resid: np.ndarray, data) -> np.ndarray:
@@ -151,41 +152,62 @@ def projection_bias(
     """
     n, num_s = cols.shape[0], cols.shape[1]
     pos = positions(data.starts, n)
+    lengths = np.diff(data.starts)
     out = np.zeros((num_s, max_lag + 1))
     eye = np.eye(num_s)
-    for u in range(data.num_units):
-        sl = slice(data.starts[u], data.starts[u + 1])
-        m = sl.stop - sl.start
-        p_u = pos[sl] - pos[sl][0]
+    coloured = np.flatnonzero(noise.order > 0)
+    # units in groups of about BIAS_ROWS rows, each on a [units, rows, S, q] layout
+    # (zero past each unit's end, so no product pairs rows of two units)
+    group = np.cumsum(lengths) // BIAS_ROWS
+    for g in np.unique(group):
+        units = np.flatnonzero(group == g)
+        a, b = data.starts[units[0]], data.starts[units[-1] + 1]
+        tau = data.tau[a:b, None, None]
         trend = np.concatenate(
-            [eye[None] * np.ones((m, 1, 1)), eye[None] * data.tau[sl, None, None]], 2
-        )  # [m, S, 2S]: each output's intercept and slope in time
-        d = np.concatenate([cols[sl], trend], axis=2)  # [m, S, q]
-        vd = fit.whiten_transpose(fit.whiten(d, p_u), p_u)  # V D
-        lag = None
-        c = np.empty_like(d)
-        for s in range(num_s):  # C_s = Sigma_s V_s D_s (Toeplitz AR covariance)
-            acf = arma_acf(np.r_[1.0, -noise.ar[s, : noise.order[s]]], [1.0], m)
-            if not acf[1:].any():  # white: Sigma_s = sigma^2 I, the product's bits
-                c[:, s] = (noise.sigma[s] ** 2 * acf[0]) * vd[:, s]
-                continue
-            if lag is None:
-                lag = np.abs(np.subtract.outer(np.arange(m), np.arange(m)))
-            c[:, s] = (noise.sigma[s] ** 2 * acf[lag]) @ vd[:, s]
-        a_inv = np.linalg.pinv(np.einsum("tsi,tsj->ij", d, vd))
-        g = np.einsum("tsi,tsj->ij", vd, c)
-        agai = a_inv @ g @ a_inv
+            [np.broadcast_to(eye, (b - a,) + eye.shape), eye * tau], 2
+        )
+        rows = np.concatenate([cols[a:b], trend], axis=2)  # [n, S, q]
+        vrows = fit.whiten_transpose(fit.whiten(rows, pos[a:b]), pos[a:b])  # V D
+        m = int(lengths[units].max())
+        cell = (np.repeat(np.arange(units.size), lengths[units]), pos[a:b])
+        d = np.zeros((units.size, m) + rows.shape[1:])
+        vd = np.zeros_like(d)
+        d[cell], vd[cell] = rows, vrows
+        # C_s = Sigma_s V_s D_s, Sigma_s = sigma_s^2 R_s with R_s = L_s^-1 L_s^-T (L_s
+        # the AR whitening of the noise's colour, lower triangular with p bands: its
+        # rows depend on the position alone, so one m x m band serves every unit of
+        # the group; zero rows past a unit's end stay zero)
+        c = vd * (noise.sigma**2)[:, None]
+        inside = np.arange(m) < lengths[units][:, None]  # not past the unit's end
+        table = noise.filter_table(np.arange(m))  # [m, S, MAX_ORDER + 1]
+        for s in coloured:
+            p = int(noise.order[s])
+            lower = np.zeros((p + 1, m))  # L[j + k, j] at [k, j]
+            upper = np.zeros((p + 1, m))  # L^T[j - k, j] = L[j, j - k] at [p - k, j]
+            for k in range(p + 1):
+                lower[k, : m - k] = table[k:, s, k]
+                upper[p - k] = table[:, s, k]
+            rhs = vd[:, :, s].transpose(1, 0, 2).reshape(m, -1)
+            half = solve_banded((0, p), upper, rhs, check_finite=False)
+            full = solve_banded((p, 0), lower, half, check_finite=False)
+            full = full.reshape(m, units.size, -1).transpose(1, 0, 2)
+            c[:, :, s] = noise.sigma[s] ** 2 * full * inside[:, :, None]
+        flat = (units.size, -1, d.shape[3])  # batched BLAS: [u, t s, q]
+        dt = d.reshape(flat).transpose(0, 2, 1)
+        a_inv = np.linalg.pinv(dt @ vd.reshape(flat))
+        agai = a_inv @ (vd.reshape(flat).transpose(0, 2, 1) @ c.reshape(flat)) @ a_inv
         # tr(A^-1 G A^-1 sym(D_s^T J D_s)) and tr(A^-1 C_s^T J D_s) as sums over the
         # lag's row pairs of d_{t+k} . (d_t M): O(m S q) a lag, not O(m S q^2)
-        d_agai, d_ainv = d @ agai, d @ a_inv
+        d_agai = (d.reshape(flat) @ agai).reshape(d.shape)
+        d_ainv = (d.reshape(flat) @ a_inv).reshape(d.shape)
         for k in range(min(max_lag, m - 1) + 1):
             late, early = slice(k, m), slice(0, m - k)
             dd = 0.5 * (
-                np.sum(d[late] * d_agai[early], axis=(0, 2))
-                + np.sum(d[early] * d_agai[late], axis=(0, 2))
+                np.einsum("utsi,utsi->s", d[:, late], d_agai[:, early])
+                + np.einsum("utsi,utsi->s", d[:, early], d_agai[:, late])
             )
-            cd = np.sum(c[late] * d_ainv[early], axis=(0, 2)) + np.sum(
-                c[early] * d_ainv[late], axis=(0, 2)
+            cd = np.einsum("utsi,utsi->s", c[:, late], d_ainv[:, early]) + np.einsum(
+                "utsi,utsi->s", c[:, early], d_ainv[:, late]
             )
             out[:, k] += dd - cd
     return out / np.maximum(pair_counts(data.starts, max_lag), 1)
