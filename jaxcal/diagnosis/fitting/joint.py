@@ -142,7 +142,11 @@ def evaluate_model(
     ssr = float(np.sum(white**2))
     if valid is not None and np.any(valid & ~sig.ok):
         ssr = np.inf
-    cols = data.whiten(np.where(used[:, :, None], sig.cols, 0.0)) if columns else None
+    cols = None
+    if columns:  # the whitening writes a new array: no masked copy when all used
+        cols = data.whiten(
+            sig.cols if used.all() else np.where(used[..., None], sig.cols, 0.0)
+        )
     return Evaluation(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
         cols,

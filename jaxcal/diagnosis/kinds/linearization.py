@@ -123,15 +123,16 @@ class Linearization(NamedTuple):
         """The derivatives along every ``(channel, index)`` of ``keys`` are here."""
         return self.directions is None or set(keys) <= self.directions
 
-    def derivative(self, channel: str, index: int, slot: int) -> np.ndarray:
-        """``[N, E]`` derivative along ``(channel, index)`` (``slot``: its position in
-        the full array of its channel, the offset conditions' order for
-        ``condition``)."""
+    def derivatives(self, keys) -> np.ndarray:
+        """``[N, E, T]`` derivatives along ``keys``, each ``(channel, index, slot)``
+        (``slot``: its position in the full array of its channel, the offset
+        conditions' order for ``condition``)."""
         if self.directions is not None:
-            return self.jac[:, :, sorted(self.directions).index((channel, index))]
+            order = sorted(self.directions)
+            return np.take(self.jac, [order.index((c, i)) for c, i, _ in keys], axis=2)
         full = {"parameter": self.jac_theta, "effect": self.jac_effects,
-                "condition": self.jac_w}[channel]  # fmt: skip
-        return full[:, :, slot]
+                "condition": self.jac_w}  # fmt: skip
+        return np.stack([full[c][:, :, slot] for c, _, slot in keys], axis=2)
 
     def arrays(self) -> tuple:
         """The arrays held (shared read-only by every caller at this point)."""

@@ -111,17 +111,23 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None, cover=()) -> Sig
     gain = 1.0 + inputs.multiplicative[:, data.sensor_idx]
     y = x * gain + inputs.additive[:, data.sensor_idx]
     cols = np.zeros(x.shape + (len(tangents),))
+    on_lin, keys = [], []  # the columns read from the Jacobians, in one pass
     for t, tan in enumerate(tangents):
-        prof = np.asarray(tan.profile, np.float64)[:, None]
         if tan.channel in ("parameter", "effect"):
-            jac = lin.derivative(tan.channel, int(tan.index), tan.index)
-            cols[:, :, t] = prof * jac * gain
+            on_lin.append(t)
+            keys.append((tan.channel, int(tan.index), tan.index))
         elif tan.channel == "condition":
+            on_lin.append(t)
             k = offset_names.index(model.condition_names[tan.index])
-            jac = lin.derivative(tan.channel, int(tan.index), k)
-            cols[:, :, t] = prof * jac * gain
+            keys.append((tan.channel, int(tan.index), k))
         else:
             _layer_column(cols, t, tan, data, x)
+    if on_lin:
+        jac = lin.derivatives(keys)  # profile x derivative x gain, in that order
+        jac *= np.stack([np.asarray(tangents[t].profile, np.float64) for t in on_lin],
+                        1)[:, None, :]  # fmt: skip
+        jac *= gain[:, :, None]
+        cols[:, :, on_lin] = jac
     return Signatures(y, x, lin.ok, cols, lin)
 
 
