@@ -104,10 +104,11 @@ def test_delta_alone_winning_adds_no_library_effect(monkeypatch):
     assert "parameter[fan_eff_mod]" in note
 
 
-def test_cross_validation_over_strengths_is_each_strength_alone_to_the_bit():
-    """A fold's products are computed once for every ridge strength: each row of the
-    CV error is the per-strength ridge fit's, recomputed from the rows, to the bit
-    (one shared design, and whitened per-output designs)."""
+def test_cross_validation_from_fold_products_is_each_fit_from_its_rows():
+    """Each fold's products are computed once, a fold's training products summed from
+    the other folds', for every ridge strength: each row of the CV error is the
+    per-strength ridge fit's recomputed from the training rows, to rounding (one
+    shared design, and whitened per-output designs)."""
     from jaxcal.diagnosis.fitting.discrepancy import _cv_sse, _designs, _folds, _ridge
 
     rng = np.random.default_rng(7)
@@ -133,7 +134,7 @@ def test_cross_validation_over_strengths_is_each_strength_alone_to_the_bit():
                     coef, _ = _ridge(phi[train], yw[train][:, cols], r, with_df=False)
                     err = yw[test][:, cols] - phi[test] @ coef
                     want[cols] += np.sum(err**2, axis=0)
-            assert np.array_equal(got[i], want)
+            np.testing.assert_allclose(got[i], want, rtol=1e-10)
 
 
 def test_an_outputs_cross_validation_whitens_that_output_alone(monkeypatch):

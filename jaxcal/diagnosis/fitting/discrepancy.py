@@ -98,10 +98,13 @@ def _monomials(z: np.ndarray, degree: int) -> np.ndarray:
 def _ridge(phi, y, ridge, *, with_df: bool = True, products=None):
     """Ridge solution (intercept unpenalised) for all columns of ``y`` and its df
     (``None`` without ``with_df``: cross-validation needs only the solution).
-    ``products``: ``(phi^T phi, phi^T y)`` when already computed (they do not depend
-    on the strength, so a cross-validation fold computes them once for all)."""
-    gram0, rhs = (phi.T @ phi, phi.T @ y) if products is None else products
-    pen = ridge * phi.shape[0] * np.eye(phi.shape[1])
+    ``products``: ``(phi^T phi, phi^T y, rows)`` when already computed (they do not
+    depend on the strength, so a cross-validation fold computes them once for all;
+    ``phi`` is then not read)."""
+    gram0, rhs, rows = (
+        (phi.T @ phi, phi.T @ y, phi.shape[0]) if products is None else products
+    )
+    pen = ridge * rows * np.eye(gram0.shape[0])
     pen[0, 0] = 0.0
     gram_inv = np.linalg.pinv(gram0 + pen, hermitian=True)
     df = float(np.sum(gram_inv * gram0)) if with_df else None
@@ -125,17 +128,20 @@ def _cv_sse(z, y, folds, degree, ridges, whiten=None, designs=None) -> np.ndarra
     sse = np.zeros((len(ridges), y.shape[1]))
     design = designs if designs is not None else _designs(z, degree, y.shape[1], whiten)
     yw = y if whiten is None else whiten(y)
-    for f in np.unique(folds):
-        train, test = folds != f, folds == f
-        yw_train, yw_test = yw[train], yw[test]
-        for s, phi in design:
-            cols = slice(None) if s is None else [s]
-            phi_train, phi_test, y_train = phi[train], phi[test], yw_train[:, cols]
-            products = (phi_train.T @ phi_train, phi_train.T @ y_train)
+    masks = [folds == f for f in np.unique(folds)]
+    for s, phi in design:
+        cols = slice(None) if s is None else [s]
+        # each fold's rows and products once; a fold's training products are the
+        # sum of the other folds' (not a copy of every other row per fold)
+        parts = [(phi[m], yw[m][:, cols]) for m in masks]
+        prods = [(p.T @ p, p.T @ t) for p, t in parts]
+        for f, (phi_test, y_test) in enumerate(parts):
+            others = [prods[g] for g in range(len(parts)) if g != f]
+            products = (sum(g for g, _ in others), sum(r for _, r in others),
+                        phi.shape[0] - phi_test.shape[0])  # fmt: skip
             for i, ridge in enumerate(ridges):
-                coef, _ = _ridge(phi_train, y_train, ridge, with_df=False,
-                                 products=products)  # fmt: skip
-                err = yw_test[:, cols] - phi_test @ coef
+                coef, _ = _ridge(None, None, ridge, with_df=False, products=products)
+                err = y_test - phi_test @ coef
                 sse[i, cols] += np.sum(err**2, axis=0)
     return sse
 
