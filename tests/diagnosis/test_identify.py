@@ -202,7 +202,7 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
 
     def counted(self):
         losers(self)
-        whole.append(sum(f.evaluation.cols is not None for f in self.fits.values()))
+        whole.append(sum(f.evaluation.white is not None for f in self.fits.values()))
 
     monkeypatch.setattr(ident_mod._Refits, "_slim_losers", counted)
     eager = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null)
@@ -212,7 +212,7 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
     assert eager.winner.name == late.winner.name == "sensor_bias[Ps30]"
     assert [e.bic for e in eager.ranking] == [e.bic for e in late.ranking]
     assert eager.winner_fit.ssr == late.winner_fit.ssr
-    assert eager.winner_fit.evaluation.cols is not None
+    assert eager.winner_fit.evaluation.white is not None  # whole, not slimmed
     assert set(eager.fits) == set(late.fits)
     warm = dict(late.fits)  # a next noise pass hands the fits over ...
     again = ident_mod.identify(
@@ -224,3 +224,30 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
         np.testing.assert_array_equal(
             fit.evaluation.resid, late.fits[name].evaluation.resid
         )
+
+
+def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
+    engine, synthetic
+):
+    """A fit keeps its prewhitened columns only while it runs (a fleet's rows times
+    its columns); read afterwards, they are made again from its raw signatures with
+    the prewhitening they were made with, to the bit."""
+    from jaxcal.diagnosis.data.prepare import prepare_data
+    from jaxcal.diagnosis.fitting.joint import columns_of, evaluate_model, fit_model
+    from jaxcal.diagnosis.fitting.screen import spec_for
+    from jaxcal.diagnosis.residuals.noise import MAX_ORDER, NoiseModel
+
+    syn = synthetic("sensor_bias", 0, "Ps30")
+    data = prepare_data(syn.data, engine, noise_std=syn.noise_std)
+    num_s = data.num_sensors
+    ar = np.zeros((num_s, MAX_ORDER))
+    ar[:, 0] = 0.5  # coloured: the whitening reads each unit's rows
+    noise = NoiseModel(data.noise.sigma, ar, np.ones(num_s, int), np.ones(num_s),
+                       "given", data.noise.whiteness_p)  # fmt: skip
+    data = data.with_noise(noise)
+    fit = fit_model(engine, data, spec_for(DECLARED, []))
+    assert fit.evaluation.cols is None
+    again = evaluate_model(engine, data, fit.layout, fit.params)
+    remade = columns_of(fit.evaluation)
+    assert remade.shape == again.cols.shape and np.abs(remade).max() > 0
+    np.testing.assert_array_equal(remade, again.cols)

@@ -29,7 +29,7 @@ of any subset of columns at once (:mod:`jaxcal.diagnosis.fitting.screen`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -83,7 +83,10 @@ class Evaluation(NamedTuple):
     theta: np.ndarray  # [N, P_all] model parameters used
     inputs: RowInputs
     sig: Signatures
-    cols: np.ndarray | None  # [N, S, L + G] prewhitened signatures (or None)
+    # [N, S, L + G] prewhitened signatures, or None: not taken, or released once a
+    # fit is done (:func:`columns` makes them again from ``sig.cols``)
+    cols: np.ndarray | None
+    whiten: Callable | None = None  # the prewhitening ``cols`` were made with
 
 
 class FitResult(NamedTuple):
@@ -142,15 +145,22 @@ def evaluate_model(
     ssr = float(np.sum(white**2))
     if valid is not None and np.any(valid & ~sig.ok):
         ssr = np.inf
-    cols = None
-    if columns:  # the whitening writes a new array: no masked copy when all used
-        cols = data.whiten(
-            sig.cols if used.all() else np.where(used[..., None], sig.cols, 0.0)
-        )
-    return Evaluation(
+    ev = Evaluation(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
-        cols,
+        None, data.whiten if columns else None,
     )  # fmt: skip
+    return ev._replace(cols=columns_of(ev)) if columns else ev
+
+
+def columns_of(ev: Evaluation) -> np.ndarray | None:
+    """``ev``'s prewhitened signatures ``[N, S, L + G]``: kept, or made from its raw
+    ones with the prewhitening they were first made with (the same bits). A finished
+    fit releases them (:func:`fit_model`): a fleet's rows times its columns each, read
+    again by a few verdicts only."""
+    if ev.cols is not None or ev.whiten is None:
+        return ev.cols
+    raw = ev.sig.cols  # the whitening writes a new array: no masked copy when all used
+    return ev.whiten(raw if ev.used.all() else np.where(ev.used[..., None], raw, 0.0))
 
 
 def resume_at(
@@ -397,6 +407,8 @@ def fit_model(
         elif damping > _GIVE_UP:
             break
     cov = _global_covariance(stats, spec, local_idx, global_idx)
+    if ev.whiten is not None:  # released: columns_of makes them again when read
+        ev = ev._replace(cols=None)
     return FitResult(
         spec, params, ev, lay, ev.ssr, num_params(data, spec, model),
         int(ev.used.sum()), selection_penalty(data, spec), cov, it, converged,

@@ -36,7 +36,12 @@ import numpy as np
 from scipy.special import gammaln
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, GramStats, schur_solve
+from jaxcal.diagnosis.fitting.joint import (
+    FitResult,
+    GramStats,
+    columns_of,
+    schur_solve,
+)
 from jaxcal.diagnosis.kinds.onsets import ONSET_CI
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
@@ -136,7 +141,7 @@ class Screen:
         self.model, self.data, self.null = model, data, null
         ev = null.evaluation
         self.r = ev.white
-        self.decl = ev.cols[:, :, : null.layout.num_local]
+        self.decl = columns_of(ev)[:, :, : null.layout.num_local]
         self.used = ev.used
         self.log_n = float(np.log(max(null.num_resid, 2)))
         self.library = list(library)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, evaluate_model
+from jaxcal.diagnosis.fitting.joint import FitResult, columns_of, evaluate_model
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
 from jaxcal.diagnosis.kinds.terms import channel_index, layout
@@ -83,12 +83,13 @@ def refine_onsets(
         starts[u] = cand_rows
     z_all = _step_columns(model, data, fit, cand, starts)
     coef = fit.params.unit_coef[:, own]
+    cols = columns_of(ev)
     onsets, ci = list(cand.onsets), np.full((data.num_units, 2), -1)
     for i, u in enumerate(cand.carriers):
         sl = slice(data.starts[u], data.starts[u + 1])
         # the partial residual: the step's fitted contribution given back
-        r = (ev.white[sl] + coef[u] * ev.cols[sl, :, own]).reshape(-1)
-        d = ev.cols[sl][:, :, others].reshape(-1, len(others))
+        r = (ev.white[sl] + coef[u] * cols[sl, :, own]).reshape(-1)
+        d = cols[sl][:, :, others].reshape(-1, len(others))
         z = z_all[sl].reshape(-1, offsets.size)
         a_inv = np.linalg.pinv(d.T @ d + _RIDGE * np.eye(len(others)))
         b = d.T @ z

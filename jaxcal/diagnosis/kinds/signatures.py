@@ -110,7 +110,6 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None, cover=()) -> Sig
     x = lin.x
     gain = 1.0 + inputs.multiplicative[:, data.sensor_idx]
     y = x * gain + inputs.additive[:, data.sensor_idx]
-    cols = np.zeros(x.shape + (len(tangents),))
     on_lin, keys = [], []  # the columns read from the Jacobians, in one pass
     for t, tan in enumerate(tangents):
         if tan.channel in ("parameter", "effect"):
@@ -120,14 +119,19 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None, cover=()) -> Sig
             on_lin.append(t)
             k = offset_names.index(model.condition_names[tan.index])
             keys.append((tan.channel, int(tan.index), k))
-        else:
-            _layer_column(cols, t, tan, data, x)
     if on_lin:
         jac = lin.derivatives(keys)  # profile x derivative x gain, in that order
         jac *= np.stack([np.asarray(tangents[t].profile, np.float64) for t in on_lin],
                         1)[:, None, :]  # fmt: skip
         jac *= gain[:, :, None]
+        if len(on_lin) == len(tangents):  # every column: no copy into zeros
+            return Signatures(y, x, lin.ok, jac, lin)
+    cols = np.zeros(x.shape + (len(tangents),))
+    if on_lin:
         cols[:, :, on_lin] = jac
+    for t, tan in enumerate(tangents):
+        if t not in on_lin:
+            _layer_column(cols, t, tan, data, x)
     return Signatures(y, x, lin.ok, cols, lin)
 
 

@@ -42,7 +42,7 @@ import numpy as np
 from scipy import stats as sps
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import RIDGE, FitResult, gram_stats
+from jaxcal.diagnosis.fitting.joint import RIDGE, FitResult, columns_of, gram_stats
 from jaxcal.diagnosis.kinds.signatures import Tangent, signatures
 from jaxcal.diagnosis.kinds.table import Candidate
 from jaxcal.diagnosis.kinds.terms import term_profile
@@ -93,7 +93,7 @@ def _unit_stats(data: LoopData, fit: FitResult, cols=None):
     """Gram blocks at the fit (of ``cols`` when given) and each unit's residual
     variance factor (>= 1)."""
     ev = fit.evaluation
-    cols = ev.cols if cols is None else cols
+    cols = columns_of(ev) if cols is None else cols
     stats = gram_stats(data, ev.white, cols, fit.layout.num_local)
     ssr = np.add.reduceat(np.sum(ev.white**2, axis=1), data.starts[:-1])
     n_u = np.add.reduceat(ev.used.sum(1).astype(float), data.starts[:-1])
@@ -144,7 +144,7 @@ def _term_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
     others = np.ones(nl, bool)  # the unit's local columns but the term's own
     if block.local:
         others[block.columns] = False
-    cols = np.concatenate([ev.cols[:, :, :nl][:, :, others], col], axis=2)
+    cols = np.concatenate([columns_of(ev)[:, :, :nl][:, :, others], col], axis=2)
     k = int(others.sum())
     st = gram_stats(data, ev.white, cols, k + 1)
     # a unit on which the term has no signature (a step's non-carrier) gets a tiny
@@ -179,7 +179,7 @@ def _spline_per_unit(model, data, fit: FitResult, cand: Candidate, s2):
     others = np.ones(nl, bool)
     others[block.columns] = False
     k = prof.shape[1]
-    z = np.concatenate([ev.cols[:, :, :nl][:, :, others], cols], axis=2)
+    z = np.concatenate([columns_of(ev)[:, :, :nl][:, :, others], cols], axis=2)
     st = gram_stats(data, ev.white, z, z.shape[2])
     a_mat = st.gram + RIDGE * np.eye(z.shape[2])
     step = np.linalg.solve(a_mat, st.score[:, :, None])[:, -k:, 0]
