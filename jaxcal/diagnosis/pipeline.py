@@ -58,7 +58,7 @@ from jaxcal.diagnosis.data.prepare import LoopData, prepare_data
 from jaxcal.diagnosis.fitting.discrepancy import Discrepancy, DiscrepancyConfig
 from jaxcal.diagnosis.fitting.fallback import fallback
 from jaxcal.diagnosis.fitting.identify import Identification, IdentifyConfig, identify
-from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, raw_columns_of
 from jaxcal.diagnosis.fitting.ranking import effect_sizes
 from jaxcal.diagnosis.fitting.screen import init_from, spec_for
 from jaxcal.diagnosis.kinds.table import Candidate, build_library
@@ -209,7 +209,8 @@ def _fit_noise(data: LoopData, fit: FitResult, given, cfg: LoopConfig) -> LoopDa
     outputs dropped, with the reason)."""
     ev = fit.evaluation
     raw = np.where(ev.used, ev.resid * data.noise_std, 0.0)
-    cols = np.where(ev.used[:, :, None], ev.sig.cols[:, :, : fit.layout.num_local], 0)
+    local = raw_columns_of(ev)[:, :, : fit.layout.num_local]
+    cols = np.where(ev.used[:, :, None], local, 0)
     noise = fit_noise(raw, data, sigma=given, max_order=cfg.noise_order, cols=cols,
                       fit=data.noise)  # fmt: skip
     reasons = quantised(data, noise.sigma) if given is None else {}

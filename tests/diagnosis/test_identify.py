@@ -229,11 +229,17 @@ def test_a_screen_holds_two_whole_refits_at_most_and_identifies_the_same(
 def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
     engine, synthetic
 ):
-    """A fit keeps its prewhitened columns only while it runs (a fleet's rows times
-    its columns); read afterwards, they are made again from its raw signatures with
-    the prewhitening they were made with, to the bit."""
+    """A fit keeps its signature columns only while it runs (a fleet's rows times
+    its columns); read afterwards, a static model's raw ones are made again from its
+    Jacobians and the prewhitened ones with the prewhitening they were made with, to
+    the bit."""
     from jaxcal.diagnosis.data.prepare import prepare_data
-    from jaxcal.diagnosis.fitting.joint import columns_of, evaluate_model, fit_model
+    from jaxcal.diagnosis.fitting.joint import (
+        columns_of,
+        evaluate_model,
+        fit_model,
+        raw_columns_of,
+    )
     from jaxcal.diagnosis.fitting.screen import spec_for
     from jaxcal.diagnosis.residuals.noise import MAX_ORDER, NoiseModel
 
@@ -246,8 +252,10 @@ def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
                        "given", data.noise.whiteness_p)  # fmt: skip
     data = data.with_noise(noise)
     fit = fit_model(engine, data, spec_for(DECLARED, []))
-    assert fit.evaluation.cols is None
+    assert fit.evaluation.cols is None and fit.evaluation.sig.cols is None
     again = evaluate_model(engine, data, fit.layout, fit.params)
+    # the raw ones from the model's Jacobians at the fit's point (no evaluation)
+    np.testing.assert_array_equal(raw_columns_of(fit.evaluation), again.sig.cols)
     remade = columns_of(fit.evaluation)
     assert remade.shape == again.cols.shape and np.abs(remade).max() > 0
     np.testing.assert_array_equal(remade, again.cols)

@@ -57,7 +57,7 @@ from jaxcal.calibrators.front.outliers import (
     robust_scale,
 )
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, fit_model
+from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, raw_columns_of
 
 OUTLIER_ROUNDS = 4  # refits of the iterated rejection of wild readings
 NEIGHBOURS = 2  # rows on each side whose median a reading is compared with
@@ -86,9 +86,9 @@ def _sensitivity(data: LoopData, fit: FitResult, resid: np.ndarray) -> np.ndarra
     NaN where the residual is."""
     ev, lay = fit.evaluation, fit.layout
     blocks = [b for b in lay.blocks if b.role in ("declared", "state")]
-    if ev.sig is None or ev.sig.cols is None or not blocks:
+    cols = None if ev.sig is None or not blocks else raw_columns_of(ev)
+    if cols is None:  # local columns come first: a block's slice indexes them
         return np.zeros(resid.shape + (0,))
-    cols = ev.sig.cols  # local columns come first: a block's slice indexes them
     sens = np.stack([cols[:, :, b.columns].sum(axis=2) for b in blocks], axis=2)
     sens = sens / data.noise_std[:, None]
     return np.where(np.isfinite(resid)[:, :, None], sens, np.nan)

@@ -41,7 +41,12 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcal.diagnosis.data.prepare import LoopData
-from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, resume_at
+from jaxcal.diagnosis.fitting.joint import (
+    FitResult,
+    fit_model,
+    raw_columns_of,
+    resume_at,
+)
 from jaxcal.diagnosis.fitting.ranking import (
     RankEntry,
     effect_sizes,
@@ -236,10 +241,10 @@ def _slim(fit: FitResult) -> FitResult:
     and row inputs are a fleet's rows times their columns each; only its own fit
     and the winner's verdicts read them."""
     ev = fit.evaluation
-    local = np.array(ev.sig.cols[:, :, : fit.layout.num_local])  # not a view
+    local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # not a view
     sig = ev.sig._replace(y=None, x=None, cols=local)
     slim = ev._replace(yhat=None, white=None, theta=None, inputs=None, sig=sig,
-                       cols=None)  # fmt: skip
+                       cols=None, whiten=None, remake=None)  # fmt: skip
     return fit._replace(evaluation=slim)
 
 

@@ -29,6 +29,7 @@ of any subset of columns at once (:mod:`jaxcal.diagnosis.fitting.screen`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -84,9 +85,12 @@ class Evaluation(NamedTuple):
     inputs: RowInputs
     sig: Signatures
     # [N, S, L + G] prewhitened signatures, or None: not taken, or released once a
-    # fit is done (:func:`columns` makes them again from ``sig.cols``)
+    # fit is done (:func:`columns_of` makes them again)
     cols: np.ndarray | None
     whiten: Callable | None = None  # the prewhitening ``cols`` were made with
+    # a static model's raw signatures made again from its Jacobians (no model
+    # evaluation) once a finished fit has released ``sig.cols`` (:func:`raw_columns_of`)
+    remake: Callable | None = None
 
 
 class FitResult(NamedTuple):
@@ -145,11 +149,29 @@ def evaluate_model(
     ssr = float(np.sum(white**2))
     if valid is not None and np.any(valid & ~sig.ok):
         ssr = np.inf
+    remake = None
+    if columns and sig.lin is not None:  # the Jacobians alone: not these columns
+        remake = functools.partial(_remake, model, data, inputs, lay.tangents, sig.lin)
     ev = Evaluation(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
-        None, data.whiten if columns else None,
+        None, data.whiten if columns else None, remake,
     )  # fmt: skip
     return ev._replace(cols=columns_of(ev)) if columns else ev
+
+
+def _remake(model, data, inputs, tangents, lin) -> np.ndarray:
+    """A static model's raw signatures along ``tangents`` from its Jacobians ``lin``
+    (the same operations as when they were first made: the same bits)."""
+    return signatures(model, data, inputs, tangents, like=Signatures(None, None, None,
+                      None, lin)).cols  # fmt: skip
+
+
+def raw_columns_of(ev: Evaluation) -> np.ndarray | None:
+    """``ev``'s raw signatures ``sig.cols [N, S, L + G]``: kept, or made again from a
+    static model's Jacobians once a finished fit released them (:func:`fit_model`)."""
+    if ev.sig.cols is not None or ev.remake is None:
+        return ev.sig.cols
+    return ev.remake()
 
 
 def columns_of(ev: Evaluation) -> np.ndarray | None:
@@ -159,7 +181,7 @@ def columns_of(ev: Evaluation) -> np.ndarray | None:
     again by a few verdicts only."""
     if ev.cols is not None or ev.whiten is None:
         return ev.cols
-    raw = ev.sig.cols  # the whitening writes a new array: no masked copy when all used
+    raw = raw_columns_of(ev)  # whitening writes a new array: no masked copy if all used
     return ev.whiten(raw if ev.used.all() else np.where(ev.used[..., None], raw, 0.0))
 
 
@@ -409,6 +431,8 @@ def fit_model(
     cov = _global_covariance(stats, spec, local_idx, global_idx)
     if ev.whiten is not None:  # released: columns_of makes them again when read
         ev = ev._replace(cols=None)
+    if ev.remake is not None:  # and raw_columns_of the raw ones
+        ev = ev._replace(sig=ev.sig._replace(cols=None))
     return FitResult(
         spec, params, ev, lay, ev.ssr, num_params(data, spec, model),
         int(ev.used.sum()), selection_penalty(data, spec), cov, it, converged,
