@@ -52,6 +52,7 @@ from jaxcal.diagnosis.kinds.terms import (
     layout,
     term_profile,
 )
+from jaxcal.diagnosis.residuals.noise import by_unit
 from jaxcal.model import Model
 
 ONSET_GRID = 128  # onsets scanned per unit (every row of a shorter unit)
@@ -147,7 +148,6 @@ class Screen:
         self.library = list(library)
         # each unit's rows (outputs flattened) on one [U, rows * S, ...] layout, zero
         # past its end: per-unit products are batched matrix products
-        self._cell = (data.unit, data.position)
         self._width = int(np.diff(data.starts).max())
         self._decl_u = self._by_unit(self.decl)
         self._r_u = self._by_unit(self.r)[..., 0]
@@ -205,8 +205,7 @@ class Screen:
 
     def _by_unit(self, arr: np.ndarray) -> np.ndarray:
         """``[N, S, ...]`` rows -> ``[U, width * S, k]``, zero past each unit's end."""
-        out = np.zeros((self.data.num_units, self._width) + arr.shape[1:])
-        out[self._cell] = arr
+        out = by_unit(arr, self.data.starts, self._width)
         return out.reshape(self.data.num_units, self._width * arr.shape[1], -1)
 
     def project(self, cols: np.ndarray):
@@ -371,25 +370,29 @@ class Screen:
         # per row: sum over outputs of W^2, D^T W, r W; suffix sums within units
         # on a [U, width] layout (zero past each unit's end)
         width = int(np.diff(data.starts).max()) + lags + 2
-        cell = (data.unit, pos)
-        per_row = np.zeros((data.num_units, width, decl.shape[2] + 2))
-        per_row[cell + (0,)] = np.einsum("ts,ts->t", white, white)
-        per_row[cell + (1,)] = np.einsum("ts,ts->t", self.r, white)
-        per_row[cell + (slice(2, None),)] = np.einsum("tsq,ts->tq", decl, white)
-        suffix = np.cumsum(per_row[:, ::-1], axis=1)[:, ::-1]
+        per_row = np.concatenate([np.einsum("ts,ts->t", white, white)[:, None],
+                                  np.einsum("ts,ts->t", self.r, white)[:, None],
+                                  np.einsum("tsq,ts->tq", decl, white)], 1)  # fmt: skip
+        suffix = np.cumsum(by_unit(per_row, data.starts, width)[:, ::-1], 1)[:, ::-1]
         at = np.arange(data.num_units)[:, None]
         sums = suffix[at, grid + lags]  # [U, G, 2 + q]
         # the transient rows t0 + j, j < p: the filter over the step's rows alone
         table = noise.filter_table(np.arange(width))  # [width, S, MAX_ORDER + 1]
         length = np.diff(data.starts)
+
+        def transient(j, t, row):
+            """Row ``t0 + j`` (position ``t``, row ``row``) of the step from ``t0``
+            whitened: the filter over the step's rows alone."""
+            z = table[t, :, 0] * raw[row]
+            for k in range(1, j + 1):
+                z = z + table[t, :, k] * raw[row - k]
+            return z / scale
+
         for j in range(lags):
             t = grid + j  # [U, G] positions
             inside = t < length[:, None]
             row = np.where(inside, first[:, None] + t, 0)
-            z = table[t, :, 0] * raw[row]
-            for k in range(1, j + 1):
-                z = z + table[t, :, k] * raw[row - k]
-            z = np.where(inside[:, :, None], z / scale, 0.0)  # [U, G, S]
+            z = np.where(inside[:, :, None], transient(j, t, row), 0.0)  # [U, G, S]
             sums[:, :, 0] += np.einsum("ugs,ugs->ug", z, z)
             sums[:, :, 1] += np.einsum("ugs,ugs->ug", self.r[row], z)
             sums[:, :, 2:] += np.einsum("ugsq,ugs->ugq", decl[row], z)
@@ -403,12 +406,8 @@ class Screen:
         onset = grid[np.arange(data.num_units), k][data.unit]  # per row
         best = np.where((pos >= onset + lags)[:, None], white, 0.0)
         for j in range(lags):  # the transient rows of the best onset
-            t = onset + j
-            rows = np.flatnonzero(pos == t)
-            z = table[t[rows], :, 0] * raw[rows]
-            for k_ in range(1, j + 1):
-                z = z + table[t[rows], :, k_] * raw[rows - k_]
-            best[rows] = z / scale
+            rows = np.flatnonzero(pos == onset + j)
+            best[rows] = transient(j, pos[rows], rows)
         return scores, best[:, :, None]
 
     def _dynamic_step(self, cand: Candidate, channel, idx):

@@ -215,6 +215,17 @@ def positions(starts: np.ndarray, num_rows: int) -> np.ndarray:
     return np.arange(num_rows) - unit_start[:num_rows]
 
 
+def by_unit(arr: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """Rows ``[N, ...]`` of the units ``starts`` -> ``[U, width, ...]``, zero past each
+    unit's end (per-unit products as batched ones, no pair of rows across units)."""
+    lengths = np.diff(starts)
+    out = np.zeros((lengths.size, width) + arr.shape[1:])
+    out[
+        np.repeat(np.arange(lengths.size), lengths), positions(starts, arr.shape[0])
+    ] = arr
+    return out
+
+
 def ljung_box_p(e: np.ndarray, lags: int = WHITENESS_LAGS) -> np.ndarray:
     """``[S]`` Ljung–Box p-values of whitened residual columns ``e [N, S]``.
 

@@ -31,6 +31,7 @@ from jaxcal.diagnosis.residuals.noise import (
     MAX_ORDER,
     WHITENESS_LAGS,
     NoiseModel,
+    by_unit,
     ljung_box_p,
     positions,
 )
@@ -168,11 +169,8 @@ def projection_bias(
         )
         rows = np.concatenate([cols[a:b], trend], axis=2)  # [n, S, q]
         vrows = fit.whiten_transpose(fit.whiten(rows, pos[a:b]), pos[a:b])  # V D
-        m = int(lengths[units].max())
-        cell = (np.repeat(np.arange(units.size), lengths[units]), pos[a:b])
-        d = np.zeros((units.size, m) + rows.shape[1:])
-        vd = np.zeros_like(d)
-        d[cell], vd[cell] = rows, vrows
+        m, local = int(lengths[units].max()), data.starts[units[0] : units[-1] + 2] - a
+        d, vd = by_unit(rows, local, m), by_unit(vrows, local, m)
         # C_s = Sigma_s V_s D_s, Sigma_s = sigma_s^2 R_s with R_s = L_s^-1 L_s^-T (L_s
         # the AR whitening of the noise's colour, lower triangular with p bands: its
         # rows depend on the position alone, so one m x m band serves every unit of
