@@ -259,3 +259,52 @@ def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
     remade = columns_of(fit.evaluation)
     assert remade.shape == again.cols.shape and np.abs(remade).max() > 0
     np.testing.assert_array_equal(remade, again.cols)
+
+
+def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
+    engine, synthetic
+):
+    """A static model's screen forms a candidate's columns when read and keeps the
+    few read last; released before the refits, it makes them again (the declared
+    ones, the candidates', a step's at its best onsets) to the bit. The fallback's
+    rescreen, which no noise pass follows, keeps no columns of the fits it slims."""
+    import jaxcal.diagnosis.fitting.identify as ident_mod
+    from jaxcal.diagnosis.data.prepare import prepare_data
+    from jaxcal.diagnosis.fitting.joint import fit_model
+    from jaxcal.diagnosis.fitting.screen import COLUMNS_KEPT, Screen, spec_for
+    from jaxcal.diagnosis.pipeline import LoopConfig, _library
+
+    syn = synthetic("sensor_bias", 0, "Ps30")
+    cfg = LoopConfig()
+    data = prepare_data(syn.data, engine, noise_std=syn.noise_std)
+    null = fit_model(engine, data, spec_for(DECLARED, []))
+    library = _library(engine, data, DECLARED, cfg)
+    screen = Screen(engine, data, library, null)
+    smooth = [c for c in library if c.kind.profile != "step"]
+    steps = [c for c in library if c.kind.profile == "step"]
+    assert len(smooth) > COLUMNS_KEPT and steps
+    every = [c.with_form("units", range(data.num_units)) for c in smooth + steps[:2]]
+    before = []
+    for c in every:
+        before.append((screen.form_columns(c), screen.unit_scores(c).lr))
+        assert len(screen._base) <= COLUMNS_KEPT
+    decl = screen.decl.copy()
+    overlap = screen.overlap(every[0], every[-1])
+    screen.release()
+    assert screen._decl is None and not screen._base
+    assert all(cols is None for _, cols in screen._steps.values())
+    for c, (cols, lr) in zip(every, before, strict=True):
+        np.testing.assert_array_equal(screen.form_columns(c), cols)
+        np.testing.assert_array_equal(screen.unit_scores(c).lr, lr)
+    np.testing.assert_array_equal(screen.decl, decl)
+    assert screen.overlap(every[0], every[-1]) == overlap
+
+    kept = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null)
+    bare = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null,
+                              basis=False)  # fmt: skip
+    assert bare.winner.name == kept.winner.name
+    assert [e.bic for e in bare.ranking] == [e.bic for e in kept.ranking]
+    losers = [n for n in bare.fits if n != bare.winner.name]
+    assert losers
+    assert all(bare.fits[n].evaluation.sig.cols is None for n in losers)
+    assert all(kept.fits[n].evaluation.sig.cols is not None for n in losers)

@@ -29,7 +29,7 @@ def _screen(lengths, orders, seed=0, q=3):
     screen.data = data
     screen.used = rng.uniform(size=(n, s)) > 0.1
     screen.r = rng.normal(size=(n, s)) * screen.used
-    screen.decl = rng.normal(size=(n, s, q)) * screen.used[:, :, None]
+    screen._decl = rng.normal(size=(n, s, q)) * screen.used[:, :, None]
     screen._a_inv, screen._d = [], []
     for u in range(data.num_units):
         sl = slice(starts[u], starts[u + 1])

@@ -118,9 +118,9 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
     if not disc.any_significant:
         return best, None, None, ident, None, ""
     fit_d, offset, disc = _backfit(model, data, spec0, null, cfg)
-    rescreen = identify(
-        model, data, declared, library, cfg.identify, fit_d, offset=offset
-    )._replace(fits={})  # read by the noise passes alone (pipeline), done by now
+    # its fits are read by the noise passes alone, done by now: slimmed bare
+    rescreen = identify(model, data, declared, library, cfg.identify, fit_d,
+                        offset=offset, basis=False)._replace(fits={})  # fmt: skip
     options = [(_bic_with(fit_d, disc), fit_d, offset, disc, None)]
     for screen in (ident, rescreen):
         if screen.winner is not None:

@@ -179,6 +179,7 @@ class _Refits:
     # the screen's linearisation at null with every derivative (Screen.null_lin)
     null_lin: Linearization | None = None
     slimmed: set = dataclasses.field(default_factory=set)  # fits already slim
+    basis: bool = True  # a slimmed fit keeps what a noise refit reads (_slim)
 
     def _start(self, name: str, spec):
         """Where the refit of ``name`` starts: where its earlier fit ended, else at
@@ -228,20 +229,22 @@ class _Refits:
                 low = min(e.bic for e in group)
                 keep |= {e.name for e in group if e.bic == low}
         for name in set(self.fits) - keep - self.slimmed:
-            self.fits[name] = _slim(self.fits[name])
+            self.fits[name] = _slim(self.fits[name], self.basis)
             self.slimmed.add(name)
 
 
-def _slim(fit: FitResult) -> FitResult:
+def _slim(fit: FitResult, basis: bool = True) -> FitResult:
     """``fit`` with only what the noise model's refit on it reads
-    (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
-    signatures of the per-unit columns, and the model's linearisation at its
-    end point (its outputs and its own few derivatives: the next pass's refit
+    (:func:`.pipeline._noise_basis`; with ``basis``): the residual, the entries used
+    and the raw signatures of the per-unit columns, and the model's linearisation at
+    its end point (its outputs and its own few derivatives: the next pass's refit
     starts there, :meth:`_Refits._start`). The prewhitened columns, the outputs
     and row inputs are a fleet's rows times their columns each; only its own fit
     and the winner's verdicts read them."""
     ev = fit.evaluation
-    local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # not a view
+    local = None
+    if basis:
+        local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # no view
     sig = ev.sig._replace(y=None, x=None, cols=local)
     slim = ev._replace(yhat=None, white=None, theta=None, inputs=None, sig=sig,
                        cols=None, whiten=None, remake=None)  # fmt: skip
@@ -308,6 +311,7 @@ def identify(
     *,
     offset: np.ndarray | None = None,
     warm: dict | None = None,
+    basis: bool = True,
 ) -> Identification:
     """Rank the library against the residual of the declared-only fit ``null``.
 
@@ -322,6 +326,9 @@ def identify(
         warm: entry name -> an earlier fit of it (the last noise pass's
             ``fits``): its refit starts where that one ended. Consumed: each
             entry is removed from the dict as its refit starts.
+        basis: a fit the noise model may be refitted to is kept (``False``: no
+            noise pass follows, and a fit that is not the winner's keeps no
+            columns).
 
     Returns:
         :class:`Identification`.
@@ -337,9 +344,10 @@ def identify(
         lr = screen.joint(pair)[0]
         e = rank_entry(pair, lr, null, data, [np.nan] * 2, [np.nan] * 2, False, 1.0)
         entries[e.name] = e
+    screen.release()  # the refits read none of its columns
     refits = _Refits(model, data, declared, null, offset, cfg, entries,
                      warm={} if warm is None else warm,
-                     null_lin=screen.null_lin)  # fmt: skip
+                     null_lin=screen.null_lin, basis=basis)  # fmt: skip
     for e in singles[: cfg.top_k]:
         refits.refit(list(e.members))
     for pair in pairs:
@@ -362,7 +370,7 @@ def identify(
         onset_ci.update(refits.onset_ci.get(winner.name, {}))
     fits = {
         name: fit if (winner is not None and name == winner.name)
-        or name in refits.slimmed else _slim(fit)
+        or name in refits.slimmed else _slim(fit, basis)
         for name, fit in fits.items()
     }  # fmt: skip
     return Identification(

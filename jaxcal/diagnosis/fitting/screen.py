@@ -59,6 +59,9 @@ ONSET_GRID = 128  # onsets scanned per unit (every row of a shorter unit)
 # a step through a model's states costs one simulation per onset: a coarser grid
 ONSET_GRID_DYNAMIC = 48
 _RIDGE = 1e-9
+# a static model's candidate columns kept once made: a pair's, and the candidate an
+# overlap test compares with the rest (each a fleet's rows times its columns)
+COLUMNS_KEPT = 4
 
 
 class UnitScores(NamedTuple):
@@ -136,62 +139,95 @@ def warm_from(prev: FitResult, model: Model, data: LoopData, spec: ModelSpec):
 
 
 class Screen:
-    """Linearised scores of candidate sets at the declared-only fit ``null``."""
+    """Linearised scores of candidate sets at the declared-only fit ``null``.
+
+    The columns it scores (the declared ones, each candidate's, a step's at its best
+    onsets) are a fleet's rows times their columns each. A static model's are made
+    when read, from the linearisation at ``null`` that holds every candidate's
+    derivatives, and only the last few are kept; :meth:`release` drops them before
+    the refits (which need none) and a later read makes them again, the same bits.
+    """
 
     def __init__(self, model: Model, data: LoopData, library, null: FitResult):
         self.model, self.data, self.null = model, data, null
         ev = null.evaluation
         self.r = ev.white
-        self.decl = columns_of(ev)[:, :, : null.layout.num_local]
         self.used = ev.used
         self.log_n = float(np.log(max(null.num_resid, 2)))
         self.library = list(library)
         # each unit's rows (outputs flattened) on one [U, rows * S, ...] layout, zero
         # past its end: per-unit products are batched matrix products
         self._width = int(np.diff(data.starts).max())
-        self._decl_u = self._by_unit(self.decl)
+        self._decl, self._decl_u_cols = None, None  # made when read (.decl, ._decl_u)
         self._r_u = self._by_unit(self.r)[..., 0]
         gram = self._decl_u.transpose(0, 2, 1) @ self._decl_u
         self._a_inv = np.linalg.inv(gram + 1e-6 * np.eye(gram.shape[1]))
         self._d = (self._decl_u.transpose(0, 2, 1) @ self._r_u[..., None])[..., 0]
         self._base = {}  # key -> whitened columns on every unit [N, S, k]
+        self._every = {}  # key -> the smooth candidate on every unit
+        self._like = None  # a static model's evaluation at null, every derivative
         # a static model's linearisation at null with every candidate's derivatives
         self.null_lin = None
         smooth = [c.with_form("units", range(data.num_units))
                   for c in self.library if c.kind.profile != "step"]  # fmt: skip
         if smooth:
-            self._base = self._smooth_columns(smooth)
+            self._smooth_columns(smooth)
         self._steps = {}  # key -> (UnitScores, whitened column at the best onsets)
 
-    # ------------------------------------------------------------- helpers
+    @property
+    def decl(self) -> np.ndarray:
+        """The declared coefficients' prewhitened columns ``[N, S, q0]`` at null."""
+        if self._decl is None:
+            cols = columns_of(self.null.evaluation)
+            self._decl = cols[:, :, : self.null.layout.num_local]
+        return self._decl
+
+    @property
+    def _decl_u(self) -> np.ndarray:
+        """:attr:`decl` on the per-unit layout ``[U, width * S, q0]``."""
+        if self._decl_u_cols is None:
+            self._decl_u_cols = self._by_unit(self.decl)
+        return self._decl_u_cols
+
+    def release(self) -> None:
+        """Drop the columns a static model's screen can make again (the declared
+        ones, the candidates', the steps' at their onsets); the scores stay."""
+        if self.model.is_stateful:
+            return  # made by simulations: kept
+        self._decl, self._decl_u_cols, self._base = None, None, {}
+        self._steps = {k: (scores, None) for k, (scores, _) in self._steps.items()}
 
     def _rows(self, u: int) -> slice:
         return slice(self.data.starts[u], self.data.starts[u + 1])
 
-    def _smooth_columns(self, smooth: Sequence[Candidate]) -> dict:
-        """Whitened columns ``[N, S, k]`` of each candidate on every unit: views
-        into one array of them all (the layout the per-unit products are summed
-        in, to the last bit)."""
-        widths = [term_profile(self.data, c).shape[1] for c in smooth]
-        if self.model.is_stateful:  # one simulation along every tangent
-            cols = self._columns(smooth)
-        else:
-            # every derivative at once (one evaluation), the columns formed
-            # candidate by candidate (all at once: transient copies of the fleet's
-            # rows times every column)
-            every = layout(self.model, self.data, ModelSpec((), tuple(smooth)))
-            ev = self.null.evaluation
-            like = signatures(self.model, self.data, ev.inputs, (), like=ev.sig,
-                              cover=every.tangents)  # fmt: skip
-            self.null_lin = like.lin
-            cols = np.empty(self.data.x.shape + (sum(widths),))
-            start = 0
-            for cand, k in zip(smooth, widths, strict=True):
-                cols[:, :, start : start + k] = self._columns([cand], like=like)
-                start += k
-        ends = np.cumsum(widths)
-        return {c.name: cols[:, :, e - k : e]
-                for c, k, e in zip(smooth, widths, ends, strict=True)}  # fmt: skip
+    def _smooth_columns(self, smooth: Sequence[Candidate]) -> None:
+        """Prepare each smooth candidate's whitened columns ``[N, S, k]`` on every
+        unit: a model with memory's all at once (one simulation along every tangent,
+        kept), a static model's from one evaluation with every derivative, each
+        candidate's formed when read (:meth:`_smooth`)."""
+        self._every = {c.name: c for c in smooth}
+        if self.model.is_stateful:
+            widths = [term_profile(self.data, c).shape[1] for c in smooth]
+            cols, ends = self._columns(smooth), np.cumsum(widths)
+            for c, k, e in zip(smooth, widths, ends, strict=True):
+                self._base[c.name] = cols[:, :, e - k : e]
+            return
+        every = layout(self.model, self.data, ModelSpec((), tuple(smooth)))
+        ev = self.null.evaluation
+        self._like = signatures(self.model, self.data, ev.inputs, (), like=ev.sig,
+                                cover=every.tangents)  # fmt: skip
+        self.null_lin = self._like.lin
+
+    def _smooth(self, cand: Candidate) -> np.ndarray:
+        """A smooth candidate's whitened columns on every unit; a static model keeps
+        the :data:`COLUMNS_KEPT` read last (a model with memory: every one)."""
+        cols = self._base.pop(cand.name, None)  # read: the newest again
+        if cols is None:
+            cols = self._columns([self._every[cand.name]], like=self._like)
+            if len(self._base) >= COLUMNS_KEPT:
+                self._base.pop(next(iter(self._base)))  # the least recently read
+        self._base[cand.name] = cols
+        return cols
 
     def _columns(self, members: Sequence[Candidate], *, like=None) -> np.ndarray:
         """Prewhitened signatures ``[N, S, q]`` of the members' coefficients at the
@@ -227,7 +263,7 @@ class Screen:
         """Per-unit statistics of ``cand`` (a step: scanned over onsets)."""
         if cand.kind.profile == "step":
             return self._step(cand)[0]
-        m, s, _ = self.project(self._base[cand.name])
+        m, s, _ = self.project(self._smooth(cand))
         u = self.data.num_units
         lr = np.einsum("ui,ui->u", (s[:, None, :] @ np.linalg.pinv(m))[:, 0], s)
         with np.errstate(all="ignore"):
@@ -238,7 +274,7 @@ class Screen:
 
     def fleet_score(self, cand: Candidate) -> tuple[float, float, float]:
         """``(LR, coefficient, variance)`` of ``cand`` in the fleet form."""
-        m, s, _ = self.project(self._base[cand.name])
+        m, s, _ = self.project(self._smooth(cand))
         mm, ss = float(m[:, 0, 0].sum()), float(s[:, 0].sum())
         if mm <= 0:
             return 0.0, np.nan, np.nan
@@ -262,7 +298,7 @@ class Screen:
         if cand.kind.profile == "step":
             cols = self._step(cand)[1]
         else:
-            cols = self._base[cand.name]
+            cols = self._smooth(cand)
         if cand.per_unit:
             carries = np.zeros(self.data.num_units, bool)
             carries[list(cand.carriers)] = True
@@ -325,7 +361,7 @@ class Screen:
 
     def _step(self, cand: Candidate):
         """Scan a step's onset in every unit (module docstring); cached."""
-        if cand.name in self._steps:
+        if self._steps.get(cand.name, (None, None))[1] is not None:
             return self._steps[cand.name]
         channel, idx = cand.kind.channel, channel_index(self.model, cand)
         if self.model.is_stateful and not cand.kind.is_sensor:
