@@ -57,7 +57,12 @@ from jaxcal.diagnosis.data.cleaning import drop_outliers
 from jaxcal.diagnosis.data.prepare import LoopData, prepare_data
 from jaxcal.diagnosis.fitting.discrepancy import Discrepancy, DiscrepancyConfig
 from jaxcal.diagnosis.fitting.fallback import fallback
-from jaxcal.diagnosis.fitting.identify import Identification, IdentifyConfig, identify
+from jaxcal.diagnosis.fitting.identify import (
+    Identification,
+    IdentifyConfig,
+    identify,
+    warm_starts,
+)
 from jaxcal.diagnosis.fitting.joint import FitResult, fit_model, raw_columns_of
 from jaxcal.diagnosis.fitting.ranking import effect_sizes
 from jaxcal.diagnosis.fitting.screen import init_from, spec_for
@@ -299,7 +304,11 @@ def _run(model, dataset, declared, cfg, clock: StageClock, *, sensors, units,
             basis = _noise_basis(model, data, declared, ident, null, cfg)
             if basis is None:
                 break
+            # the noise refit reads the basis's columns alone; the fits stay as the
+            # next pass's warm starts, which read their coefficients and end points
+            ident = ident._replace(fits=warm_starts(ident.fits))
             refit = _fit_noise(data, basis, given, cfg)
+            del basis
             if refit.num_sensors != data.num_sensors:
                 break
             if ident.winner is None and not _level_moved(data.noise, refit.noise):

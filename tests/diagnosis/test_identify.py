@@ -262,13 +262,17 @@ def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
 
 
 def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
-    engine, synthetic
+    engine, synthetic, monkeypatch
 ):
     """A static model's screen forms a candidate's columns when read and keeps the
     few read last; released before the refits, it makes them again (the declared
     ones, the candidates', a step's at its best onsets) to the bit. The fallback's
-    rescreen, which no noise pass follows, keeps no columns of the fits it slims."""
+    rescreen, which no noise pass follows, keeps no columns of the fits it slims, and
+    a next noise pass's warm starts keep none."""
+    import collections
+
     import jaxcal.diagnosis.fitting.identify as ident_mod
+    import jaxcal.diagnosis.kinds.linearization as linearization
     from jaxcal.diagnosis.data.prepare import prepare_data
     from jaxcal.diagnosis.fitting.joint import fit_model
     from jaxcal.diagnosis.fitting.screen import COLUMNS_KEPT, Screen, spec_for
@@ -308,3 +312,15 @@ def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
     assert losers
     assert all(bare.fits[n].evaluation.sig.cols is None for n in losers)
     assert all(kept.fits[n].evaluation.sig.cols is not None for n in losers)
+    # a next noise pass's warm starts: the fits without their columns start the
+    # same refits
+    lean = ident_mod.warm_starts(kept.fits)
+    assert all(f.evaluation.sig.cols is None for f in lean.values())
+    # each from no kept linearisation (a kept one near a point starts its solve)
+    monkeypatch.setattr(linearization, "_LINEARIZED", collections.OrderedDict())
+    full = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null,
+                              warm=dict(kept.fits))  # fmt: skip
+    monkeypatch.setattr(linearization, "_LINEARIZED", collections.OrderedDict())
+    again = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null,
+                               warm=lean)  # fmt: skip
+    assert [e.bic for e in again.ranking] == [e.bic for e in full.ranking]

@@ -251,6 +251,14 @@ def _slim(fit: FitResult, basis: bool = True) -> FitResult:
     return fit._replace(evaluation=slim)
 
 
+def warm_starts(fits: dict) -> dict:
+    """``fits`` (entry name -> fit) with only what a refit started where each ended
+    reads (:func:`~jaxcal.diagnosis.fitting.screen.warm_from`,
+    :func:`~jaxcal.diagnosis.fitting.joint.resume_at`): its terms, coefficients and
+    linearisation at its end point."""
+    return {name: _slim(fit, basis=False) for name, fit in fits.items()}
+
+
 def _winner(ranking, entries: dict, fits: dict, num_tests: int, cfg: IdentifyConfig):
     """The best refitted entry when it is significant (``bic_margin`` and the
     Bonferroni p-value), a pair only when it beats the best single by the margin;
