@@ -235,12 +235,12 @@ class _Refits:
 
 def _slim(fit: FitResult, basis: bool = True) -> FitResult:
     """``fit`` with only what the noise model's refit on it reads
-    (:func:`.pipeline._noise_basis`; with ``basis``): the residual, the entries used
-    and the raw signatures of the per-unit columns, and the model's linearisation at
-    its end point (its outputs and its own few derivatives: the next pass's refit
-    starts there, :meth:`_Refits._start`). The prewhitened columns, the outputs
-    and row inputs are a fleet's rows times their columns each; only its own fit
-    and the winner's verdicts read them."""
+    (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
+    signatures of the per-unit columns (not without ``basis``: no noise refit will
+    read it), and the model's linearisation at its end point (its outputs and its
+    own few derivatives: the next pass's refit starts there, :meth:`_Refits._start`).
+    The prewhitened columns, the outputs and row inputs are a fleet's rows times
+    their columns each; only its own fit and the winner's verdicts read them."""
     ev = fit.evaluation
     local = None
     if basis:
