@@ -130,6 +130,14 @@ def residual_fn(z, params):
     return cycle.balance(d, dp, w, theta, effects, z)[0]
 
 
+def balance_outputs(z, params):
+    """The balance's residuals, the sensor vector and whether the stations are
+    physical at ``z`` (:func:`~jaxcal.models.turbofan.physics.solver.solve_closed`)."""
+    d, dp, w, theta, effects = params
+    r, st = cycle.balance(d, dp, w, theta, effects, z)
+    return r, sensor_vector(d, st, w), physical(st)
+
+
 def default_solver_config(dtype) -> solver.SolverConfig:
     """F's Newton settings at a float precision: float32 cannot reach float64's
     tolerance, so it stops at 2e-5 and may take more iterations."""
@@ -194,14 +202,14 @@ def evaluate_design(
     ]
 
     def one(w1, th1, ef1, z01):
-        z, sinfo = solver.solve(residual_fn, z01, (d, dp, w1, th1, ef1), solver_cfg)
         # rolled thermo loops: unrolled is ~20 us faster here but moves x by ~1e-12
         # (not bit for bit), and F's bits are the paper's (the hinted path unrolls)
-        _, st = cycle.balance(d, dp, w1, th1, ef1, z)
-        x = sensor_vector(d, st, w1)
+        z, x, is_physical, sinfo = solver.solve_closed(
+            balance_outputs, z01, (d, dp, w1, th1, ef1), solver_cfg
+        )
         inside = in_envelope(envelope, w1, th1)
         closed = sinfo.residual_norm < accept
-        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & physical(st)
+        finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & is_physical
         info = EngineInfo(closed & finite & inside, sinfo.residual_norm,
                           sinfo.iterations, inside, z)  # fmt: skip
         return x, info
