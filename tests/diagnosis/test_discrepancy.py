@@ -117,7 +117,7 @@ def test_cross_validation_from_fold_products_is_each_fit_from_its_rows():
     folds = _folds(np.repeat(np.arange(12), 50), 5)
     ridges = (1e-6, 1e-2, 1.0)
 
-    def whiten(a):  # an AR(1)-like filter along rows, per output
+    def whiten(a, outputs=None):  # an AR(1)-like filter along rows, per output
         out = np.array(a, float)
         out[1:] -= 0.5 * np.asarray(a)[:-1]
         return out

@@ -121,12 +121,12 @@ def _folds(groups: np.ndarray, num_folds: int) -> np.ndarray:
     )
 
 
-def _cv_sse(z, y, folds, degree, ridges, whiten=None, designs=None) -> np.ndarray:
+def _cv_sse(z, y, folds, degree, ridges, whiten=None) -> np.ndarray:
     """``[R, S]`` cross-validated sums of squared errors, one row per strength of
     ``ridges`` (of the whitened rows when ``whiten`` is given: per-output designs,
     generalised least squares)."""
     sse = np.zeros((len(ridges), y.shape[1]))
-    design = designs if designs is not None else _designs(z, degree, y.shape[1], whiten)
+    design = _designs(z, degree, y.shape[1], whiten)
     yw = y if whiten is None else whiten(y)
     masks = [folds == f for f in np.unique(folds)]
     for s, phi in design:
@@ -147,13 +147,22 @@ def _cv_sse(z, y, folds, degree, ridges, whiten=None, designs=None) -> np.ndarra
 
 
 def _designs(z, degree, num_s, whiten):
-    """``[(output or None, design [N, F])]``: one shared design, or one whitened
-    design per output."""
-    phi = _monomials(z, degree)
+    """``(output or None, design [N, F])``: one shared design, or one whitened
+    design per output of ``whiten`` (``num_s`` of them), each made when read (a
+    fleet's rows times every output and monomial at once was the diagnosis's peak
+    of memory; each output is whitened on its own, so the same numbers)."""
     if whiten is None:
-        return [(None, phi)]
-    white = whiten(np.repeat(phi[:, None, :], num_s, axis=1))  # [N, S, F]
-    return [(s, white[:, s]) for s in range(num_s)]
+        yield None, _monomials(z, degree)
+        return
+    for s in range(num_s):
+        yield s, _design(z, degree, whiten if num_s == 1 else _one_output(whiten, s))
+
+
+def _design(z, degree, whiten):
+    """``[N, F]`` the monomials, whitened as the rows of ``whiten``'s one output
+    (``None``: as they are)."""
+    phi = _monomials(z, degree)
+    return phi if whiten is None else whiten(phi[:, None, :])[:, 0]
 
 
 def _standardised_inputs(w: np.ndarray):
@@ -229,17 +238,16 @@ def fit_discrepancy(
     folds = _folds(groups, cfg.folds)
     degrees = cfg.degrees if inputs else (0,)
     grid = [(d, r) for d in degrees for r in cfg.ridges]
-    designs = {d: _designs(z, d, resid.shape[1], whiten) for d in degrees}
     cv = np.concatenate(
-        [_cv_sse(z, resid, folds, d, cfg.ridges, whiten, designs[d]) for d in degrees]
+        [_cv_sse(z, resid, folds, d, cfg.ridges, whiten) for d in degrees]
     )  # [len(grid), S], the grid's order
     white = resid if whiten is None else whiten(resid)
     base = np.sum(white**2, axis=0)
     sensors, coefs = [], []
     for s, name in enumerate(sensor_names):
         d, r = grid[int(np.argmin(cv[:, s]))]
-        phi = dict(designs[d])[s if whiten else None]
-        coef, df = _ridge(phi, white[:, s], r)
+        one = None if whiten is None else _one_output(whiten, s)
+        coef, df = _ridge(_design(z, d, one), white[:, s], r)
         gain = float(base[s] - cv[:, s].min())
         threshold = cfg.margin + 3.0 * np.sqrt(2.0 * df)
         delta = _monomials(z, d) @ coef

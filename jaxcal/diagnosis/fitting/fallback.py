@@ -79,10 +79,11 @@ def _bic_with(fit: FitResult, disc: Discrepancy | None) -> float:
     return fit.bic + _delta_df(disc) * np.log(max(fit.num_resid, 2))
 
 
-def _fallback_note(options, chosen, ident, rescreen) -> str:
-    """What the fallback kept, and the BIC margins it decided by."""
-    bic = {id(o[4]): o[0] for o in options}
-    delta_alone = options[0][0]
+def _fallback_note(bics, chosen, ident, rescreen) -> str:
+    """What the fallback kept, and the BIC margins it decided by (``bics``: each
+    option's BIC and its screen, delta alone first with ``None``)."""
+    bic = {id(screen): value for value, screen in bics}
+    delta_alone = bics[0][0]
     if chosen is None:
         dropped = [s.winner.name for s in (ident, rescreen) if s.winner is not None]
         if not dropped:
@@ -121,13 +122,20 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
     # its fits are read by the noise passes alone, done by now: slimmed bare
     rescreen = identify(model, data, declared, library, cfg.identify, fit_d,
                         offset=offset, basis=False)._replace(fits={})  # fmt: skip
-    options = [(_bic_with(fit_d, disc), fit_d, offset, disc, None)]
+    # the options one by one, the best so far alone kept: a fit holds the fleet's
+    # rows several times over (the peak of the diagnosis's memory was three of them)
+    bics = [(_bic_with(fit_d, disc), None)]
+    kept = (fit_d, offset, disc, None)
+    del fit_d
     for screen in (ident, rescreen):
         if screen.winner is not None:
             spec = spec_for(declared, screen.winner.members, spec0.initial_state)
             fit_w, off_w, disc_w = _backfit(model, data, spec, screen.winner_fit, cfg)
-            options.append((_bic_with(fit_w, disc_w), fit_w, off_w, disc_w, screen))
-    _, best, offset, disc, chosen = min(options, key=lambda o: o[0])
+            bics.append((_bic_with(fit_w, disc_w), screen))
+            if bics[-1][0] < min(b for b, _ in bics[:-1]):  # ties: the first, as min
+                kept = (fit_w, off_w, disc_w, screen)
+            del fit_w, off_w, disc_w
+    best, offset, disc, chosen = kept
     # delta alone won: the rescreen's winner lost beside it and is not added (its
     # members are not in the chosen fit, so nothing of it can be reported per unit)
     final = (
@@ -135,5 +143,5 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
         if chosen is not None
         else rescreen._replace(winner=None, winner_fit=None, confounded=[])
     )
-    note = _fallback_note(options, chosen, ident, rescreen)
+    note = _fallback_note(bics, chosen, ident, rescreen)
     return best, offset, disc if disc.any_significant else None, final, rescreen, note
