@@ -98,6 +98,31 @@ def _residual_only(balance_fn):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 3))
+def _solved(fn, z0, params, cfg):
+    """:func:`_newton`'s ``z``, Jacobians, iterations and residual norm (floats), with
+    their own implicit tangents: the Jacobians' is traced only when a derivative is
+    differentiated again (reverse over forward, as a Hessian is)."""
+    z, info, jac = _newton(fn, z0, params, cfg)
+    return z, jac, info.iterations.astype(z.dtype), info.residual_norm
+
+
+@_solved.defjvp
+def _solved_jvp(fn, cfg, primals, tangents):
+    z0, params = primals
+    _, dparams = tangents
+    z, jac, iters, rmax = _solved(fn, z0, params, cfg)
+    _, (dr, _) = jax.jvp(lambda p: fn(z, p), (params,), (dparams,))
+    dz = -jnp.linalg.solve(jac[0], dr)
+
+    def jacobians(zz, p):
+        return jax.jacfwd(lambda q: fn(q, p))(zz)
+
+    _, djac = jax.jvp(jacobians, (z, params), (dz, dparams))
+    zero = jnp.zeros_like
+    return (z, jac, iters, rmax), (dz, djac, zero(iters), zero(rmax))
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 3))
 def _closed(balance_fn, z0, params, cfg):
     z, info, _ = _newton(_residual_only(balance_fn), z0, params, cfg)
     _, y, aux = balance_fn(z, params)
@@ -114,7 +139,9 @@ def _closed_jvp(balance_fn, cfg, primals, tangents):
     def outputs(z, p):
         return balance_fn(z, p)[:2]
 
-    z, info, (jac_r, jac_y) = _newton(outputs, jax.lax.stop_gradient(z0), params, cfg)
+    z, (jac_r, jac_y), iters, rmax = _solved(
+        outputs, jax.lax.stop_gradient(z0), params, cfg
+    )
 
     def at_solution(p):
         r, y, aux = balance_fn(z, p)
@@ -122,7 +149,6 @@ def _closed_jvp(balance_fn, cfg, primals, tangents):
 
     (_, y), (dr, dy), aux = jax.jvp(at_solution, (params,), (dparams,), has_aux=True)
     dz = -jnp.linalg.solve(jac_r, dr)
-    iters, rmax = info.iterations.astype(z.dtype), info.residual_norm
     no_tangent = jax.tree.map(lambda a: np.zeros(np.shape(a), jax.dtypes.float0), aux)
     zero = jnp.zeros_like
     return (z, y, aux, iters, rmax), (dz, dy + jac_y @ dz, no_tangent, zero(iters),

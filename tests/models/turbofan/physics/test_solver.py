@@ -41,3 +41,25 @@ def test_the_outputs_tangent_is_the_implicit_derivative_forward_and_reverse():
     jz = jax.jacfwd(lambda pp: solver.solve(lambda zz, a: zz**3 + zz - a,
                                             jnp.zeros(2), pp)[0])(p)  # fmt: skip
     np.testing.assert_allclose(jz, np.diag(dz_dp), rtol=1e-12)
+
+
+def test_a_derivative_differentiates_again_in_every_order():
+    """A Hessian through the solve, reverse over forward as well (the loop's Jacobians
+    carry their own implicit tangent): y0 = q sin(z0) with z0^3 + z0 = p0."""
+    p, q = 2.0, 0.7
+
+    def y0(v):
+        return _outputs((jnp.array([v[0], 10.0]), v[1]))[1][0]
+
+    z = float(_outputs((jnp.array([p, 10.0]), jnp.array(q)))[0][0])
+    z1 = 1.0 / (3.0 * z**2 + 1.0)  # dz/dp
+    z2 = -6.0 * z * z1**3  # d2z/dp2
+    want = np.array([
+        [q * (-np.sin(z) * z1**2 + np.cos(z) * z2), np.cos(z) * z1],
+        [np.cos(z) * z1, 0.0],
+    ])  # fmt: skip
+    v = jnp.array([p, q])
+    for hess in (jax.hessian, lambda f: jax.jacrev(jax.jacfwd(f)),
+                 lambda f: jax.jacfwd(jax.jacfwd(f))):  # fmt: skip
+        got = hess(y0)(v)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13)
