@@ -186,17 +186,8 @@ def solve_closed(
 def solve(
     residual_fn: Callable, z0, params, cfg: SolverConfig = SolverConfig()
 ) -> tuple[jnp.ndarray, SolveInfo]:
-    """Solve residual_fn(z, params) = 0 from z0; differentiable w.r.t. ``params``.
-
-    Args:
-        residual_fn: pure function (z [n], params pytree) -> residuals [n].
-        z0: [n] initial guess (no gradient flows through it).
-        params: pytree of arrays the solution depends on (differentiable).
-        cfg: static solver settings.
-
-    Returns:
-        (z [n], SolveInfo) with max |r| at the returned (last accepted) iterate.
-    """
+    """``(z [n], SolveInfo)``: :func:`solve_closed` of ``residual_fn(z, params) ->
+    residuals [n]`` with no outputs (differentiable w.r.t. ``params``)."""
 
     def balance_fn(z, p):
         return residual_fn(z, p), jnp.zeros((0,), z.dtype), ()
