@@ -131,9 +131,10 @@ def fallback(model, data: LoopData, declared, library, ident, null: FitResult, c
         if screen.winner is not None:
             spec = spec_for(declared, screen.winner.members, spec0.initial_state)
             fit_w, off_w, disc_w = _backfit(model, data, spec, screen.winner_fit, cfg)
-            bics.append((_bic_with(fit_w, disc_w), screen))
-            if bics[-1][0] < min(b for b, _ in bics[:-1]):  # ties: the first, as min
+            bic = _bic_with(fit_w, disc_w)
+            if bic < min(b for b, _ in bics):  # ties: the first, as min() chose
                 kept = (fit_w, off_w, disc_w, screen)
+            bics.append((bic, screen))
             del fit_w, off_w, disc_w
     best, offset, disc, chosen = kept
     # delta alone won: the rescreen's winner lost beside it and is not added (its

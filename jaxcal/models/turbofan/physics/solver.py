@@ -87,16 +87,6 @@ def _newton(fn, z0, params, cfg: SolverConfig):
     return z, SolveInfo(residual_norm=rmax, iterations=it), jac
 
 
-def _residual_only(balance_fn):
-    """``fn`` for :func:`_newton` without outputs: a solve that is not differentiated
-    forms no output derivative."""
-
-    def fn(z, params):
-        return balance_fn(z, params)[0], jnp.zeros((0,), z.dtype)
-
-    return fn
-
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 3))
 def _solved(fn, z0, params, cfg):
     """:func:`_newton`'s ``z``, Jacobians, iterations and residual norm (floats), with
@@ -124,7 +114,11 @@ def _solved_jvp(fn, cfg, primals, tangents):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 3))
 def _closed(balance_fn, z0, params, cfg):
-    z, info, _ = _newton(_residual_only(balance_fn), z0, params, cfg)
+    # not differentiated: the loop forms no output derivative (an empty y)
+    def residual(z, p):
+        return balance_fn(z, p)[0], jnp.zeros((0,), z.dtype)
+
+    z, info, _ = _newton(residual, z0, params, cfg)
     _, y, aux = balance_fn(z, params)
     # iteration count and residual norm travel as floats so that they can carry a
     # (zero) tangent; the norm is the one of the accepted iterate, computed in the loop
@@ -170,10 +164,8 @@ def solve_closed(
         cfg: static solver settings.
 
     Returns:
-        ``(z [n], y [m], aux, SolveInfo)`` at the returned (last accepted) iterate.
-        The tangent of ``y`` is ``dy/dp dp + dy/dz dz`` with ``dy/dz`` the one the
-        loop formed: one forward-mode program of the balance after the loop (for the
-        parameters), not three (``dr/dz`` again, the parameters', the outputs').
+        ``(z [n], y [m], aux, SolveInfo)`` at the returned (last accepted) iterate;
+        the tangent of ``y`` is ``dy/dp dp + dy/dz dz`` (module docstring).
     """
     z, y, aux, iters, rmax = _closed(balance_fn, z0, params, cfg)
     info = SolveInfo(
