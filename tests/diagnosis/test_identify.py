@@ -241,6 +241,7 @@ def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
         raw_columns_of,
     )
     from jaxcal.diagnosis.fitting.screen import spec_for
+    from jaxcal.diagnosis.kinds.signatures import signatures
     from jaxcal.diagnosis.residuals.noise import MAX_ORDER, NoiseModel
 
     syn = synthetic("sensor_bias", 0, "Ps30")
@@ -255,7 +256,10 @@ def test_a_finished_fit_releases_its_columns_and_makes_them_again_to_the_bit(
     assert fit.evaluation.cols is None and fit.evaluation.sig.cols is None
     again = evaluate_model(engine, data, fit.layout, fit.params)
     # the raw ones from the model's Jacobians at the fit's point (no evaluation)
-    np.testing.assert_array_equal(raw_columns_of(fit.evaluation), again.sig.cols)
+    made = signatures(engine, data, again.inputs, fit.layout.tangents).cols
+    assert again.sig.cols is None  # once whitened, the raw ones are not held
+    np.testing.assert_array_equal(raw_columns_of(fit.evaluation), made)
+    np.testing.assert_array_equal(raw_columns_of(again), made)
     remade = columns_of(fit.evaluation)
     assert remade.shape == again.cols.shape and np.abs(remade).max() > 0
     np.testing.assert_array_equal(remade, again.cols)
@@ -274,7 +278,7 @@ def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
     import jaxcal.diagnosis.fitting.identify as ident_mod
     import jaxcal.diagnosis.kinds.linearization as linearization
     from jaxcal.diagnosis.data.prepare import prepare_data
-    from jaxcal.diagnosis.fitting.joint import fit_model
+    from jaxcal.diagnosis.fitting.joint import fit_model, raw_columns_of
     from jaxcal.diagnosis.fitting.screen import COLUMNS_KEPT, Screen, spec_for
     from jaxcal.diagnosis.pipeline import LoopConfig, _library
 
@@ -310,12 +314,21 @@ def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
     assert [e.bic for e in bare.ranking] == [e.bic for e in kept.ranking]
     losers = [n for n in bare.fits if n != bare.winner.name]
     assert losers
-    assert all(bare.fits[n].evaluation.sig.cols is None for n in losers)
-    assert all(kept.fits[n].evaluation.sig.cols is not None for n in losers)
+    assert all(bare.fits[n].evaluation.sig.cols is None
+               and bare.fits[n].evaluation.remake is None for n in losers)  # fmt: skip
+    assert all(kept.fits[n].evaluation.sig.cols is None for n in losers)
+    # kept as the Jacobians: the per-unit columns made when read, to the bit
+    slim = ident_mod._slim(null, True, engine, data)
+    assert slim.evaluation.sig.cols is None and slim.evaluation.inputs is None
+    np.testing.assert_array_equal(
+        raw_columns_of(slim.evaluation),
+        raw_columns_of(null.evaluation)[:, :, : null.layout.num_local],
+    )
     # a next noise pass's warm starts: the fits without their columns start the
     # same refits
     lean = ident_mod.warm_starts(kept.fits)
-    assert all(f.evaluation.sig.cols is None for f in lean.values())
+    assert all(f.evaluation.sig.cols is None and f.evaluation.remake is None
+               for f in lean.values())  # fmt: skip
     # each from no kept linearisation (a kept one near a point starts its solve)
     monkeypatch.setattr(linearization, "_LINEARIZED", collections.OrderedDict())
     full = ident_mod.identify(engine, data, DECLARED, library, cfg.identify, null,

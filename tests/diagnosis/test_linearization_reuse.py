@@ -171,3 +171,28 @@ def test_a_model_without_a_warm_start_takes_every_derivative_in_one_program(
     asked = _programs(monkeypatch)
     lin = linearization.linearize(model, w, theta)
     assert len(asked) == 1 and lin.z is None
+
+
+def test_kept_row_inputs_hold_their_varying_columns_and_find_every_changed_row():
+    """A kept point's row inputs hold the columns equal on every row once; the rows
+    found changed are those where any bit differs (a signed zero, a NaN payload)."""
+    rng = np.random.default_rng(1)
+    old = np.zeros((50, 6))
+    old[:, 1] = 0.7  # constant: kept once
+    old[:, 3] = rng.standard_normal(50)  # varying
+    kept = linearization._Rows.of(old)
+    assert kept.varying.tolist() == [3] and kept.cols.shape == (50, 1)
+    new = old.copy()
+    new[4, 0] = -0.0  # a constant column, a sign bit
+    new[9, 3] = np.nextafter(new[9, 3], np.inf)  # a varying column, one ulp
+    new[20, 1] = np.nan
+    new[33, 5] = 1e-300
+    np.testing.assert_array_equal(
+        np.flatnonzero(linearization._changed_rows((kept,), (new,))), [4, 9, 20, 33]
+    )
+    assert not linearization._changed_rows((kept,), (old.copy(),)).any()
+    before = old.copy()
+    old[:] = 5.0  # the caller's array written after: the kept bits are a copy
+    assert not kept.changed(before).any()
+    empty = linearization._Rows.of(np.zeros((0, 3)))
+    assert linearization._changed_rows((empty,), (np.zeros((0, 3)),)).shape == (0,)

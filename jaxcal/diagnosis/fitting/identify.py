@@ -44,6 +44,7 @@ from jaxcal.diagnosis.data.prepare import LoopData
 from jaxcal.diagnosis.fitting.joint import (
     FitResult,
     fit_model,
+    local_remake,
     raw_columns_of,
     resume_at,
 )
@@ -229,25 +230,29 @@ class _Refits:
                 low = min(e.bic for e in group)
                 keep |= {e.name for e in group if e.bic == low}
         for name in set(self.fits) - keep - self.slimmed:
-            self.fits[name] = _slim(self.fits[name], self.basis)
+            self.fits[name] = _slim(self.fits[name], self.basis, self.model,
+                                     self.data)  # fmt: skip
             self.slimmed.add(name)
 
 
-def _slim(fit: FitResult, basis: bool = True) -> FitResult:
+def _slim(fit: FitResult, basis: bool = True, model=None, data=None) -> FitResult:
     """``fit`` with only what the noise model's refit on it reads
     (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
     signatures of the per-unit columns (not without ``basis``: no noise refit will
-    read it), and the model's linearisation at its end point (its outputs and its
-    own few derivatives: the next pass's refit starts there, :meth:`_Refits._start`).
-    The prewhitened columns, the outputs and row inputs are a fleet's rows times
-    their columns each; only its own fit and the winner's verdicts read them."""
+    read it; a static ``model``'s are made again from its Jacobians when read), and
+    the model's linearisation at its end point (its outputs and its own few
+    derivatives: the next pass's refit starts there, :meth:`_Refits._start`). The
+    prewhitened columns, the outputs and row inputs are a fleet's rows times their
+    columns each; only its own fit and the winner's verdicts read them."""
     ev = fit.evaluation
-    local = None
+    local, remake = None, None
     if basis:
-        local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # no view
+        remake = local_remake(model, data, fit)
+        if remake is None:
+            local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # copy
     sig = ev.sig._replace(y=None, x=None, cols=local)
     slim = ev._replace(yhat=None, white=None, theta=None, inputs=None, sig=sig,
-                       cols=None, whiten=None, remake=None)  # fmt: skip
+                       cols=None, whiten=None, remake=remake)  # fmt: skip
     return fit._replace(evaluation=slim)
 
 
@@ -378,7 +383,7 @@ def identify(
         onset_ci.update(refits.onset_ci.get(winner.name, {}))
     fits = {
         name: fit if (winner is not None and name == winner.name)
-        or name in refits.slimmed else _slim(fit, basis)
+        or name in refits.slimmed else _slim(fit, basis, model, data)
         for name, fit in fits.items()
     }  # fmt: skip
     return Identification(

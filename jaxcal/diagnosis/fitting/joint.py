@@ -89,7 +89,7 @@ class Evaluation(NamedTuple):
     cols: np.ndarray | None
     whiten: Callable | None = None  # the prewhitening ``cols`` were made with
     # a static model's raw signatures made again from its Jacobians (no model
-    # evaluation) once a finished fit has released ``sig.cols`` (:func:`raw_columns_of`)
+    # evaluation): its ``sig.cols`` are released once whitened (:func:`raw_columns_of`)
     remake: Callable | None = None
 
 
@@ -156,7 +156,12 @@ def evaluate_model(
         yhat, raw / data.noise_std, white, used, ok, ssr, inputs.theta, inputs, sig,
         None, data.whiten if columns else None, remake,
     )  # fmt: skip
-    return ev._replace(cols=columns_of(ev)) if columns else ev
+    if not columns:
+        return ev
+    ev = ev._replace(cols=columns_of(ev))  # always a new array (the whitening's)
+    if remake is not None:  # the raw ones are made again when read: not held twice
+        ev = ev._replace(sig=sig._replace(cols=None))
+    return ev
 
 
 def _remake(model, data, inputs, tangents, lin) -> np.ndarray:
@@ -164,6 +169,22 @@ def _remake(model, data, inputs, tangents, lin) -> np.ndarray:
     (the same operations as when they were first made: the same bits)."""
     return signatures(model, data, inputs, tangents, like=Signatures(None, None, None,
                       None, lin)).cols  # fmt: skip
+
+
+def local_remake(model: Model, data: LoopData, fit: FitResult) -> Callable | None:
+    """A static model's raw per-unit signatures ``[N, S, L]`` at ``fit``'s end point,
+    made again from its Jacobians when called (``None``: a model with memory). It
+    holds the coefficients, not the rows: a slimmed fit (:mod:`.identify`) is kept
+    for a noise refit that may never read it."""
+    lin = fit.evaluation.sig.lin
+    if lin is None:
+        return None
+    return functools.partial(_remake_local, model, data, fit.layout, fit.params, lin)
+
+
+def _remake_local(model, data, lay: Layout, params, lin) -> np.ndarray:
+    inputs = model_inputs(model, data, lay, params)  # the fit's own: the same bits
+    return _remake(model, data, inputs, lay.tangents[: lay.num_local], lin)
 
 
 def raw_columns_of(ev: Evaluation) -> np.ndarray | None:

@@ -207,7 +207,7 @@ def linearize(
     if start is None or not model.warm_size:
         start = np.full((n, model.warm_size), np.nan)  # the model's own start
     start = np.asarray(start, np.float64)
-    parts = []
+    jac = None
     for k, block in enumerate(blocks):
         program = _linearize_program(model, offset_idx, block.shape[0])
         x_k, jac_k, ok_k, z_k = evaluate_split(
@@ -222,8 +222,13 @@ def linearize(
             start = np.where(ok[:, None], z_k, np.nan)
         else:
             ok = ok & ok_k.astype(bool)
-        parts.append(jac_k)
-    jac = np.concatenate(parts, axis=2)
+        if len(blocks) == 1:
+            jac = jac_k
+        else:  # each bucket written in place: no second copy of the fleet's
+            if jac is None:
+                jac = np.empty(jac_k.shape[:2] + (width,), jac_k.dtype)
+            lo = k * DIRECTION_BUCKET
+            jac[:, :, lo : lo + block.shape[0]] = jac_k
     outputs = None if outputs is None else tuple(int(i) for i in outputs)
     z = start if model.warm_size else None
     if every:
@@ -242,12 +247,17 @@ def _evaluate_rows(program, basis, arrays, keep, n, first, last):
     dispatched ahead and read back in order (they run on JAX's threads while the
     host waits on the oldest)."""
 
-    def read(start, stop, out):
-        x, jac, ok, z = (np.asarray(a)[: stop - start] for a in out)
-        batch_progress(stop, n, "rows")
-        return x[:, keep], jac[:, keep], ok, z
+    out = []  # written in place as chunks are read: no second copy of the rows
 
-    parts, pending = [], collections.deque()
+    def read(start, stop, result):
+        x, jac, ok, z = (np.asarray(a)[: stop - start] for a in result)
+        batch_progress(stop, n, "rows")
+        for k, part in enumerate((x[:, keep], jac[:, keep], ok, z)):
+            if len(out) == k:
+                out.append(np.empty((last - first,) + part.shape[1:], part.dtype))
+            out[k][start - first : stop - first] = part
+
+    pending = collections.deque()
     for start in range(first, last, CHUNK_ROWS):
         stop = min(start + CHUNK_ROWS, last)
         take = np.concatenate(
@@ -256,9 +266,10 @@ def _evaluate_rows(program, basis, arrays, keep, n, first, last):
         w, theta, effects, w_offset, z0 = (a[take] for a in arrays)
         pending.append((start, stop, program(w, theta, effects, w_offset, basis, z0)))
         if len(pending) == CHUNKS_IN_FLIGHT:
-            parts.append(read(*pending.popleft()))
-    parts.extend(read(*p) for p in pending)
-    return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+            read(*pending.popleft())
+    while pending:
+        read(*pending.popleft())
+    return tuple(out)
 
 
 def _basis(model: Model, offset_idx: tuple, directions):
@@ -305,12 +316,40 @@ PIECED_SHARE = 0.5
 _LINEARIZED: collections.OrderedDict = collections.OrderedDict()
 
 
+class _Rows(NamedTuple):
+    """An ``[N, C]`` row input's bits, the columns equal on every row kept once (a
+    fleet's effects and offsets are mostly zero, its parameters mostly nominal)."""
+
+    first: np.ndarray  # [C] uint64: row 0
+    varying: np.ndarray  # [V] the columns that differ from row 0 somewhere
+    cols: np.ndarray  # [N, V] uint64: those columns
+
+    @classmethod
+    def of(cls, arr) -> _Rows:
+        bits = _bits(arr)
+        first = bits[0].copy() if len(bits) else np.zeros(bits.shape[1], np.uint64)
+        varying = np.flatnonzero(np.any(bits != first, axis=0))
+        return cls(first, varying, bits[:, varying])
+
+    def changed(self, arr) -> np.ndarray:
+        """``[N]`` bool: the rows where ``arr`` differs bitwise."""
+        bits = _bits(arr)
+        diff = bits != self.first
+        diff[:, self.varying] = bits[:, self.varying] != self.cols
+        return diff.any(axis=1)
+
+
+def _bits(arr) -> np.ndarray:
+    arr = np.ascontiguousarray(arr, np.float64)
+    return arr.reshape(len(arr), int(np.prod(arr.shape[1:]))).view(np.uint64)
+
+
 class _Kept(NamedTuple):
     """A kept linearisation and the row inputs it was taken at."""
 
     lin: Linearization
     w_digest: str
-    rows: tuple  # (theta, effects, w_offset) [N, ...], read-only
+    rows: tuple  # (theta, effects, w_offset) as _Rows
 
 
 def _digest(*arrays) -> str:
@@ -323,12 +362,11 @@ def _digest(*arrays) -> str:
 
 
 def _changed_rows(old: tuple, new: tuple) -> np.ndarray:
-    """``[N]`` bool: rows where any of the inputs differ bitwise."""
-    out = np.zeros(old[0].shape[0], bool)
-    for a, b in zip(old, new, strict=True):
-        a = np.ascontiguousarray(a, np.float64).view(np.uint64)
-        b = np.ascontiguousarray(b, np.float64).view(np.uint64)
-        out |= np.any(a != b, axis=1)
+    """``[N]`` bool: rows where any of the inputs ``new`` differ bitwise from the
+    kept ``old`` (:class:`_Rows`)."""
+    out = np.zeros(len(new[0]), bool)
+    for held, arr in zip(old, new, strict=True):
+        out |= held.changed(arr)
     return out
 
 
@@ -385,12 +423,9 @@ def _point(model, data, rows) -> tuple:
 
 
 def _keep(key, lin: Linearization, w_digest, rows) -> _Kept:
-    """Keep ``lin`` under ``key`` as the most recent point (a copy of ``rows``,
-    read-only), the least recent one dropped past :data:`LINEARIZATIONS_KEPT`."""
-    rows = tuple(np.array(a, np.float64) for a in rows)
-    for arr in rows:
-        arr.setflags(write=False)
-    entry = _Kept(lin, w_digest, rows)
+    """Keep ``lin`` under ``key`` as the most recent point (with the bits of
+    ``rows``), the least recent one dropped past :data:`LINEARIZATIONS_KEPT`."""
+    entry = _Kept(lin, w_digest, tuple(_Rows.of(a) for a in rows))
     _LINEARIZED[key] = entry
     _LINEARIZED.move_to_end(key)
     while len(_LINEARIZED) > LINEARIZATIONS_KEPT:

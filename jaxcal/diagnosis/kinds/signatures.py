@@ -119,16 +119,19 @@ def _static(model, data, inputs: RowInputs, tangents, lin=None, cover=()) -> Sig
             on_lin.append(t)
             k = offset_names.index(model.condition_names[tan.index])
             keys.append((tan.channel, int(tan.index), k))
-    if on_lin:
-        jac = lin.derivatives(keys)  # profile x derivative x gain, in that order
+    # derivative x profile x gain, in that order
+    if on_lin and len(on_lin) == len(tangents):  # every column at once
+        jac = lin.derivatives(keys)
         jac *= np.stack([np.asarray(tangents[t].profile, np.float64) for t in on_lin],
                         1)[:, None, :]  # fmt: skip
         jac *= gain[:, :, None]
-        if len(on_lin) == len(tangents):  # every column: no copy into zeros
-            return Signatures(y, x, lin.ok, jac, lin)
+        return Signatures(y, x, lin.ok, jac, lin)
     cols = np.zeros(x.shape + (len(tangents),))
-    if on_lin:
-        cols[:, :, on_lin] = jac
+    for t, key in zip(on_lin, keys, strict=True):  # in place: no second [N, S, T]
+        col = cols[:, :, t]
+        col[...] = lin.derivatives([key])[:, :, 0]
+        col *= np.asarray(tangents[t].profile, np.float64)[:, None]
+        col *= gain
     for t, tan in enumerate(tangents):
         if t not in on_lin:
             _layer_column(cols, t, tan, data, x)
