@@ -167,3 +167,30 @@ def return_freed_heap() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
+
+
+MMAP_THRESHOLD = 8 << 20  # bytes: an array this large gets a mapping of its own
+_M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
+
+
+def map_large_arrays(threshold: int = MMAP_THRESHOLD) -> bool:
+    """Allocate blocks of at least ``threshold`` bytes as mappings of their own,
+    given back to the system as they are freed (glibc's ``mallopt``; elsewhere
+    nothing is done and False returned).
+
+    glibc raises this threshold, up to 32 MB, each time a mapped block is freed, and
+    blocks below it come from the heap, which keeps the pages freed in the middle.
+    A fleet's arrays are a few MB each (NASA FD002's 53,759 rows by 14 outputs: 6
+    MB), made and dropped at every step of a fit, so the heap grows with them: the
+    whole FD002 diagnosis peaked at 1.92-1.93 GB resident with the moving threshold
+    and 1.81 GB at a fixed 8 MB, 9 s slower (``results/loop/profile.md`` round 15;
+    at 1 MB, 40 s slower: every array faulted in afresh). A process setting, so
+    called at a command line's entry (``python -m jaxcal.diagnose``); no number
+    moves."""
+    if threshold <= 0:
+        raise ValueError(f"map_large_arrays: threshold > 0 bytes, got {threshold}")
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(threshold)))

@@ -5,6 +5,8 @@ import stat
 import subprocess
 import sys
 
+import pytest
+
 PROBE = """
 import jax, jaxcal
 from jaxcal import cache
@@ -174,6 +176,44 @@ def test_a_kept_program_returns_the_heap_its_load_freed_once(tmp_path, monkeypat
     assert len(trims) == 1  # the first call of a signature only
     run(jnp.ones(4))
     assert len(trims) == 2
+
+
+_FREED = """
+import gc, sys
+import numpy as np
+from jaxcal.cache import map_large_arrays
+def rss():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS"):
+            return int(line.split()[1]) * 1024
+if sys.argv[1] == "fixed":
+    assert map_large_arrays(1 << 20)
+big = np.ones(30 << 17)  # 30 MB, mapped and freed: glibc's threshold rises to it
+del big
+arrays = [np.ones(4 << 17) for _ in range(40)]  # 4 MB each
+before = rss()
+del arrays[::2]  # holes in the heap, under its top
+gc.collect()
+print((before - rss()) / 1e6)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_large_arrays_mapped_apart_are_given_back_as_they_are_freed():
+    """After a large block is freed glibc serves blocks of a few MB from the heap,
+    which keeps the holes they leave; with a fixed threshold each is a mapping of
+    its own, given back at once (the diagnosis's command line sets it)."""
+    from jaxcal import cache
+
+    freed = {}
+    for mode in ("moving", "fixed"):
+        out = subprocess.run([sys.executable, "-c", _FREED, mode], capture_output=True,
+                             text=True, timeout=120)  # fmt: skip
+        assert out.returncode == 0, out.stderr
+        freed[mode] = float(out.stdout.split()[-1])
+    assert freed["fixed"] > 70 and freed["moving"] < 20, freed  # 20 arrays, 84 MB
+    with pytest.raises(ValueError, match="threshold"):
+        cache.map_large_arrays(0)
 
 
 def test_a_cluster_process_beyond_the_first_keeps_its_own_executable(

@@ -171,7 +171,7 @@ def run(cfg: DiagnoseConfig) -> dict:
     # light --help: imported after the arguments are checked (jaxcal.cli.args)
     import jax
 
-    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.cache import enable_compilation_cache, map_large_arrays
     from jaxcal.diagnosis.fitting.discrepancy import DiscrepancyConfig
     from jaxcal.diagnosis.fitting.identify import IdentifyConfig
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
@@ -187,6 +187,7 @@ def run(cfg: DiagnoseConfig) -> dict:
     out = check_output_path(output_dir(cfg), "out", folder=True)  # before the work
     enable_x64()
     enable_compilation_cache()
+    map_large_arrays()  # a fleet's arrays given back as they are freed (the peak)
     model = load(cfg.model_spec)
     model.parameter_index(cfg.calibrate)  # a bad name fails before the data is read
     data = load_data(cfg, model)
