@@ -183,8 +183,8 @@ def map_large_arrays(threshold: int = MMAP_THRESHOLD) -> bool:
     A fleet's arrays are a few MB each (NASA FD002's 53,759 rows by 14 outputs: 6
     MB), made and dropped at every step of a fit, so the heap grows with them: the
     whole FD002 diagnosis peaked at 1.92-1.93 GB resident with the moving threshold
-    and 1.81 GB at a fixed 8 MB, 9 s slower (``results/loop/profile.md`` round 15;
-    at 1 MB, 40 s slower: every array faulted in afresh). A process setting, so
+    and 1.80 GB at a fixed 8 MB, 10-20 s slower (``results/loop/profile.md`` round
+    15; at 1 MB, 40 s slower: every array faulted in afresh). A process setting, so
     called at a command line's entry (``python -m jaxcal.diagnose``); no number
     moves."""
     if threshold <= 0:
