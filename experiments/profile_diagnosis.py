@@ -127,13 +127,14 @@ def main(argv: list[str]) -> int:
     except ValueError as err:
         print(f"profile_diagnosis: {err}", file=sys.stderr)
         return 2
-    from jaxcal.cache import enable_compilation_cache
+    from jaxcal.cache import enable_compilation_cache, map_large_arrays
     from jaxcal.diagnosis.pipeline import LoopConfig, diagnose
     from jaxcal.models import load
     from jaxcal.precision import enable_x64
 
     enable_x64()
     enable_compilation_cache()
+    map_large_arrays()  # as the command line
     model = load("cmapss")
     data, declared, units, noise_std = _load(cfg, model)
     prof = cProfile.Profile() if cfg.profile else None
