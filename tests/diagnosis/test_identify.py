@@ -318,7 +318,7 @@ def test_a_static_screen_keeps_few_columns_and_makes_them_again_to_the_bit(
                and bare.fits[n].evaluation.remake is None for n in losers)  # fmt: skip
     assert all(kept.fits[n].evaluation.sig.cols is None for n in losers)
     # kept as the Jacobians: the per-unit columns made when read, to the bit
-    slim = ident_mod._slim(null, True, engine, data)
+    slim = ident_mod._slim(null, (engine, data))
     assert slim.evaluation.sig.cols is None and slim.evaluation.inputs is None
     np.testing.assert_array_equal(
         raw_columns_of(slim.evaluation),

@@ -230,24 +230,25 @@ class _Refits:
                 low = min(e.bic for e in group)
                 keep |= {e.name for e in group if e.bic == low}
         for name in set(self.fits) - keep - self.slimmed:
-            self.fits[name] = _slim(self.fits[name], self.basis, self.model,
-                                     self.data)  # fmt: skip
+            made = (self.model, self.data) if self.basis else None
+            self.fits[name] = _slim(self.fits[name], made)
             self.slimmed.add(name)
 
 
-def _slim(fit: FitResult, basis: bool = True, model=None, data=None) -> FitResult:
+def _slim(fit: FitResult, made: tuple | None) -> FitResult:
     """``fit`` with only what the noise model's refit on it reads
     (:func:`.pipeline._noise_basis`): the residual, the entries used and the raw
-    signatures of the per-unit columns (not without ``basis``: no noise refit will
-    read it; a static ``model``'s are made again from its Jacobians when read), and
-    the model's linearisation at its end point (its outputs and its own few
-    derivatives: the next pass's refit starts there, :meth:`_Refits._start`). The
-    prewhitened columns, the outputs and row inputs are a fleet's rows times their
-    columns each; only its own fit and the winner's verdicts read them."""
+    signatures of the per-unit columns (``made``: the model and data of the fit, a
+    static model's made again from its Jacobians when read; ``None``: no noise
+    refit will read them), and the model's linearisation at its end point (its
+    outputs and its own few derivatives: the next pass's refit starts there,
+    :meth:`_Refits._start`). The prewhitened columns, the outputs and row inputs
+    are a fleet's rows times their columns each; only its own fit and the winner's
+    verdicts read them."""
     ev = fit.evaluation
     local, remake = None, None
-    if basis:
-        remake = local_remake(model, data, fit)
+    if made is not None:
+        remake = local_remake(*made, fit)
         if remake is None:
             local = np.array(raw_columns_of(ev)[:, :, : fit.layout.num_local])  # copy
     sig = ev.sig._replace(y=None, x=None, cols=local)
@@ -261,7 +262,7 @@ def warm_starts(fits: dict) -> dict:
     reads (:func:`~jaxcal.diagnosis.fitting.screen.warm_from`,
     :func:`~jaxcal.diagnosis.fitting.joint.resume_at`): its terms, coefficients and
     linearisation at its end point."""
-    return {name: _slim(fit, basis=False) for name, fit in fits.items()}
+    return {name: _slim(fit, None) for name, fit in fits.items()}
 
 
 def _winner(ranking, entries: dict, fits: dict, num_tests: int, cfg: IdentifyConfig):
@@ -383,7 +384,7 @@ def identify(
         onset_ci.update(refits.onset_ci.get(winner.name, {}))
     fits = {
         name: fit if (winner is not None and name == winner.name)
-        or name in refits.slimmed else _slim(fit, basis, model, data)
+        or name in refits.slimmed else _slim(fit, (model, data) if basis else None)
         for name, fit in fits.items()
     }  # fmt: skip
     return Identification(
