@@ -146,10 +146,10 @@ def is_enabled() -> bool:
 
 
 @functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim``, or None elsewhere (musl, macOS: nothing to do)."""
+def _glibc(name: str) -> Callable | None:
+    """glibc's function ``name``, or None elsewhere (musl, macOS: nothing to do)."""
     try:
-        return ctypes.CDLL("libc.so.6").malloc_trim
+        return getattr(ctypes.CDLL("libc.so.6"), name)
     except (OSError, AttributeError):
         return None
 
@@ -164,7 +164,7 @@ def return_freed_heap() -> None:
     diagnosis: 2.97 GB peak before, 2.47 GB after). Called after a kept program's
     first call (:func:`jaxcal.calibrators.programs.on_disk.kept`); it moves no number (a
     trim at the end of each diagnosis stage as well gained 0.02 GB: not done)."""
-    trim = _malloc_trim()
+    trim = _glibc("malloc_trim")
     if trim is not None:
         trim(0)
 
@@ -189,8 +189,5 @@ def map_large_arrays(threshold: int = MMAP_THRESHOLD) -> bool:
     moves."""
     if threshold <= 0:
         raise ValueError(f"map_large_arrays: threshold > 0 bytes, got {threshold}")
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    return bool(mallopt(_M_MMAP_THRESHOLD, int(threshold)))
+    mallopt = _glibc("mallopt")
+    return mallopt is not None and bool(mallopt(_M_MMAP_THRESHOLD, int(threshold)))

@@ -340,8 +340,7 @@ class _Rows(NamedTuple):
 
 
 def _bits(arr) -> np.ndarray:
-    arr = np.ascontiguousarray(arr, np.float64)
-    return arr.reshape(len(arr), int(np.prod(arr.shape[1:]))).view(np.uint64)
+    return np.ascontiguousarray(arr, np.float64).view(np.uint64)
 
 
 class _Kept(NamedTuple):
