@@ -40,8 +40,10 @@ PUBLISHED = (
     ("deep network A (as quoted in issue 45)", 10.97, 16.81),
     ("deep network B (as quoted in issue 45)", 12.31, 12.55),
 )
-# The literature's piecewise-linear target caps the RUL at 125 cycles; the capped RMSE
-# is shown beside ours only to make the convention's effect visible.
+# The literature's piecewise-linear target caps the RUL at 125 cycles. Papers differ on
+# whether the test truth is capped too; both capped RMSEs are shown beside ours only to
+# make the convention's effect visible (NASA's truth reaches 145 cycles on FD001, 194
+# on FD002: 11 and 57 test units above the cap).
 LITERATURE_CAP = 125.0
 
 
@@ -81,8 +83,10 @@ def _run(cfg: PrognosisCmapssConfig, fd: str) -> dict:
     pred = result.prediction
     truth = read_truth(truth_path, pred.unit.size)
     scores = score(pred.rul, pred.rul_low, pred.rul_high, truth)
-    capped = np.minimum(pred.rul, LITERATURE_CAP) - truth
-    scores["rmse_capped_125"] = float(np.sqrt(np.mean(capped**2)))
+    capped = np.minimum(pred.rul, LITERATURE_CAP)
+    scores["rmse_capped_125"] = float(np.sqrt(np.mean((capped - truth) ** 2)))
+    both = capped - np.minimum(truth, LITERATURE_CAP)
+    scores["rmse_both_capped_125"] = float(np.sqrt(np.mean(both**2)))
     scores["seconds"] = seconds
     scores["drivers"] = {n: int(pred.driver.count(n)) for n in set(pred.driver)}
     write_prognosis(
@@ -128,9 +132,11 @@ def _readme(cfg: PrognosisCmapssConfig, rows: dict, argv: list[str]) -> str:
         row("90 % interval coverage", "coverage", "{:.2f}"),
         row("mean interval width (cycles)", "mean_width", "{:.0f}"),
         row("mean error (cycles, + late)", "mean_error", "{:+.2f}"),
+        row("RMSE, prediction capped at 125", "rmse_capped_125", "{:.2f}"),
         row(
-            "RMSE if capped at 125 (the literature's target convention)",
-            "rmse_capped_125",
+            "RMSE, prediction and truth capped at 125 (the piecewise-linear target; "
+            "not the goal's scoring)",
+            "rmse_both_capped_125",
             "{:.2f}",
         ),
         row("wall time, calibration included (s)", "seconds", "{:.0f}"),
