@@ -2,10 +2,11 @@
 (issue 41 item 2), on trained runs of any model.
 
     python experiments/bench_deploy.py runs=<run>[,<run>...] [rows=400] [units=100]
-        [sync=true] [out=results/bench/deploy.json]
+        [sync=true] [block=1] [out=results/bench/deploy.json]
 
 Per run, second calls (compiled), this machine's 2 cores, as ratios in one process
-(the two methods' calls interleaved, so that a shared machine's load falls on both):
+(the two methods' calls interleaved, so that a shared machine's load falls on both:
+row by row, or in blocks of ``block`` rows):
 
 * one stream: ``StreamingCalibrator.step`` (host numpy in and out, the guarded
   step) and the UKF's guarded step of :func:`jaxcal.calibrate` on the same
@@ -37,17 +38,23 @@ import time
 import numpy as np
 
 
-def _per_row(fns: dict, rows: int) -> dict:
-    """Each stream's cost per row, the streams' calls interleaved row by row so that
-    the machine's load falls on all of them alike (a shared, noisy machine)."""
+def _per_row(fns: dict, rows: int, block: int = 1) -> dict:
+    """Each stream's cost per row, the streams' calls interleaved so that the
+    machine's load falls on all of them alike (a shared, noisy machine): ``block``
+    rows of one stream, then ``block`` of the next. Row by row (``block=1``) a
+    large program's call also pays for the other's having evicted it from the
+    CPU's caches: the turbofan's policy step cost about twice its cost in blocks of
+    50 rows, which is closer to a deployed stream's (one program, row after row;
+    results/bench/stream_profile.md, round 6)."""
     for fn in fns.values():
         fn(0)  # compiled
     times = {name: np.empty(rows - 1) for name in fns}
-    for t in range(1, rows):
+    for start in range(1, rows, block):
         for name, fn in fns.items():
-            tic = time.perf_counter()
-            fn(t)
-            times[name][t - 1] = time.perf_counter() - tic
+            for t in range(start, min(start + block, rows)):
+                tic = time.perf_counter()
+                fn(t)
+                times[name][t - 1] = time.perf_counter() - tic
     return {
         name: {
             "median_us": 1e6 * float(np.median(ts)),
@@ -120,12 +127,15 @@ def compiled_ops(compiled_text: str) -> dict:
     return {"entry": len(bodies.get(entry, [])) + calls, "loops": loops}
 
 
-def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dict:
+def bench_run(
+    run: str, rows: int, units: int, data: tuple | None = None, block: int = 1
+) -> dict:
     """One run's costs (module docstring). ``data``: ``(w [units, rows, W], x [units,
     rows, S])`` rows to feed (the run's conditions and sensors, in their order)
     instead of the drawn ones: a model whose cost depends on the values (the
     turbofan's Newton solve converges in more or fewer iterations; a flagged row
-    skips the model) is timed on its own data."""
+    skips the model) is timed on its own data. ``block``: the one-stream calls
+    interleaved in blocks of this many rows (:func:`_per_row`)."""
     import jax
 
     from jaxcal.calibrators.guard import guarded_update, initial_carry, sample_reason
@@ -153,6 +163,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
             )
     w, x = w.astype(cal._dtype), x.astype(cal._dtype)
     out = {"run": run, "model": problem.model.name, "rows": rows, "units": units}
+    out["block"] = block
     out["synchronous"] = cal.synchronous
     out["rows_from"] = "drawn" if data is None else "given"
 
@@ -182,7 +193,7 @@ def bench_run(run: str, rows: int, units: int, data: tuple | None = None) -> dic
         ),
     }
     streams = {"policy_stream": lambda t: cal.step(w[0, t], x[0, t]), "ukf_stream": one}
-    out.update(_per_row(streams, rows))
+    out.update(_per_row(streams, rows, block))
     mask = np.ones(shape, bool)
     fleet_ukf = jax.jit(lambda w_, x_, m_: run_fleet(ukf, w_, x_, m_, check=check))
     fleets = {
@@ -214,6 +225,7 @@ class Options:
     rows: int = 400
     units: int = 100
     sync: bool = True
+    block: int = 1  # one-stream calls interleaved in blocks of this many rows
     out: str = ""
 
 
@@ -232,7 +244,7 @@ def main(argv: list[str]) -> int:
 
         synchronous_dispatch()  # before any JAX computation
     results = [
-        bench_run(r, int(opts["rows"]), int(opts["units"]))
+        bench_run(r, int(opts["rows"]), int(opts["units"]), block=int(opts["block"]))
         for r in opts["runs"].split(",")
     ]
     text = json.dumps(results, indent=1)

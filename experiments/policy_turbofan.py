@@ -4,7 +4,8 @@ per row against the UKF's, and what training gained over the start.
 
     python experiments/policy_turbofan.py [run=runs/cmapss_q41]
         [start=runs/cmapss_start41] [rows=1500] [settle=300] [sensor=] [bench_rows=200]
-        [bench_units=16] [sync=true] [out=results/policy_any_model/turbofan.json]
+        [bench_units=16] [bench_block=1] [sync=true]
+        [out=results/policy_any_model/turbofan.json]
 
 ``start``: the same training with ``budget.num_chunks=0`` (the untrained policy the
 run starts from: on the turbofan a randomly initialised actor, ``env.gauss_newton=
@@ -59,6 +60,7 @@ class Options:
     sensor: str = ""
     bench_rows: int = 200
     bench_units: int = 16
+    bench_block: int = 1  # the stream calls interleaved in blocks of this many rows
     sync: bool = True
     out: str = "results/policy_any_model/turbofan.json"
 
@@ -207,7 +209,11 @@ def score(opts: Options) -> dict:
             print(effect, label, f"{run.scores['theta_rmse']:.4g}", flush=True)
     w, x = bench_rows_of(suite.data.test, opts.bench_units, opts.bench_rows)
     result["deploy"] = bench_run(
-        opts.run, opts.bench_rows, opts.bench_units, data=(w, x)
+        opts.run,
+        opts.bench_rows,
+        opts.bench_units,
+        data=(w, x),
+        block=opts.bench_block,
     )
     return result
 

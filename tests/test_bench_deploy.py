@@ -1,4 +1,5 @@
-"""experiments/bench_deploy.py's kernel count of a compiled program."""
+"""experiments/bench_deploy.py's kernel count of a compiled program, and the order
+in which it interleaves the streams it times."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-from bench_deploy import compiled_ops  # noqa: E402
+from bench_deploy import _per_row, compiled_ops  # noqa: E402
 
 
 def _ops(fn, *args) -> dict:
@@ -43,3 +44,17 @@ def test_parameters_constants_and_tuples_are_not_kernels():
     # one fused kernel; its parameter, constant and result tuple are none
     ops = _ops(lambda a: jnp.sin(a) + 2.0, jnp.ones(3))
     assert ops == {"entry": 1, "loops": []}
+
+
+def test_streams_are_interleaved_in_blocks_and_each_sees_its_rows_in_order():
+    calls = []
+    fns = {name: (lambda t, name=name: calls.append((name, t))) for name in "ab"}
+    out = _per_row(fns, rows=8, block=3)
+    assert set(out) == {"a", "b"} and all(v["median_us"] >= 0 for v in out.values())
+    timed = calls[2:]  # after each stream's compiling call at row 0
+    assert [n for n, _ in timed] == list("aaabbbaaabbbab")
+    for name in "ab":
+        assert [t for n, t in timed if n == name] == list(range(1, 8))
+    calls.clear()
+    _per_row(fns, rows=4)  # row by row, the default
+    assert [n for n, _ in calls[2:]] == list("ababab")
