@@ -17,8 +17,8 @@ its band's coverage come from the run's own ``final.json`` as the scoring read i
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import os
 import sys
 
 EFFECTS = ("clean", "bias 3σ", "drift 4σ", "gain 3σ", "AR(1) 0.8")
@@ -76,28 +76,37 @@ def render(variants: dict[str, dict], commands: dict[str, str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The script's ``key=value`` options (module docstring)."""
+
+    variants: str = ""  # label:file.json,... (policy_turbofan.py's outputs)
+    commands: str = ""  # label:command;... (each variant's training command)
+    out: str = "results/policy_any_model/turbofan_effects"  # .json and .md
+
+
 def main(argv: list[str]) -> int:
-    opts = dict(a.split("=", 1) for a in argv)
+    from jaxcal.runs.atomic import write_atomic
+    from jaxcal.settings import parse_overrides
+
     try:
-        pairs = [p.split(":", 1) for p in opts["variants"].split(",")]
+        opts = parse_overrides(argv, Options())
+        pairs = [p.split(":", 1) for p in opts.variants.split(",") if p]
+        if not pairs or any(len(p) != 2 for p in pairs):
+            raise ValueError("variants=label:file.json,... is required")
         variants = {}
         for label, path in pairs:
             with open(path) as f:
                 variants[label] = json.load(f)
-    except (KeyError, ValueError, OSError) as err:
-        print(f"policy_turbofan_effects: {err} (variants=label:file.json,...)",
-              file=sys.stderr)  # fmt: skip
+    except (ValueError, OSError) as err:
+        print(f"policy_turbofan_effects: {err}", file=sys.stderr)
         return 2
-    commands = dict(
-        c.split(":", 1) for c in opts.get("commands", "").split(";") if ":" in c
-    )
-    out = opts.get("out", "results/policy_any_model/turbofan_effects")
-    from jaxcal.runs.atomic import write_atomic
+    commands = dict(c.split(":", 1) for c in opts.commands.split(";") if ":" in c)
+    out = opts.out
 
     keep = ("options", "training", "subset", "effect_output", "effect_sd",
             "theta_rmse", "theta_rmse_settled", "flagged")  # fmt: skip
     summary = {v: {k: d.get(k) for k in keep} for v, d in variants.items()}
-    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
     write_atomic(out + ".json", json.dumps(summary, indent=1) + "\n")
     write_atomic(out + ".md", render(variants, commands))
     print(render(variants, commands))
