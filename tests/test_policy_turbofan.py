@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-from policy_turbofan import bench_rows_of, windows, with_effect  # noqa: E402
+from policy_turbofan import (  # noqa: E402
+    TURBOFAN_EFFECTS,
+    bench_rows_of,
+    windows,
+    with_effect,
+)
 
 from jaxcal.data.padded import Padded  # noqa: E402
 
@@ -55,3 +60,16 @@ def test_bench_rows_spread_over_each_units_life():
     w, x = bench_rows_of(_units(), 4, 5)
     assert w.shape == (4, 5, 1) and x.shape == (4, 5, 2)
     assert x[:, 0, 0].tolist() == [0, 5, 100, 109]  # each unit's start and end
+
+
+def test_white_noise_is_an_ar1_of_coefficient_zero_at_the_declared_std():
+    assert TURBOFAN_EFFECTS["white 1σ"] == ("ar1", 0.0)
+    x = np.zeros((4, 4000, 2))
+    sd = np.array([0.5, 2.0])
+    e = with_effect(x, 0, sd, "ar1", 0.0, np.random.default_rng(1))
+    np.testing.assert_allclose(e.std(axis=(0, 1)), sd, rtol=0.03)
+    lag1 = np.mean(e[:, 1:] * e[:, :-1], axis=(0, 1)) / e.var(axis=(0, 1))
+    assert np.all(np.abs(lag1) < 0.03)
+    coloured = with_effect(x, 0, sd, "ar1", 0.8, np.random.default_rng(1))
+    lag1 = np.mean(coloured[:, 1:] * coloured[:, :-1]) / coloured.var()
+    assert abs(lag1 - 0.8) < 0.05
