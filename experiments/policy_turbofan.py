@@ -193,6 +193,8 @@ def score(opts: Options) -> dict:
         "theta_rmse_settled": {label: {} for label in METHODS},
         "theta_rmse_per_window": {label: {} for label in METHODS},
         "flagged": {label: {} for label in METHODS},
+        # the share of rows inside each method's 90 % band (None: no band)
+        "coverage90": {label: {} for label in METHODS},
         "seconds": {label: 0.0 for label in METHODS},
     }
     for effect, (kind, size) in TURBOFAN_EFFECTS.items():
@@ -211,6 +213,7 @@ def score(opts: Options) -> dict:
             per_window = run.scores["theta_rmse_per_unit"]
             result["theta_rmse_per_window"][label][effect] = per_window
             result["flagged"][label][effect] = run.scores.get("num_flagged", 0)
+            result["coverage90"][label][effect] = run.scores.get("coverage90")
             print(effect, label, f"{run.scores['theta_rmse']:.4g}", flush=True)
     w, x = bench_rows_of(suite.data.test, opts.bench_units, opts.bench_rows)
     result["deploy"] = bench_run(

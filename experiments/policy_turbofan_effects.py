@@ -59,6 +59,21 @@ def render(variants: dict[str, dict], commands: dict[str, str]) -> str:
             _row(v, d[name]["policy"], d[name]["UKF"]) for v, d in variants.items()
         ]
         lines.append("")
+    if all(d.get("coverage90") for d in variants.values()):
+        effects = list(first["coverage90"]["UKF"])
+        lines += [
+            "**90 % band coverage** (the share of the windows' rows inside each "
+            "method's band)",
+            "",
+            "| variant | " + " | ".join(effects) + " |",
+            "|---|" + "---|" * len(effects),
+        ]
+        bands = [("UKF", first["coverage90"]["UKF"])]
+        bands += [(v, d["coverage90"]["policy"]) for v, d in variants.items()]
+        for label, cov in bands:
+            cells = ["–" if cov[e] is None else f"{cov[e]:.3f}" for e in effects]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append("")
     lines += [
         "| variant | job s | chunks | kept chunk | test theta RMSE, every test row "
         "| 90 % band coverage |",
@@ -105,7 +120,7 @@ def main(argv: list[str]) -> int:
     out = opts.out
 
     keep = ("options", "training", "subset", "effect_output", "effect_sd",
-            "theta_rmse", "theta_rmse_settled", "flagged")  # fmt: skip
+            "theta_rmse", "theta_rmse_settled", "flagged", "coverage90")  # fmt: skip
     summary = {v: {k: d.get(k) for k in keep} for v, d in variants.items()}
     write_atomic(out + ".json", json.dumps(summary, indent=1) + "\n")
     write_atomic(out + ".md", render(variants, commands))
