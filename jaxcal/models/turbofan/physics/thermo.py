@@ -21,6 +21,9 @@ balance W_air h_air(T3) + Wf (h_ref + eta_b LHV) = (W_air + Wf) h_gas(T4) exact.
 
 from __future__ import annotations
 
+import functools
+import inspect
+
 import jax
 import jax.numpy as jnp
 
@@ -39,6 +42,30 @@ _TZ_REF = T_REF_K / 1000.0
 # kJ/kg per BTU/lbm is 2.326; kJ/(kg K) per BTU/(lbm R) is 4.1868.
 _KJKG_PER_BTULBM = 2.326
 NEWTON_ITERATIONS = 4
+
+
+def _traced_once(fn):
+    """``fn`` jitted, so that a trace reuses it: the engine calls these functions
+    hundreds of times per balance, and under ``vmap``, ``jvp`` and loops each inline
+    call was traced and batched afresh (about half of a turbofan program's trace
+    time). A literal ``far`` (0.0 for air) stays a Python number, which skips the
+    products polynomial at trace time (:func:`_is_air`); ``unroll`` is static too.
+    In float64, F, its Jacobians and the hinted stream keep their bits (XLA inlines
+    the calls); ``_poly`` stays inline: jitted on its own it moved F by ulps."""
+    signature = inspect.signature(fn)
+    names = [n for n in ("far", "unroll") if n in signature.parameters]
+    static = jax.jit(fn, static_argnames=names)
+    traced_far = jax.jit(fn, static_argnames=[n for n in names if n != "far"])
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        far = bound.arguments.get("far", 0.0)
+        jitted = static if isinstance(far, (int, float)) else traced_far
+        return jitted(**bound.arguments)
+
+    return call
 
 
 def _poly(coeffs, tz):
@@ -73,6 +100,7 @@ def _fuel_weight(far):
     return far / (1.0 + far)
 
 
+@_traced_once
 def cp(t_r, far=0.0):
     """Specific heat at constant pressure [BTU/(lbm degR)] at T [degR] and
     fuel-air ratio."""
@@ -83,6 +111,7 @@ def cp(t_r, far=0.0):
     return cp_kj / KJ_KG_K_PER_BTU_LBM_R
 
 
+@_traced_once
 def enthalpy(t_r, far=0.0):
     """Specific enthalpy [BTU/lbm] (air: from 0 K; products: matched to air
     at 298.15 K)."""
@@ -93,6 +122,7 @@ def enthalpy(t_r, far=0.0):
     return 1000.0 * h / _KJKG_PER_BTULBM
 
 
+@_traced_once
 def entropy_function(t_r, far=0.0):
     """phi(T) = int cp/T dT [BTU/(lbm degR)] (an additive constant is irrelevant)."""
     tz = _tz(t_r)
@@ -125,6 +155,7 @@ def _iterate(step, t0, unroll: bool):
     return t
 
 
+@_traced_once
 def temperature_from_enthalpy(h, far, t_guess, unroll: bool = False):
     """Invert h(T, far) = h by fixed Newton iterations from ``t_guess`` [degR]."""
 
@@ -134,6 +165,7 @@ def temperature_from_enthalpy(h, far, t_guess, unroll: bool = False):
     return _iterate(step, t_guess, unroll)
 
 
+@_traced_once
 def isentropic_temperature(t_in, pr, far, t_guess, unroll: bool = False):
     """T_s with phi(T_s) = phi(T_in) + R ln(PR) (PR = P_out/P_in; < 1 for expansion)."""
     target = entropy_function(t_in, far) + R_AIR_BTU * jnp.log(pr)
@@ -144,6 +176,7 @@ def isentropic_temperature(t_in, pr, far, t_guess, unroll: bool = False):
     return _iterate(step, t_guess, unroll)
 
 
+@_traced_once
 def compress(t_in, pr, eta, far=0.0, unroll: bool = False):
     """Adiabatic compression: exit temperature [degR] and specific work [BTU/lbm].
 
@@ -159,6 +192,7 @@ def compress(t_in, pr, eta, far=0.0, unroll: bool = False):
     return t_out, dh
 
 
+@_traced_once
 def expand(t_in, pr, eta, far, unroll: bool = False):
     """Adiabatic expansion by PR = P_in/P_out > 1: exit temperature and specific work.
 

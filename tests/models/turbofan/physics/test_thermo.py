@@ -46,3 +46,23 @@ def test_compression_and_expansion_work_balance():
     t_c, _ = thermo.compress(518.67, 20.0, 1.0)
     t_e, _ = thermo.expand(t_c, 20.0, 1.0, 0.0)
     assert float(t_e) == pytest.approx(518.67, rel=1e-10)
+
+
+def test_jitted_properties_keep_the_engines_bits(monkeypatch, cmapss):
+    # the properties are nested jits (so that a trace reuses them); the engine's F
+    # must be the inline functions' to the bit, F's bits being the paper's (jitting
+    # ``_poly`` as well moved F by ~2e-14 relative, which this catches)
+    w = np.array([[10000.0, 0.4, 80.0, 540.0], [30000.0, 0.8, 95.0, 480.0]])
+    theta = np.full((2, 10), -0.004)
+
+    def run():
+        return np.asarray(
+            jax.jit(jax.vmap(lambda w, th: cmapss.evaluate(w, th)[0]))(w, theta)
+        )
+
+    jitted = run()
+    for name in ("cp", "enthalpy", "entropy_function", "temperature_from_enthalpy",
+                 "isentropic_temperature", "compress", "expand"):  # fmt: skip
+        monkeypatch.setattr(thermo, name, getattr(thermo, name).__wrapped__)
+    inline = run()
+    np.testing.assert_array_equal(jitted, inline)
